@@ -1,0 +1,90 @@
+"""Find a libLLVM that Dr.Jit can JIT with, and pick the Mitsuba variant to use.
+
+Mitsuba's ``llvm_*`` variants compile through Dr.Jit, which loads libLLVM at run time. LLVM 15
+(Debian 12's default) aborts with ``LLVM ERROR: Cannot select ... fminimum``; LLVM 16 and newer
+work. Dr.Jit reads ``DRJIT_LIBLLVM_PATH`` when its LLVM backend starts, so :func:`configure_drjit`
+must run before Mitsuba is first used: ``import warptex`` does that.
+
+Run as a script (``python warptex/_llvm.py``) it prints the library found and exits 1 when there
+is none; the Makefile uses that to decide whether to install ``libllvm19``, before the project's
+dependencies exist, which is why this module imports only the standard library at top level.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import warnings
+from pathlib import Path
+
+MIN_LLVM_MAJOR = 16
+_ENV = "DRJIT_LIBLLVM_PATH"
+_SEARCH_DIRS = (
+    "/usr/lib/x86_64-linux-gnu",
+    "/usr/lib/aarch64-linux-gnu",
+    "/usr/lib64",
+    "/usr/lib",
+    "/usr/local/lib",
+)
+# Debian ships both spellings: libLLVM.so.19.1 (llvm >= 18) and libLLVM-17.so.1 (older).
+_NAME = re.compile(r"^libLLVM(?:-(\d+)(?:\.\d+)*\.so(?:\.\d+)*|\.so\.(\d+)(?:\.\d+)*)$")
+
+
+def _major(path: str | Path) -> int | None:
+    match = _NAME.match(Path(path).name)
+    if match is None:
+        return None
+    return int(match.group(1) or match.group(2))
+
+
+def find_libllvm() -> Path | None:
+    """Return the newest libLLVM with major version >= 16 on this machine, or None."""
+    found: list[tuple[int, str, Path]] = []
+    for directory in _SEARCH_DIRS:
+        for candidate in Path(directory).glob("libLLVM*.so*"):
+            major = _major(candidate)
+            if major is not None and major >= MIN_LLVM_MAJOR and candidate.is_file():
+                found.append((major, candidate.name, candidate))
+    return max(found)[2] if found else None
+
+
+def configure_drjit() -> Path | None:
+    """Point ``DRJIT_LIBLLVM_PATH`` at a suitable libLLVM unless the user already set it.
+
+    Returns the library Dr.Jit will use, or None when no suitable one is known.
+    """
+    preset = os.environ.get(_ENV)
+    if preset:
+        major = _major(preset)
+        # A user's choice is trusted unless its name says it is too old.
+        return None if major is not None and major < MIN_LLVM_MAJOR else Path(preset)
+    library = find_libllvm()
+    if library is not None:
+        os.environ[_ENV] = str(library)
+    return library
+
+
+def best_mitsuba_variant() -> str:
+    """Return ``"llvm_ad_rgb"`` when a suitable LLVM and that variant exist, else ``"scalar_rgb"``.
+
+    The fallback is announced with one warning, since scalar rendering is far slower.
+    """
+    import mitsuba as mi
+
+    library = configure_drjit()
+    if library is not None and "llvm_ad_rgb" in mi.variants():
+        return "llvm_ad_rgb"
+    reason = (
+        f"no libLLVM >= {MIN_LLVM_MAJOR} found (install libllvm19 or set {_ENV})"
+        if library is None
+        else "this Mitsuba build has no llvm_ad_rgb variant"
+    )
+    warnings.warn(f"warptex: Mitsuba falls back to scalar_rgb: {reason}", stacklevel=2)
+    return "scalar_rgb"
+
+
+if __name__ == "__main__":
+    _library = find_libllvm()
+    print(_library if _library is not None else f"no libLLVM >= {MIN_LLVM_MAJOR} found")
+    sys.exit(0 if _library is not None else 1)

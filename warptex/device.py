@@ -1,0 +1,50 @@
+"""Choice of the Warp device that synthesis runs on, and one-time quiet Warp start-up."""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import warp as wp
+
+_ENV = "WARPTEX_DEVICE"
+_CHOICES = ("cpu", "cuda")
+
+
+@functools.cache
+def init_warp() -> None:
+    """Initialise Warp once, without its start-up banner.
+
+    The kernel cache goes to ``WARP_CACHE_PATH`` when that is set, so tests and CI can keep
+    compiled kernels in a known project-local folder.
+    """
+    cache = os.environ.get("WARP_CACHE_PATH")
+    if cache and wp.config.kernel_cache_dir is None:
+        wp.config.kernel_cache_dir = cache
+    # Warp replaced ``config.quiet`` with ``config.log_level`` in 1.10; honour both.
+    if hasattr(wp.config, "log_level"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:
+        wp.config.quiet = True
+    wp.init()
+
+
+def device() -> str:
+    """Return ``"cuda"`` when Warp sees a GPU, else ``"cpu"``; ``WARPTEX_DEVICE`` overrides.
+
+    Raises:
+        ValueError: ``WARPTEX_DEVICE`` is set to something other than ``cpu`` or ``cuda``.
+        RuntimeError: ``WARPTEX_DEVICE=cuda`` but Warp sees no CUDA device.
+    """
+    requested = os.environ.get(_ENV, "").strip().lower()
+    if requested and requested not in _CHOICES:
+        raise ValueError(
+            f"{_ENV}={os.environ[_ENV]!r} is not valid; use one of: {', '.join(_CHOICES)}"
+        )
+    if requested == "cpu":
+        return "cpu"
+    init_warp()
+    has_gpu = wp.get_cuda_device_count() > 0
+    if requested == "cuda" and not has_gpu:
+        raise RuntimeError(f"{_ENV}=cuda but Warp sees no CUDA device")
+    return "cuda" if has_gpu else "cpu"
