@@ -1,0 +1,415 @@
+"""2D exemplars: loading, validation, feature distance and the Gaussian pyramid.
+
+Lazy solid synthesis (Dong et al. 2008, §3) matches neighbourhoods level by level on a Gaussian
+pyramid of the exemplar, so an :class:`Exemplar` holds two views of the same pixels: ``colors``,
+the channels a texture lookup returns, and ``features``, the channels neighbourhoods are compared
+on. ``features`` equals ``colors`` unless a feature-distance channel is added (Lefebvre & Hoppe
+2006; Kopf et al. 2007, §6; Dong et al. 2008, §6): a signed distance to the edges of the image's
+features that helps matching keep structures such as veins or cells intact. It is appended as
+the last feature channel and never returned as color.
+
+Values are float32. 8- and 16-bit images are scaled linearly to [0, 1] (value / 255 or
+value / 65535) with no sRGB decoding, so a texture reproduces the stored values; float images
+(OpenEXR, ``.npy``, float arrays) are kept as stored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import png
+from PIL import Image, UnidentifiedImageError
+from scipy import ndimage
+
+MIN_SIZE = 16
+MAX_CHANNELS = 64
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+_NPY_MAGIC = b"\x93NUMPY"
+_REC709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+# sigma of the blur applied before each 2x decimation; 1 pixel suppresses aliasing while keeping
+# the coarse levels close to the fine ones.
+_PYRAMID_SIGMA = 1.0
+
+
+class ExemplarError(ValueError):
+    """An exemplar could not be used; the message names the file (or ``array``) and the problem."""
+
+
+@dataclass(frozen=True)
+class PyramidLevel:
+    """One level of an exemplar pyramid.
+
+    Attributes:
+        colors: ``(h, w, C)`` float32, the output channels.
+        features: ``(h, w, F)`` float32, the matching channels: ``colors`` plus, if enabled, the
+            feature-distance channel last.
+    """
+
+    colors: np.ndarray
+    features: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(h, w)`` of this level."""
+        return self.colors.shape[0], self.colors.shape[1]
+
+
+class Exemplar:
+    """A validated 2D exemplar image with any number of channels.
+
+    Args:
+        array: ``(H, W)`` or ``(H, W, C)`` array. ``uint8``/``uint16`` are scaled to [0, 1],
+            ``bool`` becomes 0/1, float data is kept as stored.
+        name: what error messages and ``warptex info`` call it.
+        feature_distance: optional ``(H, W)`` feature-distance channel appended to ``features``;
+            see :func:`feature_distance_from_mask`.
+
+    Raises:
+        ExemplarError: the array cannot serve as an exemplar (see :meth:`load`).
+    """
+
+    def __init__(
+        self,
+        array: np.ndarray,
+        *,
+        name: str = "array",
+        feature_distance: np.ndarray | None = None,
+    ) -> None:
+        self.name = name
+        self.path: Path | None = None
+        self.colors = _validated_colors(array, name)
+        if feature_distance is None:
+            self.features = self.colors
+        else:
+            distance = _validated_distance(feature_distance, self.colors.shape[:2], name)
+            self.features = np.concatenate([self.colors, distance[..., None]], axis=2)
+            self.features.setflags(write=False)
+        if np.all(self.colors == self.colors[:1, :1]):
+            warnings.warn(f"{name}: image is constant; nothing to synthesize", stacklevel=2)
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        *,
+        alpha: str = "drop",
+        feature_mask: str | Path | None = None,
+        feature_distance: bool | str = False,
+    ) -> Exemplar:
+        """Load an exemplar from PNG, JPEG (or another Pillow format), OpenEXR or ``.npy``.
+
+        The format is told from the file's content, not its name.
+
+        Args:
+            path: the image file.
+            alpha: ``"drop"`` removes an alpha channel with a warning, ``"keep"`` keeps it as the
+                last color channel.
+            feature_mask: binary image of the same size; nonzero pixels are "feature". Adds the
+                feature-distance channel computed from it.
+            feature_distance: ``"auto"`` (or True) adds a feature-distance channel from an
+                automatic (Otsu) threshold of the luminance when no ``feature_mask`` is given.
+
+        Raises:
+            ExemplarError: missing or unreadable file, not an image, fewer than 16x16 pixels,
+                NaN/Inf values, zero or more than 64 channels, or an unusable feature mask.
+        """
+        if alpha not in ("drop", "keep"):
+            raise ValueError(f"alpha must be 'drop' or 'keep', not {alpha!r}")
+        if feature_distance not in (False, True, "auto"):
+            raise ValueError(
+                f"feature_distance must be False, True or 'auto', not {feature_distance!r}"
+            )
+        if feature_mask is not None and feature_distance == "auto":
+            raise ValueError("give either feature_mask or feature_distance='auto', not both")
+
+        path = Path(path)
+        array, has_alpha = _read(path)
+        if has_alpha and alpha == "drop":
+            warnings.warn(
+                f"{path.name}: alpha channel dropped (load with alpha='keep' to keep it)",
+                stacklevel=2,
+            )
+            array = array[..., :-1]
+
+        distance = None
+        if feature_mask is not None:
+            mask_path = Path(feature_mask)
+            mask_image, _ = _read(mask_path)
+            mask = _binary_mask(mask_image, mask_path.name)
+            if mask.shape != array.shape[:2]:
+                raise ExemplarError(
+                    f"{mask_path.name}: feature mask is {_size(mask.shape)} pixels but "
+                    f"{path.name} is {_size(array.shape)}"
+                )
+            distance = feature_distance_from_mask(mask, name=mask_path.name)
+        elif feature_distance:
+            colors = _validated_colors(array, path.name)
+            distance = feature_distance_from_mask(otsu_mask(colors), name=path.name)
+
+        exemplar = cls(array, name=path.name, feature_distance=distance)
+        exemplar.path = path.resolve()
+        return exemplar
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` in pixels."""
+        return self.colors.shape[0], self.colors.shape[1]
+
+    @property
+    def channels(self) -> int:
+        """Number of color channels ``C`` (feature channels may be one more)."""
+        return self.colors.shape[2]
+
+    def pyramid(self, min_size: int = 8) -> list[PyramidLevel]:
+        """Gaussian pyramid, coarsest level first and the exemplar itself last.
+
+        Each coarser level blurs the finer one with wrap-around borders (exemplars tile, §3) and
+        keeps every second pixel, so an ``h x w`` level becomes ``ceil(h/2) x ceil(w/2)``. The
+        pyramid stops at the first level whose larger side is at most ``min_size``.
+        """
+        if min_size < 1:
+            raise ValueError(f"min_size must be at least 1, not {min_size}")
+        levels = [PyramidLevel(self.colors, self.features)]
+        while max(levels[-1].shape) > min_size:
+            finer = levels[-1]
+            colors = _downsample(finer.colors)
+            features = colors if finer.features is finer.colors else _downsample(finer.features)
+            levels.append(PyramidLevel(colors, features))
+        return levels[::-1]
+
+    def digest(self) -> str:
+        """SHA-256 hex digest of the content (shapes, dtype, colors, features), not of the path."""
+        sha = hashlib.sha256(b"warptex-exemplar-v1")
+        for array in (self.colors, self.features):
+            sha.update(repr((array.shape, array.dtype.str)).encode())
+            sha.update(np.ascontiguousarray(array).tobytes())
+        return sha.hexdigest()
+
+    def __repr__(self) -> str:
+        h, w = self.shape
+        extra = self.features.shape[2] - self.channels
+        return (
+            f"Exemplar({self.name!r}, {w}x{h}, channels={self.channels}"
+            f"{', feature_distance=True' if extra else ''})"
+        )
+
+
+def feature_distance_from_mask(mask: np.ndarray, *, name: str = "mask") -> np.ndarray:
+    """Signed distance to the edges of a binary feature mask, mapped to [0, 1].
+
+    Distances are measured between pixel centres with a half-pixel offset, so the two pixels
+    either side of an edge sit at +-0.5; they are then divided by the largest magnitude and
+    mapped to [0, 1]: 0.5 is the edge, above it inside features, below outside.
+
+    Raises:
+        ExemplarError: the mask has no edge (all pixels on one side).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    if mask.all() or not mask.any():
+        raise ExemplarError(f"{name}: feature mask has no edges (all pixels on one side)")
+    inside = ndimage.distance_transform_edt(mask)
+    outside = ndimage.distance_transform_edt(~mask)
+    signed = np.where(mask, inside - 0.5, 0.5 - outside)
+    return (0.5 + 0.5 * signed / np.abs(signed).max()).astype(np.float32)
+
+
+def otsu_mask(colors: np.ndarray) -> np.ndarray:
+    """Binary feature mask from Otsu's threshold on the luminance of ``(H, W, C)`` colors.
+
+    Luminance is Rec. 709 of the first three channels when there are at least three, else the
+    first channel.
+    """
+    luminance = colors[..., :3] @ _REC709 if colors.shape[2] >= 3 else colors[..., 0]
+    counts, edges = np.histogram(luminance, bins=256)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    weight_low = np.cumsum(counts)
+    weight_high = weight_low[-1] - weight_low
+    sum_low = np.cumsum(counts * centres)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean_low = sum_low / weight_low
+        mean_high = (sum_low[-1] - sum_low) / weight_high
+        between = weight_low * weight_high * (mean_low - mean_high) ** 2
+    threshold = centres[np.nanargmax(np.nan_to_num(between, nan=-1.0))]
+    return luminance > threshold
+
+
+def _size(shape: tuple[int, ...]) -> str:
+    return f"{shape[1]}x{shape[0]}"
+
+
+def _downsample(image: np.ndarray) -> np.ndarray:
+    blurred = ndimage.gaussian_filter(image, sigma=(_PYRAMID_SIGMA, _PYRAMID_SIGMA, 0), mode="wrap")
+    level = np.ascontiguousarray(blurred[::2, ::2])
+    level.setflags(write=False)
+    return level
+
+
+def _validated_colors(array: object, name: str) -> np.ndarray:
+    try:
+        data = np.asarray(array)
+    except (TypeError, ValueError) as error:
+        raise ExemplarError(f"{name}: not an image array ({error})") from None
+    if data.ndim == 2:
+        data = data[..., None]
+    if data.ndim != 3:
+        raise ExemplarError(
+            f"{name}: expected an (H, W) or (H, W, C) array, got shape {data.shape}"
+        )
+    if data.shape[2] == 0:
+        raise ExemplarError(f"{name}: image has zero channels")
+    if data.shape[2] > MAX_CHANNELS:
+        raise ExemplarError(
+            f"{name}: image has {data.shape[2]} channels; at most {MAX_CHANNELS} are supported"
+        )
+    if data.shape[0] < MIN_SIZE or data.shape[1] < MIN_SIZE:
+        raise ExemplarError(
+            f"{name}: image is {_size(data.shape)} pixels; at least {MIN_SIZE}x{MIN_SIZE} needed"
+        )
+    colors = _to_float32(data, name)
+    if not np.isfinite(colors).all():
+        raise ExemplarError(f"{name}: image contains NaN or Inf values")
+    colors.setflags(write=False)
+    return colors
+
+
+def _to_float32(data: np.ndarray, name: str) -> np.ndarray:
+    if data.dtype == np.uint8:
+        return data.astype(np.float32) / np.float32(255)
+    if data.dtype == np.uint16:
+        return data.astype(np.float32) / np.float32(65535)
+    if data.dtype == np.bool_:
+        return data.astype(np.float32)
+    if np.issubdtype(data.dtype, np.floating):
+        with np.errstate(over="ignore"):  # overflow becomes Inf, reported by the caller
+            return np.array(data, dtype=np.float32)
+    raise ExemplarError(f"{name}: unsupported data type {data.dtype}; use float, uint8 or uint16")
+
+
+def _validated_distance(distance: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:
+    data = np.asarray(distance, dtype=np.float32)
+    if data.ndim == 3 and data.shape[2] == 1:
+        data = data[..., 0]
+    if data.shape != shape:
+        raise ExemplarError(f"{name}: feature distance has shape {data.shape}, expected {shape}")
+    if not np.isfinite(data).all():
+        raise ExemplarError(f"{name}: feature distance contains NaN or Inf values")
+    return data
+
+
+def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:
+    if image.ndim == 3:
+        image = image[..., 0]
+    if image.dtype == np.bool_:
+        return image
+    values = _to_float32(image, name)
+    return values > 0.5 * values.max() if values.max() > 0 else values > 0
+
+
+def _read(path: Path) -> tuple[np.ndarray, bool]:
+    """Read an image file as ``(H, W[, C])`` in its stored dtype, and whether it has alpha."""
+    if not path.exists():
+        raise ExemplarError(f"{path}: file not found")
+    if path.is_dir():
+        raise ExemplarError(f"{path}: is a directory, not an image")
+    try:
+        with path.open("rb") as file:
+            head = file.read(8)
+    except OSError as error:
+        raise ExemplarError(f"{path}: cannot read file ({error.strerror})") from None
+    if head.startswith(_PNG_MAGIC):
+        return _read_png(path)
+    if head.startswith(_EXR_MAGIC):
+        return _read_exr(path)
+    if head.startswith(_NPY_MAGIC):
+        return _read_npy(path)
+    return _read_pillow(path)
+
+
+def _read_png(path: Path) -> tuple[np.ndarray, bool]:
+    # pypng rather than Pillow: Pillow reduces 16-bit RGB(A) PNGs to 8 bits.
+    try:
+        width, height, rows, info = png.Reader(filename=str(path)).asDirect()
+        pixels = np.vstack([np.asarray(row) for row in rows])
+    except (png.Error, OSError, ValueError) as error:
+        raise ExemplarError(f"{path}: unreadable PNG ({error})") from None
+    planes = info["planes"]
+    pixels = pixels.reshape(height, width, planes)
+    bitdepth = info["bitdepth"]
+    if bitdepth == 16:
+        pixels = pixels.astype(np.uint16)
+    elif bitdepth == 8:
+        pixels = pixels.astype(np.uint8)
+    else:  # 1, 2 or 4 bits: rescale so that full intensity is 1.0 like any other depth
+        pixels = pixels.astype(np.float32) / np.float32(2**bitdepth - 1)
+    return pixels, bool(info["alpha"])
+
+
+def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as file:
+            channels = {name: channel.pixels for name, channel in file.channels().items()}
+    except (RuntimeError, OSError, ValueError) as error:
+        raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None
+    # Color first in RGB order, other channels (depth, roughness, ...) by name, alpha last.
+    color = [name for name in ("R", "G", "B") if name in channels]
+    if not color and "Y" in channels:
+        color = ["Y"]
+    rest = sorted(name for name in channels if name not in color and name != "A")
+    order = color + rest + (["A"] if "A" in channels else [])
+    if not order:
+        raise ExemplarError(f"{path}: OpenEXR file has zero channels")
+    try:
+        pixels = np.stack([channels[name].astype(np.float32) for name in order], axis=2)
+    except ValueError:
+        raise ExemplarError(f"{path}: OpenEXR channels have different sizes") from None
+    return pixels, "A" in channels
+
+
+def _read_npy(path: Path) -> tuple[np.ndarray, bool]:
+    try:
+        return np.load(path, allow_pickle=False), False
+    except (OSError, ValueError) as error:
+        raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
+
+
+def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
+    try:
+        with Image.open(path) as image:
+            image.load()
+            return _pillow_pixels(image)
+    except UnidentifiedImageError:
+        raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
+    except (OSError, ValueError, SyntaxError) as error:
+        raise ExemplarError(f"{path}: unreadable image ({error})") from None
+
+
+def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:
+    mode = image.mode
+    if mode.startswith("I;16"):
+        return np.asarray(image).astype(np.uint16), False
+    if mode == "F":
+        return np.asarray(image), False
+    if mode == "I":
+        # Pillow widens 16-bit grayscale to 32 bits in some formats; wider data has no [0, 1] scale.
+        data = np.asarray(image)
+        if data.min() < 0 or data.max() > 65535:
+            raise ValueError("32-bit integer pixels are not supported")
+        return data.astype(np.uint16), False
+    if mode in ("L", "RGB"):
+        return np.asarray(image), False
+    if mode in ("LA", "RGBA"):
+        return np.asarray(image), True
+    if mode in ("P", "PA"):
+        has_alpha = mode == "PA" or "transparency" in image.info
+        return np.asarray(image.convert("RGBA" if has_alpha else "RGB")), has_alpha
+    if mode == "1":
+        return np.asarray(image.convert("L")), False
+    return np.asarray(image.convert("RGB")), False
