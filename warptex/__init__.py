@@ -1,0 +1,53 @@
+"""warptex: lazy, deterministic solid texture synthesis from 2D exemplars with NVIDIA Warp.
+
+Implements Dong et al. 2008, "Lazy Solid Texture Synthesis". ``precompute``, ``CandidateSet``
+(§4, 3D candidates) and ``Synthesizer`` (§5, parallel synthesis of any voxel subset) are
+imported on first use, so ``import warptex`` stays light.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+# Before anything can import Mitsuba: Dr.Jit reads DRJIT_LIBLLVM_PATH when its backend starts.
+from warptex._llvm import best_mitsuba_variant, configure_drjit
+
+configure_drjit()
+
+from warptex.device import device  # noqa: E402
+from warptex.exemplar import Exemplar, ExemplarError, PyramidLevel  # noqa: E402
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "precompute": "warptex.candidates",
+    "CandidateSet": "warptex.candidates",
+    "Synthesizer": "warptex.synthesis",
+}
+
+__all__ = [
+    "CandidateSet",
+    "Exemplar",
+    "ExemplarError",
+    "PyramidLevel",
+    "Synthesizer",
+    "__version__",
+    "best_mitsuba_variant",
+    "device",
+    "precompute",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """Import the heavier synthesis modules on first access (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'warptex' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
