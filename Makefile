@@ -1,0 +1,36 @@
+# Set-up and the two commands the README promises: `make demo` and `make test`.
+
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+PY := $(VENV)/bin/python
+INSTALLED := $(VENV)/.installed
+export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
+
+.PHONY: demo test lint setup llvm
+
+demo: setup
+	$(VENV)/bin/warptex info scenes/textures/marble_black_64.png
+	$(VENV)/bin/warptex info scenes/textures/wood_rosewood_64.png
+
+test: setup
+	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+setup: llvm $(INSTALLED)
+
+# Mitsuba's LLVM variants need libLLVM >= 16 (see warptex/_llvm.py). Install Debian's libllvm19
+# when none is present and we may; otherwise warptex falls back to scalar rendering by itself.
+llvm:
+	@if ! $(PYTHON) warptex/_llvm.py >/dev/null && [ "$$(id -u)" = 0 ] \
+		&& command -v apt-get >/dev/null; then \
+		echo "installing libllvm19 for Mitsuba's LLVM variants"; \
+		(apt-get update -qq && apt-get install -y -qq libllvm19) \
+			|| echo "warning: could not install libllvm19; Mitsuba will use scalar_rgb"; \
+	fi
+
+$(INSTALLED): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $@
