@@ -235,8 +235,8 @@ def otsu_mask(colors: np.ndarray) -> np.ndarray:
         mean_low = sum_low / weight_low
         mean_high = (sum_low[-1] - sum_low) / weight_high
         between = weight_low * weight_high * (mean_low - mean_high) ** 2
-    threshold = centres[np.nanargmax(np.nan_to_num(between, nan=-1.0))]
-    return luminance > threshold
+    # Bins are half-open [edges[k], edges[k + 1]): everything from the next edge up is "feature".
+    return luminance >= edges[np.argmax(np.nan_to_num(between, nan=-1.0)) + 1]
 
 
 def _size(shape: tuple[int, ...]) -> str:
@@ -334,8 +334,9 @@ def _read(path: Path) -> tuple[np.ndarray, bool]:
 def _read_png(path: Path) -> tuple[np.ndarray, bool]:
     # pypng rather than Pillow: Pillow reduces 16-bit RGB(A) PNGs to 8 bits.
     try:
-        width, height, rows, info = png.Reader(filename=str(path)).asDirect()
-        pixels = np.vstack([np.asarray(row) for row in rows])
+        with path.open("rb") as file:
+            width, height, rows, info = png.Reader(file=file).asDirect()
+            pixels = np.vstack([np.asarray(row) for row in rows])
     except (png.Error, OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable PNG ({error})") from None
     planes = info["planes"]
