@@ -1,0 +1,40 @@
+"""Shared fixtures. Tests run on Warp's CPU device with a project-local kernel cache."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+# Before anything imports Warp, so compiled kernels land in one known, reusable folder.
+os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
+
+
+@pytest.fixture(scope="session")
+def warp_device() -> str:
+    """Warp initialised once per session, with CPU as the default device."""
+    import warp as wp
+
+    from warptex.device import init_warp
+
+    init_warp()
+    wp.set_device("cpu")
+    return "cpu"
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """Small test inputs kept in the repository."""
+    return REPO / "tests" / "data"
+
+
+@pytest.fixture(scope="session")
+def exemplar_dir() -> Path:
+    """The shared exemplar photographs beside the repository (``../shared/data/exemplars``)."""
+    path = REPO.parent / "shared" / "data" / "exemplars"
+    if not path.is_dir():
+        pytest.skip(f"shared exemplars not found at {path}")
+    return path

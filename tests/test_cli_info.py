@@ -1,0 +1,121 @@
+"""``warptex info``: what it prints, and clean errors without tracebacks."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from warptex.cli import main
+
+
+@pytest.fixture
+def no_candidates(monkeypatch):
+    """Make ``warptex.candidates`` unimportable, as before that module existed."""
+    monkeypatch.setitem(sys.modules, "warptex.candidates", None)
+
+
+def test_info_prints_size_channels_range_pyramid(data_dir, capsys, no_candidates):
+    assert main(["info", str(data_dir / "granite_64.png")]) == 0
+    out = capsys.readouterr().out
+    colors = np.asarray(Image.open(data_dir / "granite_64.png")) / 255
+    assert f"file: {(data_dir / 'granite_64.png').resolve()}" in out
+    assert "size: 64 x 64 pixels (width x height)" in out
+    assert "channels: 3\n" in out
+    for channel in range(3):
+        low, high = colors[..., channel].min(), colors[..., channel].max()
+        assert f"channel {channel}: {low:.4f} .. {high:.4f}" in out
+    assert "pyramid: 4 levels (8x8, 16x16, 32x32, 64x64)" in out
+    assert "candidates: not available" in out
+
+
+def test_info_non_square_with_feature_distance(tmp_path, capsys, no_candidates):
+    image = np.zeros((37, 100), dtype=np.uint8)
+    image[10:20, 30:60] = 200
+    Image.fromarray(image).save(tmp_path / "wide.png")
+    assert main(["info", "--feature-distance", str(tmp_path / "wide.png")]) == 0
+    out = capsys.readouterr().out
+    assert "size: 100 x 37 pixels" in out
+    assert "channels: 1 + feature distance" in out
+    assert "channel 0: 0.0000 .. 0.7843" in out
+    assert "pyramid: 5 levels (7x3, 13x5, 25x10, 50x19, 100x37)" in out
+
+
+def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
+    seen = []
+
+    def cached_candidate_path(exemplar):
+        seen.append(exemplar.name)
+        return Path("/cache/granite.npz")
+
+    fake = types.ModuleType("warptex.candidates")
+    fake.cached_candidate_path = cached_candidate_path
+    monkeypatch.setitem(sys.modules, "warptex.candidates", fake)
+    assert main(["info", str(data_dir / "granite_64.png")]) == 0
+    assert "candidates: cached at /cache/granite.npz" in capsys.readouterr().out
+    assert seen == ["granite_64.png"]
+
+    fake.cached_candidate_path = lambda exemplar: None
+    assert main(["info", str(data_dir / "granite_64.png")]) == 0
+    assert "candidates: not cached" in capsys.readouterr().out
+
+
+def test_info_alpha_keep(tmp_path, capsys, no_candidates):
+    rgba = np.random.default_rng(1).integers(0, 256, size=(16, 16, 4), dtype=np.uint8)
+    Image.fromarray(rgba, mode="RGBA").save(tmp_path / "rgba.png")
+    assert main(["info", "--alpha", "keep", str(tmp_path / "rgba.png")]) == 0
+    assert "channels: 4" in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "rgba.png")]) == 0
+    captured = capsys.readouterr()
+    assert "channels: 3" in captured.out
+    assert "warptex: warning: rgba.png: alpha channel dropped" in captured.err
+
+
+def test_info_missing_file_is_exit_2_without_traceback(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "missing.png")]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == f"warptex: error: {tmp_path / 'missing.png'}: file not found\n"
+    assert captured.out == ""
+
+
+def test_info_not_an_image(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("hello")
+    assert main(["info", str(tmp_path / "notes.txt")]) == 2
+    assert "notes.txt: not an image" in capsys.readouterr().err
+
+
+def test_info_constant_image_warns(tmp_path, capsys, no_candidates):
+    Image.fromarray(np.full((16, 16), 9, dtype=np.uint8)).save(tmp_path / "flat.png")
+    assert main(["info", str(tmp_path / "flat.png")]) == 0
+    assert "warptex: warning: flat.png: image is constant" in capsys.readouterr().err
+
+
+def test_console_script_error_has_no_traceback(tmp_path):
+    (tmp_path / "tiny.png").write_bytes(b"")
+    script = Path(sys.executable).with_name("warptex")
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "warptex.cli"]
+    result = subprocess.run(
+        [*command, "info", str(tmp_path / "tiny.png")], capture_output=True, text=True
+    )
+    assert result.returncode == 2
+    assert result.stderr.startswith("warptex: error: ")
+    assert "Traceback" not in result.stderr
+
+
+def test_usage_error_is_exit_2(capsys):
+    with pytest.raises(SystemExit) as info:
+        main([])
+    assert info.value.code == 2
+    assert "usage: warptex" in capsys.readouterr().err
+
+
+def test_info_on_shared_exemplar(exemplar_dir, capsys):
+    assert main(["info", str(exemplar_dir / "wood_rosewood_64.png")]) == 0
+    out = capsys.readouterr().out
+    assert "size: 64 x 64 pixels" in out
+    assert "candidates: " in out

@@ -1,0 +1,80 @@
+"""Device choice and Warp start-up."""
+
+from __future__ import annotations
+
+import importlib
+import os
+
+import pytest
+import warp as wp
+
+import warptex
+
+device_module = importlib.import_module("warptex.device")  # the package re-binds ``device``
+
+
+@pytest.fixture
+def gpus(monkeypatch):
+    """Pretend Warp sees the given number of CUDA devices."""
+
+    def set_count(count: int) -> None:
+        monkeypatch.setattr(wp, "get_cuda_device_count", lambda: count)
+
+    monkeypatch.delenv("WARPTEX_DEVICE", raising=False)
+    return set_count
+
+
+def test_picks_cuda_when_warp_sees_a_gpu(gpus):
+    gpus(1)
+    assert warptex.device() == "cuda"
+
+
+def test_picks_cpu_without_gpu(gpus):
+    gpus(0)
+    assert warptex.device() == "cpu"
+
+
+@pytest.mark.parametrize("value", ["cpu", "CPU", " cpu "])
+def test_env_forces_cpu(gpus, monkeypatch, value):
+    gpus(1)
+    monkeypatch.setenv("WARPTEX_DEVICE", value)
+    assert warptex.device() == "cpu"
+
+
+def test_env_forces_cuda(gpus, monkeypatch):
+    gpus(2)
+    monkeypatch.setenv("WARPTEX_DEVICE", "cuda")
+    assert warptex.device() == "cuda"
+
+
+def test_env_cuda_without_gpu_is_a_clear_error(gpus, monkeypatch):
+    gpus(0)
+    monkeypatch.setenv("WARPTEX_DEVICE", "cuda")
+    with pytest.raises(RuntimeError, match="WARPTEX_DEVICE=cuda but Warp sees no CUDA device"):
+        warptex.device()
+
+
+@pytest.mark.parametrize("value", ["gpu", "cuda:0", "metal"])
+def test_env_invalid_value_names_the_variable(gpus, monkeypatch, value):
+    gpus(0)
+    monkeypatch.setenv("WARPTEX_DEVICE", value)
+    with pytest.raises(ValueError, match=r"WARPTEX_DEVICE=.* is not valid; use one of: cpu, cuda"):
+        warptex.device()
+
+
+def test_real_device_is_valid():
+    assert warptex.device() in ("cpu", "cuda")
+
+
+def test_warp_device_fixture_runs_on_cpu_with_project_cache(warp_device):
+    assert warp_device == "cpu"
+    assert wp.get_device().is_cpu
+    # Warp adds a per-version folder below the cache path it is given.
+    assert wp.config.kernel_cache_dir.startswith(os.environ["WARP_CACHE_PATH"])
+
+
+def test_init_warp_runs_once(warp_device, monkeypatch):
+    calls = []
+    monkeypatch.setattr(wp, "init", lambda: calls.append(1))
+    device_module.init_warp()
+    assert calls == []

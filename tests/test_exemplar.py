@@ -1,0 +1,550 @@
+"""Exemplar loading for every input kind, validation of bad input, feature distance, pyramid."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import png
+import pytest
+from PIL import Image
+from scipy import ndimage
+
+from warptex.exemplar import (
+    Exemplar,
+    ExemplarError,
+    PyramidLevel,
+    feature_distance_from_mask,
+    otsu_mask,
+)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+def _write_png16(path: Path, pixels: np.ndarray) -> Path:
+    height, width, planes = pixels.shape
+    writer = png.Writer(
+        width, height, greyscale=planes in (1, 2), alpha=planes in (2, 4), bitdepth=16
+    )
+    with path.open("wb") as file:
+        writer.write(file, pixels.reshape(height, width * planes).tolist())
+    return path
+
+
+def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, channels).write(str(path))
+    return path
+
+
+def _load_quiet(path: Path, **kwargs) -> Exemplar:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return Exemplar.load(path, **kwargs)
+
+
+# --- input kinds ---------------------------------------------------------------------------
+
+
+def test_png_8bit_rgb_scaled_to_unit_range(data_dir):
+    path = data_dir / "granite_64.png"
+    expected = np.asarray(Image.open(path), dtype=np.float32) / 255
+    exemplar = _load_quiet(path)
+    assert exemplar.shape == (64, 64)
+    assert exemplar.channels == 3
+    assert exemplar.colors.dtype == np.float32
+    np.testing.assert_array_equal(exemplar.colors, expected)
+    assert exemplar.features is exemplar.colors
+    assert exemplar.name == "granite_64.png"
+    assert exemplar.path == path.resolve()
+
+
+def test_png_16bit_rgb_round_trip_keeps_16_bits(tmp_path, rng):
+    pixels = rng.integers(0, 65536, size=(20, 24, 3), dtype=np.uint16)
+    exemplar = _load_quiet(_write_png16(tmp_path / "rgb16.png", pixels))
+    assert exemplar.shape == (20, 24)
+    assert exemplar.channels == 3
+    np.testing.assert_array_equal(exemplar.colors, pixels.astype(np.float32) / 65535)
+    # Neighbouring 16-bit codes stay distinct, which an 8-bit decode would merge.
+    assert np.unique(np.round(exemplar.colors * 65535)).size > 256
+
+
+def test_png_16bit_grayscale_round_trip(tmp_path, rng):
+    pixels = rng.integers(0, 65536, size=(17, 33, 1), dtype=np.uint16)
+    exemplar = _load_quiet(_write_png16(tmp_path / "gray16.png", pixels))
+    assert exemplar.channels == 1
+    np.testing.assert_array_equal(exemplar.colors, pixels.astype(np.float32) / 65535)
+
+
+def test_png_8bit_grayscale_is_one_channel(tmp_path, rng):
+    pixels = rng.integers(0, 256, size=(32, 40), dtype=np.uint8)
+    Image.fromarray(pixels, mode="L").save(tmp_path / "gray.png")
+    exemplar = _load_quiet(tmp_path / "gray.png")
+    assert exemplar.colors.shape == (32, 40, 1)
+    np.testing.assert_array_equal(exemplar.colors[..., 0], pixels / np.float32(255))
+
+
+def test_png_low_bit_depth_scaled_to_unit_range(tmp_path, rng):
+    pixels = rng.integers(0, 16, size=(16, 16), dtype=np.uint8)
+    pixels[0, 0], pixels[0, 1] = 0, 15
+    with (tmp_path / "gray4.png").open("wb") as file:
+        png.Writer(16, 16, greyscale=True, bitdepth=4).write(file, pixels.tolist())
+    exemplar = _load_quiet(tmp_path / "gray4.png")
+    np.testing.assert_allclose(exemplar.colors[..., 0], pixels / 15, rtol=0, atol=1e-7)
+
+
+def test_png_palette_expands_to_rgb(tmp_path, rng):
+    rgb = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    Image.fromarray(rgb).quantize(colors=8).save(tmp_path / "palette.png")
+    expected = np.asarray(Image.open(tmp_path / "palette.png").convert("RGB")) / np.float32(255)
+    exemplar = _load_quiet(tmp_path / "palette.png")
+    assert exemplar.channels == 3
+    np.testing.assert_array_equal(exemplar.colors, expected)
+
+
+def test_png_rgba_alpha_dropped_with_warning(tmp_path, rng):
+    rgba = rng.integers(0, 256, size=(16, 20, 4), dtype=np.uint8)
+    Image.fromarray(rgba, mode="RGBA").save(tmp_path / "rgba.png")
+    with pytest.warns(UserWarning, match=r"rgba\.png: alpha channel dropped"):
+        exemplar = Exemplar.load(tmp_path / "rgba.png")
+    assert exemplar.channels == 3
+    np.testing.assert_array_equal(exemplar.colors, rgba[..., :3] / np.float32(255))
+
+
+def test_png_rgba_alpha_kept_as_last_channel(tmp_path, rng):
+    rgba = rng.integers(0, 256, size=(16, 20, 4), dtype=np.uint8)
+    Image.fromarray(rgba, mode="RGBA").save(tmp_path / "rgba.png")
+    exemplar = _load_quiet(tmp_path / "rgba.png", alpha="keep")
+    assert exemplar.channels == 4
+    np.testing.assert_array_equal(exemplar.colors, rgba / np.float32(255))
+
+
+def test_png_gray_alpha_dropped_to_one_channel(tmp_path, rng):
+    la = rng.integers(0, 256, size=(16, 16, 2), dtype=np.uint8)
+    Image.fromarray(la, mode="LA").save(tmp_path / "la.png")
+    with pytest.warns(UserWarning, match="alpha"):
+        exemplar = Exemplar.load(tmp_path / "la.png")
+    np.testing.assert_array_equal(exemplar.colors[..., 0], la[..., 0] / np.float32(255))
+
+
+def test_jpeg_rgb_close_to_source(tmp_path):
+    y, x = np.mgrid[0:48, 0:64]
+    smooth = np.stack([x / 63, y / 47, (x + y) / 110], axis=2)
+    Image.fromarray(np.round(smooth * 255).astype(np.uint8)).save(
+        tmp_path / "smooth.jpg", quality=100
+    )
+    exemplar = _load_quiet(tmp_path / "smooth.jpg")
+    assert exemplar.shape == (48, 64)
+    assert exemplar.channels == 3
+    assert np.abs(exemplar.colors - smooth).mean() < 0.01
+
+
+def test_jpeg_grayscale_is_one_channel(tmp_path):
+    pixels = np.tile(np.linspace(0, 255, 32).astype(np.uint8), (24, 1))
+    Image.fromarray(pixels, mode="L").save(tmp_path / "gray.jpg", quality=100)
+    exemplar = _load_quiet(tmp_path / "gray.jpg")
+    assert exemplar.colors.shape == (24, 32, 1)
+    assert np.abs(exemplar.colors[..., 0] - pixels / 255).max() < 0.02
+
+
+def test_format_told_from_content_not_name(tmp_path, rng):
+    pixels = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(tmp_path / "really_a_png.jpg", format="PNG")
+    exemplar = _load_quiet(tmp_path / "really_a_png.jpg")
+    np.testing.assert_array_equal(exemplar.colors, pixels / np.float32(255))
+
+
+def test_exr_float32_round_trip_exact_and_unclamped(tmp_path, rng):
+    rgb = rng.normal(0.5, 2.0, size=(18, 26, 3)).astype(np.float32)
+    exemplar = _load_quiet(_write_exr(tmp_path / "rgb.exr", {"RGB": rgb}))
+    assert exemplar.channels == 3
+    np.testing.assert_array_equal(exemplar.colors, rgb)
+    assert exemplar.colors.min() < 0 and exemplar.colors.max() > 1
+
+
+def test_exr_half_rgba_alpha_handling(tmp_path, rng):
+    rgba = rng.random(size=(16, 16, 4)).astype(np.float16)
+    path = _write_exr(tmp_path / "half.exr", {"RGBA": rgba})
+    with pytest.warns(UserWarning, match="alpha"):
+        dropped = Exemplar.load(path)
+    np.testing.assert_array_equal(dropped.colors, rgba[..., :3].astype(np.float32))
+    kept = _load_quiet(path, alpha="keep")
+    np.testing.assert_array_equal(kept.colors, rgba.astype(np.float32))
+
+
+def test_exr_extra_channels_follow_rgb(tmp_path, rng):
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    depth = rng.random(size=(16, 16)).astype(np.float32)
+    rough = rng.random(size=(16, 16)).astype(np.float32)
+    path = _write_exr(tmp_path / "multi.exr", {"RGB": rgb, "Z": depth, "roughness": rough})
+    exemplar = _load_quiet(path)
+    assert exemplar.channels == 5
+    np.testing.assert_array_equal(exemplar.colors[..., :3], rgb)
+    np.testing.assert_array_equal(exemplar.colors[..., 3], depth)  # "Z" sorts before "roughness"
+    np.testing.assert_array_equal(exemplar.colors[..., 4], rough)
+
+
+def test_exr_luminance_only_is_one_channel(tmp_path, rng):
+    y = rng.random(size=(16, 20)).astype(np.float32)
+    exemplar = _load_quiet(_write_exr(tmp_path / "y.exr", {"Y": y}))
+    assert exemplar.colors.shape == (16, 20, 1)
+    np.testing.assert_array_equal(exemplar.colors[..., 0], y)
+
+
+def test_npy_any_number_of_channels_as_stored(tmp_path, rng):
+    data = rng.normal(size=(16, 18, 7)) * 10
+    np.save(tmp_path / "multi.npy", data)
+    exemplar = _load_quiet(tmp_path / "multi.npy")
+    assert exemplar.channels == 7
+    np.testing.assert_array_equal(exemplar.colors, data.astype(np.float32))
+
+
+def test_npy_2d_and_uint16(tmp_path, rng):
+    data = rng.integers(0, 65536, size=(16, 16), dtype=np.uint16)
+    np.save(tmp_path / "gray16.npy", data)
+    exemplar = _load_quiet(tmp_path / "gray16.npy")
+    assert exemplar.colors.shape == (16, 16, 1)
+    np.testing.assert_array_equal(exemplar.colors[..., 0], data / np.float32(65535))
+
+
+def test_array_kinds(rng):
+    floats = rng.normal(size=(16, 16, 64)).astype(np.float64)
+    assert Exemplar(floats).channels == 64
+    np.testing.assert_array_equal(Exemplar(floats).colors, floats.astype(np.float32))
+
+    gray = rng.integers(0, 256, size=(20, 16), dtype=np.uint8)
+    exemplar = Exemplar(gray)
+    assert exemplar.shape == (20, 16)
+    assert exemplar.channels == 1
+    assert exemplar.name == "array"
+    assert exemplar.path is None
+    np.testing.assert_array_equal(exemplar.colors[..., 0], gray / np.float32(255))
+
+    mask = np.zeros((16, 16), dtype=bool)
+    mask[4:9] = True
+    np.testing.assert_array_equal(Exemplar(mask).colors[..., 0], mask.astype(np.float32))
+
+
+def test_arrays_are_read_only_copies(rng):
+    source = rng.random(size=(16, 16, 3)).astype(np.float32)
+    exemplar = Exemplar(source)
+    source[0, 0, 0] = 99.0
+    assert exemplar.colors[0, 0, 0] != 99.0
+    assert not exemplar.colors.flags.writeable
+    assert not exemplar.features.flags.writeable
+
+
+def test_shared_exemplars_all_load(exemplar_dir):
+    paths = sorted(exemplar_dir.glob("*.png"))
+    assert paths
+    for path in paths:
+        exemplar = _load_quiet(path)
+        assert exemplar.channels in (1, 3)
+        assert 0 <= exemplar.colors.min() <= exemplar.colors.max() <= 1
+
+
+# --- bad input -----------------------------------------------------------------------------
+
+
+def _raises(path_or_array, match: str, **kwargs) -> ExemplarError:
+    with pytest.raises(ExemplarError, match=match) as info:
+        if isinstance(path_or_array, Path):
+            Exemplar.load(path_or_array, **kwargs)
+        else:
+            Exemplar(path_or_array, **kwargs)
+    return info.value
+
+
+def test_missing_file(tmp_path):
+    error = _raises(tmp_path / "nope.png", "file not found")
+    assert "nope.png" in str(error)
+    assert isinstance(error, ValueError)
+
+
+def test_directory_is_not_an_image(tmp_path):
+    _raises(tmp_path, "is a directory")
+
+
+def test_text_file_is_not_an_image(tmp_path):
+    path = tmp_path / "notes.png"
+    path.write_text("just some words, no pixels here\n")
+    assert "notes.png" in str(_raises(path, "not an image"))
+
+
+def test_empty_file_is_not_an_image(tmp_path):
+    (tmp_path / "empty.jpg").write_bytes(b"")
+    _raises(tmp_path / "empty.jpg", "empty.jpg: not an image")
+
+
+def test_truncated_png_is_unreadable(tmp_path, rng):
+    Image.fromarray(rng.integers(0, 256, size=(32, 32, 3), dtype=np.uint8)).save(
+        tmp_path / "full.png"
+    )
+    data = (tmp_path / "full.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    _raises(tmp_path / "cut.png", r"cut\.png: unreadable PNG")
+
+
+def test_truncated_jpeg_is_unreadable(tmp_path, rng):
+    Image.fromarray(rng.integers(0, 256, size=(32, 32, 3), dtype=np.uint8)).save(
+        tmp_path / "full.jpg"
+    )
+    data = (tmp_path / "full.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[:200])
+    _raises(tmp_path / "cut.jpg", r"cut\.jpg: unreadable image")
+
+
+def test_corrupt_exr_is_unreadable(tmp_path):
+    (tmp_path / "bad.exr").write_bytes(b"\x76\x2f\x31\x01" + b"\x00" * 40)
+    _raises(tmp_path / "bad.exr", r"bad\.exr: unreadable OpenEXR")
+
+
+def test_corrupt_npy_is_unreadable(tmp_path):
+    (tmp_path / "bad.npy").write_bytes(b"\x93NUMPY\x01\x00garbage")
+    _raises(tmp_path / "bad.npy", r"bad\.npy: unreadable \.npy")
+
+
+def test_unreadable_file(tmp_path):
+    path = tmp_path / "locked.png"
+    Image.fromarray(np.zeros((16, 16), dtype=np.uint8)).save(path)
+    path.chmod(0)
+    try:
+        path.read_bytes()
+    except PermissionError:
+        _raises(path, r"locked\.png: cannot read file")
+    else:
+        pytest.skip("this user (root) reads files whatever their mode")
+    finally:
+        path.chmod(0o644)
+
+
+@pytest.mark.parametrize("shape", [(15, 16), (16, 15), (8, 8, 3)])
+def test_too_small(shape):
+    _raises(np.zeros(shape, dtype=np.float32), "at least 16x16")
+
+
+def test_too_small_file_names_size(tmp_path):
+    Image.fromarray(np.zeros((10, 30, 3), dtype=np.uint8)).save(tmp_path / "tiny.png")
+    _raises(tmp_path / "tiny.png", r"tiny\.png: image is 30x10 pixels")
+
+
+def test_nan_in_exr(tmp_path, rng):
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    rgb[3, 4, 1] = np.nan
+    _raises(_write_exr(tmp_path / "nan.exr", {"RGB": rgb}), r"nan\.exr: .*NaN or Inf")
+
+
+def test_inf_in_npy(tmp_path):
+    data = np.ones((16, 16, 2), dtype=np.float32)
+    data[0, 0, 0] = np.inf
+    np.save(tmp_path / "inf.npy", data)
+    _raises(tmp_path / "inf.npy", r"inf\.npy: .*NaN or Inf")
+
+
+def test_float64_overflowing_float32_is_inf():
+    data = np.full((16, 16), 1e300)
+    data[0, 0] = 0
+    _raises(data, "NaN or Inf")
+
+
+def test_zero_channels():
+    _raises(np.zeros((16, 16, 0), dtype=np.float32), "zero channels")
+
+
+def test_too_many_channels(tmp_path, rng):
+    np.save(tmp_path / "wide.npy", rng.random(size=(16, 16, 65)).astype(np.float32))
+    _raises(tmp_path / "wide.npy", r"wide\.npy: image has 65 channels; at most 64")
+
+
+@pytest.mark.parametrize(
+    ("array", "match"),
+    [
+        (np.zeros((16, 16, 3, 2), dtype=np.float32), "expected an"),
+        (np.zeros(16, dtype=np.float32), "expected an"),
+        (np.zeros((16, 16), dtype=np.int64), "unsupported data type int64"),
+        (np.full((16, 16), "a"), "unsupported data type"),
+    ],
+)
+def test_unusable_arrays(array, match):
+    _raises(array, match)
+
+
+def test_constant_image_warns(tmp_path):
+    Image.fromarray(np.full((16, 16, 3), 128, dtype=np.uint8)).save(tmp_path / "flat.png")
+    with pytest.warns(UserWarning, match=r"flat\.png: .*nothing to synthesize"):
+        exemplar = Exemplar.load(tmp_path / "flat.png")
+    assert exemplar.colors.min() == exemplar.colors.max() == np.float32(128 / 255)
+
+
+def test_constant_per_channel_but_varying_across_channels_is_constant():
+    data = np.ones((16, 16, 3), dtype=np.float32) * np.array([0.1, 0.5, 0.9], dtype=np.float32)
+    with pytest.warns(UserWarning, match="nothing to synthesize"):
+        Exemplar(data)
+
+
+def test_invalid_options(tmp_path, data_dir):
+    path = data_dir / "granite_64.png"
+    with pytest.raises(ValueError, match="alpha"):
+        Exemplar.load(path, alpha="premultiply")
+    with pytest.raises(ValueError, match="feature_distance"):
+        Exemplar.load(path, feature_distance="sdf")
+    with pytest.raises(ValueError, match="not both"):
+        Exemplar.load(path, feature_mask=path, feature_distance="auto")
+
+
+# --- feature distance ----------------------------------------------------------------------
+
+
+def test_feature_distance_from_mask_values():
+    mask = np.zeros((16, 16), dtype=bool)
+    mask[:, 4:8] = True
+    distance = feature_distance_from_mask(mask)
+    assert distance.dtype == np.float32
+    assert distance.shape == (16, 16)
+    assert distance.min() == 0.0
+    assert distance.max() <= 1.0
+    assert (distance[mask] > 0.5).all()
+    assert (distance[~mask] < 0.5).all()
+    # Pixels either side of an edge sit at +-0.5 pixel, scaled by the largest |distance|: 7.5,
+    # from column 15 to the stripe's edge at 7.5 (distances do not wrap around the border).
+    np.testing.assert_allclose(distance[0, 4], 0.5 + 0.5 * 0.5 / 7.5, rtol=1e-6)
+    np.testing.assert_allclose(distance[0, 3], 0.5 - 0.5 * 0.5 / 7.5, rtol=1e-6)
+    np.testing.assert_allclose(distance[0, 15], 0.0, atol=1e-7)
+
+
+def test_feature_distance_needs_an_edge():
+    with pytest.raises(ExemplarError, match="no edges"):
+        feature_distance_from_mask(np.ones((16, 16), dtype=bool))
+    with pytest.raises(ExemplarError, match="no edges"):
+        feature_distance_from_mask(np.zeros((16, 16), dtype=bool))
+
+
+def test_otsu_mask_splits_two_levels(rng):
+    image = np.full((16, 16, 3), 0.2, dtype=np.float32)
+    image[5:11, 3:9] = 0.8
+    image += rng.normal(0, 0.02, size=image.shape).astype(np.float32)
+    expected = np.zeros((16, 16), dtype=bool)
+    expected[5:11, 3:9] = True
+    np.testing.assert_array_equal(otsu_mask(image), expected)
+
+
+def test_feature_distance_in_features_not_colors(tmp_path):
+    image = np.full((24, 20, 3), 40, dtype=np.uint8)
+    image[6:14, 5:12] = 220
+    Image.fromarray(image).save(tmp_path / "blob.png")
+    mask = np.zeros((24, 20), dtype=np.uint8)
+    mask[6:14, 5:12] = 255
+    Image.fromarray(mask).save(tmp_path / "blob_mask.png")
+
+    from_mask = _load_quiet(tmp_path / "blob.png", feature_mask=tmp_path / "blob_mask.png")
+    automatic = _load_quiet(tmp_path / "blob.png", feature_distance="auto")
+    plain = _load_quiet(tmp_path / "blob.png")
+    expected = feature_distance_from_mask(mask > 0)
+    for exemplar in (from_mask, automatic):
+        assert exemplar.channels == 3
+        assert exemplar.colors.shape == (24, 20, 3)
+        assert exemplar.features.shape == (24, 20, 4)
+        np.testing.assert_array_equal(exemplar.features[..., :3], plain.colors)
+        np.testing.assert_array_equal(exemplar.features[..., 3], expected)
+    assert _load_quiet(tmp_path / "blob.png", feature_distance=True).digest() == automatic.digest()
+
+
+def test_feature_distance_argument_of_constructor(rng):
+    colors = rng.random(size=(16, 16, 2)).astype(np.float32)
+    distance = rng.random(size=(16, 16)).astype(np.float32)
+    exemplar = Exemplar(colors, feature_distance=distance)
+    np.testing.assert_array_equal(exemplar.features[..., 2], distance)
+    with pytest.raises(ExemplarError, match="feature distance has shape"):
+        Exemplar(colors, feature_distance=distance[:8])
+    with pytest.raises(ExemplarError, match="feature distance contains NaN"):
+        Exemplar(colors, feature_distance=np.full((16, 16), np.nan))
+
+
+def test_feature_mask_problems(tmp_path, data_dir):
+    path = data_dir / "granite_64.png"
+    Image.fromarray(np.zeros((32, 32), dtype=np.uint8)).save(tmp_path / "small_mask.png")
+    with pytest.raises(ExemplarError, match=r"small_mask\.png: feature mask is 32x32 .* 64x64"):
+        Exemplar.load(path, feature_mask=tmp_path / "small_mask.png")
+    Image.fromarray(np.zeros((64, 64), dtype=np.uint8)).save(tmp_path / "empty_mask.png")
+    with pytest.raises(ExemplarError, match=r"empty_mask\.png: feature mask has no edges"):
+        Exemplar.load(path, feature_mask=tmp_path / "empty_mask.png")
+    with pytest.raises(ExemplarError, match="file not found"):
+        Exemplar.load(path, feature_mask=tmp_path / "missing_mask.png")
+
+
+# --- pyramid -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("shape", "min_size", "sizes"),
+    [
+        ((64, 64), 8, [(8, 8), (16, 16), (32, 32), (64, 64)]),
+        ((100, 37), 8, [(7, 3), (13, 5), (25, 10), (50, 19), (100, 37)]),
+        ((100, 37), 16, [(13, 5), (25, 10), (50, 19), (100, 37)]),
+        ((16, 16), 8, [(8, 8), (16, 16)]),
+        ((17, 16), 8, [(5, 4), (9, 8), (17, 16)]),
+        ((48, 48), 64, [(48, 48)]),
+    ],
+)
+def test_pyramid_sizes(shape, min_size, sizes, rng):
+    exemplar = Exemplar(rng.random(size=(*shape, 2)).astype(np.float32))
+    levels = exemplar.pyramid(min_size=min_size)
+    assert [level.shape for level in levels] == sizes
+    assert all(isinstance(level, PyramidLevel) for level in levels)
+    assert all(level.colors.shape[2] == 2 and level.colors.dtype == np.float32 for level in levels)
+
+
+def test_pyramid_finest_level_is_the_image_and_coarser_levels_blur_with_wrap():
+    image = np.zeros((64, 64, 1), dtype=np.float32)
+    image[0, 0] = 1.0
+    image[40:48, 20:30] = 0.5
+    levels = Exemplar(image).pyramid()
+    np.testing.assert_array_equal(levels[-1].colors, image)
+    expected = ndimage.gaussian_filter(image, sigma=(1, 1, 0), mode="wrap")[::2, ::2]
+    np.testing.assert_allclose(levels[-2].colors, expected, rtol=1e-6)
+    # The corner pixel bleeds across the border into the last row, as it would on a tiled plane.
+    assert levels[-2].colors[-1, 0, 0] > 0.01
+    assert levels[-2].colors[0, -1, 0] > 0.01
+
+
+def test_pyramid_keeps_feature_channel_at_every_level(rng):
+    colors = rng.random(size=(40, 24, 3)).astype(np.float32)
+    exemplar = Exemplar(colors, feature_distance=np.linspace(0, 1, 40 * 24).reshape(40, 24))
+    for level in exemplar.pyramid():
+        assert level.colors.shape[2] == 3
+        assert level.features.shape[2] == 4
+        np.testing.assert_array_equal(level.features[..., :3], level.colors)
+
+
+def test_pyramid_rejects_bad_min_size(rng):
+    with pytest.raises(ValueError, match="min_size"):
+        Exemplar(rng.random(size=(16, 16))).pyramid(min_size=0)
+
+
+# --- digest --------------------------------------------------------------------------------
+
+
+def test_digest_follows_content_not_path(tmp_path, data_dir):
+    source = data_dir / "granite_64.png"
+    copy = tmp_path / "elsewhere.png"
+    copy.write_bytes(source.read_bytes())
+    digest = _load_quiet(source).digest()
+    assert len(digest) == 64
+    int(digest, 16)
+    assert _load_quiet(copy).digest() == digest
+    assert Exemplar(np.asarray(Image.open(source))).digest() == digest
+
+    changed = np.asarray(Image.open(source)).copy()
+    changed[10, 10, 0] ^= 1
+    assert Exemplar(changed).digest() != digest
+    assert _load_quiet(source, feature_distance="auto").digest() != digest
+
+
+def test_digest_depends_on_shape(rng):
+    data = rng.random(size=(32, 32)).astype(np.float32)
+    assert Exemplar(data).digest() != Exemplar(data.reshape(16, 64)).digest()

@@ -1,0 +1,101 @@
+"""Finding libLLVM for Dr.Jit, and Mitsuba's LLVM variant actually rendering with it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from warptex import _llvm
+
+
+@pytest.mark.parametrize(
+    ("name", "major"),
+    [
+        ("libLLVM.so.19.1", 19),
+        ("libLLVM-19.so", 19),
+        ("libLLVM-17.so.1", 17),
+        ("libLLVM-14.0.6.so.1", 14),
+        ("libLLVM-15.so", 15),
+        ("libLLVMSupport.so", None),
+        ("libLLVM.a", None),
+    ],
+)
+def test_major_version_from_file_name(name, major):
+    assert _llvm._major(name) == major
+
+
+def test_find_libllvm_prefers_newest_suitable(tmp_path, monkeypatch):
+    for name in ("libLLVM-15.so.1", "libLLVM-17.so.1", "libLLVM.so.19.1", "libLLVM-14.so"):
+        (tmp_path / name).write_bytes(b"")
+    monkeypatch.setattr(_llvm, "_SEARCH_DIRS", (str(tmp_path / "missing"), str(tmp_path)))
+    assert _llvm.find_libllvm() == tmp_path / "libLLVM.so.19.1"
+
+
+def test_find_libllvm_ignores_too_old(tmp_path, monkeypatch):
+    (tmp_path / "libLLVM-15.so.1").write_bytes(b"")
+    monkeypatch.setattr(_llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    assert _llvm.find_libllvm() is None
+
+
+def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
+    (tmp_path / "libLLVM-18.so.1").write_bytes(b"")
+    monkeypatch.setattr(_llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    assert _llvm.configure_drjit() == tmp_path / "libLLVM-18.so.1"
+    assert os.environ["DRJIT_LIBLLVM_PATH"] == str(tmp_path / "libLLVM-18.so.1")
+
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/opt/llvm/lib/libLLVM.so")
+    assert str(_llvm.configure_drjit()) == "/opt/llvm/lib/libLLVM.so"
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/usr/lib/libLLVM-15.so")
+    assert _llvm.configure_drjit() is None
+
+
+def test_falls_back_to_scalar_with_one_warning(monkeypatch):
+    pytest.importorskip("mitsuba")
+    monkeypatch.setattr(_llvm, "configure_drjit", lambda: None)
+    with pytest.warns(UserWarning, match="falls back to scalar_rgb") as record:
+        assert _llvm.best_mitsuba_variant() == "scalar_rgb"
+    assert len(record) == 1
+
+
+_RENDER = textwrap.dedent(
+    """
+    import warptex  # sets DRJIT_LIBLLVM_PATH before Mitsuba starts Dr.Jit
+    import mitsuba as mi
+    import numpy as np
+
+    mi.set_variant("llvm_ad_rgb")
+    camera = mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0])
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path"},
+        "sensor": {
+            "type": "perspective",
+            "to_world": camera,
+            "film": {"type": "hdrfilm", "width": 8, "height": 8},
+            "sampler": {"type": "independent", "sample_count": 4},
+        },
+        "emitter": {"type": "constant"},
+        "shape": {"type": "sphere"},
+    })
+    image = np.asarray(mi.render(scene))
+    assert image.shape == (8, 8, 3), image.shape
+    assert np.isfinite(image).all() and image.mean() > 0
+    print("rendered", warptex.best_mitsuba_variant())
+    """
+)
+
+
+def test_llvm_variant_renders_in_subprocess():
+    if _llvm.configure_drjit() is None:
+        pytest.skip("no libLLVM >= 16 on this machine; Mitsuba uses scalar_rgb")
+    # A subprocess, because an unsuitable libLLVM aborts the whole process.
+    result = subprocess.run(
+        [sys.executable, "-c", _RENDER], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "rendered llvm_ad_rgb" in result.stdout
