@@ -1,0 +1,45 @@
+"""Integer building blocks shared by every warptex kernel.
+
+Everything here is integer arithmetic so that a kernel gives bit-identical results on the
+CPU and on CUDA: exemplar features are quantized to ints and distances are exact sums.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def wrap(x: int, n: int) -> int:
+    """``x`` modulo ``n`` in ``[0, n)``; exemplars are toroidal."""
+    r = x % n
+    if r < 0:
+        r += n
+    return r
+
+
+@wp.func
+def pixel_index(u: int, v: int, height: int, width: int) -> int:
+    """Row-major index of exemplar pixel ``(u, v)`` after toroidal wrapping."""
+    return wrap(u, height) * width + wrap(v, width)
+
+
+@wp.func
+def hash_u32(x: wp.uint32) -> wp.uint32:
+    """A well-mixed 32-bit integer hash (lowbias32), the source of all randomness."""
+    x ^= x >> wp.uint32(16)
+    x *= wp.uint32(0x7FEB352D)
+    x ^= x >> wp.uint32(15)
+    x *= wp.uint32(0x846CA68B)
+    x ^= x >> wp.uint32(16)
+    return x
+
+
+@wp.func
+def hash_cell(cx: int, cy: int, cz: int, seed: int, salt: int) -> wp.uint32:
+    """Hash of an integer lattice cell, a seed and a salt; defined over all of Z^3."""
+    h = hash_u32(wp.uint32(seed) ^ wp.uint32(0x9E3779B9))
+    h = hash_u32(h ^ wp.uint32(cx))
+    h = hash_u32(h ^ wp.uint32(cy))
+    h = hash_u32(h ^ wp.uint32(cz))
+    return hash_u32(h ^ wp.uint32(salt))

@@ -1,0 +1,566 @@
+"""3D candidate pre-computation (Dong 2008, section 4; 5.1 "Separation of the first
+candidate coordinate"; 6.1-6.2).
+
+In every pixel of every pyramid level of each exemplar we keep a short list of coordinate
+triples whose three interleaved N x N neighbourhoods agree along their crossbar (4.1) and
+form coherent patches with the candidates of neighbouring pixels (4.2), plus the usual 2D
+k-coherent candidates for the first step of the two-step search (5.1).
+
+Orientation is cyclic: the exemplar of axis k spans volume axes (k+1, k+2) as its (first,
+second) pixel coordinates. Rotating the volume x -> y -> z -> x then maps the three roles
+onto each other, so one exemplar repeated thrice needs a single candidate structure.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
+
+from kernels import candidates as _k
+from warptex.device import init_warp
+from warptex.exemplar import Exemplar
+
+FORMAT_VERSION = 1
+_MAGIC = b"WARPTEXC"
+
+DEFAULT_PARAMS: dict[str, object] = {
+    "neighborhood": 5,  # N
+    "strips": 65,  # S
+    "keep": 100,  # best crossbar triples kept before coherence filtering
+    "candidates_3d": 12,  # 3D candidates kept per pixel (synthesis uses 4 at the finest level)
+    "candidates_2d": 4,  # 2D k-coherent candidates per pixel (synthesis uses 2 at the finest)
+    "variance": 0.95,  # PCA variance kept
+    "min_dims": 8,
+    "max_dims": 12,
+    "coherence_rounds": 16,
+}
+
+
+class CandidateCacheError(ValueError):
+    """A candidate file is corrupt, truncated, of another version or another format."""
+
+
+@dataclass
+class SourceLevel:
+    """One exemplar at one pyramid level: quantized features and appearance space."""
+
+    feat: np.ndarray  # (h, w, F) uint8, features quantized to [0, 255]
+    basis: np.ndarray  # (D, N*N*F) int32, quantized PCA basis
+    shift: int  # projections are (basis . 3*feat) >> shift
+    proj: np.ndarray  # (h*w, D) int16, projected neighbourhoods of 3*feat
+    cand2d: np.ndarray  # (h*w, K2) int32 pixel indices, self first
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.feat.shape[0]), int(self.feat.shape[1])
+
+
+@dataclass
+class RoleLevel:
+    """3D candidates of the pixels of one exemplar role at one level (sections 4.1-4.2)."""
+
+    cand: np.ndarray  # (h*w, K3, 2) int32: pixel in the next and the next-next exemplar
+    cb: np.ndarray  # (h*w, K3) int32 crossbar error, ascending
+    count: np.ndarray  # (h*w,) int32 valid candidates
+    fallback: np.ndarray  # (h*w,) bool: no coherent candidate was found, best one kept
+
+
+@dataclass
+class CandidateSet:
+    """Pre-computed candidates for three exemplars (one per axis), all pyramid levels.
+
+    ``sources[j]`` are the distinct exemplars, ``axis_source[k]`` which one lies on
+    axis k. ``roles[l][r]`` holds the 3D candidates; there is one role when the same
+    exemplar lies on all three axes, else three (role k owned by axis k).
+    """
+
+    params: dict
+    digests: tuple[str, str, str]
+    axis_source: tuple[int, int, int]
+    colors: list[np.ndarray]  # per source, finest level, (H, W, C) float32
+    sources: list[list[SourceLevel]]  # [level][source]
+    roles: list[list[RoleLevel]]  # [level][role]
+    seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.sources)
+
+    @property
+    def channels(self) -> int:
+        return int(self.colors[0].shape[2])
+
+    @property
+    def shared(self) -> bool:
+        return len(self.roles[0]) == 1
+
+    def role_of_axis(self, axis: int) -> int:
+        return 0 if self.shared else axis
+
+    def source_of(self, level: int, axis: int) -> SourceLevel:
+        return self.sources[level][self.axis_source[axis]]
+
+    def slab(self, level: int, axis: int = 0) -> np.ndarray:
+        """Candidate slab of ``axis``'s exemplar (section 4.3), as volume triples.
+
+        Returns ``(N, h, w, 3)`` pixel indices: layer t lies at depth t - N//2 along
+        ``axis``; entry k of a triple indexes the exemplar of axis k. Built from the best
+        (first) candidate of every pixel.
+        """
+        n = int(self.params["neighborhood"])
+        half = n // 2
+        own = self.source_of(level, axis)
+        nxt = self.source_of(level, (axis + 1) % 3)
+        nnx = self.source_of(level, (axis + 2) % 3)
+        h, w = own.size
+        first = self.roles[level][self.role_of_axis(axis)].cand[:, 0, :]
+        out = np.empty((n, h * w, 3), np.int32)
+        for t in range(n):
+            depth = t - half
+            # Moving along `axis` is the second coordinate of the next exemplar and the
+            # first coordinate of the next-next one (cyclic orientation).
+            out[t, :, axis] = np.arange(h * w)
+            out[t, :, (axis + 1) % 3] = _shift_pixels(first[:, 0], nxt.size, 0, depth)
+            out[t, :, (axis + 2) % 3] = _shift_pixels(first[:, 1], nnx.size, depth, 0)
+        return out.reshape(n, h, w, 3)
+
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in _flatten(self).values())
+
+    def save(self, path: str | Path) -> None:
+        """Write a versioned, checksummed file atomically (temporary name, then rename)."""
+        path = Path(path)
+        buf = io.BytesIO()
+        np.savez(buf, **_flatten(self))
+        payload = buf.getvalue()
+        header = _MAGIC + FORMAT_VERSION.to_bytes(4, "little") + hashlib.sha256(payload).digest()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            f.write(header + payload)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> CandidateSet:
+        """Read a file written by :meth:`save`; raise CandidateCacheError if it is damaged."""
+        path = Path(path)
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise CandidateCacheError(f"{path}: cannot read candidate file ({e.strerror})") from None
+        if len(data) < 44 or data[:8] != _MAGIC:
+            raise CandidateCacheError(f"{path}: not a warptex candidate file")
+        version = int.from_bytes(data[8:12], "little")
+        if version != FORMAT_VERSION:
+            raise CandidateCacheError(
+                f"{path}: candidate file version {version}, expected {FORMAT_VERSION}"
+            )
+        payload = data[44:]
+        if hashlib.sha256(payload).digest() != data[12:44]:
+            raise CandidateCacheError(f"{path}: checksum mismatch (truncated or corrupt file)")
+        try:
+            with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+                return _unflatten({k: z[k] for k in z.files})
+        except (ValueError, KeyError, OSError) as e:
+            raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+
+
+def precompute(
+    ex: Exemplar | str | Path,
+    ey: Exemplar | str | Path | None = None,
+    ez: Exemplar | str | Path | None = None,
+    *,
+    cache: bool = True,
+    progress: bool = False,
+    **params: object,
+) -> CandidateSet:
+    """Pre-compute the 3D candidates of three exemplars (Dong 2008, section 4).
+
+    ``ey``/``ez`` default to ``ex``. With ``cache`` the result is stored under
+    ``WARPTEX_CACHE`` keyed by exemplar content and parameters, and a later call loads
+    it; a damaged cache file is reported once and recomputed.
+    """
+    exemplars = [_as_exemplar(e) for e in (ex, ey or ex, ez or ey or ex)]
+    p = _resolve_params(params)
+    path = cache_path(exemplars, p) if cache else None
+    if path is not None and path.exists():
+        try:
+            return CandidateSet.load(path)
+        except CandidateCacheError as e:
+            warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
+    result = _compute(exemplars, p, progress)
+    if path is not None:
+        result.save(path)
+    return result
+
+
+def cache_dir() -> Path:
+    """Folder of the on-disk caches: ``WARPTEX_CACHE`` or the user's cache directory."""
+    env = os.environ.get("WARPTEX_CACHE")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "warptex"
+
+
+def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
+    key = json.dumps(
+        {"v": FORMAT_VERSION, "params": params, "digests": [e.digest() for e in exemplars]},
+        sort_keys=True,
+    )
+    return cache_dir() / f"candidates-{hashlib.sha256(key.encode()).hexdigest()[:40]}.wtc"
+
+
+def cached_candidate_path(ex: Exemplar) -> Path | None:
+    """The cache file of ``ex`` repeated thrice with default parameters, if it exists."""
+    path = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
+    return path if path.exists() else None
+
+
+def _as_exemplar(e: Exemplar | str | Path) -> Exemplar:
+    return e if isinstance(e, Exemplar) else Exemplar.load(e)
+
+
+def _resolve_params(params: dict) -> dict:
+    unknown = set(params) - set(DEFAULT_PARAMS)
+    if unknown:
+        raise TypeError(f"unknown candidate parameter(s): {', '.join(sorted(unknown))}")
+    p = {**DEFAULT_PARAMS, **params}
+    if int(p["neighborhood"]) < 3 or int(p["neighborhood"]) % 2 == 0:
+        raise ValueError(f"neighborhood must be odd and >= 3, got {p['neighborhood']}")
+    return p
+
+
+def _shift_pixels(pix: np.ndarray, size: tuple[int, int], du: int, dv: int) -> np.ndarray:
+    h, w = size
+    u, v = np.divmod(pix, w)
+    return ((u + du) % h) * w + (v + dv) % w
+
+
+def _compute(exemplars: list[Exemplar], p: dict, progress: bool) -> CandidateSet:
+    init_warp()
+    start = time.perf_counter()
+    digests = tuple(e.digest() for e in exemplars)
+    if len(set(e.features.shape[2] for e in exemplars)) != 1:
+        raise ValueError("the three exemplars must have the same number of feature channels")
+    unique = list(dict.fromkeys(digests))
+    axis_source = tuple(unique.index(d) for d in digests)
+    srcs = [exemplars[digests.index(d)] for d in unique]
+    pyramids = [s.pyramid() for s in srcs]
+    num_levels = min(len(pyr) for pyr in pyramids)
+    # Align pyramids at their finest level when exemplars differ in size.
+    pyramids = [pyr[len(pyr) - num_levels :] for pyr in pyramids]
+    lo, hi = _feature_range(srcs)
+    shared = len(unique) == 1
+    roles_per_level = 1 if shared else 3
+    sources: list[list[SourceLevel]] = []
+    roles: list[list[RoleLevel]] = []
+    fallbacks: list[int] = []
+    bar = tqdm(
+        total=num_levels * (len(srcs) + roles_per_level),
+        desc="candidates",
+        disable=not progress,
+        unit="step",
+    )
+    for level in range(num_levels):
+        k2 = int(p["candidates_2d"])
+        k3 = int(p["candidates_3d"])
+        lvl_sources = []
+        for pyr in pyramids:
+            feat = _quantize(pyr[level].features, lo, hi)
+            lvl_sources.append(_source_level(feat, p, k2))
+            bar.update(1)
+        lvl_roles = []
+        for role in range(roles_per_level):
+            trio = [lvl_sources[axis_source[(role + k) % 3]] for k in range(3)]
+            lvl_roles.append(_role_level(trio, p, k3))
+            bar.update(1)
+        sources.append(lvl_sources)
+        roles.append(lvl_roles)
+        fallbacks.append(int(sum(r.fallback.sum() for r in lvl_roles)))
+    bar.close()
+    cs = CandidateSet(
+        params=dict(p),
+        digests=digests,
+        axis_source=axis_source,
+        colors=[pyr[-1].colors.astype(np.float32) for pyr in pyramids],
+        sources=sources,
+        roles=roles,
+    )
+    cs.seconds = time.perf_counter() - start
+    cs.stats = {"fallback_pixels": fallbacks, "seconds": cs.seconds}
+    return cs
+
+
+def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
+    """Common per-channel range, so quantized features of all exemplars are comparable."""
+    stacked = np.concatenate([s.features.reshape(-1, s.features.shape[2]) for s in srcs])
+    lo = stacked.min(axis=0).astype(np.float64)
+    hi = stacked.max(axis=0).astype(np.float64)
+    return lo, np.where(hi > lo, hi, lo + 1.0)
+
+
+def _quantize(features: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    q = np.rint((features.astype(np.float64) - lo) / (hi - lo) * 255.0)
+    return np.clip(q, 0, 255).astype(np.uint8)
+
+
+def neighborhoods(feat: np.ndarray, n: int) -> np.ndarray:
+    """Toroidal N x N neighbourhood vectors, (h*w, N*N*F) int64, in (a, b, channel) order.
+
+    ``a`` runs along the first pixel coordinate, ``b`` along the second, both from -N//2.
+    """
+    h, w, f = feat.shape
+    half = n // 2
+    cols = []
+    for a in range(-half, half + 1):
+        for b in range(-half, half + 1):
+            cols.append(np.roll(feat, (-a, -b), axis=(0, 1)).reshape(h * w, f))
+    return np.concatenate(cols, axis=1).astype(np.int64)
+
+
+def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
+    """Appearance space of one exemplar level: quantized PCA and 2D k-coherent candidates."""
+    n = int(p["neighborhood"])
+    h, w, _ = feat.shape
+    vec = 3 * neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
+    centred = vec - vec.mean(axis=0)
+    cov = centred.T.astype(np.float64) @ centred / max(len(vec) - 1, 1)
+    evals, evecs = np.linalg.eigh(cov)
+    order = np.argsort(evals)[::-1]
+    evals, evecs = np.clip(evals[order], 0, None), evecs[:, order]
+    total = evals.sum()
+    frac = np.cumsum(evals) / total if total > 0 else np.ones_like(evals)
+    dims = int(np.searchsorted(frac, float(p["variance"])) + 1)
+    dims = int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"])))
+    dims = min(dims, vec.shape[1])
+    basis_f = evecs[:, :dims].T
+    # Fix each component's sign so the basis is reproducible across LAPACK builds.
+    signs = np.sign(basis_f[np.arange(dims), np.argmax(np.abs(basis_f), axis=1)])
+    basis_f *= signs[:, None]
+    scale = 127.0 / max(np.abs(basis_f).max(), 1e-12)
+    basis = np.rint(basis_f * scale).astype(np.int64)
+    acc = vec @ basis.T
+    shift = max(0, int(np.abs(acc).max()).bit_length() - 15)
+    proj = (acc >> shift).astype(np.int16)
+    return SourceLevel(
+        feat=feat,
+        basis=basis.astype(np.int32),
+        shift=shift,
+        proj=proj,
+        cand2d=_kcoherent(proj, h, w, k2),
+    )
+
+
+def _kcoherent(proj: np.ndarray, h: int, w: int, k: int) -> np.ndarray:
+    """2D k-coherent candidates: the pixel itself, then the most similar neighbourhoods
+    farther than 2 pixels from it (Tong et al. 2002)."""
+    npix = h * w
+    tree = cKDTree(proj.astype(np.float64))
+    want = min(npix, 4 * k + 25)
+    _, idx = tree.query(proj.astype(np.float64), k=want)
+    idx = np.asarray(idx).reshape(npix, want)
+    own = np.arange(npix)
+    u0, v0 = np.divmod(own, w)
+    u1, v1 = np.divmod(idx, w)
+    du = np.abs(u1 - u0[:, None])
+    dv = np.abs(v1 - v0[:, None])
+    far = (np.minimum(du, h - du) > 2) | (np.minimum(dv, w - dv) > 2)
+    out = np.repeat(own[:, None], k, axis=1).astype(np.int32)
+    for pix in range(npix):
+        others = idx[pix][far[pix]][: k - 1]
+        out[pix, 1 : 1 + len(others)] = others
+    return out
+
+
+def _strips(feat: np.ndarray, axis: int, half: int) -> np.ndarray:
+    """N x 1 strips through every pixel along pixel coordinate ``axis``, (h*w, N*F)."""
+    h, w, f = feat.shape
+    cols = [np.roll(feat, -t, axis=axis).reshape(h * w, f) for t in range(-half, half + 1)]
+    return np.concatenate(cols, axis=1).astype(np.float32)
+
+
+def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
+    """3D candidates of the role-0 exemplar's pixels against roles 1 and 2 (4.1, 4.2)."""
+    half = int(p["neighborhood"]) // 2
+    npix = trio[0].feat.shape[0] * trio[0].feat.shape[1]
+    strips = [[_strips(t.feat, axis, half) for axis in (0, 1)] for t in trio]
+    # Role 0's second-coordinate strip meets role 1's first-coordinate strip; role 0's
+    # first-coordinate strip meets role 2's second-coordinate strip.
+    near1 = _nearest_strips(strips[1][0], strips[0][1], p)
+    near2 = _nearest_strips(strips[2][1], strips[0][0], p)
+    keep = min(int(p["keep"]), near1.shape[1] * near2.shape[1])
+    dev = "cpu"
+    keys = wp.full((npix, keep), np.iinfo(np.int64).max, dtype=wp.int64, device=dev)
+    c1 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
+    c2 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
+    cb = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
+    count = wp.zeros(npix, dtype=wp.int32, device=dev)
+    strip_arrays = [wp.array(a.astype(np.int32), device=dev) for pair in strips for a in pair]
+    wp.launch(
+        _k.best_crossbar_triples,
+        dim=npix,
+        inputs=[*strip_arrays, wp.array(near1, device=dev), wp.array(near2, device=dev)],
+        outputs=[keys, c1, c2, cb, count],
+        device=dev,
+    )
+    cand = np.stack([c1.numpy(), c2.numpy()], axis=2)
+    cand, cb_np, cnt, fallback = _filter_coherent(
+        cand, cb.numpy(), count.numpy(), [t.size for t in trio], k3, int(p["coherence_rounds"])
+    )
+    return RoleLevel(cand=cand, cb=cb_np, count=cnt, fallback=fallback)
+
+
+def _nearest_strips(database: np.ndarray, queries: np.ndarray, p: dict) -> np.ndarray:
+    """The S best-matching strips of ``database`` for each query strip (ANN search)."""
+    s = min(int(p["strips"]), len(database))
+    _, idx = cKDTree(database).query(queries, k=s)
+    return np.asarray(idx, dtype=np.int32).reshape(len(queries), s)
+
+
+def _filter_coherent(
+    cand: np.ndarray,
+    cb: np.ndarray,
+    count: np.ndarray,
+    sizes: list[tuple[int, int]],
+    k3: int,
+    rounds: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Iterate the coherence test of section 4.2 down to at most ``k3`` candidates.
+
+    Each round keeps the candidates with continuous coordinates in a neighbour's list in
+    both other exemplars. A pixel that would lose all keeps its best and is flagged as a
+    fallback. When a round removes nothing, lists longer than ``k3`` are cut to their
+    ``k3`` lowest crossbar errors and filtering resumes, so the final lists are coherent
+    with each other (except at fallback pixels).
+    """
+    npix = cand.shape[0]
+    fallback = np.zeros(npix, bool)
+    dev = "cpu"
+    height = wp.vec3i(*[s[0] for s in sizes])
+    width = wp.vec3i(*[s[1] for s in sizes])
+    for _ in range(rounds):
+        coords = []
+        for role in (1, 2):
+            u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
+            coords += [wp.array(u.astype(np.int32), device=dev), wp.array(v.astype(np.int32), device=dev)]
+        keep = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
+        wp.launch(
+            _k.coherent_candidates,
+            dim=cand.shape[:2],
+            inputs=[*coords, wp.array(count, dtype=wp.int32, device=dev), height, width],
+            outputs=[keep],
+            device=dev,
+        )
+        flags = keep.numpy().astype(bool)
+        flags[fallback, :1] = True  # a fallback pixel keeps its single best candidate
+        kept = flags.sum(axis=1)
+        empty = kept == 0
+        flags[empty, 0] = True
+        fallback |= empty
+        kept = flags.sum(axis=1)
+        if np.array_equal(kept, count):
+            if count.max() <= k3:
+                break
+            count = np.minimum(count, k3)
+            continue
+        order = np.argsort(~flags, axis=1, kind="stable")
+        cand = np.take_along_axis(cand, order[:, :, None], axis=1)
+        cb = np.take_along_axis(cb, order, axis=1)
+        count = kept
+    width_k = min(k3, cand.shape[1])
+    cand = cand[:, :width_k].copy()
+    cb = cb[:, :width_k].copy()
+    count = np.minimum(count, width_k).astype(np.int32)
+    invalid = np.arange(width_k)[None, :] >= count[:, None]
+    # Unused slots repeat the best candidate so any reader stays in range.
+    cand[invalid] = np.repeat(cand[:, :1], width_k, axis=1)[invalid]
+    cb[invalid] = np.repeat(cb[:, :1], width_k, axis=1)[invalid]
+    return cand.astype(np.int32), cb.astype(np.int32), count, fallback
+
+
+def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
+    meta = {
+        "params": cs.params,
+        "digests": list(cs.digests),
+        "axis_source": list(cs.axis_source),
+        "num_levels": cs.num_levels,
+        "num_sources": len(cs.colors),
+        "num_roles": len(cs.roles[0]),
+        "shifts": [[s.shift for s in lvl] for lvl in cs.sources],
+        "seconds": cs.seconds,
+        "stats": cs.stats,
+    }
+    out: dict[str, np.ndarray] = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
+    for j, c in enumerate(cs.colors):
+        out[f"colors/{j}"] = c
+    for lv in range(cs.num_levels):
+        for j, s in enumerate(cs.sources[lv]):
+            out[f"L{lv}/S{j}/feat"] = s.feat
+            out[f"L{lv}/S{j}/basis"] = s.basis.astype(np.int8)
+            out[f"L{lv}/S{j}/proj"] = s.proj
+            out[f"L{lv}/S{j}/cand2d"] = _compact_index(s.cand2d)
+        for r, role in enumerate(cs.roles[lv]):
+            out[f"L{lv}/R{r}/cand"] = _compact_index(role.cand)
+            out[f"L{lv}/R{r}/cb"] = role.cb
+            out[f"L{lv}/R{r}/count"] = role.count.astype(np.uint8)
+            out[f"L{lv}/R{r}/fallback"] = np.packbits(role.fallback)
+    return out
+
+
+def _compact_index(a: np.ndarray) -> np.ndarray:
+    return a.astype(np.uint16) if a.max(initial=0) < 65536 else a.astype(np.int32)
+
+
+def _unflatten(d: dict[str, np.ndarray]) -> CandidateSet:
+    meta = json.loads(bytes(d["meta"]).decode())
+    nl, ns, nr = meta["num_levels"], meta["num_sources"], meta["num_roles"]
+    colors = [d[f"colors/{j}"] for j in range(ns)]
+    sources, roles = [], []
+    for lv in range(nl):
+        lvl_src = []
+        for j in range(ns):
+            lvl_src.append(
+                SourceLevel(
+                    feat=d[f"L{lv}/S{j}/feat"],
+                    basis=d[f"L{lv}/S{j}/basis"].astype(np.int32),
+                    shift=int(meta["shifts"][lv][j]),
+                    proj=d[f"L{lv}/S{j}/proj"],
+                    cand2d=d[f"L{lv}/S{j}/cand2d"].astype(np.int32),
+                )
+            )
+        lvl_roles = []
+        for r in range(nr):
+            npix = d[f"L{lv}/R{r}/count"].shape[0]
+            lvl_roles.append(
+                RoleLevel(
+                    cand=d[f"L{lv}/R{r}/cand"].astype(np.int32),
+                    cb=d[f"L{lv}/R{r}/cb"],
+                    count=d[f"L{lv}/R{r}/count"].astype(np.int32),
+                    fallback=np.unpackbits(d[f"L{lv}/R{r}/fallback"], count=npix).astype(bool),
+                )
+            )
+        sources.append(lvl_src)
+        roles.append(lvl_roles)
+    return CandidateSet(
+        params=meta["params"],
+        digests=tuple(meta["digests"]),
+        axis_source=tuple(meta["axis_source"]),
+        colors=colors,
+        sources=sources,
+        roles=roles,
+        seconds=float(meta["seconds"]),
+        stats=meta["stats"],
+    )
