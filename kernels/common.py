@@ -24,13 +24,18 @@ def pixel_index(u: int, v: int, height: int, width: int) -> int:
     return wrap(u, height) * width + wrap(v, width)
 
 
+_MIX1 = wp.constant(wp.uint32(0x7FEB352D))
+_MIX2 = wp.constant(wp.uint32(0x846CA68B))
+_GOLDEN = wp.constant(wp.uint32(0x9E3779B9))
+
+
 @wp.func
 def hash_u32(x: wp.uint32) -> wp.uint32:
     """A well-mixed 32-bit integer hash (lowbias32), the source of all randomness."""
     x ^= x >> wp.uint32(16)
-    x *= wp.uint32(0x7FEB352D)
+    x *= _MIX1
     x ^= x >> wp.uint32(15)
-    x *= wp.uint32(0x846CA68B)
+    x *= _MIX2
     x ^= x >> wp.uint32(16)
     return x
 
@@ -38,7 +43,7 @@ def hash_u32(x: wp.uint32) -> wp.uint32:
 @wp.func
 def hash_cell(cx: int, cy: int, cz: int, seed: int, salt: int) -> wp.uint32:
     """Hash of an integer lattice cell, a seed and a salt; defined over all of Z^3."""
-    h = hash_u32(wp.uint32(seed) ^ wp.uint32(0x9E3779B9))
+    h = hash_u32(wp.uint32(seed) ^ _GOLDEN)
     h = hash_u32(h ^ wp.uint32(cx))
     h = hash_u32(h ^ wp.uint32(cy))
     h = hash_u32(h ^ wp.uint32(cz))

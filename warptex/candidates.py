@@ -28,10 +28,12 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from kernels import candidates as _k
+from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar
 
 FORMAT_VERSION = 1
+PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 _MAGIC = b"WARPTEXC"
 
 DEFAULT_PARAMS: dict[str, object] = {
@@ -345,7 +347,7 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     frac = np.cumsum(evals) / total if total > 0 else np.ones_like(evals)
     dims = int(np.searchsorted(frac, float(p["variance"])) + 1)
     dims = int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"])))
-    dims = min(dims, vec.shape[1])
+    dims = min(dims, vec.shape[1], MAX_DIMS)
     basis_f = evecs[:, :dims].T
     # Fix each component's sign so the basis is reproducible across LAPACK builds.
     signs = np.sign(basis_f[np.arange(dims), np.argmax(np.abs(basis_f), axis=1)])
@@ -353,7 +355,7 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     scale = 127.0 / max(np.abs(basis_f).max(), 1e-12)
     basis = np.rint(basis_f * scale).astype(np.int64)
     acc = vec @ basis.T
-    shift = max(0, int(np.abs(acc).max()).bit_length() - 15)
+    shift = max(0, int(np.abs(acc).max()).bit_length() - PROJ_BITS)
     proj = (acc >> shift).astype(np.int16)
     return SourceLevel(
         feat=feat,

@@ -1,0 +1,336 @@
+"""Kernels of lazy, spatially deterministic solid synthesis (Dong 2008, section 5).
+
+Voxels live in sparse blocks of 4^3; a block's 27 neighbours are found through a table
+built by the host, so a kernel reads any voxel within two voxels of its own. Every voxel
+stores a triple of exemplar pixel indices (one per axis). The exemplar of axis k spans
+the volume axes (k+1, k+2) as its (first, second) pixel coordinates.
+
+All arithmetic is on integers, so results are bit-identical on the CPU and on CUDA.
+"""
+
+import warp as wp
+
+from kernels.common import hash_cell, pixel_index, wrap
+
+wp.set_module_options({"enable_backward": False})
+
+BLOCK = 4
+BLOCK_VOXELS = 64
+MAX_DIMS = 12
+PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
+
+appearance_vector = wp.types.vector(length=MAX_DIMS, dtype=wp.int32)
+"""A PCA-projected neighbourhood; unused trailing dimensions are zero."""
+
+
+@wp.struct
+class LevelTables:
+    """Exemplar data of one pyramid level for the three axes (concatenated sources)."""
+
+    height: wp.vec3i
+    width: wp.vec3i
+    half: int  # N // 2
+    nfeat: int
+    shift: wp.vec3i  # projections are (basis . features) >> shift
+    k2: int  # 2D candidates searched per pixel
+    k3: int  # 3D candidates searched per pixel
+    feat_off: wp.vec3i
+    feat: wp.array(dtype=wp.int32)
+    basis_off: wp.vec3i
+    basis: wp.array(dtype=appearance_vector)  # per source, N*N*F basis rows
+    proj_off: wp.vec3i
+    proj: wp.array(dtype=appearance_vector)
+    cand2d_off: wp.vec3i
+    cand2d_stride: int
+    cand2d: wp.array(dtype=wp.int32)
+    cand3d_off: wp.vec3i  # per axis: where the role owned by that axis starts
+    cand3d_stride: int
+    cand3d: wp.array(dtype=wp.int32)
+    count3d_off: wp.vec3i
+    count3d: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def plane_offset(axis: int, a: int, b: int) -> wp.vec3i:
+    """Volume offset of pixel offset (a, b) in the plane of the exemplar of ``axis``."""
+    d = wp.vec3i(0, 0, 0)
+    d[(axis + 1) % 3] = a
+    d[(axis + 2) % 3] = b
+    return d
+
+
+@wp.func
+def block_local(i: int) -> wp.vec3i:
+    """Position of voxel ``i % 64`` inside its 4^3 block."""
+    r = i % BLOCK_VOXELS
+    return wp.vec3i(r // 16, (r // 4) % 4, r % 4)
+
+
+@wp.func
+def voxel_world(coords: wp.array(dtype=wp.vec3i), i: int) -> wp.vec3i:
+    return coords[i // BLOCK_VOXELS] * BLOCK + block_local(i)
+
+
+@wp.func
+def neighbor_voxel(nbr: wp.array2d(dtype=wp.int32), i: int, d: wp.vec3i) -> int:
+    """Flat index of the voxel at offset ``d`` (|d| <= 4) from voxel ``i``, -1 if absent."""
+    p = block_local(i) + d
+    b = ((p[0] >> 2) + 1) * 9 + ((p[1] >> 2) + 1) * 3 + (p[2] >> 2) + 1
+    slot = nbr[i // BLOCK_VOXELS, b]
+    if slot < 0:
+        return -1
+    return slot * BLOCK_VOXELS + (p[0] & 3) * 16 + (p[1] & 3) * 4 + (p[2] & 3)
+
+
+@wp.func
+def shift_pixel(pix: int, du: int, dv: int, height: int, width: int) -> int:
+    u = pix // width
+    return pixel_index(u + du, pix - u * width + dv, height, width)
+
+
+@wp.func
+def bump_sum(pos: wp.vec3i, seed: int, jitter: int, octave: int, cell: int, rmin: int,
+             rrange: int, amin: int, arange: int) -> wp.vec3i:
+    """One octave of the random warp of section 5.1 ("Jitter"), in 1/256 voxel units.
+
+    Each lattice cell of ``cell`` voxels holds one smooth bump of random centre, radius
+    (``rmin``..``rmin + rrange`` voxels), amplitude (scaled by ``jitter``/256) and
+    direction. The bump profile (1 - r^2/R^2)^3 stands in for the paper's Gaussian: it
+    has compact support and is exact in integers, so CPU and CUDA agree bit for bit.
+    """
+    fine = wp.vec3i(pos[0] * 256, pos[1] * 256, pos[2] * 256)
+    cx = pos[0] // cell
+    cy = pos[1] // cell
+    cz = pos[2] // cell
+    sx = wp.int64(0)
+    sy = wp.int64(0)
+    sz = wp.int64(0)
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            for dz in range(-1, 2):
+                h = hash_cell(cx + dx, cy + dy, cz + dz, seed, octave)
+                h1 = hash_cell(cx + dx, cy + dy, cz + dz, seed, octave + 16)
+                span = wp.uint32(cell * 256)
+                ox = (cx + dx) * cell * 256 + int(h % span)
+                oy = (cy + dy) * cell * 256 + int((h >> wp.uint32(8)) % span)
+                oz = (cz + dz) * cell * 256 + int((h >> wp.uint32(16)) % span)
+                rad = wp.int64(rmin * 256 + int(h1 % wp.uint32(rrange * 256 + 1)))
+                ex = wp.int64(fine[0] - ox)
+                ey = wp.int64(fine[1] - oy)
+                ez = wp.int64(fine[2] - oz)
+                r2 = ex * ex + ey * ey + ez * ez
+                if r2 < rad * rad:
+                    t = wp.int64(65536) - (r2 * wp.int64(65536)) // (rad * rad)
+                    w = (((t * t) >> wp.int64(16)) * t) >> wp.int64(16)
+                    amp = wp.int64(amin * 256 + int((h1 >> wp.uint32(12)) % wp.uint32(arange * 256 + 1)))
+                    amp = (amp * wp.int64(jitter)) >> wp.int64(8)
+                    h2 = hash_cell(cx + dx, cy + dy, cz + dz, seed, octave + 32)
+                    dirx = wp.int64(int(h2 % wp.uint32(513)) - 256)
+                    diry = wp.int64(int((h2 >> wp.uint32(10)) % wp.uint32(513)) - 256)
+                    dirz = wp.int64(int((h2 >> wp.uint32(20)) % wp.uint32(513)) - 256)
+                    sx += (amp * dirx * w) >> wp.int64(24)
+                    sy += (amp * diry * w) >> wp.int64(24)
+                    sz += (amp * dirz * w) >> wp.int64(24)
+    return wp.vec3i(int(sx), int(sy), int(sz))
+
+
+@wp.func
+def warp_offset(pos: wp.vec3i, seed: int, jitter: int) -> wp.vec3i:
+    """Integer displacement of the continuous random warp: stronger at small scales."""
+    s = bump_sum(pos, seed, jitter, 0, 16, 6, 8, 2, 4) + bump_sum(pos, seed, jitter, 1, 6, 2, 3, 1, 2)
+    return wp.vec3i((s[0] + 128) >> 8, (s[1] + 128) >> 8, (s[2] + 128) >> 8)
+
+
+@wp.kernel
+def initialize(
+    coords: wp.array(dtype=wp.vec3i),
+    t: LevelTables,
+    seed: int,
+    jitter: int,
+    triples: wp.array(dtype=wp.vec3i),
+):
+    """Tiling of the x exemplar's candidate slab (section 4.3), warped by the jitter."""
+    i = wp.tid()
+    p = voxel_world(coords, i)
+    p = p + warp_offset(p, seed, jitter)
+    n = 2 * t.half + 1
+    depth = wrap(p[0], n) - t.half
+    own = pixel_index(p[1], p[2], t.height[0], t.width[0])
+    first = t.cand3d_off[0] + own * t.cand3d_stride * 2
+    q = shift_pixel(t.cand3d[first], 0, depth, t.height[1], t.width[1])
+    r = shift_pixel(t.cand3d[first + 1], depth, 0, t.height[2], t.width[2])
+    triples[i] = wp.vec3i(own, q, r)
+
+
+@wp.kernel
+def upsample(
+    coords: wp.array(dtype=wp.vec3i),
+    parent_slot: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.vec3i),
+    parent_width: wp.vec3i,
+    t: LevelTables,
+    triples: wp.array(dtype=wp.vec3i),
+):
+    """Coordinate inheritance (section 5.1, "Upsampling"): child = 2 * parent + offset."""
+    i = wp.tid()
+    p = voxel_world(coords, i)
+    half = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
+    j = parent_slot[i // BLOCK_VOXELS] * BLOCK_VOXELS
+    j += (half[0] & 3) * 16 + (half[1] & 3) * 4 + (half[2] & 3)
+    src = parent[j]
+    out = wp.vec3i(0, 0, 0)
+    for k in range(3):
+        u = src[k] // parent_width[k]
+        v = src[k] - u * parent_width[k]
+        du = p[(k + 1) % 3] & 1
+        dv = p[(k + 2) % 3] & 1
+        out[k] = pixel_index(2 * u + du, 2 * v + dv, t.height[k], t.width[k])
+    triples[i] = out
+
+
+@wp.kernel
+def voxel_features(
+    triples: wp.array(dtype=wp.vec3i), t: LevelTables, feats: wp.array(dtype=wp.int32)
+):
+    """Matching features of each voxel: the sum of its three exemplar features."""
+    i = wp.tid()
+    tri = triples[i]
+    for c in range(t.nfeat):
+        s = int(0)
+        for k in range(3):
+            s += t.feat[t.feat_off[k] + tri[k] * t.nfeat + c]
+        feats[i * t.nfeat + c] = s
+
+
+@wp.func
+def active_voxel(active: wp.array(dtype=wp.int32), n: int) -> int:
+    """Flat index of the n-th voxel of the listed active blocks."""
+    return active[n // BLOCK_VOXELS] * BLOCK_VOXELS + n % BLOCK_VOXELS
+
+
+@wp.func
+def in_subpass(coords: wp.array(dtype=wp.vec3i), i: int, parity: int) -> bool:
+    """Sub-passes (section 5.1) visit the 8 interleaved parity classes one by one."""
+    if parity < 0:
+        return True
+    p = voxel_world(coords, i)
+    return (p[0] & 1) + 2 * (p[1] & 1) + 4 * (p[2] & 1) == parity
+
+
+@wp.kernel
+def project_neighborhoods(
+    first: int,
+    active: wp.array(dtype=wp.int32),
+    coords: wp.array(dtype=wp.vec3i),
+    nbr: wp.array2d(dtype=wp.int32),
+    feats: wp.array(dtype=wp.int32),
+    t: LevelTables,
+    parity: int,
+    qproj: wp.array(dtype=appearance_vector),
+):
+    """PCA projection of a voxel's current N x N neighbourhood in the plane of axis k.
+
+    Sums stay within int32: |basis| <= 127, features <= 3 * 255, N*N*F terms.
+    """
+    k = wp.tid() % 3
+    i = active_voxel(active, first + wp.tid() // 3)
+    if not in_subpass(coords, i, parity):
+        return
+    n = 2 * t.half + 1
+    acc = appearance_vector()
+    for a in range(n):
+        for b in range(n):
+            j = neighbor_voxel(nbr, i, plane_offset(k, a - t.half, b - t.half))
+            if j < 0:
+                j = i
+            w = t.basis_off[k] + (a * n + b) * t.nfeat
+            for c in range(t.nfeat):
+                acc += t.basis[w + c] * feats[j * t.nfeat + c]
+    s = t.shift[k]
+    for d in range(MAX_DIMS):
+        acc[d] = wp.clamp(acc[d] >> s, -PROJ_LIMIT, PROJ_LIMIT)
+    qproj[i * 3 + k] = acc
+
+
+@wp.func
+def appearance_distance(t: LevelTables, qproj: wp.array(dtype=appearance_vector), i: int,
+                        k: int, pix: int) -> int:
+    """Squared distance between a voxel's projected plane k and exemplar pixel ``pix``."""
+    e = t.proj[t.proj_off[k] + pix] - qproj[i * 3 + k]
+    return wp.dot(e, e)
+
+
+@wp.func
+def best_2d_candidate(
+    nbr: wp.array2d(dtype=wp.int32),
+    src: wp.array(dtype=wp.vec3i),
+    qproj: wp.array(dtype=appearance_vector),
+    t: LevelTables,
+    i: int,
+    k: int,
+) -> int:
+    """Step 1 of the two-step search (section 5.1): best k-coherent 2D candidate in the
+    plane of axis k, gathered from the 3 x 3 in-plane neighbours, shifted back."""
+    h = t.height[k]
+    w = t.width[k]
+    best = int(-1)
+    best_d = int(0)
+    for da in range(-1, 2):
+        for db in range(-1, 2):
+            j = neighbor_voxel(nbr, i, plane_offset(k, da, db))
+            if j < 0:
+                j = i
+            p = shift_pixel(src[j][k], -da, -db, h, w)
+            for c in range(t.k2):
+                cand = t.cand2d[t.cand2d_off[k] + p * t.cand2d_stride + c]
+                dist = appearance_distance(t, qproj, i, k, cand)
+                if best < 0 or dist < best_d:
+                    best = cand
+                    best_d = dist
+    return best
+
+
+@wp.kernel
+def correct(
+    first: int,
+    active: wp.array(dtype=wp.int32),
+    coords: wp.array(dtype=wp.vec3i),
+    nbr: wp.array2d(dtype=wp.int32),
+    src: wp.array(dtype=wp.vec3i),
+    qproj: wp.array(dtype=appearance_vector),
+    t: LevelTables,
+    parity: int,
+    dst: wp.array(dtype=wp.vec3i),
+):
+    """Correction (section 5.1): replace the triple by the best matching 3D candidate.
+
+    Step 2 of the two-step search gathers the 3D candidates of the three best 2D pixels
+    and compares whole 3-neighbourhoods. Strict comparisons in a fixed loop order make
+    the first best win, so ties resolve identically everywhere. Voxels outside the
+    sub-pass keep the value that ``dst`` already holds.
+    """
+    i = active_voxel(active, first + wp.tid())
+    if not in_subpass(coords, i, parity):
+        return
+    best = src[i]
+    best_d = int(-1)
+    for k in range(3):
+        own = best_2d_candidate(nbr, src, qproj, t, i, k)
+        own_d = appearance_distance(t, qproj, i, k, own)
+        k1 = (k + 1) % 3
+        k2 = (k + 2) % 3
+        n3 = wp.min(t.k3, t.count3d[t.count3d_off[k] + own])
+        for c in range(n3):
+            e = t.cand3d_off[k] + (own * t.cand3d_stride + c) * 2
+            q = t.cand3d[e]
+            r = t.cand3d[e + 1]
+            dist = own_d + appearance_distance(t, qproj, i, k1, q)
+            dist += appearance_distance(t, qproj, i, k2, r)
+            if best_d < 0 or dist < best_d:
+                best_d = dist
+                tri = wp.vec3i(0, 0, 0)
+                tri[k] = own
+                tri[k1] = q
+                tri[k2] = r
+                best = tri
+    dst[i] = best

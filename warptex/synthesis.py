@@ -1,0 +1,429 @@
+"""Lazy, spatially deterministic solid synthesis (Dong 2008, section 5).
+
+A voxel's result is a pure function of its integer position, the candidates, the seed
+and the parameters: never of what else was requested, of batch order or of cache state.
+The host only orchestrates: it decides which sparse blocks each level must synthesize
+(section 5.2, dependency masks) and launches the kernels of ``kernels.synthesis``.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import warp as wp
+from scipy import ndimage
+
+from kernels import synthesis as _k
+from warptex.candidates import CandidateSet
+from warptex.device import device as default_device
+from warptex.device import init_warp
+
+BLOCK = _k.BLOCK
+_BLOCK_VOXELS = _k.BLOCK_VOXELS
+_KEY_BIAS = 1 << 20
+_KEY_BITS = 21
+COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
+
+
+def neighborhood_shape(half: int) -> np.ndarray:
+    """Voxels read by one correction: three orthogonal N x N planes (the 3-neighbourhood)."""
+    n = 2 * half + 1
+    shape = np.zeros((n, n, n), bool)
+    shape[half, :, :] = shape[:, half, :] = shape[:, :, half] = True
+    return shape
+
+
+def correction_steps(passes: int, subpasses: int) -> list[int]:
+    """The parity class corrected by each sub-pass step in order; -1 means all voxels."""
+    return [-1 if subpasses == 1 else s for _ in range(passes) for s in range(subpasses)]
+
+
+def dependency_mask(desired: np.ndarray, half: int, steps: list[int]) -> np.ndarray:
+    """Section 5.2: voxels of one level needed before ``steps`` to correct ``desired``.
+
+    ``desired`` is a boolean grid with room to grow. Steps are undone from last to
+    first; a sub-pass only dilates the voxels of its own parity class, because the
+    others keep their value through it.
+    """
+    shape = neighborhood_shape(half)
+    idx = np.indices(desired.shape)
+    parity = (idx[0] & 1) + 2 * (idx[1] & 1) + 4 * (idx[2] & 1)
+    mask = desired.copy()
+    for step in reversed(steps):
+        active = mask if step < 0 else mask & (parity == step)
+        mask |= ndimage.binary_dilation(active, structure=shape)
+    return mask
+
+
+@lru_cache(maxsize=None)
+def dependency_radius(half: int, passes: int, subpasses: int, trailing: int | None = None) -> int:
+    """How far (Chebyshev) a voxel's dependencies reach within one level, through all
+    correction steps or only the last ``trailing`` ones."""
+    steps = correction_steps(passes, subpasses)
+    steps = steps[len(steps) - (len(steps) if trailing is None else trailing) :]
+    reach = len(steps) * half
+    n = 2 * reach + 3
+    worst = 0
+    for parity in range(8 if subpasses > 1 else 1):
+        desired = np.zeros((n, n, n), bool)
+        c = reach + np.array([parity & 1, (parity >> 1) & 1, (parity >> 2) & 1])
+        desired[tuple(c)] = True
+        hit = np.argwhere(dependency_mask(desired, half, steps))
+        worst = max(worst, int(np.abs(hit - c).max()))
+    return worst
+
+
+def dependency_chain(half: int, passes: int, subpasses: int, levels: int) -> list[int]:
+    """Voxels synthesized at each level to get one finest voxel, finest level first.
+
+    The count that Dong 2008 (section 5.2) reports as 6778 for N=5, 2 passes, 3 levels.
+    """
+    steps = correction_steps(passes, subpasses)
+    n = 4 * len(steps) * half + 8
+    desired = np.zeros((n, n, n), bool)
+    desired[n // 2, n // 2, n // 2] = True
+    counts = []
+    for level in range(levels):
+        mask = dependency_mask(desired, half, steps)
+        counts.append(int(mask.sum()))
+        if level + 1 < levels:
+            parents = np.unique(np.argwhere(mask) // 2, axis=0)
+            parents += n // 2 - (parents.min(axis=0) + parents.max(axis=0)) // 2
+            desired = np.zeros((n, n, n), bool)
+            desired[tuple(parents.T)] = True
+    return counts
+
+
+def _pack(coords: np.ndarray) -> np.ndarray:
+    c = coords.astype(np.int64) + _KEY_BIAS
+    return (c[:, 0] << (2 * _KEY_BITS)) | (c[:, 1] << _KEY_BITS) | c[:, 2]
+
+
+def _unpack(keys: np.ndarray) -> np.ndarray:
+    mask = (1 << _KEY_BITS) - 1
+    out = np.stack([keys >> (2 * _KEY_BITS), (keys >> _KEY_BITS) & mask, keys & mask], axis=1)
+    return (out - _KEY_BIAS).astype(np.int32)
+
+
+def _dilate(keys: np.ndarray, r: int) -> np.ndarray:
+    if r == 0 or len(keys) == 0:
+        return keys
+    rng = np.arange(-r, r + 1)
+    offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(-1, 3)
+    coords = _unpack(keys)
+    return np.unique(_pack((coords[:, None, :] + offsets[None]).reshape(-1, 3)))
+
+
+def _lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Slot of each query key in sorted ``keys``, -1 where absent."""
+    pos = np.searchsorted(keys, query)
+    pos = np.minimum(pos, len(keys) - 1)
+    return np.where(keys[pos] == query, pos, -1).astype(np.int32)
+
+
+def _neighbor_table(keys: np.ndarray) -> np.ndarray:
+    rng = np.arange(-1, 2)
+    offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(27, 3)
+    coords = _unpack(keys)
+    nbr = _pack((coords[:, None, :] + offsets[None]).reshape(-1, 3))
+    return _lookup(keys, nbr).reshape(len(keys), 27)
+
+
+@dataclass
+class _Level:
+    """Final (corrected) triples of some blocks of one level, sorted by block key."""
+
+    keys: np.ndarray
+    triples: np.ndarray  # (M * 64, 3) int32
+
+    def take(self, keys: np.ndarray) -> np.ndarray:
+        slots = _lookup(self.keys, keys)
+        idx = (slots[:, None] * _BLOCK_VOXELS + np.arange(_BLOCK_VOXELS)).reshape(-1)
+        return self.triples[idx]
+
+
+class _LevelCache:
+    """Coarse-level cache (section 6.2): final triples of coarse blocks, reused across
+    requests. Values are position-determined, so hits never change a result."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self.keys = np.zeros(0, np.int64)
+        self.triples = np.zeros((0, 3), np.int32)
+
+    def split(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(cached keys, missing keys) of sorted ``keys``."""
+        if len(self.keys) == 0:
+            return keys[:0], keys
+        hit = _lookup(self.keys, keys) >= 0
+        return keys[hit], keys[~hit]
+
+    def take(self, keys: np.ndarray) -> np.ndarray:
+        return _Level(self.keys, self.triples).take(keys)
+
+    def insert(self, level: _Level) -> None:
+        if level.triples.nbytes > self.max_bytes:
+            return
+        if self.triples.nbytes + level.triples.nbytes > self.max_bytes:
+            self.keys, self.triples = level.keys, level.triples
+            return
+        keys = np.concatenate([self.keys, level.keys])
+        blocks = np.concatenate([self.triples, level.triples]).reshape(-1, _BLOCK_VOXELS, 3)
+        order = np.argsort(keys, kind="stable")
+        self.keys = keys[order]
+        self.triples = blocks[order].reshape(-1, 3)
+
+
+class Synthesizer:
+    """Colors of any subset of an unbounded solid texture (Dong 2008, section 5).
+
+    Voxel coordinates are integers over all of Z^3 at the finest level L; level l voxel
+    v covers finest voxels ``2**(L-l) * v ...``. Synthesis starts ``levels`` levels above
+    the finest with a warped tiling of the candidate slab and runs ``passes`` correction
+    passes of ``subpasses`` interleaved sub-passes per level.
+    """
+
+    def __init__(
+        self,
+        candidates: CandidateSet,
+        seed: int = 0,
+        jitter: float = 1.0,
+        *,
+        levels: int = 3,
+        passes: int = 2,
+        subpasses: int = 1,
+        device: str | None = None,
+        coarse_cache_bytes: int = 256 << 20,
+    ) -> None:
+        if subpasses not in (1, 8):
+            raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
+        if not 0.0 <= jitter <= 64.0:
+            raise ValueError(f"jitter must be within [0, 64], got {jitter}")
+        if passes < 0 or levels < 0:
+            raise ValueError("passes and levels must not be negative")
+        init_warp()
+        self.candidates = candidates
+        self.seed = int(seed) & 0x7FFFFFFF
+        self.jitter = float(jitter)
+        self.passes = int(passes)
+        self.subpasses = int(subpasses)
+        self.device = device or default_device()
+        self.finest = candidates.num_levels - 1
+        self.start = max(0, self.finest - int(levels))
+        half = int(candidates.params["neighborhood"]) // 2
+        self._half = half
+        self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
+        self._tables = {lv: self._level_tables(lv) for lv in range(self.start, self.finest + 1)}
+        self._cache = {lv: _LevelCache(coarse_cache_bytes) for lv in range(self.start, self.finest)}
+        self._lock = threading.Lock()
+        self._threads = max(1, min(os.cpu_count() or 1, 8))
+        self.voxels_synthesized = {lv: 0 for lv in range(self.start, self.finest + 1)}
+
+    # -- public API -------------------------------------------------------------------
+
+    def triples(self, ijk: np.ndarray) -> np.ndarray:
+        """Finest-level coordinate triples (N, 3, 2) of voxels ``ijk`` (N, 3) ints.
+
+        Entry ``[n, k]`` is the (row, column) of the pixel of axis k's exemplar.
+        """
+        pix = self._pixels(ijk)
+        widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
+        return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
+
+    def voxels(self, ijk: np.ndarray) -> np.ndarray:
+        """Colors (N, C) float32 of voxels ``ijk`` (N, 3): the average of three exemplar
+        colors (section 5.1)."""
+        return self.colors_of(self._pixels(ijk))
+
+    def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
+        """Colors of a box of voxels, (D, H, W, C) with axis 0 along x, 1 along y, 2 along z."""
+        shape = tuple(int(s) for s in shape)
+        if len(shape) != 3 or min(shape) < 0:
+            raise ValueError(f"shape must be three non-negative ints, got {shape}")
+        grid = np.indices(shape).reshape(3, -1).T + np.asarray(origin, np.int64)
+        return self.voxels(grid).reshape(*shape, self.candidates.channels)
+
+    def colors_of(self, pixels: np.ndarray) -> np.ndarray:
+        """Average the three exemplar colors of finest-level triples of pixel indices."""
+        cs = self.candidates
+        cols = [cs.colors[cs.axis_source[k]].reshape(-1, cs.channels) for k in range(3)]
+        out = cols[0][pixels[:, 0]] + cols[1][pixels[:, 1]]
+        out += cols[2][pixels[:, 2]]
+        return (out / np.float32(3.0)).astype(np.float32)
+
+    def block_pixels(self, block_keys: np.ndarray) -> np.ndarray:
+        """Finest triples of whole 4^3 blocks given by sorted packed keys, (M*64, 3)."""
+        with self._lock:
+            return self._final(self.finest, block_keys).triples
+
+    # -- orchestration ----------------------------------------------------------------
+
+    def _pixels(self, ijk: np.ndarray) -> np.ndarray:
+        ijk = np.asarray(ijk)
+        if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
+            raise ValueError(f"voxel coordinates must be an (N, 3) integer array, got "
+                             f"{ijk.dtype} {ijk.shape}")
+        if len(ijk) == 0:
+            return np.zeros((0, 3), np.int32)
+        if np.abs(ijk).max() >= COORD_LIMIT:
+            raise ValueError(f"voxel coordinates must lie within +-{COORD_LIMIT}")
+        ijk = ijk.astype(np.int64)
+        keys = _pack(ijk >> 2)
+        uniq = np.unique(keys)
+        level = self.block_pixels(uniq)
+        slot = np.searchsorted(uniq, keys)
+        local = (ijk[:, 0] & 3) * 16 + (ijk[:, 1] & 3) * 4 + (ijk[:, 2] & 3)
+        return level[slot * _BLOCK_VOXELS + local]
+
+    def _final(self, level: int, keys: np.ndarray) -> _Level:
+        """Corrected triples at ``level`` of the blocks ``keys`` (sorted, unique)."""
+        cache = self._cache.get(level)
+        if cache is not None:
+            hit, miss = cache.split(keys)
+        else:
+            hit, miss = keys[:0], keys
+        computed = self._synthesize(level, miss) if len(miss) else None
+        if cache is not None and computed is not None:
+            cache.insert(computed)
+        if len(hit) == 0:
+            return computed if computed is not None else _Level(keys, np.zeros((0, 3), np.int32))
+        parts_k = [hit] + ([computed.keys] if computed is not None else [])
+        parts_t = [cache.take(hit).reshape(-1, _BLOCK_VOXELS, 3)]
+        if computed is not None:
+            parts_t.append(computed.triples.reshape(-1, _BLOCK_VOXELS, 3))
+        all_keys = np.concatenate(parts_k)
+        order = np.argsort(all_keys, kind="stable")
+        return _Level(all_keys[order], np.concatenate(parts_t)[order].reshape(-1, 3))
+
+    def _synthesize(self, level: int, keys: np.ndarray) -> _Level:
+        """Synthesize blocks ``keys`` of ``level`` on a work region padded by the apron."""
+        work = _dilate(keys, self._apron)
+        coords = _unpack(work)
+        dev = self.device
+        t = self._tables[level]
+        nvox = len(work) * _BLOCK_VOXELS
+        coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
+        triples = wp.empty(nvox, dtype=wp.vec3i, device=dev)
+        if level == self.start:
+            jitter = int(round(self.jitter * 256))
+            wp.launch(_k.initialize, nvox, [coords_wp, t, self.seed, jitter], [triples], device=dev)
+        else:
+            parent_keys = np.unique(_pack(coords >> 1))
+            parent = self._final(level - 1, parent_keys)
+            parent_slot = _lookup(parent.keys, _pack(coords >> 1))
+            pt = self._tables[level - 1]
+            wp.launch(
+                _k.upsample,
+                nvox,
+                [
+                    coords_wp,
+                    wp.array(parent_slot, dtype=wp.int32, device=dev),
+                    wp.array(parent.triples, dtype=wp.vec3i, device=dev),
+                    pt.width,
+                    t,
+                ],
+                [triples],
+                device=dev,
+            )
+        self._correct(coords_wp, work, keys, triples, t)
+        self.voxels_synthesized[level] += nvox
+        out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[_lookup(work, keys)]
+        return _Level(keys, out.reshape(-1, 3))
+
+    def _correct(self, coords: wp.array, work: np.ndarray, keys: np.ndarray,
+                 triples: wp.array, t: _k.LevelTables) -> None:
+        """Correction passes on ``work``; each step only visits the blocks whose result
+        later steps still read on the way to ``keys``."""
+        dev = self.device
+        nvox = len(work) * _BLOCK_VOXELS
+        nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
+        feats = wp.empty(nvox * t.nfeat, dtype=wp.int32, device=dev)
+        qproj = wp.zeros(nvox * 3, dtype=_k.appearance_vector, device=dev)
+        other = wp.empty_like(triples)
+        src, dst = triples, other
+        steps = correction_steps(self.passes, self.subpasses)
+        for n, parity in enumerate(steps):
+            reach = dependency_radius(self._half, self.passes, self.subpasses, len(steps) - n - 1)
+            active_np = _lookup(work, _dilate(keys, -(-reach // BLOCK)))
+            active = wp.array(active_np, dtype=wp.int32, device=dev)
+            count = len(active_np) * _BLOCK_VOXELS
+            wp.launch(_k.voxel_features, nvox, [src, t], [feats], device=dev)
+            wp.copy(dst, src)
+            self._split_launch(_k.project_neighborhoods, count, 3,
+                               [active, coords, nbr, feats, t, parity], [qproj])
+            self._split_launch(_k.correct, count, 1,
+                               [active, coords, nbr, src, qproj, t, parity], [dst])
+            src, dst = dst, src
+        if src is not triples:
+            wp.copy(triples, src)
+
+    def _split_launch(self, kernel, nvox: int, per_voxel: int, inputs: list, outputs: list) -> None:
+        """Launch a voxel kernel in contiguous ranges on several threads.
+
+        Warp runs one CPU launch on one thread; voxels are independent within a launch, so
+        ranges on separate threads give the same result as one launch.
+        """
+        if self.device != "cpu" or self._threads == 1 or nvox < 4096:
+            if nvox:
+                wp.launch(kernel, nvox * per_voxel, [0, *inputs], outputs, device=self.device)
+            return
+        bounds = np.linspace(0, nvox, self._threads + 1).astype(int)
+
+        def run(lo: int, hi: int) -> None:
+            wp.launch(kernel, (hi - lo) * per_voxel, [lo, *inputs], outputs, device=self.device)
+
+        workers = [threading.Thread(target=run, args=(lo, hi)) for lo, hi in zip(bounds[:-1], bounds[1:])]
+        for w in workers:
+            w.start()
+        for w in workers:
+            w.join()
+
+    def _level_tables(self, level: int) -> _k.LevelTables:
+        """Upload one level's exemplar data; shared sources are stored once."""
+        cs = self.candidates
+        dev = self.device
+        finest = level == cs.num_levels - 1
+        sources = cs.sources[level]
+        roles = cs.roles[level]
+        n = int(cs.params["neighborhood"])
+        t = _k.LevelTables()
+        sizes = [sources[cs.axis_source[k]].size for k in range(3)]
+        t.height = wp.vec3i(*[s[0] for s in sizes])
+        t.width = wp.vec3i(*[s[1] for s in sizes])
+        t.half = n // 2
+        t.nfeat = int(sources[0].feat.shape[2])
+        t.shift = wp.vec3i(*[sources[cs.axis_source[k]].shift for k in range(3)])
+        t.k2 = min(2 if finest else 4, int(sources[0].cand2d.shape[1]))
+        t.k3 = min(4 if finest else 12, int(roles[0].cand.shape[1]))
+
+        def upload(arrays: list[np.ndarray], per_axis: list[int], dtype=wp.int32) -> tuple:
+            """Concatenate per-source arrays; offsets count elements of ``dtype``."""
+            rows = [a.reshape(-1) if dtype is wp.int32 else a for a in arrays]
+            starts = np.cumsum([0] + [len(r) for r in rows])[:-1]
+            return (
+                wp.vec3i(*[int(starts[j]) for j in per_axis]),
+                wp.array(np.concatenate(rows).astype(np.int32), dtype=dtype, device=dev),
+            )
+
+        def padded(a: np.ndarray) -> np.ndarray:
+            """Rows of appearance vectors: unused dimensions are zero."""
+            out = np.zeros((a.shape[0], _k.MAX_DIMS), np.int32)
+            out[:, : a.shape[1]] = a
+            return out
+
+        src_of_axis = list(cs.axis_source)
+        role_of_axis = [cs.role_of_axis(k) for k in range(3)]
+        t.feat_off, t.feat = upload([s.feat for s in sources], src_of_axis)
+        vec = _k.appearance_vector
+        t.basis_off, t.basis = upload([padded(s.basis.T) for s in sources], src_of_axis, vec)
+        t.proj_off, t.proj = upload([padded(s.proj) for s in sources], src_of_axis, vec)
+        t.cand2d_off, t.cand2d = upload([s.cand2d for s in sources], src_of_axis)
+        t.cand2d_stride = int(sources[0].cand2d.shape[1])
+        t.cand3d_off, t.cand3d = upload([r.cand for r in roles], role_of_axis)
+        t.cand3d_stride = int(roles[0].cand.shape[1])
+        t.count3d_off, t.count3d = upload([r.count for r in roles], role_of_axis)
+        return t
