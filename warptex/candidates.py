@@ -93,6 +93,8 @@ class CandidateSet:
     colors: list[np.ndarray]  # per source, finest level, (H, W, C) float32
     sources: list[list[SourceLevel]]  # [level][source]
     roles: list[list[RoleLevel]]  # [level][role]
+    # Time this process spent computing the set; not saved (files must be byte-identical
+    # for the same input), so a loaded set reports 0.
     seconds: float = 0.0
     stats: dict = field(default_factory=dict)
 
@@ -161,7 +163,9 @@ class CandidateSet:
         try:
             data = path.read_bytes()
         except OSError as e:
-            raise CandidateCacheError(f"{path}: cannot read candidate file ({e.strerror})") from None
+            raise CandidateCacheError(
+                f"{path}: cannot read candidate file ({e.strerror})"
+            ) from None
         if len(data) < 44 or data[:8] != _MAGIC:
             raise CandidateCacheError(f"{path}: not a warptex candidate file")
         version = int.from_bytes(data[8:12], "little")
@@ -302,7 +306,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool) -> CandidateSet
         roles=roles,
     )
     cs.seconds = time.perf_counter() - start
-    cs.stats = {"fallback_pixels": fallbacks, "seconds": cs.seconds}
+    cs.stats = {"fallback_pixels": fallbacks}
     return cs
 
 
@@ -444,20 +448,22 @@ def _filter_coherent(
 
     Each round keeps the candidates with continuous coordinates in a neighbour's list in
     both other exemplars. A pixel that would lose all keeps its best and is flagged as a
-    fallback. When a round removes nothing, lists longer than ``k3`` are cut to their
-    ``k3`` lowest crossbar errors and filtering resumes, so the final lists are coherent
-    with each other (except at fallback pixels).
+    fallback. When a round removes nothing, or after ``rounds`` rounds, lists longer than
+    ``k3`` are cut to their ``k3`` lowest crossbar errors and filtering resumes until a
+    round removes nothing, so the final lists are coherent with each other (except at
+    fallback pixels). Every round but the last removes candidates, so this ends.
     """
     npix = cand.shape[0]
     fallback = np.zeros(npix, bool)
     dev = "cpu"
     height = wp.vec3i(*[s[0] for s in sizes])
     width = wp.vec3i(*[s[1] for s in sizes])
-    for _ in range(rounds):
+    done = 0
+    while True:
         coords = []
         for role in (1, 2):
             u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
-            coords += [wp.array(u.astype(np.int32), device=dev), wp.array(v.astype(np.int32), device=dev)]
+            coords += [wp.array(a.astype(np.int32), device=dev) for a in (u, v)]
         keep = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
         wp.launch(
             _k.coherent_candidates,
@@ -473,6 +479,7 @@ def _filter_coherent(
         flags[empty, 0] = True
         fallback |= empty
         kept = flags.sum(axis=1)
+        done += 1
         if np.array_equal(kept, count):
             if count.max() <= k3:
                 break
@@ -482,6 +489,10 @@ def _filter_coherent(
         cand = np.take_along_axis(cand, order[:, :, None], axis=1)
         cb = np.take_along_axis(cb, order, axis=1)
         count = kept
+        if done >= rounds:
+            # Stopping here would leave lists whose support was just removed; cut them
+            # to k3 instead (the paper's "keep the first 12") and filter on to a fixpoint.
+            count = np.minimum(count, k3)
     width_k = min(k3, cand.shape[1])
     cand = cand[:, :width_k].copy()
     cb = cb[:, :width_k].copy()
@@ -502,7 +513,6 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
         "num_sources": len(cs.colors),
         "num_roles": len(cs.roles[0]),
         "shifts": [[s.shift for s in lvl] for lvl in cs.sources],
-        "seconds": cs.seconds,
         "stats": cs.stats,
     }
     out: dict[str, np.ndarray] = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
@@ -563,6 +573,5 @@ def _unflatten(d: dict[str, np.ndarray]) -> CandidateSet:
         colors=colors,
         sources=sources,
         roles=roles,
-        seconds=float(meta["seconds"]),
         stats=meta["stats"],
     )
