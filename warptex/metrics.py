@@ -1,0 +1,91 @@
+"""Quality metrics of solid textures against their exemplar (Dong 2008, section 6.3).
+
+Both metrics look at axis-aligned slices, the way a viewer judges a cut: a slice
+perpendicular to axis k is read with the same orientation as the exemplar of axis k
+(volume axes k+1, k+2 as its rows and columns; see ``warptex.candidates``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarray]:
+    """``count`` evenly spaced slices perpendicular to ``axis``, as (rows, cols, C) images
+    oriented like the exemplar of that axis."""
+    depth = volume.shape[axis]
+    picks = np.unique(np.linspace(0, depth - 1, min(count, depth)).astype(int))
+    order = [(axis + 1) % 3, (axis + 2) % 3]
+    out = []
+    for i in picks:
+        s = np.take(volume, i, axis=axis)
+        # np.take drops `axis`; remaining axes are the other two in increasing order.
+        remaining = [a for a in range(3) if a != axis]
+        out.append(np.transpose(s, [remaining.index(order[0]), remaining.index(order[1]), 2]))
+    return out
+
+
+def patches(image: np.ndarray, size: int, stride: int = 1, wrap: bool = False) -> np.ndarray:
+    """All ``size`` x ``size`` patches of an (H, W, C) image as rows (n, size*size*C)."""
+    h, w, c = image.shape
+    if wrap:
+        image = np.pad(image, ((0, size - 1), (0, size - 1), (0, 0)), mode="wrap")
+        h2, w2 = h, w
+    else:
+        h2, w2 = h - size + 1, w - size + 1
+    win = np.lib.stride_tricks.sliding_window_view(image, (size, size), axis=(0, 1))
+    win = win[:h2:stride, :w2:stride]
+    return win.transpose(0, 1, 3, 4, 2).reshape(-1, size * size * c).astype(np.float32)
+
+
+def neighborhood_energy(
+    volume: np.ndarray, exemplar: np.ndarray, axis: int, size: int = 5, slices: int = 8
+) -> float:
+    """Mean squared distance from each slice patch to its nearest exemplar patch,
+    normalized by the exemplar's variance and patch size (0 = every patch is in the
+    exemplar; about 2 for patches of unrelated values of the same variance)."""
+    ex_patches = patches(exemplar, size, wrap=True)
+    tree = cKDTree(ex_patches)
+    vol_patches = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
+    dist, _ = tree.query(vol_patches, k=1, workers=-1)
+    var = float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
+    return float(np.mean(dist**2) / (size * size * max(var, 1e-12)))
+
+
+def sliced_wasserstein(
+    volume: np.ndarray,
+    exemplar: np.ndarray,
+    axis: int,
+    size: int = 5,
+    directions: int = 64,
+    slices: int = 8,
+    seed: int = 0,
+) -> float:
+    """Sliced Wasserstein-1 distance between slice patches and exemplar patches,
+    averaged over random unit directions and normalized by the exemplar's std."""
+    a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
+    b = patches(exemplar, size, wrap=True)
+    rng = np.random.default_rng(seed)
+    dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32)
+    dirs /= np.linalg.norm(dirs, axis=0, keepdims=True)
+    q = np.linspace(0.0, 1.0, 257)
+    pa = np.quantile(a @ dirs, q, axis=0)
+    pb = np.quantile(b @ dirs, q, axis=0)
+    std = float(np.sqrt(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum()))
+    return float(np.mean(np.abs(pa - pb)) / max(std, 1e-12))
+
+
+def iid_noise(exemplar: np.ndarray, shape: tuple[int, int, int], seed: int = 0) -> np.ndarray:
+    """A volume of independent exemplar pixels: right histogram, no structure."""
+    flat = exemplar.reshape(-1, exemplar.shape[2])
+    idx = np.random.default_rng(seed).integers(0, len(flat), size=int(np.prod(shape)))
+    return flat[idx].reshape(*shape, exemplar.shape[2])
+
+
+def extrusion(exemplar: np.ndarray, depth: int, axis: int = 2) -> np.ndarray:
+    """The exemplar stacked along ``axis``: perfect on that axis' slices, streaks elsewhere."""
+    order = [(axis + 1) % 3, (axis + 2) % 3]
+    vol = np.repeat(exemplar[None], depth, axis=0)  # (depth, rows, cols, C)
+    dest = [axis, *order]
+    return np.moveaxis(vol, [0, 1, 2], dest)
