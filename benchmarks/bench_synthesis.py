@@ -1,0 +1,88 @@
+"""Speed and quality of the lazy synthesis engine (issue 4; Dong 2008, sections 5 and 6.3).
+
+Prints: full-volume times (64^3 from a 64^2 exemplar, 128^3 from a 128^2 one), a cold
+single voxel, the dependency chain of one voxel, and the worst-axis neighbourhood energy
+of the 64^3 volume next to i.i.d. noise and the exemplar stacked along z. Warp kernels
+are compiled and candidates pre-computed before anything is timed.
+
+    python benchmarks/bench_synthesis.py [--exemplars DIR] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from warptex import metrics
+from warptex.candidates import precompute
+from warptex.exemplar import Exemplar
+from warptex.synthesis import Synthesizer, dependency_chain
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
+
+
+def best_of(fn, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def worst_energy(volume: np.ndarray, colors: np.ndarray) -> float:
+    return max(metrics.neighborhood_energy(volume, colors, a) for a in range(3))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+
+    for subpasses in (1, 8):
+        chain = dependency_chain(2, 2, subpasses, 3)
+        print(f"dependency chain of one voxel (N=5, 2 passes, {subpasses} sub-passes, 3 levels): "
+              f"{chain} finest first, total {sum(chain)} (paper: 6778)")
+
+    print("\n| exemplar | volume | sub-passes | seconds (best of "
+          f"{args.repeat}) | voxels synthesized | worst-axis energy | noise | stacked |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, size in [("granite_64", 64), ("rocks_in_sand_64", 64), ("wood_rosewood_128", 128)]:
+        ex = Exemplar.load(args.exemplars / f"{name}.png")
+        cs = precompute(ex)
+        Synthesizer(cs).box((0, 0, 0), (4, 4, 4))  # compile kernels
+        for subpasses in (1, 8) if size == 64 else (1,):
+            holder = {}
+
+            def run(cs=cs, subpasses=subpasses, holder=holder, size=size) -> None:
+                syn = Synthesizer(cs, seed=1, subpasses=subpasses)
+                holder["vol"] = syn.box((0, 0, 0), (size,) * 3)
+                holder["count"] = sum(syn.voxels_synthesized.values())
+
+            seconds = best_of(run, args.repeat if subpasses == 1 else 1)
+            vol = holder["vol"]
+            sub = vol[:64, :64, :64]
+            stacked = metrics.extrusion(ex.colors[:64, :64], 64, axis=2)
+            noise = metrics.iid_noise(ex.colors, (64, 64, 64))
+            print(f"| {name} | {size}^3 | {subpasses} | {seconds:.2f} | {holder['count']} | "
+                  f"{worst_energy(sub, ex.colors):.3f} | {worst_energy(noise, ex.colors):.3f} | "
+                  f"{worst_energy(stacked, ex.colors):.3f} |")
+
+    cs = precompute(Exemplar.load(args.exemplars / "granite_64.png"))
+    singles = []
+    for i in range(5):
+        syn = Synthesizer(cs, seed=100 + i)  # a fresh engine: no coarse level is cached
+        start = time.perf_counter()
+        syn.voxels(np.array([[1000 * i, -37, 512]]))
+        singles.append(time.perf_counter() - start)
+    print(f"\ncold single voxel: median {1000 * np.median(singles):.1f} ms "
+          f"(min {1000 * min(singles):.1f}, max {1000 * max(singles):.1f}) over 5 fresh engines")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+"""Regenerate docs/slices/*.png: exemplars beside slices of 64^3 lazily synthesized volumes.
+
+    python docs/make_slices.py [--exemplars DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from tqdm import tqdm
+
+from warptex.candidates import precompute
+from warptex.exemplar import Exemplar
+from warptex.sheets import save_png, sheet, volume_row
+from warptex.synthesis import Synthesizer
+
+HERE = Path(__file__).resolve().parent
+NAMES = ["granite_64", "rocks_in_sand_64", "gravel_gray_64", "marble_black_64", "rust_64",
+         "dry_mud_64", "cells_ihc_64", "wood_rosewood_64", "bricks_red_64", "onyx_banded_64"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--exemplars", type=Path, default=HERE.parent.parent / "shared" / "data" / "exemplars")
+    args = parser.parse_args()
+    rows = []
+    for name in tqdm(NAMES, desc="volumes"):
+        ex = Exemplar.load(args.exemplars / f"{name}.png")
+        vol = Synthesizer(precompute(ex), seed=1).box((0, 0, 0), (64, 64, 64))
+        rows.append((name.removesuffix("_64"), [("exemplar", ex.colors), *volume_row(vol)]))
+    save_png(sheet(rows[:5]), HERE / "slices" / "isotropic.png")
+    save_png(sheet(rows[5:]), HERE / "slices" / "structured.png")
+
+
+if __name__ == "__main__":
+    main()
