@@ -1,0 +1,40 @@
+"""Surface shells (Dong 2008, section 6.2): only the voxels a surface passes through."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from warptex.surface import block_transform, shell
+
+
+@pytest.mark.parametrize("resolution", [24, 48])
+def test_sphere_shell_grows_with_area_and_hugs_the_surface(resolution, warp_device):
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    voxels = shell(sphere, resolution)
+    radius = resolution / 2 * (1 - 1e-3 / resolution)
+    # A closed surface crossing unit voxels touches about 1.5 voxels per unit of area.
+    ratio = len(voxels) / (4 * np.pi * radius**2)
+    assert 1.3 < ratio < 1.7
+    centres = voxels + 0.5 - resolution / 2
+    # The mesh is inscribed in the sphere: allow its chord error on top of the voxel.
+    chord = 1 - np.cos(np.pi / (5 * 2**4))
+    off = np.abs(np.linalg.norm(centres, axis=1) - radius)
+    assert off.max() <= np.sqrt(3) / 2 + chord * radius
+    assert len(np.unique(voxels, axis=0)) == len(voxels)
+
+
+def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(warp_device):
+    tri = trimesh.Trimesh(vertices=[[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]], faces=[[0, 1, 2]])
+    voxels = shell(tri, transform=np.eye(4))
+    expected = {(x, y, 0) for x in range(4) for y in range(3) if x / 3 + y / 2 <= 1 + 1e-9}
+    # The hypotenuse from (3.5, 0.5) to (0.5, 2.5) also crosses voxels (1, 2) and (2, 1).
+    expected |= {(1, 2, 0), (2, 1, 0)}
+    assert set(map(tuple, voxels.tolist())) == expected
+
+
+def test_block_transform_fits_the_bounding_box():
+    box = trimesh.creation.box(extents=[2.0, 1.0, 0.5])
+    m = block_transform(box, 64)
+    corners = box.bounds @ m[:3, :3].T + m[:3, 3]
+    assert corners.min() >= 0 and corners.max() < 64
+    assert np.isclose(np.ptp(corners[:, 0]), 64, atol=0.01)

@@ -1,0 +1,68 @@
+"""Texturing meshes: the voxels around a surface (Dong 2008, sections 6.2 and 6.4).
+
+A mesh is placed in the solid texture by a 4x4 transform from its coordinates to voxel
+space (one unit = one finest voxel). By default its bounding box is fitted into a
+``resolution``^3 block, so the object looks carved from a block of that resolution.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+import warp as wp
+
+from kernels import surface as _k
+from warptex.device import device as default_device
+from warptex.device import init_warp
+
+
+def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
+    """4x4 matrix fitting the mesh's bounding box, centred, into [0, resolution)^3."""
+    lo, hi = mesh.bounds
+    extent = float(np.max(hi - lo))
+    if extent <= 0:
+        raise ValueError("the mesh has an empty bounding box")
+    scale = (resolution - 1e-3) / extent
+    m = np.eye(4)
+    m[:3, :3] *= scale
+    m[:3, 3] = resolution / 2.0 - scale * (lo + hi) / 2.0
+    return m
+
+
+def to_voxel_space(mesh: trimesh.Trimesh, transform: np.ndarray) -> np.ndarray:
+    """Mesh vertices in voxel space, float32."""
+    v = np.asarray(mesh.vertices, np.float64)
+    return (v @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
+
+
+def shell(
+    mesh: trimesh.Trimesh,
+    resolution: int = 1024,
+    transform: np.ndarray | None = None,
+    device: str | None = None,
+) -> np.ndarray:
+    """The finest voxels (N, 3) int32 that the mesh surface passes through, sorted.
+
+    ``transform`` maps mesh coordinates to voxel space; by default
+    :func:`block_transform` for ``resolution``.
+    """
+    init_warp()
+    dev = device or default_device()
+    m = block_transform(mesh, resolution) if transform is None else np.asarray(transform)
+    vertices = wp.array(to_voxel_space(mesh, m), dtype=wp.vec3, device=dev)
+    faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
+    nfaces = len(mesh.faces)
+    counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
+    wp.launch(_k.count_touched_voxels, nfaces, [vertices, faces], [counts], device=dev)
+    counts_np = counts.numpy()
+    offsets = np.concatenate([[0], np.cumsum(counts_np)[:-1]]).astype(np.int32)
+    total = int(counts_np.sum())
+    voxels = wp.empty(total, dtype=wp.vec3i, device=dev)
+    wp.launch(
+        _k.write_touched_voxels,
+        nfaces,
+        [vertices, faces, wp.array(offsets, dtype=wp.int32, device=dev)],
+        [voxels],
+        device=dev,
+    )
+    return np.unique(voxels.numpy(), axis=0).astype(np.int32)
