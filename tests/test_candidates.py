@@ -1,0 +1,425 @@
+"""3D candidate pre-computation (Dong 2008, section 4; issue 3): values, not just shapes.
+
+The crossbar error (4.1) and the coherence test (4.2) are re-implemented here in plain
+numpy, independently of the Warp kernels, and compared with what ``precompute`` stored.
+Small exemplars (crops of ``tests/data/granite_64.png``) keep the file fast.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import warptex.candidates as candidates
+from warptex import Exemplar
+from warptex.candidates import (
+    FORMAT_VERSION,
+    CandidateCacheError,
+    CandidateSet,
+    SourceLevel,
+    cache_path,
+    cached_candidate_path,
+    precompute,
+)
+
+GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch) -> Path:
+    """Every test gets its own empty candidate cache, never the user's."""
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("WARPTEX_CACHE", str(folder))
+    return folder
+
+
+def _granite() -> np.ndarray:
+    return Exemplar.load(GRANITE).colors
+
+
+def _crop(rows: slice, cols: slice) -> Exemplar:
+    return Exemplar(_granite()[rows, cols], name="crop")
+
+
+@pytest.fixture(scope="module")
+def granite(warp_device) -> CandidateSet:
+    """One 64x64 exemplar on all three axes: four levels, shared candidates."""
+    return precompute(GRANITE, cache=False)
+
+
+@pytest.fixture(scope="module")
+def three(warp_device) -> tuple[CandidateSet, list[Exemplar]]:
+    """Three different exemplars of different sizes, so every role has its own sizes."""
+    colors = _granite()
+    exemplars = [
+        Exemplar(colors[:32, :32], name="x"),
+        Exemplar(colors[32:56, 16:48, ::-1], name="y"),  # 24x32, channels reversed
+        Exemplar(1.0 - colors[:32, 32:48], name="z"),  # 32x16, inverted
+    ]
+    return precompute(*exemplars, cache=False), exemplars
+
+
+# -- independent numpy reference of sections 4.1 and 4.2 --------------------------------
+
+
+def _strip(feat: np.ndarray, pix: np.ndarray, axis: int, half: int) -> np.ndarray:
+    """The N pixels through ``pix`` along pixel coordinate ``axis``, toroidally:
+    ``(..., N, F)`` int64."""
+    h, w, _ = feat.shape
+    u, v = np.divmod(pix, w)
+    t = np.arange(-half, half + 1)
+    if axis == 0:
+        uu, vv = (u[..., None] + t) % h, np.broadcast_to(v[..., None], (*v.shape, len(t)))
+    else:
+        uu, vv = np.broadcast_to(u[..., None], (*u.shape, len(t))), (v[..., None] + t) % w
+    return feat[uu, vv].astype(np.int64)
+
+
+def _crossbar(feats: list[np.ndarray], pixels: list[np.ndarray], half: int) -> np.ndarray:
+    """Section 4.1: the second-coordinate strip of role k against the first-coordinate
+    strip of role k+1, for the pairs (0, 1), (1, 2), (2, 0), summed over channels."""
+    total = np.zeros(pixels[0].shape, np.int64)
+    for a in range(3):
+        b = (a + 1) % 3
+        d = _strip(feats[a], pixels[a], 1, half) - _strip(feats[b], pixels[b], 0, half)
+        total += (d * d).sum(axis=(-2, -1))
+    return total
+
+
+def _incoherent(cand: np.ndarray, count: np.ndarray, sizes: list[tuple[int, int]]) -> np.ndarray:
+    """Section 4.2 on final lists: (P, K) True where a valid candidate has no continuous
+    coordinate among its 4-neighbours' candidates in role 1 or in role 2."""
+    npix, k, _ = cand.shape
+    h0, w0 = sizes[0]
+    u0, v0 = np.divmod(np.arange(npix), w0)
+    neighbours = [
+        ((u0 + du) % h0) * w0 + (v0 + dv) % w0 for du, dv in ((-1, 0), (1, 0), (0, -1), (0, 1))
+    ]
+    valid = np.arange(k)[None, :] < count[:, None]
+    coherent = np.ones((npix, k), bool)
+    for role in (1, 2):
+        h, w = sizes[role]
+        cu, cv = np.divmod(cand[:, :, role - 1], w)
+        found = np.zeros((npix, k), bool)
+        for q in neighbours:
+            du = np.abs(cu[q][:, None, :] - cu[:, :, None])
+            dv = np.abs(cv[q][:, None, :] - cv[:, :, None])
+            dist = np.minimum(du, h - du) + np.minimum(dv, w - dv)
+            found |= ((dist == 1) & valid[q][:, None, :]).any(axis=2)
+        coherent &= found
+    return valid & ~coherent
+
+
+def _trio(cs: CandidateSet, level: int, role: int) -> list[SourceLevel]:
+    """Role k's pixels index the exemplars of axes k, k+1, k+2 (cyclic orientation)."""
+    return [cs.source_of(level, (role + j) % 3) for j in range(3)]
+
+
+def _role_cases(cs: CandidateSet) -> list[tuple[int, int]]:
+    return [(lv, r) for lv in range(cs.num_levels) for r in range(len(cs.roles[lv]))]
+
+
+def _assert_same(a: CandidateSet, b: CandidateSet) -> None:
+    assert a.params == b.params and a.digests == b.digests
+    assert a.axis_source == b.axis_source and a.stats == b.stats
+    for ca, cb in zip(a.colors, b.colors, strict=True):
+        np.testing.assert_array_equal(ca, cb)
+    for la, lb in zip(a.sources, b.sources, strict=True):
+        for sa, sb in zip(la, lb, strict=True):
+            assert sa.shift == sb.shift
+            for name in ("feat", "basis", "proj", "cand2d"):
+                np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name))
+    for la, lb in zip(a.roles, b.roles, strict=True):
+        for ra, rb in zip(la, lb, strict=True):
+            for name in ("cand", "cb", "count", "fallback"):
+                np.testing.assert_array_equal(getattr(ra, name), getattr(rb, name))
+
+
+# -- stored values ------------------------------------------------------------------------
+
+
+def test_shared_exemplar_has_one_role_and_one_source(granite):
+    assert granite.shared and granite.axis_source == (0, 0, 0)
+    assert granite.num_levels == 4
+    assert [lvl[0].size for lvl in granite.sources] == [(8, 8), (16, 16), (32, 32), (64, 64)]
+    assert all(len(lvl) == 1 for lvl in granite.sources)
+    assert all(len(lvl) == 1 for lvl in granite.roles)
+
+
+def test_coordinates_inside_their_exemplar_level(granite, three):
+    for cs in (granite, three[0]):
+        k3 = int(cs.params["candidates_3d"])
+        for lv, r in _role_cases(cs):
+            role = cs.roles[lv][r]
+            own, nxt, nnx = (h * w for h, w in (s.size for s in _trio(cs, lv, r)))
+            assert role.cand.shape == (own, k3, 2)
+            assert role.cand[..., 0].min() >= 0 and role.cand[..., 0].max() < nxt
+            assert role.cand[..., 1].min() >= 0 and role.cand[..., 1].max() < nnx
+            assert role.count.min() >= 1 and role.count.max() <= k3
+        for lvl in cs.sources:
+            for src in lvl:
+                h, w = src.size
+                assert src.cand2d.min() >= 0 and src.cand2d.max() < h * w
+                np.testing.assert_array_equal(src.cand2d[:, 0], np.arange(h * w))
+
+
+def test_lists_sorted_by_crossbar_error_and_padded_with_the_best(granite, three):
+    for cs in (granite, three[0]):
+        for lv, r in _role_cases(cs):
+            role = cs.roles[lv][r]
+            k = role.cb.shape[1]
+            valid = np.arange(k)[None, :] < role.count[:, None]
+            steps = np.diff(role.cb, axis=1)
+            assert (steps[valid[:, 1:]] >= 0).all(), f"level {lv} role {r} not ascending"
+            # Slots past `count` repeat the first candidate, so readers stay in range.
+            pad = ~valid
+            best_cb = np.broadcast_to(role.cb[:, :1], role.cb.shape)
+            np.testing.assert_array_equal(role.cb[pad], best_cb[pad])
+            best = np.broadcast_to(role.cand[:, :1], role.cand.shape)
+            np.testing.assert_array_equal(role.cand[pad], best[pad])
+
+
+def test_stored_crossbar_error_matches_numpy_reference(granite, three):
+    for cs in (granite, three[0]):
+        half = int(cs.params["neighborhood"]) // 2
+        for lv, r in _role_cases(cs):
+            role = cs.roles[lv][r]
+            feats = [s.feat for s in _trio(cs, lv, r)]
+            npix, k, _ = role.cand.shape
+            own = np.broadcast_to(np.arange(npix)[:, None], (npix, k))
+            expected = _crossbar(feats, [own, role.cand[..., 0], role.cand[..., 1]], half)
+            valid = np.arange(k)[None, :] < role.count[:, None]
+            np.testing.assert_array_equal(role.cb[valid], expected[valid])
+
+
+def test_crossbar_reference_sees_orientation():
+    """The reference itself: a triple is scored on the strips the orientation pairs."""
+    rng = np.random.default_rng(5)
+    feats = [rng.integers(0, 256, size=(7, 9, 2), dtype=np.uint8) for _ in range(3)]
+    p = [np.array([3]), np.array([10]), np.array([40])]
+    by_hand = 0
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        ua, va = divmod(int(p[a][0]), 9)
+        ub, vb = divmod(int(p[b][0]), 9)
+        for t in range(-2, 3):
+            d = feats[a][ua, (va + t) % 9].astype(int) - feats[b][(ub + t) % 7, vb]
+            by_hand += int((d * d).sum())
+    assert _crossbar(feats, p, 2)[0] == by_hand
+
+
+def test_coherent_except_exactly_at_counted_fallback_pixels(granite, three):
+    for cs in (granite, three[0]):
+        for lv in range(cs.num_levels):
+            for r, role in enumerate(cs.roles[lv]):
+                sizes = [s.size for s in _trio(cs, lv, r)]
+                bad = _incoherent(role.cand, role.count, sizes).any(axis=1)
+                np.testing.assert_array_equal(bad, role.fallback, f"level {lv} role {r}")
+                assert (role.count[role.fallback] == 1).all()
+            total = sum(int(role.fallback.sum()) for role in cs.roles[lv])
+            assert cs.stats["fallback_pixels"][lv] == total
+    # Most pixels find coherent candidates.
+    finest = granite.roles[-1][0]
+    assert finest.fallback.mean() < 0.5
+
+
+def test_coherence_holds_when_rounds_run_out(warp_device):
+    """Lists cut to k3 after `coherence_rounds` are filtered on to a coherent fixpoint."""
+    cs = precompute(_crop(slice(0, 32), slice(0, 32)), cache=False, coherence_rounds=1)
+    for lv in range(cs.num_levels):
+        role = cs.roles[lv][0]
+        sizes = [cs.sources[lv][0].size] * 3
+        bad = _incoherent(role.cand, role.count, sizes).any(axis=1)
+        np.testing.assert_array_equal(bad, role.fallback)
+
+
+def test_slab_holds_own_pixel_and_first_candidate(granite, three):
+    for cs in (granite, three[0]):
+        half = int(cs.params["neighborhood"]) // 2
+        for lv in range(cs.num_levels):
+            for axis in range(3):
+                slab = cs.slab(lv, axis)
+                own, nxt, nnx = (cs.source_of(lv, (axis + j) % 3).size for j in range(3))
+                assert slab.shape == (2 * half + 1, *own, 3)
+                # The first coordinate of a candidate of pixel p is p itself (5.1).
+                pix = np.arange(own[0] * own[1])
+                for t in range(2 * half + 1):
+                    np.testing.assert_array_equal(slab[t, ..., axis].ravel(), pix)
+                first = cs.roles[lv][cs.role_of_axis(axis)].cand[:, 0, :]
+                for t in range(2 * half + 1):
+                    depth = t - half
+                    # Along `axis`: the column of the next exemplar, the row of the next-next.
+                    u, v = np.divmod(first[:, 0], nxt[1])
+                    want1 = u * nxt[1] + (v + depth) % nxt[1]
+                    u, v = np.divmod(first[:, 1], nnx[1])
+                    want2 = ((u + depth) % nnx[0]) * nnx[1] + v
+                    np.testing.assert_array_equal(slab[t, ..., (axis + 1) % 3].ravel(), want1)
+                    np.testing.assert_array_equal(slab[t, ..., (axis + 2) % 3].ravel(), want2)
+
+
+# -- different exemplars per axis ---------------------------------------------------------
+
+
+def test_three_different_exemplars_have_three_roles(three):
+    cs, exemplars = three
+    assert not cs.shared and cs.axis_source == (0, 1, 2)
+    assert cs.digests == tuple(e.digest() for e in exemplars)
+    assert all(len(lvl) == 3 for lvl in cs.roles)
+    assert all(len(lvl) == 3 for lvl in cs.sources)
+    assert [s.size for s in cs.sources[-1]] == [(32, 32), (24, 32), (32, 16)]
+    for j, e in enumerate(exemplars):
+        np.testing.assert_array_equal(cs.colors[j], e.colors)
+    # Role k belongs to axis k.
+    assert [cs.role_of_axis(k) for k in range(3)] == [0, 1, 2]
+
+
+def test_two_equal_exemplars_share_a_source(warp_device):
+    a = _crop(slice(0, 16), slice(0, 16))
+    b = _crop(slice(16, 32), slice(16, 32))
+    cs = precompute(a, b, a, cache=False)
+    assert cs.axis_source == (0, 1, 0)
+    assert all(len(lvl) == 2 for lvl in cs.sources)
+    assert all(len(lvl) == 3 for lvl in cs.roles)
+    half = int(cs.params["neighborhood"]) // 2
+    for lv, r in _role_cases(cs):
+        role = cs.roles[lv][r]
+        npix, k, _ = role.cand.shape
+        own = np.broadcast_to(np.arange(npix)[:, None], (npix, k))
+        feats = [s.feat for s in _trio(cs, lv, r)]
+        expected = _crossbar(feats, [own, role.cand[..., 0], role.cand[..., 1]], half)
+        valid = np.arange(k)[None, :] < role.count[:, None]
+        np.testing.assert_array_equal(role.cb[valid], expected[valid])
+
+
+def test_same_image_thrice_is_shared(warp_device):
+    ex = _crop(slice(0, 16), slice(0, 16))
+    again = Exemplar(ex.colors.copy(), name="copy")
+    cs = precompute(ex, again, ex, cache=False)
+    assert cs.shared and cs.axis_source == (0, 0, 0) and len(cs.sources[0]) == 1
+
+
+# -- determinism and files ----------------------------------------------------------------
+
+
+_SUBPROCESS = """
+import sys
+from warptex import Exemplar
+from warptex.candidates import precompute
+colors = Exemplar.load(sys.argv[1]).colors[:32, :32]
+precompute(Exemplar(colors, name="crop"), cache=False).save(sys.argv[2])
+"""
+
+
+def test_byte_identical_files_in_one_and_across_two_processes(tmp_path, warp_device):
+    ex = _crop(slice(0, 32), slice(0, 32))
+    precompute(ex, cache=False).save(tmp_path / "a.wtc")
+    precompute(ex, cache=False).save(tmp_path / "b.wtc")
+    first = (tmp_path / "a.wtc").read_bytes()
+    assert first == (tmp_path / "b.wtc").read_bytes()
+    subprocess.run(
+        [sys.executable, "-c", _SUBPROCESS, str(GRANITE), str(tmp_path / "c.wtc")],
+        check=True,
+        capture_output=True,
+    )
+    assert first == (tmp_path / "c.wtc").read_bytes()
+
+
+def test_save_load_round_trip(tmp_path, granite):
+    granite.save(tmp_path / "g.wtc")
+    loaded = CandidateSet.load(tmp_path / "g.wtc")
+    _assert_same(granite, loaded)
+    assert loaded.nbytes() == granite.nbytes()
+    assert not list(tmp_path.glob(".*.tmp")), "temporary file left behind"
+
+
+def test_second_call_loads_the_cache(monkeypatch, private_cache, warp_device):
+    ex = _crop(slice(0, 16), slice(0, 16))
+    assert cached_candidate_path(ex) is None
+    first = precompute(ex)
+    path = cached_candidate_path(ex)
+    assert path is not None and path.parent == private_cache
+
+    def no_compute(*args, **kwargs):
+        raise AssertionError("recomputed although the cache holds the candidates")
+
+    monkeypatch.setattr(candidates, "_compute", no_compute)
+    _assert_same(first, precompute(ex))
+    # The key holds the content, not the name, and the parameters.
+    _assert_same(first, precompute(Exemplar(ex.colors.copy(), name="other")))
+    with pytest.raises(AssertionError, match="recomputed"):
+        precompute(ex, candidates_3d=8)
+
+
+def _damage_truncate(data: bytes) -> bytes:
+    return data[: len(data) // 2]
+
+
+def _damage_flip(data: bytes) -> bytes:
+    mid = len(data) // 2
+    return data[:mid] + bytes([data[mid] ^ 0x40]) + data[mid + 1 :]
+
+
+@pytest.mark.parametrize("damage", [_damage_truncate, _damage_flip])
+def test_corrupt_cache_is_reported_once_and_replaced(damage, warp_device):
+    ex = _crop(slice(16, 32), slice(0, 16))
+    good = precompute(ex)
+    path = cached_candidate_path(ex)
+    good_bytes = path.read_bytes()
+    path.write_bytes(damage(good_bytes))
+    with pytest.warns(UserWarning, match="damaged candidate cache") as record:
+        again = precompute(ex)
+    assert len(record) == 1
+    assert str(path) in str(record[0].message)
+    _assert_same(good, again)
+    assert path.read_bytes() == good_bytes
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _assert_same(good, precompute(ex))
+
+
+def _valid_header(payload: bytes, version: int = FORMAT_VERSION) -> bytes:
+    return b"WARPTEXC" + version.to_bytes(4, "little") + hashlib.sha256(payload).digest()
+
+
+def test_load_rejects_bad_magic_version_checksum_and_data(tmp_path, granite):
+    granite.save(tmp_path / "g.wtc")
+    data = (tmp_path / "g.wtc").read_bytes()
+    cases = {
+        "magic": (b"NOTWARPT" + data[8:], "not a warptex candidate file"),
+        "version": (
+            _valid_header(data[44:], FORMAT_VERSION + 1) + data[44:],
+            f"version {FORMAT_VERSION + 1}, expected {FORMAT_VERSION}",
+        ),
+        "empty": (b"", "not a warptex candidate file"),
+        "checksum": (_damage_flip(data), "checksum mismatch"),
+        "payload": (_valid_header(b"garbage") + b"garbage", "unreadable candidate data"),
+    }
+    for name, (content, message) in cases.items():
+        (tmp_path / f"{name}.wtc").write_bytes(content)
+        with pytest.raises(CandidateCacheError, match=message):
+            CandidateSet.load(tmp_path / f"{name}.wtc")
+    with pytest.raises(CandidateCacheError, match="cannot read"):
+        CandidateSet.load(tmp_path / "missing.wtc")
+
+
+def test_cache_file_name_depends_on_content_and_parameters(warp_device):
+    a = _crop(slice(0, 16), slice(0, 16))
+    b = _crop(slice(0, 16), slice(16, 32))
+    params = dict(candidates.DEFAULT_PARAMS)
+    assert cache_path([a, a, a], params) == cache_path([a, a, a], dict(params))
+    assert cache_path([a, a, a], params) != cache_path([b, b, b], params)
+    assert cache_path([a, b, a], params) != cache_path([a, a, b], params)
+    assert cache_path([a, a, a], params) != cache_path([a, a, a], {**params, "strips": 33})
+
+
+def test_unknown_or_bad_parameters_are_rejected():
+    ex = _crop(slice(0, 16), slice(0, 16))
+    with pytest.raises(TypeError, match="unknown candidate parameter"):
+        precompute(ex, cache=False, strip=3)
+    with pytest.raises(ValueError, match="neighborhood must be odd"):
+        precompute(ex, cache=False, neighborhood=4)

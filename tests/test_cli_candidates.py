@@ -1,0 +1,230 @@
+"""``warptex precompute`` and ``warptex volume``: summaries, files and their layouts."""
+
+from __future__ import annotations
+
+import re
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
+from warptex.cli import exr_sheet, main
+from warptex.exemplar import Exemplar
+
+GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory) -> dict[str, Path]:
+    """Small PNG crops of the granite exemplar, as files the commands can load."""
+    folder = tmp_path_factory.mktemp("images")
+    granite = Image.open(GRANITE).convert("RGB")
+    boxes = {"a": (0, 0, 32, 32), "b": (32, 0, 48, 16), "c": (16, 32, 32, 48)}
+    paths = {}
+    for name, box in boxes.items():
+        paths[name] = folder / f"{name}.png"
+        granite.crop(box).save(paths[name])
+    return paths
+
+
+@pytest.fixture(scope="module")
+def module_cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(autouse=True)
+def private_cache(module_cache, monkeypatch) -> Path:
+    """One candidate cache for this file, never the user's: later tests reuse candidates."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(module_cache))
+    return module_cache
+
+
+def _level_lines(cs: CandidateSet) -> list[str]:
+    """The summary's per-level rows, rebuilt from a candidate set."""
+    rows = []
+    for level, roles in enumerate(cs.roles):
+        size = "/".join(f"{s.size[1]}x{s.size[0]}" for s in cs.sources[level])
+        mean = np.concatenate([r.count for r in roles]).mean()
+        fallback = sum(int(r.fallback.sum()) for r in roles)
+        rows.append((str(level), size, f"{mean:.2f}", str(fallback)))
+    return [" ".join(row) for row in rows]
+
+
+def _rows(out: str) -> list[str]:
+    return [" ".join(line.split()) for line in out.splitlines() if re.match(r"\s+\d+\s", line)]
+
+
+# -- precompute ---------------------------------------------------------------------------
+
+
+def test_precompute_summary_file_and_cache(images, tmp_path, private_cache, capsys):
+    out_file = tmp_path / "a.wtc"
+    assert main(["precompute", str(images["a"]), "-o", str(out_file)]) == 0
+    captured = capsys.readouterr()
+    out = captured.out
+    cs = CandidateSet.load(out_file)
+    ex = Exemplar.load(images["a"])
+    cache = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
+    assert "exemplar: a.png on all three axes (candidates shared)" in out
+    assert "levels: 3" in out
+    assert _rows(out) == _level_lines(cs)
+    assert [row.split()[1] for row in _rows(out)] == ["8x8", "16x16", "32x32"]
+    assert re.search(r"^time: \d+\.\d\d s$", out, re.M)
+    assert f"bytes: {cs.nbytes()} (" in out
+    assert f"written: {cache} (cache)" in out
+    assert f"written: {out_file}" in out
+    assert "candidates" in captured.err  # the progress bar
+    # The -o file holds what precompute returns, and the cache file the same bytes.
+    assert out_file.read_bytes() == cache.read_bytes()
+    assert [s.size for s in cs.sources[-1]] == [(32, 32)]
+    assert cs.digests == (ex.digest(),) * 3
+
+    assert main(["precompute", str(images["a"])]) == 0
+    out = capsys.readouterr().out
+    assert f"loaded from cache: {cache}" in out
+    assert "written:" not in out
+    assert _rows(out) == _level_lines(cs)
+
+
+def test_precompute_no_cache_three_exemplars(images, private_cache, capsys):
+    before = set(private_cache.iterdir())
+    args = ["precompute", str(images["a"]), "--ey", str(images["b"]), "--ez", str(images["c"])]
+    assert main([*args, "--no-cache"]) == 0
+    out = capsys.readouterr().out
+    assert "exemplars: x a.png, y b.png, z c.png (3 roles)" in out
+    assert "written: nothing (--no-cache without -o)" in out
+    assert set(private_cache.iterdir()) == before
+    cs = precompute(*(Exemplar.load(images[k]) for k in "abc"), cache=False)
+    assert _rows(out) == _level_lines(cs)
+    assert _rows(out)[-1].split()[1] == "32x32/16x16/16x16"
+
+
+def test_precompute_errors(images, tmp_path, capsys):
+    mask = tmp_path / "mask.png"
+    Image.fromarray(np.eye(32, dtype=np.uint8) * 255).save(mask)
+    args = ["precompute", str(images["a"]), "--feature-mask", str(mask), "--ey", str(images["a"])]
+    assert main(args) == 2
+    assert "--feature-mask marks one image" in capsys.readouterr().err
+    assert main(["precompute", str(tmp_path / "missing.png")]) == 2
+    assert "missing.png: file not found" in capsys.readouterr().err
+    target = tmp_path / "no" / "such" / "dir" / "c.wtc"
+    assert main(["precompute", str(images["a"]), "-o", str(target)]) == 0
+    assert CandidateSet.load(target).num_levels == 3  # missing folders are made
+    (tmp_path / "file").write_text("not a folder")
+    assert main(["precompute", str(images["a"]), "-o", str(tmp_path / "file" / "c.wtc")]) == 2
+    assert f"{tmp_path / 'file' / 'c.wtc'}: cannot write" in capsys.readouterr().err
+
+
+# -- volume -------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def expected(images, module_cache) -> np.ndarray:
+    """Synthesizer.box of the whole 8^3 cube in one call, the reference for the files."""
+    from warptex.synthesis import Synthesizer
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(module_cache))
+        cs = precompute(images["a"])
+    return Synthesizer(cs, seed=7, jitter=0.5).box((0, 0, 0), (8, 8, 8))
+
+
+def _volume(images, out: Path, *extra: str) -> int:
+    args = ["volume", str(images["a"]), "--size", "8", "--seed", "7", "--jitter", "0.5"]
+    return main([*args, *extra, "-o", str(out)])
+
+
+def test_volume_npy_equals_box(images, expected, tmp_path, capsys):
+    out = tmp_path / "v.npy"
+    assert _volume(images, out) == 0
+    captured = capsys.readouterr()
+    assert f"written: {out}" in captured.out
+    assert "volume" in captured.err  # the progress bar over slabs
+    got = np.load(out)
+    assert got.dtype == np.float32 and got.shape == (8, 8, 8, 3)
+    np.testing.assert_array_equal(got, expected)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.npy"]  # no temporary left
+
+
+def test_volume_seed_changes_result(images, expected, tmp_path):
+    assert main(["volume", str(images["a"]), "--size", "8", "-o", str(tmp_path / "s.npy")]) == 0
+    assert not np.array_equal(np.load(tmp_path / "s.npy"), expected)
+
+
+def test_volume_vol_header_and_data(images, expected, tmp_path):
+    out = tmp_path / "v.vol"
+    assert _volume(images, out) == 0
+    data = out.read_bytes()
+    assert data[:3] == b"VOL" and data[3] == 3
+    encoding, xres, yres, zres, channels = struct.unpack("<5i", data[4:24])
+    assert (encoding, xres, yres, zres, channels) == (1, 8, 8, 8, 3)
+    assert struct.unpack("<6f", data[24:48]) == (0, 0, 0, 1, 1, 1)
+    assert len(data) == 48 + 8 * 8 * 8 * 3 * 4
+    values = np.frombuffer(data[48:], "<f4")
+    x, y, z, c = 5, 2, 6, 1
+    assert values[((z * yres + y) * xres + x) * channels + c] == expected[x, y, z, c]
+    np.testing.assert_array_equal(values.reshape(8, 8, 8, 3), expected.transpose(2, 1, 0, 3))
+
+
+_MITSUBA_READ = """
+import sys
+import numpy as np
+import warptex, mitsuba as mi
+mi.set_variant(warptex.best_mitsuba_variant())
+np.save(sys.argv[2], np.array(mi.VolumeGrid(sys.argv[1])))
+"""
+
+
+def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path):
+    pytest.importorskip("mitsuba")
+    assert _volume(images, tmp_path / "v.vol") == 0
+    # A child process, so the Mitsuba variant chosen here leaves other tests alone.
+    subprocess.run(
+        [sys.executable, "-c", _MITSUBA_READ, str(tmp_path / "v.vol"), str(tmp_path / "m.npy")],
+        check=True,
+        capture_output=True,
+    )
+    np.testing.assert_array_equal(np.load(tmp_path / "m.npy"), expected.transpose(2, 1, 0, 3))
+
+
+def test_volume_exr_sheet_of_z_slices(images, expected, tmp_path):
+    import OpenEXR
+
+    out = tmp_path / "v.exr"
+    assert _volume(images, out) == 0
+    with OpenEXR.File(str(out), separate_channels=True) as file:
+        channels = {name: ch.pixels for name, ch in file.channels().items()}
+    assert sorted(channels) == ["B", "G", "R"]
+    sheet = np.stack([channels[name] for name in "RGB"], axis=2)
+    assert sheet.dtype == np.float32 and sheet.shape == (8, 64, 3)
+    x, y, z = 5, 2, 6
+    np.testing.assert_array_equal(sheet[y, z * 8 + x], expected[x, y, z])
+    np.testing.assert_array_equal(sheet, exr_sheet(expected))
+
+
+def test_volume_bad_extension_names_the_path(images, tmp_path, capsys):
+    out = tmp_path / "v.png"
+    assert _volume(images, out) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"warptex: error: {out}: unknown volume format '.png'")
+    assert ".npy, .exr, .vol" in err
+    assert not out.exists()
+    assert main(["volume", str(images["a"]), "-o", str(tmp_path / "v")]) == 2
+    assert "(no extension)" in capsys.readouterr().err
+
+
+def test_volume_bad_arguments(images, tmp_path, capsys):
+    assert main(["volume", str(images["a"]), "--size", "0", "-o", str(tmp_path / "v.npy")]) == 2
+    assert "--size must be at least 1" in capsys.readouterr().err
+    assert _volume(images, tmp_path / "j.npy", "--jitter", "100") == 2
+    assert "jitter must be within" in capsys.readouterr().err
+    (tmp_path / "file").write_text("not a folder")
+    assert _volume(images, tmp_path / "file" / "v.npy") == 2
+    assert f"{tmp_path / 'file' / 'v.npy'}: cannot write" in capsys.readouterr().err
+    assert _volume(images, tmp_path / "new" / "v.npy") == 0  # missing folders are made
+    assert (tmp_path / "new" / "v.npy").exists()
