@@ -22,7 +22,8 @@ NAMES = ["granite_64", "rocks_in_sand_64", "gravel_gray_64", "marble_black_64", 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--exemplars", type=Path, default=HERE.parent.parent / "shared" / "data" / "exemplars")
+    shared = HERE.parent.parent / "shared" / "data" / "exemplars"
+    parser.add_argument("--exemplars", type=Path, default=shared)
     args = parser.parse_args()
     rows = []
     for name in tqdm(NAMES, desc="volumes"):

@@ -146,9 +146,8 @@ def coherent_candidates(
     if k < count[p]:
         h0 = height[0]
         w0 = width[0]
-        if has_continuous_neighbor(cand1_u, cand1_v, count, p, k, h0, w0, height[1], width[1]):
-            if has_continuous_neighbor(
-                cand2_u, cand2_v, count, p, k, h0, w0, height[2], width[2]
-            ):
-                flag = 1
+        if has_continuous_neighbor(
+            cand1_u, cand1_v, count, p, k, h0, w0, height[1], width[1]
+        ) and has_continuous_neighbor(cand2_u, cand2_v, count, p, k, h0, w0, height[2], width[2]):
+            flag = 1
     keep[p, k] = flag

@@ -122,7 +122,8 @@ def bump_sum(pos: wp.vec3i, seed: int, jitter: int, octave: int, cell: int, rmin
                 if r2 < rad * rad:
                     t = wp.int64(65536) - (r2 * wp.int64(65536)) // (rad * rad)
                     w = (((t * t) >> wp.int64(16)) * t) >> wp.int64(16)
-                    amp = wp.int64(amin * 256 + int((h1 >> wp.uint32(12)) % wp.uint32(arange * 256 + 1)))
+                    pick = int((h1 >> wp.uint32(12)) % wp.uint32(arange * 256 + 1))
+                    amp = wp.int64(amin * 256 + pick)
                     amp = (amp * wp.int64(jitter)) >> wp.int64(8)
                     h2 = hash_cell(cx + dx, cy + dy, cz + dz, seed, octave + 32)
                     dirx = wp.int64(int(h2 % wp.uint32(513)) - 256)
@@ -137,7 +138,8 @@ def bump_sum(pos: wp.vec3i, seed: int, jitter: int, octave: int, cell: int, rmin
 @wp.func
 def warp_offset(pos: wp.vec3i, seed: int, jitter: int) -> wp.vec3i:
     """Integer displacement of the continuous random warp: stronger at small scales."""
-    s = bump_sum(pos, seed, jitter, 0, 16, 6, 8, 2, 4) + bump_sum(pos, seed, jitter, 1, 6, 2, 3, 1, 2)
+    s = bump_sum(pos, seed, jitter, 0, 16, 6, 8, 2, 4)
+    s += bump_sum(pos, seed, jitter, 1, 6, 2, 3, 1, 2)
     return wp.vec3i((s[0] + 128) >> 8, (s[1] + 128) >> 8, (s[2] + 128) >> 8)
 
 

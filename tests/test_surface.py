@@ -24,7 +24,8 @@ def test_sphere_shell_grows_with_area_and_hugs_the_surface(resolution, warp_devi
 
 
 def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(warp_device):
-    tri = trimesh.Trimesh(vertices=[[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]], faces=[[0, 1, 2]])
+    corners = [[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]]
+    tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]])
     voxels = shell(tri, transform=np.eye(4))
     expected = {(x, y, 0) for x in range(4) for y in range(3) if x / 3 + y / 2 <= 1 + 1e-9}
     # The hypotenuse from (3.5, 0.5) to (0.5, 2.5) also crosses voxels (1, 2) and (2, 1).

@@ -47,7 +47,9 @@ def neighborhood_energy(
     exemplar; about 2 for patches of unrelated values of the same variance)."""
     ex_patches = patches(exemplar, size, wrap=True)
     tree = cKDTree(ex_patches)
-    vol_patches = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
+    vol_patches = np.concatenate(
+        [patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)]
+    )
     dist, _ = tree.query(vol_patches, k=1, workers=-1)
     var = float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
     return float(np.mean(dist**2) / (size * size * max(var, 1e-12)))

@@ -43,7 +43,7 @@ def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], scale: int = 2) 
     width = row_label_w + ncols * (cell_w + _GAP) + _GAP
     canvas = Image.new("RGB", (width, height), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
-    for r, ((name, _), row) in enumerate(zip(rows, tiles)):
+    for r, ((name, _), row) in enumerate(zip(rows, tiles, strict=True)):
         y = _GAP + r * (cell_h + _LABEL_HEIGHT + _GAP)
         draw.text((_GAP, y + _LABEL_HEIGHT + cell_h // 2 - 6), name, fill=(0, 0, 0))
         for c, (label, tile) in enumerate(row):

@@ -11,7 +11,8 @@ from __future__ import annotations
 import os
 import threading
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
+from itertools import pairwise
 
 import numpy as np
 import warp as wp
@@ -59,7 +60,7 @@ def dependency_mask(desired: np.ndarray, half: int, steps: list[int]) -> np.ndar
     return mask
 
 
-@lru_cache(maxsize=None)
+@cache
 def dependency_radius(half: int, passes: int, subpasses: int, trailing: int | None = None) -> int:
     """How far (Chebyshev) a voxel's dependencies reach within one level, through all
     correction steps or only the last ``trailing`` ones."""
@@ -309,7 +310,7 @@ class Synthesizer:
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
         triples = wp.empty(nvox, dtype=wp.vec3i, device=dev)
         if level == self.start:
-            jitter = int(round(self.jitter * 256))
+            jitter = round(self.jitter * 256)
             wp.launch(_k.initialize, nvox, [coords_wp, t, self.seed, jitter], [triples], device=dev)
         else:
             parent_keys = np.unique(_pack(coords >> 1))
@@ -371,12 +372,12 @@ class Synthesizer:
             if nvox:
                 wp.launch(kernel, nvox * per_voxel, [0, *inputs], outputs, device=self.device)
             return
-        bounds = np.linspace(0, nvox, self._threads + 1).astype(int)
+        bounds = [int(b) for b in np.linspace(0, nvox, self._threads + 1)]
 
         def run(lo: int, hi: int) -> None:
             wp.launch(kernel, (hi - lo) * per_voxel, [lo, *inputs], outputs, device=self.device)
 
-        workers = [threading.Thread(target=run, args=(lo, hi)) for lo, hi in zip(bounds[:-1], bounds[1:])]
+        workers = [threading.Thread(target=run, args=pair) for pair in pairwise(bounds)]
         for w in workers:
             w.start()
         for w in workers:
