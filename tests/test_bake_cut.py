@@ -1,0 +1,94 @@
+"""Baking onto meshes and planar cuts (Dong 2008, sections 6.2 and 6.4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from warptex.bake import bake_uv_texture, export, texel_points, vertex_colors
+from warptex.cut import cap_faces, cut, plane_points
+from warptex.exemplar import Exemplar
+from warptex.surface import block_transform, to_voxel_space
+from warptex.texture import SolidTexture
+
+
+@pytest.fixture(scope="module")
+def texture(data_dir, tmp_path_factory, warp_device) -> SolidTexture:
+    full = Exemplar.load(data_dir / "granite_64.png")
+    ex = Exemplar(np.ascontiguousarray(full.colors[:32, :32]), name="granite_32")
+    from warptex.candidates import precompute
+
+    return SolidTexture(precompute(ex, cache=False), seed=2)
+
+
+@pytest.fixture(scope="module")
+def sphere() -> trimesh.Trimesh:
+    return trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+
+
+def test_vertex_colors_are_point_queries(texture, sphere):
+    m = block_transform(sphere, 24)
+    colors = vertex_colors(texture, sphere, m)
+    assert np.array_equal(colors, texture.query(to_voxel_space(sphere, m)))
+
+
+def test_baked_texel_equals_query_at_its_surface_point(texture, sphere):
+    mesh = sphere.unwrap()
+    m = block_transform(mesh, 24)
+    image, covered = bake_uv_texture(texture, mesh, mesh.visual.uv, m, size=64)
+    points, mask = texel_points(mesh, mesh.visual.uv, m, (64, 64))
+    assert np.array_equal(covered.reshape(-1), mask)
+    assert 0.3 < covered.mean() < 1.0
+    flat = image.reshape(-1, image.shape[2])
+    assert np.array_equal(flat[mask], texture.query(points[mask]))
+    # Independently: the point of a covered texel lies in its triangle, on the surface.
+    radius = np.linalg.norm(points[mask] - 12.0, axis=1)
+    scale = m[0, 0]
+    assert np.all(radius <= scale * 1.0 + 1e-3) and np.all(radius >= scale * 0.98)
+
+
+def test_planar_slice_matches_the_volume(texture):
+    box = texture.synthesizer.box((2, -3, 5), (6, 7, 1))[:, :, 0]
+    pts = plane_points(np.array([2.5, -2.5, 5.5]), np.array([1, 0, 0]), np.array([0, 1, 0]),
+                       (6, 7))
+    got = texture.query(pts, filter="nearest").reshape(6, 7, -1)
+    assert np.array_equal(got, box)
+
+
+def test_cut_caps_continue_the_outer_surface(texture, sphere):
+    origin, normal = np.array([0.1, 0.0, 0.0]), np.array([1.0, 0.3, 0.0])
+    top, bottom = cut(sphere, origin, normal)
+    m = block_transform(sphere, 24)
+    for half in (top, bottom):
+        assert half.is_watertight
+        cap = cap_faces(half, origin, normal)
+        assert 0 < cap.sum() < len(half.faces)
+        cap_vertices = np.unique(half.faces[cap])
+        side_vertices = np.unique(half.faces[~cap])
+        # The cap is welded to the outer surface along the cut edge: no gap, no seam.
+        assert np.isin(cap_vertices, side_vertices).all()
+        edge = half.vertices[cap_vertices]
+        assert np.allclose((edge - origin) @ normal, 0.0, atol=1e-9)
+        colors = vertex_colors(texture, half, m)
+        expected = texture.query(to_voxel_space(half, m))
+        assert np.array_equal(colors[cap_vertices], expected[cap_vertices])
+    with pytest.raises(ValueError, match="does not cut"):
+        cut(sphere, np.array([5.0, 0, 0]), normal)
+
+
+def test_export_formats(texture, sphere, tmp_path):
+    m = block_transform(sphere, 24)
+    written = export(sphere, tmp_path / "s.ply", colors=vertex_colors(texture, sphere, m))
+    loaded = trimesh.load(written[0])
+    assert len(loaded.vertices) == len(sphere.vertices)
+    mesh = sphere.unwrap()
+    image, _ = bake_uv_texture(texture, mesh, mesh.visual.uv, m, size=32)
+    files = export(mesh, tmp_path / "t.obj", image=image, uv=mesh.visual.uv)
+    assert {f.suffix for f in files} == {".obj", ".mtl", ".png"}
+    glb = trimesh.load(export(mesh, tmp_path / "t.glb", image=image, uv=mesh.visual.uv)[0],
+                       force="mesh")
+    assert glb.visual.uv.shape == mesh.visual.uv.shape
+    with pytest.raises(ValueError, match=r"\.glb or \.obj"):
+        export(mesh, tmp_path / "t.ply", image=image, uv=mesh.visual.uv)
+    assert not list(tmp_path.glob(".t.ply*"))

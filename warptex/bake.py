@@ -1,0 +1,109 @@
+"""Baking a solid texture onto a mesh: vertex colors and UV textures (Dong 2008, 6.2).
+
+The solid texture is queried at surface points in voxel space (one unit = one finest
+voxel); a 4x4 transform places the mesh in the block of matter (see
+``warptex.surface.block_transform``). Only voxels around the surface get synthesized.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import trimesh
+import warp as wp
+from PIL import Image
+from scipy import ndimage
+
+from kernels import bake as _k
+from warptex.device import device as default_device
+from warptex.device import init_warp
+from warptex.sheets import to_rgb8
+from warptex.surface import to_voxel_space
+
+
+class PointTexture(Protocol):
+    def query(self, points: np.ndarray, filter: str = ...) -> np.ndarray: ...
+
+
+def vertex_colors(texture: PointTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
+                  filter: str = "trilinear") -> np.ndarray:
+    """Colors (V, C) of the solid texture at each vertex."""
+    return texture.query(to_voxel_space(mesh, transform), filter=filter)
+
+
+def texel_points(
+    mesh: trimesh.Trimesh, uv: np.ndarray, transform: np.ndarray, size: tuple[int, int],
+    device: str | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points (H*W, 3) in voxel space shown by each texel, and which texels any
+    triangle covers. ``size`` is (width, height)."""
+    init_warp()
+    dev = device or default_device()
+    width, height = size
+    faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
+    uv_wp = wp.array(np.asarray(uv, np.float32), dtype=wp.vec2, device=dev)
+    owner = wp.full(width * height, _k.NO_TRIANGLE, dtype=wp.int32, device=dev)
+    wp.launch(_k.claim_texels, len(mesh.faces), [uv_wp, faces, width, height], [owner],
+              device=dev)
+    points = wp.zeros(width * height, dtype=wp.vec3, device=dev)
+    positions = wp.array(to_voxel_space(mesh, transform), dtype=wp.vec3, device=dev)
+    wp.launch(_k.texel_points, width * height, [uv_wp, positions, faces, owner, width, height],
+              [points], device=dev)
+    return points.numpy(), owner.numpy() != _k.NO_TRIANGLE
+
+
+def bake_uv_texture(
+    texture: PointTexture, mesh: trimesh.Trimesh, uv: np.ndarray, transform: np.ndarray,
+    size: int = 1024, filter: str = "trilinear",
+) -> tuple[np.ndarray, np.ndarray]:
+    """A (size, size, C) image: each covered texel shows the solid texture at its surface
+    point; uncovered texels take the nearest covered color so filtering does not bleed
+    background into the seams. Also returns the coverage mask."""
+    points, covered = texel_points(mesh, uv, transform, (size, size))
+    colors = texture.query(points[covered], filter=filter)
+    image = np.zeros((size * size, colors.shape[1]), np.float32)
+    image[covered] = colors
+    image = image.reshape(size, size, -1)
+    mask = covered.reshape(size, size)
+    if mask.any() and not mask.all():
+        _, (iy, ix) = ndimage.distance_transform_edt(~mask, return_indices=True)
+        image = image[iy, ix]
+    return image, mask
+
+
+def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
+           image: np.ndarray | None = None, uv: np.ndarray | None = None) -> list[Path]:
+    """Write a textured mesh atomically: PLY/GLB with vertex ``colors``, or GLB (embedded
+    PNG) / OBJ (+ MTL + PNG) with a UV ``image``. Returns the files written."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if image is not None:
+        if suffix not in (".glb", ".obj"):
+            raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
+        material = trimesh.visual.material.SimpleMaterial(
+            image=Image.fromarray(to_rgb8(image)), name=path.stem
+        )
+        visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
+    elif colors is not None:
+        if suffix not in (".ply", ".glb"):
+            raise ValueError(f"{path}: vertex colors need a .ply or .glb file")
+        rgb = to_rgb8(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
+        visual = trimesh.visual.ColorVisuals(vertex_colors=np.c_[rgb, np.full(len(rgb), 255)])
+    else:
+        raise ValueError("nothing to export: give colors or an image")
+    out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, visual=visual, process=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
+        staged = Path(tmp) / path.name
+        options = {"mtl_name": f"{path.stem}.mtl"} if suffix == ".obj" else {}
+        out.export(staged, **options)
+        written = []
+        for f in sorted(Path(tmp).iterdir()):
+            target = path.parent / f.name
+            os.replace(f, target)
+            written.append(target)
+    return written
