@@ -1,0 +1,1 @@
+"""Classic solid texture synthesis methods that warptex is compared against."""
