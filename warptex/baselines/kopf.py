@@ -16,7 +16,9 @@ pyramid (section 4), alternating
 
 The approximate search is SciPy's ``cKDTree`` with ``eps = 2``: like the ANN library of Mount
 and Arya the paper uses (and its value, ``eps = 2``), a k-d tree that returns a neighbour
-within ``(1 + eps)`` times the distance of the nearest one. Mean-shift clustering (section
+within ``(1 + eps)`` times the distance of the nearest one. Since a new match only replaces
+the current one when closer, searches after the first of a level are bounded by the current
+match's distance, which prunes most of the tree. Mean-shift clustering (section
 4.1) is not implemented; voxels take the plain weighted average.
 
 Axis ``i`` of the volume (axis 0 of the ``(D, H, W, C)`` result is x) is constrained by its
@@ -59,6 +61,7 @@ MIN_DISTANCE = 1e-3
 _DEVICE = "cpu"  # the ANN search runs on the host; the solid is shared with it without copies
 _THREADS = 2  # Warp runs one CPU launch on one thread; independent ranges run side by side
 _SPLIT_MIN = 2048  # smaller launches are not worth handing to another thread
+_BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_search
 
 
 @dataclass(frozen=True)
@@ -210,6 +213,29 @@ def _search_structure(features: np.ndarray) -> _Axis:
     return _Axis(features, mean.astype(np.float32), basis, dims, tree)
 
 
+def _ann_search(tree: cKDTree, query: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Approximate nearest exemplar windows of projected windows ``query`` (section 4.2).
+
+    Only a window closer than the current match can replace it (``keep_better_match``), so
+    once every centre has a match the search is bounded by the current match's distance in
+    PCA space: far fewer tree nodes are visited, and where nothing closer exists within the
+    bound the current match is returned. SciPy takes one bound per call, so the queries are
+    grouped by bound and each group searched with its largest.
+    """
+    if np.any(current < 0):
+        return tree.query(query, eps=ANN_EPS, workers=_THREADS)[1].astype(np.int32)
+    bound = np.linalg.norm(query - tree.data[current], axis=1)
+    found = current.copy()
+    order = np.argsort(bound)
+    for group in np.array_split(order, _BOUND_GROUPS):
+        if len(group):
+            _, idx = tree.query(query[group], eps=ANN_EPS, workers=_THREADS,
+                                distance_upper_bound=float(bound[group[-1]]) * (1 + 1e-6))
+            hit = idx < tree.n
+            found[group[hit]] = idx[hit]
+    return found
+
+
 @functools.cache
 def _pool() -> ThreadPoolExecutor:
     # Kept for the process: starting threads for each of the many small launches costs more
@@ -272,10 +298,10 @@ class _LevelOptimizer:
             basis = wp.array(ax.basis, dtype=_k.projection, device=_DEVICE)
             _split_launch(_k.project_neighborhoods, 0, self.centres,
                           [self.solid, n, axis, mean, basis, self.coeffs])
-            query = self.coeffs.numpy()[:, : ax.dims]
-            _, found = ax.tree.query(query, eps=ANN_EPS, workers=_THREADS)
-            found = wp.array(found.astype(np.int32), dtype=wp.int32, device=_DEVICE)
             lo, hi = self.grid_first[axis], self.grid_first[axis] + self.centres
+            found = _ann_search(ax.tree, self.coeffs.numpy()[:, : ax.dims],
+                                self.match.numpy()[lo:hi])
+            found = wp.array(found, dtype=wp.int32, device=_DEVICE)
             h, w = ax.features.shape[:2]
             _split_launch(_k.keep_better_match, 0, self.centres,
                           [self.solid, n, axis, self.ex, self.ex_first[axis], h, w, found, R,
