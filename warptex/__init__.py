@@ -1,8 +1,9 @@
 """warptex: lazy, deterministic solid texture synthesis from 2D exemplars with NVIDIA Warp.
 
 Implements Dong et al. 2008, "Lazy Solid Texture Synthesis". ``precompute``, ``CandidateSet``
-(§4, 3D candidates) and ``Synthesizer`` (§5, parallel synthesis of any voxel subset) are
-imported on first use, so ``import warptex`` stays light.
+(§4, 3D candidates), ``Synthesizer`` (§5, parallel synthesis of any voxel subset) and
+``SolidTexture`` (§5.2, point queries on a cached brick store) are imported on first use,
+so ``import warptex`` stays light.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ _LAZY = {
     "precompute": "warptex.candidates",
     "CandidateSet": "warptex.candidates",
     "Synthesizer": "warptex.synthesis",
+    "SolidTexture": "warptex.texture",
 }
 
 __all__ = [
@@ -31,6 +33,7 @@ __all__ = [
     "Exemplar",
     "ExemplarError",
     "PyramidLevel",
+    "SolidTexture",
     "Synthesizer",
     "__version__",
     "best_mitsuba_variant",

@@ -1,0 +1,218 @@
+"""Kernels of point queries on the sparse brick store (Dong 2008, sections 5.2 and 6.2).
+
+Finest-level results live in bricks of 8^3 voxels found through an open-addressing hash
+table keyed by packed brick coordinates. A voxel is stored as its triple of exemplar pixel
+indices, as the paper's GPU implementation keeps "three 2-channel 16 bit" triples
+(section 6.2), and its color is the average of the three exemplar colors (section 5.1).
+
+Texture space: one unit is one finest voxel; voxel v occupies [v, v + 1)^3, its center is
+v + 0.5. ``nearest`` reads voxel floor(p); ``trilinear`` blends the 8 voxels around p - 0.5.
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+BRICK = 8
+BRICK_VOXELS = 512
+MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars
+EMPTY = wp.constant(wp.int64(-1))
+KEY_BIAS = 1 << 20
+KEY_BITS = 21
+
+_BIAS = wp.constant(wp.int64(KEY_BIAS))
+_SHIFT_Y = wp.constant(wp.int64(KEY_BITS))
+_SHIFT_X = wp.constant(wp.int64(2 * KEY_BITS))
+_MIX1 = wp.constant(wp.uint64(0xBF58476D1CE4E5B9))
+_MIX2 = wp.constant(wp.uint64(0x94D049BB133111EB))
+
+
+@wp.struct
+class BrickIndex:
+    """The hash table (``keys`` -> ``slots`` in the pool) and each slot's last use."""
+
+    keys: wp.array(dtype=wp.int64)  # EMPTY where free; capacity is a power of two
+    slots: wp.array(dtype=wp.int32)
+    mask: wp.int64  # capacity - 1
+    stamps: wp.array(dtype=wp.int64)  # per pool slot, for least-recently-used eviction
+
+
+@wp.func
+def brick_key(voxel: wp.vec3i) -> wp.int64:
+    """Packed coordinates of the brick holding ``voxel`` (21 bits per axis, biased)."""
+    bx = wp.int64(voxel[0] >> 3) + _BIAS
+    by = wp.int64(voxel[1] >> 3) + _BIAS
+    bz = wp.int64(voxel[2] >> 3) + _BIAS
+    return (bx << _SHIFT_X) | (by << _SHIFT_Y) | bz
+
+
+@wp.func
+def home(key: wp.int64, mask: wp.int64) -> wp.int64:
+    """First probe of ``key``: packed neighbours differ in few bits, so mix them all."""
+    h = wp.uint64(key)
+    h = (h ^ (h >> wp.uint64(30))) * _MIX1
+    h = (h ^ (h >> wp.uint64(27))) * _MIX2
+    h = h ^ (h >> wp.uint64(31))
+    return wp.int64(h) & mask
+
+
+@wp.func
+def find_slot(index: BrickIndex, key: wp.int64) -> int:
+    """Pool slot of brick ``key`` by linear probing, -1 if the brick is not stored."""
+    at = home(key, index.mask)
+    found = int(-1)
+    probing = bool(True)
+    while probing:
+        k = index.keys[at]
+        if k == key:
+            found = index.slots[at]
+            probing = False
+        elif k == EMPTY:
+            probing = False
+        at = (at + wp.int64(1)) & index.mask
+    return found
+
+
+@wp.func
+def local_index(voxel: wp.vec3i) -> int:
+    """Position of ``voxel`` in its brick, x slowest."""
+    return (voxel[0] & 7) * 64 + (voxel[1] & 7) * 8 + (voxel[2] & 7)
+
+
+@wp.func
+def voxel_triple(pool: wp.array(dtype=Any), slot: int, local: int) -> wp.vec3i:
+    """Exemplar pixels (one per axis) of a stored voxel."""
+    at = (slot * BRICK_VOXELS + local) * 3
+    return wp.vec3i(int(pool[at]), int(pool[at + 1]), int(pool[at + 2]))
+
+
+@wp.func
+def triple_channel(
+    p: wp.vec3i,
+    col0: wp.array(dtype=wp.float32),
+    col1: wp.array(dtype=wp.float32),
+    col2: wp.array(dtype=wp.float32),
+    channels: int,
+    c: int,
+) -> wp.float32:
+    """Channel ``c`` of a triple's color: the same float32 sum and division as
+    ``Synthesizer.colors_of``, so the color is bit-identical to the engine's."""
+    s = col0[p[0] * channels + c] + col1[p[1] * channels + c]
+    s = s + col2[p[2] * channels + c]
+    return s / wp.float32(3.0)
+
+
+@wp.func
+def floor_voxel(p: wp.vec3d) -> wp.vec3i:
+    return wp.vec3i(int(wp.floor(p[0])), int(wp.floor(p[1])), int(wp.floor(p[2])))
+
+
+@wp.kernel
+def sample_nearest(
+    offset: int,
+    points: wp.array(dtype=wp.vec3d),
+    index: BrickIndex,
+    pool: wp.array(dtype=Any),
+    col0: wp.array(dtype=wp.float32),
+    col1: wp.array(dtype=wp.float32),
+    col2: wp.array(dtype=wp.float32),
+    channels: int,
+    tick: wp.int64,
+    out: wp.array2d(dtype=wp.float32),
+    missed: wp.array(dtype=wp.int32),
+    miss_count: wp.array(dtype=wp.int32),
+):
+    """Color of the voxel containing each point; points whose brick is absent are flagged."""
+    i = offset + wp.tid()
+    voxel = floor_voxel(points[i])
+    slot = find_slot(index, brick_key(voxel))
+    if slot < 0:
+        missed[i] = 1
+        wp.atomic_add(miss_count, 0, 1)
+        return
+    index.stamps[slot] = tick
+    p = voxel_triple(pool, slot, local_index(voxel))
+    for c in range(channels):
+        out[i, c] = triple_channel(p, col0, col1, col2, channels, c)
+
+
+@wp.kernel
+def sample_trilinear(
+    offset: int,
+    points: wp.array(dtype=wp.vec3d),
+    index: BrickIndex,
+    pool: wp.array(dtype=Any),
+    col0: wp.array(dtype=wp.float32),
+    col1: wp.array(dtype=wp.float32),
+    col2: wp.array(dtype=wp.float32),
+    channels: int,
+    tick: wp.int64,
+    out: wp.array2d(dtype=wp.float32),
+    missed: wp.array(dtype=wp.int32),
+    miss_count: wp.array(dtype=wp.int32),
+):
+    """Trilinear blend of the 8 voxel centers around each point. Corners may lie in
+    different bricks, so each corner finds its own brick: borders are seamless."""
+    i = offset + wp.tid()
+    q = points[i] - wp.vec3d(0.5, 0.5, 0.5)
+    base = floor_voxel(q)
+    t = q - wp.vec3d(wp.float64(base[0]), wp.float64(base[1]), wp.float64(base[2]))
+    # Corners of one brick are consecutive in this order, so most skip the table search.
+    slots = wp.vector(dtype=wp.int32, length=8)
+    last_key = wp.int64(EMPTY)
+    last_slot = int(-1)
+    for corner in range(8):
+        voxel = base + wp.vec3i((corner >> 2) & 1, (corner >> 1) & 1, corner & 1)
+        key = brick_key(voxel)
+        if key != last_key:
+            last_key = key
+            last_slot = find_slot(index, key)
+            if last_slot >= 0:
+                index.stamps[last_slot] = tick
+        slots[corner] = last_slot
+    if wp.min(slots) < 0:
+        missed[i] = 1
+        wp.atomic_add(miss_count, 0, 1)
+        return
+    acc = wp.vector(dtype=wp.float64, length=MAX_CHANNELS)
+    for corner in range(8):
+        dx = (corner >> 2) & 1
+        dy = (corner >> 1) & 1
+        dz = corner & 1
+        w = wp.where(dx == 1, t[0], wp.float64(1.0) - t[0])
+        w *= wp.where(dy == 1, t[1], wp.float64(1.0) - t[1])
+        w *= wp.where(dz == 1, t[2], wp.float64(1.0) - t[2])
+        p = voxel_triple(pool, slots[corner], local_index(base + wp.vec3i(dx, dy, dz)))
+        for c in range(channels):
+            acc[c] += w * wp.float64(triple_channel(p, col0, col1, col2, channels, c))
+    for c in range(channels):
+        out[i, c] = wp.float32(acc[c])
+
+
+@wp.kernel
+def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32), index: BrickIndex):
+    """Insert bricks into the table; one thread, since probes of new keys may collide."""
+    for n in range(keys.shape[0]):
+        at = home(keys[n], index.mask)
+        while index.keys[at] != EMPTY and index.keys[at] != keys[n]:
+            at = (at + wp.int64(1)) & index.mask
+        index.keys[at] = keys[n]
+        index.slots[at] = slots[n]
+
+
+@wp.kernel
+def store_bricks(
+    slots: wp.array(dtype=wp.int32),
+    payload: wp.array(dtype=Any),
+    tick: wp.int64,
+    pool: wp.array(dtype=Any),
+    stamps: wp.array(dtype=wp.int64),
+):
+    """Copy the triples of new bricks into their pool slots, marked as just used."""
+    n, j = wp.tid()
+    per_brick = BRICK_VOXELS * 3
+    pool[slots[n] * per_brick + j] = payload[n * per_brick + j]
+    if j == 0:
+        stamps[slots[n]] = tick

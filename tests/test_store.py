@@ -1,0 +1,137 @@
+"""BrickStore: hash table, color decoding, LRU eviction and the store file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warptex.store import BrickStore, brick_keys, bricks_read
+
+
+@pytest.fixture(scope="module")
+def candidates(data_dir, tmp_path_factory, warp_device):
+    from PIL import Image
+
+    from warptex.candidates import precompute
+
+    path = tmp_path_factory.mktemp("exemplar") / "granite_32.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(tmp_path_factory.mktemp("cache")))
+        return precompute(path)
+
+
+def synthesizer(candidates, **kw):
+    from warptex.synthesis import Synthesizer
+
+    return Synthesizer(candidates, device="cpu", **kw)
+
+
+def sample(store: BrickStore, points, filter="nearest") -> np.ndarray:
+    pts = np.asarray(points, np.float64)
+    out = np.empty((len(pts), store.channels), np.float32)
+    store.sample(pts, filter, out)
+    return out
+
+
+def brick_center(b) -> list[float]:
+    return [8 * c + 4.5 for c in b]
+
+
+def test_bricks_read_by_each_filter():
+    def coords(keys):
+        return {tuple(int(c) for c in k) for k in np.stack(
+            [keys >> 42, (keys >> 21) & ((1 << 21) - 1), keys & ((1 << 21) - 1)], 1) - (1 << 20)}
+
+    at_border = np.array([[8.0, 4.0, -3.0]])
+    assert coords(bricks_read(at_border, "nearest")) == {(1, 0, -1)}
+    assert coords(bricks_read(at_border, "trilinear")) == {(0, 0, -1), (1, 0, -1)}
+    inside = np.array([[4.0, 4.0, 4.0]])
+    assert coords(bricks_read(inside, "trilinear")) == {(0, 0, 0)}
+    assert brick_keys(np.array([[-1, -8, -9]])) == brick_keys(np.array([[-8, -1, -16]]))
+
+
+def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
+    """Bricks inserted straight into the table (no synthesis): every lookup must find
+    its own brick through probing and table growth, and decode the engine's colors."""
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    rng = np.random.default_rng(0)
+    coords = np.unique(rng.integers(-40, 40, (700, 3)), axis=0)
+    keys = brick_keys(coords * 8)
+    pixels = rng.integers(0, 32 * 32, (len(keys) * 512, 3))
+    with store._lock.exclusive():
+        store._insert(keys, pixels.astype(np.uint16).reshape(-1))
+    local = rng.integers(0, 8, (len(keys), 3))
+    pts = coords * 8 + local + 0.5
+    slot_of = {k: i for i, k in enumerate(keys)}
+    idx = np.array([slot_of[k] * 512 + x * 64 + y * 8 + z
+                    for k, (x, y, z) in zip(keys, local, strict=True)])
+    np.testing.assert_array_equal(sample(store, pts), syn.colors_of(pixels[idx]))
+    stats = store.stats()
+    assert stats["bricks"] == len(keys) and stats["misses"] == 0
+    assert stats["bricks_synthesized"] == 0
+    assert stats["index_bytes"] <= 0.1 * stats["payload_bytes"]
+
+
+def test_least_recently_used_brick_is_evicted(candidates):
+    store = BrickStore(synthesizer(candidates), cache_bytes=2 * 512 * 6)
+    a, b, c = brick_center((0, 0, 0)), brick_center((1, 0, 0)), brick_center((0, 1, 0))
+    for p in (a, b, a, c):  # b is now the least recently used
+        sample(store, [p])
+    assert store.stats()["misses"] == 3
+    sample(store, [a])
+    sample(store, [c])
+    assert store.stats()["misses"] == 3
+    sample(store, [b])
+    s = store.stats()
+    assert s["misses"] == 4 and s["bricks"] == 2 and s["bricks_evicted"] == 2
+
+
+def test_zero_cache_still_answers(candidates):
+    syn = synthesizer(candidates)
+    store = BrickStore(syn, cache_bytes=0)
+    pts = np.array([brick_center((0, 0, 0)), brick_center((-1, 0, 2))])
+    np.testing.assert_array_equal(sample(store, pts), syn.voxels(np.floor(pts).astype(int)))
+    assert store.stats()["bricks"] == 0
+
+
+def test_save_load_keeps_the_most_recent_bricks_that_fit(candidates, tmp_path: Path):
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    centers = [brick_center((i, 0, 0)) for i in range(3)]
+    for p in centers:
+        sample(store, [p])
+    path = tmp_path / "s.wtb"
+    store.save(path)
+    assert not list(tmp_path.glob(".*.tmp"))
+    small = BrickStore.load(path, syn, cache_bytes=2 * 512 * 6)
+    assert small.stats()["bricks"] == 2
+    sample(small, centers[1:])
+    assert small.stats()["misses"] == 0
+    full = BrickStore.load(path, syn)
+    np.testing.assert_array_equal(sample(full, centers), sample(store, centers))
+
+
+def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path):
+    ids = {BrickStore(synthesizer(candidates, **kw)).identity() for kw in
+           ({}, {"seed": 1}, {"jitter": 0.5}, {"passes": 1}, {"levels": 1})}
+    assert len(ids) == 5
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    path = tmp_path / "s.wtb"
+    store.save(path)
+    with pytest.warns(UserWarning, match="another texture"):
+        assert BrickStore.load(path, synthesizer(candidates, jitter=0.5)).stats()["bricks"] == 0
+    data = bytearray(path.read_bytes())
+    data[8] += 1  # format version
+    path.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="version"):
+        BrickStore.load(path, synthesizer(candidates))
+    path.write_bytes(path.read_bytes()[:60])
+    with pytest.warns(UserWarning, match="ignoring brick store file"):
+        BrickStore.load(path, synthesizer(candidates))
+    with pytest.warns(UserWarning, match="cannot read"):
+        BrickStore.load(tmp_path / "missing.wtb", synthesizer(candidates))

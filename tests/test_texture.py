@@ -1,0 +1,268 @@
+"""SolidTexture point queries: values, determinism, persistence, threads, bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warptex.store import BrickStore
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def exemplar_path(data_dir, tmp_path_factory) -> Path:
+    """A 32x32 crop of the granite exemplar, so pre-computation and synthesis are quick."""
+    from PIL import Image
+
+    path = tmp_path_factory.mktemp("exemplar") / "granite_32.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def candidates(exemplar_path, tmp_path_factory, warp_device):
+    from warptex.candidates import precompute
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(tmp_path_factory.mktemp("cache")))
+        return precompute(exemplar_path)
+
+
+@pytest.fixture(scope="module")
+def reference(candidates):
+    from warptex.synthesis import Synthesizer
+
+    return Synthesizer(candidates, device="cpu")
+
+
+def texture(candidates, **kw):
+    from warptex.texture import SolidTexture
+
+    return SolidTexture(candidates, device="cpu", **kw)
+
+
+def trilinear(reference, points: np.ndarray) -> np.ndarray:
+    """The blend of the 8 voxel centers around each point, from the engine's voxels."""
+    q = points.astype(np.float64) - 0.5
+    base = np.floor(q).astype(np.int64)
+    t = q - base
+    out = np.zeros((len(points), reference.candidates.channels))
+    for d in np.indices((2, 2, 2)).reshape(3, -1).T:
+        w = np.prod(np.where(d == 1, t, 1 - t), axis=1)
+        out += w[:, None] * reference.voxels(base + d)
+    return out
+
+
+def points_near_origin(n: int, seed: int) -> np.ndarray:
+    """Random points over [-10, 10)^3: negative coordinates and brick borders at -8, 0, 8."""
+    return np.random.default_rng(seed).uniform(-10, 10, (n, 3))
+
+
+# Voxel coordinates on both sides of brick borders, negative ones included.
+BORDER = np.array([[-9, -8, -1], [-1, 0, 7], [7, 8, -8], [0, -1, 8], [8, 7, 0], [-8, -9, 15]])
+
+
+def test_nearest_at_centers_equals_engine_voxels(candidates, reference):
+    tex = texture(candidates)
+    got = tex.query(BORDER + 0.5, filter="nearest")
+    assert got.dtype == np.float32 and got.shape == (len(BORDER), tex.channels)
+    np.testing.assert_array_equal(got, reference.voxels(BORDER))
+
+
+def test_nearest_reads_the_voxel_containing_the_point(candidates, reference):
+    tex = texture(candidates)
+    pts = points_near_origin(300, 1).astype(np.float32)
+    np.testing.assert_array_equal(tex.query(pts, filter="nearest"),
+                                  reference.voxels(np.floor(pts).astype(np.int64)))
+
+
+def test_trilinear_blends_the_8_centers_across_brick_borders(candidates, reference):
+    tex = texture(candidates)
+    straddling = (BORDER + 1.0).astype(np.float64)  # halfway between voxel centers
+    pts = np.concatenate([straddling, straddling + 0.25, points_near_origin(200, 2)])
+    np.testing.assert_allclose(tex.query(pts), trilinear(reference, pts), rtol=1e-6, atol=1e-6)
+    # At a voxel center the blend is that voxel's color exactly.
+    np.testing.assert_array_equal(tex.query(BORDER + 0.5), reference.voxels(BORDER))
+
+
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+def test_batch_composition_and_order_do_not_change_colors(candidates, filter):
+    pts = points_near_origin(200, 3)
+    alone = texture(candidates).query(pts, filter=filter)
+    others = points_near_origin(500, 4) * 1.5
+    batch = np.concatenate([others, pts])
+    order = np.random.default_rng(5).permutation(len(batch))
+    tex = texture(candidates)
+    tex.query(others[:50], filter=filter)  # some bricks already stored, some not
+    shuffled = tex.query(batch[order], filter=filter)
+    back = np.empty_like(shuffled)
+    back[order] = shuffled
+    np.testing.assert_array_equal(back[len(others):], alone)
+    np.testing.assert_array_equal(texture(candidates).query(pts[::-1], filter=filter),
+                                  alone[::-1])
+
+
+def test_eviction_does_not_change_colors(candidates):
+    pts = points_near_origin(400, 6)
+    expected = texture(candidates).query(pts)
+    tex = texture(candidates, cache_bytes=3 * 512 * 6)  # three bricks
+    got = np.concatenate([tex.query(pts[i : i + 40]) for i in range(0, len(pts), 40)])
+    again = tex.query(pts)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(again, expected)
+    stats = tex.store.stats()
+    assert stats["bricks"] <= 3 and stats["bricks_evicted"] > 0
+
+
+def test_persistence_round_trip_starts_warm(candidates, tmp_path):
+    pts = points_near_origin(300, 7)
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    expected = {f: tex.query(pts, filter=f) for f in ("nearest", "trilinear")}
+    assert tex.save() == path
+    warm = texture(candidates, store=path)
+    for f, colors in expected.items():
+        np.testing.assert_array_equal(warm.query(pts, filter=f), colors)
+    stats = warm.store.stats()
+    assert stats["bricks_synthesized"] == 0 and stats["misses"] == 0
+    assert stats["bricks"] == tex.store.stats()["bricks"]
+
+
+def test_persistence_in_a_new_process(candidates, exemplar_path, tmp_path):
+    pts = points_near_origin(100, 8)
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    expected = tex.query(pts)
+    tex.save()
+    np.save(tmp_path / "points.npy", pts)
+    script = (
+        "import sys, numpy as np\n"
+        "from warptex.texture import SolidTexture\n"
+        "from warptex.candidates import CandidateSet\n"
+        f"tex = SolidTexture(CandidateSet.load(sys.argv[1]), device='cpu', store=r'{path}')\n"
+        f"out = tex.query(np.load(r'{tmp_path / 'points.npy'}'))\n"
+        "assert tex.store.stats()['bricks_synthesized'] == 0\n"
+        f"np.save(r'{tmp_path / 'out.npy'}', out)\n"
+    )
+    candidates.save(tmp_path / "cand.wtc")
+    subprocess.run([sys.executable, "-c", script, str(tmp_path / "cand.wtc")], check=True,
+                   cwd=REPO, timeout=120)
+    np.testing.assert_array_equal(np.load(tmp_path / "out.npy"), expected)
+
+
+def test_corrupt_or_foreign_store_is_ignored_with_a_warning(candidates, tmp_path):
+    pts = points_near_origin(50, 9)
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    expected = tex.query(pts)
+    tex.save()
+    with pytest.warns(UserWarning, match="another texture"):
+        other = texture(candidates, seed=1, store=path)
+    assert other.store.stats()["bricks"] == 0
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="checksum"):
+        damaged = texture(candidates, store=path)
+    np.testing.assert_array_equal(damaged.query(pts), expected)
+    path.write_bytes(b"not a store")
+    with pytest.warns(UserWarning, match="not a warptex brick store"):
+        texture(candidates, store=path)
+
+
+def test_concurrent_queries_match_serial_ones(candidates):
+    sets = [points_near_origin(150, 10 + i) * (1 + 0.3 * i) for i in range(4)]
+    serial = [texture(candidates).query(p, filter=f) for p, f in
+              zip(sets, ["trilinear", "nearest"] * 2, strict=True)]
+    for cache in (256 << 20, 4 * 512 * 6):
+        tex = texture(candidates, cache_bytes=cache)
+        results: dict[int, np.ndarray] = {}
+        errors: list[BaseException] = []
+
+        def work(i: int, tex=tex, results=results, errors=errors) -> None:
+            try:
+                f = "trilinear" if i % 2 == 0 else "nearest"
+                for _ in range(2):
+                    results[i] = tex.query(sets[i], filter=f)
+            except BaseException as e:  # re-raised below, in the test's thread
+                errors.append(e)
+
+        threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert not errors, errors
+        for i in range(4):
+            np.testing.assert_array_equal(results[i], serial[i])
+
+
+def test_bad_points_raise_unless_filled(candidates):
+    tex = texture(candidates)
+    pts = points_near_origin(10, 11)
+    pts[2, 0] = np.nan
+    pts[5, 1] = np.inf
+    pts[6, 2] = -np.inf
+    with pytest.raises(ValueError, match="3 of 10 points are NaN or infinite"):
+        tex.query(pts)
+    filled = tex.query(pts, filter="nearest", fill=-1.0)
+    assert (filled[[2, 5, 6]] == -1).all()
+    good = [0, 1, 3, 4, 7, 8, 9]
+    np.testing.assert_array_equal(filled[good], tex.query(pts[good], filter="nearest"))
+    with pytest.raises(ValueError, match="within"):
+        tex.query(np.array([[1e9, 0, 0]]))
+
+
+def test_bad_shapes_dtypes_and_empty_input(candidates):
+    tex = texture(candidates)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        tex.query(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        tex.query(np.zeros(3))
+    with pytest.raises(TypeError, match="float32 or float64"):
+        tex.query(np.zeros((4, 3), np.int32))
+    with pytest.raises(ValueError, match="filter"):
+        tex.query(np.zeros((4, 3)), filter="cubic")
+    with pytest.raises(ValueError, match="fill"):
+        tex.query(np.zeros((4, 3)), fill=[0.0, 1.0])
+    empty = tex.query(np.zeros((0, 3), np.float32))
+    assert empty.shape == (0, tex.channels) and empty.dtype == np.float32
+
+
+def test_warp_arrays_are_accepted(candidates):
+    tex = texture(candidates)
+    pts = points_near_origin(64, 12).astype(np.float32)
+    expected = tex.query(pts)
+    np.testing.assert_array_equal(tex.query(wp.array(pts, dtype=wp.vec3, device="cpu")), expected)
+    np.testing.assert_array_equal(tex.query(wp.array(pts, dtype=wp.float32, device="cpu")),
+                                  expected)
+
+
+def test_stats_report_store_and_synthesis(candidates):
+    tex = texture(candidates)
+    pts = np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [9.5, 0.5, 0.5]])
+    tex.query(pts, filter="nearest")
+    tex.query(pts, filter="nearest")
+    s = tex.store.stats()
+    assert s["bricks"] == 2 and s["bricks_synthesized"] == 2
+    assert (s["hits"], s["misses"]) == (3, 3)
+    assert s["payload_bytes"] == 2 * 512 * 6 and s["bytes_per_voxel"] == 6
+    assert s["bytes"] == s["payload_bytes"] + s["index_bytes"]
+    assert s["synthesis_seconds"] > 0
+    finest = max(s["voxels_synthesized"])
+    assert s["voxels_synthesized"][finest] >= 2 * 512
+
+
+def test_store_object_is_a_brick_store(candidates):
+    assert isinstance(texture(candidates).store, BrickStore)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        texture(candidates, store=None)

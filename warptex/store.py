@@ -1,0 +1,435 @@
+"""Sparse brick store of finest-level synthesis results (Dong 2008, sections 5.2 and 6.2).
+
+The paper stores synthesized surface voxels in a TileTree and synthesizes each region
+once (section 6.2). Here finest voxels are kept in bricks of 8^3, found through a hash
+table that the lookup kernels of ``kernels.lookup`` search. A point batch is looked up in
+one launch; the bricks it misses are synthesized in one engine call (one union dependency
+mask, section 5.2), inserted, and the missed points finished.
+
+A brick holds each voxel's triple of exemplar pixels (section 6.2 keeps triples in 16-bit
+targets): 6 bytes per voxel when every exemplar has at most 65536 pixels, else 12, instead
+of 4 bytes per color channel. Its color is decoded with exactly the engine's float32
+operations, so a stored voxel is bit-identical to ``Synthesizer.voxels``.
+
+Results are position-determined, so eviction, persistence and concurrency only ever
+change how much is synthesized, never a color.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import itertools
+import json
+import os
+import threading
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from kernels import lookup as _k
+from warptex.synthesis import Synthesizer
+
+FILTERS = ("nearest", "trilinear")
+FORMAT_VERSION = 1
+_MAGIC = b"WTXBRICK"
+_HEADER = len(_MAGIC) + 4 + 32
+_EMPTY = -1
+_MIN_BRICKS = 64
+_PARALLEL_POINTS = 1 << 16
+_LOCAL = np.indices((_k.BRICK,) * 3).reshape(3, -1).T  # voxel offsets, x slowest
+_CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
+
+
+class StoreFileError(ValueError):
+    """A store file is damaged, of another format version, or of another texture."""
+
+
+def brick_keys(voxels: np.ndarray) -> np.ndarray:
+    """Packed coordinates of the bricks holding integer ``voxels`` (N, 3), as
+    ``kernels.lookup.brick_key`` packs them."""
+    b = (voxels.astype(np.int64) >> 3) + _k.KEY_BIAS
+    return (b[:, 0] << (2 * _k.KEY_BITS)) | (b[:, 1] << _k.KEY_BITS) | b[:, 2]
+
+
+def _brick_coords(keys: np.ndarray) -> np.ndarray:
+    mask = (1 << _k.KEY_BITS) - 1
+    b = np.stack([keys >> (2 * _k.KEY_BITS), (keys >> _k.KEY_BITS) & mask, keys & mask], 1)
+    return b - _k.KEY_BIAS
+
+
+def bricks_read(points: np.ndarray, filter: str) -> np.ndarray:
+    """Sorted unique keys of the bricks that ``filter`` reads for float64 ``points``."""
+    if filter == "nearest":
+        return np.unique(brick_keys(np.floor(points)))
+    base = np.floor(points - 0.5).astype(np.int64)
+    return np.unique(brick_keys((base[:, None, :] + _CORNERS[None]).reshape(-1, 3)))
+
+
+class _SharedLock:
+    """Many lookups or one mutation at a time; a waiting mutation holds back new lookups
+    so a steady stream of queries cannot starve insertion."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._readers = 0
+        self._writing = False
+        self._waiting = 0
+
+    @contextmanager
+    def shared(self) -> Iterator[None]:
+        with self._cond:
+            self._cond.wait_for(lambda: not self._writing and not self._waiting)
+            self._readers += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._readers -= 1
+                self._cond.notify_all()
+
+    @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        with self._cond:
+            self._waiting += 1
+            self._cond.wait_for(lambda: not self._writing and not self._readers)
+            self._waiting -= 1
+            self._writing = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._writing = False
+                self._cond.notify_all()
+
+
+class BrickStore:
+    """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch.
+
+    ``cache_bytes`` bounds the brick payload; least-recently-used bricks are evicted
+    after each batch (a batch may exceed the bound while it is being finished).
+    """
+
+    def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = 256 << 20) -> None:
+        if cache_bytes < 0:
+            raise ValueError(f"cache_bytes must not be negative, got {cache_bytes}")
+        self.synthesizer = synthesizer
+        self.cache_bytes = int(cache_bytes)
+        cs = synthesizer.candidates
+        sources = [cs.colors[cs.axis_source[k]] for k in range(3)]
+        self.channels = cs.channels
+        if self.channels > _k.MAX_CHANNELS:
+            raise ValueError(f"at most {_k.MAX_CHANNELS} color channels, got {self.channels}")
+        self._widths = np.array([c.shape[1] for c in sources], np.int64)
+        compact = max(c.shape[0] * c.shape[1] for c in sources) <= 1 << 16
+        self._dtype = np.dtype(np.uint16 if compact else np.int32)
+        self._brick_bytes = _k.BRICK_VOXELS * 3 * self._dtype.itemsize
+        self._device = synthesizer.device
+        uploaded = {j: wp.array(cs.colors[j].reshape(-1), dtype=wp.float32, device=self._device)
+                    for j in set(cs.axis_source)}
+        self._colors = [uploaded[j] for j in cs.axis_source]
+        self._lock = _SharedLock()
+        self._counts = threading.Lock()
+        self._tick = itertools.count(1)
+        self._threads = max(1, min(os.cpu_count() or 1, 8))
+        self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each pool slot
+        self._pool = wp.zeros(0, dtype=self._wp_dtype, device=self._device)
+        self._index = _k.BrickIndex()
+        self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
+        self._rebuild_table(_MIN_BRICKS * 2)
+        self._hits = self._misses = self._synthesized = self._evicted = 0
+        self._seconds = 0.0
+
+    # -- public API -------------------------------------------------------------------
+
+    def identity(self) -> str:
+        """Digest of everything a stored voxel depends on: exemplars, candidate
+        parameters, seed, jitter and engine parameters."""
+        s = self.synthesizer
+        key = {
+            "format": FORMAT_VERSION,
+            "brick": _k.BRICK,
+            "digests": list(s.candidates.digests),
+            "params": s.candidates.params,
+            "seed": s.seed,
+            "jitter": s.jitter,
+            "levels": s.finest - s.start,
+            "passes": s.passes,
+            "subpasses": s.subpasses,
+        }
+        return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+    def sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
+        """Colors of float64 ``points`` (N, 3) into ``out`` (N, C) float32."""
+        if filter not in FILTERS:
+            raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
+        n = len(points)
+        if n == 0:
+            return
+        kernel = _k.sample_nearest if filter == "nearest" else _k.sample_trilinear
+        pts = self._on_device(points, wp.vec3d)
+        res = self._on_device(out, wp.float32)
+        missed = wp.zeros(n, dtype=wp.int32, device=self._device)
+        count = wp.zeros(1, dtype=wp.int32, device=self._device)
+        with self._lock.shared():
+            self._launch(kernel, pts, res, missed, count)
+        misses = int(count.numpy()[0])
+        with self._counts:
+            self._hits += n - misses
+            self._misses += misses
+        if self._device != "cpu":
+            out[:] = res.numpy()
+        if misses:
+            rows = missed.numpy().astype(bool)
+            self._finish(kernel, points[rows], filter, out, rows)
+
+    def stats(self) -> dict:
+        """Bricks, bytes, lookups served from the store (hits) or not (misses), and the
+        synthesis behind them: voxels per level and seconds."""
+        with self._lock.shared(), self._counts:
+            bricks = int((self._keys != _EMPTY).sum())
+            return {
+                "bricks": bricks,
+                "bytes": bricks * self._brick_bytes + self._index_bytes(),
+                "payload_bytes": bricks * self._brick_bytes,
+                "index_bytes": self._index_bytes(),
+                "bytes_per_voxel": self._dtype.itemsize * 3,
+                "hits": self._hits,
+                "misses": self._misses,
+                "bricks_synthesized": self._synthesized,
+                "bricks_evicted": self._evicted,
+                "voxels_synthesized": dict(self.synthesizer.voxels_synthesized),
+                "synthesis_seconds": self._seconds,
+            }
+
+    def save(self, path: str | Path) -> None:
+        """Write the bricks to a versioned, checksummed file atomically (temporary name,
+        then rename), least recently used first."""
+        path = Path(path)
+        with self._lock.shared():
+            live = np.flatnonzero(self._keys != _EMPTY)
+            live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
+            pool = self._pool.numpy().reshape(-1, _k.BRICK_VOXELS * 3)
+            arrays = {"keys": self._keys[live], "triples": pool[live]}
+        buf = io.BytesIO()
+        np.savez(buf, identity=np.array(self.identity()), **arrays)
+        payload = buf.getvalue()
+        head = _MAGIC + FORMAT_VERSION.to_bytes(4, "little") + hashlib.sha256(payload).digest()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        with open(tmp, "wb") as f:
+            f.write(head + payload)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path, synthesizer: Synthesizer, *,
+             cache_bytes: int = 256 << 20) -> BrickStore:
+        """A store holding the bricks saved in ``path``; an empty one, with a warning,
+        when the file is damaged or belongs to another texture."""
+        store = cls(synthesizer, cache_bytes=cache_bytes)
+        try:
+            keys, triples = store._read(Path(path))
+        except StoreFileError as e:
+            warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
+            return store
+        keep = min(len(keys), store._budget_bricks)
+        with store._lock.exclusive():
+            store._insert(keys[len(keys) - keep :], triples[len(keys) - keep :].reshape(-1))
+        return store
+
+    # -- batches ----------------------------------------------------------------------
+
+    def _with_resident(self, keys: np.ndarray, run: Callable[[], None]) -> None:
+        """Run ``run`` while every brick of ``keys`` is stored, then evict.
+
+        Absent bricks are synthesized outside the lock, so lookups of stored bricks go
+        on meanwhile; bricks evicted by another thread before we get the lock again are
+        synthesized in the next round.
+        """
+        made: list[tuple[np.ndarray, np.ndarray]] = []
+        while True:
+            with self._lock.exclusive():
+                # Everything this batch synthesized goes back in, so each round leaves
+                # fewer bricks to make and the loop ends whatever other threads evict.
+                for k, payload in made:
+                    self._insert(k, payload)
+                absent = keys[~np.isin(keys, self._keys)]
+                if len(absent) == 0:
+                    run()
+                    self._evict()
+                    return
+            made.append((absent, self._synthesize(absent)))
+
+    def _finish(self, kernel, points: np.ndarray, filter: str, out: np.ndarray,
+                rows: np.ndarray) -> None:
+        """Second half of a batch: the points whose bricks were missing."""
+        pts = self._on_device(np.ascontiguousarray(points), wp.vec3d)
+        sub = np.empty((len(points), self.channels), np.float32)
+        res = self._on_device(sub, wp.float32)
+        dev = self._device
+        missed = wp.zeros(len(points), dtype=wp.int32, device=dev)
+        count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._with_resident(bricks_read(points, filter),
+                            lambda: self._launch(kernel, pts, res, missed, count))
+        out[rows] = res.numpy()
+
+    def _synthesize(self, keys: np.ndarray) -> np.ndarray:
+        """Triples of whole bricks ``keys``, in one engine call."""
+        voxels = (_brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
+        start = time.perf_counter()
+        rc = self.synthesizer.triples(voxels)
+        seconds = time.perf_counter() - start
+        with self._counts:
+            self._seconds += seconds
+            self._synthesized += len(keys)
+        return (rc[:, :, 0] * self._widths + rc[:, :, 1]).astype(self._dtype).reshape(-1)
+
+    def _launch(self, kernel, points: wp.array, out: wp.array, missed: wp.array,
+                count: wp.array) -> None:
+        """One lookup launch, split in ranges over CPU threads (Warp runs a CPU launch on
+        one thread; points are independent, so ranges give the same result)."""
+        inputs = [points, self._index, self._pool, *self._colors, self.channels,
+                  wp.int64(next(self._tick))]
+        n = len(points)
+        parts = self._threads if self._device == "cpu" and n >= _PARALLEL_POINTS else 1
+        bounds = [int(b) for b in np.linspace(0, n, parts + 1)]
+
+        def run(lo: int, hi: int) -> None:
+            wp.launch(kernel, hi - lo, [lo, *inputs], [out, missed, count], device=self._device)
+
+        if parts == 1:
+            run(0, n)
+            return
+        with ThreadPoolExecutor(parts) as pool:
+            for f in [pool.submit(run, lo, hi) for lo, hi in itertools.pairwise(bounds)]:
+                f.result()
+
+    # -- mutation (exclusive lock held) -----------------------------------------------
+
+    def _insert(self, keys: np.ndarray, payload: np.ndarray) -> None:
+        fresh = ~np.isin(keys, self._keys)
+        keys = keys[fresh]
+        if len(keys) == 0:
+            return
+        payload = payload.reshape(-1, _k.BRICK_VOXELS * 3)[fresh].reshape(-1)
+        free = np.flatnonzero(self._keys == _EMPTY)
+        if len(free) < len(keys):
+            live = len(self._keys) - len(free)
+            self._grow_pool(max(live + len(keys),
+                                min(max(2 * len(self._keys), _MIN_BRICKS), self._budget_bricks)))
+            free = np.flatnonzero(self._keys == _EMPTY)
+        slots = free[: len(keys)]
+        self._keys[slots] = keys
+        dev = self._device
+        slots_wp = wp.array(slots.astype(np.int32), dtype=wp.int32, device=dev)
+        wp.launch(_k.store_bricks, (len(keys), _k.BRICK_VOXELS * 3),
+                  [slots_wp, wp.array(payload, dtype=self._wp_dtype, device=dev),
+                   wp.int64(next(self._tick))], [self._pool, self._index.stamps], device=dev)
+        live = int((self._keys != _EMPTY).sum())
+        if 2 * live > len(self._index.keys):
+            self._rebuild_table(1 << (2 * live).bit_length())
+        else:
+            wp.launch(_k.insert_keys, 1, [wp.array(keys, dtype=wp.int64, device=dev),
+                                          slots_wp], [self._index], device=dev)
+
+    def _evict(self) -> None:
+        """Drop least-recently-used bricks until the payload fits ``cache_bytes``."""
+        live = np.flatnonzero(self._keys != _EMPTY)
+        excess = len(live) - self._budget_bricks
+        if excess <= 0:
+            return
+        stamps = self._index.stamps.numpy()[live]
+        self._keys[live[np.argsort(stamps, kind="stable")[:excess]]] = _EMPTY
+        self._evicted += excess
+        if len(self._keys) > max(self._budget_bricks, _MIN_BRICKS):
+            self._compact()
+        self._rebuild_table(len(self._index.keys))
+
+    def _grow_pool(self, bricks: int) -> None:
+        old = len(self._keys)
+        per = _k.BRICK_VOXELS * 3
+        pool = wp.zeros(bricks * per, dtype=self._wp_dtype, device=self._device)
+        stamps = wp.zeros(bricks, dtype=wp.int64, device=self._device)
+        if old:
+            wp.copy(pool, self._pool, count=old * per)
+            wp.copy(stamps, self._index.stamps, count=old)
+        self._pool, self._index.stamps = pool, stamps
+        self._keys = np.concatenate([self._keys, np.full(bricks - old, _EMPTY, np.int64)])
+
+    def _compact(self) -> None:
+        """Give back the pool beyond the budget that a large batch made it grow to."""
+        live = np.flatnonzero(self._keys != _EMPTY)
+        per = _k.BRICK_VOXELS * 3
+        payload = self._pool.numpy().reshape(-1, per)[live]
+        stamps = self._index.stamps.numpy()[live]
+        keys = self._keys[live]
+        self._keys = np.zeros(0, np.int64)
+        self._grow_pool(max(self._budget_bricks, _MIN_BRICKS))
+        self._keys[: len(live)] = keys
+        dev = self._device
+        wp.copy(self._pool, wp.array(payload.reshape(-1), dtype=self._wp_dtype, device=dev),
+                count=payload.size)
+        wp.copy(self._index.stamps, wp.array(stamps, dtype=wp.int64, device=dev),
+                count=len(stamps))
+
+    def _rebuild_table(self, capacity: int) -> None:
+        dev = self._device
+        self._index.keys = wp.full(capacity, _EMPTY, dtype=wp.int64, device=dev)
+        self._index.slots = wp.zeros(capacity, dtype=wp.int32, device=dev)
+        self._index.mask = capacity - 1
+        live = np.flatnonzero(self._keys != _EMPTY)
+        if len(live):
+            wp.launch(_k.insert_keys, 1, [wp.array(self._keys[live], dtype=wp.int64, device=dev),
+                                          wp.array(live.astype(np.int32), dtype=wp.int32,
+                                                   device=dev)],
+                      [self._index], device=dev)
+
+    # -- helpers ----------------------------------------------------------------------
+
+    @property
+    def _wp_dtype(self):
+        return wp.uint16 if self._dtype == np.uint16 else wp.int32
+
+    @property
+    def _budget_bricks(self) -> int:
+        return self.cache_bytes // self._brick_bytes
+
+    def _index_bytes(self) -> int:
+        table = len(self._index.keys) * (8 + 4)
+        return table + len(self._keys) * (8 + 8)
+
+    def _on_device(self, a: np.ndarray, dtype) -> wp.array:
+        """``a`` as a Warp array; on the CPU a view, so results land in ``a`` directly."""
+        return wp.array(a, dtype=dtype, device=self._device, copy=self._device != "cpu")
+
+    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise StoreFileError(f"{path}: cannot read ({e.strerror})") from None
+        if len(data) < _HEADER or data[: len(_MAGIC)] != _MAGIC:
+            raise StoreFileError(f"{path}: not a warptex brick store file")
+        version = int.from_bytes(data[len(_MAGIC) : len(_MAGIC) + 4], "little")
+        if version != FORMAT_VERSION:
+            raise StoreFileError(f"{path}: store file version {version}, expected "
+                                 f"{FORMAT_VERSION}")
+        payload = data[_HEADER:]
+        if hashlib.sha256(payload).digest() != data[len(_MAGIC) + 4 : _HEADER]:
+            raise StoreFileError(f"{path}: checksum mismatch (truncated or corrupt file)")
+        try:
+            with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+                identity, keys, triples = str(z["identity"]), z["keys"], z["triples"]
+        except (ValueError, KeyError, OSError) as e:
+            raise StoreFileError(f"{path}: unreadable store data ({e})") from None
+        if identity != self.identity():
+            raise StoreFileError(f"{path}: written for another texture (other exemplars, "
+                                 "seed, jitter or synthesis parameters)")
+        if triples.dtype != self._dtype or triples.shape != (len(keys), _k.BRICK_VOXELS * 3):
+            raise StoreFileError(f"{path}: brick payload of unexpected type or shape")
+        return keys.astype(np.int64), triples

@@ -1,0 +1,121 @@
+"""Point queries on a lazily synthesized solid texture (Dong 2008, section 5.2).
+
+Colors at arbitrary 3D points are synthesized on first touch and kept in a
+:class:`~warptex.store.BrickStore`, so the cost follows what is looked at. Texture space:
+one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v + 0.5.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import warp as wp
+
+from warptex.candidates import CandidateSet, precompute
+from warptex.exemplar import Exemplar
+from warptex.store import FILTERS, BrickStore
+from warptex.synthesis import COORD_LIMIT, Synthesizer
+
+_CHUNK = 1 << 20  # points per batch: bounds the memory of one lookup and synthesis
+_LIMIT = COORD_LIMIT - 2  # trilinear reads the voxel after floor(p - 0.5)
+
+
+class SolidTexture:
+    """An unbounded solid texture synthesized from exemplar photos, queried at points.
+
+    ``source`` is an exemplar path, an :class:`Exemplar` or a :class:`CandidateSet`
+    (pre-computation is cached on disk). ``store`` names a brick store file: loaded when
+    it exists and matches this texture, written by :meth:`save`. ``cache_bytes`` bounds
+    the bricks kept in memory.
+    """
+
+    def __init__(
+        self,
+        source: str | Path | Exemplar | CandidateSet,
+        *,
+        seed: int = 0,
+        jitter: float = 1.0,
+        device: str | None = None,
+        cache_bytes: int = 256 << 20,
+        store: str | Path | None = None,
+    ) -> None:
+        candidates = source if isinstance(source, CandidateSet) else precompute(source)
+        self.synthesizer = Synthesizer(candidates, seed, jitter, device=device)
+        self.path = Path(store) if store is not None else None
+        if self.path is not None and self.path.exists():
+            self.store = BrickStore.load(self.path, self.synthesizer, cache_bytes=cache_bytes)
+        else:
+            self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes)
+
+    @property
+    def channels(self) -> int:
+        return self.store.channels
+
+    def query(
+        self,
+        points: np.ndarray | wp.array,
+        filter: Literal["trilinear", "nearest"] = "trilinear",
+        fill: float | Sequence[float] | None = None,
+    ) -> np.ndarray:
+        """Colors (N, C) float32 at ``points`` (N, 3) float32 or float64.
+
+        ``nearest`` is the color of the voxel containing the point, ``trilinear`` the
+        blend of the 8 voxel centers around it. Points that are NaN or infinite raise
+        ValueError unless ``fill`` gives their color.
+        """
+        pts = _as_points(points)
+        if filter not in FILTERS:
+            raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
+        fill_color = None if fill is None else self._fill_color(fill)
+        if fill_color is None and not np.isfinite(pts).all():
+            bad = int((~np.isfinite(pts).all(axis=1)).sum())
+            raise ValueError(f"{bad} of {len(pts)} points are NaN or infinite; pass fill= "
+                             "to give them a color instead")
+        out = np.empty((len(pts), self.channels), np.float32)
+        for start in range(0, len(pts), _CHUNK):
+            chunk = pts[start : start + _CHUNK]
+            dest = out[start : start + _CHUNK]
+            good = np.isfinite(chunk).all(axis=1) if fill_color is not None else None
+            if good is not None and not good.all():
+                dest[~good] = fill_color
+                colors = np.empty((int(good.sum()), self.channels), np.float32)
+                self._sample(chunk[good], filter, colors)
+                dest[good] = colors
+            else:
+                self._sample(chunk, filter, dest)
+        return out
+
+    def save(self, path: str | Path | None = None) -> Path:
+        """Write the brick store to ``path`` or to the ``store`` path given at creation."""
+        target = Path(path) if path is not None else self.path
+        if target is None:
+            raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
+        self.store.save(target)
+        return target
+
+    def _sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
+        if len(points) and (points.min() <= -_LIMIT or points.max() >= _LIMIT):
+            raise ValueError(f"points must lie within +-{_LIMIT} voxels")
+        self.store.sample(np.ascontiguousarray(points, np.float64), filter, out)
+
+    def _fill_color(self, fill: float | Sequence[float]) -> np.ndarray:
+        color = np.asarray(fill, np.float32)
+        if color.shape not in ((), (self.channels,)) or not np.isfinite(color).all():
+            raise ValueError(f"fill must be one finite value or {self.channels} of them, "
+                             f"got {fill!r}")
+        return np.broadcast_to(color, (self.channels,))
+
+
+def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
+    """(N, 3) float32 or float64 host array of ``points``, or a clear error."""
+    if isinstance(points, wp.array):
+        points = points.numpy()
+    points = np.asarray(points)
+    if points.dtype not in (np.float32, np.float64):
+        raise TypeError(f"points must be float32 or float64, got {points.dtype}")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    return points
