@@ -18,8 +18,9 @@ The approximate search is SciPy's ``cKDTree`` with ``eps = 2``: like the ANN lib
 and Arya the paper uses (and its value, ``eps = 2``), a k-d tree that returns a neighbour
 within ``(1 + eps)`` times the distance of the nearest one. Since a new match only replaces
 the current one when closer, searches after the first of a level are bounded by the current
-match's distance, which prunes most of the tree. Mean-shift clustering (section
-4.1) is not implemented; voxels take the plain weighted average.
+match's distance, which prunes part of the tree (1.2-1.7x faster measured at 64^3).
+Mean-shift clustering (section 4.1) is not implemented; voxels take the plain weighted
+average.
 
 Axis ``i`` of the volume (axis 0 of the ``(D, H, W, C)`` result is x) is constrained by its
 own exemplar (section 6.2), oriented as in :mod:`warptex.metrics`: slices perpendicular to
@@ -345,11 +346,10 @@ class _Histograms:
         self.lo = pixels.min(axis=0)
         self.scale = BINS / np.maximum(pixels.max(axis=0) - self.lo, 1e-12)
         self.voxels = len(values)
-        channel = np.arange(pixels.shape[1])
         given = [f.reshape(-1, f.shape[2]) for f in feats if f is not None]
         self.target = np.mean([self._counts(g) / len(g) for g in given], axis=0)
+        self.channel = np.arange(pixels.shape[1])
         self.pixel_bins = self._bins(pixels)
-        self.channel = channel
         self.counts = self._counts(values)
 
     def _bins(self, values: np.ndarray) -> np.ndarray:
