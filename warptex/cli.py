@@ -283,17 +283,19 @@ def exr_sheet(volume: np.ndarray) -> np.ndarray:
 
 def _write_exr(path: Path, volume: np.ndarray) -> None:
     """One single-part scanline OpenEXR image, float32, of the z-slices side by side."""
+    x, y, z, _ = volume.shape
+    layout = f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)"
+    _write_exr_image(path, exr_sheet(volume), {"warptexLayout": layout})
+
+
+def _write_exr_image(path: Path, image: np.ndarray, extra: dict | None = None) -> None:
+    """An (H, W, C) float32 image as a single-part scanline OpenEXR file."""
     import OpenEXR
 
-    sheet = exr_sheet(volume)
-    names = _exr_channel_names(sheet.shape[2])
-    x, y, z, _ = volume.shape
-    header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
-        "type": OpenEXR.scanlineimage,
-        "warptexLayout": f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)",
-    }
-    pixels = {name: np.ascontiguousarray(sheet[..., c]) for c, name in enumerate(names)}
+    names = _exr_channel_names(image.shape[2])
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update(extra or {})
+    pixels = {name: np.ascontiguousarray(image[..., c], np.float32) for c, name in enumerate(names)}
     with OpenEXR.File(header, pixels) as file:
         file.write(str(path))
 
@@ -309,6 +311,185 @@ def _write_vol(path: Path, volume: np.ndarray) -> None:
         file.write(data.tobytes())
 
 
+def _add_texture_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seed", type=int, default=0, help="texture variation (default 0)")
+    parser.add_argument("--jitter", type=float, default=1.0,
+                        help="strength of the random warp that varies the tiling (default 1)")
+
+
+def _solid_texture(exemplar: Path, args: argparse.Namespace):
+    from warptex.texture import SolidTexture
+
+    try:
+        return SolidTexture(Exemplar.load(exemplar), seed=args.seed, jitter=args.jitter)
+    except ValueError as error:
+        raise CliError(str(error)) from None
+
+
+def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "slice",
+        help="evaluate the solid texture on a plane and save it as an image",
+        description="Evaluate any plane through the solid texture (Dong 2008, 6.4). Pixel "
+        "(r, c) shows the texture at ORIGIN + r*U + c*V, in voxels of the finest level.",
+    )
+    parser.add_argument("exemplar", type=Path, help="exemplar image")
+    parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
+                        metavar=("X", "Y", "Z"), help="texture point of pixel (0, 0)")
+    parser.add_argument("--u", type=float, nargs=3, default=(1.0, 0.0, 0.0),
+                        metavar=("X", "Y", "Z"), help="step between rows (default x axis)")
+    parser.add_argument("--v", type=float, nargs=3, default=(0.0, 1.0, 0.0),
+                        metavar=("X", "Y", "Z"), help="step between columns (default y axis)")
+    parser.add_argument("--shape", type=int, nargs=2, default=(256, 256), metavar=("H", "W"))
+    parser.add_argument("--filter", choices=("trilinear", "nearest"), default="trilinear")
+    _add_texture_arguments(parser)
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="output image: .png (8-bit), .exr or .npy (float)")
+
+
+def _cmd_slice(args: argparse.Namespace) -> int:
+    from warptex.cut import plane_points
+    from warptex.sheets import save_png, to_rgb8
+
+    suffix = args.output.suffix.lower()
+    if suffix not in (".png", ".exr", ".npy"):
+        raise CliError(f"{args.output}: unknown image format; use .png, .exr or .npy")
+    h, w = args.shape
+    if h < 1 or w < 1:
+        raise CliError(f"--shape must be positive, got {h} {w}")
+    tex = _solid_texture(args.exemplar, args)
+    start = time.perf_counter()
+    image = tex.query(plane_points(args.origin, args.u, args.v, (h, w)), filter=args.filter)
+    image = image.reshape(h, w, -1)
+    elapsed = time.perf_counter() - start
+    if suffix == ".png":
+        save_png(to_rgb8(image), args.output)
+    else:
+        writer = _write_npy if suffix == ".npy" else _write_exr_image
+        _write_atomically(args.output, lambda path: writer(path, image))
+    print(f"slice: {h} x {w} pixels in {elapsed:.2f} s; written: {args.output}")
+    return 0
+
+
+def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("mesh", type=Path, help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
+    parser.add_argument("--exemplar", type=Path, required=True, help="exemplar image")
+    parser.add_argument("--resolution", type=int, default=1024,
+                        help="the mesh's bounding box fills a block of RESOLUTION^3 voxels")
+    parser.add_argument("--uv", choices=("auto", "mesh", "none"), default="none",
+                        help="bake a UV texture: with the mesh's own UVs (mesh), UVs made "
+                        "by xatlas (auto), or vertex colors only (none, default)")
+    parser.add_argument("--texture-size", type=int, default=1024, help="UV texture size")
+    _add_texture_arguments(parser)
+
+
+def _load_mesh(path: Path):
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except (OSError, ValueError) as error:
+        raise CliError(f"{path}: cannot read mesh ({error})") from None
+    if len(getattr(mesh, "faces", ())) == 0:
+        raise CliError(f"{path}: no triangles found")
+    return mesh
+
+
+def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
+                     output: Path) -> list[Path]:
+    """Bake ``mesh`` as asked by --uv and write it; returns the files written."""
+    from warptex.bake import bake_uv_texture, export, vertex_colors
+
+    if args.uv == "none":
+        return export(mesh, output, colors=vertex_colors(tex, mesh, transform))
+    if args.uv == "auto":
+        mesh = mesh.unwrap()
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is None:
+        raise CliError(f"{args.mesh}: the mesh has no UVs; use --uv auto to make them")
+    image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
+    return export(mesh, output, image=image, uv=uv)
+
+
+def _report_store(tex, resolution: int, elapsed: float) -> None:
+    stats = tex.store.stats()
+    finest = tex.synthesizer.finest
+    synthesized = stats["voxels_synthesized"].get(finest, 0)
+    full = resolution**3 * stats["bytes_per_voxel"]
+    print(f"voxels synthesized at the finest level: {synthesized} "
+          f"({100 * synthesized / resolution**3:.3f}% of the {resolution}^3 block)")
+    print(f"stored: {stats['bytes'] / 2**20:.1f} MiB in {stats['bricks']} bricks "
+          f"(the full volume would be {full / 2**20:.0f} MiB); time {elapsed:.1f} s")
+
+
+def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "bake",
+        help="texture a mesh as if carved from a block of matter, and export it",
+        description="Synthesize only the voxels around the mesh surface (Dong 2008, 6.2) and "
+        "write vertex colors (.ply/.glb) or a UV texture (.glb with embedded PNG, .obj+.mtl).",
+    )
+    _add_mesh_arguments(parser)
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="output mesh: .ply or .glb (vertex colors), .glb or .obj (UV)")
+
+
+def _cmd_bake(args: argparse.Namespace) -> int:
+    from warptex.surface import block_transform, shell
+
+    mesh = _load_mesh(args.mesh)
+    tex = _solid_texture(args.exemplar, args)
+    start = time.perf_counter()
+    transform = block_transform(mesh, args.resolution)
+    voxels = shell(mesh, args.resolution, transform)
+    # Synthesizing the shell fills the same brick store the bake and a renderer read.
+    tex.query(voxels + 0.5, filter="nearest")
+    files = _textured_export(tex, mesh, transform, args, args.output)
+    print(f"surface shell: {len(voxels)} voxels")
+    _report_store(tex, args.resolution, time.perf_counter() - start)
+    print("written: " + ", ".join(str(f) for f in files))
+    return 0
+
+
+def _add_cut_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "cut",
+        help="cut a mesh by a plane and texture both halves, caps included",
+        description="Split a mesh by a plane, close both halves with caps and texture them "
+        "from the same solid texture: the caps continue the outer surface (Dong 2008, 6.4).",
+    )
+    _add_mesh_arguments(parser)
+    parser.add_argument("--origin", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="a point of the plane in mesh coordinates (default: box centre)")
+    parser.add_argument("--normal", type=float, nargs=3, default=(1.0, 0.0, 0.0),
+                        metavar=("X", "Y", "Z"), help="plane normal (default x)")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="output for the first half, e.g. cut.ply; the second half gets "
+                        "the suffix _b (cut_b.ply)")
+
+
+def _cmd_cut(args: argparse.Namespace) -> int:
+    from warptex.cut import cut
+    from warptex.surface import block_transform
+
+    mesh = _load_mesh(args.mesh)
+    origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
+    try:
+        halves = cut(mesh, origin, np.asarray(args.normal))
+    except ValueError as error:
+        raise CliError(f"{args.mesh}: {error}") from None
+    tex = _solid_texture(args.exemplar, args)
+    start = time.perf_counter()
+    transform = block_transform(mesh, args.resolution)
+    outputs = [args.output, args.output.with_stem(args.output.stem + "_b")]
+    files = []
+    for half, output in zip(halves, outputs, strict=True):
+        files += _textured_export(tex, half, transform, args, output)
+    _report_store(tex, args.resolution, time.perf_counter() - start)
+    print("written: " + ", ".join(str(f) for f in files))
+    return 0
+
+
 _SUBCOMMANDS: dict[
     str,
     tuple[Callable[[argparse._SubParsersAction], None], Callable[[argparse.Namespace], int]],
@@ -316,6 +497,9 @@ _SUBCOMMANDS: dict[
     "info": (_add_info_parser, _cmd_info),
     "precompute": (_add_precompute_parser, _cmd_precompute),
     "volume": (_add_volume_parser, _cmd_volume),
+    "slice": (_add_slice_parser, _cmd_slice),
+    "bake": (_add_bake_parser, _cmd_bake),
+    "cut": (_add_cut_parser, _cmd_cut),
 }
 
 
