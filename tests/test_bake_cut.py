@@ -54,6 +54,12 @@ def test_planar_slice_matches_the_volume(texture):
                        (6, 7))
     got = texture.query(pts, filter="nearest").reshape(6, 7, -1)
     assert np.array_equal(got, box)
+    sliced = texture.slice((2.5, -2.5, 5.5), (1, 0, 0), (0, 1, 0), (6, 7), filter="nearest")
+    assert np.array_equal(sliced, box)
+    tilted = texture.slice((0.0, 0.0, 0.0), (0.6, 0.8, 0.0), (0.0, 0.6, 0.8), (5, 4))
+    expected = texture.query(np.array([r * np.array([0.6, 0.8, 0]) + c * np.array([0, 0.6, 0.8])
+                                       for r in range(5) for c in range(4)]))
+    assert np.allclose(tilted.reshape(-1, tilted.shape[2]), expected, atol=1e-6)
 
 
 def test_cut_caps_continue_the_outer_surface(texture, sphere):
@@ -92,3 +98,21 @@ def test_export_formats(texture, sphere, tmp_path):
     with pytest.raises(ValueError, match=r"\.glb or \.obj"):
         export(mesh, tmp_path / "t.ply", image=image, uv=mesh.visual.uv)
     assert not list(tmp_path.glob(".t.ply*"))
+
+
+def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device):
+    from warptex.cli import main
+
+    exemplar = str(data_dir / "granite_64.png")
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    assert main(["slice", exemplar, "--shape", "8", "12", "-o", str(tmp_path / "s.npy")]) == 0
+    assert np.load(tmp_path / "s.npy").shape == (8, 12, 3)
+    assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
+                 "-o", str(tmp_path / "b.ply")]) == 0
+    assert len(trimesh.load(tmp_path / "b.ply").vertices) == len(sphere.vertices)
+    assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
+                 "-o", str(tmp_path / "c.ply")]) == 0
+    assert (tmp_path / "c.ply").exists() and (tmp_path / "c_b.ply").exists()
+    assert main(["bake", str(tmp_path / "missing.ply"), "--exemplar", exemplar,
+                 "-o", str(tmp_path / "x.ply")]) == 2

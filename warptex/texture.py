@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 from warptex.candidates import CandidateSet, precompute
+from warptex.cut import plane_points
 from warptex.exemplar import Exemplar
 from warptex.store import FILTERS, BrickStore
 from warptex.synthesis import COORD_LIMIT, Synthesizer
@@ -87,6 +88,19 @@ class SolidTexture:
             else:
                 self._sample(chunk, filter, dest)
         return out
+
+    def slice(
+        self,
+        origin: Sequence[float],
+        u: Sequence[float],
+        v: Sequence[float],
+        shape: tuple[int, int],
+        filter: Literal["trilinear", "nearest"] = "trilinear",
+    ) -> np.ndarray:
+        """Colors (H, W, C) on any plane (Dong 2008, 6.4): pixel (r, c) shows the point
+        ``origin + r*u + c*v``; the plane need not be axis-aligned."""
+        points = plane_points(np.asarray(origin), np.asarray(u), np.asarray(v), shape)
+        return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
     def save(self, path: str | Path | None = None) -> Path:
         """Write the brick store to ``path`` or to the ``store`` path given at creation."""
