@@ -1,0 +1,71 @@
+"""Texturing a mesh lazily (issue 8; Dong 2008, sections 6.2 and 6.4).
+
+Prints, for the bunny in a RESOLUTION^3 block: surface-shell voxels, voxels synthesized
+per level and as a fraction of the block, time, and bytes stored versus the full volume;
+then the time of a 256^2 planar cut through a warm coarse-level cache.
+
+    python benchmarks/bench_surface.py [--resolution 1024] [--mesh PATH] [--exemplar PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from warptex.exemplar import Exemplar
+from warptex.surface import block_transform, shell
+from warptex.texture import SolidTexture
+
+SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolution", type=int, default=1024)
+    parser.add_argument("--mesh", type=Path, default=SHARED / "meshes" / "stanford_bunny.ply")
+    parser.add_argument("--exemplar", type=Path,
+                        default=SHARED / "exemplars" / "marble_black_64.png")
+    args = parser.parse_args()
+    res = args.resolution
+    mesh = trimesh.load(args.mesh, force="mesh")
+    tex = SolidTexture(Exemplar.load(args.exemplar), seed=1, cache_bytes=8 << 30)
+    tex.query(np.full((1, 3), -1000.0))  # compile kernels outside the timings
+    warm = {lv: n for lv, n in tex.synthesizer.voxels_synthesized.items()}
+
+    start = time.perf_counter()
+    voxels = shell(mesh, res, block_transform(mesh, res))
+    shell_seconds = time.perf_counter() - start
+    tex.query(voxels + 0.5, filter="nearest")
+    total = time.perf_counter() - start
+    stats = tex.store.stats()
+    done = {lv: n - warm[lv] for lv, n in stats["voxels_synthesized"].items()}
+    finest = tex.synthesizer.finest
+    full_bytes = res**3 * stats["bytes_per_voxel"]
+    print(f"mesh {args.mesh.name}, block {res}^3, exemplar {args.exemplar.name}")
+    print(f"surface shell: {len(voxels)} voxels ({100 * len(voxels) / res**3:.3f}% of the "
+          f"block), found in {shell_seconds:.2f} s")
+    print("voxels synthesized per level (finest last): "
+          + ", ".join(f"L{lv}: {n}" for lv, n in sorted(done.items())))
+    print(f"finest voxels synthesized: {100 * done[finest] / res**3:.3f}% of the block; "
+          f"all levels: {100 * sum(done.values()) / res**3:.3f}%")
+    print(f"time: {total:.1f} s (synthesis {stats['synthesis_seconds']:.1f} s)")
+    print(f"stored: {stats['bytes'] / 1e6:.1f} MB in {stats['bricks']} bricks; the full volume "
+          f"in the same format: {full_bytes / 1e6:.0f} MB")
+
+    centre = np.full(3, res / 2.0)
+    times = []
+    for i in range(3):
+        origin = centre + np.array([0.0, 0.0, 37.0 * i]) - np.array([128.0, 128.0, 0.0])
+        t0 = time.perf_counter()
+        tex.slice(origin, (1, 0, 0), (0, 1, 0), (256, 256))
+        times.append(time.perf_counter() - t0)
+    print("256^2 planar cut through the warm coarse cache: "
+          + ", ".join(f"{t:.2f} s" for t in times))
+
+
+if __name__ == "__main__":
+    main()
