@@ -8,9 +8,9 @@ export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 
 .PHONY: demo test lint setup llvm
 
+# Renders scene (1), the marble bunny, to bunny.png (statistics in bunny.png.json).
 demo: setup
-	$(VENV)/bin/warptex info scenes/textures/marble_black_64.png
-	$(VENV)/bin/warptex info scenes/textures/wood_rosewood_64.png
+	$(VENV)/bin/warptex render scenes/bunny_marble.xml -o bunny.png --spp 16 --res 256x256
 
 test: setup
 	$(PY) -m pytest -q

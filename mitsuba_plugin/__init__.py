@@ -1,1 +1,111 @@
-"""Mitsuba 3 texture plugin that evaluates warptex solid textures lazily at shading points."""
+"""Mitsuba 3 plugins that evaluate warptex solid textures lazily at shading points.
+
+``register()`` adds, for the current Mitsuba variant, the texture ``lazy_solid``
+(:mod:`mitsuba_plugin.texture`) and the volume ``lazy_solid_volume``
+(:mod:`mitsuba_plugin.volume`). ``render()`` renders a scene in wavefront mode, which the
+plugins need under the JIT variants::
+
+    import warptex  # first: points Dr.Jit at a usable libLLVM
+    import mitsuba_plugin
+
+    mitsuba_plugin.set_best_variant()
+    mitsuba_plugin.register()
+    image = mitsuba_plugin.render(mi.load_file("scenes/bunny_marble.xml"), spp=16)
+
+Under the JIT variants a symbolic render (plain ``mi.render``) traces every live BSDF,
+so while a ``lazy_solid`` texture is alive in the process every render must run in
+wavefront mode (``render()`` or ``wavefront()``); the texture raises otherwise.
+"""
+
+from __future__ import annotations
+
+import importlib
+import weakref
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import drjit as dr
+import mitsuba as mi
+
+import warptex
+
+_registered: set[str] = set()
+# Every lazy_solid texture alive, so a render helper can report and save brick stores;
+# kept here because the plugin modules are re-run per variant.
+live_textures: weakref.WeakSet = weakref.WeakSet()
+
+
+def set_best_variant() -> str:
+    """Set and return ``llvm_ad_rgb`` when LLVM works here, else ``scalar_rgb``."""
+    variant = warptex.best_mitsuba_variant()
+    mi.set_variant(variant)
+    return variant
+
+
+def register() -> None:
+    """Register ``lazy_solid`` and ``lazy_solid_volume`` for the current variant.
+
+    Mitsuba keeps plugins per variant and a Python plugin subclasses that variant's
+    ``mi.Texture``, so, like Mitsuba's own Python plugins, the plugin modules are
+    (re-)run for each new variant. Calling again for the same variant does nothing.
+    """
+    variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("mitsuba_plugin.register: set a Mitsuba variant first "
+                           "(mitsuba_plugin.set_best_variant())")
+    if variant in _registered:
+        return
+    if not variant.endswith("_rgb"):
+        raise RuntimeError(f"mitsuba_plugin.register: warptex textures are RGB; variant "
+                           f"{variant!r} is not an *_rgb variant")
+    from mitsuba_plugin import texture, volume
+
+    texture = importlib.reload(texture)
+    volume = importlib.reload(volume)
+    mi.register_texture(texture.PLUGIN, texture.LazySolidTexture)
+    mi.register_medium(volume.MEDIUM, volume.lazy_solid_medium)
+    _registered.add(variant)
+
+
+@contextmanager
+def wavefront() -> Iterator[None]:
+    """Dr.Jit's ``SymbolicLoops`` and ``SymbolicCalls`` off for the duration.
+
+    Mitsuba then runs each bounce and each BSDF/medium call as its own kernel on
+    concrete arrays (wavefront mode), so the plugins can hand whole batches of points
+    to Warp. The flags are restored afterwards.
+    """
+    flags = (dr.JitFlag.SymbolicLoops, dr.JitFlag.SymbolicCalls)
+    saved = [dr.flag(f) for f in flags]
+    try:
+        for f in flags:
+            dr.set_flag(f, False)
+        yield
+    finally:
+        for f, value in zip(flags, saved, strict=True):
+            dr.set_flag(f, value)
+
+
+def render(scene: mi.Scene, spp: int | None = None, passes: int = 1, seed: int = 0,
+           progress: Callable[[int, int], None] | None = None) -> mi.TensorXf:
+    """Render ``scene`` in wavefront mode: ``passes`` renders of ``spp / passes`` samples
+    (with different seeds) averaged, calling ``progress(done, passes)`` after each."""
+    sensor = scene.sensors()[0]
+    total = spp if spp is not None else sensor.sampler().sample_count()
+    passes = max(1, min(passes, total))
+    image = None
+    with wavefront():
+        for i in range(passes):
+            share = total // passes + (i < total % passes)
+            part = mi.render(scene, spp=share, seed=seed * passes + i)
+            weighted = part * (share / total)
+            image = weighted if image is None else image + weighted
+            dr.eval(image)
+            if progress is not None:
+                progress(i + 1, passes)
+    return image
+
+
+def textures() -> list:
+    """The ``lazy_solid`` textures alive in this process (e.g. of a loaded scene)."""
+    return list(live_textures)

@@ -564,6 +564,7 @@ _SUBCOMMANDS: dict[
     "bake": (_add_bake_parser, _cmd_bake),
     "cut": (_add_cut_parser, _cmd_cut),
     "compare": (_add_compare_parser, _cmd_compare),
+    "render": (_add_render_parser, _cmd_render),
 }
 
 

@@ -1,0 +1,123 @@
+"""Render cost of ``lazy_solid`` against Mitsuba's own grid texture of the same voxels.
+
+Scene: ``scenes/bunny_marble.xml`` at 256x256, 16 spp, its bunny made ``diffuse`` in both
+variants (Mitsuba's ``volume`` texture has no ``mean()``, which ``roughplastic`` needs).
+Renders, each timed after a warm-up render that compiles the kernels:
+
+* cold: a freshly loaded scene, empty brick store (includes the synthesis it triggers);
+* warm: the same scene again, every brick it reads already stored;
+* grid: the same scene with the texture replaced by ``volume`` over a ``gridvolume``
+  holding ``Synthesizer.box`` of the voxels around the bunny, rendered both in Mitsuba's
+  default (symbolic, megakernel) mode and in the wavefront mode the plugin needs.
+
+Prints the figures and the ratio warm / grid (target <= 1.5).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import re
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import mitsuba_plugin
+import warptex  # noqa: F401  (before Mitsuba: points Dr.Jit at libLLVM)
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+TEXTURE = re.compile(r'<texture type="lazy_solid".*?</texture>', re.S)
+PLASTIC = re.compile(r'<bsdf type="roughplastic">\s*<float name="alpha" value="[^"]*"/>')
+# Texture-space box around the bunny (scale 40, the scene's bunny spans about
+# [-0.8, 0.8] x [0, 1.55] x [-0.6, 0.6]) with a voxel of margin.
+ORIGIN = (-34, -2, -26)
+SHAPE = (68, 66, 52)
+
+
+def timed(render) -> float:
+    start = time.perf_counter()
+    dr.eval(render())
+    dr.sync_thread()
+    return time.perf_counter() - start
+
+
+def grid_xml(xml: str, vol: Path, scale: float) -> str:
+    """The scene with the lazy_solid texture replaced by a gridvolume-backed texture."""
+    o = [v / scale for v in ORIGIN]
+    s = [v / scale for v in SHAPE]
+    grid = (f'<texture type="volume" name="reflectance"><volume type="gridvolume" '
+            f'name="volume"><string name="filename" value="{vol}"/>'
+            f'<transform name="to_world"><scale x="{s[0]}" y="{s[1]}" z="{s[2]}"/>'
+            f'<translate x="{o[0]}" y="{o[1]}" z="{o[2]}"/></transform></volume></texture>')
+    return TEXTURE.sub(grid, xml)
+
+
+def diffuse_xml(xml: str) -> str:
+    """The scene with its rough plastic bunny made diffuse, same texture."""
+    xml = PLASTIC.sub('<bsdf type="diffuse">', xml)
+    return xml.replace('name="diffuse_reflectance"', 'name="reflectance"')
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--res", type=int, default=256)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    variant = mitsuba_plugin.set_best_variant()
+    mitsuba_plugin.register()
+    path = SCENES / "bunny_marble.xml"
+    size = {"width": args.res, "height": args.res}
+
+    def render(scene, wavefront=True):
+        if wavefront:
+            return lambda: mitsuba_plugin.render(scene, spp=args.spp)
+        return lambda: mi.render(scene, spp=args.spp)
+
+    mi.file_resolver().prepend(str(SCENES))
+    xml = diffuse_xml(path.read_text())
+    # Warm-up on a throw-away scene so that the cold figure is synthesis, not compilation.
+    timed(render(mi.load_string(xml, width=8, height=8)))
+    scene = mi.load_string(xml, **size)
+    texture = next(t for t in mitsuba_plugin.textures()
+                   if t.solid.store.stats()["bricks"] == 0)
+    cold = timed(render(scene))
+    stats = texture.solid.store.stats()
+    warm = [timed(render(scene)) for _ in range(args.repeat)]
+
+    start = time.perf_counter()
+    box = texture.solid.synthesizer.box(ORIGIN, SHAPE)[..., :3]
+    box_seconds = time.perf_counter() - start
+    scale = texture.scale
+    # A symbolic render traces every live BSDF, so no lazy_solid may be left for it.
+    del scene, texture
+    gc.collect()
+    with tempfile.TemporaryDirectory() as tmp:
+        vol = Path(tmp) / "bunny.vol"
+        mi.VolumeGrid(np.ascontiguousarray(box.transpose(2, 1, 0, 3))).write(str(vol))
+        grid = mi.load_string(grid_xml(xml, vol, scale), **size)
+        timed(render(grid, wavefront=False))
+        grid_default = [timed(render(grid, wavefront=False)) for _ in range(args.repeat)]
+        timed(render(grid))
+        grid_wavefront = [timed(render(grid)) for _ in range(args.repeat)]
+
+    w, g, gw = (statistics.median(x) for x in (warm, grid_default, grid_wavefront))
+    print(f"variant {variant}, {args.res}x{args.res}, {args.spp} spp, median of {args.repeat}")
+    print(f"cold lazy_solid render:   {cold:6.2f} s  "
+          f"(synthesis {stats['synthesis_seconds']:.2f} s, {stats['bricks']} bricks, "
+          f"{stats['misses']} misses / {stats['hits']} hits)")
+    print(f"warm lazy_solid render:   {w:6.2f} s  {[round(x, 2) for x in warm]}")
+    print(f"gridvolume, default mode: {g:6.2f} s  {[round(x, 2) for x in grid_default]}")
+    print(f"gridvolume, wavefront:    {gw:6.2f} s  {[round(x, 2) for x in grid_wavefront]}")
+    print(f"grid synthesis (Synthesizer.box {SHAPE}): {box_seconds:.2f} s")
+    print(f"ratio warm / grid default:   {w / g:.2f}  (target <= 1.5)")
+    print(f"ratio warm / grid wavefront: {w / gw:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+"""``warptex render``: render a Mitsuba scene that uses ``lazy_solid`` and report the stores.
+
+Kept beside the plugin so ``warptex.cli`` only parses arguments; Mitsuba is imported on
+use, so the other subcommands stay light.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+IMAGE_SUFFIXES = (".exr", ".png")
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"WxH"`` as (width, height), both positive."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--res must look like 256x256, got {text!r}") from None
+    if width < 1 or height < 1:
+        raise ValueError(f"--res must be positive, got {text!r}")
+    return width, height
+
+
+def render_scene(scene_path: Path, output: Path, spp: int | None = None,
+                 resolution: tuple[int, int] | None = None) -> dict:
+    """Render ``scene_path`` to ``output`` (.exr or .png) with progress on stderr, save
+    brick stores that have a ``cache`` file, and write their statistics as JSON beside
+    the image (``<output>.json``). Returns that report.
+
+    ``resolution`` sets the scene's ``$width``/``$height`` parameters, which the scenes
+    in ``scenes/`` declare.
+    """
+    if output.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
+    if spp is not None and spp < 1:
+        raise ValueError(f"--spp must be positive, got {spp}")
+    import mitsuba as mi
+
+    import mitsuba_plugin
+
+    variant = mitsuba_plugin.set_best_variant()
+    mitsuba_plugin.register()
+    params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
+    start = time.perf_counter()
+    scene = mi.load_file(str(scene_path), **params)
+    loaded = time.perf_counter()
+    passes = min(8, spp or scene.sensors()[0].sampler().sample_count())
+    image = mitsuba_plugin.render(scene, spp=spp, passes=passes, progress=_progress)
+    rendered = time.perf_counter()
+    output.parent.mkdir(parents=True, exist_ok=True)
+    mi.util.write_bitmap(str(output), image)
+    report = {
+        "scene": str(scene_path),
+        "image": str(output),
+        "variant": variant,
+        "size": list(image.shape[1::-1]),
+        "spp": spp or scene.sensors()[0].sampler().sample_count(),
+        "load_seconds": round(loaded - start, 3),
+        "render_seconds": round(rendered - loaded, 3),
+        "textures": [_texture_report(t) for t in mitsuba_plugin.textures()],
+    }
+    output.with_name(output.name + ".json").write_text(json.dumps(report, indent=2) + "\n")
+    _print_report(report)
+    return report
+
+
+def _progress(done: int, total: int) -> None:
+    end = "\n" if done == total else ""
+    print(f"\rrendering: pass {done}/{total}", end=end, file=sys.stderr, flush=True)
+
+
+def _texture_report(texture) -> dict:
+    saved = texture.save()
+    return {"texture": texture.to_string(), "store": texture.solid.store.stats(),
+            "saved_to": None if saved is None else str(saved)}
+
+
+def _print_report(report: dict) -> None:
+    print(f"wrote {report['image']} ({report['size'][0]}x{report['size'][1]}, "
+          f"{report['spp']} spp, {report['variant']}): load {report['load_seconds']:.1f} s, "
+          f"render {report['render_seconds']:.1f} s")
+    for entry in report["textures"]:
+        s = entry["store"]
+        print(f"  {entry['texture']}\n    bricks {s['bricks']} ({s['bytes'] / 2**20:.2f} MiB), "
+              f"lookups {s['hits']} hits / {s['misses']} misses, "
+              f"synthesis {s['synthesis_seconds']:.1f} s"
+              + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))
+    print(f"  statistics: {report['image']}.json")

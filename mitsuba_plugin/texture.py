@@ -1,0 +1,295 @@
+"""The ``lazy_solid`` Mitsuba texture: colors synthesized on demand at shading points.
+
+Properties (XML or ``mi.load_dict``):
+
+==============  =========  ==============================================================
+``exemplar``    string     exemplar image; relative paths are taken from the scene file's
+                           folder (``mi.load_dict``: the working directory)
+``exemplar_x``  string     optional exemplars of the three axes (Dong 2008, section 4);
+``_y``, ``_z``             each defaults to ``exemplar``
+``seed``        integer    synthesis seed (default 0)
+``jitter``      float      coarse-level jitter of the synthesis (default 1.0)
+``scale``       float      voxels per scene unit (default 64)
+``to_world``    transform  places the block of matter (default identity)
+``space``       string     ``world`` (default) or ``object``, see below
+``filter``      string     ``trilinear`` (default) or ``nearest``
+``cache``       string     brick store file: loaded when it exists, written by ``save()``
+``cache_bytes`` integer    memory bound of the brick store (default 256 MiB)
+==============  =========  ==============================================================
+
+A scene point p has texture coordinates ``scale * to_world^-1 * p``: one texture unit is
+one finest voxel (see :mod:`warptex.texture`). With ``space="object"`` p is first taken
+into the frame of the object that was hit, so the texture sticks to it when it moves:
+the frame of the ``instance`` the hit belongs to, else the ``to_world`` parameter of the
+shape when it has one (``sphere``, ``rectangle``, ...). Meshes bake their ``to_world``
+into their vertices at load time, so a plain mesh has no frame to recover and object
+space equals world space for it; move meshes with ``instance`` to keep their texture.
+
+Wavefront mode: the colors come from Warp kernels, outside Dr.Jit's traced programs, so
+under the JIT variants ``eval`` needs the concrete points of a whole wavefront. Render
+with Dr.Jit's ``SymbolicLoops`` and ``SymbolicCalls`` flags off, as
+:func:`mitsuba_plugin.render` does; ``eval`` raises inside a symbolic scope.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import mitsuba_plugin
+from warptex.candidates import CandidateSet, precompute
+from warptex.texture import SolidTexture
+
+PLUGIN = "lazy_solid"
+SPACES = ("world", "object")
+FILTERS = ("trilinear", "nearest")
+DEFAULT_SCALE = 64.0
+DEFAULT_CACHE_BYTES = 256 << 20
+
+class PropertyError(ValueError):
+    """A property of a warptex plugin is missing or invalid."""
+
+
+def fail(plugin: str, name: str, problem: str) -> PropertyError:
+    """The Mitsuba-style error for property ``name`` of ``plugin``."""
+    return PropertyError(f'{plugin}: property "{name}" {problem}')
+
+
+def get_property(props: mi.Properties, name: str, kind: type, default: Any,
+                 plugin: str = PLUGIN) -> Any:
+    """Property ``name`` converted to ``kind`` (int, float or str), or ``default``."""
+    if name not in props:
+        return default
+    value = props[name]
+    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, kind) or isinstance(value, bool):
+        raise fail(plugin, name, f"must be a {kind.__name__}, got {value!r}")
+    return value
+
+
+def choice(props: mi.Properties, name: str, options: tuple[str, ...],
+           plugin: str = PLUGIN) -> str:
+    """String property ``name``, one of ``options`` (the first is the default)."""
+    value = get_property(props, name, str, options[0], plugin)
+    if value not in options:
+        allowed = " or ".join(f'"{o}"' for o in options)
+        raise fail(plugin, name, f'must be {allowed}, got "{value}"')
+    return value
+
+
+def scene_path(name: str, must_exist: bool) -> Path:
+    """Absolute path of a file named in a scene.
+
+    While Mitsuba parses a scene file its file resolver starts with the file's folder,
+    so relative names resolve against the scene; ``mi.load_dict`` resolves against the
+    working directory. A file that does not exist yet is placed in that first folder.
+    """
+    resolver = mi.file_resolver()
+    found = Path(str(resolver.resolve(name)))
+    if found.exists() or must_exist or found.is_absolute() or len(resolver) == 0:
+        return found.absolute()
+    return (Path(str(resolver[0])) / name).absolute()
+
+
+def exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
+    """The exemplars of the x, y and z axes, each checked to exist."""
+    base = get_property(props, "exemplar", str, None, plugin)
+    names = [get_property(props, f"exemplar_{a}", str, base, plugin) for a in "xyz"]
+    paths = []
+    for axis, name in zip("xyz", names, strict=True):
+        if name is None:
+            raise fail(plugin, "exemplar", f'is required (or all of "exemplar_{axis}", ...)')
+        path = scene_path(name, must_exist=True)
+        if not path.is_file():
+            key = "exemplar" if name == base else f"exemplar_{axis}"
+            raise fail(plugin, key, f'names a file that does not exist: "{name}"')
+        paths.append(path)
+    return paths
+
+
+def affine_matrix(transform: Any) -> np.ndarray:
+    """The 4x4 float64 matrix of a Mitsuba transform (scalar or width-1 JIT)."""
+    matrix = np.array(transform.matrix, np.float64)
+    return matrix.reshape(4, 4)
+
+
+class LazySolidTexture(mi.Texture):
+    """A solid texture synthesized lazily by warptex (Dong et al. 2008).
+
+    Reads its properties once (see the module documentation), then every ``eval``
+    turns the shading points into texture coordinates and asks the brick store for their
+    colors; bricks are synthesized on first touch and kept.
+    """
+
+    def __init__(self, props: mi.Properties) -> None:
+        super().__init__(props)
+        self.exemplars = exemplar_paths(props)
+        self.seed = get_property(props, "seed", int, 0)
+        self.jitter = get_property(props, "jitter", float, 1.0)
+        self.scale = get_property(props, "scale", float, DEFAULT_SCALE)
+        if not (np.isfinite(self.scale) and self.scale > 0):
+            raise fail(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
+        self.space = choice(props, "space", SPACES)
+        self.filter = choice(props, "filter", FILTERS)
+        cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES)
+        if cache_bytes < 0:
+            raise fail(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
+        cache = get_property(props, "cache", str, None)
+        self.cache = None if cache is None else scene_path(cache, must_exist=False)
+        # A JIT-typed transform, so mi.traverse can update it in place.
+        to_world = affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
+        self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
+        try:
+            candidates = precompute(*self.exemplars)
+        except ValueError as e:
+            raise fail(PLUGIN, "exemplar", f"cannot be used: {e}") from e
+        self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
+                                  cache_bytes=cache_bytes, store=self.cache)
+        colors = exemplar_colors(candidates)
+        self._mean = float(colors.mean())
+        self._max = float(colors.max())
+        self._update_transform()
+        mitsuba_plugin.live_textures.add(self)
+
+    # -- mi.Texture interface ---------------------------------------------------------
+
+    def eval(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.UnpolarizedSpectrum:
+        return self.colors_at(si, active)
+
+    def eval_3(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Color3f:
+        return self.colors_at(si, active)
+
+    def eval_1(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Float:
+        return mi.luminance(self.colors_at(si, active))
+
+    def mean(self) -> mi.Float:
+        return mi.Float(self._mean)
+
+    def max(self) -> float:
+        return self._max
+
+    def is_spatially_varying(self) -> bool:
+        return True
+
+    def traverse(self, callback: mi.TraversalCallback) -> None:
+        callback.put("to_world", self.to_world, mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys: list[str] | None = None) -> None:
+        self._update_transform()
+
+    def to_string(self) -> str:
+        names = ", ".join(f'"{p}"' for p in dict.fromkeys(self.exemplars))
+        return (f"LazySolidTexture[exemplars=[{names}], seed={self.seed}, "
+                f"jitter={self.jitter}, scale={self.scale}, space={self.space}, "
+                f"filter={self.filter}, cache={self.cache}]")
+
+    # -- queries ----------------------------------------------------------------------
+
+    def colors_at(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Color3f:
+        """RGB at the points of interaction ``it`` where ``active``; zero elsewhere.
+
+        Under the JIT variants the points reach NumPy and Warp through DLPack and only
+        the active lanes are queried, so inactive lanes synthesize nothing.
+        """
+        if not dr.is_jit_v(mi.Float):
+            if not active:
+                return mi.Color3f(0.0)
+            return mi.Color3f(*self._query(np.array([it.p], np.float64), it, None)[0])
+        if dr.flag(dr.JitFlag.SymbolicScope):
+            raise RuntimeError(f"{PLUGIN}: eval needs wavefront mode: render with Dr.Jit's "
+                               "SymbolicLoops and SymbolicCalls flags off "
+                               "(mitsuba_plugin.render does)")
+        width = dr.width(it.p)
+        # One kernel interleaves the points; NumPy then views Dr.Jit's memory (DLPack).
+        flat = dr.ravel(it.p, order="F")
+        mask = mi.Bool(active) | dr.zeros(mi.Bool, width)
+        dr.eval(flat, mask)
+        points = np.from_dlpack(flat).reshape(width, 3)
+        keep = mask.numpy()
+        colors = np.zeros((width, 3), np.float32)
+        if keep.all():
+            colors[:] = self._query(points, it, keep)
+        elif keep.any():
+            colors[keep] = self._query(points[keep], it, keep)
+        return mi.Color3f(colors.T)
+
+    def query_texture_space(self, points: np.ndarray) -> np.ndarray:
+        """RGB (N, 3) float32 at texture-space ``points`` (N, 3)."""
+        return as_rgb(self.solid.query(points, filter=self.filter))
+
+    def save(self) -> Path | None:
+        """Write the brick store to the ``cache`` file, if one was given."""
+        return self.solid.save() if self.cache is not None else None
+
+    def _query(self, points: np.ndarray, it: mi.Interaction3f,
+               keep: np.ndarray | None) -> np.ndarray:
+        """RGB (N, 3) at scene ``points`` (N, 3) of interaction ``it``."""
+        points = points.astype(np.float64)
+        if self.space == "object":
+            points = to_object_space(points, it, keep)
+        texture = points @ self._world_to_texture[:3, :3].T + self._world_to_texture[:3, 3]
+        return self.query_texture_space(texture)
+
+    def _update_transform(self) -> None:
+        to_world = affine_matrix(self.to_world)
+        self._world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ np.linalg.inv(to_world)
+
+
+def exemplar_colors(candidates: CandidateSet) -> np.ndarray:
+    """RGB (N, 3) of every exemplar pixel: voxels average three of them, so these bound
+    the texture's range and give its mean."""
+    return as_rgb(np.concatenate([c.reshape(-1, candidates.channels)
+                                  for c in candidates.colors]))
+
+
+def as_rgb(colors: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 from (N, C) colors: gray is repeated, extra channels dropped."""
+    if colors.shape[1] >= 3:
+        return np.ascontiguousarray(colors[:, :3], np.float32)
+    return np.repeat(colors[:, :1], 3, axis=1).astype(np.float32)
+
+
+def to_object_space(points: np.ndarray, it: mi.Interaction3f,
+                    keep: np.ndarray | None) -> np.ndarray:
+    """``points`` taken into the frame of the instance each was found on, else of its
+    shape when the shape has a ``to_world`` parameter; unchanged otherwise.
+
+    ``keep`` marks the JIT lanes that ``points`` hold, None under the scalar variants.
+    """
+    if not hasattr(it, "instance"):  # medium interactions belong to no object
+        return points
+    out = points.copy()
+    placed = np.zeros(len(points), bool)
+    for pointers in (it.instance, it.shape):
+        for rows, obj in _objects(pointers, keep):
+            to_world = None if obj is None else _frame(obj)
+            rows &= ~placed
+            if to_world is not None and rows.any():
+                to_object = np.linalg.inv(to_world)
+                out[rows] = points[rows] @ to_object[:3, :3].T + to_object[:3, 3]
+                placed |= rows
+    return out
+
+
+def _objects(pointers: Any, keep: np.ndarray | None) -> list[tuple[np.ndarray, Any]]:
+    """The distinct objects behind shape ``pointers`` at the ``keep`` lanes, each with
+    the mask of the kept lanes that point to it."""
+    if keep is None:
+        return [(np.ones(1, bool), pointers)]
+    ids = np.broadcast_to(dr.reinterpret_array(mi.UInt32, pointers).numpy(), keep.shape)
+    kept = ids[keep]
+    unique, first = np.unique(kept, return_index=True)
+    lanes = np.flatnonzero(keep)[first]
+    return [(kept == i, pointers[int(lane)])
+            for i, lane in zip(unique, lanes, strict=True) if i]
+
+
+def _frame(obj: mi.Object) -> np.ndarray | None:
+    """The object's ``to_world`` matrix, if it exposes one."""
+    params = mi.traverse(obj)
+    return affine_matrix(params["to_world"]) if "to_world" in params else None

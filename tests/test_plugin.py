@@ -1,0 +1,149 @@
+"""The lazy_solid Mitsuba plugin: properties, errors, eval against SolidTexture, object
+space, Mitsuba's vectorization check."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_plugin
+import warptex
+
+LLVM = "llvm_ad_rgb"
+
+
+@pytest.fixture(scope="module")
+def exemplar(data_dir, tmp_path_factory):
+    """A 32x32 granite crop with its own candidate cache, so set-up stays quick."""
+    from PIL import Image
+
+    folder = tmp_path_factory.mktemp("plugin")
+    path = folder / "granite_32.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(folder / "cache"))
+        yield path
+
+
+def use(variant: str) -> None:
+    if variant == LLVM and variant != warptex.best_mitsuba_variant():
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
+    mi.set_variant(variant)
+    mitsuba_plugin.register()
+
+
+def load(exemplar_path, **props):
+    return mi.load_dict({"type": "lazy_solid", "exemplar": str(exemplar_path)} | props)
+
+
+def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
+    si = dr.zeros(mi.SurfaceInteraction3f, len(points))
+    si.p = mi.Point3f(points.T.astype(np.float32))
+    return si
+
+
+@pytest.mark.parametrize(("props", "name"), [
+    ({"space": "foo"}, "space"),
+    ({"filter": "cubic"}, "filter"),
+    ({"scale": -2.0}, "scale"),
+    ({"seed": "one"}, "seed"),
+    ({"cache_bytes": -1}, "cache_bytes"),
+    ({"exemplar": "no/such/file.png"}, "exemplar"),
+    ({"exemplar_y": "missing.png"}, "exemplar_y"),
+])
+def test_property_errors_name_the_property(exemplar, props, name):
+    use("scalar_rgb")
+    with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}"'):
+        load(exemplar, **props)
+
+
+def test_register_is_idempotent_and_needs_rgb():
+    use("scalar_rgb")
+    mitsuba_plugin.register()
+    mi.set_variant("scalar_spectral")
+    with pytest.raises(RuntimeError, match="not an \\*_rgb variant"):
+        mitsuba_plugin.register()
+    mi.set_variant("scalar_rgb")
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+@pytest.mark.parametrize("filter", ["trilinear", "nearest"])
+def test_eval_is_the_solid_texture_at_scaled_points(exemplar, variant, filter):
+    use(variant)
+    to_world = mi.ScalarTransform4f().translate([0.5, -1.0, 2.0])
+    tex = load(exemplar, scale=8.0, filter=filter, seed=3, to_world=to_world)
+    points = np.random.default_rng(1).uniform(-1, 1, (6, 3)).astype(np.float32)
+    expected = tex.solid.query((points - [0.5, -1.0, 2.0]) * 8.0, filter=filter)
+    if variant == LLVM:
+        got = np.array(tex.eval(interaction(points))).T
+    else:
+        si = mi.SurfaceInteraction3f()
+        got = []
+        for p in points:
+            si.p = mi.Point3f(*p)
+            got.append(np.array(tex.eval(si)))
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    assert tex.is_spatially_varying()
+    assert tex.mean()[0] > 0.0 if variant == LLVM else tex.mean() > 0.0
+    assert tex.max() <= 1.0
+    assert "seed=3" in tex.to_string()
+
+
+def test_inactive_lanes_are_zero_and_not_synthesized(exemplar):
+    use(LLVM)
+    tex = load(exemplar, scale=8.0)
+    far = np.array([[0.1, 0.1, 0.1], [500.0, 500.0, 500.0]], np.float32)
+    colors = np.array(tex.eval(interaction(far), mi.Bool([True, False]))).T
+    assert (colors[1] == 0).all() and (colors[0] > 0).all()
+    assert tex.solid.store.stats()["misses"] == 1
+
+
+def test_traverse_updates_to_world(exemplar):
+    use(LLVM)
+    tex = load(exemplar, scale=8.0)
+    params = mi.traverse(tex)
+    before = np.array(tex.eval(interaction(np.array([[0.2, 0.3, 0.4]], np.float32))))
+    params["to_world"] = mi.AffineTransform4f().translate([0.2, 0.3, 0.4])
+    params.update()
+    after = np.array(tex.eval(interaction(np.array([[0.4, 0.6, 0.8]], np.float32))))
+    np.testing.assert_allclose(after, before, atol=1e-6)
+
+
+def test_object_space_follows_instances(exemplar):
+    """Two instances of one sphere, moved apart: the same local point has one color."""
+    use(LLVM)
+    T = mi.ScalarTransform4f
+    tex = {"type": "lazy_solid", "exemplar": str(exemplar), "scale": 8.0, "space": "object"}
+    scene = mi.load_dict({
+        "type": "scene",
+        "group": {"type": "shapegroup",
+                  "s": {"type": "sphere", "bsdf": {"type": "diffuse", "reflectance": tex}}},
+        "a": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+              "to_world": T().translate([3, 0, 0])},
+        "b": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+              "to_world": T().translate([-3, 2, 0])},
+    })
+    rays = mi.Ray3f(mi.Point3f([3.2, -2.8], [0.3, 2.3], [-5, -5]), mi.Vector3f(0, 0, 1))
+    with mitsuba_plugin.wavefront():  # the BSDF call reaches the texture
+        si = scene.ray_intersect(rays)
+        colors = np.array(si.bsdf().eval_diffuse_reflectance(si)).T
+    np.testing.assert_allclose(colors[0], colors[1], atol=1e-6)
+
+
+def test_check_vectorization(exemplar):
+    """Mitsuba's helper: scalar_rgb evaluations, one at a time, equal llvm_ad_rgb's."""
+    from mitsuba.python.test.util import check_vectorization
+
+    use(LLVM)
+    use("scalar_rgb")
+
+    def kernel(p: mi.Point3f) -> mi.Color3f:
+        mitsuba_plugin.register()
+        tex = load(exemplar, scale=16.0)
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.p = p
+        return tex.eval(si)
+
+    check_vectorization(kernel, width=12, modes=["llvm_ad"])

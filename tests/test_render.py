@@ -1,0 +1,140 @@
+"""Rendering with lazy_solid: exemplar colors in pixels, the same color from two cameras,
+agreement with Mitsuba's own gridvolume texture, and the bundled scene."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_plugin
+import warptex
+
+REPO = Path(__file__).resolve().parent.parent
+LLVM = "llvm_ad_rgb"
+SCALE = 4.0  # voxels per unit: the 8x8 film over [-1, 1]^2 puts one voxel in each pixel
+
+
+@pytest.fixture(scope="module")
+def exemplar(data_dir, tmp_path_factory):
+    """A 32x32 granite crop with its own candidate cache, so set-up stays quick."""
+    from PIL import Image
+
+    folder = tmp_path_factory.mktemp("render")
+    path = folder / "granite_32.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(folder / "cache"))
+        yield path
+
+
+@pytest.fixture(scope="module")
+def synthesizer(exemplar, warp_device):
+    """The engine with the plugin's default seed and jitter, for expected colors."""
+    from warptex.texture import SolidTexture
+
+    return SolidTexture(exemplar, device=warp_device).synthesizer
+
+
+def use(variant: str) -> None:
+    if variant == LLVM and variant != warptex.best_mitsuba_variant():
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
+    mi.set_variant(variant)
+    mitsuba_plugin.register()
+
+
+def plane_scene(texture: dict, emissive: bool, x: float = 0.0, size: int = 8,
+                spp: int = 4) -> mi.Scene:
+    """A [-1, 1]^2 plane at z = 0 seen by an orthographic camera centred at (x, 0).
+
+    Emissive: the texture is the plane's radiance, seen directly, so pixels are exact.
+    Otherwise it is a diffuse reflectance under a white environment.
+    """
+    sensor = {
+        "type": "orthographic",
+        "to_world": mi.ScalarTransform4f().look_at(origin=[x, 0, 5], target=[x, 0, 0],
+                                                   up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
+        "sampler": {"type": "independent", "sample_count": spp},
+    }
+    plane = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2, 2, 1])}
+    if emissive:
+        plane |= {"emitter": {"type": "area", "radiance": texture},
+                  "bsdf": {"type": "diffuse", "reflectance": 0.0}}
+        lights = {}
+    else:
+        plane["bsdf"] = {"type": "diffuse", "reflectance": texture}
+        lights = {"light": {"type": "constant"}}
+    return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2},
+                         "sensor": sensor, "plane": plane} | lights)
+
+
+def lazy(exemplar, filter: str = "nearest") -> dict:
+    return {"type": "lazy_solid", "exemplar": str(exemplar), "scale": SCALE,
+            "filter": filter}
+
+
+def rgb(image) -> np.ndarray:
+    return np.array(image)[..., :3]
+
+
+def pixel_voxels(size: int = 8) -> np.ndarray:
+    """Voxel (x, y, z) seen at each pixel of ``plane_scene``: image rows go down in y."""
+    x = np.arange(size) - size // 2
+    y = size // 2 - 1 - np.arange(size)
+    grid = np.stack(np.meshgrid(x, y, indexing="xy"), -1)
+    return np.concatenate([grid, np.zeros((size, size, 1), int)], -1)
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_pixels_carry_the_synthesized_voxels(exemplar, synthesizer, variant):
+    use(variant)
+    image = rgb(mitsuba_plugin.render(plane_scene(lazy(exemplar), emissive=True)))
+    voxels = pixel_voxels().reshape(-1, 3)
+    expected = synthesizer.voxels(voxels).reshape(8, 8, -1)[..., :3]
+    np.testing.assert_allclose(image, expected, atol=1e-5)
+    # granite: warm, mid-bright colors, red > green > blue on average
+    mean = image.reshape(-1, 3).mean(0)
+    assert 0.2 < mean[2] < mean[1] < mean[0] < 0.9
+    assert image.std() > 0.01
+
+
+def test_two_cameras_agree_at_shared_points(exemplar):
+    use(LLVM)
+    left = rgb(mitsuba_plugin.render(plane_scene(lazy(exemplar, "trilinear"), True, x=0.0,
+                                                 size=16, spp=16)))
+    right = rgb(mitsuba_plugin.render(plane_scene(lazy(exemplar, "trilinear"), True, x=0.5,
+                                                  size=16, spp=16), seed=7))
+    # 0.5 units = 4 pixels of 0.125: the right camera's column c is the left's c + 4.
+    np.testing.assert_allclose(right[:, :-4], left[:, 4:], atol=0.02)
+    assert np.abs(right[:, :-4] - left[:, 4:]).mean() < 0.004
+
+
+def gridvolume(synthesizer, origin=(-6, -6, -2), shape=(12, 12, 4)) -> dict:
+    """Mitsuba's ``volume`` texture over a ``gridvolume`` of the same synthesized voxels."""
+    box = synthesizer.box(origin, shape)[..., :3]
+    data = mi.TensorXf(np.ascontiguousarray(box.transpose(2, 1, 0, 3)))  # z, y, x, C
+    place = mi.ScalarTransform4f().scale(1 / SCALE).translate(list(origin)).scale(list(shape))
+    return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
+                                         "to_world": place, "filter_type": "trilinear"}}
+
+
+def test_matches_gridvolume_texture_of_the_same_voxels(exemplar, synthesizer):
+    """Same scene, same seed, Mitsuba's grid texture instead: equal within MC noise."""
+    use(LLVM)
+    ours = plane_scene(lazy(exemplar, "trilinear"), emissive=False, size=16, spp=16)
+    theirs = plane_scene(gridvolume(synthesizer), emissive=False, size=16, spp=16)
+    a = rgb(mitsuba_plugin.render(ours))
+    b = rgb(mitsuba_plugin.render(theirs))
+    assert a.mean() > 0.2 and np.abs(a - b).mean() < 0.01
+    np.testing.assert_allclose(a.mean((0, 1)), b.mean((0, 1)), atol=0.01)
+
+
+def test_bundled_bunny_scene_renders(tmp_path):
+    """scenes/bunny_marble.xml, the README's scene, at a tiny size."""
+    use(warptex.best_mitsuba_variant())
+    scene = mi.load_file(str(REPO / "scenes" / "bunny_marble.xml"), width=16, height=16, spp=1)
+    image = rgb(mitsuba_plugin.render(scene))
+    assert np.isfinite(image).all() and image.mean() > 0.05
