@@ -10,7 +10,7 @@ export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 
 # Renders scene (1), the marble bunny, to out/bunny.png (statistics in out/bunny.png.json).
 demo: setup
-	$(VENV)/bin/warptex render scenes/bunny_marble.xml -o out/bunny.png --spp 16 --res 256x256
+	$(VENV)/bin/warptex render scenes/bunny_wood.xml -o out/bunny.png --spp 16 --res 256x256
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,6 +1,6 @@
 """Render cost of ``lazy_solid`` against Mitsuba's own grid texture of the same voxels.
 
-Scene: ``scenes/bunny_marble.xml`` at 256x256, 16 spp, its bunny made ``diffuse`` in both
+Scene: ``scenes/bunny_wood.xml`` at 256x256, 16 spp, its bunny made ``diffuse`` in both
 variants (Mitsuba's ``volume`` texture has no ``mean()``, which ``roughplastic`` needs).
 Renders, each timed after a warm-up render that compiles the kernels:
 
@@ -71,7 +71,7 @@ def main() -> None:
     args = parser.parse_args()
     variant = mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
-    path = SCENES / "bunny_marble.xml"
+    path = SCENES / "bunny_wood.xml"
     size = {"width": args.res, "height": args.res}
 
     def render(scene, wavefront=True):

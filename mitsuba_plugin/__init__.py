@@ -10,7 +10,7 @@ plugins need under the JIT variants::
 
     mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
-    image = mitsuba_plugin.render(mi.load_file("scenes/bunny_marble.xml"), spp=16)
+    image = mitsuba_plugin.render(mi.load_file("scenes/bunny_wood.xml"), spp=16)
 
 Under the JIT variants a symbolic render (plain ``mi.render``) traces every live BSDF,
 so while a ``lazy_solid`` texture is alive in the process every render must run in

@@ -48,8 +48,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     start = time.perf_counter()
     scene = mi.load_file(str(scene_path), **params)
     loaded = time.perf_counter()
-    passes = min(8, spp or scene.sensors()[0].sampler().sample_count())
-    image = mitsuba_plugin.render(scene, spp=spp, passes=passes, progress=_progress)
+    # Read before rendering: each pass sets the sampler to its share of the samples.
+    total = spp or scene.sensors()[0].sampler().sample_count()
+    image = mitsuba_plugin.render(scene, spp=total, passes=min(8, total), progress=_progress)
     rendered = time.perf_counter()
     output.parent.mkdir(parents=True, exist_ok=True)
     mi.util.write_bitmap(str(output), image)
@@ -58,7 +59,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "image": str(output),
         "variant": variant,
         "size": list(image.shape[1::-1]),
-        "spp": spp or scene.sensors()[0].sampler().sample_count(),
+        "spp": total,
         "load_seconds": round(loaded - start, 3),
         "render_seconds": round(rendered - loaded, 3),
         "textures": [_texture_report(t) for t in mitsuba_plugin.textures()],

@@ -133,8 +133,8 @@ def test_matches_gridvolume_texture_of_the_same_voxels(exemplar, synthesizer):
 
 
 def test_bundled_bunny_scene_renders(tmp_path):
-    """scenes/bunny_marble.xml, the README's scene, at a tiny size."""
+    """scenes/bunny_wood.xml, the README's scene, at a tiny size."""
     use(warptex.best_mitsuba_variant())
-    scene = mi.load_file(str(REPO / "scenes" / "bunny_marble.xml"), width=16, height=16, spp=1)
+    scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=16, height=16, spp=1)
     image = rgb(mitsuba_plugin.render(scene))
     assert np.isfinite(image).all() and image.mean() > 0.05
