@@ -42,3 +42,11 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     assert "| lazy |" in (out / "table.md").read_text()
     assert main(["compare", str(data_dir / "granite_64.png"), "--methods", "bogus",
                  "-o", str(out)]) == 2
+
+
+def test_volume_command_runs_kopf(tmp_path, data_dir, warp_device):
+    out = tmp_path / "k.npy"
+    assert main(["volume", str(data_dir / "granite_64.png"), "--method", "kopf", "--size", "16",
+                 "-o", str(out)]) == 0
+    volume = np.load(out)
+    assert volume.shape == (16, 16, 16, 3) and np.isfinite(volume).all()
