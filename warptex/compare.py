@@ -41,6 +41,7 @@ class MethodResult:
     peak_mib: float
     notes: str = ""
     slices: list[np.ndarray] = field(default_factory=list, repr=False)
+    render: np.ndarray | None = field(default=None, repr=False)
 
 
 def _lazy(ex: Exemplar, size: int, seed: int) -> np.ndarray:
@@ -143,6 +144,56 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     return float(corr[valid].max())
 
 
+def _mitsuba():
+    """Mitsuba in the best variant this machine supports, with the plugin registered."""
+    import mitsuba as mi
+
+    import mitsuba_plugin
+
+    mitsuba_plugin.set_best_variant()
+    mitsuba_plugin.register()
+    return mi
+
+
+def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarray:
+    """A unit cube at [0, 1]^3 wearing ``texture`` (a Mitsuba texture dict), seen from a
+    corner under sky and sun; the (H, W, 3) image with display gamma."""
+    import mitsuba_plugin
+
+    mi = _mitsuba()
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sensor": {
+            "type": "perspective", "fov": 35,
+            "to_world": T().look_at(origin=[2.6, 2.1, 2.9], target=[0.5, 0.45, 0.5], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
+                     "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": spp},
+        },
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.5, 0.55]}},
+        "sun": {"type": "directional", "direction": [-0.4, -1.0, -0.7],
+                "irradiance": {"type": "rgb", "value": [2.2, 2.1, 2.0]}},
+        "cube": {"type": "cube", "to_world": T().translate([0.5, 0.5, 0.5]).scale(0.5),
+                 "bsdf": {"type": "diffuse", "reflectance": texture}},
+    })
+    image = np.asarray(mitsuba_plugin.render(scene, passes=1))[..., :3]
+    return np.clip(image, 0.0, None) ** (1 / 2.2)  # display gamma for the sheet
+
+
+def _cube_texture(method: str, exemplar_path: str, volume: np.ndarray, seed: int) -> dict:
+    """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
+    own grid texture of their volume (both trilinear, one voxel = 1/size of the cube)."""
+    size = volume.shape[0]
+    if method == "lazy":
+        return {"type": "lazy_solid", "exemplar": str(Path(exemplar_path).resolve()),
+                "seed": seed, "scale": float(size)}
+    data = _mitsuba().TensorXf(np.ascontiguousarray(volume[..., :3].transpose(2, 1, 0, 3)))
+    return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
+                                         "filter_type": "trilinear"}}
+
+
 def _measure(method: str, exemplar_path: str, size: int, seed: int) -> dict:
     """Run one method in this (fresh) process: volume, scores, time and peak memory."""
     ex = Exemplar.load(exemplar_path)
@@ -165,6 +216,7 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int) -> dict:
         "seconds": seconds,
         "peak_mib": max(peak - base, 0) / 1024.0,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
+        "render": render_cube(_cube_texture(method, exemplar_path, volume, seed)),
     }
 
 
@@ -201,7 +253,7 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
 
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
-                 out_dir: str | Path, renders: dict[str, np.ndarray] | None = None) -> list[Path]:
+                 out_dir: str | Path) -> list[Path]:
     """Write ``sheet.png``, ``table.md`` and ``table.json`` into ``out_dir`` atomically."""
     from warptex.sheets import save_png, sheet
 
@@ -211,12 +263,13 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
     rows = [("exemplar", [("exemplar", ex.colors)])]
     for r in results:
         images = [(f"{name} slice", s) for name, s in zip("xyz", r.slices, strict=True)]
-        if renders and r.method in renders:
-            images.append(("render", renders[r.method]))
+        if r.render is not None:
+            images.append(("rendered cube", r.render))
         rows.append((r.method, images))
     save_png(sheet(rows), out / "sheet.png")
     _write_text(out / "table.md", f"# {Path(exemplar_path).name}\n\n" + table_markdown(results))
-    payload = [{k: v for k, v in asdict(r).items() if k != "slices"} for r in results]
+    payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
+               for r in results]
     _write_text(out / "table.json", json.dumps({"exemplar": Path(exemplar_path).name,
                                                  "methods": payload}, indent=2))
     return [out / "sheet.png", out / "table.md", out / "table.json"]

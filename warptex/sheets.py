@@ -32,27 +32,26 @@ def volume_row(volume: np.ndarray, depth: int | None = None) -> list[tuple[str, 
     return out
 
 
-def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], scale: int = 2) -> np.ndarray:
-    """Compose labelled rows of labelled images into one 8-bit RGB sheet."""
-    tiles = [[(label, to_rgb8(img)) for label, img in images] for _, images in rows]
-    cell_h = max(t.shape[0] for row in tiles for _, t in row) * scale
-    cell_w = max(t.shape[1] for row in tiles for _, t in row) * scale
+def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], cell: int = 160) -> np.ndarray:
+    """Compose labelled rows of labelled images into one 8-bit RGB sheet; every image is
+    scaled to fit a ``cell`` x ``cell`` square (pixels stay sharp when enlarged)."""
     row_label_w = 8 * max(len(name) for name, _ in rows) + _GAP
-    ncols = max(len(row) for row in tiles)
-    height = len(rows) * (cell_h + _LABEL_HEIGHT + _GAP) + _GAP
-    width = row_label_w + ncols * (cell_w + _GAP) + _GAP
+    ncols = max(len(images) for _, images in rows)
+    height = len(rows) * (cell + _LABEL_HEIGHT + _GAP) + _GAP
+    width = row_label_w + ncols * (cell + _GAP) + _GAP
     canvas = Image.new("RGB", (width, height), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
-    for r, ((name, _), row) in enumerate(zip(rows, tiles, strict=True)):
-        y = _GAP + r * (cell_h + _LABEL_HEIGHT + _GAP)
-        draw.text((_GAP, y + _LABEL_HEIGHT + cell_h // 2 - 6), name, fill=(0, 0, 0))
-        for c, (label, tile) in enumerate(row):
-            x = row_label_w + c * (cell_w + _GAP)
+    for r, (name, images) in enumerate(rows):
+        y = _GAP + r * (cell + _LABEL_HEIGHT + _GAP)
+        draw.text((_GAP, y + _LABEL_HEIGHT + cell // 2 - 6), name, fill=(0, 0, 0))
+        for c, (label, image) in enumerate(images):
+            x = row_label_w + c * (cell + _GAP)
             draw.text((x, y), label, fill=(0, 0, 0))
-            img = Image.fromarray(tile).resize(
-                (tile.shape[1] * scale, tile.shape[0] * scale), Image.NEAREST
-            )
-            canvas.paste(img, (x, y + _LABEL_HEIGHT))
+            tile = Image.fromarray(to_rgb8(image))
+            scale = cell / max(tile.size)
+            size = (max(1, round(tile.size[0] * scale)), max(1, round(tile.size[1] * scale)))
+            resample = Image.NEAREST if scale >= 1 else Image.LANCZOS
+            canvas.paste(tile.resize(size, resample), (x, y + _LABEL_HEIGHT))
     return np.asarray(canvas)
 
 
