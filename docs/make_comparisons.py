@@ -1,0 +1,52 @@
+"""Regenerate docs/comparisons/: `warptex compare` on every exemplar at 64^3, and an index.
+
+    python docs/make_comparisons.py [--exemplars DIR] [--size 64]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from warptex.compare import METHODS, compare, write_report
+
+HERE = Path(__file__).resolve().parent
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    shared = HERE.parent.parent / "shared" / "data" / "exemplars"
+    parser.add_argument("--exemplars", type=Path, default=shared)
+    parser.add_argument("--size", type=int, default=64)
+    args = parser.parse_args()
+    out = HERE / "comparisons"
+    lines = [
+        "# Comparisons at 64^3",
+        "",
+        "`warptex compare` on each exemplar (64 px version); per exemplar a picture sheet",
+        "(slices along x, y, z and a rendered cube per method) and a table. Regenerate with",
+        "`python docs/make_comparisons.py`. Worst-axis neighbourhood energy (lower is better),",
+        "time, and the repetition score over a 256-voxel slice:",
+        "",
+        "| exemplar | lazy energy | kopf energy | lazy / kopf | lazy s | kopf s | kopf / lazy "
+        "time | lazy repetition | tiled repetition |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for path in sorted(args.exemplars.glob("*_64.png")):
+        name = path.stem.removesuffix("_64")
+        results = compare(path, args.size, METHODS, progress=False)
+        write_report(results, path, out / name)
+        r = {m.method: m for m in results}
+        lazy, kopf = max(r["lazy"].energy), max(r["kopf"].energy)
+        lines.append(
+            f"| [{name}]({name}/sheet.png) | {lazy:.3f} | {kopf:.3f} | {lazy / kopf:.2f} | "
+            f"{r['lazy'].seconds:.2f} | {r['kopf'].seconds:.1f} | "
+            f"{r['kopf'].seconds / r['lazy'].seconds:.0f} | {r['lazy'].repetition:.3f} | "
+            f"{r['tiled'].repetition:.3f} |"
+        )
+        print(lines[-1], flush=True)
+    (out / "README.md").write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
