@@ -26,6 +26,23 @@ def strip_distance(
     return total
 
 
+@wp.func
+def crossbar_rest(
+    next_second: wp.array2d(dtype=wp.int32),
+    nnext_first: wp.array2d(dtype=wp.int32),
+    nnext_second: wp.array2d(dtype=wp.int32),
+    own_first: wp.array2d(dtype=wp.int32),
+    p: int,
+    q: int,
+    r: int,
+) -> int:
+    """The crossbar pairs (1, 2) and (2, 0) of triple (p, q, r); pair (0, 1) depends on
+    (p, q) alone, so the search computes it once per q."""
+    return strip_distance(next_second, q, nnext_first, r) + strip_distance(
+        nnext_second, r, own_first, p
+    )
+
+
 @wp.kernel
 def best_crossbar_triples(
     own_first: wp.array2d(dtype=wp.int32),
@@ -60,8 +77,7 @@ def best_crossbar_triples(
         e01 = strip_distance(own_second, p, next_first, q)
         for j in range(s2):
             r = near2[p, j]
-            err = e01 + strip_distance(next_second, q, nnext_first, r)
-            err += strip_distance(nnext_second, r, own_first, p)
+            err = e01 + crossbar_rest(next_second, nnext_first, nnext_second, own_first, p, q, r)
             key = wp.int64(err) * wp.int64(s1 * s2) + wp.int64(i * s2 + j)
             pos = int(-1)
             if n < keep:
@@ -81,6 +97,26 @@ def best_crossbar_triples(
                 cand2[p, pos] = r
                 cb[p, pos] = err
     count[p] = n
+
+
+@wp.kernel
+def candidate_crossbar_errors(
+    own_first: wp.array2d(dtype=wp.int32),
+    own_second: wp.array2d(dtype=wp.int32),
+    next_first: wp.array2d(dtype=wp.int32),
+    next_second: wp.array2d(dtype=wp.int32),
+    nnext_first: wp.array2d(dtype=wp.int32),
+    nnext_second: wp.array2d(dtype=wp.int32),
+    cand1: wp.array2d(dtype=wp.int32),
+    cand2: wp.array2d(dtype=wp.int32),
+    cb: wp.array2d(dtype=wp.int32),
+):
+    """Crossbar error of stored candidate k of pixel p (section 4.1), recomputed."""
+    p, k = wp.tid()
+    q = cand1[p, k]
+    r = cand2[p, k]
+    err = strip_distance(own_second, p, next_first, q)
+    cb[p, k] = err + crossbar_rest(next_second, nnext_first, nnext_second, own_first, p, q, r)
 
 
 @wp.func

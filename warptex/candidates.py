@@ -32,7 +32,7 @@ from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 _MAGIC = b"WARPTEXC"
 
@@ -41,7 +41,8 @@ DEFAULT_PARAMS: dict[str, object] = {
     "strips": 65,  # S
     "keep": 100,  # best crossbar triples kept before coherence filtering
     "candidates_3d": 12,  # 3D candidates kept per pixel (synthesis uses 4 at the finest level)
-    "candidates_2d": 4,  # 2D k-coherent candidates per pixel (synthesis uses 2 at the finest)
+    "candidates_2d": 4,  # 2D k-coherent candidates per pixel at coarse levels
+    "candidates_2d_finest": 2,
     "variance": 0.95,  # PCA variance kept
     "min_dims": 8,
     "max_dims": 12,
@@ -281,7 +282,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool) -> CandidateSet
         unit="step",
     )
     for level in range(num_levels):
-        k2 = int(p["candidates_2d"])
+        k2 = int(p["candidates_2d_finest" if level == num_levels - 1 else "candidates_2d"])
         k3 = int(p["candidates_3d"])
         lvl_sources = []
         for pyr in pyramids:
@@ -429,6 +430,19 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     return RoleLevel(cand=cand, cb=cb_np, count=cnt, fallback=fallback)
 
 
+def crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np.ndarray:
+    """Crossbar errors (P, K) int32 of stored candidates (section 4.1). They are derived
+    data: files keep only the triples, and loading recomputes the errors."""
+    dev = "cpu"
+    strips = [wp.array(_strips(t.feat, axis, half).astype(np.int32), device=dev)
+              for t in trio for axis in (0, 1)]
+    cb = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
+    pairs = [wp.array(np.ascontiguousarray(cand[:, :, i]), dtype=wp.int32, device=dev)
+             for i in (0, 1)]
+    wp.launch(_k.candidate_crossbar_errors, cand.shape[:2], [*strips, *pairs], [cb], device=dev)
+    return cb.numpy()
+
+
 def _nearest_strips(database: np.ndarray, queries: np.ndarray, p: dict) -> np.ndarray:
     """The S best-matching strips of ``database`` for each query strip (ANN search)."""
     s = min(int(p["strips"]), len(database))
@@ -526,7 +540,6 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
             out[f"L{lv}/S{j}/cand2d"] = _compact_index(s.cand2d)
         for r, role in enumerate(cs.roles[lv]):
             out[f"L{lv}/R{r}/cand"] = _compact_index(role.cand)
-            out[f"L{lv}/R{r}/cb"] = role.cb
             out[f"L{lv}/R{r}/count"] = role.count.astype(np.uint8)
             out[f"L{lv}/R{r}/fallback"] = np.packbits(role.fallback)
     return out
@@ -559,13 +572,19 @@ def _unflatten(d: dict[str, np.ndarray]) -> CandidateSet:
             lvl_roles.append(
                 RoleLevel(
                     cand=d[f"L{lv}/R{r}/cand"].astype(np.int32),
-                    cb=d[f"L{lv}/R{r}/cb"],
+                    cb=np.zeros(0, np.int32),  # derived below from the triples
                     count=d[f"L{lv}/R{r}/count"].astype(np.int32),
                     fallback=np.unpackbits(d[f"L{lv}/R{r}/fallback"], count=npix).astype(bool),
                 )
             )
         sources.append(lvl_src)
         roles.append(lvl_roles)
+    half = int(meta["params"]["neighborhood"]) // 2
+    axis_source = tuple(meta["axis_source"])
+    for lv in range(nl):
+        for r, role in enumerate(roles[lv]):
+            trio = [sources[lv][axis_source[(r + k) % 3]] for k in range(3)]
+            role.cb = crossbar_errors(trio, role.cand, half)
     return CandidateSet(
         params=meta["params"],
         digests=tuple(meta["digests"]),
