@@ -76,6 +76,14 @@ def find_slot(index: BrickIndex, key: wp.int64) -> int:
 
 
 @wp.func
+def touch(index: BrickIndex, slot: int, tick: wp.int64):
+    """Mark a brick as used in this batch; written once per batch, not once per point,
+    so lookup threads do not fight over the stamps' cache lines."""
+    if index.stamps[slot] != tick:
+        index.stamps[slot] = tick
+
+
+@wp.func
 def local_index(voxel: wp.vec3i) -> int:
     """Position of ``voxel`` in its brick, x slowest."""
     return (voxel[0] & 7) * 64 + (voxel[1] & 7) * 8 + (voxel[2] & 7)
@@ -132,7 +140,7 @@ def sample_nearest(
         missed[i] = 1
         wp.atomic_add(miss_count, 0, 1)
         return
-    index.stamps[slot] = tick
+    touch(index, slot, tick)
     p = voxel_triple(pool, slot, local_index(voxel))
     for c in range(channels):
         out[i, c] = triple_channel(p, col0, col1, col2, channels, c)
@@ -170,7 +178,7 @@ def sample_trilinear(
             last_key = key
             last_slot = find_slot(index, key)
             if last_slot >= 0:
-                index.stamps[last_slot] = tick
+                touch(index, last_slot, tick)
         slots[corner] = last_slot
     if wp.min(slots) < 0:
         missed[i] = 1

@@ -266,3 +266,26 @@ def test_store_object_is_a_brick_store(candidates):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         texture(candidates, store=None)
+
+
+def test_first_launch_of_a_kernel_may_be_split_over_threads(tmp_path, data_dir):
+    """Warp loads modules lazily and not thread-safely; a fresh process whose very first
+    lookup is split over threads must still work (it once raised KeyError)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent(
+        f"""
+        import numpy as np
+        from warptex.texture import SolidTexture
+        tex = SolidTexture({str(data_dir / "granite_64.png")!r})
+        tex.query(np.indices((20, 20, 20)).reshape(3, -1).T + 0.5, filter="nearest")
+        pts = np.random.default_rng(0).random((50_000, 3)) * 19 + 0.5
+        print(tex.query(pts).shape)
+        """
+    )
+    env = {**__import__("os").environ, "WARPTEX_CACHE": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "(50000, 3)" in done.stdout

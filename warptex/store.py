@@ -26,7 +26,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -34,6 +33,7 @@ import numpy as np
 import warp as wp
 
 from kernels import lookup as _k
+from warptex.parallel import launch_ranges
 from warptex.synthesis import Synthesizer
 
 FILTERS = ("nearest", "trilinear")
@@ -42,7 +42,6 @@ _MAGIC = b"WTXBRICK"
 _HEADER = len(_MAGIC) + 4 + 32
 _EMPTY = -1
 _MIN_BRICKS = 64
-_PARALLEL_POINTS = 1 << 16
 _LOCAL = np.indices((_k.BRICK,) * 3).reshape(3, -1).T  # voxel offsets, x slowest
 _CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 
@@ -137,7 +136,6 @@ class BrickStore:
         self._lock = _SharedLock()
         self._counts = threading.Lock()
         self._tick = itertools.count(1)
-        self._threads = max(1, min(os.cpu_count() or 1, 8))
         self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each pool slot
         self._pool = wp.zeros(0, dtype=self._wp_dtype, device=self._device)
         self._index = _k.BrickIndex()
@@ -296,19 +294,8 @@ class BrickStore:
         one thread; points are independent, so ranges give the same result)."""
         inputs = [points, self._index, self._pool, *self._colors, self.channels,
                   wp.int64(next(self._tick))]
-        n = len(points)
-        parts = self._threads if self._device == "cpu" and n >= _PARALLEL_POINTS else 1
-        bounds = [int(b) for b in np.linspace(0, n, parts + 1)]
-
-        def run(lo: int, hi: int) -> None:
-            wp.launch(kernel, hi - lo, [lo, *inputs], [out, missed, count], device=self._device)
-
-        if parts == 1:
-            run(0, n)
-            return
-        with ThreadPoolExecutor(parts) as pool:
-            for f in [pool.submit(run, lo, hi) for lo, hi in itertools.pairwise(bounds)]:
-                f.result()
+        launch_ranges(kernel, 0, len(points), inputs, [out, missed, count],
+                      device=self._device)
 
     # -- mutation (exclusive lock held) -----------------------------------------------
 

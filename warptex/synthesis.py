@@ -8,11 +8,9 @@ The host only orchestrates: it decides which sparse blocks each level must synth
 
 from __future__ import annotations
 
-import os
 import threading
 from dataclasses import dataclass
 from functools import cache
-from itertools import pairwise
 
 import numpy as np
 import warp as wp
@@ -22,6 +20,7 @@ from kernels import synthesis as _k
 from warptex.candidates import CandidateSet
 from warptex.device import device as default_device
 from warptex.device import init_warp
+from warptex.parallel import launch_ranges
 
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
@@ -221,7 +220,6 @@ class Synthesizer:
         self._tables = {lv: self._level_tables(lv) for lv in range(self.start, self.finest + 1)}
         self._cache = {lv: _LevelCache(coarse_cache_bytes) for lv in range(self.start, self.finest)}
         self._lock = threading.Lock()
-        self._threads = max(1, min(os.cpu_count() or 1, 8))
         self.voxels_synthesized = {lv: 0 for lv in range(self.start, self.finest + 1)}
 
     # -- public API -------------------------------------------------------------------
@@ -354,34 +352,13 @@ class Synthesizer:
             count = len(active_np) * _BLOCK_VOXELS
             wp.launch(_k.voxel_features, nvox, [src, t], [feats], device=dev)
             wp.copy(dst, src)
-            self._split_launch(_k.project_neighborhoods, count, 3,
-                               [active, coords, nbr, feats, t, parity], [qproj])
-            self._split_launch(_k.correct, count, 1,
-                               [active, coords, nbr, src, qproj, t, parity], [dst])
+            launch_ranges(_k.project_neighborhoods, 0, count,
+                          [active, coords, nbr, feats, t, parity], [qproj], device=dev, per_item=3)
+            launch_ranges(_k.correct, 0, count, [active, coords, nbr, src, qproj, t, parity],
+                          [dst], device=dev)
             src, dst = dst, src
         if src is not triples:
             wp.copy(triples, src)
-
-    def _split_launch(self, kernel, nvox: int, per_voxel: int, inputs: list, outputs: list) -> None:
-        """Launch a voxel kernel in contiguous ranges on several threads.
-
-        Warp runs one CPU launch on one thread; voxels are independent within a launch, so
-        ranges on separate threads give the same result as one launch.
-        """
-        if self.device != "cpu" or self._threads == 1 or nvox < 4096:
-            if nvox:
-                wp.launch(kernel, nvox * per_voxel, [0, *inputs], outputs, device=self.device)
-            return
-        bounds = [int(b) for b in np.linspace(0, nvox, self._threads + 1)]
-
-        def run(lo: int, hi: int) -> None:
-            wp.launch(kernel, (hi - lo) * per_voxel, [lo, *inputs], outputs, device=self.device)
-
-        workers = [threading.Thread(target=run, args=pair) for pair in pairwise(bounds)]
-        for w in workers:
-            w.start()
-        for w in workers:
-            w.join()
 
     def _level_tables(self, level: int) -> _k.LevelTables:
         """Upload one level's exemplar data; shared sources are stored once."""

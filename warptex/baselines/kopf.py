@@ -30,10 +30,8 @@ may be left unconstrained.
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from itertools import pairwise
 
@@ -45,6 +43,7 @@ from tqdm import tqdm
 from kernels import kopf as _k
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar
+from warptex.parallel import THREADS, launch_ranges
 
 LEVELS = 3  # "we use a three-level synthesis pyramid" (section 6)
 R = 0.8  # robust exponent of equation 1
@@ -60,8 +59,6 @@ HISTOGRAM_REFRESHES = 64
 # get infinite weight. Far below the distance of any two distinct 8x8 windows of [0, 1] data.
 MIN_DISTANCE = 1e-3
 _DEVICE = "cpu"  # the ANN search runs on the host; the solid is shared with it without copies
-_THREADS = 2  # Warp runs one CPU launch on one thread; independent ranges run side by side
-_SPLIT_MIN = 2048  # smaller launches are not worth handing to another thread
 _BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_search
 
 
@@ -224,39 +221,17 @@ def _ann_search(tree: cKDTree, query: np.ndarray, current: np.ndarray) -> np.nda
     grouped by bound and each group searched with its largest.
     """
     if np.any(current < 0):
-        return tree.query(query, eps=ANN_EPS, workers=_THREADS)[1].astype(np.int32)
+        return tree.query(query, eps=ANN_EPS, workers=THREADS)[1].astype(np.int32)
     bound = np.linalg.norm(query - tree.data[current], axis=1)
     found = current.copy()
     order = np.argsort(bound)
     for group in np.array_split(order, _BOUND_GROUPS):
         if len(group):
-            _, idx = tree.query(query[group], eps=ANN_EPS, workers=_THREADS,
+            _, idx = tree.query(query[group], eps=ANN_EPS, workers=THREADS,
                                 distance_upper_bound=float(bound[group[-1]]) * (1 + 1e-6))
             hit = idx < tree.n
             found[group[hit]] = idx[hit]
     return found
-
-
-@functools.cache
-def _pool() -> ThreadPoolExecutor:
-    # Kept for the process: starting threads for each of the many small launches costs more
-    # than the launches.
-    return ThreadPoolExecutor(_THREADS, thread_name_prefix="kopf")
-
-
-def _split_launch(kernel, start: int, stop: int, inputs: list) -> None:
-    """Launch ``kernel(first, *inputs)`` over items ``start..stop`` in ranges on ``_THREADS``
-    threads; items are independent, so the result equals that of one launch."""
-    if stop - start < _SPLIT_MIN:
-        wp.launch(kernel, stop - start, [start, *inputs], device=_DEVICE)
-        return
-    bounds = [int(b) for b in np.linspace(start, stop, _THREADS + 1)]
-    jobs = [
-        _pool().submit(wp.launch, kernel, hi - lo, [lo, *inputs], device=_DEVICE)
-        for lo, hi in pairwise(bounds)
-    ]
-    for job in jobs:
-        job.result()
 
 
 class _LevelOptimizer:
@@ -297,17 +272,17 @@ class _LevelOptimizer:
                 continue
             mean = wp.array(ax.mean, dtype=wp.float32, device=_DEVICE)
             basis = wp.array(ax.basis, dtype=_k.projection, device=_DEVICE)
-            _split_launch(_k.project_neighborhoods, 0, self.centres,
-                          [self.solid, n, axis, mean, basis, self.coeffs])
+            launch_ranges(_k.project_neighborhoods, 0, self.centres,
+                          [self.solid, n, axis, mean, basis, self.coeffs], device=_DEVICE)
             lo, hi = self.grid_first[axis], self.grid_first[axis] + self.centres
             found = _ann_search(ax.tree, self.coeffs.numpy()[:, : ax.dims],
                                 self.match.numpy()[lo:hi])
             found = wp.array(found, dtype=wp.int32, device=_DEVICE)
             h, w = ax.features.shape[:2]
-            _split_launch(_k.keep_better_match, 0, self.centres,
+            launch_ranges(_k.keep_better_match, 0, self.centres,
                           [self.solid, n, axis, self.ex, self.ex_first[axis], h, w, found, R,
                            MIN_DISTANCE, self.match[lo:hi], self.weight[lo:hi],
-                           self.energy[lo:hi]])
+                           self.energy[lo:hi]], device=_DEVICE)
             terms.append(self.energy.numpy()[lo:hi].astype(np.float64))
         return float(np.mean(np.concatenate(terms)))
 
@@ -322,10 +297,10 @@ class _LevelOptimizer:
             if self.histograms is not None:
                 self.penalty.numpy()[:] = self.histograms.penalty()
                 before = self.values[order[lo:hi]]
-            _split_launch(_k.optimize_voxels, lo, hi,
+            launch_ranges(_k.optimize_voxels, lo, hi,
                           [order_wp, self.n, self.constrained, self.ex, self.ex_first,
                            self.height, self.width, self.grid_first, self.match, self.weight,
-                           self.penalty, self.solid])
+                           self.penalty, self.solid], device=_DEVICE)
             if self.histograms is not None:
                 self.histograms.replace(before, self.values[order[lo:hi]])
 

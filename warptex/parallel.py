@@ -1,0 +1,63 @@
+"""Using both CPU cores with Warp, which runs one CPU launch on one thread.
+
+Kernels written for this take the index of their first item as their first argument, so a
+launch over items [start, stop) can be cut into contiguous ranges launched from several
+threads. Items of such kernels are independent, so the result equals one launch.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+THREADS = max(1, min(os.cpu_count() or 1, 8))
+MIN_SPLIT = 4096  # fewer items than this run as one launch: threads would cost more
+
+
+@functools.cache
+def _pool() -> ThreadPoolExecutor:
+    # Kept for the process: starting threads for each of many small launches costs more
+    # than the launches themselves.
+    return ThreadPoolExecutor(THREADS, thread_name_prefix="warptex")
+
+
+def launch_ranges(
+    kernel: Any,
+    start: int,
+    stop: int,
+    inputs: list,
+    outputs: list | None = None,
+    *,
+    device: str = "cpu",
+    per_item: int = 1,
+) -> None:
+    """Launch ``kernel(first, *inputs, *outputs)`` over items ``start..stop``, each item
+    ``per_item`` threads of the launch; split over CPU threads when it pays."""
+    outputs = outputs or []
+    n = stop - start
+    if n <= 0:
+        return
+    if device != "cpu" or THREADS == 1 or n < MIN_SPLIT:
+        wp.launch(kernel, n * per_item, [start, *inputs], outputs, device=device)
+        return
+    # Warp creates a generic kernel's overload and (re)builds its module on first launch,
+    # not thread-safely: do both here, then the threads only launch.
+    if kernel.is_generic:
+        kernel = kernel._add_normalized_overload(
+            kernel.infer_argument_types([start, *inputs, *outputs])
+        )
+    kernel.module.load(wp.get_device(device))
+    bounds = [int(b) for b in np.linspace(start, stop, THREADS + 1)]
+    jobs = [
+        _pool().submit(wp.launch, kernel, (hi - lo) * per_item, [lo, *inputs], outputs,
+                       device=device)
+        for lo, hi in pairwise(bounds)
+    ]
+    for job in jobs:
+        job.result()
