@@ -48,3 +48,13 @@ def hash_cell(cx: int, cy: int, cz: int, seed: int, salt: int) -> wp.uint32:
     h = hash_u32(h ^ wp.uint32(cy))
     h = hash_u32(h ^ wp.uint32(cz))
     return hash_u32(h ^ wp.uint32(salt))
+
+
+@wp.func
+def plane_offset(axis: int, a: int, b: int) -> wp.vec3i:
+    """Volume offset of pixel offset (a, b) in the plane of the exemplar of ``axis``: the
+    exemplar of axis k spans volume axes (k+1, k+2) as its (first, second) coordinates."""
+    d = wp.vec3i(0, 0, 0)
+    d[(axis + 1) % 3] = a
+    d[(axis + 2) % 3] = b
+    return d

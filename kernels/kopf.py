@@ -15,7 +15,7 @@ row offsets; a match is the index of its window's centre pixel inside its axis' 
 
 import warp as wp
 
-from kernels.common import pixel_index, wrap
+from kernels.common import pixel_index, plane_offset, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -32,15 +32,6 @@ projection = wp.types.vector(length=MAX_DIMS, dtype=wp.float32)
 def voxel_index(p: wp.vec3i, n: int) -> int:
     """Row of voxel ``p`` of the periodic solid (toroidal wrapping)."""
     return (wrap(p[0], n) * n + wrap(p[1], n)) * n + wrap(p[2], n)
-
-
-@wp.func
-def plane_offset(axis: int, a: int, b: int) -> wp.vec3i:
-    """Volume offset of window offset (row ``a``, column ``b``) in the slice of ``axis``."""
-    d = wp.vec3i(0, 0, 0)
-    d[(axis + 1) % 3] = a
-    d[(axis + 2) % 3] = b
-    return d
 
 
 @wp.func

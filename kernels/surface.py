@@ -56,12 +56,16 @@ def highest_voxel(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3i:
 
 
 @wp.kernel
-def count_touched_voxels(
+def touched_voxels(
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
+    offsets: wp.array(dtype=wp.int32),
+    write: int,
     counts: wp.array(dtype=wp.int32),
+    voxels: wp.array(dtype=wp.vec3i),
 ):
-    """Number of voxels each triangle touches."""
+    """Count the voxels each triangle touches (``write`` = 0), or write them from the
+    triangle's offset on (``write`` = 1), visiting them in the same order both times."""
     f = wp.tid()
     a = vertices[faces[f][0]]
     b = vertices[faces[f][1]]
@@ -69,33 +73,15 @@ def count_touched_voxels(
     lo = lowest_voxel(a, b, c)
     hi = highest_voxel(a, b, c)
     n = int(0)
-    for x in range(lo[0], hi[0] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            for z in range(lo[2], hi[2] + 1):
-                if triangle_touches_voxel(a, b, c, wp.vec3i(x, y, z)):
-                    n += 1
-    counts[f] = n
-
-
-@wp.kernel
-def write_touched_voxels(
-    vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.vec3i),
-    offsets: wp.array(dtype=wp.int32),
-    voxels: wp.array(dtype=wp.vec3i),
-):
-    """Write each triangle's touched voxels from its offset on (same order as counted)."""
-    f = wp.tid()
-    a = vertices[faces[f][0]]
-    b = vertices[faces[f][1]]
-    c = vertices[faces[f][2]]
-    lo = lowest_voxel(a, b, c)
-    hi = highest_voxel(a, b, c)
-    n = offsets[f]
+    if write == 1:
+        n = offsets[f]
     for x in range(lo[0], hi[0] + 1):
         for y in range(lo[1], hi[1] + 1):
             for z in range(lo[2], hi[2] + 1):
                 v = wp.vec3i(x, y, z)
                 if triangle_touches_voxel(a, b, c, v):
-                    voxels[n] = v
+                    if write == 1:
+                        voxels[n] = v
                     n += 1
+    if write == 0:
+        counts[f] = n

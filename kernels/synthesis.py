@@ -10,7 +10,7 @@ All arithmetic is on integers, so results are bit-identical on the CPU and on CU
 
 import warp as wp
 
-from kernels.common import hash_cell, pixel_index, wrap
+from kernels.common import hash_cell, pixel_index, plane_offset, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -48,15 +48,6 @@ class LevelTables:
     cand3d: wp.array(dtype=wp.int32)
     count3d_off: wp.vec3i
     count3d: wp.array(dtype=wp.int32)
-
-
-@wp.func
-def plane_offset(axis: int, a: int, b: int) -> wp.vec3i:
-    """Volume offset of pixel offset (a, b) in the plane of the exemplar of ``axis``."""
-    d = wp.vec3i(0, 0, 0)
-    d[(axis + 1) % 3] = a
-    d[(axis + 2) % 3] = b
-    return d
 
 
 @wp.func

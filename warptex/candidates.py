@@ -14,7 +14,6 @@ onto each other, so one exemplar repeated thrice needs a single candidate struct
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import time
@@ -29,6 +28,7 @@ from tqdm.auto import tqdm
 
 from kernels import candidates as _k
 from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
+from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar
 
@@ -50,7 +50,7 @@ DEFAULT_PARAMS: dict[str, object] = {
 }
 
 
-class CandidateCacheError(ValueError):
+class CandidateCacheError(ArchiveError):
     """A candidate file is corrupt, truncated, of another version or another format."""
 
 
@@ -146,41 +146,15 @@ class CandidateSet:
 
     def save(self, path: str | Path) -> None:
         """Write a versioned, checksummed file atomically (temporary name, then rename)."""
-        path = Path(path)
-        buf = io.BytesIO()
-        np.savez(buf, **_flatten(self))
-        payload = buf.getvalue()
-        header = _MAGIC + FORMAT_VERSION.to_bytes(4, "little") + hashlib.sha256(payload).digest()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as f:
-            f.write(header + payload)
-        os.replace(tmp, path)
+        write_archive(path, _MAGIC, FORMAT_VERSION, _flatten(self))
 
     @classmethod
     def load(cls, path: str | Path) -> CandidateSet:
         """Read a file written by :meth:`save`; raise CandidateCacheError if it is damaged."""
-        path = Path(path)
+        arrays = read_archive(path, _MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
         try:
-            data = path.read_bytes()
-        except OSError as e:
-            raise CandidateCacheError(
-                f"{path}: cannot read candidate file ({e.strerror})"
-            ) from None
-        if len(data) < 44 or data[:8] != _MAGIC:
-            raise CandidateCacheError(f"{path}: not a warptex candidate file")
-        version = int.from_bytes(data[8:12], "little")
-        if version != FORMAT_VERSION:
-            raise CandidateCacheError(
-                f"{path}: candidate file version {version}, expected {FORMAT_VERSION}"
-            )
-        payload = data[44:]
-        if hashlib.sha256(payload).digest() != data[12:44]:
-            raise CandidateCacheError(f"{path}: checksum mismatch (truncated or corrupt file)")
-        try:
-            with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-                return _unflatten({k: z[k] for k in z.files})
-        except (ValueError, KeyError, OSError) as e:
+            return _unflatten(arrays)
+        except (ValueError, KeyError) as e:
             raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
 
 

@@ -18,10 +18,8 @@ change how much is synthesized, never a color.
 from __future__ import annotations
 
 import hashlib
-import io
 import itertools
 import json
-import os
 import threading
 import time
 import warnings
@@ -33,20 +31,20 @@ import numpy as np
 import warp as wp
 
 from kernels import lookup as _k
+from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.parallel import launch_ranges
 from warptex.synthesis import Synthesizer
 
 FILTERS = ("nearest", "trilinear")
 FORMAT_VERSION = 1
 _MAGIC = b"WTXBRICK"
-_HEADER = len(_MAGIC) + 4 + 32
 _EMPTY = -1
 _MIN_BRICKS = 64
 _LOCAL = np.indices((_k.BRICK,) * 3).reshape(3, -1).T  # voxel offsets, x slowest
 _CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 
 
-class StoreFileError(ValueError):
+class StoreFileError(ArchiveError):
     """A store file is damaged, of another format version, or of another texture."""
 
 
@@ -215,15 +213,8 @@ class BrickStore:
             live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
             pool = self._pool.numpy().reshape(-1, _k.BRICK_VOXELS * 3)
             arrays = {"keys": self._keys[live], "triples": pool[live]}
-        buf = io.BytesIO()
-        np.savez(buf, identity=np.array(self.identity()), **arrays)
-        payload = buf.getvalue()
-        head = _MAGIC + FORMAT_VERSION.to_bytes(4, "little") + hashlib.sha256(payload).digest()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-        with open(tmp, "wb") as f:
-            f.write(head + payload)
-        os.replace(tmp, path)
+        write_archive(path, _MAGIC, FORMAT_VERSION,
+                      {"identity": np.array(self.identity()), **arrays})
 
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,
@@ -396,24 +387,11 @@ class BrickStore:
         return wp.array(a, dtype=dtype, device=self._device, copy=self._device != "cpu")
 
     def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
+        z = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
         try:
-            data = path.read_bytes()
-        except OSError as e:
-            raise StoreFileError(f"{path}: cannot read ({e.strerror})") from None
-        if len(data) < _HEADER or data[: len(_MAGIC)] != _MAGIC:
-            raise StoreFileError(f"{path}: not a warptex brick store file")
-        version = int.from_bytes(data[len(_MAGIC) : len(_MAGIC) + 4], "little")
-        if version != FORMAT_VERSION:
-            raise StoreFileError(f"{path}: store file version {version}, expected "
-                                 f"{FORMAT_VERSION}")
-        payload = data[_HEADER:]
-        if hashlib.sha256(payload).digest() != data[len(_MAGIC) + 4 : _HEADER]:
-            raise StoreFileError(f"{path}: checksum mismatch (truncated or corrupt file)")
-        try:
-            with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-                identity, keys, triples = str(z["identity"]), z["keys"], z["triples"]
-        except (ValueError, KeyError, OSError) as e:
-            raise StoreFileError(f"{path}: unreadable store data ({e})") from None
+            identity, keys, triples = str(z["identity"]), z["keys"], z["triples"]
+        except KeyError as e:
+            raise StoreFileError(f"{path}: unreadable brick store data ({e})") from None
         if identity != self.identity():
             raise StoreFileError(f"{path}: written for another texture (other exemplars, "
                                  "seed, jitter or synthesis parameters)")

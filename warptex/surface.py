@@ -53,16 +53,17 @@ def shell(
     faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
     nfaces = len(mesh.faces)
     counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
-    wp.launch(_k.count_touched_voxels, nfaces, [vertices, faces], [counts], device=dev)
+    none = wp.empty(0, dtype=wp.vec3i, device=dev)
+    wp.launch(_k.touched_voxels, nfaces, [vertices, faces, counts, 0], [counts, none],
+              device=dev)
     counts_np = counts.numpy()
     offsets = np.concatenate([[0], np.cumsum(counts_np)[:-1]]).astype(np.int32)
-    total = int(counts_np.sum())
-    voxels = wp.empty(total, dtype=wp.vec3i, device=dev)
+    voxels = wp.empty(int(counts_np.sum()), dtype=wp.vec3i, device=dev)
     wp.launch(
-        _k.write_touched_voxels,
+        _k.touched_voxels,
         nfaces,
-        [vertices, faces, wp.array(offsets, dtype=wp.int32, device=dev)],
-        [voxels],
+        [vertices, faces, wp.array(offsets, dtype=wp.int32, device=dev), 1],
+        [counts, voxels],
         device=dev,
     )
     return np.unique(voxels.numpy(), axis=0).astype(np.int32)

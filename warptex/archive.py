@@ -1,0 +1,68 @@
+"""Versioned, checksummed files of NumPy arrays, written atomically.
+
+The candidate cache and the brick store persist through these: a header holds a magic
+string, a format version and the SHA-256 of the payload (an uncompressed ``.npz``), so a
+truncated, corrupt or foreign file is detected and never used, and a reader never sees a
+half-written file (it is written under a temporary name, then renamed).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+_VERSION_BYTES = 4
+_DIGEST_BYTES = 32
+
+
+class ArchiveError(ValueError):
+    """A file is unreadable, damaged, of another kind or of another format version."""
+
+
+def write_archive(path: str | Path, magic: bytes, version: int,
+                  arrays: dict[str, np.ndarray]) -> None:
+    """Write ``arrays`` to ``path`` under ``magic`` and ``version``, atomically."""
+    path = Path(path)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    payload = buf.getvalue()
+    header = magic + version.to_bytes(_VERSION_BYTES, "little") + hashlib.sha256(payload).digest()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(header + payload)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
+                 error: type[ArchiveError] = ArchiveError) -> dict[str, np.ndarray]:
+    """The arrays of a file written by :func:`write_archive`; ``error`` (naming the file
+    and the ``kind`` of file expected) when it cannot be trusted."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise error(f"{path}: cannot read {kind} file ({e.strerror})") from None
+    start = len(magic) + _VERSION_BYTES
+    end = start + _DIGEST_BYTES
+    if len(data) < end or data[: len(magic)] != magic:
+        raise error(f"{path}: not a warptex {kind} file")
+    found = int.from_bytes(data[len(magic) : start], "little")
+    if found != version:
+        raise error(f"{path}: {kind} file version {found}, expected {version}")
+    payload = data[end:]
+    if hashlib.sha256(payload).digest() != data[start:end]:
+        raise error(f"{path}: checksum mismatch (truncated or corrupt file)")
+    try:
+        with np.load(io.BytesIO(payload), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (ValueError, KeyError, OSError) as e:
+        raise error(f"{path}: unreadable {kind} data ({e})") from None
