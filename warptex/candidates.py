@@ -407,6 +407,7 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
 def crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np.ndarray:
     """Crossbar errors (P, K) int32 of stored candidates (section 4.1). They are derived
     data: files keep only the triples, and loading recomputes the errors."""
+    init_warp()
     dev = "cpu"
     strips = [wp.array(_strips(t.feat, axis, half).astype(np.int32), device=dev)
               for t in trio for axis in (0, 1)]
