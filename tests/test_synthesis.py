@@ -206,3 +206,18 @@ def test_cpu_and_cuda_agree_bit_for_bit(candidates):
     cpu = Synthesizer(candidates, seed=8, device="cpu").voxels(pts)
     cuda = Synthesizer(candidates, seed=8, device="cuda").voxels(pts)
     assert np.array_equal(cpu, cuda)
+
+
+def test_more_passes_change_the_texture_and_stay_deterministic(candidates):
+    from warptex.texture import SolidTexture
+
+    pts = np.array([[3, -4, 5], [11, 0, -7]])
+    three = Synthesizer(candidates, seed=2, passes=3)
+    box = three.box((0, -8, -10), (16, 12, 20))
+    assert np.array_equal(Synthesizer(candidates, seed=2, passes=3).voxels(pts[:1])[0],
+                          box[3, 4, 15])
+    assert np.array_equal(three.voxels(pts[1:])[0], box[11, 8, 3])
+    assert not np.array_equal(Synthesizer(candidates, seed=2).box((0, -8, -10), (16, 12, 20)),
+                              box)
+    tex = SolidTexture(candidates, seed=2, passes=3)
+    assert np.array_equal(tex.query(pts + 0.5, filter="nearest"), three.voxels(pts))

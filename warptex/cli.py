@@ -201,6 +201,9 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", type=int, default=64, help="edge of the cube in voxels (64)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (0)")
     parser.add_argument("--jitter", type=float, default=1.0, help="initial jitter (1.0)")
+    parser.add_argument("--passes", type=int, default=2,
+                        help="correction passes per level of lazy synthesis (2; more look "
+                        "better and cost more)")
     parser.add_argument(
         "--method",
         choices=("lazy", "kopf"),
@@ -236,7 +239,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         return _volume_kopf(args, suffix)
     cs = precompute(_load_exemplar(args), progress=True)
     try:
-        synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter)
+        synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
     except ValueError as error:
         raise CliError(str(error)) from None
     size = args.size

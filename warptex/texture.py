@@ -30,7 +30,8 @@ class SolidTexture:
     ``source`` is an exemplar path, an :class:`Exemplar` or a :class:`CandidateSet`
     (pre-computation is cached on disk). ``store`` names a brick store file: loaded when
     it exists and matches this texture, written by :meth:`save`. ``cache_bytes`` bounds
-    the bricks kept in memory.
+    the bricks kept in memory. ``passes`` is the number of correction passes per level
+    (Dong 2008, 5.1): more look better and cost more (see BENCHMARKS.md).
     """
 
     def __init__(
@@ -42,9 +43,10 @@ class SolidTexture:
         device: str | None = None,
         cache_bytes: int = 256 << 20,
         store: str | Path | None = None,
+        passes: int = 2,
     ) -> None:
         candidates = source if isinstance(source, CandidateSet) else precompute(source)
-        self.synthesizer = Synthesizer(candidates, seed, jitter, device=device)
+        self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes)
         self.path = Path(store) if store is not None else None
         if self.path is not None and self.path.exists():
             self.store = BrickStore.load(self.path, self.synthesizer, cache_bytes=cache_bytes)
