@@ -97,6 +97,20 @@ def voxel_triple(pool: wp.array(dtype=Any), slot: int, local: int) -> wp.vec3i:
 
 
 @wp.func
+def triple_sum(
+    p: wp.vec3i,
+    col0: wp.array(dtype=wp.float32),
+    col1: wp.array(dtype=wp.float32),
+    col2: wp.array(dtype=wp.float32),
+    channels: int,
+    c: int,
+) -> wp.float32:
+    """Channel ``c`` summed over a triple's three exemplar colors, in the engine's order."""
+    s = col0[p[0] * channels + c] + col1[p[1] * channels + c]
+    return s + col2[p[2] * channels + c]
+
+
+@wp.func
 def triple_channel(
     p: wp.vec3i,
     col0: wp.array(dtype=wp.float32),
@@ -107,9 +121,7 @@ def triple_channel(
 ) -> wp.float32:
     """Channel ``c`` of a triple's color: the same float32 sum and division as
     ``Synthesizer.colors_of``, so the color is bit-identical to the engine's."""
-    s = col0[p[0] * channels + c] + col1[p[1] * channels + c]
-    s = s + col2[p[2] * channels + c]
-    return s / wp.float32(3.0)
+    return triple_sum(p, col0, col1, col2, channels, c) / wp.float32(3.0)
 
 
 @wp.func
@@ -194,9 +206,10 @@ def sample_trilinear(
         w *= wp.where(dz == 1, t[2], wp.float64(1.0) - t[2])
         p = voxel_triple(pool, slots[corner], local_index(base + wp.vec3i(dx, dy, dz)))
         for c in range(channels):
-            acc[c] += w * wp.float64(triple_channel(p, col0, col1, col2, channels, c))
+            acc[c] += w * wp.float64(triple_sum(p, col0, col1, col2, channels, c))
+    # The blend of the sums divided once: the blend of the voxel colors, 21 divisions fewer.
     for c in range(channels):
-        out[i, c] = wp.float32(acc[c])
+        out[i, c] = wp.float32(acc[c] / wp.float64(3.0))
 
 
 @wp.kernel
