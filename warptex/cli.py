@@ -558,7 +558,7 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "render",
         help="render a Mitsuba 3 scene that uses the lazy_solid texture",
-        description="Render a Mitsuba scene (e.g. scenes/bunny_marble.xml) with warptex's "
+        description="Render a Mitsuba scene (e.g. scenes/bunny_wood.xml) with warptex's "
         "lazy_solid plugin, showing progress; the brick-store statistics are printed and "
         "written beside the image as OUTPUT.json.",
     )
