@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+from warptex.archive import write_atomically
+
 IMAGE_SUFFIXES = (".exr", ".png")
 
 
@@ -52,8 +54,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     total = spp or scene.sensors()[0].sampler().sample_count()
     image = mitsuba_plugin.render(scene, spp=total, passes=min(8, total), progress=_progress)
     rendered = time.perf_counter()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    mi.util.write_bitmap(str(output), image)
+    # Synchronously: the default asynchronous write would race the rename.
+    write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False))
     report = {
         "scene": str(scene_path),
         "image": str(output),
@@ -64,7 +66,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "render_seconds": round(rendered - loaded, 3),
         "textures": [_texture_report(t) for t in mitsuba_plugin.textures()],
     }
-    output.with_name(output.name + ".json").write_text(json.dumps(report, indent=2) + "\n")
+    text = json.dumps(report, indent=2) + "\n"
+    write_atomically(output.with_name(output.name + ".json"), lambda tmp: tmp.write_text(text))
     _print_report(report)
     return report
 

@@ -334,7 +334,7 @@ def test_save_load_round_trip(tmp_path, granite):
     loaded = CandidateSet.load(tmp_path / "g.wtc")
     _assert_same(granite, loaded)
     assert loaded.nbytes() == granite.nbytes()
-    assert not list(tmp_path.glob(".*.tmp")), "temporary file left behind"
+    assert not list(tmp_path.glob(".*.tmp*")), "temporary file left behind"
 
 
 def test_second_call_loads_the_cache(monkeypatch, private_cache, warp_device):

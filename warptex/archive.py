@@ -1,6 +1,7 @@
-"""Versioned, checksummed files of NumPy arrays, written atomically.
+"""Files written atomically, and versioned, checksummed files of NumPy arrays.
 
-The candidate cache and the brick store persist through these: a header holds a magic
+Every file warptex writes goes through :func:`write_atomically`. The candidate cache and
+the brick store persist through archives: a header holds a magic
 string, a format version and the SHA-256 of the payload (an uncompressed ``.npz``), so a
 truncated, corrupt or foreign file is detected and never used, and a reader never sees a
 half-written file (it is written under a temporary name, then renamed).
@@ -12,6 +13,7 @@ import hashlib
 import io
 import os
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -24,22 +26,28 @@ class ArchiveError(ValueError):
     """A file is unreadable, damaged, of another kind or of another format version."""
 
 
+def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Let ``write`` fill a temporary file beside ``path``, then rename it to ``path``:
+    readers never see a partial file, and a failed write leaves nothing behind. The
+    temporary name keeps the suffix, for writers that pick the format from it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_archive(path: str | Path, magic: bytes, version: int,
                   arrays: dict[str, np.ndarray]) -> None:
     """Write ``arrays`` to ``path`` under ``magic`` and ``version``, atomically."""
-    path = Path(path)
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     payload = buf.getvalue()
     header = magic + version.to_bytes(_VERSION_BYTES, "little") + hashlib.sha256(payload).digest()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(header + payload)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_atomically(path, lambda tmp: tmp.write_bytes(header + payload))
 
 
 def read_archive(path: str | Path, magic: bytes, version: int, kind: str,

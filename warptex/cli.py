@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import os
 import struct
 import sys
 import time
@@ -20,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from warptex import __version__
+from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, ExemplarError
 
 # Imported inside the commands that need them, so `warptex info` stays light.
@@ -276,17 +276,9 @@ def _write_volume(path: Path, suffix: str, volume: np.ndarray) -> None:
 
 
 def _write_atomically(path: Path, write: Callable[[Path], None]) -> None:
-    """Write through a temporary name beside ``path``, then rename: readers never see a
-    partial file."""
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    """:func:`warptex.archive.write_atomically`, with an error that names the file."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            write(tmp)
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        write_atomically(path, write)
     except OSError as error:
         raise CliError(f"{path}: cannot write ({error.strerror or error})") from None
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import os
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -22,6 +21,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from warptex import metrics
+from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar
 
 METHODS = ("lazy", "kopf", "tiled", "extrude", "noise")
@@ -267,15 +267,11 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
     save_png(sheet(rows), out / "sheet.png")
-    _write_text(out / "table.md", f"# {Path(exemplar_path).name}\n\n" + table_markdown(results))
+    markdown = f"# {Path(exemplar_path).name}\n\n" + table_markdown(results)
+    write_atomically(out / "table.md", lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
-    _write_text(out / "table.json", json.dumps({"exemplar": Path(exemplar_path).name,
-                                                 "methods": payload}, indent=2))
+    table = json.dumps({"exemplar": Path(exemplar_path).name, "methods": payload}, indent=2)
+    write_atomically(out / "table.json", lambda tmp: tmp.write_text(table))
     return [out / "sheet.png", out / "table.md", out / "table.json"]
 
-
-def _write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

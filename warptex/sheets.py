@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
 
+from warptex.archive import write_atomically
 from warptex.metrics import axis_slices
 
 _LABEL_HEIGHT = 14
@@ -57,8 +57,4 @@ def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], cell: int = 160)
 
 def save_png(image: np.ndarray, path: str | Path) -> None:
     """Write an 8-bit image atomically (temporary name, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    Image.fromarray(image).save(tmp, format="PNG")
-    os.replace(tmp, path)
+    write_atomically(path, lambda tmp: Image.fromarray(image).save(tmp, format="PNG"))
