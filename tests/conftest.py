@@ -38,3 +38,17 @@ def exemplar_dir() -> Path:
     if not path.is_dir():
         pytest.skip(f"shared exemplars not found at {path}")
     return path
+
+
+@pytest.fixture(scope="module")
+def granite_32_file(data_dir, tmp_path_factory):
+    """A 32x32 granite crop as a PNG file, with its own candidate cache for the module
+    using it, so set-up stays quick."""
+    from PIL import Image
+
+    folder = tmp_path_factory.mktemp("granite32")
+    path = folder / "granite_32.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(folder / "cache"))
+        yield path

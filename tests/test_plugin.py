@@ -14,19 +14,6 @@ import warptex
 LLVM = "llvm_ad_rgb"
 
 
-@pytest.fixture(scope="module")
-def exemplar(data_dir, tmp_path_factory):
-    """A 32x32 granite crop with its own candidate cache, so set-up stays quick."""
-    from PIL import Image
-
-    folder = tmp_path_factory.mktemp("plugin")
-    path = folder / "granite_32.png"
-    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("WARPTEX_CACHE", str(folder / "cache"))
-        yield path
-
-
 def use(variant: str) -> None:
     if variant == LLVM and variant != warptex.best_mitsuba_variant():
         pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
@@ -53,10 +40,10 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"exemplar": "no/such/file.png"}, "exemplar"),
     ({"exemplar_y": "missing.png"}, "exemplar_y"),
 ])
-def test_property_errors_name_the_property(exemplar, props, name):
+def test_property_errors_name_the_property(granite_32_file, props, name):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}"'):
-        load(exemplar, **props)
+        load(granite_32_file, **props)
 
 
 def test_register_is_idempotent_and_needs_rgb():
@@ -70,10 +57,10 @@ def test_register_is_idempotent_and_needs_rgb():
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
 @pytest.mark.parametrize("filter", ["trilinear", "nearest"])
-def test_eval_is_the_solid_texture_at_scaled_points(exemplar, variant, filter):
+def test_eval_is_the_solid_texture_at_scaled_points(granite_32_file, variant, filter):
     use(variant)
     to_world = mi.ScalarTransform4f().translate([0.5, -1.0, 2.0])
-    tex = load(exemplar, scale=8.0, filter=filter, seed=3, to_world=to_world)
+    tex = load(granite_32_file, scale=8.0, filter=filter, seed=3, to_world=to_world)
     points = np.random.default_rng(1).uniform(-1, 1, (6, 3)).astype(np.float32)
     expected = tex.solid.query((points - [0.5, -1.0, 2.0]) * 8.0, filter=filter)
     if variant == LLVM:
@@ -91,18 +78,18 @@ def test_eval_is_the_solid_texture_at_scaled_points(exemplar, variant, filter):
     assert "seed=3" in tex.to_string()
 
 
-def test_inactive_lanes_are_zero_and_not_synthesized(exemplar):
+def test_inactive_lanes_are_zero_and_not_synthesized(granite_32_file):
     use(LLVM)
-    tex = load(exemplar, scale=8.0)
+    tex = load(granite_32_file, scale=8.0)
     far = np.array([[0.1, 0.1, 0.1], [500.0, 500.0, 500.0]], np.float32)
     colors = np.array(tex.eval(interaction(far), mi.Bool([True, False]))).T
     assert (colors[1] == 0).all() and (colors[0] > 0).all()
     assert tex.solid.store.stats()["misses"] == 1
 
 
-def test_traverse_updates_to_world(exemplar):
+def test_traverse_updates_to_world(granite_32_file):
     use(LLVM)
-    tex = load(exemplar, scale=8.0)
+    tex = load(granite_32_file, scale=8.0)
     params = mi.traverse(tex)
     before = np.array(tex.eval(interaction(np.array([[0.2, 0.3, 0.4]], np.float32))))
     params["to_world"] = mi.AffineTransform4f().translate([0.2, 0.3, 0.4])
@@ -111,11 +98,11 @@ def test_traverse_updates_to_world(exemplar):
     np.testing.assert_allclose(after, before, atol=1e-6)
 
 
-def test_object_space_follows_instances(exemplar):
+def test_object_space_follows_instances(granite_32_file):
     """Two instances of one sphere, moved apart: the same local point has one color."""
     use(LLVM)
     T = mi.ScalarTransform4f
-    tex = {"type": "lazy_solid", "exemplar": str(exemplar), "scale": 8.0, "space": "object"}
+    tex = {"type": "lazy_solid", "exemplar": str(granite_32_file), "scale": 8.0, "space": "object"}
     scene = mi.load_dict({
         "type": "scene",
         "group": {"type": "shapegroup",
@@ -132,7 +119,7 @@ def test_object_space_follows_instances(exemplar):
     np.testing.assert_allclose(colors[0], colors[1], atol=1e-6)
 
 
-def test_check_vectorization(exemplar):
+def test_check_vectorization(granite_32_file):
     """Mitsuba's helper: scalar_rgb evaluations, one at a time, equal llvm_ad_rgb's."""
     from mitsuba.python.test.util import check_vectorization
 
@@ -141,7 +128,7 @@ def test_check_vectorization(exemplar):
 
     def kernel(p: mi.Point3f) -> mi.Color3f:
         mitsuba_plugin.register()
-        tex = load(exemplar, scale=16.0)
+        tex = load(granite_32_file, scale=16.0)
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.p = p
         return tex.eval(si)

@@ -3,6 +3,7 @@ agreement with Mitsuba's own gridvolume texture, and the bundled scene."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import mitsuba as mi
@@ -18,24 +19,11 @@ SCALE = 4.0  # voxels per unit: the 8x8 film over [-1, 1]^2 puts one voxel in ea
 
 
 @pytest.fixture(scope="module")
-def exemplar(data_dir, tmp_path_factory):
-    """A 32x32 granite crop with its own candidate cache, so set-up stays quick."""
-    from PIL import Image
-
-    folder = tmp_path_factory.mktemp("render")
-    path = folder / "granite_32.png"
-    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("WARPTEX_CACHE", str(folder / "cache"))
-        yield path
-
-
-@pytest.fixture(scope="module")
-def synthesizer(exemplar, warp_device):
+def synthesizer(granite_32_file, warp_device):
     """The engine with the plugin's default seed and jitter, for expected colors."""
     from warptex.texture import SolidTexture
 
-    return SolidTexture(exemplar, device=warp_device).synthesizer
+    return SolidTexture(granite_32_file, device=warp_device).synthesizer
 
 
 def use(variant: str) -> None:
@@ -71,8 +59,8 @@ def plane_scene(texture: dict, emissive: bool, x: float = 0.0, size: int = 8,
                          "sensor": sensor, "plane": plane} | lights)
 
 
-def lazy(exemplar, filter: str = "nearest") -> dict:
-    return {"type": "lazy_solid", "exemplar": str(exemplar), "scale": SCALE,
+def lazy(path, filter: str = "nearest") -> dict:
+    return {"type": "lazy_solid", "exemplar": str(path), "scale": SCALE,
             "filter": filter}
 
 
@@ -89,9 +77,9 @@ def pixel_voxels(size: int = 8) -> np.ndarray:
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
-def test_pixels_carry_the_synthesized_voxels(exemplar, synthesizer, variant):
+def test_pixels_carry_the_synthesized_voxels(granite_32_file, synthesizer, variant):
     use(variant)
-    image = rgb(mitsuba_plugin.render(plane_scene(lazy(exemplar), emissive=True)))
+    image = rgb(mitsuba_plugin.render(plane_scene(lazy(granite_32_file), emissive=True)))
     voxels = pixel_voxels().reshape(-1, 3)
     expected = synthesizer.voxels(voxels).reshape(8, 8, -1)[..., :3]
     np.testing.assert_allclose(image, expected, atol=1e-5)
@@ -101,11 +89,11 @@ def test_pixels_carry_the_synthesized_voxels(exemplar, synthesizer, variant):
     assert image.std() > 0.01
 
 
-def test_two_cameras_agree_at_shared_points(exemplar):
+def test_two_cameras_agree_at_shared_points(granite_32_file):
     use(LLVM)
-    left = rgb(mitsuba_plugin.render(plane_scene(lazy(exemplar, "trilinear"), True, x=0.0,
+    left = rgb(mitsuba_plugin.render(plane_scene(lazy(granite_32_file, "trilinear"), True, x=0.0,
                                                  size=16, spp=16)))
-    right = rgb(mitsuba_plugin.render(plane_scene(lazy(exemplar, "trilinear"), True, x=0.5,
+    right = rgb(mitsuba_plugin.render(plane_scene(lazy(granite_32_file, "trilinear"), True, x=0.5,
                                                   size=16, spp=16), seed=7))
     # 0.5 units = 4 pixels of 0.125: the right camera's column c is the left's c + 4.
     np.testing.assert_allclose(right[:, :-4], left[:, 4:], atol=0.02)
@@ -121,10 +109,10 @@ def gridvolume(synthesizer, origin=(-6, -6, -2), shape=(12, 12, 4)) -> dict:
                                          "to_world": place, "filter_type": "trilinear"}}
 
 
-def test_matches_gridvolume_texture_of_the_same_voxels(exemplar, synthesizer):
+def test_matches_gridvolume_texture_of_the_same_voxels(granite_32_file, synthesizer):
     """Same scene, same seed, Mitsuba's grid texture instead: equal within MC noise."""
     use(LLVM)
-    ours = plane_scene(lazy(exemplar, "trilinear"), emissive=False, size=16, spp=16)
+    ours = plane_scene(lazy(granite_32_file, "trilinear"), emissive=False, size=16, spp=16)
     theirs = plane_scene(gridvolume(synthesizer), emissive=False, size=16, spp=16)
     a = rgb(mitsuba_plugin.render(ours))
     b = rgb(mitsuba_plugin.render(theirs))
@@ -138,3 +126,15 @@ def test_bundled_bunny_scene_renders(tmp_path):
     scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=16, height=16, spp=1)
     image = rgb(mitsuba_plugin.render(scene))
     assert np.isfinite(image).all() and image.mean() > 0.05
+
+
+def test_render_command_writes_image_and_statistics(tmp_path):
+    """`warptex render`: the image and its statistics land whole, no temporary left."""
+    from warptex.cli import main
+
+    out = tmp_path / "bunny.png"
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
+                 "--spp", "1", "--res", "16x16"]) == 0
+    assert list(mi.Bitmap(str(out)).size()) == [16, 16]
+    assert json.loads((tmp_path / "bunny.png.json").read_text())["spp"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.png", "bunny.png.json"]
