@@ -213,6 +213,23 @@ def sample_trilinear(
 
 
 @wp.kernel
+def voxel_sums(
+    pool: wp.array(dtype=Any),
+    col0: wp.array(dtype=wp.float32),
+    col1: wp.array(dtype=wp.float32),
+    col2: wp.array(dtype=wp.float32),
+    channels: int,
+    out: wp.array2d(dtype=wp.float32),
+):
+    """Three-color sum of every pooled voxel, as the lookups compute it, for readers
+    outside Warp (the Mitsuba plugin's traced lookups)."""
+    v = wp.tid()
+    p = voxel_triple(pool, v // BRICK_VOXELS, v % BRICK_VOXELS)
+    for c in range(channels):
+        out[v, c] = triple_sum(p, col0, col1, col2, channels, c)
+
+
+@wp.kernel
 def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32), index: BrickIndex):
     """Insert bricks into the table; one thread, since probes of new keys may collide."""
     for n in range(keys.shape[0]):

@@ -2,8 +2,8 @@
 
 ``register()`` adds, for the current Mitsuba variant, the texture ``lazy_solid``
 (:mod:`mitsuba_plugin.texture`) and the volume ``lazy_solid_volume``
-(:mod:`mitsuba_plugin.volume`). ``render()`` renders a scene in wavefront mode, which the
-plugins need under the JIT variants::
+(:mod:`mitsuba_plugin.volume`). ``render()`` renders a scene so that every voxel it
+shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
 
     import warptex  # first: points Dr.Jit at a usable libLLVM
     import mitsuba_plugin
@@ -12,9 +12,10 @@ plugins need under the JIT variants::
     mitsuba_plugin.register()
     image = mitsuba_plugin.render(mi.load_file("scenes/bunny_wood.xml"), spp=16)
 
-Under the JIT variants a symbolic render (plain ``mi.render``) traces every live BSDF,
-so while a ``lazy_solid`` texture is alive in the process every render must run in
-wavefront mode (``render()`` or ``wavefront()``); the texture raises otherwise.
+Under the JIT variants a symbolic render traces every live BSDF, so while a
+``lazy_solid`` texture is alive in the process, render through ``render()`` or in
+``wavefront()`` mode; a plain symbolic ``mi.render`` raises rather than show voxels that
+were never synthesized.
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ import mitsuba as mi
 
 import warptex
 
+# Symbolic renders of one pass before falling back to wavefront mode: each synthesizes
+# what the previous one missed; paths seldom reach new bricks after the second.
+TRACED_ROUNDS = 6
 _registered: set[str] = set()
 # Every lazy_solid texture alive, so a render helper can report and save brick stores;
 # kept here because the plugin modules are re-run per variant.
@@ -88,22 +92,47 @@ def wavefront() -> Iterator[None]:
 
 def render(scene: mi.Scene, spp: int | None = None, passes: int = 1, seed: int = 0,
            progress: Callable[[int, int], None] | None = None) -> mi.TensorXf:
-    """Render ``scene`` in wavefront mode: ``passes`` renders of ``spp / passes`` samples
-    (with different seeds) averaged, calling ``progress(done, passes)`` after each."""
+    """Render ``scene``: ``passes`` renders of ``spp / passes`` samples (with different
+    seeds) averaged, calling ``progress(done, passes)`` after each.
+
+    Each pass is rendered in Mitsuba's symbolic mode with the textures' lookups traced,
+    again after synthesizing what it missed, and kept only once it missed nothing; after
+    ``TRACED_ROUNDS`` tries, or when a texture cannot be traced, it is rendered in
+    wavefront mode, where every lookup synthesizes what it lacks. Either way each color
+    is the stored voxel's, so the image does not depend on the mode.
+    """
     sensor = scene.sensors()[0]
     total = spp if spp is not None else sensor.sampler().sample_count()
     passes = max(1, min(passes, total))
     image = None
-    with wavefront():
-        for i in range(passes):
-            share = total // passes + (i < total % passes)
-            part = mi.render(scene, spp=share, seed=seed * passes + i)
-            weighted = part * (share / total)
-            image = weighted if image is None else image + weighted
-            dr.eval(image)
-            if progress is not None:
-                progress(i + 1, passes)
+    for i in range(passes):
+        share = total // passes + (i < total % passes)
+        part = _render_pass(scene, share, seed * passes + i)
+        weighted = part * (share / total)
+        image = weighted if image is None else image + weighted
+        dr.eval(image)
+        if progress is not None:
+            progress(i + 1, passes)
     return image
+
+
+def _render_pass(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
+    live = textures()
+    if dr.is_jit_v(mi.Float):
+        for _ in range(TRACED_ROUNDS):
+            try:
+                traced = all([t.begin_tracing() for t in live])
+                if not traced:
+                    break
+                image = mi.render(scene, spp=spp, seed=seed)
+                dr.eval(image)
+            finally:
+                for t in live:
+                    t.end_tracing()
+            if not sum(t.fill_misses() for t in live):
+                return image
+    with wavefront():
+        return mi.render(scene, spp=spp, seed=seed)
 
 
 def textures() -> list:

@@ -80,6 +80,7 @@ def _progress(done: int, total: int) -> None:
 def _texture_report(texture) -> dict:
     saved = texture.save()
     return {"texture": texture.to_string(), "store": texture.solid.store.stats(),
+            "traced": texture.traced_stats(),
             "saved_to": None if saved is None else str(saved)}
 
 
@@ -88,9 +89,10 @@ def _print_report(report: dict) -> None:
           f"{report['spp']} spp, {report['variant']}): load {report['load_seconds']:.1f} s, "
           f"render {report['render_seconds']:.1f} s")
     for entry in report["textures"]:
-        s = entry["store"]
+        s, t = entry["store"], entry["traced"]
         print(f"  {entry['texture']}\n    bricks {s['bricks']} ({s['bytes'] / 2**20:.2f} MiB), "
-              f"lookups {s['hits']} hits / {s['misses']} misses, "
+              f"traced renders {t['renders']} ({t['renders_with_misses']} missed bricks), "
+              f"wavefront lookups {s['hits']} hits / {s['misses']} misses, "
               f"synthesis {s['synthesis_seconds']:.1f} s"
               + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))
     print(f"  statistics: {report['image']}.json")

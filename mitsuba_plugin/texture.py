@@ -25,10 +25,14 @@ shape when it has one (``sphere``, ``rectangle``, ...). Meshes bake their ``to_w
 into their vertices at load time, so a plain mesh has no frame to recover and object
 space equals world space for it; move meshes with ``instance`` to keep their texture.
 
-Wavefront mode: the colors come from Warp kernels, outside Dr.Jit's traced programs, so
-under the JIT variants ``eval`` needs the concrete points of a whole wavefront. Render
-with Dr.Jit's ``SymbolicLoops`` and ``SymbolicCalls`` flags off, as
-:func:`mitsuba_plugin.render` does; ``eval`` raises inside a symbolic scope.
+Rendering modes (JIT variants): synthesis runs in Warp kernels, outside Dr.Jit's traced
+programs. Render with :func:`mitsuba_plugin.render`: it traces the lookup of stored
+voxels into Mitsuba's program (:mod:`mitsuba_plugin.traced`), synthesizes what a render
+missed and renders again, and falls back to wavefront mode (Dr.Jit's ``SymbolicLoops``
+and ``SymbolicCalls`` off, so ``eval`` gets the concrete points of a whole wavefront)
+when a texture cannot be traced: ``space="object"``, or stored bricks scattered too
+widely for one page table. Outside that helper ``eval`` raises inside a symbolic scope,
+so a plain ``mi.render`` never shows voxels that were not synthesized.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ import mitsuba as mi
 import numpy as np
 
 import mitsuba_plugin
+from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
 from warptex.texture import SolidTexture
 
@@ -151,8 +156,11 @@ class LazySolidTexture(mi.Texture):
         self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                   cache_bytes=cache_bytes, store=self.cache)
         colors = exemplar_colors(candidates)
+        self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
         self._mean = float(colors.mean())
         self._max = float(colors.max())
+        self._traced: TracedLookup | None = None
+        self._tracing = False
         self._update_transform()
         mitsuba_plugin.live_textures.add(self)
 
@@ -201,9 +209,13 @@ class LazySolidTexture(mi.Texture):
                 return mi.Color3f(0.0)
             return mi.Color3f(*self._query(np.array([it.p], np.float64), it, None)[0])
         if dr.flag(dr.JitFlag.SymbolicScope):
-            raise RuntimeError(f"{PLUGIN}: eval needs wavefront mode: render with Dr.Jit's "
-                               "SymbolicLoops and SymbolicCalls flags off "
-                               "(mitsuba_plugin.render does)")
+            if not self._tracing:
+                raise RuntimeError(f"{PLUGIN}: render with mitsuba_plugin.render, which "
+                                   "synthesizes what a symbolic render reads, or in "
+                                   "wavefront mode (Dr.Jit's SymbolicLoops and SymbolicCalls "
+                                   "flags off)")
+            p = texture_coords(self._world_to_texture, *(mi.Float64(c) for c in it.p))
+            return self._traced.colors(p, active)
         width = dr.width(it.p)
         # One kernel interleaves the points; NumPy then views Dr.Jit's memory (DLPack).
         flat = dr.ravel(it.p, order="F")
@@ -222,6 +234,36 @@ class LazySolidTexture(mi.Texture):
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3)."""
         return as_rgb(self.solid.query(points, filter=self.filter))
 
+    # -- traced lookups (driven by mitsuba_plugin.render) --------------------------------
+
+    def begin_tracing(self) -> bool:
+        """Serve symbolic ``eval`` calls from the stored voxels; False, and nothing
+        changed, when this texture cannot be traced (see the module documentation)."""
+        if self.space == "object" or not dr.is_jit_v(mi.Float):
+            return False
+        if self._traced is None:
+            self._traced = TracedLookup(self.solid.store, self.filter, self._mean_rgb)
+        self._tracing = self._traced.refresh()
+        return self._tracing
+
+    def fill_misses(self) -> int:
+        """Synthesize the bricks that traced lookups missed since the last call; returns
+        how many voxels were logged (0: the last render read only stored voxels)."""
+        misses = self._traced.take_misses()
+        if len(misses):
+            self.solid.store.prefetch(misses)
+        return len(misses)
+
+    def end_tracing(self) -> None:
+        self._tracing = False
+
+    def traced_stats(self) -> dict:
+        """Symbolic renders with traced lookups, and how many of them missed a brick
+        (those are rendered again)."""
+        t = self._traced
+        return {"renders": t.renders if t else 0,
+                "renders_with_misses": t.renders_with_misses if t else 0}
+
     def save(self) -> Path | None:
         """Write the brick store to the ``cache`` file, if one was given."""
         return self.solid.save() if self.cache is not None else None
@@ -232,12 +274,20 @@ class LazySolidTexture(mi.Texture):
         points = points.astype(np.float64)
         if self.space == "object":
             points = to_object_space(points, it, keep)
-        texture = points @ self._world_to_texture[:3, :3].T + self._world_to_texture[:3, 3]
-        return self.query_texture_space(texture)
+        texture = texture_coords(self._world_to_texture, *points.T)
+        return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
         to_world = affine_matrix(self.to_world)
         self._world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ np.linalg.inv(to_world)
+
+
+def texture_coords(matrix: np.ndarray, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
+    """Rows 0-2 of the affine ``matrix`` applied to coordinates ``x, y, z`` (NumPy or
+    Dr.Jit float64 arrays), in one fixed order of operations, so wavefront and traced
+    lookups of a point reach the same voxel coordinates to the last bit."""
+    m = matrix.tolist()
+    return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in m[:3])
 
 
 def exemplar_colors(candidates: CandidateSet) -> np.ndarray:

@@ -26,6 +26,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -55,7 +56,8 @@ def brick_keys(voxels: np.ndarray) -> np.ndarray:
     return (b[:, 0] << (2 * _k.KEY_BITS)) | (b[:, 1] << _k.KEY_BITS) | b[:, 2]
 
 
-def _brick_coords(keys: np.ndarray) -> np.ndarray:
+def brick_coords(keys: np.ndarray) -> np.ndarray:
+    """Brick coordinates (N, 3) int64 of packed brick ``keys``; inverse of ``brick_keys``."""
     mask = (1 << _k.KEY_BITS) - 1
     b = np.stack([keys >> (2 * _k.KEY_BITS), (keys >> _k.KEY_BITS) & mask, keys & mask], 1)
     return b - _k.KEY_BIAS
@@ -67,6 +69,20 @@ def bricks_read(points: np.ndarray, filter: str) -> np.ndarray:
         return np.unique(brick_keys(np.floor(points)))
     base = np.floor(points - 0.5).astype(np.int64)
     return np.unique(brick_keys((base[:, None, :] + _CORNERS[None]).reshape(-1, 3)))
+
+
+class Snapshot(NamedTuple):
+    """The stored voxels at one moment, for readers outside Warp.
+
+    ``keys[s]`` is the brick key in pool slot ``s`` (-1 where free) and
+    ``sums[s * 512 + local]`` the three-color sum (C channels, float32) of that brick's
+    voxel ``local`` (x slowest), exactly as the lookup kernels compute it. ``version``
+    changes whenever bricks are inserted or evicted.
+    """
+
+    version: int
+    keys: np.ndarray
+    sums: np.ndarray
 
 
 class _SharedLock:
@@ -140,6 +156,7 @@ class BrickStore:
         self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
         self._rebuild_table(_MIN_BRICKS * 2)
         self._hits = self._misses = self._synthesized = self._evicted = 0
+        self._version = 0
         self._seconds = 0.0
 
     # -- public API -------------------------------------------------------------------
@@ -184,6 +201,28 @@ class BrickStore:
         if misses:
             rows = missed.numpy().astype(bool)
             self._finish(kernel, points[rows], filter, out, rows)
+
+    @property
+    def version(self) -> int:
+        """Changes whenever bricks are inserted or evicted."""
+        return self._version
+
+    def prefetch(self, voxels: np.ndarray) -> None:
+        """Make the bricks holding integer ``voxels`` (N, 3) resident, synthesizing the
+        absent ones in one engine call."""
+        if len(voxels):
+            self._with_resident(np.unique(brick_keys(np.asarray(voxels))), lambda: None)
+
+    def snapshot(self) -> Snapshot:
+        """The stored bricks and their voxels' color sums (see :class:`Snapshot`)."""
+        with self._lock.shared():
+            dev = self._device
+            sums = wp.empty((len(self._keys) * _k.BRICK_VOXELS, self.channels),
+                            dtype=wp.float32, device=dev)
+            if sums.shape[0]:
+                wp.launch(_k.voxel_sums, sums.shape[0],
+                          [self._pool, *self._colors, self.channels], [sums], device=dev)
+            return Snapshot(self._version, self._keys.copy(), sums.numpy())
 
     def stats(self) -> dict:
         """Bricks, bytes, lookups served from the store (hits) or not (misses), and the
@@ -270,7 +309,7 @@ class BrickStore:
 
     def _synthesize(self, keys: np.ndarray) -> np.ndarray:
         """Triples of whole bricks ``keys``, in one engine call."""
-        voxels = (_brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
+        voxels = (brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
         start = time.perf_counter()
         rc = self.synthesizer.triples(voxels)
         seconds = time.perf_counter() - start
@@ -304,6 +343,7 @@ class BrickStore:
             free = np.flatnonzero(self._keys == _EMPTY)
         slots = free[: len(keys)]
         self._keys[slots] = keys
+        self._version += 1
         dev = self._device
         slots_wp = wp.array(slots.astype(np.int32), dtype=wp.int32, device=dev)
         wp.launch(_k.store_bricks, (len(keys), _k.BRICK_VOXELS * 3),
@@ -325,6 +365,7 @@ class BrickStore:
         stamps = self._index.stamps.numpy()[live]
         self._keys[live[np.argsort(stamps, kind="stable")[:excess]]] = _EMPTY
         self._evicted += excess
+        self._version += 1
         if len(self._keys) > max(self._budget_bricks, _MIN_BRICKS):
             self._compact()
         self._rebuild_table(len(self._index.keys))

@@ -1,0 +1,149 @@
+"""Warm brick-store lookups inside Dr.Jit's traced programs (Dong 2008, section 6.2).
+
+The Warp lookups need concrete points, which Mitsuba only hands over in wavefront mode
+(one kernel per bounce and per BSDF call), about 3x slower than its default symbolic
+mode. So :func:`mitsuba_plugin.render` first renders symbolically with the lookup traced
+into Mitsuba's own program: a dense page table of the stored bricks and every stored
+voxel's three-color sum are Dr.Jit arrays, gathered like any grid texture. A lane whose
+brick is not stored gets a stand-in color and logs its voxel; the store then synthesizes
+the logged bricks (Warp) and the render is repeated. An image is kept only from a render
+that logged nothing, so each of its colors is a stored voxel, computed with the same
+float operations as ``kernels.lookup`` and therefore bit-identical to
+:meth:`warptex.texture.SolidTexture.query`.
+
+The mirror costs 4 bytes per channel per stored voxel beside the store's 6, plus 4 bytes
+per brick of the stored bricks' bounding box.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from kernels.lookup import BRICK, BRICK_VOXELS
+from warptex.store import BrickStore, brick_coords
+
+# Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
+# a dense table; such a texture renders in wavefront mode instead.
+MAX_PAGES = 1 << 25
+LOG_CAPACITY = 1 << 16  # slots of the miss log; bricks that collide take another round
+_SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
+_CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T  # corner c = (c >> 2, c >> 1, c) & 1
+
+
+class TracedLookup:
+    """Symbolic-mode reads of one brick store, refreshed from its :meth:`~BrickStore.snapshot`
+    whenever bricks were inserted or evicted."""
+
+    def __init__(self, store: BrickStore, filter: str, fallback: tuple[float, float, float],
+                 max_pages: int = MAX_PAGES) -> None:
+        self.store = store
+        self.filter = filter
+        # What a missed lane shows in a render that will be discarded: a typical color
+        # rather than black, so its paths go on and reach (and log) deeper bricks too.
+        self.fallback = fallback
+        self.max_pages = max_pages
+        self._version = -1
+        self.usable = False
+        self.renders = self.renders_with_misses = 0
+        self._reset_log()
+
+    def refresh(self) -> bool:
+        """Mirror the store as it is now; False when its bricks need more than
+        ``max_pages`` table entries."""
+        if self.store.version == self._version:
+            return self.usable
+        snap = self.store.snapshot()
+        live = np.flatnonzero(snap.keys >= 0)
+        coords = brick_coords(snap.keys[live])
+        lo = coords.min(0) if len(live) else np.zeros(3, np.int64)
+        dims = coords.max(0) - lo + 1 if len(live) else np.ones(3, np.int64)
+        self._version = snap.version
+        self.usable = int(np.prod(dims)) <= self.max_pages
+        if not self.usable:
+            return False
+        pages = np.full(int(np.prod(dims)), -1, np.int32)
+        rel = coords - lo
+        pages[(rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]] = live
+        self._pages = mi.Int32(pages)
+        self._sums = mi.Float(snap.sums.reshape(-1) if snap.sums.size else np.zeros(1, np.float32))
+        self._channels = snap.sums.shape[1]
+        # Opaque, so a refreshed table reuses the compiled kernels.
+        self._lo = [dr.opaque(mi.Int32, int(v)) for v in lo]
+        self._dims = [dr.opaque(mi.Int32, int(v)) for v in dims]
+        return True
+
+    def colors(self, p: tuple[mi.Float64, mi.Float64, mi.Float64],
+               active: mi.Bool) -> mi.Color3f:
+        """RGB at texture-space points ``p``; ``fallback``, and logged, where a brick is
+        absent."""
+        # Dr.Jit turns division by a literal into a multiplication, one ulp away from the
+        # kernels' division; opaque divisors keep it a division.
+        if self.filter == "nearest":
+            voxel = [mi.Int32(dr.floor(c)) for c in p]
+            sums, hit = self._voxel_sums(voxel, active)
+            rgb = [s / dr.opaque(mi.Float, 3.0) for s in sums]
+        else:
+            q = [c - 0.5 for c in p]
+            voxel = [mi.Int32(dr.floor(c)) for c in q]
+            t = [c - mi.Float64(v) for c, v in zip(q, voxel, strict=True)]
+            acc = [mi.Float64(0.0)] * self._channels
+            hit = mi.Bool(True)
+            for d in _CORNERS:
+                corner = [v + int(o) for v, o in zip(voxel, d, strict=True)]
+                sums, found = self._voxel_sums(corner, active)
+                hit &= found
+                # The weight and accumulation order of kernels.lookup.sample_trilinear.
+                w = t[0] if d[0] else 1.0 - t[0]
+                w = w * (t[1] if d[1] else 1.0 - t[1])
+                w = w * (t[2] if d[2] else 1.0 - t[2])
+                acc = [a + w * mi.Float64(s) for a, s in zip(acc, sums, strict=True)]
+            rgb = [mi.Float(a / dr.opaque(mi.Float64, 3.0)) for a in acc]
+        self._log(voxel, active & ~hit)
+        if len(rgb) < 3:
+            rgb = [rgb[0]] * 3
+        return dr.select(hit, mi.Color3f(*rgb[:3]), mi.Color3f(*self.fallback))
+
+    def take_misses(self) -> np.ndarray:
+        """Voxels (N, 3) of every brick the logged lanes read, and a cleared log; called
+        once per traced render, which it counts."""
+        used = self._logged.numpy() != 0
+        self.renders += 1
+        self.renders_with_misses += bool(used.any())
+        logged = self._log_voxels.numpy().reshape(-1, 3)[used].astype(np.int64)
+        self._reset_log()
+        if self.filter == "trilinear":
+            logged = (logged[:, None, :] + _CORNERS[None]).reshape(-1, 3)
+        return logged
+
+    def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:
+        """Color sums of integer ``voxel`` and whether its brick is stored."""
+        rel = [(v >> _SHIFT) - lo for v, lo in zip(voxel, self._lo, strict=True)]
+        inside = mi.Bool(active)
+        for r, n in zip(rel, self._dims, strict=True):
+            inside &= (r >= 0) & (r < n)
+        page = (rel[0] * self._dims[1] + rel[1]) * self._dims[2] + rel[2]
+        slot = dr.gather(mi.Int32, self._pages, mi.UInt32(page), inside)
+        hit = inside & (slot >= 0)
+        x, y, z = (v & (BRICK - 1) for v in voxel)
+        local = (x * BRICK + y) * BRICK + z
+        at = mi.UInt32(slot * BRICK_VOXELS + local) * self._channels
+        sums = [dr.gather(mi.Float, self._sums, at + c, hit) for c in range(self._channels)]
+        return sums, hit
+
+    def _log(self, voxel: list[mi.Int32], missed: mi.Bool) -> None:
+        """Record missed voxels at a slot hashed from their brick and from which
+        neighbour bricks their corners reach: lanes that read the same bricks overwrite
+        each other, and bricks lost to a collision are logged next round. (Plain
+        scatters: a counter could not be advanced twice in one traced program.)"""
+        b = [mi.UInt32(v >> _SHIFT) for v in voxel]
+        edge = [mi.UInt32((v & (BRICK - 1)) == BRICK - 1) for v in voxel]
+        at = (b[0] * 73856093 ^ b[1] * 19349663 ^ b[2] * 83492791
+              ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) & (LOG_CAPACITY - 1)
+        dr.scatter(self._logged, mi.UInt32(1), at, missed)
+        dr.scatter(self._log_voxels, mi.Point3i(*voxel), at, missed)
+
+    def _reset_log(self) -> None:
+        self._logged = dr.zeros(mi.UInt32, LOG_CAPACITY)
+        self._log_voxels = dr.zeros(mi.Int32, 3 * LOG_CAPACITY)

@@ -1,0 +1,147 @@
+"""Traced lookups (mitsuba_plugin.traced): the same colors as SolidTexture.query to the
+bit, misses logged and synthesized, and renders that do not depend on the mode or on what
+the brick store held before."""
+
+from __future__ import annotations
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_plugin
+import warptex
+from warptex.store import brick_keys, bricks_read
+
+LLVM = "llvm_ad_rgb"
+
+
+@pytest.fixture(autouse=True)
+def llvm_variant():
+    if warptex.best_mitsuba_variant() != LLVM:
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
+    mi.set_variant(LLVM)
+    mitsuba_plugin.register()
+
+
+@pytest.fixture()
+def texture(granite_32_file, warp_device):
+    from warptex.texture import SolidTexture
+
+    return SolidTexture(granite_32_file, device=warp_device)
+
+
+def sample_points(rng: np.random.Generator, n: int, low: float, high: float) -> np.ndarray:
+    """Random points, a quarter of them on voxel faces and centers, where rounding bites."""
+    points = rng.uniform(low, high, (n, 3))
+    points[: n // 8] = np.round(points[: n // 8])
+    points[n // 8 : n // 4] = np.round(points[n // 8 : n // 4]) + 0.5
+    return points
+
+
+def traced_colors(lookup, points: np.ndarray) -> np.ndarray:
+    rgb = lookup.colors(tuple(mi.Float64(points[:, k]) for k in range(3)), mi.Bool(True))
+    return np.stack([rgb[k].numpy() for k in range(3)], axis=1)
+
+
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+def test_traced_colors_are_bit_identical_to_query(texture, filter):
+    from mitsuba_plugin.traced import TracedLookup
+
+    points = sample_points(np.random.default_rng(3), 4000, -12.0, 12.0)
+    expected = texture.query(points, filter=filter)[:, :3]
+    lookup = TracedLookup(texture.store, filter, fallback=(0.5, 0.5, 0.5))
+    assert lookup.refresh()
+    np.testing.assert_array_equal(traced_colors(lookup, points), expected)
+    assert len(lookup.take_misses()) == 0
+
+
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter):
+    from mitsuba_plugin.traced import TracedLookup
+
+    texture.query(np.zeros((1, 3)), filter=filter)
+    lookup = TracedLookup(texture.store, filter, fallback=(0.25, 0.5, 0.75))
+    assert lookup.refresh()
+    far = sample_points(np.random.default_rng(4), 500, 40.0, 90.0)
+    np.testing.assert_array_equal(traced_colors(lookup, far),
+                                  np.tile([0.25, 0.5, 0.75], (len(far), 1)).astype(np.float32))
+    missed = lookup.take_misses()
+    assert set(bricks_read(far, filter)) <= set(brick_keys(missed))
+    assert len(lookup.take_misses()) == 0  # taking clears the log
+    texture.store.prefetch(missed)
+    assert lookup.refresh()
+    np.testing.assert_array_equal(traced_colors(lookup, far),
+                                  texture.query(far, filter=filter)[:, :3])
+
+
+def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture):
+    from mitsuba_plugin.traced import TracedLookup
+
+    texture.query(np.array([[0.0, 0.0, 0.0], [100.0, 100.0, 100.0]]), filter="nearest")
+    assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=12**3 - 1).refresh() is False
+    assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=13**3).refresh() is True
+
+
+def lit_plane(path, space: str = "world"):
+    """A floor and a wall of one lazy_solid texture under an environment, and that
+    texture: paths bounce between them, so later bounces read bricks the first did not."""
+    before = set(map(id, mitsuba_plugin.textures()))
+    tex = {"type": "ref", "id": "tex"}
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "tex": {"type": "lazy_solid", "exemplar": str(path), "scale": 6.0, "space": space},
+        "integrator": {"type": "path", "max_depth": 4},
+        "sensor": {"type": "perspective", "fov": 50,
+                   "to_world": T().look_at(origin=[0, -3, 4], target=[0, 0, 0], up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "plane": {"type": "rectangle", "to_world": T().scale([2, 2, 1]),
+                  "bsdf": {"type": "diffuse", "reflectance": tex}},
+        "wall": {"type": "rectangle",
+                 "to_world": T().translate([0, 1.5, 1]).rotate([1, 0, 0], 90).scale([2, 1, 1]),
+                 "bsdf": {"type": "diffuse", "reflectance": tex}},
+        "light": {"type": "constant"},
+    })
+    (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+    return scene, texture
+
+
+def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file):
+    """Determinism at the renderer: a cold store (traced renders that miss, synthesis,
+    render again), a warm one (one traced render) and wavefront mode give one image."""
+    scene, texture = lit_plane(granite_32_file)
+    cold = np.array(mitsuba_plugin.render(scene, spp=4))
+    first = texture.traced_stats()
+    assert first["renders_with_misses"] >= 1
+    assert first["renders"] == first["renders_with_misses"] + 1
+    warm = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats() == {"renders": first["renders"] + 1,
+                                      "renders_with_misses": first["renders_with_misses"]}
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+    assert warm.mean() > 0.05
+    # Mitsuba adds samples into the film with atomics, in an order that varies from run
+    # to run, so even a texture-free scene differs in the last bits between renders; a
+    # wrong voxel would be off by a visible amount (the lookups are compared bit for bit
+    # above).
+    np.testing.assert_allclose(cold, warm, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(warm, wavefront, rtol=1e-5, atol=1e-6)
+
+
+def test_object_space_textures_render_in_wavefront_mode(granite_32_file):
+    scene, texture = lit_plane(granite_32_file, space="object")
+    image = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats()["renders"] == 0
+    assert texture.solid.store.stats()["hits"] > 0 and image.mean() > 0.05
+
+
+def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granite_32_file):
+    scene, _ = lit_plane(granite_32_file)
+    with pytest.raises(RuntimeError) as raised:
+        mi.render(scene, spp=1)
+    # Mitsuba wraps the texture's error; the texture's own message is the cause.
+    causes = [raised.value]
+    while causes[-1].__cause__ is not None:
+        causes.append(causes[-1].__cause__)
+    assert any("lazy_solid: render with mitsuba_plugin.render" in str(e) for e in causes)
