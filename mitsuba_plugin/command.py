@@ -91,7 +91,8 @@ def _print_report(report: dict) -> None:
     for entry in report["textures"]:
         s, t = entry["store"], entry["traced"]
         print(f"  {entry['texture']}\n    bricks {s['bricks']} ({s['bytes'] / 2**20:.2f} MiB), "
-              f"traced renders {t['renders']} ({t['renders_with_misses']} missed bricks), "
+              f"traced renders {t['renders']} ({t['renders_with_misses']} missed bricks "
+              "and were repeated), "
               f"wavefront lookups {s['hits']} hits / {s['misses']} misses, "
               f"synthesis {s['synthesis_seconds']:.1f} s"
               + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))
