@@ -67,6 +67,7 @@ class TracedLookup:
         rel = coords - lo
         pages[(rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]] = live
         self._pages = mi.Int32(pages)
+        self._used = dr.zeros(mi.UInt32, max(len(snap.keys), 1))
         self._sums = mi.Float(snap.sums.reshape(-1) if snap.sums.size else np.zeros(1, np.float32))
         self._channels = snap.sums.shape[1]
         # Opaque, so a refreshed table reuses the compiled kernels.
@@ -82,7 +83,7 @@ class TracedLookup:
         # kernels' division; opaque divisors keep it a division.
         if self.filter == "nearest":
             voxel = [mi.Int32(dr.floor(c)) for c in p]
-            sums, hit = self._voxel_sums(voxel, active)
+            sums, hit = self._voxel_sums(voxel, active, mark=True)
             rgb = [s / dr.opaque(mi.Float, 3.0) for s in sums]
         else:
             q = [c - 0.5 for c in p]
@@ -92,7 +93,9 @@ class TracedLookup:
             hit = mi.Bool(True)
             for d in _CORNERS:
                 corner = [v + int(o) for v, o in zip(voxel, d, strict=True)]
-                sums, found = self._voxel_sums(corner, active)
+                # Marking the first corner's brick suffices for eviction order: the
+                # others are usually the same brick, else its neighbours.
+                sums, found = self._voxel_sums(corner, active, mark=not d.any())
                 hit &= found
                 # The weight and accumulation order of kernels.lookup.sample_trilinear.
                 w = t[0] if d[0] else 1.0 - t[0]
@@ -107,18 +110,23 @@ class TracedLookup:
 
     def take_misses(self) -> np.ndarray:
         """Voxels (N, 3) of every brick the logged lanes read, and a cleared log; called
-        once per traced render, which it counts."""
+        once per traced render, which it counts, and whose bricks it marks as used."""
         used = self._logged.numpy() != 0
         self.renders += 1
         self.renders_with_misses += bool(used.any())
         logged = self._log_voxels.numpy().reshape(-1, 3)[used].astype(np.int64)
         self._reset_log()
+        if self.usable:
+            self.store.mark_used(np.flatnonzero(self._used.numpy()), self._version)
+            self._used = dr.zeros(mi.UInt32, dr.width(self._used))
         if self.filter == "trilinear":
             logged = (logged[:, None, :] + _CORNERS[None]).reshape(-1, 3)
         return logged
 
-    def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:
-        """Color sums of integer ``voxel`` and whether its brick is stored."""
+    def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool,
+                    mark: bool = False) -> tuple[list[mi.Float], mi.Bool]:
+        """Color sums of integer ``voxel`` and whether its brick is stored; ``mark``
+        flags the brick as used, for the store's least-recently-used eviction."""
         rel = [(v >> _SHIFT) - lo for v, lo in zip(voxel, self._lo, strict=True)]
         inside = mi.Bool(active)
         for r, n in zip(rel, self._dims, strict=True):
@@ -126,6 +134,8 @@ class TracedLookup:
         page = (rel[0] * self._dims[1] + rel[1]) * self._dims[2] + rel[2]
         slot = dr.gather(mi.Int32, self._pages, mi.UInt32(page), inside)
         hit = inside & (slot >= 0)
+        if mark:
+            dr.scatter(self._used, mi.UInt32(1), mi.UInt32(slot), hit)
         x, y, z = (v & (BRICK - 1) for v in voxel)
         local = (x * BRICK + y) * BRICK + z
         at = mi.UInt32(slot * BRICK_VOXELS + local) * self._channels

@@ -145,3 +145,22 @@ def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granit
     while causes[-1].__cause__ is not None:
         causes.append(causes[-1].__cause__)
     assert any("lazy_solid: render with mitsuba_plugin.render" in str(e) for e in causes)
+
+
+def test_traced_reads_count_for_least_recently_used_eviction(texture):
+    """Bricks read by traced lookups are kept over bricks stored later but not read."""
+    from mitsuba_plugin.traced import TracedLookup
+
+    near = sample_points(np.random.default_rng(5), 200, 0.5, 7.5)  # brick (0, 0, 0)
+    texture.query(near, filter="nearest")
+    texture.query(np.array([[40.0, 40.0, 40.0]]), filter="nearest")  # stored later
+    lookup = TracedLookup(texture.store, "nearest", (0, 0, 0))
+    assert lookup.refresh()
+    traced_colors(lookup, near)
+    lookup.take_misses()
+    store = texture.store
+    store.cache_bytes = 2 * store.stats()["payload_bytes"] // store.stats()["bricks"]
+    store.prefetch(np.array([[-40, -40, -40]]))  # a third brick: one must go
+    kept = brick_keys(np.array([[0, 0, 0], [-40, -40, -40]]))
+    snap = store.snapshot()
+    assert sorted(snap.keys[snap.keys >= 0]) == sorted(kept)

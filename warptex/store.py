@@ -213,6 +213,16 @@ class BrickStore:
         if len(voxels):
             self._with_resident(np.unique(brick_keys(np.asarray(voxels))), lambda: None)
 
+    def mark_used(self, slots: np.ndarray, version: int) -> None:
+        """Count pool ``slots`` of the snapshot of ``version`` as just used, for
+        readers outside Warp; ignored if bricks were inserted or evicted since."""
+        with self._lock.exclusive():
+            if version != self._version or len(slots) == 0:
+                return
+            stamps = self._index.stamps.numpy()
+            stamps[slots] = next(self._tick)
+            self._index.stamps.assign(stamps)
+
     def snapshot(self) -> Snapshot:
         """The stored bricks and their voxels' color sums (see :class:`Snapshot`)."""
         with self._lock.shared():
