@@ -121,7 +121,7 @@ def _render_pass(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
     if dr.is_jit_v(mi.Float):
         for _ in range(TRACED_ROUNDS):
             try:
-                traced = all([t.begin_tracing() for t in live])
+                traced = all([t.begin_tracing(scene) for t in live])
                 if not traced:
                     break
                 image = mi.render(scene, spp=spp, seed=seed)

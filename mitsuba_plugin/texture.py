@@ -30,9 +30,10 @@ programs. Render with :func:`mitsuba_plugin.render`: it traces the lookup of sto
 voxels into Mitsuba's program (:mod:`mitsuba_plugin.traced`), synthesizes what a render
 missed and renders again, and falls back to wavefront mode (Dr.Jit's ``SymbolicLoops``
 and ``SymbolicCalls`` off, so ``eval`` gets the concrete points of a whole wavefront)
-when a texture cannot be traced: ``space="object"``, or stored bricks scattered too
-widely for one page table. Outside that helper ``eval`` raises inside a symbolic scope,
-so a plain ``mi.render`` never shows voxels that were not synthesized.
+when a texture cannot be traced: its stored bricks scattered too widely for one page
+table, or a render that keeps reaching new bricks. Outside that helper ``eval`` raises
+inside a symbolic scope, so a plain ``mi.render`` never shows voxels that were not
+synthesized.
 """
 
 from __future__ import annotations
@@ -160,6 +161,7 @@ class LazySolidTexture(mi.Texture):
         self._mean = float(colors.mean())
         self._max = float(colors.max())
         self._traced: TracedLookup | None = None
+        self._frames: ObjectFrames | None = None
         self._tracing = False
         self._update_transform()
         mitsuba_plugin.live_textures.add(self)
@@ -214,7 +216,10 @@ class LazySolidTexture(mi.Texture):
                                    "synthesizes what a symbolic render reads, or in "
                                    "wavefront mode (Dr.Jit's SymbolicLoops and SymbolicCalls "
                                    "flags off)")
-            p = texture_coords(self._world_to_texture, *(mi.Float64(c) for c in it.p))
+            p = [mi.Float64(c) for c in it.p]
+            if self.space == "object":
+                p = self._frames.to_object(it, p)
+            p = apply_affine(self._world_to_texture.tolist(), *p)
             return self._traced.colors(p, active)
         width = dr.width(it.p)
         # One kernel interleaves the points; NumPy then views Dr.Jit's memory (DLPack).
@@ -236,13 +241,16 @@ class LazySolidTexture(mi.Texture):
 
     # -- traced lookups (driven by mitsuba_plugin.render) --------------------------------
 
-    def begin_tracing(self) -> bool:
-        """Serve symbolic ``eval`` calls from the stored voxels; False, and nothing
-        changed, when this texture cannot be traced (see the module documentation)."""
-        if self.space == "object" or not dr.is_jit_v(mi.Float):
+    def begin_tracing(self, scene: mi.Scene) -> bool:
+        """Serve symbolic ``eval`` calls in ``scene`` from the stored voxels; False, and
+        nothing changed, when this texture cannot be traced (see the module
+        documentation)."""
+        if not dr.is_jit_v(mi.Float):
             return False
         if self._traced is None:
             self._traced = TracedLookup(self.solid.store, self.filter, self._mean_rgb)
+        if self.space == "object":
+            self._frames = ObjectFrames(scene)
         self._tracing = self._traced.refresh()
         return self._tracing
 
@@ -274,7 +282,7 @@ class LazySolidTexture(mi.Texture):
         points = points.astype(np.float64)
         if self.space == "object":
             points = to_object_space(points, it, keep)
-        texture = texture_coords(self._world_to_texture, *points.T)
+        texture = apply_affine(self._world_to_texture.tolist(), *points.T)
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
@@ -282,12 +290,12 @@ class LazySolidTexture(mi.Texture):
         self._world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ np.linalg.inv(to_world)
 
 
-def texture_coords(matrix: np.ndarray, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
-    """Rows 0-2 of the affine ``matrix`` applied to coordinates ``x, y, z`` (NumPy or
-    Dr.Jit float64 arrays), in one fixed order of operations, so wavefront and traced
-    lookups of a point reach the same voxel coordinates to the last bit."""
-    m = matrix.tolist()
-    return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in m[:3])
+def apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
+    """The affine map of ``rows`` (3 rows of 4 coefficients: numbers, or per-point
+    arrays) applied to coordinates ``x, y, z`` (NumPy or Dr.Jit float64 arrays) in one
+    fixed order of operations, so that wavefront and traced lookups of a point reach the
+    same voxel coordinates to the last bit."""
+    return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in list(rows)[:3])
 
 
 def exemplar_colors(candidates: CandidateSet) -> np.ndarray:
@@ -320,8 +328,8 @@ def to_object_space(points: np.ndarray, it: mi.Interaction3f,
             to_world = None if obj is None else _frame(obj)
             rows &= ~placed
             if to_world is not None and rows.any():
-                to_object = np.linalg.inv(to_world)
-                out[rows] = points[rows] @ to_object[:3, :3].T + to_object[:3, 3]
+                to_object = np.linalg.inv(to_world).tolist()
+                out[rows] = np.stack(apply_affine(to_object, *points[rows].T), axis=1)
                 placed |= rows
     return out
 
@@ -343,3 +351,38 @@ def _frame(obj: mi.Object) -> np.ndarray | None:
     """The object's ``to_world`` matrix, if it exposes one."""
     params = mi.traverse(obj)
     return affine_matrix(params["to_world"]) if "to_world" in params else None
+
+
+class ObjectFrames:
+    """:func:`to_object_space` inside a traced program: the world-to-object matrix of
+    each top-level shape of a scene that has a frame (instances, shapes with a
+    ``to_world`` parameter), found per lane through the shape pointers' registry ids."""
+
+    def __init__(self, scene: mi.Scene) -> None:
+        framed = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]), _frame(s))
+                  for s in scene.shapes()]
+        framed = [(i, m) for i, m in framed if m is not None]
+        index = np.full(max([i for i, _ in framed], default=0) + 1, -1, np.int32)
+        matrices = np.zeros((max(len(framed), 1), 12))
+        for n, (i, to_world) in enumerate(framed):
+            index[i] = n
+            matrices[n] = np.linalg.inv(to_world)[:3].reshape(-1)
+        self._index = mi.Int32(index)
+        self._matrices = mi.Float64(matrices.reshape(-1))
+
+    def to_object(self, it: mi.Interaction3f, p: list[mi.Float64]) -> list[mi.Float64]:
+        """World points ``p`` of interaction ``it`` in the frame of the instance each
+        was found on, else of its shape when that has one; unchanged otherwise."""
+        if not hasattr(it, "instance"):  # medium interactions belong to no object
+            return p
+        size = dr.opaque(mi.UInt32, dr.width(self._index))
+        frame = mi.Int32(-1)
+        for pointers in (it.instance, it.shape):
+            ids = dr.reinterpret_array(mi.UInt32, pointers)
+            found = dr.gather(mi.Int32, self._index, ids, ids < size)
+            frame = dr.select((frame < 0) & (ids < size), found, frame)
+        placed = frame >= 0
+        at = mi.UInt32(dr.maximum(frame, 0)) * 12
+        m = [dr.gather(mi.Float64, self._matrices, at + k, placed) for k in range(12)]
+        moved = apply_affine([m[0:4], m[4:8], m[8:12]], *p)
+        return [dr.select(placed, q, c) for q, c in zip(moved, p, strict=True)]

@@ -129,11 +129,40 @@ def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file):
     np.testing.assert_allclose(warm, wavefront, rtol=1e-5, atol=1e-6)
 
 
-def test_object_space_textures_render_in_wavefront_mode(granite_32_file):
-    scene, texture = lit_plane(granite_32_file, space="object")
-    image = np.array(mitsuba_plugin.render(scene, spp=4))
-    assert texture.traced_stats()["renders"] == 0
-    assert texture.solid.store.stats()["hits"] > 0 and image.mean() > 0.05
+def test_object_space_is_traced_and_agrees_with_wavefront_mode(granite_32_file):
+    """Object-space frames (instances, shapes with to_world) found per lane in the traced
+    program give the image that wavefront mode gives."""
+    before = set(map(id, mitsuba_plugin.textures()))
+    T = mi.ScalarTransform4f
+    tex = {"type": "lazy_solid", "exemplar": str(granite_32_file), "scale": 8.0,
+           "space": "object"}
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sensor": {"type": "orthographic",
+                   "to_world": T().look_at(origin=[0, 0, 6], target=[0, 0, 0], up=[0, 1, 0])
+                   .scale([3, 3, 1]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "tex": tex,
+        "group": {"type": "shapegroup",
+                  "s": {"type": "sphere", "bsdf": {"type": "diffuse",
+                                                   "reflectance": {"type": "ref", "id": "tex"}}}},
+        "a": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+              "to_world": T().translate([1.5, 0, 0]).rotate([0, 0, 1], 30)},
+        "b": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+              "to_world": T().translate([-1.5, 1, 0])},
+        "c": {"type": "sphere", "to_world": T().translate([0, -1.5, 0]).scale(0.8),
+              "bsdf": {"type": "diffuse", "reflectance": {"type": "ref", "id": "tex"}}},
+        "light": {"type": "constant"},
+    })
+    (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+    traced = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats()["renders"] >= 2
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+    assert traced.std() > 0.02
+    np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
 
 
 def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granite_32_file):
