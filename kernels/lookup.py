@@ -13,7 +13,9 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+# No fused multiply-adds (CUDA's default): the plugin's traced lookups (Dr.Jit) repeat
+# the trilinear blend with separate roundings and must match to the bit.
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 BRICK = 8
 BRICK_VOXELS = 512

@@ -21,6 +21,7 @@ were never synthesized.
 from __future__ import annotations
 
 import importlib
+import threading
 import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -34,6 +35,8 @@ import warptex
 # what the previous one missed; paths seldom reach new bricks after the second.
 TRACED_ROUNDS = 6
 _registered: set[str] = set()
+# One traced render at a time: textures keep one miss log each.
+_tracing = threading.Lock()
 # Every lazy_solid texture alive, so a render helper can report and save brick stores;
 # kept here because the plugin modules are re-run per variant.
 live_textures: weakref.WeakSet = weakref.WeakSet()
@@ -119,20 +122,28 @@ def render(scene: mi.Scene, spp: int | None = None, passes: int = 1, seed: int =
 def _render_pass(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
     live = textures()
     if dr.is_jit_v(mi.Float):
-        for _ in range(TRACED_ROUNDS):
-            try:
-                traced = all([t.begin_tracing(scene) for t in live])
-                if not traced:
-                    break
-                image = mi.render(scene, spp=spp, seed=seed)
-                dr.eval(image)
-            finally:
-                for t in live:
-                    t.end_tracing()
-            if not sum(t.fill_misses() for t in live):
-                return image
+        with _tracing:
+            image = _render_traced(scene, spp, seed, live)
+        if image is not None:
+            return image
     with wavefront():
         return mi.render(scene, spp=spp, seed=seed)
+
+
+def _render_traced(scene: mi.Scene, spp: int, seed: int, live: list) -> mi.TensorXf | None:
+    """A render whose lookups all found stored voxels, or None (see :func:`render`)."""
+    for _ in range(TRACED_ROUNDS):
+        try:
+            if not all([t.begin_tracing(scene) for t in live]):
+                return None
+            image = mi.render(scene, spp=spp, seed=seed)
+            dr.eval(image)
+        finally:
+            for t in live:
+                t.end_tracing()
+        if not sum(t.fill_misses() for t in live):
+            return image
+    return None
 
 
 def textures() -> list:

@@ -38,6 +38,7 @@ synthesized.
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -162,7 +163,7 @@ class LazySolidTexture(mi.Texture):
         self._max = float(colors.max())
         self._traced: TracedLookup | None = None
         self._frames: ObjectFrames | None = None
-        self._tracing = False
+        self._tracing: int | None = None  # the thread whose render traces this texture
         self._update_transform()
         mitsuba_plugin.live_textures.add(self)
 
@@ -211,7 +212,7 @@ class LazySolidTexture(mi.Texture):
                 return mi.Color3f(0.0)
             return mi.Color3f(*self._query(np.array([it.p], np.float64), it, None)[0])
         if dr.flag(dr.JitFlag.SymbolicScope):
-            if not self._tracing:
+            if self._tracing != threading.get_ident():
                 raise RuntimeError(f"{PLUGIN}: render with mitsuba_plugin.render, which "
                                    "synthesizes what a symbolic render reads, or in "
                                    "wavefront mode (Dr.Jit's SymbolicLoops and SymbolicCalls "
@@ -251,8 +252,9 @@ class LazySolidTexture(mi.Texture):
             self._traced = TracedLookup(self.solid.store, self.filter, self._mean_rgb)
         if self.space == "object":
             self._frames = ObjectFrames(scene)
-        self._tracing = self._traced.refresh()
-        return self._tracing
+        usable = self._traced.refresh()
+        self._tracing = threading.get_ident() if usable else None
+        return usable
 
     def fill_misses(self) -> int:
         """Synthesize the bricks that traced lookups missed since the last call; returns
@@ -263,7 +265,7 @@ class LazySolidTexture(mi.Texture):
         return len(misses)
 
     def end_tracing(self) -> None:
-        self._tracing = False
+        self._tracing = None
 
     def traced_stats(self) -> dict:
         """Symbolic renders with traced lookups, and how many of them missed a brick

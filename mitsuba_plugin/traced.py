@@ -11,8 +11,10 @@ that logged nothing, so each of its colors is a stored voxel, computed with the 
 float operations as ``kernels.lookup`` and therefore bit-identical to
 :meth:`warptex.texture.SolidTexture.query`.
 
-The mirror costs 4 bytes per channel per stored voxel beside the store's 6, plus 4 bytes
-per brick of the stored bricks' bounding box.
+The mirror costs 4 bytes per channel for each voxel of the store's pool (free slots
+included, not counted in ``cache_bytes``), 4 bytes per pool slot, and 4 bytes per brick of
+the stored bricks' bounding box; it is rebuilt whole whenever bricks were inserted or
+evicted.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ from warptex.store import BrickStore, brick_coords
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
 # a dense table; such a texture renders in wavefront mode instead.
 MAX_PAGES = 1 << 25
-LOG_CAPACITY = 1 << 16  # slots of the miss log; bricks that collide take another round
+LOG_CAPACITY = 1 << 20  # slots of the miss log (8 MiB); bricks that collide take another round
+_BIAS = 1 << 20  # packs a logged voxel into one 64-bit word, 21 bits per axis
 _SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
 _CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T  # corner c = (c >> 2, c >> 1, c) & 1
 
@@ -83,19 +86,23 @@ class TracedLookup:
         # kernels' division; opaque divisors keep it a division.
         if self.filter == "nearest":
             voxel = [mi.Int32(dr.floor(c)) for c in p]
-            sums, hit = self._voxel_sums(voxel, active, mark=True)
+            sums, hit = self._voxel_sums(voxel, active, mi.Bool(True))
             rgb = [s / dr.opaque(mi.Float, 3.0) for s in sums]
         else:
             q = [c - 0.5 for c in p]
             voxel = [mi.Int32(dr.floor(c)) for c in q]
             t = [c - mi.Float64(v) for c, v in zip(q, voxel, strict=True)]
+            edge = [(v & (BRICK - 1)) == BRICK - 1 for v in voxel]
             acc = [mi.Float64(0.0)] * self._channels
             hit = mi.Bool(True)
             for d in _CORNERS:
                 corner = [v + int(o) for v, o in zip(voxel, d, strict=True)]
-                # Marking the first corner's brick suffices for eviction order: the
-                # others are usually the same brick, else its neighbours.
-                sums, found = self._voxel_sums(corner, active, mark=not d.any())
+                # Each brick read is marked once: the first corner's, and the others'
+                # where they cross into a neighbour brick.
+                mark = mi.Bool(not d.any())
+                for k in np.flatnonzero(d):
+                    mark |= edge[k]
+                sums, found = self._voxel_sums(corner, active, mark)
                 hit &= found
                 # The weight and accumulation order of kernels.lookup.sample_trilinear.
                 w = t[0] if d[0] else 1.0 - t[0]
@@ -111,10 +118,12 @@ class TracedLookup:
     def take_misses(self) -> np.ndarray:
         """Voxels (N, 3) of every brick the logged lanes read, and a cleared log; called
         once per traced render, which it counts, and whose bricks it marks as used."""
-        used = self._logged.numpy() != 0
+        packed = self._log_voxels.numpy()
+        packed = packed[packed != 0].astype(np.int64)
         self.renders += 1
-        self.renders_with_misses += bool(used.any())
-        logged = self._log_voxels.numpy().reshape(-1, 3)[used].astype(np.int64)
+        self.renders_with_misses += bool(len(packed))
+        mask = (1 << 21) - 1
+        logged = np.stack([packed >> 42, (packed >> 21) & mask, packed & mask], 1) - _BIAS
         self._reset_log()
         if self.usable:
             self.store.mark_used(np.flatnonzero(self._used.numpy()), self._version)
@@ -124,9 +133,9 @@ class TracedLookup:
         return logged
 
     def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool,
-                    mark: bool = False) -> tuple[list[mi.Float], mi.Bool]:
-        """Color sums of integer ``voxel`` and whether its brick is stored; ``mark``
-        flags the brick as used, for the store's least-recently-used eviction."""
+                    mark: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:
+        """Color sums of integer ``voxel`` and whether its brick is stored; where
+        ``mark``, the brick is flagged as used, for least-recently-used eviction."""
         rel = [(v >> _SHIFT) - lo for v, lo in zip(voxel, self._lo, strict=True)]
         inside = mi.Bool(active)
         for r, n in zip(rel, self._dims, strict=True):
@@ -134,8 +143,7 @@ class TracedLookup:
         page = (rel[0] * self._dims[1] + rel[1]) * self._dims[2] + rel[2]
         slot = dr.gather(mi.Int32, self._pages, mi.UInt32(page), inside)
         hit = inside & (slot >= 0)
-        if mark:
-            dr.scatter(self._used, mi.UInt32(1), mi.UInt32(slot), hit)
+        dr.scatter(self._used, mi.UInt32(1), mi.UInt32(slot), hit & mark)
         x, y, z = (v & (BRICK - 1) for v in voxel)
         local = (x * BRICK + y) * BRICK + z
         at = mi.UInt32(slot * BRICK_VOXELS + local) * self._channels
@@ -143,17 +151,19 @@ class TracedLookup:
         return sums, hit
 
     def _log(self, voxel: list[mi.Int32], missed: mi.Bool) -> None:
-        """Record missed voxels at a slot hashed from their brick and from which
-        neighbour bricks their corners reach: lanes that read the same bricks overwrite
-        each other, and bricks lost to a collision are logged next round. (Plain
-        scatters: a counter could not be advanced twice in one traced program.)"""
+        """Record missed voxels, packed in one word each (so racing lanes cannot mix
+        coordinates), at a slot hashed from their brick and from which neighbour bricks
+        their corners reach: lanes that read the same bricks overwrite each other. The
+        hash changes every render, so bricks that collide are logged the next one.
+        (Plain scatters: a counter could not be advanced twice in one traced program.)"""
         b = [mi.UInt32(v >> _SHIFT) for v in voxel]
         edge = [mi.UInt32((v & (BRICK - 1)) == BRICK - 1) for v in voxel]
-        at = (b[0] * 73856093 ^ b[1] * 19349663 ^ b[2] * 83492791
-              ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) & (LOG_CAPACITY - 1)
-        dr.scatter(self._logged, mi.UInt32(1), at, missed)
-        dr.scatter(self._log_voxels, mi.Point3i(*voxel), at, missed)
+        at = ((b[0] * 73856093 ^ b[1] * 19349663 ^ b[2] * 83492791
+               ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) * self._salt
+              >> 16) & (LOG_CAPACITY - 1)
+        x, y, z = (mi.UInt64(v + _BIAS) for v in voxel)
+        dr.scatter(self._log_voxels, (x << 42) | (y << 21) | z, at, missed)
 
     def _reset_log(self) -> None:
-        self._logged = dr.zeros(mi.UInt32, LOG_CAPACITY)
-        self._log_voxels = dr.zeros(mi.Int32, 3 * LOG_CAPACITY)
+        self._log_voxels = dr.zeros(mi.UInt64, LOG_CAPACITY)  # 0: empty slot
+        self._salt = dr.opaque(mi.UInt32, (2 * self.renders + 1) * 0x9E3779B1 & 0xFFFFFFFF)

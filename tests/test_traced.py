@@ -56,22 +56,45 @@ def test_traced_colors_are_bit_identical_to_query(texture, filter):
 
 
 @pytest.mark.parametrize("filter", ["nearest", "trilinear"])
-def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter):
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter, side):
     from mitsuba_plugin.traced import TracedLookup
 
     texture.query(np.zeros((1, 3)), filter=filter)
     lookup = TracedLookup(texture.store, filter, fallback=(0.25, 0.5, 0.75))
     assert lookup.refresh()
-    far = sample_points(np.random.default_rng(4), 500, 40.0, 90.0)
+    far = side * sample_points(np.random.default_rng(4), 500, 40.0, 90.0)
     np.testing.assert_array_equal(traced_colors(lookup, far),
                                   np.tile([0.25, 0.5, 0.75], (len(far), 1)).astype(np.float32))
+    # Bricks whose log slots collide are logged by a later read (the hash changes).
     missed = lookup.take_misses()
+    for _ in range(3):
+        traced_colors(lookup, far)
+        missed = np.concatenate([missed, lookup.take_misses()])
     assert set(bricks_read(far, filter)) <= set(brick_keys(missed))
     assert len(lookup.take_misses()) == 0  # taking clears the log
     texture.store.prefetch(missed)
     assert lookup.refresh()
     np.testing.assert_array_equal(traced_colors(lookup, far),
                                   texture.query(far, filter=filter)[:, :3])
+
+
+def test_evicted_bricks_miss_instead_of_reading_a_reused_slot(texture):
+    from mitsuba_plugin.traced import TracedLookup
+
+    store = texture.store
+    a = sample_points(np.random.default_rng(6), 100, 0.5, 7.5)  # brick (0, 0, 0)
+    texture.query(a, filter="nearest")
+    store.cache_bytes = store.stats()["payload_bytes"]  # room for one brick
+    lookup = TracedLookup(store, "nearest", (0.25, 0.5, 0.75))
+    assert lookup.refresh()
+    texture.query(a + 16.0, filter="nearest")  # brick (2, 2, 2) evicts (0, 0, 0)
+    assert lookup.refresh()
+    np.testing.assert_array_equal(traced_colors(lookup, a),
+                                  np.tile([0.25, 0.5, 0.75], (len(a), 1)).astype(np.float32))
+    assert set(brick_keys(lookup.take_misses())) == set(brick_keys(np.zeros((1, 3), int)))
+    np.testing.assert_array_equal(traced_colors(lookup, a + 16.0),
+                                  texture.query(a + 16.0, filter="nearest")[:, :3])
 
 
 def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture):
@@ -163,6 +186,41 @@ def test_object_space_is_traced_and_agrees_with_wavefront_mode(granite_32_file):
         wavefront = np.array(mi.render(scene, spp=4, seed=0))
     assert traced.std() > 0.02
     np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
+
+
+def test_out_of_rounds_a_pass_is_rendered_in_wavefront_mode(granite_32_file, monkeypatch):
+    scene, texture = lit_plane(granite_32_file)
+    monkeypatch.setattr(mitsuba_plugin, "TRACED_ROUNDS", 1)
+    fallback = np.array(mitsuba_plugin.render(scene, spp=4))  # the one traced try misses
+    assert texture.traced_stats() == {"renders": 1, "renders_with_misses": 1}
+    assert texture.solid.store.stats()["hits"] > 0  # wavefront lookups served the image
+    monkeypatch.setattr(mitsuba_plugin, "TRACED_ROUNDS", 6)
+    np.testing.assert_allclose(fallback, np.array(mitsuba_plugin.render(scene, spp=4)),
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_only_the_rendering_thread_reads_traced_colors(granite_32_file):
+    """While one thread's render traces a texture, a plain symbolic render elsewhere
+    still raises instead of showing stand-in colors."""
+    import threading
+
+    scene, texture = lit_plane(granite_32_file)
+    errors = []
+
+    def plain_render():
+        try:
+            mi.render(scene, spp=1)
+        except RuntimeError as e:
+            errors.append(e)
+
+    assert texture.begin_tracing(scene)
+    try:
+        other = threading.Thread(target=plain_render)
+        other.start()
+        other.join()
+    finally:
+        texture.end_tracing()
+    assert len(errors) == 1
 
 
 def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granite_32_file):
