@@ -166,9 +166,12 @@ def upsample(
 ):
     """Coordinate inheritance (section 5.1, "Upsampling"): child = 2 * parent + offset."""
     i = wp.tid()
+    slot = parent_slot[i // BLOCK_VOXELS]
+    if slot < 0:  # a block no correction reads: its parents were not synthesized
+        return
     p = voxel_world(coords, i)
     half = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
-    j = parent_slot[i // BLOCK_VOXELS] * BLOCK_VOXELS
+    j = slot * BLOCK_VOXELS
     j += (half[0] & 3) * 16 + (half[1] & 3) * 4 + (half[2] & 3)
     src = parent[j]
     out = wp.vec3i(0, 0, 0)
@@ -196,12 +199,6 @@ def voxel_features(
 
 
 @wp.func
-def active_voxel(active: wp.array(dtype=wp.int32), n: int) -> int:
-    """Flat index of the n-th voxel of the listed active blocks."""
-    return active[n // BLOCK_VOXELS] * BLOCK_VOXELS + n % BLOCK_VOXELS
-
-
-@wp.func
 def in_subpass(coords: wp.array(dtype=wp.vec3i), i: int, parity: int) -> bool:
     """Sub-passes (section 5.1) visit the 8 interleaved parity classes one by one."""
     if parity < 0:
@@ -211,14 +208,36 @@ def in_subpass(coords: wp.array(dtype=wp.vec3i), i: int, parity: int) -> bool:
 
 
 @wp.kernel
+def dilate_need(
+    first: int,
+    coords: wp.array(dtype=wp.vec3i),
+    nbr: wp.array2d(dtype=wp.int32),
+    shape: wp.array(dtype=wp.vec3i),
+    parity: int,
+    need: wp.array(dtype=wp.uint8),
+    before: wp.array(dtype=wp.uint8),
+):
+    """Dependency mask (section 5.2), one correction step undone: a voxel's value before
+    the step is needed if it is needed after it, or if a voxel that the step corrects
+    reads it. ``shape`` lists the offsets a correction reads (symmetric)."""
+    i = first + wp.tid()
+    hit = need[i] != 0
+    n = int(0)
+    while not hit and n < shape.shape[0]:
+        j = neighbor_voxel(nbr, i, shape[n])
+        if j >= 0:
+            hit = need[j] != 0 and in_subpass(coords, j, parity)
+        n += 1
+    before[i] = wp.where(hit, wp.uint8(1), wp.uint8(0))
+
+
+@wp.kernel
 def project_neighborhoods(
     first: int,
     active: wp.array(dtype=wp.int32),
-    coords: wp.array(dtype=wp.vec3i),
     nbr: wp.array2d(dtype=wp.int32),
     feats: wp.array(dtype=wp.int32),
     t: LevelTables,
-    parity: int,
     qproj: wp.array(dtype=appearance_vector),
 ):
     """PCA projection of a voxel's current N x N neighbourhood in the plane of axis k.
@@ -226,9 +245,7 @@ def project_neighborhoods(
     Sums stay within int32: |basis| <= 127, features <= 3 * 255, N*N*F terms.
     """
     k = wp.tid() % 3
-    i = active_voxel(active, first + wp.tid() // 3)
-    if not in_subpass(coords, i, parity):
-        return
+    i = active[first + wp.tid() // 3]
     n = 2 * t.half + 1
     acc = appearance_vector()
     for a in range(n):
@@ -287,12 +304,10 @@ def best_2d_candidate(
 def correct(
     first: int,
     active: wp.array(dtype=wp.int32),
-    coords: wp.array(dtype=wp.vec3i),
     nbr: wp.array2d(dtype=wp.int32),
     src: wp.array(dtype=wp.vec3i),
     qproj: wp.array(dtype=appearance_vector),
     t: LevelTables,
-    parity: int,
     dst: wp.array(dtype=wp.vec3i),
 ):
     """Correction (section 5.1): replace the triple by the best matching 3D candidate.
@@ -300,11 +315,9 @@ def correct(
     Step 2 of the two-step search gathers the 3D candidates of the three best 2D pixels
     and compares whole 3-neighbourhoods. Strict comparisons in a fixed loop order make
     the first best win, so ties resolve identically everywhere. Voxels outside the
-    sub-pass keep the value that ``dst`` already holds.
+    sub-pass, or not listed in ``active``, keep the value that ``dst`` already holds.
     """
-    i = active_voxel(active, first + wp.tid())
-    if not in_subpass(coords, i, parity):
-        return
+    i = active[first + wp.tid()]
     best = src[i]
     best_d = int(-1)
     for k in range(3):

@@ -17,6 +17,7 @@ from warptex.synthesis import (
     Synthesizer,
     correction_steps,
     dependency_chain,
+    dependency_mask,
     dependency_radius,
 )
 
@@ -147,6 +148,29 @@ def test_dependency_masks():
     plane = 5 * 5 * 3 - 3 * 5 + 1
     assert plane < chain[0] < 9**3
     assert len(chain) == 3 and all(c > 0 for c in chain)
+
+
+@pytest.mark.parametrize("subpasses", [1, 8])
+def test_finest_level_corrects_exactly_the_dependency_mask(candidates, subpasses):
+    """Section 5.2 voxel-exact: one requested voxel makes the finest level correct only
+    the voxels of its dependency mask, not whole padded blocks."""
+    syn = Synthesizer(candidates, seed=2, subpasses=subpasses)
+    steps = correction_steps(syn.passes, subpasses)
+    n = 4 * len(steps) * 2 + 9
+    desired = np.zeros((n, n, n), bool)
+    centre = np.array([n // 2 + 1, n // 2, n // 2 + 1])  # odd, even, odd: parity 5
+    desired[tuple(centre)] = True
+    # Voxels corrected by some step: the ones each step's mask holds in its class.
+    idx = np.indices(desired.shape)
+    parity = (idx[0] & 1) + 2 * (idx[1] & 1) + 4 * (idx[2] & 1)
+    corrected = np.zeros_like(desired)
+    for k, step in enumerate(steps):
+        need = dependency_mask(desired, 2, steps[k + 1 :])
+        corrected |= need if step < 0 else need & (parity == step)
+    syn.triples(centre[None] - n // 2 + 100)  # same parity class, away from the origin
+    assert syn.voxels_synthesized[syn.finest] == int(corrected.sum())
+    if subpasses == 1:
+        assert int(corrected.sum()) == 5 * 5 * 3 - 3 * 5 + 1  # one 3-neighbourhood
 
 
 def test_box_layout_matches_voxels(candidates):

@@ -27,6 +27,7 @@ _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
 COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
+_LOCAL = np.indices((BLOCK,) * 3).reshape(3, -1).T  # voxel offsets in a block, x slowest
 
 
 def neighborhood_shape(half: int) -> np.ndarray:
@@ -217,6 +218,9 @@ class Synthesizer:
         half = int(candidates.params["neighborhood"]) // 2
         self._half = half
         self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
+        reads = np.argwhere(neighborhood_shape(half)) - half
+        reads = reads[np.abs(reads).sum(axis=1) > 0]
+        self._shape = wp.array(reads.astype(np.int32), dtype=wp.vec3i, device=self.device)
         self._tables = {lv: self._level_tables(lv) for lv in range(self.start, self.finest + 1)}
         self._cache = {lv: _LevelCache(coarse_cache_bytes) for lv in range(self.start, self.finest)}
         self._lock = threading.Lock()
@@ -254,11 +258,6 @@ class Synthesizer:
         out += cols[2][pixels[:, 2]]
         return (out / np.float32(3.0)).astype(np.float32)
 
-    def block_pixels(self, block_keys: np.ndarray) -> np.ndarray:
-        """Finest triples of whole 4^3 blocks given by sorted packed keys, (M*64, 3)."""
-        with self._lock:
-            return self._final(self.finest, block_keys).triples
-
     # -- orchestration ----------------------------------------------------------------
 
     def _pixels(self, ijk: np.ndarray) -> np.ndarray:
@@ -273,7 +272,8 @@ class Synthesizer:
         ijk = ijk.astype(np.int64)
         keys = _pack(ijk >> 2)
         uniq = np.unique(keys)
-        level = self.block_pixels(uniq)
+        with self._lock:  # the finest level is never cached: just the voxels asked for
+            level = self._synthesize(self.finest, uniq, desired=ijk).triples
         slot = np.searchsorted(uniq, keys)
         local = (ijk[:, 0] & 3) * 16 + (ijk[:, 1] & 3) * 4 + (ijk[:, 2] & 3)
         return level[slot * _BLOCK_VOXELS + local]
@@ -298,29 +298,47 @@ class Synthesizer:
         order = np.argsort(all_keys, kind="stable")
         return _Level(all_keys[order], np.concatenate(parts_t)[order].reshape(-1, 3))
 
-    def _synthesize(self, level: int, keys: np.ndarray) -> _Level:
-        """Synthesize blocks ``keys`` of ``level`` on a work region padded by the apron."""
+    def _synthesize(self, level: int, keys: np.ndarray,
+                    desired: np.ndarray | None = None) -> _Level:
+        """Synthesize blocks ``keys`` of ``level``, all their voxels or only the
+        ``desired`` ones (voxel coordinates), on a work region padded by the apron.
+
+        Section 5.2: each correction step visits just the voxels whose value later steps
+        read on the way to the desired ones, and only the blocks holding voxels that
+        the first step reads are upsampled from the parent level.
+        """
         work = _dilate(keys, self._apron)
         coords = _unpack(work)
         dev = self.device
         t = self._tables[level]
         nvox = len(work) * _BLOCK_VOXELS
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
-        triples = wp.empty(nvox, dtype=wp.vec3i, device=dev)
+        nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
+        if desired is None:
+            flat = (_lookup(work, keys)[:, None] * _BLOCK_VOXELS
+                    + np.arange(_BLOCK_VOXELS)).reshape(-1)
+        else:
+            local = (desired[:, 0] & 3) * 16 + (desired[:, 1] & 3) * 4 + (desired[:, 2] & 3)
+            flat = _lookup(work, _pack(desired >> 2)).astype(np.int64) * _BLOCK_VOXELS + local
+        active, read = self._dependency_lists(coords_wp, nbr, coords, flat)
+        # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
+        # such as the features read valid pixels everywhere.
+        triples = wp.zeros(nvox, dtype=wp.vec3i, device=dev)
         if level == self.start:
             jitter = round(self.jitter * 256)
             wp.launch(_k.initialize, nvox, [coords_wp, t, self.seed, jitter], [triples], device=dev)
         else:
-            parent_keys = np.unique(_pack(coords >> 1))
+            read_blocks = read.reshape(-1, _BLOCK_VOXELS).any(axis=1)
+            parent_keys = np.unique(_pack(coords[read_blocks] >> 1))
             parent = self._final(level - 1, parent_keys)
-            parent_slot = _lookup(parent.keys, _pack(coords >> 1))
+            parent_slot = np.where(read_blocks, _lookup(parent.keys, _pack(coords >> 1)), -1)
             pt = self._tables[level - 1]
             wp.launch(
                 _k.upsample,
                 nvox,
                 [
                     coords_wp,
-                    wp.array(parent_slot, dtype=wp.int32, device=dev),
+                    wp.array(parent_slot.astype(np.int32), dtype=wp.int32, device=dev),
                     wp.array(parent.triples, dtype=wp.vec3i, device=dev),
                     pt.width,
                     t,
@@ -328,33 +346,55 @@ class Synthesizer:
                 [triples],
                 device=dev,
             )
-        self._correct(coords_wp, work, keys, triples, t)
-        self.voxels_synthesized[level] += nvox
+        self._correct(active, nbr, triples, t)
+        corrected = np.zeros(nvox, bool)
+        for step in active:
+            corrected[step] = True
+        self.voxels_synthesized[level] += int(corrected.sum())
         out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[_lookup(work, keys)]
         return _Level(keys, out.reshape(-1, 3))
 
-    def _correct(self, coords: wp.array, work: np.ndarray, keys: np.ndarray,
-                 triples: wp.array, t: _k.LevelTables) -> None:
-        """Correction passes on ``work``; each step only visits the blocks whose result
-        later steps still read on the way to ``keys``."""
+    def _dependency_lists(self, coords_wp: wp.array, nbr: wp.array, coords: np.ndarray,
+                          desired: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """Section 5.2, ComputeMask, voxel-exact within one level: the voxels each
+        correction step corrects (flat work indices, sorted) and the mask of the voxels
+        the first step reads, undoing the steps from last to first."""
         dev = self.device
-        nvox = len(work) * _BLOCK_VOXELS
-        nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
+        nvox = len(coords) * _BLOCK_VOXELS
+        need = np.zeros(nvox, np.uint8)
+        need[desired] = 1
+        need_wp = wp.array(need, dtype=wp.uint8, device=dev)
+        before = wp.empty_like(need_wp)
+        steps = correction_steps(self.passes, self.subpasses)
+        active: list[np.ndarray] = []
+        for step in reversed(steps):
+            listed = np.flatnonzero(need).astype(np.int32)
+            if step >= 0:
+                world = coords[listed // _BLOCK_VOXELS] * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
+                listed = listed[(world & 1) @ np.array([1, 2, 4]) == step]
+            active.append(listed)
+            launch_ranges(_k.dilate_need, 0, nvox,
+                          [coords_wp, nbr, self._shape, step, need_wp], [before], device=dev)
+            need_wp, before = before, need_wp
+            need = need_wp.numpy()
+        return active[::-1], need.astype(bool)
+
+    def _correct(self, active: list[np.ndarray], nbr: wp.array, triples: wp.array,
+                 t: _k.LevelTables) -> None:
+        """Correction passes (section 5.1): step n corrects the voxels ``active[n]``."""
+        dev = self.device
+        nvox = triples.shape[0]
         feats = wp.empty(nvox * t.nfeat, dtype=wp.int32, device=dev)
         qproj = wp.zeros(nvox * 3, dtype=_k.appearance_vector, device=dev)
         other = wp.empty_like(triples)
         src, dst = triples, other
-        steps = correction_steps(self.passes, self.subpasses)
-        for n, parity in enumerate(steps):
-            reach = dependency_radius(self._half, self.passes, self.subpasses, len(steps) - n - 1)
-            active_np = _lookup(work, _dilate(keys, -(-reach // BLOCK)))
-            active = wp.array(active_np, dtype=wp.int32, device=dev)
-            count = len(active_np) * _BLOCK_VOXELS
+        for listed in active:
+            voxels = wp.array(listed, dtype=wp.int32, device=dev)
             wp.launch(_k.voxel_features, nvox, [src, t], [feats], device=dev)
             wp.copy(dst, src)
-            launch_ranges(_k.project_neighborhoods, 0, count,
-                          [active, coords, nbr, feats, t, parity], [qproj], device=dev, per_item=3)
-            launch_ranges(_k.correct, 0, count, [active, coords, nbr, src, qproj, t, parity],
+            launch_ranges(_k.project_neighborhoods, 0, len(listed), [voxels, nbr, feats, t],
+                          [qproj], device=dev, per_item=3)
+            launch_ranges(_k.correct, 0, len(listed), [voxels, nbr, src, qproj, t],
                           [dst], device=dev)
             src, dst = dst, src
         if src is not triples:
