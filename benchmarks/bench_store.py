@@ -104,16 +104,15 @@ def cold(candidates) -> None:
     tex.query(pts, filter="trilinear")
     seconds = time.perf_counter() - start
     s = tex.store.stats()
-    touched = s["bricks"] * 512
-    print(f"sphere r={RADIUS:.0f}: {n} points, {s['bricks']} bricks touched "
-          f"({touched} voxels), {seconds:.1f} s ({s['synthesis_seconds']:.1f} s synthesizing)")
+    touched = s["voxels"]
+    print(f"sphere r={RADIUS:.0f}: {n} points, {touched} voxels read and stored in "
+          f"{s['bricks']} bricks, {seconds:.1f} s ({s['synthesis_seconds']:.1f} s synthesizing)")
     for level, count in s["voxels_synthesized"].items():
         made = count - before[level]
-        print(f"  level {level}: {made} voxels synthesized, {made / touched:.2f}x touched")
+        print(f"  level {level}: {made} voxels corrected, {made / touched:.2f}x stored")
     per_voxel = s["bytes"] / touched
-    print(f"bytes per stored voxel: {per_voxel:.3f} ({s['payload_bytes'] / touched:.0f} payload "
-          f"+ {s['index_bytes'] / touched:.3f} index, "
-          f"index {100 * s['index_bytes'] / s['payload_bytes']:.2f}% of payload)")
+    print(f"bytes per stored voxel: {per_voxel:.3f} ({s['payload_bytes'] / touched:.1f} "
+          f"payload, partly filled bricks included, + {s['index_bytes'] / touched:.3f} index)")
 
 
 def main() -> None:

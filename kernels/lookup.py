@@ -1,7 +1,8 @@
 """Kernels of point queries on the sparse brick store (Dong 2008, sections 5.2 and 6.2).
 
 Finest-level results live in bricks of 8^3 voxels found through an open-addressing hash
-table keyed by packed brick coordinates. A voxel is stored as its triple of exemplar pixel
+table keyed by packed brick coordinates. A brick may be partly filled: one bit per voxel
+says whether it is stored. A voxel is stored as its triple of exemplar pixel
 indices, as the paper's GPU implementation keeps "three 2-channel 16 bit" triples
 (section 6.2), and its color is the average of the three exemplar colors (section 5.1).
 
@@ -19,6 +20,7 @@ wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 BRICK = 8
 BRICK_VOXELS = 512
+VALID_WORDS = 16  # 32-bit words of a brick's stored-voxel bits
 MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars
 EMPTY = wp.constant(wp.int64(-1))
 KEY_BIAS = 1 << 20
@@ -39,6 +41,7 @@ class BrickIndex:
     slots: wp.array(dtype=wp.int32)
     mask: wp.int64  # capacity - 1
     stamps: wp.array(dtype=wp.int64)  # per pool slot, for least-recently-used eviction
+    valid: wp.array(dtype=wp.uint32)  # per pool slot, VALID_WORDS words of stored-voxel bits
 
 
 @wp.func
@@ -89,6 +92,24 @@ def touch(index: BrickIndex, slot: int, tick: wp.int64):
 def local_index(voxel: wp.vec3i) -> int:
     """Position of ``voxel`` in its brick, x slowest."""
     return (voxel[0] & 7) * 64 + (voxel[1] & 7) * 8 + (voxel[2] & 7)
+
+
+@wp.func
+def voxel_stored(index: BrickIndex, slot: int, local: int) -> bool:
+    """Whether voxel ``local`` of the brick in pool ``slot`` (-1: absent) is stored."""
+    if slot < 0:
+        return False
+    word = index.valid[slot * VALID_WORDS + (local >> 5)]
+    return ((word >> wp.uint32(local & 31)) & wp.uint32(1)) != wp.uint32(0)
+
+
+@wp.func
+def stored_slot(index: BrickIndex, voxel: wp.vec3i) -> int:
+    """Pool slot of the brick holding ``voxel`` if the voxel is stored, else -1."""
+    slot = find_slot(index, brick_key(voxel))
+    if not voxel_stored(index, slot, local_index(voxel)):
+        slot = -1
+    return slot
 
 
 @wp.func
@@ -146,10 +167,10 @@ def sample_nearest(
     missed: wp.array(dtype=wp.int32),
     miss_count: wp.array(dtype=wp.int32),
 ):
-    """Color of the voxel containing each point; points whose brick is absent are flagged."""
+    """Color of the voxel containing each point; points whose voxel is absent are flagged."""
     i = offset + wp.tid()
     voxel = floor_voxel(points[i])
-    slot = find_slot(index, brick_key(voxel))
+    slot = stored_slot(index, voxel)
     if slot < 0:
         missed[i] = 1
         wp.atomic_add(miss_count, 0, 1)
@@ -176,7 +197,8 @@ def sample_trilinear(
     miss_count: wp.array(dtype=wp.int32),
 ):
     """Trilinear blend of the 8 voxel centers around each point. Corners may lie in
-    different bricks, so each corner finds its own brick: borders are seamless."""
+    different bricks, so each corner finds its own brick: borders are seamless. Points
+    with a corner not stored are flagged."""
     i = offset + wp.tid()
     q = points[i] - wp.vec3d(0.5, 0.5, 0.5)
     base = floor_voxel(q)
@@ -194,6 +216,8 @@ def sample_trilinear(
             if last_slot >= 0:
                 touch(index, last_slot, tick)
         slots[corner] = last_slot
+        if not voxel_stored(index, last_slot, local_index(voxel)):
+            slots[corner] = -1
     if wp.min(slots) < 0:
         missed[i] = 1
         wp.atomic_add(miss_count, 0, 1)
@@ -216,6 +240,7 @@ def sample_trilinear(
 
 @wp.kernel
 def voxel_sums(
+    index: BrickIndex,
     pool: wp.array(dtype=Any),
     col0: wp.array(dtype=wp.float32),
     col1: wp.array(dtype=wp.float32),
@@ -224,11 +249,13 @@ def voxel_sums(
     out: wp.array2d(dtype=wp.float32),
 ):
     """Three-color sum of every pooled voxel, as the lookups compute it, for readers
-    outside Warp (the Mitsuba plugin's traced lookups)."""
+    outside Warp (the Mitsuba plugin's traced lookups); NaN where not stored."""
     v = wp.tid()
-    p = voxel_triple(pool, v // BRICK_VOXELS, v % BRICK_VOXELS)
+    slot = v // BRICK_VOXELS
+    stored = voxel_stored(index, slot, v % BRICK_VOXELS)
+    p = voxel_triple(pool, slot, v % BRICK_VOXELS)
     for c in range(channels):
-        out[v, c] = triple_sum(p, col0, col1, col2, channels, c)
+        out[v, c] = wp.where(stored, triple_sum(p, col0, col1, col2, channels, c), wp.nan)
 
 
 @wp.kernel
@@ -243,16 +270,16 @@ def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32),
 
 
 @wp.kernel
-def store_bricks(
-    slots: wp.array(dtype=wp.int32),
+def store_voxels(
+    at: wp.array(dtype=wp.int32),
     payload: wp.array(dtype=Any),
     tick: wp.int64,
     pool: wp.array(dtype=Any),
     stamps: wp.array(dtype=wp.int64),
 ):
-    """Copy the triples of new bricks into their pool slots, marked as just used."""
-    n, j = wp.tid()
-    per_brick = BRICK_VOXELS * 3
-    pool[slots[n] * per_brick + j] = payload[n * per_brick + j]
-    if j == 0:
-        stamps[slots[n]] = tick
+    """Copy the triples of new voxels to their pooled places (``at``: slot * 512 + local),
+    their bricks marked as just used."""
+    n, c = wp.tid()
+    pool[at[n] * 3 + c] = payload[n * 3 + c]
+    if c == 0:
+        stamps[at[n] // BRICK_VOXELS] = tick

@@ -90,7 +90,8 @@ def _print_report(report: dict) -> None:
           f"render {report['render_seconds']:.1f} s")
     for entry in report["textures"]:
         s, t = entry["store"], entry["traced"]
-        print(f"  {entry['texture']}\n    bricks {s['bricks']} ({s['bytes'] / 2**20:.2f} MiB), "
+        print(f"  {entry['texture']}\n    {s['voxels']} voxels in {s['bricks']} bricks "
+              f"({s['bytes'] / 2**20:.2f} MiB), "
               f"traced renders {t['renders']} ({t['renders_with_misses']} missed bricks "
               "and were repeated), "
               f"wavefront lookups {s['hits']} hits / {s['misses']} misses, "

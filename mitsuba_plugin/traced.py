@@ -24,7 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from kernels.lookup import BRICK, BRICK_VOXELS
-from warptex.store import BrickStore, brick_coords
+from warptex.store import BrickStore, brick_coords, brick_keys, brick_voxels
 
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
 # a dense table; such a texture renders in wavefront mode instead.
@@ -116,8 +116,9 @@ class TracedLookup:
         return dr.select(hit, mi.Color3f(*rgb[:3]), mi.Color3f(*self.fallback))
 
     def take_misses(self) -> np.ndarray:
-        """Voxels (N, 3) of every brick the logged lanes read, and a cleared log; called
-        once per traced render, which it counts, and whose bricks it marks as used."""
+        """Every voxel (N, 3) of the bricks the logged lanes read, and a cleared log;
+        called once per traced render, which it counts, and whose bricks it marks as
+        used. Whole bricks, so a render's misses are filled in few rounds."""
         packed = self._log_voxels.numpy()
         packed = packed[packed != 0].astype(np.int64)
         self.renders += 1
@@ -130,25 +131,25 @@ class TracedLookup:
             self._used = dr.zeros(mi.UInt32, dr.width(self._used))
         if self.filter == "trilinear":
             logged = (logged[:, None, :] + _CORNERS[None]).reshape(-1, 3)
-        return logged
+        return brick_voxels(np.unique(brick_keys(logged)))
 
     def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool,
                     mark: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:
-        """Color sums of integer ``voxel`` and whether its brick is stored; where
-        ``mark``, the brick is flagged as used, for least-recently-used eviction."""
+        """Color sums of integer ``voxel`` and whether it is stored; where ``mark``,
+        its brick is flagged as used, for least-recently-used eviction."""
         rel = [(v >> _SHIFT) - lo for v, lo in zip(voxel, self._lo, strict=True)]
         inside = mi.Bool(active)
         for r, n in zip(rel, self._dims, strict=True):
             inside &= (r >= 0) & (r < n)
         page = (rel[0] * self._dims[1] + rel[1]) * self._dims[2] + rel[2]
         slot = dr.gather(mi.Int32, self._pages, mi.UInt32(page), inside)
-        hit = inside & (slot >= 0)
-        dr.scatter(self._used, mi.UInt32(1), mi.UInt32(slot), hit & mark)
+        found = inside & (slot >= 0)
+        dr.scatter(self._used, mi.UInt32(1), mi.UInt32(slot), found & mark)
         x, y, z = (v & (BRICK - 1) for v in voxel)
         local = (x * BRICK + y) * BRICK + z
         at = mi.UInt32(slot * BRICK_VOXELS + local) * self._channels
-        sums = [dr.gather(mi.Float, self._sums, at + c, hit) for c in range(self._channels)]
-        return sums, hit
+        sums = [dr.gather(mi.Float, self._sums, at + c, found) for c in range(self._channels)]
+        return sums, found & ~dr.isnan(sums[0])  # NaN: a voxel its brick does not hold
 
     def _log(self, voxel: list[mi.Int32], missed: mi.Bool) -> None:
         """Record missed voxels, packed in one word each (so racing lanes cannot mix

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warptex.store import BrickStore, brick_keys, bricks_read
+from warptex.store import BrickStore, brick_keys, brick_voxels, voxels_read
+
+BRICK_BYTES = 512 * 6 + 64  # uint16 triples and the stored-voxel bits
 
 
 @pytest.fixture(scope="module")
@@ -40,16 +42,14 @@ def brick_center(b) -> list[float]:
     return [8 * c + 4.5 for c in b]
 
 
-def test_bricks_read_by_each_filter():
-    def coords(keys):
-        return {tuple(int(c) for c in k) for k in np.stack(
-            [keys >> 42, (keys >> 21) & ((1 << 21) - 1), keys & ((1 << 21) - 1)], 1) - (1 << 20)}
+def test_voxels_read_by_each_filter():
+    def as_set(voxels):
+        return {tuple(int(c) for c in v) for v in voxels}
 
     at_border = np.array([[8.0, 4.0, -3.0]])
-    assert coords(bricks_read(at_border, "nearest")) == {(1, 0, -1)}
-    assert coords(bricks_read(at_border, "trilinear")) == {(0, 0, -1), (1, 0, -1)}
-    inside = np.array([[4.0, 4.0, 4.0]])
-    assert coords(bricks_read(inside, "trilinear")) == {(0, 0, 0)}
+    assert as_set(voxels_read(at_border, "nearest")) == {(8, 4, -3)}
+    assert as_set(voxels_read(at_border, "trilinear")) == {
+        (x, y, z) for x in (7, 8) for y in (3, 4) for z in (-4, -3)}
     assert brick_keys(np.array([[-1, -8, -9]])) == brick_keys(np.array([[-8, -1, -16]]))
 
 
@@ -63,7 +63,7 @@ def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
     keys = brick_keys(coords * 8)
     pixels = rng.integers(0, 32 * 32, (len(keys) * 512, 3))
     with store._lock.exclusive():
-        store._insert(keys, pixels.astype(np.uint16).reshape(-1))
+        store._insert(brick_voxels(keys), pixels.astype(np.uint16))
     local = rng.integers(0, 8, (len(keys), 3))
     pts = coords * 8 + local + 0.5
     slot_of = {k: i for i, k in enumerate(keys)}
@@ -72,12 +72,12 @@ def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
     np.testing.assert_array_equal(sample(store, pts), syn.colors_of(pixels[idx]))
     stats = store.stats()
     assert stats["bricks"] == len(keys) and stats["misses"] == 0
-    assert stats["bricks_synthesized"] == 0
+    assert stats["voxels"] == len(keys) * 512 and stats["voxels_added"] == 0
     assert stats["index_bytes"] <= 0.1 * stats["payload_bytes"]
 
 
 def test_least_recently_used_brick_is_evicted(candidates):
-    store = BrickStore(synthesizer(candidates), cache_bytes=2 * 512 * 6)
+    store = BrickStore(synthesizer(candidates), cache_bytes=2 * BRICK_BYTES)
     a, b, c = brick_center((0, 0, 0)), brick_center((1, 0, 0)), brick_center((0, 1, 0))
     for p in (a, b, a, c):  # b is now the least recently used
         sample(store, [p])
@@ -107,12 +107,36 @@ def test_save_load_keeps_the_most_recent_bricks_that_fit(candidates, tmp_path: P
     path = tmp_path / "s.wtb"
     store.save(path)
     assert not list(tmp_path.glob(".*.tmp*"))
-    small = BrickStore.load(path, syn, cache_bytes=2 * 512 * 6)
+    small = BrickStore.load(path, syn, cache_bytes=2 * BRICK_BYTES)
     assert small.stats()["bricks"] == 2
     sample(small, centers[1:])
     assert small.stats()["misses"] == 0
     full = BrickStore.load(path, syn)
     np.testing.assert_array_equal(sample(full, centers), sample(store, centers))
+
+
+@pytest.mark.parametrize("filter, voxels", [("nearest", 1), ("trilinear", 8)])
+def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: Path,
+                                                         filter, voxels):
+    """Bricks fill voxel by voxel: a query stores what its filter reads, no more, and a
+    voxel missing from a partly filled brick (also after a reload) is synthesized."""
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    p = np.array([[3.25, 2.75, 5.5]])
+    first = sample(store, p, filter)
+    s = store.stats()
+    assert (s["bricks"], s["voxels"], s["voxels_added"], s["misses"]) == (1, voxels, voxels, 1)
+    assert sample(store, p, filter).tobytes() == first.tobytes()
+    assert store.stats()["misses"] == 1
+    path = tmp_path / "partial.wtb"
+    store.save(path)
+    loaded = BrickStore.load(path, syn)
+    assert loaded.stats()["voxels"] == voxels
+    np.testing.assert_array_equal(sample(loaded, p, filter), first)
+    other = np.array([[6.5, 0.5, 1.5]])  # same brick, not stored
+    np.testing.assert_array_equal(sample(loaded, other, "nearest"),
+                                  syn.voxels(np.array([[6, 0, 1]])))
+    assert loaded.stats()["voxels"] == voxels + 1 and loaded.stats()["bricks"] == 1
 
 
 def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path):

@@ -10,7 +10,7 @@ import pytest
 
 import mitsuba_plugin
 import warptex
-from warptex.store import brick_keys, bricks_read
+from warptex.store import brick_keys, voxels_read
 
 LLVM = "llvm_ad_rgb"
 
@@ -71,7 +71,7 @@ def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter,
     for _ in range(3):
         traced_colors(lookup, far)
         missed = np.concatenate([missed, lookup.take_misses()])
-    assert set(bricks_read(far, filter)) <= set(brick_keys(missed))
+    assert set(brick_keys(voxels_read(far, filter))) <= set(brick_keys(missed))
     assert len(lookup.take_misses()) == 0  # taking clears the log
     texture.store.prefetch(missed)
     assert lookup.refresh()

@@ -440,8 +440,9 @@ def _report_store(tex, resolution: int, elapsed: float) -> None:
     full = resolution**3 * stats["bytes_per_voxel"]
     print(f"voxels synthesized at the finest level: {synthesized} "
           f"({100 * synthesized / resolution**3:.3f}% of the {resolution}^3 block)")
-    print(f"stored: {stats['bytes'] / 2**20:.1f} MiB in {stats['bricks']} bricks "
-          f"(the full volume would be {full / 2**20:.0f} MiB); time {elapsed:.1f} s")
+    print(f"stored: {stats['voxels']} voxels, {stats['bytes'] / 2**20:.1f} MiB in "
+          f"{stats['bricks']} bricks (the full volume would be {full / 2**20:.0f} MiB); "
+          f"time {elapsed:.1f} s")
 
 
 def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:

@@ -2,9 +2,10 @@
 
 The paper stores synthesized surface voxels in a TileTree and synthesizes each region
 once (section 6.2). Here finest voxels are kept in bricks of 8^3, found through a hash
-table that the lookup kernels of ``kernels.lookup`` search. A point batch is looked up in
-one launch; the bricks it misses are synthesized in one engine call (one union dependency
-mask, section 5.2), inserted, and the missed points finished.
+table that the lookup kernels of ``kernels.lookup`` search; a brick may be partly filled
+(one bit per voxel). A point batch is looked up in one launch; the voxels it misses are
+synthesized in one engine call (one union dependency mask, section 5.2), inserted, and the
+missed points finished. So only the voxels that queries read are ever synthesized.
 
 A brick holds each voxel's triple of exemplar pixels (section 6.2 keeps triples in 16-bit
 targets): 6 bytes per voxel when every exemplar has at most 65536 pixels, else 12, instead
@@ -37,7 +38,7 @@ from warptex.parallel import launch_ranges
 from warptex.synthesis import Synthesizer
 
 FILTERS = ("nearest", "trilinear")
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: bricks may be partly filled
 _MAGIC = b"WTXBRICK"
 _EMPTY = -1
 _MIN_BRICKS = 64
@@ -63,12 +64,23 @@ def brick_coords(keys: np.ndarray) -> np.ndarray:
     return b - _k.KEY_BIAS
 
 
-def bricks_read(points: np.ndarray, filter: str) -> np.ndarray:
-    """Sorted unique keys of the bricks that ``filter`` reads for float64 ``points``."""
+def voxels_read(points: np.ndarray, filter: str) -> np.ndarray:
+    """Unique integer voxels (M, 3) that ``filter`` reads for float64 ``points``."""
     if filter == "nearest":
-        return np.unique(brick_keys(np.floor(points)))
+        return np.unique(np.floor(points).astype(np.int64), axis=0)
     base = np.floor(points - 0.5).astype(np.int64)
-    return np.unique(brick_keys((base[:, None, :] + _CORNERS[None]).reshape(-1, 3)))
+    return np.unique((base[:, None, :] + _CORNERS[None]).reshape(-1, 3), axis=0)
+
+
+def brick_voxels(keys: np.ndarray) -> np.ndarray:
+    """Every voxel (N * 512, 3) of the bricks ``keys``, x slowest within a brick."""
+    return (brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
+
+
+def _local_index(voxels: np.ndarray) -> np.ndarray:
+    """Position of each voxel in its brick, as ``kernels.lookup.local_index``."""
+    v = voxels & (_k.BRICK - 1)
+    return (v[:, 0] * _k.BRICK + v[:, 1]) * _k.BRICK + v[:, 2]
 
 
 class Snapshot(NamedTuple):
@@ -76,8 +88,8 @@ class Snapshot(NamedTuple):
 
     ``keys[s]`` is the brick key in pool slot ``s`` (-1 where free) and
     ``sums[s * 512 + local]`` the three-color sum (C channels, float32) of that brick's
-    voxel ``local`` (x slowest), exactly as the lookup kernels compute it. ``version``
-    changes whenever bricks are inserted or evicted.
+    voxel ``local`` (x slowest), exactly as the lookup kernels compute it, NaN where that
+    voxel is not stored. ``version`` changes whenever voxels are inserted or evicted.
     """
 
     version: int
@@ -142,7 +154,7 @@ class BrickStore:
         self._widths = np.array([c.shape[1] for c in sources], np.int64)
         compact = max(c.shape[0] * c.shape[1] for c in sources) <= 1 << 16
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
-        self._brick_bytes = _k.BRICK_VOXELS * 3 * self._dtype.itemsize
+        self._brick_bytes = _k.BRICK_VOXELS * 3 * self._dtype.itemsize + _k.VALID_WORDS * 4
         self._device = synthesizer.device
         uploaded = {j: wp.array(cs.colors[j].reshape(-1), dtype=wp.float32, device=self._device)
                     for j in set(cs.axis_source)}
@@ -151,11 +163,13 @@ class BrickStore:
         self._counts = threading.Lock()
         self._tick = itertools.count(1)
         self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each pool slot
+        self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)  # stored-voxel bits per slot
         self._pool = wp.zeros(0, dtype=self._wp_dtype, device=self._device)
         self._index = _k.BrickIndex()
         self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
+        self._index.valid = wp.zeros(0, dtype=wp.uint32, device=self._device)
         self._rebuild_table(_MIN_BRICKS * 2)
-        self._hits = self._misses = self._synthesized = self._evicted = 0
+        self._hits = self._misses = self._added = self._evicted = 0
         self._version = 0
         self._seconds = 0.0
 
@@ -208,10 +222,10 @@ class BrickStore:
         return self._version
 
     def prefetch(self, voxels: np.ndarray) -> None:
-        """Make the bricks holding integer ``voxels`` (N, 3) resident, synthesizing the
-        absent ones in one engine call."""
+        """Store integer ``voxels`` (N, 3), synthesizing the absent ones in one engine
+        call."""
         if len(voxels):
-            self._with_resident(np.unique(brick_keys(np.asarray(voxels))), lambda: None)
+            self._with_voxels(np.unique(np.asarray(voxels, np.int64), axis=0), lambda: None)
 
     def mark_used(self, slots: np.ndarray, version: int) -> None:
         """Count pool ``slots`` of the snapshot of ``version`` as just used, for
@@ -231,23 +245,26 @@ class BrickStore:
                             dtype=wp.float32, device=dev)
             if sums.shape[0]:
                 wp.launch(_k.voxel_sums, sums.shape[0],
-                          [self._pool, *self._colors, self.channels], [sums], device=dev)
+                          [self._index, self._pool, *self._colors, self.channels], [sums],
+                          device=dev)
             return Snapshot(self._version, self._keys.copy(), sums.numpy())
 
     def stats(self) -> dict:
-        """Bricks, bytes, lookups served from the store (hits) or not (misses), and the
-        synthesis behind them: voxels per level and seconds."""
+        """Bricks and stored voxels, bytes, lookups served from the store (hits) or not
+        (misses), and the synthesis behind them: voxels added to the store, voxels the
+        engine corrected per level, seconds."""
         with self._lock.shared(), self._counts:
             bricks = int((self._keys != _EMPTY).sum())
             return {
                 "bricks": bricks,
+                "voxels": int(np.unpackbits(self._valid.view(np.uint8)).sum()),
                 "bytes": bricks * self._brick_bytes + self._index_bytes(),
                 "payload_bytes": bricks * self._brick_bytes,
                 "index_bytes": self._index_bytes(),
                 "bytes_per_voxel": self._dtype.itemsize * 3,
                 "hits": self._hits,
                 "misses": self._misses,
-                "bricks_synthesized": self._synthesized,
+                "voxels_added": self._added,
                 "bricks_evicted": self._evicted,
                 "voxels_synthesized": dict(self.synthesizer.voxels_synthesized),
                 "synthesis_seconds": self._seconds,
@@ -261,7 +278,7 @@ class BrickStore:
             live = np.flatnonzero(self._keys != _EMPTY)
             live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
             pool = self._pool.numpy().reshape(-1, _k.BRICK_VOXELS * 3)
-            arrays = {"keys": self._keys[live], "triples": pool[live]}
+            arrays = {"keys": self._keys[live], "triples": pool[live], "valid": self._valid[live]}
         write_archive(path, _MAGIC, FORMAT_VERSION,
                       {"identity": np.array(self.identity()), **arrays})
 
@@ -272,32 +289,35 @@ class BrickStore:
         when the file is damaged or belongs to another texture."""
         store = cls(synthesizer, cache_bytes=cache_bytes)
         try:
-            keys, triples = store._read(Path(path))
+            keys, triples, valid = store._read(Path(path))
         except StoreFileError as e:
             warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
             return store
-        keep = min(len(keys), store._budget_bricks)
+        keep = slice(len(keys) - min(len(keys), store._budget_bricks), len(keys))
+        stored = np.unpackbits(valid[keep].view(np.uint8), bitorder="little").astype(bool)
+        voxels = brick_voxels(keys[keep])[stored]
+        payload = triples[keep].reshape(-1, 3)[stored]
         with store._lock.exclusive():
-            store._insert(keys[len(keys) - keep :], triples[len(keys) - keep :].reshape(-1))
+            store._insert(voxels, payload)
         return store
 
     # -- batches ----------------------------------------------------------------------
 
-    def _with_resident(self, keys: np.ndarray, run: Callable[[], None]) -> None:
-        """Run ``run`` while every brick of ``keys`` is stored, then evict.
+    def _with_voxels(self, voxels: np.ndarray, run: Callable[[], None]) -> None:
+        """Run ``run`` while all unique ``voxels`` are stored, then evict.
 
-        Absent bricks are synthesized outside the lock, so lookups of stored bricks go
-        on meanwhile; bricks evicted by another thread before we get the lock again are
+        Absent voxels are synthesized outside the lock, so lookups of stored voxels go
+        on meanwhile; voxels evicted by another thread before we get the lock again are
         synthesized in the next round.
         """
         made: list[tuple[np.ndarray, np.ndarray]] = []
         while True:
             with self._lock.exclusive():
                 # Everything this batch synthesized goes back in, so each round leaves
-                # fewer bricks to make and the loop ends whatever other threads evict.
-                for k, payload in made:
-                    self._insert(k, payload)
-                absent = keys[~np.isin(keys, self._keys)]
+                # fewer voxels to make and the loop ends whatever other threads evict.
+                for v, payload in made:
+                    self._insert(v, payload)
+                absent = voxels[~self._stored(voxels)]
                 if len(absent) == 0:
                     run()
                     self._evict()
@@ -306,27 +326,26 @@ class BrickStore:
 
     def _finish(self, kernel, points: np.ndarray, filter: str, out: np.ndarray,
                 rows: np.ndarray) -> None:
-        """Second half of a batch: the points whose bricks were missing."""
+        """Second half of a batch: the points whose voxels were missing."""
         pts = self._on_device(np.ascontiguousarray(points), wp.vec3d)
         sub = np.empty((len(points), self.channels), np.float32)
         res = self._on_device(sub, wp.float32)
         dev = self._device
         missed = wp.zeros(len(points), dtype=wp.int32, device=dev)
         count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._with_resident(bricks_read(points, filter),
-                            lambda: self._launch(kernel, pts, res, missed, count))
+        self._with_voxels(voxels_read(points, filter),
+                          lambda: self._launch(kernel, pts, res, missed, count))
         out[rows] = res.numpy()
 
-    def _synthesize(self, keys: np.ndarray) -> np.ndarray:
-        """Triples of whole bricks ``keys``, in one engine call."""
-        voxels = (brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
+    def _synthesize(self, voxels: np.ndarray) -> np.ndarray:
+        """Triples (N, 3) of ``voxels`` as pixel indices, in one engine call."""
         start = time.perf_counter()
         rc = self.synthesizer.triples(voxels)
         seconds = time.perf_counter() - start
         with self._counts:
             self._seconds += seconds
-            self._synthesized += len(keys)
-        return (rc[:, :, 0] * self._widths + rc[:, :, 1]).astype(self._dtype).reshape(-1)
+            self._added += len(voxels)
+        return (rc[:, :, 0] * self._widths + rc[:, :, 1]).astype(self._dtype)
 
     def _launch(self, kernel, points: wp.array, out: wp.array, missed: wp.array,
                 count: wp.array) -> None:
@@ -339,32 +358,63 @@ class BrickStore:
 
     # -- mutation (exclusive lock held) -----------------------------------------------
 
-    def _insert(self, keys: np.ndarray, payload: np.ndarray) -> None:
-        fresh = ~np.isin(keys, self._keys)
-        keys = keys[fresh]
-        if len(keys) == 0:
+    def _stored(self, voxels: np.ndarray) -> np.ndarray:
+        """Whether each of ``voxels`` (N, 3) is stored."""
+        slots = self._slots_of(brick_keys(voxels))
+        local = _local_index(voxels)
+        found = slots >= 0
+        words = self._valid[slots[found], local[found] >> 5]
+        out = np.zeros(len(voxels), bool)
+        out[found] = (words >> (local[found] & 31).astype(np.uint32)) & 1 != 0
+        return out
+
+    def _slots_of(self, keys: np.ndarray) -> np.ndarray:
+        """Pool slot of each brick key, -1 where the brick is absent."""
+        live = np.flatnonzero(self._keys != _EMPTY)
+        if len(live) == 0:
+            return np.full(len(keys), -1, np.int64)
+        order = live[np.argsort(self._keys[live])]
+        pos = np.minimum(np.searchsorted(self._keys[order], keys), len(order) - 1)
+        return np.where(self._keys[order[pos]] == keys, order[pos], -1)
+
+    def _insert(self, voxels: np.ndarray, payload: np.ndarray) -> None:
+        """Store ``voxels`` (N, 3) with their triples ``payload`` (N, 3), giving new
+        bricks pool slots."""
+        if len(voxels) == 0:
             return
-        payload = payload.reshape(-1, _k.BRICK_VOXELS * 3)[fresh].reshape(-1)
-        free = np.flatnonzero(self._keys == _EMPTY)
-        if len(free) < len(keys):
-            live = len(self._keys) - len(free)
-            self._grow_pool(max(live + len(keys),
-                                min(max(2 * len(self._keys), _MIN_BRICKS), self._budget_bricks)))
+        keys = brick_keys(voxels)
+        fresh = np.unique(keys[self._slots_of(keys) < 0])
+        if len(fresh):
             free = np.flatnonzero(self._keys == _EMPTY)
-        slots = free[: len(keys)]
-        self._keys[slots] = keys
-        self._version += 1
+            if len(free) < len(fresh):
+                live = len(self._keys) - len(free)
+                self._grow_pool(max(live + len(fresh), min(max(2 * len(self._keys), _MIN_BRICKS),
+                                                           self._budget_bricks)))
+                free = np.flatnonzero(self._keys == _EMPTY)
+            self._keys[free[: len(fresh)]] = fresh
+            self._valid[free[: len(fresh)]] = 0
+            live = int((self._keys != _EMPTY).sum())
+            if 2 * live > len(self._index.keys):
+                self._rebuild_table(1 << (2 * live).bit_length())
+            else:
+                dev = self._device
+                wp.launch(_k.insert_keys, 1,
+                          [wp.array(fresh, dtype=wp.int64, device=dev),
+                           wp.array(free[: len(fresh)].astype(np.int32), dtype=wp.int32,
+                                    device=dev)], [self._index], device=dev)
+        slots = self._slots_of(keys)
+        local = _local_index(voxels)
+        np.bitwise_or.at(self._valid, (slots, local >> 5),
+                         (np.uint32(1) << (local & 31).astype(np.uint32)))
+        self._upload_valid()
         dev = self._device
-        slots_wp = wp.array(slots.astype(np.int32), dtype=wp.int32, device=dev)
-        wp.launch(_k.store_bricks, (len(keys), _k.BRICK_VOXELS * 3),
-                  [slots_wp, wp.array(payload, dtype=self._wp_dtype, device=dev),
+        at = (slots * _k.BRICK_VOXELS + local).astype(np.int32)
+        wp.launch(_k.store_voxels, (len(voxels), 3),
+                  [wp.array(at, dtype=wp.int32, device=dev),
+                   wp.array(np.ascontiguousarray(payload, self._dtype).reshape(-1),
+                            dtype=self._wp_dtype, device=dev),
                    wp.int64(next(self._tick))], [self._pool, self._index.stamps], device=dev)
-        live = int((self._keys != _EMPTY).sum())
-        if 2 * live > len(self._index.keys):
-            self._rebuild_table(1 << (2 * live).bit_length())
-        else:
-            wp.launch(_k.insert_keys, 1, [wp.array(keys, dtype=wp.int64, device=dev),
-                                          slots_wp], [self._index], device=dev)
+        self._version += 1
 
     def _evict(self) -> None:
         """Drop least-recently-used bricks until the payload fits ``cache_bytes``."""
@@ -373,12 +423,19 @@ class BrickStore:
         if excess <= 0:
             return
         stamps = self._index.stamps.numpy()[live]
-        self._keys[live[np.argsort(stamps, kind="stable")[:excess]]] = _EMPTY
+        gone = live[np.argsort(stamps, kind="stable")[:excess]]
+        self._keys[gone] = _EMPTY
+        self._valid[gone] = 0
         self._evicted += excess
         self._version += 1
         if len(self._keys) > max(self._budget_bricks, _MIN_BRICKS):
             self._compact()
         self._rebuild_table(len(self._index.keys))
+        self._upload_valid()
+
+    def _upload_valid(self) -> None:
+        self._index.valid = wp.array(self._valid.reshape(-1), dtype=wp.uint32,
+                                     device=self._device)
 
     def _grow_pool(self, bricks: int) -> None:
         old = len(self._keys)
@@ -390,6 +447,9 @@ class BrickStore:
             wp.copy(stamps, self._index.stamps, count=old)
         self._pool, self._index.stamps = pool, stamps
         self._keys = np.concatenate([self._keys, np.full(bricks - old, _EMPTY, np.int64)])
+        self._valid = np.concatenate([self._valid,
+                                      np.zeros((bricks - old, _k.VALID_WORDS), np.uint32)])
+        self._upload_valid()
 
     def _compact(self) -> None:
         """Give back the pool beyond the budget that a large batch made it grow to."""
@@ -398,9 +458,12 @@ class BrickStore:
         payload = self._pool.numpy().reshape(-1, per)[live]
         stamps = self._index.stamps.numpy()[live]
         keys = self._keys[live]
+        valid = self._valid[live]
         self._keys = np.zeros(0, np.int64)
+        self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)
         self._grow_pool(max(self._budget_bricks, _MIN_BRICKS))
         self._keys[: len(live)] = keys
+        self._valid[: len(live)] = valid
         dev = self._device
         wp.copy(self._pool, wp.array(payload.reshape(-1), dtype=self._wp_dtype, device=dev),
                 count=payload.size)
@@ -437,15 +500,17 @@ class BrickStore:
         """``a`` as a Warp array; on the CPU a view, so results land in ``a`` directly."""
         return wp.array(a, dtype=dtype, device=self._device, copy=self._device != "cpu")
 
-    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         z = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
         try:
             identity, keys, triples = str(z["identity"]), z["keys"], z["triples"]
+            valid = z["valid"]
         except KeyError as e:
             raise StoreFileError(f"{path}: unreadable brick store data ({e})") from None
         if identity != self.identity():
             raise StoreFileError(f"{path}: written for another texture (other exemplars, "
                                  "seed, jitter or synthesis parameters)")
-        if triples.dtype != self._dtype or triples.shape != (len(keys), _k.BRICK_VOXELS * 3):
+        if (triples.dtype != self._dtype or triples.shape != (len(keys), _k.BRICK_VOXELS * 3)
+                or valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS)):
             raise StoreFileError(f"{path}: brick payload of unexpected type or shape")
-        return keys.astype(np.int64), triples
+        return keys.astype(np.int64), triples, valid
