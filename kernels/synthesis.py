@@ -52,25 +52,35 @@ class LevelTables:
 
 @wp.func
 def block_local(i: int) -> wp.vec3i:
-    """Position of voxel ``i % 64`` inside its 4^3 block."""
-    r = i % BLOCK_VOXELS
-    return wp.vec3i(r // 16, (r // 4) % 4, r % 4)
+    """Position of voxel ``i`` (a flat index, so non-negative) inside its 4^3 block.
+
+    Shifts and masks rather than ``//`` and ``%``, which Warp rounds for negative
+    operands too: neighbour lookups are the engine's most frequent operation."""
+    return wp.vec3i((i >> 4) & 3, (i >> 2) & 3, i & 3)
 
 
 @wp.func
 def voxel_world(coords: wp.array(dtype=wp.vec3i), i: int) -> wp.vec3i:
-    return coords[i // BLOCK_VOXELS] * BLOCK + block_local(i)
+    return coords[i >> 6] * BLOCK + block_local(i)
+
+
+@wp.func
+def neighbor_in_block(nbr: wp.array2d(dtype=wp.int32), block: int, local: wp.vec3i,
+                      d: wp.vec3i) -> int:
+    """Flat index of the voxel at offset ``d`` (|d| <= 4) from position ``local`` of work
+    block ``block``, -1 if absent."""
+    p = local + d
+    b = ((p[0] >> 2) + 1) * 9 + ((p[1] >> 2) + 1) * 3 + (p[2] >> 2) + 1
+    slot = nbr[block, b]
+    if slot < 0:
+        return -1
+    return (slot << 6) + ((p[0] & 3) << 4) + ((p[1] & 3) << 2) + (p[2] & 3)
 
 
 @wp.func
 def neighbor_voxel(nbr: wp.array2d(dtype=wp.int32), i: int, d: wp.vec3i) -> int:
     """Flat index of the voxel at offset ``d`` (|d| <= 4) from voxel ``i``, -1 if absent."""
-    p = block_local(i) + d
-    b = ((p[0] >> 2) + 1) * 9 + ((p[1] >> 2) + 1) * 3 + (p[2] >> 2) + 1
-    slot = nbr[i // BLOCK_VOXELS, b]
-    if slot < 0:
-        return -1
-    return slot * BLOCK_VOXELS + (p[0] & 3) * 16 + (p[1] & 3) * 4 + (p[2] & 3)
+    return neighbor_in_block(nbr, i >> 6, block_local(i), d)
 
 
 @wp.func
@@ -246,11 +256,13 @@ def project_neighborhoods(
     """
     k = wp.tid() % 3
     i = active[first + wp.tid() // 3]
+    block = i >> 6
+    local = block_local(i)
     n = 2 * t.half + 1
     acc = appearance_vector()
     for a in range(n):
         for b in range(n):
-            j = neighbor_voxel(nbr, i, plane_offset(k, a - t.half, b - t.half))
+            j = neighbor_in_block(nbr, block, local, plane_offset(k, a - t.half, b - t.half))
             if j < 0:
                 j = i
             w = t.basis_off[k] + (a * n + b) * t.nfeat
