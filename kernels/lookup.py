@@ -253,6 +253,8 @@ def voxel_sums(
     v = wp.tid()
     slot = v // BRICK_VOXELS
     stored = voxel_stored(index, slot, v % BRICK_VOXELS)
+    # Read even where not stored: pool slots start zeroed and hold only real triples, so
+    # the pixels are valid indices either way.
     p = voxel_triple(pool, slot, v % BRICK_VOXELS)
     for c in range(channels):
         out[v, c] = wp.where(stored, triple_sum(p, col0, col1, col2, channels, c), wp.nan)

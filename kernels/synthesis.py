@@ -1,7 +1,7 @@
 """Kernels of lazy, spatially deterministic solid synthesis (Dong 2008, section 5).
 
 Voxels live in sparse blocks of 4^3; a block's 27 neighbours are found through a table
-built by the host, so a kernel reads any voxel within two voxels of its own. Every voxel
+built by the host, so a kernel reads any voxel within four voxels of its own. Every voxel
 stores a triple of exemplar pixel indices (one per axis). The exemplar of axis k spans
 the volume axes (k+1, k+2) as its (first, second) pixel coordinates.
 

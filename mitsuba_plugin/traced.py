@@ -5,8 +5,8 @@ The Warp lookups need concrete points, which Mitsuba only hands over in wavefron
 mode. So :func:`mitsuba_plugin.render` first renders symbolically with the lookup traced
 into Mitsuba's own program: a dense page table of the stored bricks and every stored
 voxel's three-color sum are Dr.Jit arrays, gathered like any grid texture. A lane whose
-brick is not stored gets a stand-in color and logs its voxel; the store then synthesizes
-the logged bricks (Warp) and the render is repeated. An image is kept only from a render
+voxel is not stored gets a stand-in color and logs it; the store then synthesizes the
+logged voxels' bricks (Warp) and the render is repeated. An image is kept only from a render
 that logged nothing, so each of its colors is a stored voxel, computed with the same
 float operations as ``kernels.lookup`` and therefore bit-identical to
 :meth:`warptex.texture.SolidTexture.query`.
@@ -80,8 +80,8 @@ class TracedLookup:
 
     def colors(self, p: tuple[mi.Float64, mi.Float64, mi.Float64],
                active: mi.Bool) -> mi.Color3f:
-        """RGB at texture-space points ``p``; ``fallback``, and logged, where a brick is
-        absent."""
+        """RGB at texture-space points ``p``; ``fallback``, and logged, where a voxel
+        read is not stored."""
         # Dr.Jit turns division by a literal into a multiplication, one ulp away from the
         # kernels' division; opaque divisors keep it a division.
         if self.filter == "nearest":

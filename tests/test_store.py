@@ -159,3 +159,19 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
         BrickStore.load(path, synthesizer(candidates))
     with pytest.warns(UserWarning, match="cannot read"):
         BrickStore.load(tmp_path / "missing.wtb", synthesizer(candidates))
+
+
+def test_a_loaded_store_evicts_in_the_saved_recency_order(candidates, tmp_path: Path):
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    recent_last = [(2, 0, 0), (0, 0, 0), (1, 0, 0)]  # key order differs from recency
+    for b in recent_last:
+        sample(store, [brick_center(b)])
+    path = tmp_path / "s.wtb"
+    store.save(path)
+    loaded = BrickStore.load(path, syn)
+    loaded.cache_bytes = 2 * BRICK_BYTES
+    loaded.prefetch(np.array([[0, 40, 0]]))  # a fourth brick: the two oldest go
+    snap = loaded.snapshot()
+    kept = set(snap.keys[snap.keys >= 0])
+    assert kept == set(brick_keys(np.array([[8, 0, 0], [0, 40, 0]])))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import textwrap
@@ -194,6 +195,9 @@ def test_bad_requests_are_clear(candidates):
         Synthesizer(candidates, subpasses=4)
     with pytest.raises(ValueError, match="jitter"):
         Synthesizer(candidates, jitter=-1.0)
+    wide = dataclasses.replace(candidates, params={**candidates.params, "neighborhood": 11})
+    with pytest.raises(ValueError, match="neighbourhoods of more than 9 voxels"):
+        Synthesizer(wide)
 
 
 def test_three_different_exemplars(data_dir, warp_device):

@@ -218,7 +218,7 @@ class BrickStore:
 
     @property
     def version(self) -> int:
-        """Changes whenever bricks are inserted or evicted."""
+        """Changes whenever voxels are inserted or bricks evicted."""
         return self._version
 
     def prefetch(self, voxels: np.ndarray) -> None:
@@ -383,7 +383,10 @@ class BrickStore:
         if len(voxels) == 0:
             return
         keys = brick_keys(voxels)
-        fresh = np.unique(keys[self._slots_of(keys) < 0])
+        absent = keys[self._slots_of(keys) < 0]
+        # Slots in order of first appearance: a loaded file lists bricks least recently
+        # used first, and eviction breaks ties of equal stamps by slot.
+        fresh = absent[np.sort(np.unique(absent, return_index=True)[1])]
         if len(fresh):
             free = np.flatnonzero(self._keys == _EMPTY)
             if len(free) < len(fresh):
@@ -464,6 +467,7 @@ class BrickStore:
         self._grow_pool(max(self._budget_bricks, _MIN_BRICKS))
         self._keys[: len(live)] = keys
         self._valid[: len(live)] = valid
+        self._upload_valid()
         dev = self._device
         wp.copy(self._pool, wp.array(payload.reshape(-1), dtype=self._wp_dtype, device=dev),
                 count=payload.size)

@@ -2,8 +2,9 @@
 
 A voxel's result is a pure function of its integer position, the candidates, the seed
 and the parameters: never of what else was requested, of batch order or of cache state.
-The host only orchestrates: it decides which sparse blocks each level must synthesize
-(section 5.2, dependency masks) and launches the kernels of ``kernels.synthesis``.
+The host only orchestrates: it decides which sparse blocks each level works on and, voxel
+by voxel, what each correction step must visit (section 5.2, dependency masks), and
+launches the kernels of ``kernels.synthesis``.
 """
 
 from __future__ import annotations
@@ -216,6 +217,10 @@ class Synthesizer:
         self.finest = candidates.num_levels - 1
         self.start = max(0, self.finest - int(levels))
         half = int(candidates.params["neighborhood"]) // 2
+        if half > BLOCK:
+            raise ValueError(f"neighbourhoods of more than {2 * BLOCK + 1} voxels are not "
+                             f"supported (the candidates use {2 * half + 1}): a kernel reads "
+                             f"voxels at most {BLOCK} away through its block's neighbours")
         self._half = half
         self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
         reads = np.argwhere(neighborhood_shape(half)) - half
