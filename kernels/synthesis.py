@@ -208,37 +208,22 @@ def voxel_features(
         feats[i * t.nfeat + c] = s
 
 
-@wp.func
-def in_subpass(coords: wp.array(dtype=wp.vec3i), i: int, parity: int) -> bool:
-    """Sub-passes (section 5.1) visit the 8 interleaved parity classes one by one."""
-    if parity < 0:
-        return True
-    p = voxel_world(coords, i)
-    return (p[0] & 1) + 2 * (p[1] & 1) + 4 * (p[2] & 1) == parity
-
-
 @wp.kernel
-def dilate_need(
+def spread_need(
     first: int,
-    coords: wp.array(dtype=wp.vec3i),
+    corrected: wp.array(dtype=wp.int32),
     nbr: wp.array2d(dtype=wp.int32),
     shape: wp.array(dtype=wp.vec3i),
-    parity: int,
-    need: wp.array(dtype=wp.uint8),
     before: wp.array(dtype=wp.uint8),
 ):
-    """Dependency mask (section 5.2), one correction step undone: a voxel's value before
-    the step is needed if it is needed after it, or if a voxel that the step corrects
-    reads it. ``shape`` lists the offsets a correction reads (symmetric)."""
-    i = first + wp.tid()
-    hit = need[i] != 0
-    n = int(0)
-    while not hit and n < shape.shape[0]:
+    """Dependency mask (section 5.2), one correction step undone: every voxel that a
+    voxel corrected by the step reads (``shape``: the offsets a correction reads) is
+    needed before it. Threads may write the same 1 to a voxel; the result is the same."""
+    i = corrected[first + wp.tid()]
+    for n in range(shape.shape[0]):
         j = neighbor_voxel(nbr, i, shape[n])
         if j >= 0:
-            hit = need[j] != 0 and in_subpass(coords, j, parity)
-        n += 1
-    before[i] = wp.where(hit, wp.uint8(1), wp.uint8(0))
+            before[j] = wp.uint8(1)
 
 
 @wp.kernel
@@ -326,8 +311,8 @@ def correct(
 
     Step 2 of the two-step search gathers the 3D candidates of the three best 2D pixels
     and compares whole 3-neighbourhoods. Strict comparisons in a fixed loop order make
-    the first best win, so ties resolve identically everywhere. Voxels outside the
-    sub-pass, or not listed in ``active``, keep the value that ``dst`` already holds.
+    the first best win, so ties resolve identically everywhere. Voxels not listed in
+    ``active`` (the step's voxels, of its sub-pass only) keep the value ``dst`` holds.
     """
     i = active[first + wp.tid()]
     best = src[i]

@@ -325,7 +325,7 @@ class Synthesizer:
         else:
             local = (desired[:, 0] & 3) * 16 + (desired[:, 1] & 3) * 4 + (desired[:, 2] & 3)
             flat = _lookup(work, _pack(desired >> 2)).astype(np.int64) * _BLOCK_VOXELS + local
-        active, read = self._dependency_lists(coords_wp, nbr, coords, flat)
+        active, read = self._dependency_lists(nbr, coords, flat)
         # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
         # such as the features read valid pixels everywhere.
         triples = wp.zeros(nvox, dtype=wp.vec3i, device=dev)
@@ -359,7 +359,7 @@ class Synthesizer:
         out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[_lookup(work, keys)]
         return _Level(keys, out.reshape(-1, 3))
 
-    def _dependency_lists(self, coords_wp: wp.array, nbr: wp.array, coords: np.ndarray,
+    def _dependency_lists(self, nbr: wp.array, coords: np.ndarray,
                           desired: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         """Section 5.2, ComputeMask, voxel-exact within one level: the voxels each
         correction step corrects (flat work indices, sorted) and the mask of the voxels
@@ -369,7 +369,6 @@ class Synthesizer:
         need = np.zeros(nvox, np.uint8)
         need[desired] = 1
         need_wp = wp.array(need, dtype=wp.uint8, device=dev)
-        before = wp.empty_like(need_wp)
         steps = correction_steps(self.passes, self.subpasses)
         active: list[np.ndarray] = []
         for step in reversed(steps):
@@ -378,9 +377,9 @@ class Synthesizer:
                 world = coords[listed // _BLOCK_VOXELS] * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
                 listed = listed[(world & 1) @ np.array([1, 2, 4]) == step]
             active.append(listed)
-            launch_ranges(_k.dilate_need, 0, nvox,
-                          [coords_wp, nbr, self._shape, step, need_wp], [before], device=dev)
-            need_wp, before = before, need_wp
+            launch_ranges(_k.spread_need, 0, len(listed),
+                          [wp.array(listed, dtype=wp.int32, device=dev), nbr, self._shape],
+                          [need_wp], device=dev)
             need = need_wp.numpy()
         return active[::-1], need.astype(bool)
 
