@@ -389,7 +389,8 @@ class Synthesizer:
         dev = self.device
         nvox = triples.shape[0]
         feats = wp.empty(nvox * t.nfeat, dtype=wp.int32, device=dev)
-        qproj = wp.zeros(nvox * 3, dtype=_k.appearance_vector, device=dev)
+        # Uninitialized: a step reads only the projections of the voxels it listed.
+        qproj = wp.empty(nvox * 3, dtype=_k.appearance_vector, device=dev)
         other = wp.empty_like(triples)
         src, dst = triples, other
         for listed in active:
