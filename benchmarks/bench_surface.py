@@ -34,7 +34,8 @@ def main() -> None:
     args = parser.parse_args()
     res = args.resolution
     mesh = trimesh.load(args.mesh, force="mesh")
-    tex = SolidTexture(Exemplar.load(args.exemplar), seed=1, cache_bytes=8 << 30)
+    tex = SolidTexture(Exemplar.load(args.exemplar), seed=1, cache_bytes=8 << 30,
+                       whole_bricks=False)  # as `warptex bake` does
     tex.query(np.full((1, 3), -1000.0))  # compile kernels outside the timings
     warm = {lv: n for lv, n in tex.synthesizer.voxels_synthesized.items()}
 
@@ -68,7 +69,7 @@ def main() -> None:
             cold.append(time.perf_counter() - t0)
             # The same cut again with the bricks dropped: only the finest level is
             # synthesized, through the coarse levels the first cut cached.
-            tex.store = BrickStore(tex.synthesizer, cache_bytes=8 << 30)
+            tex.store = BrickStore(tex.synthesizer, cache_bytes=8 << 30, whole_bricks=False)
             t0 = time.perf_counter()
             tex.slice(origin, (1, 0, 0), (0, 1, 0), (256, 256), filter=filter)
             warm.append(time.perf_counter() - t0)

@@ -42,6 +42,7 @@ class BrickIndex:
     mask: wp.int64  # capacity - 1
     stamps: wp.array(dtype=wp.int64)  # per pool slot, for least-recently-used eviction
     valid: wp.array(dtype=wp.uint32)  # per pool slot, VALID_WORDS words of stored-voxel bits
+    partial: int  # 0 when every stored brick is whole, so the bits need no reading
 
 
 @wp.func
@@ -107,8 +108,10 @@ def voxel_stored(index: BrickIndex, slot: int, local: int) -> bool:
 def stored_slot(index: BrickIndex, voxel: wp.vec3i) -> int:
     """Pool slot of the brick holding ``voxel`` if the voxel is stored, else -1."""
     slot = find_slot(index, brick_key(voxel))
-    if not voxel_stored(index, slot, local_index(voxel)):
-        slot = -1
+    if index.partial != 0:
+        stored = voxel_stored(index, slot, local_index(voxel))
+        if not stored:
+            slot = -1
     return slot
 
 
@@ -216,8 +219,10 @@ def sample_trilinear(
             if last_slot >= 0:
                 touch(index, last_slot, tick)
         slots[corner] = last_slot
-        if not voxel_stored(index, last_slot, local_index(voxel)):
-            slots[corner] = -1
+        if index.partial != 0:
+            stored = voxel_stored(index, last_slot, local_index(voxel))
+            if not stored:
+                slots[corner] = -1
     if wp.min(slots) < 0:
         missed[i] = 1
         wp.atomic_add(miss_count, 0, 1)

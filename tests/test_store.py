@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warptex.store import BrickStore, brick_keys, brick_voxels, voxels_read
+from warptex.store import BrickStore, brick_keys, brick_voxels, unique_voxels, voxels_read
 
 BRICK_BYTES = 512 * 6 + 64  # uint16 triples and the stored-voxel bits
 
@@ -40,6 +40,14 @@ def sample(store: BrickStore, points, filter="nearest") -> np.ndarray:
 
 def brick_center(b) -> list[float]:
     return [8 * c + 4.5 for c in b]
+
+
+def test_unique_voxels_are_the_distinct_rows():
+    rng = np.random.default_rng(2)
+    v = rng.integers(-20, 20, (5000, 3))
+    got = unique_voxels(v)
+    assert len(got) == len(np.unique(v, axis=0))
+    assert {tuple(r) for r in got} == {tuple(r) for r in v}
 
 
 def test_voxels_read_by_each_filter():
@@ -121,7 +129,7 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
     """Bricks fill voxel by voxel: a query stores what its filter reads, no more, and a
     voxel missing from a partly filled brick (also after a reload) is synthesized."""
     syn = synthesizer(candidates)
-    store = BrickStore(syn)
+    store = BrickStore(syn, whole_bricks=False)
     p = np.array([[3.25, 2.75, 5.5]])
     first = sample(store, p, filter)
     s = store.stats()
@@ -130,8 +138,9 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
     assert store.stats()["misses"] == 1
     path = tmp_path / "partial.wtb"
     store.save(path)
-    loaded = BrickStore.load(path, syn)
+    loaded = BrickStore.load(path, syn, whole_bricks=False)
     assert loaded.stats()["voxels"] == voxels
+    assert BrickStore.load(path, syn).stats()["voxels"] == 0  # whole bricks only
     np.testing.assert_array_equal(sample(loaded, p, filter), first)
     other = np.array([[6.5, 0.5, 1.5]])  # same brick, not stored
     np.testing.assert_array_equal(sample(loaded, other, "nearest"),

@@ -251,3 +251,21 @@ def test_traced_reads_count_for_least_recently_used_eviction(texture):
     kept = brick_keys(np.array([[0, 0, 0], [-40, -40, -40]]))
     snap = store.snapshot()
     assert sorted(snap.keys[snap.keys >= 0]) == sorted(kept)
+
+
+def test_voxels_missing_from_a_partly_filled_brick_are_misses(granite_32_file, warp_device):
+    from mitsuba_plugin.traced import TracedLookup
+    from warptex.texture import SolidTexture
+
+    texture = SolidTexture(granite_32_file, device=warp_device, whole_bricks=False)
+    stored = np.array([[2.5, 3.5, 4.5]])
+    texture.query(stored, filter="nearest")
+    lookup = TracedLookup(texture.store, "nearest", (0.25, 0.5, 0.75))
+    assert lookup.refresh()
+    np.testing.assert_array_equal(traced_colors(lookup, stored),
+                                  texture.query(stored, filter="nearest")[:, :3])
+    assert len(lookup.take_misses()) == 0
+    neighbour = stored + 1.0  # same brick, not stored
+    np.testing.assert_array_equal(traced_colors(lookup, neighbour),
+                                  np.array([[0.25, 0.5, 0.75]], np.float32))
+    assert len(lookup.take_misses()) == 512  # the whole brick is asked for

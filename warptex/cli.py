@@ -343,7 +343,9 @@ def _solid_texture(exemplar: Path, args: argparse.Namespace):
     from warptex.texture import SolidTexture
 
     try:
-        return SolidTexture(Exemplar.load(exemplar), seed=args.seed, jitter=args.jitter)
+        # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
+        return SolidTexture(Exemplar.load(exemplar), seed=args.seed, jitter=args.jitter,
+                            whole_bricks=False)
     except ValueError as error:
         raise CliError(str(error)) from None
 
