@@ -24,7 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from kernels.lookup import BRICK, BRICK_VOXELS
-from warptex.store import BrickStore, brick_coords, brick_keys, brick_voxels
+from warptex.store import CORNERS, BrickStore, brick_coords, brick_keys, brick_voxels, corner_voxels
 
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
 # a dense table; such a texture renders in wavefront mode instead.
@@ -32,7 +32,6 @@ MAX_PAGES = 1 << 25
 LOG_CAPACITY = 1 << 20  # slots of the miss log (8 MiB); bricks that collide take another round
 _BIAS = 1 << 20  # packs a logged voxel into one 64-bit word, 21 bits per axis
 _SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
-_CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T  # corner c = (c >> 2, c >> 1, c) & 1
 
 
 class TracedLookup:
@@ -95,7 +94,7 @@ class TracedLookup:
             edge = [(v & (BRICK - 1)) == BRICK - 1 for v in voxel]
             acc = [mi.Float64(0.0)] * self._channels
             hit = mi.Bool(True)
-            for d in _CORNERS:
+            for d in CORNERS:
                 corner = [v + int(o) for v, o in zip(voxel, d, strict=True)]
                 # Each brick read is marked once: the first corner's, and the others'
                 # where they cross into a neighbour brick.
@@ -130,7 +129,7 @@ class TracedLookup:
             self.store.mark_used(np.flatnonzero(self._used.numpy()), self._version)
             self._used = dr.zeros(mi.UInt32, dr.width(self._used))
         if self.filter == "trilinear":
-            logged = (logged[:, None, :] + _CORNERS[None]).reshape(-1, 3)
+            logged = corner_voxels(logged)
         return brick_voxels(np.unique(brick_keys(logged)))
 
     def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool,

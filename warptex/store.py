@@ -43,7 +43,9 @@ _MAGIC = b"WTXBRICK"
 _EMPTY = -1
 _MIN_BRICKS = 64
 _LOCAL = np.indices((_k.BRICK,) * 3).reshape(3, -1).T  # voxel offsets, x slowest
-_CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
+CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
+"""Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
+corner c is ((c >> 2) & 1, (c >> 1) & 1, c & 1)."""
 
 
 class StoreFileError(ArchiveError):
@@ -68,8 +70,12 @@ def voxels_read(points: np.ndarray, filter: str) -> np.ndarray:
     """Integer voxels (M, 3) that ``filter`` reads for float64 ``points``, repeats included."""
     if filter == "nearest":
         return np.floor(points).astype(np.int64)
-    base = np.floor(points - 0.5).astype(np.int64)
-    return (base[:, None, :] + _CORNERS[None]).reshape(-1, 3)
+    return corner_voxels(np.floor(points - 0.5).astype(np.int64))
+
+
+def corner_voxels(base: np.ndarray) -> np.ndarray:
+    """The 8 voxels (N * 8, 3) that trilinear lookups with lower corners ``base`` read."""
+    return (base[:, None, :] + CORNERS[None]).reshape(-1, 3)
 
 
 def unique_voxels(voxels: np.ndarray) -> np.ndarray:
