@@ -22,6 +22,9 @@ PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
 appearance_vector = wp.types.vector(length=MAX_DIMS, dtype=wp.int32)
 """A PCA-projected neighbourhood; unused trailing dimensions are zero."""
 
+basis_row = wp.types.vector(length=MAX_DIMS, dtype=wp.float32)
+"""One neighbourhood entry's basis coefficients, as floats holding small integers."""
+
 
 @wp.struct
 class LevelTables:
@@ -37,7 +40,7 @@ class LevelTables:
     feat_off: wp.vec3i
     feat: wp.array(dtype=wp.int32)
     basis_off: wp.vec3i
-    basis: wp.array(dtype=appearance_vector)  # per source, N*N*F basis rows
+    basis: wp.array(dtype=basis_row)  # per source, N*N*F basis rows
     proj_off: wp.vec3i
     proj: wp.array(dtype=appearance_vector)
     cand2d_off: wp.vec3i
@@ -196,7 +199,7 @@ def upsample(
 
 @wp.kernel
 def voxel_features(
-    triples: wp.array(dtype=wp.vec3i), t: LevelTables, feats: wp.array(dtype=wp.int32)
+    triples: wp.array(dtype=wp.vec3i), t: LevelTables, feats: wp.array(dtype=wp.float32)
 ):
     """Matching features of each voxel: the sum of its three exemplar features."""
     i = wp.tid()
@@ -205,7 +208,7 @@ def voxel_features(
         s = int(0)
         for k in range(3):
             s += t.feat[t.feat_off[k] + tri[k] * t.nfeat + c]
-        feats[i * t.nfeat + c] = s
+        feats[i * t.nfeat + c] = float(s)
 
 
 @wp.kernel
@@ -231,13 +234,15 @@ def project_neighborhoods(
     first: int,
     active: wp.array(dtype=wp.int32),
     nbr: wp.array2d(dtype=wp.int32),
-    feats: wp.array(dtype=wp.int32),
+    feats: wp.array(dtype=wp.float32),
     t: LevelTables,
     qproj: wp.array(dtype=appearance_vector),
 ):
     """PCA projection of a voxel's current N x N neighbourhood in the plane of axis k.
 
-    Sums stay within int32: |basis| <= 127, features <= 3 * 255, N*N*F terms.
+    Each row of the neighbourhood is summed in float32, which vectorizes on CPUs, and is
+    still exact integer arithmetic: a row has at most 9 * F terms of |basis| <= 127 times
+    features <= 3 * 255, below 2^24 for up to 19 features. Rows add up in int32.
     """
     k = wp.tid() % 3
     i = active[first + wp.tid() // 3]
@@ -246,13 +251,15 @@ def project_neighborhoods(
     n = 2 * t.half + 1
     acc = appearance_vector()
     for a in range(n):
+        row = basis_row()
         for b in range(n):
             j = neighbor_in_block(nbr, block, local, plane_offset(k, a - t.half, b - t.half))
             if j < 0:
                 j = i
             w = t.basis_off[k] + (a * n + b) * t.nfeat
             for c in range(t.nfeat):
-                acc += t.basis[w + c] * feats[j * t.nfeat + c]
+                row += t.basis[w + c] * feats[j * t.nfeat + c]
+        acc += appearance_vector(row)
     s = t.shift[k]
     for d in range(MAX_DIMS):
         acc[d] = wp.clamp(acc[d] >> s, -PROJ_LIMIT, PROJ_LIMIT)

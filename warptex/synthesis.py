@@ -388,7 +388,7 @@ class Synthesizer:
         """Correction passes (section 5.1): step n corrects the voxels ``active[n]``."""
         dev = self.device
         nvox = triples.shape[0]
-        feats = wp.empty(nvox * t.nfeat, dtype=wp.int32, device=dev)
+        feats = wp.empty(nvox * t.nfeat, dtype=wp.float32, device=dev)
         # Uninitialized: a step reads only the projections of the voxels it listed.
         qproj = wp.empty(nvox * 3, dtype=_k.appearance_vector, device=dev)
         other = wp.empty_like(triples)
@@ -426,10 +426,12 @@ class Synthesizer:
         def upload(arrays: list[np.ndarray], per_axis: list[int], dtype=wp.int32) -> tuple:
             """Concatenate per-source arrays; offsets count elements of ``dtype``."""
             rows = [a.reshape(-1) if dtype is wp.int32 else a for a in arrays]
+            scalar = getattr(dtype, "_wp_scalar_type_", dtype)
             starts = np.cumsum([0] + [len(r) for r in rows])[:-1]
             return (
                 wp.vec3i(*[int(starts[j]) for j in per_axis]),
-                wp.array(np.concatenate(rows).astype(np.int32), dtype=dtype, device=dev),
+                wp.array(np.concatenate(rows).astype(wp.dtype_to_numpy(scalar)), dtype=dtype,
+                         device=dev),
             )
 
         def padded(a: np.ndarray) -> np.ndarray:
@@ -442,7 +444,8 @@ class Synthesizer:
         role_of_axis = [cs.role_of_axis(k) for k in range(3)]
         t.feat_off, t.feat = upload([s.feat for s in sources], src_of_axis)
         vec = _k.appearance_vector
-        t.basis_off, t.basis = upload([padded(s.basis.T) for s in sources], src_of_axis, vec)
+        rows = [padded(s.basis.T) for s in sources]
+        t.basis_off, t.basis = upload(rows, src_of_axis, _k.basis_row)
         t.proj_off, t.proj = upload([padded(s.proj) for s in sources], src_of_axis, vec)
         t.cand2d_off, t.cand2d = upload([s.cand2d for s in sources], src_of_axis)
         t.cand2d_stride = int(sources[0].cand2d.shape[1])
