@@ -11,6 +11,7 @@ warm coarse-level cache (bricks dropped, so the finest level is synthesized agai
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
 from pathlib import Path
 
@@ -56,8 +57,13 @@ def main() -> None:
     print(f"finest voxels synthesized: {100 * done[finest] / res**3:.3f}% of the block; "
           f"all levels: {100 * sum(done.values()) / res**3:.3f}%")
     print(f"time: {total:.1f} s (synthesis {stats['synthesis_seconds']:.1f} s)")
-    print(f"stored: {stats['bytes'] / 1e6:.1f} MB in {stats['bricks']} bricks; the full volume "
-          f"in the same format: {full_bytes / 1e6:.0f} MB")
+    print(f"stored: {stats['voxels']} voxels, {stats['bytes'] / 1e6:.1f} MB in "
+          f"{stats['bricks']} bricks ({stats['allocated_bytes'] / 1e6:.1f} MB held with free "
+          f"room); the full volume in the same format: {full_bytes / 1e6:.0f} MB")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bunny.wtb"
+        tex.save(path)
+        print(f"store file: {path.stat().st_size / 1e6:.1f} MB")
 
     centre = np.full(3, res / 2.0)
     for filter in ("nearest", "trilinear"):

@@ -2,7 +2,9 @@
 
 Finest-level results live in bricks of 8^3 voxels found through an open-addressing hash
 table keyed by packed brick coordinates. A brick may be partly filled: one bit per voxel
-says whether it is stored. A voxel is stored as its triple of exemplar pixel
+says whether it is stored, and only stored voxels take room in the pool, packed in brick
+order (the TileTree of section 6.2 likewise stores only voxels near the surface). A voxel
+is stored as its triple of exemplar pixel
 indices, as the paper's GPU implementation keeps "three 2-channel 16 bit" triples
 (section 6.2), and its color is the average of the three exemplar colors (section 5.1).
 
@@ -35,13 +37,14 @@ _MIX2 = wp.constant(wp.uint64(0x94D049BB133111EB))
 
 @wp.struct
 class BrickIndex:
-    """The hash table (``keys`` -> ``slots`` in the pool) and each slot's last use."""
+    """The hash table (``keys`` -> brick ``slots``) and each brick slot's voxels and last use."""
 
     keys: wp.array(dtype=wp.int64)  # EMPTY where free; capacity is a power of two
     slots: wp.array(dtype=wp.int32)
     mask: wp.int64  # capacity - 1
-    stamps: wp.array(dtype=wp.int64)  # per pool slot, for least-recently-used eviction
-    valid: wp.array(dtype=wp.uint32)  # per pool slot, VALID_WORDS words of stored-voxel bits
+    stamps: wp.array(dtype=wp.int64)  # per slot, for least-recently-used eviction
+    valid: wp.array(dtype=wp.uint32)  # per slot, VALID_WORDS words of stored-voxel bits
+    base: wp.array(dtype=wp.int32)  # per slot, pool position of the brick's first voxel
     partial: int  # 0 when every stored brick is whole, so the bits need no reading
 
 
@@ -116,9 +119,25 @@ def stored_slot(index: BrickIndex, voxel: wp.vec3i) -> int:
 
 
 @wp.func
-def voxel_triple(pool: wp.array(dtype=Any), slot: int, local: int) -> wp.vec3i:
+def voxel_address(index: BrickIndex, slot: int, local: int) -> int:
+    """Pool position of stored voxel ``local`` of the brick in ``slot``: a brick's stored
+    voxels are packed in local order, so it is the brick's base plus the number of stored
+    voxels before it, which in a whole brick is ``local`` itself."""
+    if index.partial == 0:
+        return index.base[slot] + local
+    row = slot * VALID_WORDS
+    word = local >> 5
+    below = (wp.uint32(1) << wp.uint32(local & 31)) - wp.uint32(1)
+    rank = int(wp.bit_count(index.valid[row + word] & below))
+    for w in range(word):
+        rank += int(wp.bit_count(index.valid[row + w]))
+    return index.base[slot] + rank
+
+
+@wp.func
+def voxel_triple(index: BrickIndex, pool: wp.array(dtype=Any), slot: int, local: int) -> wp.vec3i:
     """Exemplar pixels (one per axis) of a stored voxel."""
-    at = (slot * BRICK_VOXELS + local) * 3
+    at = voxel_address(index, slot, local) * 3
     return wp.vec3i(int(pool[at]), int(pool[at + 1]), int(pool[at + 2]))
 
 
@@ -179,7 +198,7 @@ def sample_nearest(
         wp.atomic_add(miss_count, 0, 1)
         return
     touch(index, slot, tick)
-    p = voxel_triple(pool, slot, local_index(voxel))
+    p = voxel_triple(index, pool, slot, local_index(voxel))
     for c in range(channels):
         out[i, c] = triple_channel(p, col0, col1, col2, channels, c)
 
@@ -235,7 +254,7 @@ def sample_trilinear(
         w = wp.where(dx == 1, t[0], wp.float64(1.0) - t[0])
         w *= wp.where(dy == 1, t[1], wp.float64(1.0) - t[1])
         w *= wp.where(dz == 1, t[2], wp.float64(1.0) - t[2])
-        p = voxel_triple(pool, slots[corner], local_index(base + wp.vec3i(dx, dy, dz)))
+        p = voxel_triple(index, pool, slots[corner], local_index(base + wp.vec3i(dx, dy, dz)))
         for c in range(channels):
             acc[c] += w * wp.float64(triple_sum(p, col0, col1, col2, channels, c))
     # The blend of the sums divided once: the blend of the voxel colors, 21 divisions fewer.
@@ -253,16 +272,17 @@ def voxel_sums(
     channels: int,
     out: wp.array2d(dtype=wp.float32),
 ):
-    """Three-color sum of every pooled voxel, as the lookups compute it, for readers
-    outside Warp (the Mitsuba plugin's traced lookups); NaN where not stored."""
+    """Three-color sum of every voxel of every brick slot, as the lookups compute it, for
+    readers outside Warp (the Mitsuba plugin's traced lookups); NaN where not stored."""
     v = wp.tid()
     slot = v // BRICK_VOXELS
-    stored = voxel_stored(index, slot, v % BRICK_VOXELS)
-    # Read even where not stored: pool slots start zeroed and hold only real triples, so
-    # the pixels are valid indices either way.
-    p = voxel_triple(pool, slot, v % BRICK_VOXELS)
-    for c in range(channels):
-        out[v, c] = wp.where(stored, triple_sum(p, col0, col1, col2, channels, c), wp.nan)
+    if voxel_stored(index, slot, v % BRICK_VOXELS):
+        p = voxel_triple(index, pool, slot, v % BRICK_VOXELS)
+        for c in range(channels):
+            out[v, c] = triple_sum(p, col0, col1, col2, channels, c)
+    else:
+        for c in range(channels):
+            out[v, c] = wp.nan
 
 
 @wp.kernel
@@ -274,19 +294,3 @@ def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32),
             at = (at + wp.int64(1)) & index.mask
         index.keys[at] = keys[n]
         index.slots[at] = slots[n]
-
-
-@wp.kernel
-def store_voxels(
-    at: wp.array(dtype=wp.int32),
-    payload: wp.array(dtype=Any),
-    tick: wp.int64,
-    pool: wp.array(dtype=Any),
-    stamps: wp.array(dtype=wp.int64),
-):
-    """Copy the triples of new voxels to their pooled places (``at``: slot * 512 + local),
-    their bricks marked as just used."""
-    n, c = wp.tid()
-    pool[at[n] * 3 + c] = payload[n * 3 + c]
-    if c == 0:
-        stamps[at[n] // BRICK_VOXELS] = tick

@@ -9,7 +9,7 @@ import pytest
 
 from warptex.store import BrickStore, brick_keys, brick_voxels, unique_voxels, voxels_read
 
-BRICK_BYTES = 512 * 6 + 64  # uint16 triples and the stored-voxel bits
+BRICK_BYTES = 512 * 6 + 68  # uint16 triples, the stored-voxel bits and the pool base
 
 
 @pytest.fixture(scope="module")
@@ -184,3 +184,40 @@ def test_a_loaded_store_evicts_in_the_saved_recency_order(candidates, tmp_path: 
     snap = loaded.snapshot()
     kept = set(snap.keys[snap.keys >= 0])
     assert kept == set(brick_keys(np.array([[8, 0, 0], [0, 40, 0]])))
+
+
+def test_partly_filled_bricks_cost_only_their_voxels(candidates, tmp_path: Path):
+    """Voxels arriving in many small batches, in random order, across a few bricks: each
+    batch repacks its bricks, evictions compact the pool, and every stored voxel keeps
+    reading exactly the engine's color, also after a save and load."""
+    syn = synthesizer(candidates)
+    store = BrickStore(syn, whole_bricks=False)
+    rng = np.random.default_rng(5)
+    voxels = unique_voxels(rng.integers(-6, 14, (900, 3)))
+    voxels = voxels[rng.permutation(len(voxels))]
+    expected = syn.voxels(voxels)
+    for batch in np.array_split(np.arange(len(voxels)), 12):
+        store.prefetch(voxels[batch])
+    s = store.stats()
+    assert s["voxels"] == len(voxels) == s["voxels_added"]
+    assert s["payload_bytes"] == len(voxels) * 6 + s["bricks"] * (16 * 4 + 4)
+    assert s["payload_bytes"] < 0.5 * s["bricks"] * BRICK_BYTES  # bricks are far from full
+    np.testing.assert_array_equal(sample(store, voxels + 0.5), expected)
+    assert store.stats()["misses"] == 0
+    snap = store.snapshot()
+    assert np.isfinite(snap.sums[:, 0]).sum() == len(voxels)
+
+    path = tmp_path / "packed.wtb"
+    store.save(path)
+    assert path.stat().st_size < s["payload_bytes"] + 64 * 1024
+    loaded = BrickStore.load(path, syn, whole_bricks=False)
+    np.testing.assert_array_equal(sample(loaded, voxels + 0.5), expected)
+    assert loaded.stats()["misses"] == 0
+
+    # A budget of about half: the least recently used bricks go, the pool is compacted,
+    # and what stays (or comes back) still reads the engine's colors.
+    loaded.cache_bytes = s["payload_bytes"] // 2
+    loaded.prefetch(voxels[:1])
+    kept = loaded.stats()
+    assert 0 < kept["payload_bytes"] <= loaded.cache_bytes and kept["bricks_evicted"] > 0
+    np.testing.assert_array_equal(sample(loaded, voxels[::-1] + 0.5), expected[::-1])

@@ -254,7 +254,7 @@ def test_stats_report_store_and_synthesis(candidates):
     s = tex.store.stats()
     assert s["bricks"] == 2 and s["voxels"] == s["voxels_added"] == 2 * 512
     assert (s["hits"], s["misses"]) == (3, 3)
-    assert s["payload_bytes"] == 2 * (512 * 6 + 64) and s["bytes_per_voxel"] == 6
+    assert s["payload_bytes"] == 2 * (512 * 6 + 68) and s["bytes_per_voxel"] == 6
     assert s["bytes"] == s["payload_bytes"] + s["index_bytes"]
     assert s["synthesis_seconds"] > 0
     finest = max(s["voxels_synthesized"])

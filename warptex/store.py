@@ -3,9 +3,11 @@
 The paper stores synthesized surface voxels in a TileTree and synthesizes each region
 once (section 6.2). Here finest voxels are kept in bricks of 8^3, found through a hash
 table that the lookup kernels of ``kernels.lookup`` search; a brick may be partly filled
-(one bit per voxel). A point batch is looked up in one launch; the voxels it misses are
-synthesized in one engine call (one union dependency mask, section 5.2), inserted, and the
-missed points finished. So only the voxels that queries read are ever synthesized.
+(one bit per voxel), and only its stored voxels take room: each brick's voxels are packed
+in one range of a shared pool, so a thin surface costs what its voxels cost. A point batch
+is looked up in one launch; the voxels it misses are synthesized in one engine call (one
+union dependency mask, section 5.2), inserted, and the missed points finished. So only
+the voxels that queries read are ever synthesized.
 
 A brick holds each voxel's triple of exemplar pixels (section 6.2 keeps triples in 16-bit
 targets): 6 bytes per voxel when every exemplar has at most 65536 pixels, else 12, instead
@@ -38,10 +40,11 @@ from warptex.parallel import launch_ranges
 from warptex.synthesis import Synthesizer
 
 FILTERS = ("nearest", "trilinear")
-FORMAT_VERSION = 2  # 2: bricks may be partly filled
+FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
 _MAGIC = b"WTXBRICK"
 _EMPTY = -1
 _MIN_BRICKS = 64
+_SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
 _LOCAL = np.indices((_k.BRICK,) * 3).reshape(3, -1).T  # voxel offsets, x slowest
 CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 """Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
@@ -90,6 +93,15 @@ def unique_voxels(voxels: np.ndarray) -> np.ndarray:
 def brick_voxels(keys: np.ndarray) -> np.ndarray:
     """Every voxel (N * 512, 3) of the bricks ``keys``, x slowest within a brick."""
     return (brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
+
+
+def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concatenated ``first[i] .. first[i] + counts[i]`` ranges."""
+    counts = np.asarray(counts, np.int64)
+    if counts.sum() == 0:
+        return np.zeros(0, np.int64)
+    starts = np.cumsum(counts) - counts
+    return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
 
 
 def _local_index(voxels: np.ndarray) -> np.ndarray:
@@ -152,12 +164,12 @@ class _SharedLock:
 class BrickStore:
     """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch.
 
-    ``cache_bytes`` bounds the brick payload; least-recently-used bricks are evicted
-    after each batch (a batch may exceed the bound while it is being finished).
-    ``whole_bricks``: a miss synthesizes the whole brick of each voxel read, best when
-    queries come back near each other (renders, volumes: 6 bytes per stored voxel); else
-    only the voxels read, best for thin sets such as mesh surfaces and cuts (synthesis
-    follows the surface, but bricks are still allocated whole in memory).
+    ``cache_bytes`` bounds the stored voxels and their bricks' bits; least-recently-used
+    bricks are evicted after each batch (a batch may exceed the bound while it is being
+    finished). ``whole_bricks``: a miss synthesizes the whole brick of each voxel read,
+    best when queries come back near each other (renders, volumes); else only the voxels
+    read, best for thin sets such as mesh surfaces and cuts. Either way a stored voxel
+    costs 6 bytes (12 with exemplars over 65536 pixels).
     """
 
     def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = 256 << 20,
@@ -175,7 +187,7 @@ class BrickStore:
         self._widths = np.array([c.shape[1] for c in sources], np.int64)
         compact = max(c.shape[0] * c.shape[1] for c in sources) <= 1 << 16
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
-        self._brick_bytes = _k.BRICK_VOXELS * 3 * self._dtype.itemsize + _k.VALID_WORDS * 4
+        self._voxel_bytes = 3 * self._dtype.itemsize
         self._device = synthesizer.device
         uploaded = {j: wp.array(cs.colors[j].reshape(-1), dtype=wp.float32, device=self._device)
                     for j in set(cs.axis_source)}
@@ -183,13 +195,18 @@ class BrickStore:
         self._lock = _SharedLock()
         self._counts = threading.Lock()
         self._tick = itertools.count(1)
-        self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each pool slot
+        self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each slot
         self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)  # stored-voxel bits per slot
-        self._pool = wp.zeros(0, dtype=self._wp_dtype, device=self._device)
+        self._base = np.zeros(0, np.int64)  # pool position of each slot's first voxel
+        self._payload = np.zeros((0, 3), self._dtype)  # the pool; the device's is a copy
+        self._used = 0  # pool voxels handed out, live or left behind by repacked bricks
+        self._garbage = 0  # of those, voxels of repacked or evicted bricks
         self._index = _k.BrickIndex()
         self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
-        self._index.valid = wp.zeros(0, dtype=wp.uint32, device=self._device)
         self._index.partial = 0 if self.whole_bricks else 1
+        self._pool_source: np.ndarray | None = None  # the host array the device pool shows
+        self._upload_slots()
+        self._upload_pool(0, 0)
         self._rebuild_table(_MIN_BRICKS * 2)
         self._hits = self._misses = self._added = self._evicted = 0
         self._version = 0
@@ -274,16 +291,25 @@ class BrickStore:
     def stats(self) -> dict:
         """Bricks and stored voxels, bytes, lookups served from the store (hits) or not
         (misses), and the synthesis behind them: voxels added to the store, voxels the
-        engine corrected per level, seconds."""
+        engine corrected per level, seconds.
+
+        ``bytes`` is what the stored voxels take: ``payload_bytes`` (their triples and
+        their bricks' bits and pool bases) plus ``index_bytes`` (hash table, brick keys
+        and stamps); ``allocated_bytes`` is all the store holds, free room included."""
         with self._lock.shared(), self._counts:
             bricks = int((self._keys != _EMPTY).sum())
+            voxels = int(np.bitwise_count(self._valid).sum())
+            payload = voxels * self._voxel_bytes + bricks * _SLOT_BYTES
+            held = (len(self._payload) * self._voxel_bytes + len(self._keys) * _SLOT_BYTES
+                    + self._index_bytes())
             return {
                 "bricks": bricks,
-                "voxels": int(np.unpackbits(self._valid.view(np.uint8)).sum()),
-                "bytes": bricks * self._brick_bytes + self._index_bytes(),
-                "payload_bytes": bricks * self._brick_bytes,
+                "voxels": voxels,
+                "bytes": payload + self._index_bytes(),
+                "payload_bytes": payload,
                 "index_bytes": self._index_bytes(),
-                "bytes_per_voxel": self._dtype.itemsize * 3,
+                "allocated_bytes": held,
+                "bytes_per_voxel": self._voxel_bytes,
                 "hits": self._hits,
                 "misses": self._misses,
                 "voxels_added": self._added,
@@ -299,8 +325,8 @@ class BrickStore:
         with self._lock.shared():
             live = np.flatnonzero(self._keys != _EMPTY)
             live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
-            pool = self._pool.numpy().reshape(-1, _k.BRICK_VOXELS * 3)
-            arrays = {"keys": self._keys[live], "triples": pool[live], "valid": self._valid[live]}
+            arrays = {"keys": self._keys[live], "triples": self._payload[self._ranges(live)],
+                      "valid": self._valid[live]}
         write_archive(path, _MAGIC, FORMAT_VERSION,
                       {"identity": np.array(self.identity()), **arrays})
 
@@ -316,15 +342,19 @@ class BrickStore:
         except StoreFileError as e:
             warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
             return store
+        counts = np.bitwise_count(valid).sum(axis=1)
+        first = np.cumsum(counts) - counts
+        keep = np.ones(len(keys), bool)
         if store.whole_bricks:  # lookups then assume every stored brick is whole
-            full = (valid == np.uint32(0xFFFFFFFF)).all(axis=1)
-            keys, triples, valid = keys[full], triples[full], valid[full]
-        keep = slice(len(keys) - min(len(keys), store._budget_bricks), len(keys))
+            keep = counts == _k.BRICK_VOXELS
+        # The most recently used bricks that fit the budget (the file lists them last).
+        cost = np.where(keep, counts * store._voxel_bytes + _SLOT_BYTES, 0)
+        keep &= np.cumsum(cost[::-1])[::-1] <= store.cache_bytes
         stored = np.unpackbits(valid[keep].view(np.uint8), bitorder="little").astype(bool)
-        voxels = brick_voxels(keys[keep])[stored]
-        payload = triples[keep].reshape(-1, 3)[stored]
+        voxels = brick_voxels(keys[keep])[stored.reshape(-1)]
+        rows = _ranges_of(first[keep], counts[keep])
         with store._lock.exclusive():
-            store._insert(voxels, payload)
+            store._insert(voxels, triples[rows])
         return store
 
     # -- batches ----------------------------------------------------------------------
@@ -410,8 +440,12 @@ class BrickStore:
         return np.where(self._keys[order[pos]] == keys, order[pos], -1)
 
     def _insert(self, voxels: np.ndarray, payload: np.ndarray) -> None:
-        """Store ``voxels`` (N, 3) with their triples ``payload`` (N, 3), giving new
-        bricks pool slots."""
+        """Store ``voxels`` (N, 3) with their triples ``payload`` (N, 3).
+
+        New bricks get free slots. Every brick receiving voxels is repacked: its stored
+        voxels and the new ones, in local order, go to a fresh range at the end of the
+        pool, and its old range is left behind until the next compaction.
+        """
         if len(voxels) == 0:
             return
         keys = brick_keys(voxels)
@@ -423,8 +457,7 @@ class BrickStore:
             free = np.flatnonzero(self._keys == _EMPTY)
             if len(free) < len(fresh):
                 live = len(self._keys) - len(free)
-                self._grow_pool(max(live + len(fresh), min(max(2 * len(self._keys), _MIN_BRICKS),
-                                                           self._budget_bricks)))
+                self._grow_slots(max(live + len(fresh), 2 * len(self._keys), _MIN_BRICKS))
                 free = np.flatnonzero(self._keys == _EMPTY)
             self._keys[free[: len(fresh)]] = fresh
             self._valid[free[: len(fresh)]] = 0
@@ -438,73 +471,137 @@ class BrickStore:
                            wp.array(free[: len(fresh)].astype(np.int32), dtype=wp.int32,
                                     device=dev)], [self._index], device=dev)
         slots = self._slots_of(keys)
-        local = _local_index(voxels)
-        np.bitwise_or.at(self._valid, (slots, local >> 5),
-                         (np.uint32(1) << (local & 31).astype(np.uint32)))
-        self._upload_valid()
-        dev = self._device
-        at = (slots * _k.BRICK_VOXELS + local).astype(np.int32)
-        wp.launch(_k.store_voxels, (len(voxels), 3),
-                  [wp.array(at, dtype=wp.int32, device=dev),
-                   wp.array(np.ascontiguousarray(payload, self._dtype).reshape(-1),
-                            dtype=self._wp_dtype, device=dev),
-                   wp.int64(next(self._tick))], [self._pool, self._index.stamps], device=dev)
+        touched = np.unique(slots)
+        # Old and new voxels of the touched bricks, ordered by (brick, local) and without
+        # repeats (a voxel synthesized twice has the same triple): the repacked ranges.
+        old = self._ranges(touched)
+        old_bits = np.unpackbits(self._valid[touched].view(np.uint8), bitorder="little")
+        order = np.concatenate([np.flatnonzero(old_bits),
+                                np.searchsorted(touched, slots) * _k.BRICK_VOXELS
+                                + _local_index(voxels)])
+        order, first = np.unique(order, return_index=True)
+        triples = np.concatenate([self._payload[old], payload.astype(self._dtype)])[first]
+        counts = np.bincount(order // _k.BRICK_VOXELS, minlength=len(touched))
+        start = self._reserve(len(order))  # may compact the pool, never moves slots
+        self._garbage += len(old)
+        self._payload[start: start + len(order)] = triples
+        self._base[touched] = start + np.cumsum(counts) - counts
+        bits = np.zeros(len(touched) * _k.BRICK_VOXELS, bool)
+        bits[order] = True
+        self._valid[touched] = np.packbits(bits, bitorder="little").view(np.uint32).reshape(
+            len(touched), _k.VALID_WORDS)
+        self._upload_pool(start, start + len(order))
+        self._upload_slots()
+        stamps = self._index.stamps.numpy()
+        stamps[touched] = next(self._tick)
+        self._index.stamps.assign(stamps)
         self._version += 1
 
     def _evict(self) -> None:
-        """Drop least-recently-used bricks until the payload fits ``cache_bytes``."""
+        """Drop least-recently-used bricks until the stored voxels fit ``cache_bytes``."""
         live = np.flatnonzero(self._keys != _EMPTY)
-        excess = len(live) - self._budget_bricks
-        if excess <= 0:
+        live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
+        counts = np.bitwise_count(self._valid[live]).sum(axis=1)
+        cost = counts * self._voxel_bytes + _SLOT_BYTES
+        gone = live[np.cumsum(cost[::-1])[::-1] > self.cache_bytes]
+        if len(gone) == 0:
             return
-        stamps = self._index.stamps.numpy()[live]
-        gone = live[np.argsort(stamps, kind="stable")[:excess]]
         self._keys[gone] = _EMPTY
         self._valid[gone] = 0
-        self._evicted += excess
+        self._garbage += int(counts[: len(gone)].sum())
+        self._evicted += len(gone)
         self._version += 1
-        if len(self._keys) > max(self._budget_bricks, _MIN_BRICKS):
+        if len(self._keys) > 2 * max(len(live) - len(gone), _MIN_BRICKS):
+            self._renumber_slots()
+        if 2 * self._garbage > self._used:
             self._compact()
         self._rebuild_table(len(self._index.keys))
-        self._upload_valid()
+        self._upload_slots()
 
-    def _upload_valid(self) -> None:
-        self._index.valid = wp.array(self._valid.reshape(-1), dtype=wp.uint32,
-                                     device=self._device)
+    def _ranges(self, slots: np.ndarray) -> np.ndarray:
+        """Pool positions of the stored voxels of ``slots``, brick after brick."""
+        return _ranges_of(self._base[slots], np.bitwise_count(self._valid[slots]).sum(axis=1))
 
-    def _grow_pool(self, bricks: int) -> None:
+    def _reserve(self, voxels: int) -> int:
+        """Pool position of ``voxels`` new consecutive voxels; compacts or grows the pool."""
+        if self._used + voxels > len(self._payload) and 2 * self._garbage > self._used:
+            self._compact()
+        if self._used + voxels > len(self._payload):
+            size = max(self._used + voxels, 2 * len(self._payload), _MIN_BRICKS * 64)
+            if size * 3 >= 1 << 31:
+                raise MemoryError(f"brick store pool of {size} voxels exceeds 2^31 entries")
+            payload = np.zeros((size, 3), self._dtype)
+            payload[: self._used] = self._payload[: self._used]
+            self._payload = payload
+            self._upload_pool(0, self._used)
+        start = self._used
+        self._used += voxels
+        return start
+
+    def _grow_slots(self, slots: int) -> None:
         old = len(self._keys)
-        per = _k.BRICK_VOXELS * 3
-        pool = wp.zeros(bricks * per, dtype=self._wp_dtype, device=self._device)
-        stamps = wp.zeros(bricks, dtype=wp.int64, device=self._device)
+        stamps = wp.zeros(slots, dtype=wp.int64, device=self._device)
         if old:
-            wp.copy(pool, self._pool, count=old * per)
             wp.copy(stamps, self._index.stamps, count=old)
-        self._pool, self._index.stamps = pool, stamps
-        self._keys = np.concatenate([self._keys, np.full(bricks - old, _EMPTY, np.int64)])
+        self._index.stamps = stamps
+        self._keys = np.concatenate([self._keys, np.full(slots - old, _EMPTY, np.int64)])
         self._valid = np.concatenate([self._valid,
-                                      np.zeros((bricks - old, _k.VALID_WORDS), np.uint32)])
-        self._upload_valid()
+                                      np.zeros((slots - old, _k.VALID_WORDS), np.uint32)])
+        self._base = np.concatenate([self._base, np.zeros(slots - old, np.int64)])
+        self._upload_slots()
 
-    def _compact(self) -> None:
-        """Give back the pool beyond the budget that a large batch made it grow to."""
+    def _renumber_slots(self) -> None:
+        """Move the live bricks to the first slots, in slot order, and give back the rest
+        (a large batch may have made many slots; readers such as the traced lookups
+        mirror every slot)."""
         live = np.flatnonzero(self._keys != _EMPTY)
-        per = _k.BRICK_VOXELS * 3
-        payload = self._pool.numpy().reshape(-1, per)[live]
         stamps = self._index.stamps.numpy()[live]
-        keys = self._keys[live]
-        valid = self._valid[live]
+        keys, valid, base = self._keys[live], self._valid[live], self._base[live]
         self._keys = np.zeros(0, np.int64)
         self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)
-        self._grow_pool(max(self._budget_bricks, _MIN_BRICKS))
+        self._base = np.zeros(0, np.int64)
+        self._grow_slots(max(2 * len(live), _MIN_BRICKS))
         self._keys[: len(live)] = keys
         self._valid[: len(live)] = valid
-        self._upload_valid()
+        self._base[: len(live)] = base
+        stamps = np.concatenate([stamps, np.zeros(len(self._keys) - len(live), np.int64)])
+        self._index.stamps.assign(stamps)
+        self._upload_slots()
+
+    def _compact(self) -> None:
+        """Pack the live bricks' voxels at the start of the pool, dropping what repacked
+        and evicted bricks left behind; slots stay where they are."""
+        live = np.flatnonzero(self._keys != _EMPTY)
+        rows = self._ranges(live)
+        counts = np.bitwise_count(self._valid[live]).sum(axis=1)
+        self._base[live] = np.cumsum(counts) - counts
+        self._payload = np.concatenate([self._payload[rows],
+                                        np.zeros((len(rows), 3), self._dtype)])
+        self._used, self._garbage = len(rows), 0
+        self._upload_pool(0, self._used)
+        self._upload_slots()
+
+    def _upload_slots(self) -> None:
         dev = self._device
-        wp.copy(self._pool, wp.array(payload.reshape(-1), dtype=self._wp_dtype, device=dev),
-                count=payload.size)
-        wp.copy(self._index.stamps, wp.array(stamps, dtype=wp.int64, device=dev),
-                count=len(stamps))
+        self._index.valid = wp.array(self._valid.reshape(-1), dtype=wp.uint32, device=dev)
+        self._index.base = wp.array(self._base.astype(np.int32), dtype=wp.int32, device=dev)
+
+    def _upload_pool(self, start: int, stop: int) -> None:
+        """Make the device pool show pool voxels ``start..stop`` as the host's; on the
+        CPU the device pool is the host array itself, so only a new array needs a view."""
+        dev = self._device
+        flat = self._payload.reshape(-1)
+        if dev == "cpu":
+            if self._pool_source is not self._payload:
+                self._pool = wp.array(flat, dtype=self._wp_dtype, device=dev, copy=False)
+                self._pool_source = self._payload
+            return
+        if self._pool_source is not self._payload:
+            self._pool = wp.zeros(len(flat), dtype=self._wp_dtype, device=dev)
+            self._pool_source = self._payload
+        if stop > start:
+            part = wp.array(flat[3 * start: 3 * stop], dtype=self._wp_dtype, device=dev)
+            wp.copy(self._pool, part, dest_offset=3 * start, count=3 * (stop - start))
 
     def _rebuild_table(self, capacity: int) -> None:
         dev = self._device
@@ -524,10 +621,6 @@ class BrickStore:
     def _wp_dtype(self):
         return wp.uint16 if self._dtype == np.uint16 else wp.int32
 
-    @property
-    def _budget_bricks(self) -> int:
-        return self.cache_bytes // self._brick_bytes
-
     def _index_bytes(self) -> int:
         table = len(self._index.keys) * (8 + 4)
         return table + len(self._keys) * (8 + 8)
@@ -546,7 +639,8 @@ class BrickStore:
         if identity != self.identity():
             raise StoreFileError(f"{path}: written for another texture (other exemplars, "
                                  "seed, jitter or synthesis parameters)")
-        if (triples.dtype != self._dtype or triples.shape != (len(keys), _k.BRICK_VOXELS * 3)
-                or valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS)):
-            raise StoreFileError(f"{path}: brick payload of unexpected type or shape")
+        if valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS):
+            raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")
+        if triples.dtype != self._dtype or triples.shape != (int(np.bitwise_count(valid).sum()), 3):
+            raise StoreFileError(f"{path}: voxel triples of unexpected type or shape")
         return keys.astype(np.int64), triples, valid
