@@ -151,27 +151,42 @@ def test_dependency_masks():
     assert len(chain) == 3 and all(c > 0 for c in chain)
 
 
-@pytest.mark.parametrize("subpasses", [1, 8])
-def test_finest_level_corrects_exactly_the_dependency_mask(candidates, subpasses):
-    """Section 5.2 voxel-exact: one requested voxel makes the finest level correct only
-    the voxels of its dependency mask, not whole padded blocks."""
-    syn = Synthesizer(candidates, seed=2, subpasses=subpasses)
-    steps = correction_steps(syn.passes, subpasses)
-    n = 4 * len(steps) * 2 + 9
-    desired = np.zeros((n, n, n), bool)
-    centre = np.array([n // 2 + 1, n // 2, n // 2 + 1])  # odd, even, odd: parity 5
-    desired[tuple(centre)] = True
-    # Voxels corrected by some step: the ones each step's mask holds in its class.
+def _corrected(desired: np.ndarray, steps: list[int]) -> np.ndarray:
+    """Voxels corrected by some step: the ones each step's mask holds in its class
+    (grid indices of the same parity as the voxel coordinates)."""
     idx = np.indices(desired.shape)
     parity = (idx[0] & 1) + 2 * (idx[1] & 1) + 4 * (idx[2] & 1)
     corrected = np.zeros_like(desired)
     for k, step in enumerate(steps):
         need = dependency_mask(desired, 2, steps[k + 1 :])
         corrected |= need if step < 0 else need & (parity == step)
-    syn.triples(centre[None] - n // 2 + 100)  # same parity class, away from the origin
+    return corrected
+
+
+@pytest.mark.parametrize("subpasses", [1, 8])
+def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses):
+    """Section 5.2 voxel-exact: one requested voxel makes the finest level correct only
+    the voxels of its dependency mask, and the next level only those its parents need,
+    not whole padded blocks."""
+    syn = Synthesizer(candidates, seed=2, subpasses=subpasses)
+    steps = correction_steps(syn.passes, subpasses)
+    n = 4 * len(steps) * 2 + 9
+    origin = 100 - n // 2  # even, so grid parity is voxel parity
+    desired = np.zeros((n, n, n), bool)
+    centre = np.array([n // 2 + 1, n // 2, n // 2 + 1])  # odd, even, odd: parity 5
+    desired[tuple(centre)] = True
+    corrected = _corrected(desired, steps)
+    syn.triples(centre[None] + origin)
     assert syn.voxels_synthesized[syn.finest] == int(corrected.sum())
     if subpasses == 1:
         assert int(corrected.sum()) == 5 * 5 * 3 - 3 * 5 + 1  # one 3-neighbourhood
+    # The parents of every voxel the finest level reads, on an even-aligned coarse grid.
+    parents = np.unique((np.argwhere(dependency_mask(desired, 2, steps)) + origin) >> 1, axis=0)
+    margin = 2 * len(steps) + 2
+    base = (parents.min(axis=0) - margin) & ~1
+    coarse = np.zeros(tuple(parents.max(axis=0) - base + margin + 1), bool)
+    coarse[tuple((parents - base).T)] = True
+    assert syn.voxels_synthesized[syn.finest - 1] == int(_corrected(coarse, steps).sum())
 
 
 def test_box_layout_matches_voxels(candidates):

@@ -135,49 +135,79 @@ def _neighbor_table(keys: np.ndarray) -> np.ndarray:
     return _lookup(keys, nbr).reshape(len(keys), 27)
 
 
+def _local_index(voxels: np.ndarray) -> np.ndarray:
+    """Position of each voxel (N, 3) in its 4^3 block, x slowest, as the kernels number it."""
+    return (voxels[:, 0] & 3) * 16 + (voxels[:, 1] & 3) * 4 + (voxels[:, 2] & 3)
+
+
+def _unique_voxels(voxels: np.ndarray) -> np.ndarray:
+    """The distinct rows of integer ``voxels`` (N, 3), grouped by block: two 1D sorts."""
+    keys, block = np.unique(_pack(voxels >> 2), return_inverse=True)
+    packed = np.unique(block.astype(np.int64) * _BLOCK_VOXELS + _local_index(voxels))
+    return _unpack(keys[packed // _BLOCK_VOXELS]).astype(np.int64) * BLOCK + _LOCAL[
+        packed % _BLOCK_VOXELS]
+
+
 @dataclass
 class _Level:
-    """Final (corrected) triples of some blocks of one level, sorted by block key."""
+    """Final (corrected) triples in some blocks of one level, sorted by block key; only
+    the voxels asked for are defined."""
 
     keys: np.ndarray
     triples: np.ndarray  # (M * 64, 3) int32
 
-    def take(self, keys: np.ndarray) -> np.ndarray:
-        slots = _lookup(self.keys, keys)
-        idx = (slots[:, None] * _BLOCK_VOXELS + np.arange(_BLOCK_VOXELS)).reshape(-1)
-        return self.triples[idx]
+    def rows(self, voxels: np.ndarray) -> np.ndarray:
+        """Rows of ``triples`` holding ``voxels`` (N, 3), whose blocks must be present."""
+        return _lookup(self.keys, _pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
+            _local_index(voxels))
 
 
 class _LevelCache:
-    """Coarse-level cache (section 6.2): final triples of coarse blocks, reused across
-    requests. Values are position-determined, so hits never change a result."""
+    """Coarse-level cache (section 6.2): final triples of coarse voxels, kept by block
+    with one bit per voxel, reused across requests. Values are position-determined, so
+    hits never change a result."""
 
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = max_bytes
+        self.clear()
+
+    def clear(self) -> None:
         self.keys = np.zeros(0, np.int64)
         self.triples = np.zeros((0, 3), np.int32)
+        self.valid = np.zeros(0, np.uint64)  # bit l: voxel l of the block is cached
 
-    def split(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(cached keys, missing keys) of sorted ``keys``."""
+    def find(self, voxels: np.ndarray) -> np.ndarray:
+        """Row in ``triples`` of each of ``voxels`` (N, 3), -1 where not cached."""
         if len(self.keys) == 0:
-            return keys[:0], keys
-        hit = _lookup(self.keys, keys) >= 0
-        return keys[hit], keys[~hit]
+            return np.full(len(voxels), -1, np.int64)
+        slot = _lookup(self.keys, _pack(voxels >> 2)).astype(np.int64)
+        local = _local_index(voxels)
+        bits = self.valid[np.maximum(slot, 0)] >> local.astype(np.uint64)
+        hit = (slot >= 0) & (bits & np.uint64(1) != 0)
+        return np.where(hit, slot * _BLOCK_VOXELS + local, -1)
 
-    def take(self, keys: np.ndarray) -> np.ndarray:
-        return _Level(self.keys, self.triples).take(keys)
-
-    def insert(self, level: _Level) -> None:
-        if level.triples.nbytes > self.max_bytes:
+    def insert(self, voxels: np.ndarray, triples: np.ndarray) -> None:
+        """Keep ``triples`` of the (uncached) ``voxels``; starts over when full."""
+        keys = _pack(voxels >> 2)
+        new = np.unique(keys)
+        size = (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12
+        if len(new) * _BLOCK_VOXELS * 12 > self.max_bytes:
             return
-        if self.triples.nbytes + level.triples.nbytes > self.max_bytes:
-            self.keys, self.triples = level.keys, level.triples
-            return
-        keys = np.concatenate([self.keys, level.keys])
-        blocks = np.concatenate([self.triples, level.triples]).reshape(-1, _BLOCK_VOXELS, 3)
-        order = np.argsort(keys, kind="stable")
-        self.keys = keys[order]
-        self.triples = blocks[order].reshape(-1, 3)
+        if size > self.max_bytes:
+            self.clear()
+        fresh = new[_lookup(self.keys, new) < 0] if len(self.keys) else new
+        if len(fresh):
+            keys_all = np.concatenate([self.keys, fresh])
+            order = np.argsort(keys_all, kind="stable")
+            blocks = np.concatenate([self.triples.reshape(-1, _BLOCK_VOXELS, 3),
+                                     np.zeros((len(fresh), _BLOCK_VOXELS, 3), np.int32)])
+            self.keys = keys_all[order]
+            self.triples = blocks[order].reshape(-1, 3)
+            self.valid = np.concatenate([self.valid, np.zeros(len(fresh), np.uint64)])[order]
+        slot = _lookup(self.keys, keys).astype(np.int64)
+        local = _local_index(voxels)
+        self.triples[slot * _BLOCK_VOXELS + local] = triples
+        np.bitwise_or.at(self.valid, slot, np.uint64(1) << local.astype(np.uint64))
 
 
 class Synthesizer:
@@ -278,39 +308,35 @@ class Synthesizer:
         keys = _pack(ijk >> 2)
         uniq = np.unique(keys)
         with self._lock:  # the finest level is never cached: just the voxels asked for
-            level = self._synthesize(self.finest, uniq, desired=ijk).triples
-        slot = np.searchsorted(uniq, keys)
-        local = (ijk[:, 0] & 3) * 16 + (ijk[:, 1] & 3) * 4 + (ijk[:, 2] & 3)
-        return level[slot * _BLOCK_VOXELS + local]
+            level = self._synthesize(self.finest, uniq, ijk)
+        return level.triples[level.rows(ijk)]
 
-    def _final(self, level: int, keys: np.ndarray) -> _Level:
-        """Corrected triples at ``level`` of the blocks ``keys`` (sorted, unique)."""
+    def _final(self, level: int, voxels: np.ndarray) -> _Level:
+        """Corrected triples at ``level`` of ``voxels`` (unique coordinates): from the
+        coarse cache where it holds them, the others synthesized in one call."""
+        keys = _pack(voxels >> 2)
+        out = _Level(np.unique(keys), np.zeros((0, 3), np.int32))
+        out.triples = np.zeros((len(out.keys) * _BLOCK_VOXELS, 3), np.int32)
         cache = self._cache.get(level)
-        if cache is not None:
-            hit, miss = cache.split(keys)
-        else:
-            hit, miss = keys[:0], keys
-        computed = self._synthesize(level, miss) if len(miss) else None
-        if cache is not None and computed is not None:
-            cache.insert(computed)
-        if len(hit) == 0:
-            return computed if computed is not None else _Level(keys, np.zeros((0, 3), np.int32))
-        parts_k = [hit] + ([computed.keys] if computed is not None else [])
-        parts_t = [cache.take(hit).reshape(-1, _BLOCK_VOXELS, 3)]
-        if computed is not None:
-            parts_t.append(computed.triples.reshape(-1, _BLOCK_VOXELS, 3))
-        all_keys = np.concatenate(parts_k)
-        order = np.argsort(all_keys, kind="stable")
-        return _Level(all_keys[order], np.concatenate(parts_t)[order].reshape(-1, 3))
+        found = cache.find(voxels) if cache is not None else np.full(len(voxels), -1)
+        hit = found >= 0
+        out.triples[out.rows(voxels[hit])] = cache.triples[found[hit]] if hit.any() else 0
+        missing = voxels[~hit]
+        if len(missing):
+            computed = self._synthesize(level, np.unique(keys[~hit]), missing)
+            made = computed.triples[computed.rows(missing)]
+            out.triples[out.rows(missing)] = made
+            if cache is not None:
+                cache.insert(missing, made)
+        return out
 
-    def _synthesize(self, level: int, keys: np.ndarray,
-                    desired: np.ndarray | None = None) -> _Level:
-        """Synthesize blocks ``keys`` of ``level``, all their voxels or only the
-        ``desired`` ones (voxel coordinates), on a work region padded by the apron.
+    def _synthesize(self, level: int, keys: np.ndarray, desired: np.ndarray) -> _Level:
+        """Synthesize the ``desired`` voxels (coordinates) of ``level``, which lie in the
+        blocks ``keys``, on a work region padded by the apron.
 
         Section 5.2: each correction step visits just the voxels whose value later steps
-        read on the way to the desired ones, and only the blocks holding voxels that
-        the first step reads are upsampled from the parent level.
+        read on the way to the desired ones, and the parent level is asked for just the
+        parents of the voxels that the first step reads.
         """
         work = _dilate(keys, self._apron)
         coords = _unpack(work)
@@ -319,12 +345,7 @@ class Synthesizer:
         nvox = len(work) * _BLOCK_VOXELS
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
         nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
-        if desired is None:
-            flat = (_lookup(work, keys)[:, None] * _BLOCK_VOXELS
-                    + np.arange(_BLOCK_VOXELS)).reshape(-1)
-        else:
-            local = (desired[:, 0] & 3) * 16 + (desired[:, 1] & 3) * 4 + (desired[:, 2] & 3)
-            flat = _lookup(work, _pack(desired >> 2)).astype(np.int64) * _BLOCK_VOXELS + local
+        flat = _Level(work, triples=np.zeros((0, 3), np.int32)).rows(desired)
         active, read = self._dependency_lists(nbr, coords, flat)
         # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
         # such as the features read valid pixels everywhere.
@@ -334,8 +355,9 @@ class Synthesizer:
             wp.launch(_k.initialize, nvox, [coords_wp, t, self.seed, jitter], [triples], device=dev)
         else:
             read_blocks = read.reshape(-1, _BLOCK_VOXELS).any(axis=1)
-            parent_keys = np.unique(_pack(coords[read_blocks] >> 1))
-            parent = self._final(level - 1, parent_keys)
+            listed = np.flatnonzero(read)
+            world = coords[listed // _BLOCK_VOXELS] * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
+            parent = self._final(level - 1, _unique_voxels(world.astype(np.int64) >> 1))
             parent_slot = np.where(read_blocks, _lookup(parent.keys, _pack(coords >> 1)), -1)
             pt = self._tables[level - 1]
             wp.launch(
