@@ -140,14 +140,6 @@ def _local_index(voxels: np.ndarray) -> np.ndarray:
     return (voxels[:, 0] & 3) * 16 + (voxels[:, 1] & 3) * 4 + (voxels[:, 2] & 3)
 
 
-def _unique_voxels(voxels: np.ndarray) -> np.ndarray:
-    """The distinct rows of integer ``voxels`` (N, 3), grouped by block: two 1D sorts."""
-    keys, block = np.unique(_pack(voxels >> 2), return_inverse=True)
-    packed = np.unique(block.astype(np.int64) * _BLOCK_VOXELS + _local_index(voxels))
-    return _unpack(keys[packed // _BLOCK_VOXELS]).astype(np.int64) * BLOCK + _LOCAL[
-        packed % _BLOCK_VOXELS]
-
-
 @dataclass
 class _Level:
     """Final (corrected) triples in some blocks of one level, sorted by block key; only
@@ -176,24 +168,24 @@ class _LevelCache:
         self.triples = np.zeros((0, 3), np.int32)
         self.valid = np.zeros(0, np.uint64)  # bit l: voxel l of the block is cached
 
-    def find(self, voxels: np.ndarray) -> np.ndarray:
-        """Row in ``triples`` of each of ``voxels`` (N, 3), -1 where not cached."""
+    def find(self, keys: np.ndarray, flat: np.ndarray) -> np.ndarray:
+        """Row in ``triples`` of each voxel ``flat`` (block * 64 + local) of the blocks
+        ``keys``, -1 where not cached."""
         if len(self.keys) == 0:
-            return np.full(len(voxels), -1, np.int64)
-        slot = _lookup(self.keys, _pack(voxels >> 2)).astype(np.int64)
-        local = _local_index(voxels)
+            return np.full(len(flat), -1, np.int64)
+        slot = _lookup(self.keys, keys).astype(np.int64)[flat // _BLOCK_VOXELS]
+        local = flat % _BLOCK_VOXELS
         bits = self.valid[np.maximum(slot, 0)] >> local.astype(np.uint64)
         hit = (slot >= 0) & (bits & np.uint64(1) != 0)
         return np.where(hit, slot * _BLOCK_VOXELS + local, -1)
 
-    def insert(self, voxels: np.ndarray, triples: np.ndarray) -> None:
-        """Keep ``triples`` of the (uncached) ``voxels``; starts over when full."""
-        keys = _pack(voxels >> 2)
-        new = np.unique(keys)
-        size = (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12
+    def insert(self, keys: np.ndarray, flat: np.ndarray, triples: np.ndarray) -> None:
+        """Keep ``triples`` of the uncached voxels ``flat`` (sorted) of the blocks ``keys``;
+        starts over when full."""
+        new = np.unique(keys[flat // _BLOCK_VOXELS])
         if len(new) * _BLOCK_VOXELS * 12 > self.max_bytes:
             return
-        if size > self.max_bytes:
+        if (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12 > self.max_bytes:
             self.clear()
         fresh = new[_lookup(self.keys, new) < 0] if len(self.keys) else new
         if len(fresh):
@@ -204,10 +196,26 @@ class _LevelCache:
             self.keys = keys_all[order]
             self.triples = blocks[order].reshape(-1, 3)
             self.valid = np.concatenate([self.valid, np.zeros(len(fresh), np.uint64)])[order]
-        slot = _lookup(self.keys, keys).astype(np.int64)
-        local = _local_index(voxels)
+        slot = _lookup(self.keys, keys).astype(np.int64)[flat // _BLOCK_VOXELS]
+        local = flat % _BLOCK_VOXELS
         self.triples[slot * _BLOCK_VOXELS + local] = triples
         np.bitwise_or.at(self.valid, slot, np.uint64(1) << local.astype(np.uint64))
+
+
+def _parents(coords: np.ndarray, read: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Blocks (sorted keys) and voxels (flat, sorted) one level up holding the parents
+    of the voxels ``read`` marks in the blocks ``coords``: voxel v's parent is v >> 1
+    (section 5.1), and block c's parents lie in block c >> 1."""
+    listed = np.flatnonzero(read)
+    block = listed // _BLOCK_VOXELS
+    touched = np.flatnonzero(np.bincount(block, minlength=len(coords)))
+    keys, slot = np.unique(_pack(coords[touched] >> 1), return_inverse=True)
+    slot_of = np.full(len(coords), -1, np.int64)
+    slot_of[touched] = slot
+    world = coords[block].astype(np.int64) * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
+    mask = np.zeros(len(keys) * _BLOCK_VOXELS, bool)
+    mask[slot_of[block] * _BLOCK_VOXELS + _local_index(world >> 1)] = True
+    return keys, np.flatnonzero(mask)
 
 
 class Synthesizer:
@@ -311,23 +319,24 @@ class Synthesizer:
             level = self._synthesize(self.finest, uniq, ijk)
         return level.triples[level.rows(ijk)]
 
-    def _final(self, level: int, voxels: np.ndarray) -> _Level:
-        """Corrected triples at ``level`` of ``voxels`` (unique coordinates): from the
-        coarse cache where it holds them, the others synthesized in one call."""
-        keys = _pack(voxels >> 2)
-        out = _Level(np.unique(keys), np.zeros((0, 3), np.int32))
-        out.triples = np.zeros((len(out.keys) * _BLOCK_VOXELS, 3), np.int32)
+    def _final(self, level: int, keys: np.ndarray, flat: np.ndarray) -> _Level:
+        """Corrected triples at ``level`` of the voxels ``flat`` (block * 64 + local,
+        sorted) of the blocks ``keys``: from the coarse cache where it holds them, the
+        others synthesized in one call."""
+        out = _Level(keys, np.zeros((len(keys) * _BLOCK_VOXELS, 3), np.int32))
         cache = self._cache.get(level)
-        found = cache.find(voxels) if cache is not None else np.full(len(voxels), -1)
+        found = cache.find(keys, flat) if cache is not None else np.full(len(flat), -1)
         hit = found >= 0
-        out.triples[out.rows(voxels[hit])] = cache.triples[found[hit]] if hit.any() else 0
-        missing = voxels[~hit]
+        if hit.any():
+            out.triples[flat[hit]] = cache.triples[found[hit]]
+        missing = flat[~hit]
         if len(missing):
-            computed = self._synthesize(level, np.unique(keys[~hit]), missing)
-            made = computed.triples[computed.rows(missing)]
-            out.triples[out.rows(missing)] = made
+            voxels = (_unpack(keys[missing // _BLOCK_VOXELS]).astype(np.int64) * BLOCK
+                      + _LOCAL[missing % _BLOCK_VOXELS])
+            computed = self._synthesize(level, np.unique(keys[missing // _BLOCK_VOXELS]), voxels)
+            out.triples[missing] = computed.triples[computed.rows(voxels)]
             if cache is not None:
-                cache.insert(missing, made)
+                cache.insert(keys, missing, out.triples[missing])
         return out
 
     def _synthesize(self, level: int, keys: np.ndarray, desired: np.ndarray) -> _Level:
@@ -355,9 +364,7 @@ class Synthesizer:
             wp.launch(_k.initialize, nvox, [coords_wp, t, self.seed, jitter], [triples], device=dev)
         else:
             read_blocks = read.reshape(-1, _BLOCK_VOXELS).any(axis=1)
-            listed = np.flatnonzero(read)
-            world = coords[listed // _BLOCK_VOXELS] * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
-            parent = self._final(level - 1, _unique_voxels(world.astype(np.int64) >> 1))
+            parent = self._final(level - 1, *_parents(coords, read))
             parent_slot = np.where(read_blocks, _lookup(parent.keys, _pack(coords >> 1)), -1)
             pt = self._tables[level - 1]
             wp.launch(
