@@ -230,40 +230,114 @@ def spread_need(
 
 
 @wp.kernel
-def project_neighborhoods(
+def gather_halos(
     first: int,
-    active: wp.array(dtype=wp.int32),
+    chunk: int,
+    blocks: wp.array(dtype=wp.int32),
     nbr: wp.array2d(dtype=wp.int32),
     feats: wp.array(dtype=wp.float32),
     t: LevelTables,
+    halos: wp.array(dtype=wp.float32),
+):
+    """Features of work blocks ``blocks`` with a halo of N // 2 voxels on every side, in a
+    dense (4 + 2 * half)^3 layout: projection then addresses neighbours with plain strides
+    instead of a block-neighbour lookup per neighbour (section 5.1). Absent voxels hold
+    -1, which no feature sum takes. One thread fills one z row of a halo block; block
+    ``blocks[q]`` goes to halo block ``q - chunk``."""
+    side = BLOCK + 2 * t.half
+    row = first + wp.tid()
+    q = row // (side * side)
+    r = row - q * side * side
+    px = r // side - t.half
+    py = r - (r // side) * side - t.half
+    # A row crosses at most three blocks along z: one table entry each, not one per voxel.
+    pre = ((px >> 2) + 1) * 9 + ((py >> 2) + 1) * 3 + 1
+    lxy = ((px & 3) << 4) + ((py & 3) << 2)
+    out = ((q - chunk) * side * side + r) * side * t.nfeat
+    for z in range(side):
+        pz = z - t.half
+        slot = nbr[blocks[q], pre + (pz >> 2)]
+        j = (slot << 6) + lxy + (pz & 3)
+        for c in range(t.nfeat):
+            v = float(-1.0)
+            if slot >= 0:
+                v = feats[j * t.nfeat + c]
+            halos[out + z * t.nfeat + c] = v
+
+
+@wp.func
+def halo_voxel(halos: wp.array(dtype=wp.float32), j: int, nfeat: int, own: int) -> int:
+    """Halo voxel ``j``, or ``own`` (the centre) where the voxel is absent."""
+    if halos[j * nfeat] < 0.0:
+        return own
+    return j
+
+
+@wp.func
+def entry_sum(t: LevelTables, halos: wp.array(dtype=wp.float32), w: int, j: int) -> basis_row:
+    """Basis rows ``w...`` times the features of halo voxel ``j``: one neighbourhood entry."""
+    nf = t.nfeat
+    s = t.basis[w] * halos[j * nf]
+    for c in range(1, nf):
+        s += t.basis[w + c] * halos[j * nf + c]
+    return s
+
+
+@wp.func
+def project_clamp(acc: appearance_vector, shift: int) -> appearance_vector:
+    for d in range(MAX_DIMS):
+        acc[d] = wp.clamp(acc[d] >> shift, -PROJ_LIMIT, PROJ_LIMIT)
+    return acc
+
+
+@wp.kernel
+def project_neighborhoods(
+    first: int,
+    active: wp.array(dtype=wp.int32),
+    halo_of: wp.array(dtype=wp.int32),
+    halos: wp.array(dtype=wp.float32),
+    t: LevelTables,
     qproj: wp.array(dtype=appearance_vector),
 ):
-    """PCA projection of a voxel's current N x N neighbourhood in the plane of axis k.
+    """PCA projection of a voxel's current N x N neighbourhoods in the planes of the three
+    axes (section 5.1), read from the halo block ``halo_of`` its block.
 
-    Each row of the neighbourhood is summed in float32, which vectorizes on CPUs, and is
+    Each row of a neighbourhood is summed in float32, which vectorizes on CPUs, and is
     still exact integer arithmetic: a row has at most 9 * F terms of |basis| <= 127 times
-    features <= 3 * 255, below 2^24 for up to 19 features. Rows add up in int32.
+    features <= 3 * 255, below 2^24 for up to 19 features, so any order of the additions
+    gives the same sum. Rows add up in int32. The three planes accumulate side by side:
+    independent sums keep the CPU's floating-point units busy.
     """
-    k = wp.tid() % 3
-    i = active[first + wp.tid() // 3]
-    block = i >> 6
-    local = block_local(i)
-    n = 2 * t.half + 1
-    acc = appearance_vector()
-    for a in range(n):
-        row = basis_row()
-        for b in range(n):
-            j = neighbor_in_block(nbr, block, local, plane_offset(k, a - t.half, b - t.half))
-            if j < 0:
-                j = i
-            w = t.basis_off[k] + (a * n + b) * t.nfeat
-            for c in range(t.nfeat):
-                row += t.basis[w + c] * feats[j * t.nfeat + c]
-        acc += appearance_vector(row)
-    s = t.shift[k]
-    for d in range(MAX_DIMS):
-        acc[d] = wp.clamp(acc[d] >> s, -PROJ_LIMIT, PROJ_LIMIT)
-    qproj[i * 3 + k] = acc
+    i = active[first + wp.tid()]
+    h = t.half
+    side = BLOCK + 2 * h
+    p = block_local(i)
+    own = ((halo_of[i >> 6] * side + p[0] + h) * side + p[1] + h) * side + p[2] + h
+    sx = side * side  # halo strides along x, y; z is 1
+    sy = side
+    acc0 = appearance_vector()
+    acc1 = appearance_vector()
+    acc2 = appearance_vector()
+    w = int(0)  # entry (a, b) of every plane: basis rows basis_off[k] + w ...
+    for a in range(-h, h + 1):
+        row0 = basis_row()
+        row1 = basis_row()
+        row2 = basis_row()
+        for b in range(-h, h + 1):
+            # The exemplar of axis k spans volume axes (k+1, k+2): see plane_offset.
+            j0 = halo_voxel(halos, own + a * sy + b, t.nfeat, own)
+            j1 = halo_voxel(halos, own + a + b * sx, t.nfeat, own)
+            j2 = halo_voxel(halos, own + a * sx + b * sy, t.nfeat, own)
+            row0 += entry_sum(t, halos, t.basis_off[0] + w, j0)
+            row1 += entry_sum(t, halos, t.basis_off[1] + w, j1)
+            row2 += entry_sum(t, halos, t.basis_off[2] + w, j2)
+            w += t.nfeat
+        acc0 += appearance_vector(row0)
+        acc1 += appearance_vector(row1)
+        acc2 += appearance_vector(row2)
+    qproj[i * 3] = project_clamp(acc0, t.shift[0])
+    qproj[i * 3 + 1] = project_clamp(acc1, t.shift[1])
+    qproj[i * 3 + 2] = project_clamp(acc2, t.shift[2])
 
 
 @wp.func
