@@ -10,7 +10,7 @@ All arithmetic is on integers, so results are bit-identical on the CPU and on CU
 
 import warp as wp
 
-from kernels.common import hash_cell, pixel_index, plane_offset, wrap
+from kernels.common import hash_cell, pixel_index, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -90,6 +90,24 @@ def neighbor_voxel(nbr: wp.array2d(dtype=wp.int32), i: int, d: wp.vec3i) -> int:
 def shift_pixel(pix: int, du: int, dv: int, height: int, width: int) -> int:
     u = pix // width
     return pixel_index(u + du, pix - u * width + dv, height, width)
+
+
+@wp.func
+def step_pixel(pix: int, du: int, dv: int, height: int, width: int) -> int:
+    """``shift_pixel`` for steps of at most one row and column (|du|, |dv| <= 1): one
+    division instead of three, as wrapping takes at most one correction per axis."""
+    v = pix % width + dv  # pix >= 0, so % is the column
+    p = pix + du * width + dv
+    if v < 0:
+        p += width
+    if v >= width:
+        p -= width
+    size = height * width
+    if p < 0:
+        p += size
+    if p >= size:
+        p -= size
+    return p
 
 
 @wp.func
@@ -235,15 +253,17 @@ def gather_halos(
     chunk: int,
     blocks: wp.array(dtype=wp.int32),
     nbr: wp.array2d(dtype=wp.int32),
+    src: wp.array(dtype=wp.vec3i),
     feats: wp.array(dtype=wp.float32),
     t: LevelTables,
     halos: wp.array(dtype=wp.float32),
+    halo_src: wp.array(dtype=wp.vec3i),
 ):
-    """Features of work blocks ``blocks`` with a halo of N // 2 voxels on every side, in a
-    dense (4 + 2 * half)^3 layout: projection then addresses neighbours with plain strides
-    instead of a block-neighbour lookup per neighbour (section 5.1). Absent voxels hold
-    -1, which no feature sum takes. One thread fills one z row of a halo block; block
-    ``blocks[q]`` goes to halo block ``q - chunk``."""
+    """Features and triples of work blocks ``blocks`` with a halo of N // 2 voxels on
+    every side, in a dense (4 + 2 * half)^3 layout: projection and correction then address
+    neighbours with plain strides instead of a block-neighbour lookup per neighbour
+    (section 5.1). Absent voxels hold -1, which no feature sum or pixel takes. One thread
+    fills one z row of a halo block; block ``blocks[q]`` goes to halo block ``q - chunk``."""
     side = BLOCK + 2 * t.half
     row = first + wp.tid()
     q = row // (side * side)
@@ -258,11 +278,30 @@ def gather_halos(
         pz = z - t.half
         slot = nbr[blocks[q], pre + (pz >> 2)]
         j = (slot << 6) + lxy + (pz & 3)
+        tri = wp.vec3i(-1, -1, -1)
+        if slot >= 0:
+            tri = src[j]
+        halo_src[out // t.nfeat + z] = tri
         for c in range(t.nfeat):
             v = float(-1.0)
             if slot >= 0:
                 v = feats[j * t.nfeat + c]
             halos[out + z * t.nfeat + c] = v
+
+
+@wp.func
+def halo_strides(half: int) -> wp.vec3i:
+    """Index steps along x, y, z in a halo block."""
+    side = BLOCK + 2 * half
+    return wp.vec3i(side * side, side, 1)
+
+
+@wp.func
+def halo_voxel_of(halo_of: wp.array(dtype=wp.int32), i: int, half: int) -> int:
+    """Index of work voxel ``i`` in the halo block ``halo_of`` its block."""
+    side = BLOCK + 2 * half
+    p = block_local(i) + wp.vec3i(half, half, half)
+    return halo_of[i >> 6] * side * side * side + wp.dot(p, halo_strides(half))
 
 
 @wp.func
@@ -309,12 +348,10 @@ def project_neighborhoods(
     independent sums keep the CPU's floating-point units busy.
     """
     i = active[first + wp.tid()]
+    own = halo_voxel_of(halo_of, i, t.half)
+    sx = halo_strides(t.half)[0]  # along z the stride is 1
+    sy = halo_strides(t.half)[1]
     h = t.half
-    side = BLOCK + 2 * h
-    p = block_local(i)
-    own = ((halo_of[i >> 6] * side + p[0] + h) * side + p[1] + h) * side + p[2] + h
-    sx = side * side  # halo strides along x, y; z is 1
-    sy = side
     acc0 = appearance_vector()
     acc1 = appearance_vector()
     acc2 = appearance_vector()
@@ -350,31 +387,39 @@ def appearance_distance(t: LevelTables, qproj: wp.array(dtype=appearance_vector)
 
 @wp.func
 def best_2d_candidate(
-    nbr: wp.array2d(dtype=wp.int32),
-    src: wp.array(dtype=wp.vec3i),
+    halo_src: wp.array(dtype=wp.vec3i),
     qproj: wp.array(dtype=appearance_vector),
     t: LevelTables,
     i: int,
+    own: int,
     k: int,
 ) -> int:
     """Step 1 of the two-step search (section 5.1): best k-coherent 2D candidate in the
-    plane of axis k, gathered from the 3 x 3 in-plane neighbours, shifted back."""
+    plane of axis k, gathered from the 3 x 3 in-plane neighbours (halo voxels around
+    ``own``), shifted back."""
     h = t.height[k]
     w = t.width[k]
+    s1 = halo_strides(t.half)[(k + 1) % 3]  # the plane's axes: see plane_offset
+    s2 = halo_strides(t.half)[(k + 2) % 3]
     best = int(-1)
     best_d = int(0)
+    last = int(-1)
     for da in range(-1, 2):
         for db in range(-1, 2):
-            j = neighbor_voxel(nbr, i, plane_offset(k, da, db))
-            if j < 0:
-                j = i
-            p = shift_pixel(src[j][k], -da, -db, h, w)
-            for c in range(t.k2):
-                cand = t.cand2d[t.cand2d_off[k] + p * t.cand2d_stride + c]
-                dist = appearance_distance(t, qproj, i, k, cand)
-                if best < 0 or dist < best_d:
-                    best = cand
-                    best_d = dist
+            pix = halo_src[own + da * s1 + db * s2][k]
+            if pix < 0:
+                pix = halo_src[own][k]
+            p = step_pixel(pix, -da, -db, h, w)
+            # Coherent neighbours often agree on p: its candidates were just compared, and
+            # an equal distance never replaces the best, so skipping them changes nothing.
+            if p != last:
+                last = p
+                for c in range(t.k2):
+                    cand = t.cand2d[t.cand2d_off[k] + p * t.cand2d_stride + c]
+                    dist = appearance_distance(t, qproj, i, k, cand)
+                    if best < 0 or dist < best_d:
+                        best = cand
+                        best_d = dist
     return best
 
 
@@ -382,8 +427,8 @@ def best_2d_candidate(
 def correct(
     first: int,
     active: wp.array(dtype=wp.int32),
-    nbr: wp.array2d(dtype=wp.int32),
-    src: wp.array(dtype=wp.vec3i),
+    halo_of: wp.array(dtype=wp.int32),
+    halo_src: wp.array(dtype=wp.vec3i),
     qproj: wp.array(dtype=appearance_vector),
     t: LevelTables,
     dst: wp.array(dtype=wp.vec3i),
@@ -394,12 +439,14 @@ def correct(
     and compares whole 3-neighbourhoods. Strict comparisons in a fixed loop order make
     the first best win, so ties resolve identically everywhere. Voxels not listed in
     ``active`` (the step's voxels, of its sub-pass only) keep the value ``dst`` holds.
+    Triples are read from the halo blocks that the projection read.
     """
     i = active[first + wp.tid()]
-    best = src[i]
+    centre = halo_voxel_of(halo_of, i, t.half)
+    best = halo_src[centre]
     best_d = int(-1)
     for k in range(3):
-        own = best_2d_candidate(nbr, src, qproj, t, i, k)
+        own = best_2d_candidate(halo_src, qproj, t, i, centre, k)
         own_d = appearance_distance(t, qproj, i, k, own)
         k1 = (k + 1) % 3
         k2 = (k + 2) % 3

@@ -400,17 +400,17 @@ class Synthesizer:
             voxels = wp.array(listed, dtype=wp.int32, device=dev)
             wp.launch(_k.voxel_features, nvox, [src, t], [feats], device=dev)
             wp.copy(dst, src)
-            self._project(listed, voxels, nbr, feats, t, qproj)
-            launch_ranges(_k.correct, 0, len(listed), [voxels, nbr, src, qproj, t],
-                          [dst], device=dev)
+            self._correct_step(listed, voxels, nbr, src, feats, t, qproj, dst)
             src, dst = dst, src
         if src is not triples:
             wp.copy(triples, src)
 
-    def _project(self, listed: np.ndarray, voxels: wp.array, nbr: wp.array, feats: wp.array,
-                 t: _k.LevelTables, qproj: wp.array) -> None:
-        """Projected neighbourhoods of the voxels ``listed`` (sorted), through halo blocks
-        of their blocks gathered a chunk of blocks at a time, which bounds their memory."""
+    def _correct_step(self, listed: np.ndarray, voxels: wp.array, nbr: wp.array,
+                      src: wp.array, feats: wp.array, t: _k.LevelTables, qproj: wp.array,
+                      dst: wp.array) -> None:
+        """One correction step of the voxels ``listed`` (sorted): their blocks are gathered
+        with halos a chunk of blocks at a time, projected and corrected while the chunk
+        is still in the cache; chunks also bound the halos' memory."""
         dev = self.device
         chunk = _HALO_CHUNK["cpu" if wp.get_device(dev).is_cpu else "cuda"]
         block = listed >> 6
@@ -419,17 +419,20 @@ class Synthesizer:
         halo_of = np.full(nbr.shape[0], -1, np.int32)
         halo_of[blocks] = np.arange(len(blocks)) % chunk
         rows = (BLOCK + 2 * t.half) ** 2  # gathered per halo block, one thread each
-        halos = wp.empty(min(len(blocks), chunk) * rows * (BLOCK + 2 * t.half) * t.nfeat,
-                         dtype=wp.float32, device=dev)
+        size = min(len(blocks), chunk) * rows * (BLOCK + 2 * t.half)
+        halos = wp.empty(size * t.nfeat, dtype=wp.float32, device=dev)
+        halo_src = wp.empty(size, dtype=wp.vec3i, device=dev)
         blocks_wp = wp.array(blocks, dtype=wp.int32, device=dev)
         halo_wp = wp.array(halo_of, dtype=wp.int32, device=dev)
         starts = [*starts.tolist(), len(listed)]
         for lo in range(0, len(blocks), chunk):
             hi = min(lo + chunk, len(blocks))
             launch_ranges(_k.gather_halos, lo * rows, hi * rows,
-                          [lo, blocks_wp, nbr, feats, t], [halos], device=dev)
+                          [lo, blocks_wp, nbr, src, feats, t], [halos, halo_src], device=dev)
             launch_ranges(_k.project_neighborhoods, starts[lo], starts[hi],
                           [voxels, halo_wp, halos, t], [qproj], device=dev)
+            launch_ranges(_k.correct, starts[lo], starts[hi],
+                          [voxels, halo_wp, halo_src, qproj, t], [dst], device=dev)
 
     def _level_tables(self, level: int) -> _k.LevelTables:
         """Upload one level's exemplar data; shared sources are stored once."""
