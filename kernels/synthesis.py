@@ -10,7 +10,7 @@ All arithmetic is on integers, so results are bit-identical on the CPU and on CU
 
 import warp as wp
 
-from kernels.common import hash_cell, pixel_index, plane_offset, wrap
+from kernels.common import hash_cell, pixel_index, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -90,6 +90,24 @@ def neighbor_voxel(nbr: wp.array2d(dtype=wp.int32), i: int, d: wp.vec3i) -> int:
 def shift_pixel(pix: int, du: int, dv: int, height: int, width: int) -> int:
     u = pix // width
     return pixel_index(u + du, pix - u * width + dv, height, width)
+
+
+@wp.func
+def step_pixel(pix: int, du: int, dv: int, height: int, width: int) -> int:
+    """``shift_pixel`` for steps of at most one row and column (|du|, |dv| <= 1): one
+    division instead of three, as wrapping takes at most one correction per axis."""
+    v = pix % width + dv  # pix >= 0, so % is the column
+    p = pix + du * width + dv
+    if v < 0:
+        p += width
+    if v >= width:
+        p -= width
+    size = height * width
+    if p < 0:
+        p += size
+    if p >= size:
+        p -= size
+    return p
 
 
 @wp.func
@@ -230,40 +248,133 @@ def spread_need(
 
 
 @wp.kernel
+def gather_halos(
+    first: int,
+    chunk: int,
+    blocks: wp.array(dtype=wp.int32),
+    nbr: wp.array2d(dtype=wp.int32),
+    src: wp.array(dtype=wp.vec3i),
+    feats: wp.array(dtype=wp.float32),
+    t: LevelTables,
+    halos: wp.array(dtype=wp.float32),
+    halo_src: wp.array(dtype=wp.vec3i),
+):
+    """Features and triples of work blocks ``blocks`` with a halo of N // 2 voxels on
+    every side, in a dense (4 + 2 * half)^3 layout: projection and correction then address
+    neighbours with plain strides instead of a block-neighbour lookup per neighbour
+    (section 5.1). Absent voxels hold -1, which no feature sum or pixel takes. One thread
+    fills one z row of a halo block; block ``blocks[q]`` goes to halo block ``q - chunk``."""
+    side = BLOCK + 2 * t.half
+    row = first + wp.tid()
+    q = row // (side * side)
+    r = row - q * side * side
+    px = r // side - t.half
+    py = r - (r // side) * side - t.half
+    # A row crosses at most three blocks along z: one table entry each, not one per voxel.
+    pre = ((px >> 2) + 1) * 9 + ((py >> 2) + 1) * 3 + 1
+    lxy = ((px & 3) << 4) + ((py & 3) << 2)
+    out = ((q - chunk) * side * side + r) * side * t.nfeat
+    for z in range(side):
+        pz = z - t.half
+        slot = nbr[blocks[q], pre + (pz >> 2)]
+        j = (slot << 6) + lxy + (pz & 3)
+        tri = wp.vec3i(-1, -1, -1)
+        if slot >= 0:
+            tri = src[j]
+        halo_src[out // t.nfeat + z] = tri
+        for c in range(t.nfeat):
+            v = float(-1.0)
+            if slot >= 0:
+                v = feats[j * t.nfeat + c]
+            halos[out + z * t.nfeat + c] = v
+
+
+@wp.func
+def halo_strides(half: int) -> wp.vec3i:
+    """Index steps along x, y, z in a halo block."""
+    side = BLOCK + 2 * half
+    return wp.vec3i(side * side, side, 1)
+
+
+@wp.func
+def halo_voxel_of(halo_of: wp.array(dtype=wp.int32), i: int, half: int) -> int:
+    """Index of work voxel ``i`` in the halo block ``halo_of`` its block."""
+    side = BLOCK + 2 * half
+    p = block_local(i) + wp.vec3i(half, half, half)
+    return halo_of[i >> 6] * side * side * side + wp.dot(p, halo_strides(half))
+
+
+@wp.func
+def halo_voxel(halos: wp.array(dtype=wp.float32), j: int, nfeat: int, own: int) -> int:
+    """Halo voxel ``j``, or ``own`` (the centre) where the voxel is absent."""
+    if halos[j * nfeat] < 0.0:
+        return own
+    return j
+
+
+@wp.func
+def entry_sum(t: LevelTables, halos: wp.array(dtype=wp.float32), w: int, j: int) -> basis_row:
+    """Basis rows ``w...`` times the features of halo voxel ``j``: one neighbourhood entry."""
+    nf = t.nfeat
+    s = t.basis[w] * halos[j * nf]
+    for c in range(1, nf):
+        s += t.basis[w + c] * halos[j * nf + c]
+    return s
+
+
+@wp.func
+def project_clamp(acc: appearance_vector, shift: int) -> appearance_vector:
+    for d in range(MAX_DIMS):
+        acc[d] = wp.clamp(acc[d] >> shift, -PROJ_LIMIT, PROJ_LIMIT)
+    return acc
+
+
+@wp.kernel
 def project_neighborhoods(
     first: int,
     active: wp.array(dtype=wp.int32),
-    nbr: wp.array2d(dtype=wp.int32),
-    feats: wp.array(dtype=wp.float32),
+    halo_of: wp.array(dtype=wp.int32),
+    halos: wp.array(dtype=wp.float32),
     t: LevelTables,
     qproj: wp.array(dtype=appearance_vector),
 ):
-    """PCA projection of a voxel's current N x N neighbourhood in the plane of axis k.
+    """PCA projection of a voxel's current N x N neighbourhoods in the planes of the three
+    axes (section 5.1), read from the halo block ``halo_of`` its block.
 
-    Each row of the neighbourhood is summed in float32, which vectorizes on CPUs, and is
+    Each row of a neighbourhood is summed in float32, which vectorizes on CPUs, and is
     still exact integer arithmetic: a row has at most 9 * F terms of |basis| <= 127 times
-    features <= 3 * 255, below 2^24 for up to 19 features. Rows add up in int32.
+    features <= 3 * 255, below 2^24 for up to 19 features, so any order of the additions
+    gives the same sum. Rows add up in int32. The three planes accumulate side by side:
+    independent sums keep the CPU's floating-point units busy.
     """
-    k = wp.tid() % 3
-    i = active[first + wp.tid() // 3]
-    block = i >> 6
-    local = block_local(i)
-    n = 2 * t.half + 1
-    acc = appearance_vector()
-    for a in range(n):
-        row = basis_row()
-        for b in range(n):
-            j = neighbor_in_block(nbr, block, local, plane_offset(k, a - t.half, b - t.half))
-            if j < 0:
-                j = i
-            w = t.basis_off[k] + (a * n + b) * t.nfeat
-            for c in range(t.nfeat):
-                row += t.basis[w + c] * feats[j * t.nfeat + c]
-        acc += appearance_vector(row)
-    s = t.shift[k]
-    for d in range(MAX_DIMS):
-        acc[d] = wp.clamp(acc[d] >> s, -PROJ_LIMIT, PROJ_LIMIT)
-    qproj[i * 3 + k] = acc
+    i = active[first + wp.tid()]
+    own = halo_voxel_of(halo_of, i, t.half)
+    sx = halo_strides(t.half)[0]  # along z the stride is 1
+    sy = halo_strides(t.half)[1]
+    h = t.half
+    acc0 = appearance_vector()
+    acc1 = appearance_vector()
+    acc2 = appearance_vector()
+    w = int(0)  # entry (a, b) of every plane: basis rows basis_off[k] + w ...
+    for a in range(-h, h + 1):
+        row0 = basis_row()
+        row1 = basis_row()
+        row2 = basis_row()
+        for b in range(-h, h + 1):
+            # The exemplar of axis k spans volume axes (k+1, k+2): see plane_offset.
+            j0 = halo_voxel(halos, own + a * sy + b, t.nfeat, own)
+            j1 = halo_voxel(halos, own + a + b * sx, t.nfeat, own)
+            j2 = halo_voxel(halos, own + a * sx + b * sy, t.nfeat, own)
+            row0 += entry_sum(t, halos, t.basis_off[0] + w, j0)
+            row1 += entry_sum(t, halos, t.basis_off[1] + w, j1)
+            row2 += entry_sum(t, halos, t.basis_off[2] + w, j2)
+            w += t.nfeat
+        acc0 += appearance_vector(row0)
+        acc1 += appearance_vector(row1)
+        acc2 += appearance_vector(row2)
+    qproj[i * 3] = project_clamp(acc0, t.shift[0])
+    qproj[i * 3 + 1] = project_clamp(acc1, t.shift[1])
+    qproj[i * 3 + 2] = project_clamp(acc2, t.shift[2])
 
 
 @wp.func
@@ -276,31 +387,39 @@ def appearance_distance(t: LevelTables, qproj: wp.array(dtype=appearance_vector)
 
 @wp.func
 def best_2d_candidate(
-    nbr: wp.array2d(dtype=wp.int32),
-    src: wp.array(dtype=wp.vec3i),
+    halo_src: wp.array(dtype=wp.vec3i),
     qproj: wp.array(dtype=appearance_vector),
     t: LevelTables,
     i: int,
+    own: int,
     k: int,
 ) -> int:
     """Step 1 of the two-step search (section 5.1): best k-coherent 2D candidate in the
-    plane of axis k, gathered from the 3 x 3 in-plane neighbours, shifted back."""
+    plane of axis k, gathered from the 3 x 3 in-plane neighbours (halo voxels around
+    ``own``), shifted back."""
     h = t.height[k]
     w = t.width[k]
+    s1 = halo_strides(t.half)[(k + 1) % 3]  # the plane's axes: see plane_offset
+    s2 = halo_strides(t.half)[(k + 2) % 3]
     best = int(-1)
     best_d = int(0)
+    last = int(-1)
     for da in range(-1, 2):
         for db in range(-1, 2):
-            j = neighbor_voxel(nbr, i, plane_offset(k, da, db))
-            if j < 0:
-                j = i
-            p = shift_pixel(src[j][k], -da, -db, h, w)
-            for c in range(t.k2):
-                cand = t.cand2d[t.cand2d_off[k] + p * t.cand2d_stride + c]
-                dist = appearance_distance(t, qproj, i, k, cand)
-                if best < 0 or dist < best_d:
-                    best = cand
-                    best_d = dist
+            pix = halo_src[own + da * s1 + db * s2][k]
+            if pix < 0:
+                pix = halo_src[own][k]
+            p = step_pixel(pix, -da, -db, h, w)
+            # Coherent neighbours often agree on p: its candidates were just compared, and
+            # an equal distance never replaces the best, so skipping them changes nothing.
+            if p != last:
+                last = p
+                for c in range(t.k2):
+                    cand = t.cand2d[t.cand2d_off[k] + p * t.cand2d_stride + c]
+                    dist = appearance_distance(t, qproj, i, k, cand)
+                    if best < 0 or dist < best_d:
+                        best = cand
+                        best_d = dist
     return best
 
 
@@ -308,8 +427,8 @@ def best_2d_candidate(
 def correct(
     first: int,
     active: wp.array(dtype=wp.int32),
-    nbr: wp.array2d(dtype=wp.int32),
-    src: wp.array(dtype=wp.vec3i),
+    halo_of: wp.array(dtype=wp.int32),
+    halo_src: wp.array(dtype=wp.vec3i),
     qproj: wp.array(dtype=appearance_vector),
     t: LevelTables,
     dst: wp.array(dtype=wp.vec3i),
@@ -320,12 +439,14 @@ def correct(
     and compares whole 3-neighbourhoods. Strict comparisons in a fixed loop order make
     the first best win, so ties resolve identically everywhere. Voxels not listed in
     ``active`` (the step's voxels, of its sub-pass only) keep the value ``dst`` holds.
+    Triples are read from the halo blocks that the projection read.
     """
     i = active[first + wp.tid()]
-    best = src[i]
+    centre = halo_voxel_of(halo_of, i, t.half)
+    best = halo_src[centre]
     best_d = int(-1)
     for k in range(3):
-        own = best_2d_candidate(nbr, src, qproj, t, i, k)
+        own = best_2d_candidate(halo_src, qproj, t, i, centre, k)
         own_d = appearance_distance(t, qproj, i, k, own)
         k1 = (k + 1) % 3
         k2 = (k + 2) % 3

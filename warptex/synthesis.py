@@ -28,6 +28,9 @@ _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
 COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
+# Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
+# N=5) that they are still cached when projected; a GPU wants many threads per launch.
+_HALO_CHUNK = {"cpu": 256, "cuda": 8192}
 _LOCAL = np.indices((BLOCK,) * 3).reshape(3, -1).T  # voxel offsets in a block, x slowest
 
 
@@ -426,13 +429,39 @@ class Synthesizer:
             voxels = wp.array(listed, dtype=wp.int32, device=dev)
             wp.launch(_k.voxel_features, nvox, [src, t], [feats], device=dev)
             wp.copy(dst, src)
-            launch_ranges(_k.project_neighborhoods, 0, len(listed), [voxels, nbr, feats, t],
-                          [qproj], device=dev, per_item=3)
-            launch_ranges(_k.correct, 0, len(listed), [voxels, nbr, src, qproj, t],
-                          [dst], device=dev)
+            self._correct_step(listed, voxels, nbr, src, feats, t, qproj, dst)
             src, dst = dst, src
         if src is not triples:
             wp.copy(triples, src)
+
+    def _correct_step(self, listed: np.ndarray, voxels: wp.array, nbr: wp.array,
+                      src: wp.array, feats: wp.array, t: _k.LevelTables, qproj: wp.array,
+                      dst: wp.array) -> None:
+        """One correction step of the voxels ``listed`` (sorted): their blocks are gathered
+        with halos a chunk of blocks at a time, projected and corrected while the chunk
+        is still in the cache; chunks also bound the halos' memory."""
+        dev = self.device
+        chunk = _HALO_CHUNK["cpu" if wp.get_device(dev).is_cpu else "cuda"]
+        block = listed >> 6
+        starts = np.flatnonzero(np.diff(block, prepend=-1))  # listed voxels of each block
+        blocks = block[starts]
+        halo_of = np.full(nbr.shape[0], -1, np.int32)
+        halo_of[blocks] = np.arange(len(blocks)) % chunk
+        rows = (BLOCK + 2 * t.half) ** 2  # gathered per halo block, one thread each
+        size = min(len(blocks), chunk) * rows * (BLOCK + 2 * t.half)
+        halos = wp.empty(size * t.nfeat, dtype=wp.float32, device=dev)
+        halo_src = wp.empty(size, dtype=wp.vec3i, device=dev)
+        blocks_wp = wp.array(blocks, dtype=wp.int32, device=dev)
+        halo_wp = wp.array(halo_of, dtype=wp.int32, device=dev)
+        starts = [*starts.tolist(), len(listed)]
+        for lo in range(0, len(blocks), chunk):
+            hi = min(lo + chunk, len(blocks))
+            launch_ranges(_k.gather_halos, lo * rows, hi * rows,
+                          [lo, blocks_wp, nbr, src, feats, t], [halos, halo_src], device=dev)
+            launch_ranges(_k.project_neighborhoods, starts[lo], starts[hi],
+                          [voxels, halo_wp, halos, t], [qproj], device=dev)
+            launch_ranges(_k.correct, starts[lo], starts[hi],
+                          [voxels, halo_wp, halo_src, qproj, t], [dst], device=dev)
 
     def _level_tables(self, level: int) -> _k.LevelTables:
         """Upload one level's exemplar data; shared sources are stored once."""
