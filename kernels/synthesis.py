@@ -167,6 +167,7 @@ def warp_offset(pos: wp.vec3i, seed: int, jitter: int) -> wp.vec3i:
 
 @wp.kernel
 def initialize(
+    first: int,
     coords: wp.array(dtype=wp.vec3i),
     t: LevelTables,
     seed: int,
@@ -174,7 +175,7 @@ def initialize(
     triples: wp.array(dtype=wp.vec3i),
 ):
     """Tiling of the x exemplar's candidate slab (section 4.3), warped by the jitter."""
-    i = wp.tid()
+    i = first + wp.tid()
     p = voxel_world(coords, i)
     p = p + warp_offset(p, seed, jitter)
     n = 2 * t.half + 1
@@ -188,6 +189,7 @@ def initialize(
 
 @wp.kernel
 def upsample(
+    first: int,
     coords: wp.array(dtype=wp.vec3i),
     parent_slot: wp.array(dtype=wp.int32),
     parent: wp.array(dtype=wp.vec3i),
@@ -196,7 +198,7 @@ def upsample(
     triples: wp.array(dtype=wp.vec3i),
 ):
     """Coordinate inheritance (section 5.1, "Upsampling"): child = 2 * parent + offset."""
-    i = wp.tid()
+    i = first + wp.tid()
     slot = parent_slot[i // BLOCK_VOXELS]
     if slot < 0:  # a block no correction reads: its parents were not synthesized
         return
@@ -217,16 +219,35 @@ def upsample(
 
 @wp.kernel
 def voxel_features(
-    triples: wp.array(dtype=wp.vec3i), t: LevelTables, feats: wp.array(dtype=wp.float32)
+    first: int, triples: wp.array(dtype=wp.vec3i), t: LevelTables,
+    feats: wp.array(dtype=wp.float32)
 ):
     """Matching features of each voxel: the sum of its three exemplar features."""
-    i = wp.tid()
+    i = first + wp.tid()
     tri = triples[i]
     for c in range(t.nfeat):
         s = int(0)
         for k in range(3):
             s += t.feat[t.feat_off[k] + tri[k] * t.nfeat + c]
         feats[i * t.nfeat + c] = float(s)
+
+
+@wp.kernel
+def mark_parents(
+    first: int,
+    need: wp.array(dtype=wp.uint8),
+    coords: wp.array(dtype=wp.vec3i),
+    parent_block: wp.array(dtype=wp.int32),
+    parents: wp.array(dtype=wp.uint8),
+):
+    """Flag, one level up, the parent of every voxel ``need`` marks (section 5.1: voxel
+    v's parent is v >> 1, in block ``parent_block`` of its block). Threads may write the
+    same 1 to a voxel; the result is the same."""
+    i = first + wp.tid()
+    if need[i] != wp.uint8(0):
+        p = voxel_world(coords, i)
+        local = (((p[0] >> 1) & 3) << 4) + (((p[1] >> 1) & 3) << 2) + ((p[2] >> 1) & 3)
+        parents[parent_block[i >> 6] * BLOCK_VOXELS + local] = wp.uint8(1)
 
 
 @wp.kernel

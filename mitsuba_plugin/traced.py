@@ -24,6 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from kernels.lookup import BRICK, BRICK_VOXELS
+from warptex.keysets import unique
 from warptex.store import CORNERS, BrickStore, brick_coords, brick_keys, brick_voxels, corner_voxels
 
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
@@ -130,7 +131,7 @@ class TracedLookup:
             self._used = dr.zeros(mi.UInt32, dr.width(self._used))
         if self.filter == "trilinear":
             logged = corner_voxels(logged)
-        return brick_voxels(np.unique(brick_keys(logged)))
+        return brick_voxels(unique(brick_keys(logged)))
 
     def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool,
                     mark: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:

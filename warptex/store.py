@@ -36,6 +36,7 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, read_archive, write_archive
+from warptex.keysets import unique
 from warptex.parallel import launch_ranges
 from warptex.synthesis import Synthesizer
 
@@ -85,7 +86,7 @@ def unique_voxels(voxels: np.ndarray) -> np.ndarray:
     """The distinct rows of integer ``voxels`` (N, 3), grouped by brick; two 1D sorts,
     much faster than sorting rows."""
     keys, brick = np.unique(brick_keys(voxels), return_inverse=True)
-    packed = np.unique(brick.astype(np.int64) * _k.BRICK_VOXELS + _local_index(voxels))
+    packed = unique(brick.astype(np.int64) * _k.BRICK_VOXELS + _local_index(voxels))
     return brick_coords(keys[packed // _k.BRICK_VOXELS]) * _k.BRICK + _LOCAL[
         packed % _k.BRICK_VOXELS]
 
@@ -396,7 +397,7 @@ class BrickStore:
     def _to_store(self, voxels: np.ndarray) -> np.ndarray:
         """The unique voxels to have stored for reading ``voxels``."""
         if self.whole_bricks:
-            return brick_voxels(np.unique(brick_keys(voxels)))
+            return brick_voxels(unique(brick_keys(voxels)))
         return unique_voxels(voxels)
 
     def _synthesize(self, voxels: np.ndarray) -> np.ndarray:
@@ -471,7 +472,7 @@ class BrickStore:
                            wp.array(free[: len(fresh)].astype(np.int32), dtype=wp.int32,
                                     device=dev)], [self._index], device=dev)
         slots = self._slots_of(keys)
-        touched = np.unique(slots)
+        touched = unique(slots)
         # Old and new voxels of the touched bricks, ordered by (brick, local) and without
         # repeats (a voxel synthesized twice has the same triple): the repacked ranges.
         old = self._ranges(touched)

@@ -14,6 +14,7 @@ import warp as wp
 from kernels import surface as _k
 from warptex.device import device as default_device
 from warptex.device import init_warp
+from warptex.keysets import unique
 
 
 def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
@@ -66,4 +67,17 @@ def shell(
         [counts, voxels],
         device=dev,
     )
-    return np.unique(voxels.numpy(), axis=0).astype(np.int32)
+    return _unique_rows(voxels.numpy())
+
+
+def _unique_rows(voxels: np.ndarray) -> np.ndarray:
+    """The distinct rows of integer ``voxels`` (N, 3), sorted: rows numbered within their
+    bounding box, so one 1D sort does it (sorting rows directly is many times slower)."""
+    if len(voxels) == 0:
+        return np.zeros((0, 3), np.int32)
+    lo = voxels.min(axis=0).astype(np.int64)
+    span = voxels.max(axis=0).astype(np.int64) - lo + 1
+    v = voxels.astype(np.int64) - lo
+    keys = unique((v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2])
+    rows = np.stack([keys // (span[1] * span[2]), keys // span[2] % span[1], keys % span[2]], 1)
+    return (rows + lo).astype(np.int32)

@@ -21,6 +21,7 @@ from kernels import synthesis as _k
 from warptex.candidates import CandidateSet
 from warptex.device import device as default_device
 from warptex.device import init_warp
+from warptex.keysets import distinct_sorted, unique
 from warptex.parallel import launch_ranges
 
 BLOCK = _k.BLOCK
@@ -114,13 +115,21 @@ def _unpack(keys: np.ndarray) -> np.ndarray:
     return (out - _KEY_BIAS).astype(np.int32)
 
 
+def _key_step(d: tuple[int, int, int]) -> int:
+    """What adding block offset ``d`` adds to a packed key (fields never over- or
+    underflow: coordinates stay far inside their biased 21 bits)."""
+    return (d[0] << (2 * _KEY_BITS)) + (d[1] << _KEY_BITS) + d[2]
+
+
 def _dilate(keys: np.ndarray, r: int) -> np.ndarray:
-    if r == 0 or len(keys) == 0:
-        return keys
-    rng = np.arange(-r, r + 1)
-    offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(-1, 3)
-    coords = _unpack(keys)
-    return np.unique(_pack((coords[:, None, :] + offsets[None]).reshape(-1, 3)))
+    """Sorted unique ``keys`` grown by ``r`` blocks in every direction: one axis at a
+    time, each a merge of 2r + 1 shifted copies (sorted runs, which timsort merges)."""
+    for axis in range(3):
+        step = _key_step(tuple(int(a == axis) for a in range(3)))
+        runs = np.concatenate([keys + o * step for o in range(-r, r + 1)])
+        runs.sort(kind="stable")
+        keys = distinct_sorted(runs)
+    return keys
 
 
 def _lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -131,11 +140,10 @@ def _lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
 
 
 def _neighbor_table(keys: np.ndarray) -> np.ndarray:
-    rng = np.arange(-1, 2)
-    offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(27, 3)
-    coords = _unpack(keys)
-    nbr = _pack((coords[:, None, :] + offsets[None]).reshape(-1, 3))
-    return _lookup(keys, nbr).reshape(len(keys), 27)
+    """Slot of each of the 27 blocks around each block of sorted ``keys`` (x slowest),
+    -1 where absent."""
+    steps = [_key_step(d) for d in np.indices((3, 3, 3)).reshape(3, -1).T - 1]
+    return np.stack([_lookup(keys, keys + s) for s in steps], axis=1)
 
 
 def _local_index(voxels: np.ndarray) -> np.ndarray:
@@ -185,7 +193,7 @@ class _LevelCache:
     def insert(self, keys: np.ndarray, flat: np.ndarray, triples: np.ndarray) -> None:
         """Keep ``triples`` of the uncached voxels ``flat`` (sorted) of the blocks ``keys``;
         starts over when full."""
-        new = np.unique(keys[flat // _BLOCK_VOXELS])
+        new = distinct_sorted(keys[flat // _BLOCK_VOXELS])
         if len(new) * _BLOCK_VOXELS * 12 > self.max_bytes:
             return
         if (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12 > self.max_bytes:
@@ -203,22 +211,6 @@ class _LevelCache:
         local = flat % _BLOCK_VOXELS
         self.triples[slot * _BLOCK_VOXELS + local] = triples
         np.bitwise_or.at(self.valid, slot, np.uint64(1) << local.astype(np.uint64))
-
-
-def _parents(coords: np.ndarray, read: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Blocks (sorted keys) and voxels (flat, sorted) one level up holding the parents
-    of the voxels ``read`` marks in the blocks ``coords``: voxel v's parent is v >> 1
-    (section 5.1), and block c's parents lie in block c >> 1."""
-    listed = np.flatnonzero(read)
-    block = listed // _BLOCK_VOXELS
-    touched = np.flatnonzero(np.bincount(block, minlength=len(coords)))
-    keys, slot = np.unique(_pack(coords[touched] >> 1), return_inverse=True)
-    slot_of = np.full(len(coords), -1, np.int64)
-    slot_of[touched] = slot
-    world = coords[block].astype(np.int64) * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
-    mask = np.zeros(len(keys) * _BLOCK_VOXELS, bool)
-    mask[slot_of[block] * _BLOCK_VOXELS + _local_index(world >> 1)] = True
-    return keys, np.flatnonzero(mask)
 
 
 class Synthesizer:
@@ -317,7 +309,7 @@ class Synthesizer:
             raise ValueError(f"voxel coordinates must lie within +-{COORD_LIMIT}")
         ijk = ijk.astype(np.int64)
         keys = _pack(ijk >> 2)
-        uniq = np.unique(keys)
+        uniq = unique(keys)
         with self._lock:  # the finest level is never cached: just the voxels asked for
             level = self._synthesize(self.finest, uniq, ijk)
         return level.triples[level.rows(ijk)]
@@ -336,7 +328,8 @@ class Synthesizer:
         if len(missing):
             voxels = (_unpack(keys[missing // _BLOCK_VOXELS]).astype(np.int64) * BLOCK
                       + _LOCAL[missing % _BLOCK_VOXELS])
-            computed = self._synthesize(level, np.unique(keys[missing // _BLOCK_VOXELS]), voxels)
+            blocks = distinct_sorted(keys[missing // _BLOCK_VOXELS])
+            computed = self._synthesize(level, blocks, voxels)
             out.triples[missing] = computed.triples[computed.rows(voxels)]
             if cache is not None:
                 cache.insert(keys, missing, out.triples[missing])
@@ -364,18 +357,22 @@ class Synthesizer:
         triples = wp.zeros(nvox, dtype=wp.vec3i, device=dev)
         if level == self.start:
             jitter = round(self.jitter * 256)
-            wp.launch(_k.initialize, nvox, [coords_wp, t, self.seed, jitter], [triples], device=dev)
+            launch_ranges(_k.initialize, 0, nvox, [coords_wp, t, self.seed, jitter], [triples],
+                          device=dev)
         else:
-            read_blocks = read.reshape(-1, _BLOCK_VOXELS).any(axis=1)
-            parent = self._final(level - 1, *_parents(coords, read))
-            parent_slot = np.where(read_blocks, _lookup(parent.keys, _pack(coords >> 1)), -1)
+            read_blocks = np.flatnonzero(read.numpy().reshape(-1, _BLOCK_VOXELS).any(axis=1))
+            parent = self._final(level - 1, *self._parents(coords_wp, coords, read,
+                                                           read_blocks))
+            parent_slot = np.full(len(coords), -1, np.int32)
+            parent_slot[read_blocks] = _lookup(parent.keys, _pack(coords[read_blocks] >> 1))
             pt = self._tables[level - 1]
-            wp.launch(
+            launch_ranges(
                 _k.upsample,
+                0,
                 nvox,
                 [
                     coords_wp,
-                    wp.array(parent_slot.astype(np.int32), dtype=wp.int32, device=dev),
+                    wp.array(parent_slot, dtype=wp.int32, device=dev),
                     wp.array(parent.triples, dtype=wp.vec3i, device=dev),
                     pt.width,
                     t,
@@ -391,11 +388,27 @@ class Synthesizer:
         out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[_lookup(work, keys)]
         return _Level(keys, out.reshape(-1, 3))
 
+    def _parents(self, coords_wp: wp.array, coords: np.ndarray, read: wp.array,
+                 read_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Blocks (sorted keys) and voxels (flat, sorted) one level up holding the
+        parents of the voxels ``read`` marks, which lie in the blocks ``read_blocks`` of
+        ``coords``: block c's parents lie in block c >> 1."""
+        dev = self.device
+        keys, slot = np.unique(_pack(coords[read_blocks] >> 1), return_inverse=True)
+        parent_block = np.full(len(coords), -1, np.int32)
+        parent_block[read_blocks] = slot
+        parents = wp.zeros(len(keys) * _BLOCK_VOXELS, dtype=wp.uint8, device=dev)
+        launch_ranges(_k.mark_parents, 0, read.shape[0],
+                      [read, coords_wp, wp.array(parent_block, dtype=wp.int32, device=dev)],
+                      [parents], device=dev)
+        return keys, np.flatnonzero(parents.numpy())
+
     def _dependency_lists(self, nbr: wp.array, coords: np.ndarray,
-                          desired: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+                          desired: np.ndarray) -> tuple[list[np.ndarray], wp.array]:
         """Section 5.2, ComputeMask, voxel-exact within one level: the voxels each
-        correction step corrects (flat work indices, sorted) and the mask of the voxels
-        the first step reads, undoing the steps from last to first."""
+        correction step corrects (flat work indices, sorted) and the mask (one byte per
+        work voxel) of the voxels the first step reads, undoing the steps from last to
+        first."""
         dev = self.device
         nvox = len(coords) * _BLOCK_VOXELS
         need = np.zeros(nvox, np.uint8)
@@ -413,7 +426,7 @@ class Synthesizer:
                           [wp.array(listed, dtype=wp.int32, device=dev), nbr, self._shape],
                           [need_wp], device=dev)
             need = need_wp.numpy()
-        return active[::-1], need.astype(bool)
+        return active[::-1], need_wp
 
     def _correct(self, active: list[np.ndarray], nbr: wp.array, triples: wp.array,
                  t: _k.LevelTables) -> None:
@@ -427,7 +440,7 @@ class Synthesizer:
         src, dst = triples, other
         for listed in active:
             voxels = wp.array(listed, dtype=wp.int32, device=dev)
-            wp.launch(_k.voxel_features, nvox, [src, t], [feats], device=dev)
+            launch_ranges(_k.voxel_features, 0, nvox, [src, t], [feats], device=dev)
             wp.copy(dst, src)
             self._correct_step(listed, voxels, nbr, src, feats, t, qproj, dst)
             src, dst = dst, src
