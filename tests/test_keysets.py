@@ -1,0 +1,22 @@
+"""Sorted key sets: the same answers as numpy's unique, empty arrays included."""
+
+import numpy as np
+
+from warptex.keysets import distinct_sorted, unique
+from warptex.surface import _unique_rows
+
+
+def test_unique_matches_numpy():
+    rng = np.random.default_rng(1)
+    for a in (rng.integers(-(1 << 40), 1 << 40, 5000), rng.integers(0, 7, 300),
+              np.zeros(0, np.int64), np.array([5])):
+        np.testing.assert_array_equal(unique(a), np.unique(a))
+        np.testing.assert_array_equal(distinct_sorted(np.sort(a)), np.unique(a))
+
+
+def test_unique_rows_sorted_like_numpy():
+    rng = np.random.default_rng(2)
+    v = rng.integers(-30, 30, (4000, 3)).astype(np.int32)
+    got = _unique_rows(v)
+    np.testing.assert_array_equal(got, np.unique(v, axis=0))
+    assert got.dtype == np.int32 and _unique_rows(v[:0]).shape == (0, 3)
