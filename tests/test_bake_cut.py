@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -100,7 +102,7 @@ def test_export_formats(texture, sphere, tmp_path):
     assert not list(tmp_path.glob(".t.ply*"))
 
 
-def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device):
+def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys):
     from warptex.cli import main
 
     exemplar = str(data_dir / "granite_64.png")
@@ -111,6 +113,11 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device):
     assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
                  "-o", str(tmp_path / "b.ply")]) == 0
     assert len(trimesh.load(tmp_path / "b.ply").vertices) == len(sphere.vertices)
+    report = capsys.readouterr().out
+    shell_voxels = int(re.search(r"surface shell: (\d+) voxels", report).group(1))
+    made, corrected = (int(n) for n in re.search(
+        r"voxels synthesized: (\d+) .* corrected (\d+)", report).groups())
+    assert shell_voxels <= made < corrected  # the shell, then what the vertices read
     assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
                  "-o", str(tmp_path / "c.ply")]) == 0
     assert (tmp_path / "c.ply").exists() and (tmp_path / "c_b.ply").exists()

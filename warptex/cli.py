@@ -437,11 +437,13 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
 
 def _report_store(tex, resolution: int, elapsed: float) -> None:
     stats = tex.store.stats()
-    finest = tex.synthesizer.finest
-    synthesized = stats["voxels_synthesized"].get(finest, 0)
-    full = resolution**3 * stats["bytes_per_voxel"]
-    print(f"voxels synthesized at the finest level: {synthesized} "
-          f"({100 * synthesized / resolution**3:.3f}% of the {resolution}^3 block)")
+    block = resolution**3
+    corrected = stats["voxels_synthesized"].get(tex.synthesizer.finest, 0)
+    full = block * stats["bytes_per_voxel"]
+    made = stats["voxels_added"]
+    print(f"voxels synthesized: {made} ({100 * made / block:.3f}% of the {resolution}^3 "
+          f"block); on the way the finest level corrected {corrected} "
+          f"({100 * corrected / block:.3f}%: their dependencies, section 5.2)")
     print(f"stored: {stats['voxels']} voxels, {stats['bytes'] / 2**20:.1f} MiB in "
           f"{stats['bricks']} bricks (the full volume would be {full / 2**20:.0f} MiB); "
           f"time {elapsed:.1f} s")
