@@ -52,7 +52,7 @@ def main() -> None:
     print(f"mesh {args.mesh.name}, block {res}^3, exemplar {args.exemplar.name}")
     print(f"surface shell: {len(voxels)} voxels ({100 * len(voxels) / res**3:.3f}% of the "
           f"block), found in {shell_seconds:.2f} s")
-    print("voxels synthesized per level (finest last): "
+    print("voxels corrected per level (finest last): "
           + ", ".join(f"L{lv}: {n}" for lv, n in sorted(done.items())))
     # As Dong 2008 counts them (0.42%: 17.9 MB is 4 bytes for each of 0.42% of 1024^3
     # voxels), synthesized voxels are the results kept; corrections along the way are the
