@@ -11,10 +11,10 @@ that logged nothing, so each of its colors is a stored voxel, computed with the 
 float operations as ``kernels.lookup`` and therefore bit-identical to
 :meth:`warptex.texture.SolidTexture.query`.
 
-The mirror costs 4 bytes per channel for each voxel of the store's pool (free slots
-included, not counted in ``cache_bytes``), 4 bytes per pool slot, and 4 bytes per brick of
-the stored bricks' bounding box; it is rebuilt whole whenever bricks were inserted or
-evicted.
+The mirror costs 4 bytes per channel for each of the 512 voxels of every brick slot of the
+store (free slots and voxels not stored included, not counted in ``cache_bytes``), 4 bytes
+per slot, and 4 bytes per brick of the stored bricks' bounding box; it is rebuilt whole
+whenever bricks were inserted or evicted.
 """
 
 from __future__ import annotations
