@@ -135,10 +135,16 @@ def voxel_address(index: BrickIndex, slot: int, local: int) -> int:
 
 
 @wp.func
+def pooled_triple(pool: wp.array(dtype=Any), address: int) -> wp.vec3i:
+    """Exemplar pixels (one per axis) of the stored voxel at pool position ``address``."""
+    at = address * 3
+    return wp.vec3i(int(pool[at]), int(pool[at + 1]), int(pool[at + 2]))
+
+
+@wp.func
 def voxel_triple(index: BrickIndex, pool: wp.array(dtype=Any), slot: int, local: int) -> wp.vec3i:
     """Exemplar pixels (one per axis) of a stored voxel."""
-    at = voxel_address(index, slot, local) * 3
-    return wp.vec3i(int(pool[at]), int(pool[at + 1]), int(pool[at + 2]))
+    return pooled_triple(pool, voxel_address(index, slot, local))
 
 
 @wp.func
@@ -226,9 +232,10 @@ def sample_trilinear(
     base = floor_voxel(q)
     t = q - wp.vec3d(wp.float64(base[0]), wp.float64(base[1]), wp.float64(base[2]))
     # Corners of one brick are consecutive in this order, so most skip the table search.
-    slots = wp.vector(dtype=wp.int32, length=8)
+    addresses = wp.vector(dtype=wp.int32, length=8)  # pool positions, -1: not stored
     last_key = wp.int64(EMPTY)
     last_slot = int(-1)
+    last_base = int(0)
     for corner in range(8):
         voxel = base + wp.vec3i((corner >> 2) & 1, (corner >> 1) & 1, corner & 1)
         key = brick_key(voxel)
@@ -237,12 +244,15 @@ def sample_trilinear(
             last_slot = find_slot(index, key)
             if last_slot >= 0:
                 touch(index, last_slot, tick)
-        slots[corner] = last_slot
-        if index.partial != 0:
-            stored = voxel_stored(index, last_slot, local_index(voxel))
-            if not stored:
-                slots[corner] = -1
-    if wp.min(slots) < 0:
+                last_base = index.base[last_slot]
+        addresses[corner] = -1
+        if last_slot >= 0:
+            local = local_index(voxel)
+            if index.partial == 0:
+                addresses[corner] = last_base + local
+            elif voxel_stored(index, last_slot, local):
+                addresses[corner] = voxel_address(index, last_slot, local)
+    if wp.min(addresses) < 0:
         missed[i] = 1
         wp.atomic_add(miss_count, 0, 1)
         return
@@ -254,7 +264,7 @@ def sample_trilinear(
         w = wp.where(dx == 1, t[0], wp.float64(1.0) - t[0])
         w *= wp.where(dy == 1, t[1], wp.float64(1.0) - t[1])
         w *= wp.where(dz == 1, t[2], wp.float64(1.0) - t[2])
-        p = voxel_triple(index, pool, slots[corner], local_index(base + wp.vec3i(dx, dy, dz)))
+        p = pooled_triple(pool, addresses[corner])
         for c in range(channels):
             acc[c] += w * wp.float64(triple_sum(p, col0, col1, col2, channels, c))
     # The blend of the sums divided once: the blend of the voxel colors, 21 divisions fewer.
