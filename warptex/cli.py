@@ -191,6 +191,7 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 
 
 _VOLUME_FORMATS = (".npy", ".exr", ".vol")
+_SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
 
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -462,6 +463,8 @@ def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_bake(args: argparse.Namespace) -> int:
+    from tqdm.auto import tqdm
+
     from warptex.surface import block_transform, shell
 
     mesh = _load_mesh(args.mesh)
@@ -469,8 +472,13 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
     voxels = shell(mesh, args.resolution, transform)
-    # Synthesizing the shell fills the same brick store the bake and a renderer read.
-    tex.query(voxels + 0.5, filter="nearest")
+    # Synthesizing the shell fills the same brick store the bake and a renderer read. The
+    # shell is sorted along x, so its chunks are slabs; each costs one engine call.
+    with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
+        for first in range(0, len(voxels), _SHELL_CHUNK):
+            part = voxels[first : first + _SHELL_CHUNK]
+            tex.query(part + 0.5, filter="nearest")
+            bar.update(len(part))
     files = _textured_export(tex, mesh, transform, args, args.output)
     print(f"surface shell: {len(voxels)} voxels")
     _report_store(tex, args.resolution, time.perf_counter() - start)
