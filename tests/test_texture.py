@@ -178,12 +178,15 @@ def test_corrupt_or_foreign_store_is_ignored_with_a_warning(candidates, tmp_path
         texture(candidates, store=path)
 
 
-def test_concurrent_queries_match_serial_ones(candidates):
+@pytest.mark.parametrize("whole_bricks", [True, False])
+def test_concurrent_queries_match_serial_ones(candidates, whole_bricks):
+    """Threads querying one store, with room for everything or for a few bricks only
+    (evictions; with partly filled bricks also repacking and pool compaction)."""
     sets = [points_near_origin(150, 10 + i) * (1 + 0.3 * i) for i in range(4)]
     serial = [texture(candidates).query(p, filter=f) for p, f in
               zip(sets, ["trilinear", "nearest"] * 2, strict=True)]
-    for cache in (256 << 20, 4 * (512 * 6 + 64)):
-        tex = texture(candidates, cache_bytes=cache)
+    for cache in (256 << 20, 4 * (512 * 6 + 68)):
+        tex = texture(candidates, cache_bytes=cache, whole_bricks=whole_bricks)
         results: dict[int, np.ndarray] = {}
         errors: list[BaseException] = []
 
