@@ -11,7 +11,7 @@ import trimesh
 from warptex.bake import bake_uv_texture, export, texel_points, vertex_colors
 from warptex.cut import cap_faces, cut, plane_points
 from warptex.exemplar import Exemplar
-from warptex.surface import block_transform, to_voxel_space
+from warptex.surface import block_transform, shell, to_voxel_space
 from warptex.texture import SolidTexture
 
 
@@ -118,6 +118,17 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys)
     made, corrected = (int(n) for n in re.search(
         r"voxels synthesized: (\d+) .* corrected (\d+)", report).groups())
     assert shell_voxels <= made < corrected  # the shell, then what the vertices read
+    # With a store file a second bake synthesizes nothing, and the store warms a texture
+    # that fills whole bricks, as the renderer's does.
+    store = tmp_path / "bunny.wtb"
+    for expected in (made, 0):
+        assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
+                     "--store", str(store), "-o", str(tmp_path / "b.ply")]) == 0
+        report = capsys.readouterr().out
+        assert f"voxels synthesized: {expected} (" in report and str(store) in report
+    warm = SolidTexture(exemplar, store=store)
+    warm.query(shell(sphere, 24, block_transform(sphere, 24)) + 0.5, filter="nearest")
+    assert warm.store.stats()["misses"] == 0
     assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
                  "-o", str(tmp_path / "c.ply")]) == 0
     assert (tmp_path / "c.ply").exists() and (tmp_path / "c_b.ply").exists()

@@ -140,12 +140,21 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
     store.save(path)
     loaded = BrickStore.load(path, syn, whole_bricks=False)
     assert loaded.stats()["voxels"] == voxels
-    assert BrickStore.load(path, syn).stats()["voxels"] == 0  # whole bricks only
     np.testing.assert_array_equal(sample(loaded, p, filter), first)
     other = np.array([[6.5, 0.5, 1.5]])  # same brick, not stored
     np.testing.assert_array_equal(sample(loaded, other, "nearest"),
                                   syn.voxels(np.array([[6, 0, 1]])))
     assert loaded.stats()["voxels"] == voxels + 1 and loaded.stats()["bricks"] == 1
+    # A store filling whole bricks (a renderer's) reads the partly filled brick too, and a
+    # miss in it fills the rest of the brick.
+    whole = BrickStore.load(path, syn)
+    assert whole.stats()["voxels"] == voxels
+    np.testing.assert_array_equal(sample(whole, p, filter), first)
+    assert whole.stats()["misses"] == 0
+    np.testing.assert_array_equal(sample(whole, other, "nearest"),
+                                  syn.voxels(np.array([[6, 0, 1]])))
+    assert whole.stats()["voxels"] == 512 and whole.stats()["voxels_added"] == 512 - voxels
+    np.testing.assert_array_equal(sample(whole, p, filter), first)
 
 
 def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path):

@@ -346,7 +346,7 @@ def _solid_texture(exemplar: Path, args: argparse.Namespace):
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(Exemplar.load(exemplar), seed=args.seed, jitter=args.jitter,
-                            whole_bricks=False)
+                            whole_bricks=False, store=getattr(args, "store", None))
     except ValueError as error:
         raise CliError(str(error)) from None
 
@@ -405,6 +405,10 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bake a UV texture: with the mesh's own UVs (mesh), UVs made "
                         "by xatlas (auto), or vertex colors only (none, default)")
     parser.add_argument("--texture-size", type=int, default=1024, help="UV texture size")
+    parser.add_argument("--store", type=Path, metavar="FILE",
+                        help="brick store file: voxels synthesized by an earlier run with the "
+                        "same texture are read from it, and all are written back at the end "
+                        "(also usable as the lazy_solid plugin's cache)")
     _add_texture_arguments(parser)
 
 
@@ -482,6 +486,8 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     files = _textured_export(tex, mesh, transform, args, args.output)
     print(f"surface shell: {len(voxels)} voxels")
     _report_store(tex, args.resolution, time.perf_counter() - start)
+    if args.store is not None:
+        files.append(tex.save())
     print("written: " + ", ".join(str(f) for f in files))
     return 0
 
@@ -521,6 +527,8 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     for half, output in zip(halves, outputs, strict=True):
         files += _textured_export(tex, half, transform, args, output)
     _report_store(tex, args.resolution, time.perf_counter() - start)
+    if args.store is not None:
+        files.append(tex.save())
     print("written: " + ", ".join(str(f) for f in files))
     return 0
 

@@ -204,7 +204,6 @@ class BrickStore:
         self._garbage = 0  # of those, voxels of repacked or evicted bricks
         self._index = _k.BrickIndex()
         self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
-        self._index.partial = 0 if self.whole_bricks else 1
         self._pool_source: np.ndarray | None = None  # the host array the device pool shows
         self._upload_slots()
         self._upload_pool(0, 0)
@@ -334,9 +333,10 @@ class BrickStore:
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,
              cache_bytes: int = 256 << 20, whole_bricks: bool = True) -> BrickStore:
-        """A store holding the bricks saved in ``path`` (only the whole ones with
-        ``whole_bricks``); an empty one, with a warning, when the file is damaged or
-        belongs to another texture."""
+        """A store holding the bricks saved in ``path``, the most recently used that fit
+        ``cache_bytes``; an empty one, with a warning, when the file is damaged or belongs
+        to another texture. Partly filled bricks load into either kind of store: with
+        ``whole_bricks`` a miss in one fills the rest of it."""
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         try:
             keys, triples, valid = store._read(Path(path))
@@ -345,12 +345,9 @@ class BrickStore:
             return store
         counts = np.bitwise_count(valid).sum(axis=1)
         first = np.cumsum(counts) - counts
-        keep = np.ones(len(keys), bool)
-        if store.whole_bricks:  # lookups then assume every stored brick is whole
-            keep = counts == _k.BRICK_VOXELS
         # The most recently used bricks that fit the budget (the file lists them last).
-        cost = np.where(keep, counts * store._voxel_bytes + _SLOT_BYTES, 0)
-        keep &= np.cumsum(cost[::-1])[::-1] <= store.cache_bytes
+        cost = counts * store._voxel_bytes + _SLOT_BYTES
+        keep = np.cumsum(cost[::-1])[::-1] <= store.cache_bytes
         stored = np.unpackbits(valid[keep].view(np.uint8), bitorder="little").astype(bool)
         voxels = brick_voxels(keys[keep])[stored.reshape(-1)]
         rows = _ranges_of(first[keep], counts[keep])
@@ -583,6 +580,10 @@ class BrickStore:
         self._upload_slots()
 
     def _upload_slots(self) -> None:
+        # Lookups skip the stored-voxel bits while every brick is whole; a store filling
+        # whole bricks may still hold partly filled ones, loaded from a file.
+        live = self._keys != _EMPTY
+        self._index.partial = int((self._valid[live] != np.uint32(0xFFFFFFFF)).any())
         dev = self._device
         self._index.valid = wp.array(self._valid.reshape(-1), dtype=wp.uint32, device=dev)
         self._index.base = wp.array(self._base.astype(np.int32), dtype=wp.int32, device=dev)
