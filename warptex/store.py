@@ -499,7 +499,7 @@ class BrickStore:
         """Drop least-recently-used bricks until the stored voxels fit ``cache_bytes``."""
         live = np.flatnonzero(self._keys != _EMPTY)
         live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
-        counts = np.bitwise_count(self._valid[live]).sum(axis=1)
+        counts = self._voxel_counts(live)
         cost = counts * self._voxel_bytes + _SLOT_BYTES
         gone = live[np.cumsum(cost[::-1])[::-1] > self.cache_bytes]
         if len(gone) == 0:
@@ -516,9 +516,13 @@ class BrickStore:
         self._rebuild_table(len(self._index.keys))
         self._upload_slots()
 
+    def _voxel_counts(self, slots: np.ndarray) -> np.ndarray:
+        """Stored voxels of each of ``slots``."""
+        return np.bitwise_count(self._valid[slots]).sum(axis=1)
+
     def _ranges(self, slots: np.ndarray) -> np.ndarray:
         """Pool positions of the stored voxels of ``slots``, brick after brick."""
-        return _ranges_of(self._base[slots], np.bitwise_count(self._valid[slots]).sum(axis=1))
+        return _ranges_of(self._base[slots], self._voxel_counts(slots))
 
     def _reserve(self, voxels: int) -> int:
         """Pool position of ``voxels`` new consecutive voxels; compacts or grows the pool."""
@@ -546,7 +550,6 @@ class BrickStore:
         self._valid = np.concatenate([self._valid,
                                       np.zeros((slots - old, _k.VALID_WORDS), np.uint32)])
         self._base = np.concatenate([self._base, np.zeros(slots - old, np.int64)])
-        self._upload_slots()
 
     def _renumber_slots(self) -> None:
         """Move the live bricks to the first slots, in slot order, and give back the rest
@@ -564,22 +567,21 @@ class BrickStore:
         self._base[: len(live)] = base
         stamps = np.concatenate([stamps, np.zeros(len(self._keys) - len(live), np.int64)])
         self._index.stamps.assign(stamps)
-        self._upload_slots()
 
     def _compact(self) -> None:
         """Pack the live bricks' voxels at the start of the pool, dropping what repacked
         and evicted bricks left behind; slots stay where they are."""
         live = np.flatnonzero(self._keys != _EMPTY)
         rows = self._ranges(live)
-        counts = np.bitwise_count(self._valid[live]).sum(axis=1)
+        counts = self._voxel_counts(live)
         self._base[live] = np.cumsum(counts) - counts
         self._payload = np.concatenate([self._payload[rows],
                                         np.zeros((len(rows), 3), self._dtype)])
         self._used, self._garbage = len(rows), 0
         self._upload_pool(0, self._used)
-        self._upload_slots()
 
     def _upload_slots(self) -> None:
+        # Called once at the end of each mutation, after slots, bits and bases settle.
         # Lookups skip the stored-voxel bits while every brick is whole; a store filling
         # whole bricks may still hold partly filled ones, loaded from a file.
         live = self._keys != _EMPTY

@@ -151,6 +151,13 @@ def _local_index(voxels: np.ndarray) -> np.ndarray:
     return (voxels[:, 0] & 3) * 16 + (voxels[:, 1] & 3) * 4 + (voxels[:, 2] & 3)
 
 
+def _voxel_rows(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+    """Flat index (block slot * 64 + local) of each of ``voxels`` (N, 3) in the blocks of
+    sorted ``keys``, which must hold them."""
+    return _lookup(keys, _pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
+        _local_index(voxels))
+
+
 @dataclass
 class _Level:
     """Final (corrected) triples in some blocks of one level, sorted by block key; only
@@ -161,8 +168,7 @@ class _Level:
 
     def rows(self, voxels: np.ndarray) -> np.ndarray:
         """Rows of ``triples`` holding ``voxels`` (N, 3), whose blocks must be present."""
-        return _lookup(self.keys, _pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
-            _local_index(voxels))
+        return _voxel_rows(self.keys, voxels)
 
 
 class _LevelCache:
@@ -184,11 +190,16 @@ class _LevelCache:
         ``keys``, -1 where not cached."""
         if len(self.keys) == 0:
             return np.full(len(flat), -1, np.int64)
-        slot = _lookup(self.keys, keys).astype(np.int64)[flat // _BLOCK_VOXELS]
-        local = flat % _BLOCK_VOXELS
+        slot, local = self._slots(keys, flat)
         bits = self.valid[np.maximum(slot, 0)] >> local.astype(np.uint64)
         hit = (slot >= 0) & (bits & np.uint64(1) != 0)
         return np.where(hit, slot * _BLOCK_VOXELS + local, -1)
+
+    def _slots(self, keys: np.ndarray, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cache slot (-1 where the block is not cached) and local index of each voxel
+        ``flat`` (block * 64 + local) of the blocks ``keys``."""
+        slot = _lookup(self.keys, keys).astype(np.int64)[flat // _BLOCK_VOXELS]
+        return slot, flat % _BLOCK_VOXELS
 
     def insert(self, keys: np.ndarray, flat: np.ndarray, triples: np.ndarray) -> None:
         """Keep ``triples`` of the uncached voxels ``flat`` (sorted) of the blocks ``keys``;
@@ -207,8 +218,7 @@ class _LevelCache:
             self.keys = keys_all[order]
             self.triples = blocks[order].reshape(-1, 3)
             self.valid = np.concatenate([self.valid, np.zeros(len(fresh), np.uint64)])[order]
-        slot = _lookup(self.keys, keys).astype(np.int64)[flat // _BLOCK_VOXELS]
-        local = flat % _BLOCK_VOXELS
+        slot, local = self._slots(keys, flat)
         self.triples[slot * _BLOCK_VOXELS + local] = triples
         np.bitwise_or.at(self.valid, slot, np.uint64(1) << local.astype(np.uint64))
 
@@ -350,7 +360,7 @@ class Synthesizer:
         nvox = len(work) * _BLOCK_VOXELS
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
         nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
-        flat = _Level(work, triples=np.zeros((0, 3), np.int32)).rows(desired)
+        flat = _voxel_rows(work, desired)
         active, read = self._dependency_lists(nbr, coords, flat)
         # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
         # such as the features read valid pixels everywhere.
