@@ -11,6 +11,7 @@ per-iteration time of the level below, times 8 voxels) to take longer is not run
 extrapolated time is printed instead, marked as such.
 
     python benchmarks/bench_kopf.py [--exemplars DIR] [--names granite_64 ...] [--sizes 64 128]
+                                    [--mean-shift]
 """
 
 from __future__ import annotations
@@ -36,11 +37,12 @@ def worst_energy(volume: np.ndarray, colors: np.ndarray) -> float:
     return max(metrics.neighborhood_energy(volume, colors, a) for a in range(3))
 
 
-def timed_kopf(ex: Exemplar, size: int) -> tuple[np.ndarray, float, list[kopf.Iteration]]:
+def timed_kopf(ex: Exemplar, size: int, mean_shift: bool
+               ) -> tuple[np.ndarray, float, list[kopf.Iteration]]:
     history: list[kopf.Iteration] = []
     start = time.perf_counter()
     volume = kopf.synthesize(ex, size=size, iterations=ITERATIONS, progress=False,
-                             on_iteration=history.append)
+                             mean_shift=mean_shift, on_iteration=history.append)
     return volume, time.perf_counter() - start, history
 
 
@@ -58,12 +60,15 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", type=int, default=[64, 128])
     parser.add_argument("--budget", type=float, default=900.0,
                         help="skip (and extrapolate) a size predicted to take longer")
+    parser.add_argument("--mean-shift", action="store_true",
+                        help="Kopf with mean-shift clustering (section 4.1)")
     args = parser.parse_args()
 
     warm = Exemplar(np.random.default_rng(0).random((16, 16, 3), dtype=np.float32))
     kopf.synthesize(warm, size=16, iterations=1, progress=False)  # compile kernels
 
-    print(f"iterations per level (coarse to fine): {ITERATIONS}")
+    print(f"iterations per level (coarse to fine): {ITERATIONS}; mean-shift clustering: "
+          f"{'on' if args.mean_shift else 'off'}")
     print("\n| exemplar | volume | Kopf seconds | s/iteration per level | Kopf worst-axis "
           "energy | lazy worst-axis energy | lazy seconds |")
     print("|---|---|---|---|---|---|---|")
@@ -80,7 +85,7 @@ def main() -> None:
                     print(f"| {name} | {size}^3 | ~{predicted:.0f} (EXTRAPOLATED, not run) "
                           "| | | | |")
                     continue
-            volume, seconds, history = timed_kopf(ex, size)
+            volume, seconds, history = timed_kopf(ex, size, args.mean_shift)
             fine_iteration = np.mean([h.seconds for h in history if h.level == kopf.LEVELS - 1])
             kopf_energy = lazy_energy = lazy_seconds = float("nan")
             if size == 64:

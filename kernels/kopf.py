@@ -21,6 +21,7 @@ wp.set_module_options({"enable_backward": False})
 
 WINDOW = 8  # 8x8 neighbourhoods (section 5)
 HALF = 4  # window offsets run -HALF .. WINDOW-HALF-1
+MEAN_SHIFT_STEPS = 2  # after the densest texel, before the final average of its cluster
 MAX_DIMS = 64
 """Most PCA coefficients kept; 95% of the variance of 8x8 RGB windows needs 30-70."""
 
@@ -150,6 +151,67 @@ def keep_better_match(
     weight[c] = wp.pow(wp.max(dist, min_distance), r - 2.0)
 
 
+MAX_TEXELS = 48
+"""Texels a voxel receives: 16 windows of the m = 2 grid cover it in each of three slices."""
+MAX_FEATURES = 8  # channels mean-shift clustering handles
+
+texel_list = wp.types.vector(length=MAX_TEXELS, dtype=wp.int32)
+weight_list = wp.types.vector(length=MAX_TEXELS, dtype=wp.float32)
+feature_point = wp.types.vector(length=MAX_FEATURES, dtype=wp.float32)
+
+
+@wp.func
+def texel_gap(ex: wp.array2d(dtype=wp.float32), a: int, b: int) -> float:
+    """Squared distance between exemplar texels ``a`` and ``b``."""
+    total = float(0.0)
+    for f in range(ex.shape[1]):
+        d = ex[a, f] - ex[b, f]
+        total += d * d
+    return total
+
+
+@wp.func
+def densest_texel(ex: wp.array2d(dtype=wp.float32), texels: texel_list, weights: weight_list,
+                  count: int, h2: float) -> int:
+    """The texel with the most weight within the bandwidth (``h2`` its square): where the
+    mean shift of the dominant cluster starts (section 4.1). The first of equals wins."""
+    density = weights
+    for i in range(count):
+        for j in range(i + 1, count):
+            if texel_gap(ex, texels[i], texels[j]) <= h2:
+                density[i] = density[i] + weights[j]
+                density[j] = density[j] + weights[i]
+    best = int(0)
+    for i in range(1, count):
+        if density[i] > density[best]:
+            best = i
+    return best
+
+
+@wp.func
+def cluster_mean(ex: wp.array2d(dtype=wp.float32), texels: texel_list, weights: weight_list,
+                 count: int, centre: feature_point, h2: float) -> feature_point:
+    """Weighted mean of the texels within the bandwidth of ``centre``: one step of mean shift
+    with a flat kernel, and with an unbounded bandwidth the plain average of equation 4.
+    ``centre`` itself where no texel is that close."""
+    nfeat = ex.shape[1]
+    acc = feature_point()
+    total = float(0.0)
+    for i in range(count):
+        e = texels[i]
+        d2 = float(0.0)
+        for f in range(nfeat):
+            d = ex[e, f] - centre[f]
+            d2 += d * d
+        if d2 <= h2:
+            total += weights[i]
+            for f in range(nfeat):
+                acc[f] = acc[f] + weights[i] * ex[e, f]
+    if total <= 0.0:
+        return centre
+    return acc / total
+
+
 @wp.kernel
 def optimize_voxels(
     first: int,
@@ -164,6 +226,7 @@ def optimize_voxels(
     match: wp.array(dtype=wp.int32),
     weight: wp.array(dtype=wp.float32),
     penalty: wp.array(dtype=wp.float32),
+    bandwidth: float,
     s: wp.array2d(dtype=wp.float32),
 ):
     """Optimization phase (section 4.1, equation 4) for voxels ``order[first + tid]``.
@@ -171,18 +234,18 @@ def optimize_voxels(
     The new ``s_v`` is the weighted average of the texels ``e_u,i,v`` that the matched windows
     of all grid centres ``u`` whose window covers ``v`` put on ``v``. Each weight ``w_u,i`` is
     divided by ``1 + penalty`` of its texel, the histogram term of equation 5 (zero without
-    histogram matching). ``s`` is not read: the texels come from the exemplar, so updating in
-    place is safe.
+    histogram matching). With a ``bandwidth`` above zero only the texels of the dominant
+    mean-shift cluster are averaged (section 4.1, after Wexler et al. 2007). ``s`` is not
+    read: the texels come from the exemplar, so updating in place is safe.
     """
     v = order[wp.tid() + first]
     z = v % n
     y = (v // n) % n
     x = v // (n * n)
     p = wp.vec3i(x, y, z)
-    nfeat = s.shape[1]
-    for f in range(nfeat):
-        s[v, f] = 0.0
-    total = float(0.0)
+    texels = texel_list()
+    weights = weight_list()
+    count = int(0)
     for axis in range(3):
         if constrained[axis] != 0:
             row = p[(axis + 1) % 3]
@@ -199,12 +262,21 @@ def optimize_voxels(
                             e = ex_first[axis] + pixel_index(
                                 u + a - HALF, m - u * width[axis] + b - HALF, height[axis],
                                 width[axis])
-                            w = weight[g] / (1.0 + penalty[e])
-                            total += w
-                            for f in range(nfeat):
-                                s[v, f] = s[v, f] + w * ex[e, f]
-    for f in range(nfeat):
-        s[v, f] = s[v, f] / total
+                            texels[count] = e
+                            weights[count] = weight[g] / (1.0 + penalty[e])
+                            count += 1
+    h2 = float(3.0e38)
+    mode = feature_point()
+    if bandwidth > 0.0:
+        h2 = bandwidth * bandwidth
+        seed = texels[densest_texel(ex, texels, weights, count, h2)]
+        for f in range(ex.shape[1]):
+            mode[f] = ex[seed, f]
+        for _step in range(MEAN_SHIFT_STEPS):
+            mode = cluster_mean(ex, texels, weights, count, mode, h2)
+    mode = cluster_mean(ex, texels, weights, count, mode, h2)
+    for f in range(ex.shape[1]):
+        s[v, f] = mode[f]
 
 
 @wp.func

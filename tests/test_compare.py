@@ -47,6 +47,13 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
 def test_volume_command_runs_kopf(tmp_path, data_dir, warp_device):
     out = tmp_path / "k.npy"
     assert main(["volume", str(data_dir / "granite_64.png"), "--method", "kopf", "--size", "16",
-                 "-o", str(out)]) == 0
+                 "--mean-shift", "-o", str(out)]) == 0
     volume = np.load(out)
     assert volume.shape == (16, 16, 16, 3) and np.isfinite(volume).all()
+
+
+def test_volume_command_refuses_mean_shift_for_lazy(tmp_path, data_dir, capsys):
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(data_dir / "granite_64.png"), "--mean-shift", "-o", str(out)]) == 2
+    assert "--mean-shift applies to --method kopf only" in capsys.readouterr().err
+    assert not out.exists()
