@@ -152,6 +152,18 @@ def test_shared_exemplar_has_one_role_and_one_source(granite):
     assert all(len(lvl) == 1 for lvl in granite.roles)
 
 
+@pytest.mark.parametrize("k", [1, 7, 40])
+def test_nearest_rows_break_ties_by_index(k):
+    # Three values in four dimensions: most distances tie, and a k-d tree's own order among
+    # equal distances differs from the index order (and between SciPy builds).
+    rng = np.random.default_rng(0)
+    database = rng.integers(0, 3, size=(500, 4))
+    queries = rng.integers(0, 3, size=(200, 4))
+    d2 = ((queries[:, None] - database[None]) ** 2).sum(axis=2)
+    brute = np.stack([np.lexsort((np.arange(len(database)), row))[:k] for row in d2])
+    assert np.array_equal(candidates.nearest_rows(database, queries, k), brute)
+
+
 def test_coordinates_inside_their_exemplar_level(granite, three):
     for cs in (granite, three[0]):
         k3 = int(cs.params["candidates_3d"])

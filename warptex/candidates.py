@@ -32,7 +32,7 @@ from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 _MAGIC = b"WARPTEXC"
 
@@ -349,10 +349,8 @@ def _kcoherent(proj: np.ndarray, h: int, w: int, k: int) -> np.ndarray:
     """2D k-coherent candidates: the pixel itself, then the most similar neighbourhoods
     farther than 2 pixels from it (Tong et al. 2002)."""
     npix = h * w
-    tree = cKDTree(proj.astype(np.float64))
     want = min(npix, 4 * k + 25)
-    _, idx = tree.query(proj.astype(np.float64), k=want)
-    idx = np.asarray(idx).reshape(npix, want)
+    idx = nearest_rows(proj, proj, want)
     own = np.arange(npix)
     u0, v0 = np.divmod(own, w)
     u1, v1 = np.divmod(idx, w)
@@ -420,9 +418,40 @@ def crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np.
 
 def _nearest_strips(database: np.ndarray, queries: np.ndarray, p: dict) -> np.ndarray:
     """The S best-matching strips of ``database`` for each query strip (ANN search)."""
-    s = min(int(p["strips"]), len(database))
-    _, idx = cKDTree(database).query(queries, k=s)
-    return np.asarray(idx, dtype=np.int32).reshape(len(queries), s)
+    return nearest_rows(database, queries, int(p["strips"]))
+
+
+def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
+    """Indices (Q, k) int32 of the ``k`` rows of ``database`` nearest to each of
+    ``queries``, both integer-valued, nearest first and equally near rows by index.
+
+    A k-d tree returns equally distant rows in an order of its own that may differ between
+    SciPy builds, and integer features tie often; candidates decide every voxel's colour,
+    so the order here is canonical: exact integer distances, the index as second key, and
+    a query whose k-th distance ties with the farthest row retrieved is searched wider.
+    """
+    db = np.asarray(database).astype(np.int64)
+    q = np.asarray(queries).astype(np.int64)
+    k = min(int(k), len(db))
+    tree = cKDTree(db.astype(np.float64))
+    out = np.empty((len(q), k), np.int32)
+    todo = np.arange(len(q))
+    want = min(len(db), k + 8)
+    while len(todo):
+        idx = tree.query(q[todo].astype(np.float64), k=want)[1].reshape(len(todo), want)
+        d2 = np.concatenate([
+            ((q[todo[lo:lo + 4096], None, :] - db[idx[lo:lo + 4096]]) ** 2).sum(axis=2)
+            for lo in range(0, len(todo), 4096)
+        ])
+        order = np.lexsort((idx, d2), axis=-1)
+        idx = np.take_along_axis(idx, order, axis=1)
+        d2 = np.take_along_axis(d2, order, axis=1)
+        # Rows not retrieved are at least as far as the farthest retrieved one.
+        done = (d2[:, k - 1] < d2[:, -1]) | (want == len(db))
+        out[todo[done]] = idx[done, :k]
+        todo = todo[~done]
+        want = min(len(db), 2 * want)
+    return out
 
 
 def _filter_coherent(

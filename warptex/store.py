@@ -36,6 +36,7 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, read_archive, write_archive
+from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
 from warptex.synthesis import Synthesizer
@@ -216,10 +217,11 @@ class BrickStore:
 
     def identity(self) -> str:
         """Digest of everything a stored voxel depends on: exemplars, candidate
-        parameters, seed, jitter and engine parameters."""
+        parameters and algorithm version, seed, jitter and engine parameters."""
         s = self.synthesizer
         key = {
             "format": FORMAT_VERSION,
+            "candidates": CANDIDATE_FORMAT,
             "brick": _k.BRICK,
             "digests": list(s.candidates.digests),
             "params": s.candidates.params,
