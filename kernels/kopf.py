@@ -161,11 +161,20 @@ feature_point = wp.types.vector(length=MAX_FEATURES, dtype=wp.float32)
 
 
 @wp.func
-def texel_gap(ex: wp.array2d(dtype=wp.float32), a: int, b: int) -> float:
-    """Squared distance between exemplar texels ``a`` and ``b``."""
+def texel_point(ex: wp.array2d(dtype=wp.float32), e: int) -> feature_point:
+    """Exemplar texel ``e`` as a point of the mean-shift feature space."""
+    point = feature_point()
+    for f in range(ex.shape[1]):
+        point[f] = ex[e, f]
+    return point
+
+
+@wp.func
+def texel_gap(ex: wp.array2d(dtype=wp.float32), e: int, point: feature_point) -> float:
+    """Squared distance between exemplar texel ``e`` and ``point``."""
     total = float(0.0)
     for f in range(ex.shape[1]):
-        d = ex[a, f] - ex[b, f]
+        d = ex[e, f] - point[f]
         total += d * d
     return total
 
@@ -177,8 +186,9 @@ def densest_texel(ex: wp.array2d(dtype=wp.float32), texels: texel_list, weights:
     mean shift of the dominant cluster starts (section 4.1). The first of equals wins."""
     density = weights
     for i in range(count):
+        point = texel_point(ex, texels[i])
         for j in range(i + 1, count):
-            if texel_gap(ex, texels[i], texels[j]) <= h2:
+            if texel_gap(ex, texels[j], point) <= h2:
                 density[i] = density[i] + weights[j]
                 density[j] = density[j] + weights[i]
     best = int(0)
@@ -199,11 +209,7 @@ def cluster_mean(ex: wp.array2d(dtype=wp.float32), texels: texel_list, weights: 
     total = float(0.0)
     for i in range(count):
         e = texels[i]
-        d2 = float(0.0)
-        for f in range(nfeat):
-            d = ex[e, f] - centre[f]
-            d2 += d * d
-        if d2 <= h2:
+        if texel_gap(ex, e, centre) <= h2:
             total += weights[i]
             for f in range(nfeat):
                 acc[f] = acc[f] + weights[i] * ex[e, f]
@@ -269,9 +275,7 @@ def optimize_voxels(
     mode = feature_point()
     if bandwidth > 0.0:
         h2 = bandwidth * bandwidth
-        seed = texels[densest_texel(ex, texels, weights, count, h2)]
-        for f in range(ex.shape[1]):
-            mode[f] = ex[seed, f]
+        mode = texel_point(ex, texels[densest_texel(ex, texels, weights, count, h2)])
         for _step in range(MEAN_SHIFT_STEPS):
             mode = cluster_mean(ex, texels, weights, count, mode, h2)
     mode = cluster_mean(ex, texels, weights, count, mode, h2)
