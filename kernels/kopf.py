@@ -201,15 +201,18 @@ def densest_texel(ex: wp.array2d(dtype=wp.float32), texels: texel_list, weights:
 @wp.func
 def cluster_mean(ex: wp.array2d(dtype=wp.float32), texels: texel_list, weights: weight_list,
                  count: int, centre: feature_point, h2: float) -> feature_point:
-    """Weighted mean of the texels within the bandwidth of ``centre``: one step of mean shift
-    with a flat kernel, and with an unbounded bandwidth the plain average of equation 4.
-    ``centre`` itself where no texel is that close."""
+    """Weighted mean of the texels within the bandwidth of ``centre`` (``h2`` its square):
+    one step of mean shift with a flat kernel; with ``h2`` below zero, of every texel, the
+    plain average of equation 4. ``centre`` itself where no texel is that close."""
     nfeat = ex.shape[1]
     acc = feature_point()
     total = float(0.0)
     for i in range(count):
         e = texels[i]
-        if texel_gap(ex, e, centre) <= h2:
+        near = h2 < 0.0
+        if not near:  # Warp evaluates both sides of `or`: no distances for plain averages
+            near = texel_gap(ex, e, centre) <= h2
+        if near:
             total += weights[i]
             for f in range(nfeat):
                 acc[f] = acc[f] + weights[i] * ex[e, f]
@@ -271,7 +274,7 @@ def optimize_voxels(
                             texels[count] = e
                             weights[count] = weight[g] / (1.0 + penalty[e])
                             count += 1
-    h2 = float(3.0e38)
+    h2 = float(-1.0)
     mode = feature_point()
     if bandwidth > 0.0:
         h2 = bandwidth * bandwidth
