@@ -546,17 +546,22 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "compare",
         help="compare solid texture methods on one exemplar: picture sheet and score table",
-        description="Run each method in a fresh process and write DIR/sheet.png (slices along "
-        "x, y, z per method), DIR/table.md and DIR/table.json: neighbourhood energy, sliced "
-        "Wasserstein distance and histogram distance per axis, a repetition score over a "
-        f"256-voxel slice, time and peak memory. Methods: {', '.join(METHODS)}.",
+        description="Run each method in a fresh process and write DIR/sheet.png (per method: "
+        "slices along x, y and z, and a rendered cube: lazy through the lazy_solid plugin, "
+        "the others through Mitsuba's grid volume), DIR/table.md and DIR/table.json: "
+        "neighbourhood energy, sliced Wasserstein distance and histogram distance per axis, "
+        "a repetition score over a 256-voxel slice, time and peak memory. "
+        f"Methods: {', '.join(METHODS)}.",
     )
     parser.add_argument("exemplar", type=Path, help="exemplar image")
-    parser.add_argument("--size", type=int, default=64, help="volume edge in voxels")
+    parser.add_argument("--size", type=int, default=64,
+                        help="edge of each method's volume in voxels (default 64)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated methods (default: all)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of every randomized method (default 0)")
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
+                        help="output folder")
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
