@@ -49,6 +49,7 @@ import numpy as np
 import mitsuba_plugin
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
+from warptex.store import StoreFileError
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
@@ -155,8 +156,11 @@ class LazySolidTexture(mi.Texture):
             candidates = precompute(*self.exemplars)
         except ValueError as e:
             raise fail(PLUGIN, "exemplar", f"cannot be used: {e}") from e
-        self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
-                                  cache_bytes=cache_bytes, store=self.cache)
+        try:
+            self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
+                                      cache_bytes=cache_bytes, store=self.cache)
+        except StoreFileError as e:
+            raise fail(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = exemplar_colors(candidates)
         self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
         self._mean = float(colors.mean())

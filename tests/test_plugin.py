@@ -46,6 +46,15 @@ def test_property_errors_name_the_property(granite_32_file, props, name):
         load(granite_32_file, **props)
 
 
+def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp_path):
+    use("scalar_rgb")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not bricks")
+    with pytest.raises(RuntimeError, match=r'lazy_solid: property "cache".*notes\.txt'):
+        load(granite_32_file, cache=str(notes))
+    assert notes.read_text() == "not bricks"
+
+
 def test_register_is_idempotent_and_needs_rgb():
     use("scalar_rgb")
     mitsuba_plugin.register()

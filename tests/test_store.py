@@ -7,7 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warptex.store import BrickStore, brick_keys, brick_voxels, unique_voxels, voxels_read
+from warptex.store import (
+    BrickStore,
+    StoreFileError,
+    brick_keys,
+    brick_voxels,
+    unique_voxels,
+    voxels_read,
+)
 
 BRICK_BYTES = 512 * 6 + 68  # uint16 triples, the stored-voxel bits and the pool base
 
@@ -177,6 +184,15 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
         BrickStore.load(path, synthesizer(candidates))
     with pytest.warns(UserWarning, match="cannot read"):
         BrickStore.load(tmp_path / "missing.wtb", synthesizer(candidates))
+
+
+def test_a_file_of_another_kind_is_refused_and_kept(candidates, tmp_path: Path):
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not bricks")
+    for path in (notes, tmp_path):
+        with pytest.raises(StoreFileError, match="not a warptex brick store file"):
+            BrickStore.load(path, synthesizer(candidates))
+    assert notes.read_text() == "not bricks"
 
 
 def test_a_loaded_store_evicts_in_the_saved_recency_order(candidates, tmp_path: Path):

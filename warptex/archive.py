@@ -50,6 +50,20 @@ def write_archive(path: str | Path, magic: bytes, version: int,
     write_atomically(path, lambda tmp: tmp.write_bytes(header + payload))
 
 
+def is_foreign(path: str | Path, magic: bytes) -> bool:
+    """Whether ``path`` holds something other than a ``magic`` archive: a file too short
+    for the magic string or starting otherwise, or a folder. Not a file at all is not
+    foreign."""
+    path = Path(path)
+    if path.is_dir():
+        return True
+    try:
+        with open(path, "rb") as file:
+            return file.read(len(magic)) != magic
+    except FileNotFoundError:
+        return False
+
+
 def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
                  error: type[ArchiveError] = ArchiveError) -> dict[str, np.ndarray]:
     """The arrays of a file written by :func:`write_archive`; ``error`` (naming the file

@@ -35,7 +35,7 @@ import numpy as np
 import warp as wp
 
 from kernels import lookup as _k
-from warptex.archive import ArchiveError, read_archive, write_archive
+from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
 from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
@@ -338,7 +338,15 @@ class BrickStore:
         """A store holding the bricks saved in ``path``, the most recently used that fit
         ``cache_bytes``; an empty one, with a warning, when the file is damaged or belongs
         to another texture. Partly filled bricks load into either kind of store: with
-        ``whole_bricks`` a miss in one fills the rest of it."""
+        ``whole_bricks`` a miss in one fills the rest of it.
+
+        Raises:
+            StoreFileError: ``path`` is a folder or a file of another kind, which saving
+                would destroy.
+        """
+        if is_foreign(path, _MAGIC):
+            raise StoreFileError(f"{path}: exists and is not a warptex brick store file; "
+                                 "it would be overwritten, choose another store path")
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         try:
             keys, triples, valid = store._read(Path(path))
