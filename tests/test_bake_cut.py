@@ -85,6 +85,21 @@ def test_cut_caps_continue_the_outer_surface(texture, sphere):
         cut(sphere, np.array([5.0, 0, 0]), normal)
 
 
+def test_a_cut_through_separate_parts_caps_each():
+    """Two boxes cut together: the cap has two outlines, which trimesh nests with rtree."""
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    other = box.copy()
+    other.apply_translation((0.0, 2.0, 0.0))
+    pair = trimesh.util.concatenate([box, other])
+    origin, normal = np.zeros(3), np.array([1.0, 0.0, 0.0])
+    for half in cut(pair, origin, normal):
+        assert half.is_watertight
+        assert len(half.split(only_watertight=True)) == 2
+        assert np.isclose(half.volume, 1.0)
+        cap = cap_faces(half, origin, normal)
+        assert np.isclose(half.area_faces[cap].sum(), 2.0)
+
+
 def test_export_formats(texture, sphere, tmp_path):
     m = block_transform(sphere, 24)
     written = export(sphere, tmp_path / "s.ply", colors=vertex_colors(texture, sphere, m))
