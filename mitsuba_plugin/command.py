@@ -48,7 +48,10 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     mitsuba_plugin.register()
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
     start = time.perf_counter()
-    scene = mi.load_file(str(scene_path), **params)
+    try:
+        scene = mi.load_file(str(scene_path), **params)
+    except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
+        raise ValueError(f"{scene_path}: cannot load the scene: {e}") from None
     loaded = time.perf_counter()
     # Read before rendering: each pass sets the sampler to its share of the samples.
     total = spp or scene.sensors()[0].sampler().sample_count()

@@ -75,6 +75,10 @@ def bake_uv_texture(
     return image, mask
 
 
+VERTEX_COLOR_FORMATS = (".ply", ".glb")
+UV_TEXTURE_FORMATS = (".glb", ".obj")
+
+
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None) -> list[Path]:
     """Write a textured mesh atomically: PLY/GLB with vertex ``colors``, or GLB (embedded
@@ -82,14 +86,14 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
     path = Path(path)
     suffix = path.suffix.lower()
     if image is not None:
-        if suffix not in (".glb", ".obj"):
+        if suffix not in UV_TEXTURE_FORMATS:
             raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
         material = trimesh.visual.material.SimpleMaterial(
             image=Image.fromarray(to_rgb8(image)), name=path.stem
         )
         visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
     elif colors is not None:
-        if suffix not in (".ply", ".glb"):
+        if suffix not in VERTEX_COLOR_FORMATS:
             raise ValueError(f"{path}: vertex colors need a .ply or .glb file")
         rgb = to_rgb8(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
         visual = trimesh.visual.ColorVisuals(vertex_colors=np.c_[rgb, np.full(len(rgb), 255)])

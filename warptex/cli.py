@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
+import os
 import struct
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -29,6 +32,45 @@ if TYPE_CHECKING:
 
 class CliError(Exception):
     """A user error a command reports as ``warptex: error: ...`` with exit code 2."""
+
+
+def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = "the file") -> str:
+    """The lower-case suffix of an output file, after checking, before any work is done,
+    that it is one of ``formats`` and that the file can be written where it is asked for
+    (missing folders are created then)."""
+    suffix = path.suffix.lower()
+    if formats is not None and suffix not in formats:
+        endings = " or ".join([", ".join(formats[:-1]), formats[-1]] if len(formats) > 1
+                              else formats)
+        raise CliError(f"{path}: {what} must end in {endings}")
+    if path.is_dir():
+        raise CliError(f"{path}: is a folder, expected a file name")
+    _check_writable_folder(path.parent, path)
+    return suffix
+
+
+def _check_writable_folder(folder: Path, target: Path) -> None:
+    """Raise CliError unless ``folder`` is, or can be created as, a writable folder."""
+    existing = folder.absolute()
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CliError(f"{target}: cannot write, {existing} is a file, not a folder")
+    try:  # a trial file: permission bits do not tell for root or special file systems
+        tempfile.TemporaryFile(dir=existing).close()
+    except OSError as error:
+        raise CliError(f"{target}: cannot write in {existing} "
+                       f"({error.strerror or error})") from None
+
+
+def _check_at_least(name: str, value: int, low: int) -> None:
+    if value < low:
+        raise CliError(f"{name} must be at least {low}, got {value}")
+
+
+def _check_finite(name: str, values: Sequence[float]) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise CliError(f"{name} must be finite numbers, got {' '.join(map(str, values))}")
 
 
 def _add_exemplar_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,7 +107,10 @@ def _load_exemplar(args: argparse.Namespace) -> Exemplar:
 
 
 def _add_info_parser(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("info", help="describe an exemplar and its pyramid")
+    parser = subparsers.add_parser(
+        "info", help="describe an exemplar and its pyramid",
+        description="Print an exemplar's size, channels, value range, Gaussian pyramid, "
+        "content digest and whether its 3D candidates are cached.")
     _add_exemplar_arguments(parser)
 
 
@@ -102,15 +147,13 @@ def _candidate_status(exemplar: Exemplar) -> str:
 
 def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "precompute", help="pre-compute the 3D candidates of an exemplar (Dong 2008, section 4)"
+        "precompute", help="pre-compute the 3D candidates of an exemplar (Dong 2008, section 4)",
+        description="Pre-compute the 3D candidates of an exemplar (Dong 2008, section 4) into "
+        "the candidate cache, which every other command reads (WARPTEX_CACHE sets its "
+        "folder); prints candidates per pixel, time and size per pyramid level.",
     )
     _add_exemplar_arguments(parser)
-    parser.add_argument(
-        "--ey", type=Path, metavar="F", help="exemplar of the y axis (default: EXEMPLAR)"
-    )
-    parser.add_argument(
-        "--ez", type=Path, metavar="F", help="exemplar of the z axis (default: the y exemplar)"
-    )
+    _add_axis_exemplar_arguments(parser, "PATH")
     parser.add_argument(
         "-o", "--output", type=Path, metavar="FILE", help="also write the candidates to FILE"
     )
@@ -120,7 +163,9 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 def _cmd_precompute(args: argparse.Namespace) -> int:
     from warptex.candidates import DEFAULT_PARAMS, cache_path, precompute
 
-    exemplars = _load_axis_exemplars(args)
+    if args.output is not None:
+        _check_output(args.output)
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args))
     cache = None if args.no_cache else cache_path(exemplars, dict(DEFAULT_PARAMS))
     before = _file_identity(cache)
     start = time.perf_counter()
@@ -145,13 +190,21 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_axis_exemplars(args: argparse.Namespace) -> list[Exemplar]:
-    """The exemplars of the x, y and z axes; --ey/--ez take the same loading options."""
-    ex = _load_exemplar(args)
-    if args.feature_mask is not None and (args.ey or args.ez):
+def _add_axis_exemplar_arguments(parser: argparse.ArgumentParser, first: str) -> None:
+    parser.add_argument("--ey", type=Path, metavar="FILE",
+                        help=f"exemplar of the y axis (default: {first})")
+    parser.add_argument("--ez", type=Path, metavar="FILE",
+                        help="exemplar of the z axis (default: the y exemplar)")
+
+
+def _load_axis_exemplars(args: argparse.Namespace, ex: Exemplar) -> list[Exemplar]:
+    """The exemplars of the x (``ex``), y and z axes; --ey/--ez take the loading options
+    of the command, where it has them."""
+    if getattr(args, "feature_mask", None) is not None and (args.ey or args.ez):
         raise CliError("--feature-mask marks one image; use --feature-distance with --ey/--ez")
     others = [
-        Exemplar.load(path, alpha=args.alpha, feature_distance=args.feature_distance)
+        Exemplar.load(path, alpha=getattr(args, "alpha", "drop"),
+                      feature_distance=getattr(args, "feature_distance", False))
         if path is not None
         else None
         for path in (args.ey, args.ez)
@@ -196,12 +249,18 @@ _SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTextu
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "volume", help="synthesize a cube of solid texture (Dong 2008, section 5)"
+        "volume", help="synthesize a cube of solid texture (Dong 2008, section 5)",
+        description="Synthesize the cube of voxels [0, SIZE)^3 of the exemplar's solid texture "
+        "and write it to a file. Lazy synthesis gives the same voxels as every other command "
+        "with the same seed and jitter; --method kopf runs the Kopf 2007 baseline instead.",
     )
     _add_exemplar_arguments(parser)
+    _add_axis_exemplar_arguments(parser, "PATH")
     parser.add_argument("--size", type=int, default=64, help="edge of the cube in voxels (64)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (0)")
-    parser.add_argument("--jitter", type=float, default=1.0, help="initial jitter (1.0)")
+    parser.add_argument("--jitter", type=float, default=1.0,
+                        help="strength of the random warp that varies the tiling, 0 to 64 "
+                        "(default 1)")
     parser.add_argument("--passes", type=int, default=2,
                         help="correction passes per level of lazy synthesis (2; more look "
                         "better and cost more)")
@@ -231,19 +290,15 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    suffix = args.output.suffix.lower()
-    if suffix not in _VOLUME_FORMATS:
-        raise CliError(
-            f"{args.output}: unknown volume format {suffix or '(no extension)'!r}; "
-            f"use {', '.join(_VOLUME_FORMATS)}"
-        )
-    if args.size < 1:
-        raise CliError(f"--size must be at least 1, got {args.size}")
+    suffix = _check_output(args.output, _VOLUME_FORMATS, "a volume file")
+    _check_at_least("--size", args.size, 1)
+    _check_at_least("--passes", args.passes, 0)
+    _check_memory(args.size)
     if args.method == "kopf":
         return _volume_kopf(args, suffix)
     if args.mean_shift:
         raise CliError("--mean-shift applies to --method kopf only")
-    cs = precompute(_load_exemplar(args), progress=True)
+    cs = precompute(*_load_axis_exemplars(args, _load_exemplar(args)), progress=True)
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
     except ValueError as error:
@@ -266,7 +321,8 @@ def _volume_kopf(args: argparse.Namespace, suffix: str) -> int:
     from warptex.baselines.kopf import synthesize
 
     try:
-        volume = synthesize(_load_exemplar(args), size=args.size, seed=args.seed,
+        exemplars = _load_axis_exemplars(args, _load_exemplar(args))
+        volume = synthesize(None, exemplars=exemplars, size=args.size, seed=args.seed,
                             mean_shift=args.mean_shift)
     except ValueError as error:
         raise CliError(str(error)) from None
@@ -276,6 +332,20 @@ def _volume_kopf(args: argparse.Namespace, suffix: str) -> int:
           f"seed {args.seed}")
     print(f"written: {args.output}")
     return 0
+
+
+def _check_memory(size: int) -> None:
+    """Refuse a cube whose colors alone (4 float32 channels at most, held twice while the
+    slabs are joined) would not fit in this machine's memory."""
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return
+    need = 2 * 4 * 4 * size**3
+    if need > memory:
+        raise CliError(f"--size {size}: a {size}^3 volume needs about {need / 2**30:.0f} GiB, "
+                       f"this machine has {memory / 2**30:.0f} GiB; use a smaller --size, or "
+                       "`warptex slice` and the Python API for parts of it")
 
 
 def _write_volume(path: Path, suffix: str, volume: np.ndarray) -> None:
@@ -341,19 +411,24 @@ def _write_vol(path: Path, volume: np.ndarray) -> None:
         file.write(data.tobytes())
 
 
-def _add_texture_arguments(parser: argparse.ArgumentParser) -> None:
+def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
+    _add_axis_exemplar_arguments(parser, first)
     parser.add_argument("--seed", type=int, default=0, help="texture variation (default 0)")
     parser.add_argument("--jitter", type=float, default=1.0,
-                        help="strength of the random warp that varies the tiling (default 1)")
+                        help="strength of the random warp that varies the tiling, 0 to 64 "
+                        "(default 1)")
 
 
-def _solid_texture(exemplar: Path, args: argparse.Namespace):
+def _solid_texture(args: argparse.Namespace):
+    from warptex.candidates import precompute
     from warptex.texture import SolidTexture
 
+    exemplars = _load_axis_exemplars(args, Exemplar.load(args.exemplar))
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
-        return SolidTexture(Exemplar.load(exemplar), seed=args.seed, jitter=args.jitter,
-                            whole_bricks=False, store=getattr(args, "store", None))
+        return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
+                            jitter=args.jitter, whole_bricks=False,
+                            store=getattr(args, "store", None))
     except ValueError as error:
         raise CliError(str(error)) from None
 
@@ -367,14 +442,18 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("exemplar", type=Path, help="exemplar image")
     parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
-                        metavar=("X", "Y", "Z"), help="texture point of pixel (0, 0)")
+                        metavar=("X", "Y", "Z"),
+                        help="texture point of pixel (0, 0) (default 0.5 0.5 0.5, a voxel centre)")
     parser.add_argument("--u", type=float, nargs=3, default=(1.0, 0.0, 0.0),
                         metavar=("X", "Y", "Z"), help="step between rows (default x axis)")
     parser.add_argument("--v", type=float, nargs=3, default=(0.0, 1.0, 0.0),
                         metavar=("X", "Y", "Z"), help="step between columns (default y axis)")
-    parser.add_argument("--shape", type=int, nargs=2, default=(256, 256), metavar=("H", "W"))
-    parser.add_argument("--filter", choices=("trilinear", "nearest"), default="trilinear")
-    _add_texture_arguments(parser)
+    parser.add_argument("--shape", type=int, nargs=2, default=(256, 256), metavar=("H", "W"),
+                        help="image rows and columns (default 256 256)")
+    parser.add_argument("--filter", choices=("trilinear", "nearest"), default="trilinear",
+                        help="blend the 8 voxels around each point (default) or take the "
+                        "voxel containing it")
+    _add_texture_arguments(parser, "EXEMPLAR")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output image: .png (8-bit), .exr or .npy (float)")
 
@@ -383,13 +462,13 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     from warptex.cut import plane_points
     from warptex.sheets import save_png, to_rgb8
 
-    suffix = args.output.suffix.lower()
-    if suffix not in (".png", ".exr", ".npy"):
-        raise CliError(f"{args.output}: unknown image format; use .png, .exr or .npy")
+    suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
     h, w = args.shape
     if h < 1 or w < 1:
         raise CliError(f"--shape must be positive, got {h} {w}")
-    tex = _solid_texture(args.exemplar, args)
+    for name in ("origin", "u", "v"):
+        _check_finite(f"--{name}", getattr(args, name))
+    tex = _solid_texture(args)
     start = time.perf_counter()
     image = tex.query(plane_points(args.origin, args.u, args.v, (h, w)), filter=args.filter)
     image = image.reshape(h, w, -1)
@@ -407,27 +486,55 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mesh", type=Path, help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
     parser.add_argument("--exemplar", type=Path, required=True, help="exemplar image")
     parser.add_argument("--resolution", type=int, default=1024,
-                        help="the mesh's bounding box fills a block of RESOLUTION^3 voxels")
+                        help="the mesh's bounding box fills a block of RESOLUTION^3 voxels "
+                        "(default 1024)")
     parser.add_argument("--uv", choices=("auto", "mesh", "none"), default="none",
                         help="bake a UV texture: with the mesh's own UVs (mesh), UVs made "
                         "by xatlas (auto), or vertex colors only (none, default)")
-    parser.add_argument("--texture-size", type=int, default=1024, help="UV texture size")
+    parser.add_argument("--texture-size", type=int, default=1024,
+                        help="edge of the UV texture in pixels (default 1024)")
     parser.add_argument("--store", type=Path, metavar="FILE",
                         help="brick store file: voxels synthesized by an earlier run with the "
                         "same texture are read from it, and all are written back at the end "
                         "(also usable as the lazy_solid plugin's cache)")
-    _add_texture_arguments(parser)
+    _add_texture_arguments(parser, "--exemplar")
 
 
-def _load_mesh(path: Path):
+def _check_mesh_arguments(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
+    """Everything about a bake or cut that can be wrong, checked before the work."""
+    from warptex.bake import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS
+
+    _check_at_least("--resolution", args.resolution, 1)
+    _check_at_least("--texture-size", args.texture_size, 1)
+    if args.uv == "none":
+        formats, what = VERTEX_COLOR_FORMATS, "a mesh with vertex colors (--uv none)"
+    else:
+        formats, what = UV_TEXTURE_FORMATS, f"a mesh with a UV texture (--uv {args.uv})"
+    for output in outputs:
+        _check_output(output, formats, what)
+    if args.store is not None:
+        from warptex.store import StoreFileError, check_store_path
+
+        _check_output(args.store)
+        try:
+            check_store_path(args.store)
+        except StoreFileError as error:
+            raise CliError(str(error)) from None
+
+
+def _load_mesh(path: Path, uv: str = "none"):
     import trimesh
 
+    if not path.is_file():
+        raise CliError(f"{path}: mesh file not found")
     try:
         mesh = trimesh.load(path, force="mesh")
-    except (OSError, ValueError) as error:
-        raise CliError(f"{path}: cannot read mesh ({error})") from None
+    except Exception as error:  # trimesh raises many kinds on a bad or unknown file
+        raise CliError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from None
     if len(getattr(mesh, "faces", ())) == 0:
         raise CliError(f"{path}: no triangles found")
+    if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
+        raise CliError(f"{path}: the mesh has no UVs; use --uv auto to make them")
     return mesh
 
 
@@ -478,8 +585,9 @@ def _cmd_bake(args: argparse.Namespace) -> int:
 
     from warptex.surface import block_transform, shell
 
-    mesh = _load_mesh(args.mesh)
-    tex = _solid_texture(args.exemplar, args)
+    _check_mesh_arguments(args, [args.output])
+    mesh = _load_mesh(args.mesh, args.uv)
+    tex = _solid_texture(args)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
     voxels = shell(mesh, args.resolution, transform)
@@ -520,16 +628,20 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     from warptex.cut import cut
     from warptex.surface import block_transform
 
-    mesh = _load_mesh(args.mesh)
+    outputs = [args.output, args.output.with_stem(args.output.stem + "_b")]
+    _check_mesh_arguments(args, outputs)
+    _check_finite("--normal", args.normal)
+    if args.origin is not None:
+        _check_finite("--origin", args.origin)
+    mesh = _load_mesh(args.mesh, args.uv)
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:
         halves = cut(mesh, origin, np.asarray(args.normal))
     except ValueError as error:
         raise CliError(f"{args.mesh}: {error}") from None
-    tex = _solid_texture(args.exemplar, args)
+    tex = _solid_texture(args)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
-    outputs = [args.output, args.output.with_stem(args.output.stem + "_b")]
     files = []
     for half, output in zip(halves, outputs, strict=True):
         files += _textured_export(tex, half, transform, args, output)
@@ -568,6 +680,9 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import compare, table_markdown, write_report
 
     Exemplar.load(args.exemplar)  # one clear error for a bad image before any work
+    if args.output.exists() and not args.output.is_dir():
+        raise CliError(f"{args.output}: is a file, expected an output folder")
+    _check_writable_folder(args.output, args.output)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         results = compare(args.exemplar, args.size, methods, args.seed)
@@ -600,6 +715,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     if not args.scene.is_file():
         raise CliError(f"scene not found: {args.scene}")
+    _check_output(args.output, (".exr", ".png"), "the image")
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
         render_scene(args.scene, args.output, spp=args.spp, resolution=resolution)
@@ -639,6 +755,17 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"warptex: warning: {message}", file=sys.stderr)
 
 
+def _check_device() -> None:
+    """A device asked for through the environment that cannot be had is a user error."""
+    if os.environ.get("WARPTEX_DEVICE", "").strip():
+        from warptex.device import device
+
+        try:
+            device()
+        except (ValueError, RuntimeError) as error:
+            raise CliError(str(error)) from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     args = _parser().parse_args(argv)
@@ -646,6 +773,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
         try:
+            _check_device()
             return command(args)
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)

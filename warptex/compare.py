@@ -28,6 +28,7 @@ from warptex.exemplar import Exemplar
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
 LARGE = 256  # edge of the slice the repetition score looks at
+MIN_SIZE = 8
 
 
 @dataclass
@@ -227,10 +228,18 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
             seed: int = 0, progress: bool = True) -> list[MethodResult]:
     """Score every method on one exemplar, each in a fresh process."""
     unknown = [m for m in methods if m not in _RUN]
-    if unknown:
+    if unknown or not methods:
         raise ValueError(
             f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}"
+            if unknown else f"no method given; choose from {', '.join(METHODS)}"
         )
+    if size < MIN_SIZE:
+        raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
+                         f"of slices every 2 voxels), got {size}")
+    if any(m.startswith("kopf") for m in methods):
+        from warptex.baselines.kopf import check_size
+
+        check_size(size)
     results = []
     ctx = multiprocessing.get_context("spawn")
     for method in tqdm(methods, desc="methods", disable=not progress):

@@ -163,6 +163,14 @@ class _SharedLock:
                 self._cond.notify_all()
 
 
+def check_store_path(path: str | Path) -> None:
+    """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
+    saving a store there would destroy; a missing file or any brick store file is fine."""
+    if is_foreign(path, _MAGIC):
+        raise StoreFileError(f"{path}: exists and is not a warptex brick store file; "
+                             "it would be overwritten, choose another store path")
+
+
 class BrickStore:
     """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch.
 
@@ -344,9 +352,7 @@ class BrickStore:
             StoreFileError: ``path`` is a folder or a file of another kind, which saving
                 would destroy.
         """
-        if is_foreign(path, _MAGIC):
-            raise StoreFileError(f"{path}: exists and is not a warptex brick store file; "
-                                 "it would be overwritten, choose another store path")
+        check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         try:
             keys, triples, valid = store._read(Path(path))

@@ -98,6 +98,12 @@ class _Axis:
     tree: cKDTree
 
 
+def check_size(size: int) -> None:
+    """Raise ValueError unless ``size`` halves evenly through the pyramid's levels."""
+    if size < 1 or size % (1 << LEVELS) != 0:
+        raise ValueError(f"size must be a positive multiple of {1 << LEVELS}, got {size}")
+
+
 def synthesize(
     exemplar: Exemplar | None,
     size: int = 64,
@@ -132,8 +138,7 @@ def synthesize(
         have one, is synthesized along but not returned.
     """
     axes = _axis_exemplars(exemplar, exemplars)
-    if size < 8 or size % (1 << LEVELS) != 0:
-        raise ValueError(f"size must be a positive multiple of {1 << LEVELS}, got {size}")
+    check_size(size)
     counts = [int(iterations)] * LEVELS if np.isscalar(iterations) else [int(t) for t in iterations]
     if len(counts) != LEVELS or min(counts) < 1:
         raise ValueError(f"iterations must be {LEVELS} positive counts, got {iterations!r}")

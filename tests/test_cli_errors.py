@@ -1,0 +1,116 @@
+"""The command line checks what it can before any work: one clear line naming the option
+or file at fault, exit code 2, and nothing written or overwritten."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from warptex.cli import main
+
+
+@pytest.fixture(scope="module")
+def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("inputs")
+    mesh = folder / "sphere.ply"
+    trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    notes = folder / "notes.txt"
+    notes.write_text("not bricks")
+    scene = folder / "scene.xml"
+    scene.write_text("this is not XML")
+    other = folder / "other_y.npy"
+    np.save(other, _rotated(granite_32_file))
+    return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
+            "other": other}
+
+
+def _rotated(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    return np.rot90(np.asarray(Image.open(path).convert("RGB"), np.float32) / 255).copy()
+
+
+CASES = [
+    (["volume", "{exemplar}", "--size", "100000", "-o", "{out}/v.npy"], "--size 100000"),
+    (["volume", "{exemplar}", "--passes", "-1", "-o", "{out}/v.npy"], "--passes must be"),
+    (["volume", "{exemplar}", "-o", "{notes}/v.npy"], "is a file, not a folder"),
+    (["volume", "{exemplar}", "-o", "{out}"], "must end in .npy, .exr or .vol"),
+    (["slice", "{exemplar}", "--origin", "nan", "0", "0", "-o", "{out}/s.png"], "--origin"),
+    (["slice", "{exemplar}", "-o", "{out}/s.jpg"], "must end in .png, .exr or .npy"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "0", "-o", "{out}/b.ply"],
+     "--resolution must be at least 1"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "0", "--uv", "auto",
+      "-o", "{out}/b.glb"], "--texture-size must be at least 1"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.obj"],
+     "vertex colors (--uv none) must end in .ply or .glb"),
+    (["bake", "{exemplar}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
+     "cannot read mesh"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--uv", "mesh", "-o", "{out}/b.glb"],
+     "has no UVs"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "8", "--store", "{notes}",
+      "-o", "{out}/b.ply"], "not a warptex brick store file"),
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--normal", "nan", "1", "0",
+      "-o", "{out}/c.ply"], "--normal"),
+    (["compare", "{exemplar}", "--size", "4", "-o", "{out}/cmp"], "size must be at least 8"),
+    (["compare", "{exemplar}", "--size", "12", "--methods", "lazy,kopf", "-o", "{out}/cmp"],
+     "multiple of 8"),
+    (["compare", "{exemplar}", "--methods", " ", "-o", "{out}/cmp"], "no method given"),
+    (["compare", "{exemplar}", "-o", "{notes}"], "expected an output folder"),
+    (["render", "{scene}", "-o", "{out}/r.jpg"], "must end in .exr or .png"),
+    (["render", "{scene}", "-o", "{out}/r.png"], "cannot load the scene"),
+]
+
+
+@pytest.mark.parametrize(("argv", "message"), CASES, ids=[f"{c[0][0]}: {c[1]}"
+                                                          for c in CASES])
+def test_bad_input_is_one_clear_error_and_writes_nothing(files, tmp_path, capsys, argv,
+                                                          message):
+    out = tmp_path / "out"
+    out.mkdir()
+    names = {k: str(v) for k, v in files.items()} | {"out": str(out)}
+    code = main([a.format(**names) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("warptex: error: ") and message in err
+    assert "Traceback" not in err
+    assert not any(out.iterdir())
+    assert files["notes"].read_text() == "not bricks"
+
+
+@pytest.mark.parametrize("value", ["gpu", "cuda"])
+def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatch, value):
+    import warp as wp
+
+    from warptex.device import init_warp
+
+    init_warp()
+    if value == "cuda" and wp.get_cuda_device_count() > 0:
+        pytest.skip("this machine has a GPU")
+    monkeypatch.setenv("WARPTEX_DEVICE", value)
+    assert main(["slice", str(files["exemplar"]), "-o", str(tmp_path / "s.png")]) == 2
+    assert capsys.readouterr().err.startswith("warptex: error: WARPTEX_DEVICE=")
+    assert not (tmp_path / "s.png").exists()
+
+
+def test_per_axis_exemplars_reach_every_texture_command(files, tmp_path, capsys):
+    """--ey gives the y (and so z) axis its own exemplar in volume and slice alike."""
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    ex, ey = Exemplar.load(files["exemplar"]), Exemplar.load(files["other"])
+    expected = Synthesizer(precompute(ex, ey, ey)).box((0, 0, 0), (8, 8, 8))
+    same = Synthesizer(precompute(ex)).box((0, 0, 0), (8, 8, 8))
+    assert not np.array_equal(expected, same)
+    volume = tmp_path / "v.npy"
+    assert main(["volume", str(files["exemplar"]), "--ey", str(files["other"]), "--size", "8",
+                 "-o", str(volume)]) == 0
+    np.testing.assert_array_equal(np.load(volume), expected)
+    plane = tmp_path / "s.npy"
+    assert main(["slice", str(files["exemplar"]), "--ey", str(files["other"]), "--filter",
+                 "nearest", "--shape", "8", "8", "--origin", "0.5", "0.5", "2.5",
+                 "-o", str(plane)]) == 0
+    np.testing.assert_array_equal(np.load(plane), expected[:, :, 2])
