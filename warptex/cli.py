@@ -541,17 +541,29 @@ def _load_mesh(path: Path, uv: str = "none"):
 def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
                      output: Path) -> list[Path]:
     """Bake ``mesh`` as asked by --uv and write it; returns the files written."""
+    from tqdm.auto import tqdm
+
     from warptex.bake import bake_uv_texture, export, vertex_colors
 
     if args.uv == "none":
         return export(mesh, output, colors=vertex_colors(tex, mesh, transform))
-    if args.uv == "auto":
-        mesh = mesh.unwrap()
-    uv = getattr(mesh.visual, "uv", None)
-    if uv is None:
-        raise CliError(f"{args.mesh}: the mesh has no UVs; use --uv auto to make them")
-    image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
-    return export(mesh, output, image=image, uv=uv)
+    # Unwrapping is one long call: the bar names the step it is in and times it.
+    with tqdm(total=3, desc=f"UV texture {output.name}",
+              bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
+        if args.uv == "auto":
+            bar.set_postfix_str("unwrapping (xatlas)")
+            mesh = mesh.unwrap()
+        bar.update()
+        uv = getattr(mesh.visual, "uv", None)
+        if uv is None:
+            raise CliError(f"{args.mesh}: the mesh has no UVs; use --uv auto to make them")
+        bar.set_postfix_str(f"baking {args.texture_size}^2 texels")
+        image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
+        bar.update()
+        bar.set_postfix_str("writing")
+        files = export(mesh, output, image=image, uv=uv)
+        bar.update()
+    return files
 
 
 def _report_store(tex, resolution: int, elapsed: float) -> None:
