@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warptex.store import BrickStore
+from warptex.store import BrickStore, StoreFileError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -158,7 +158,7 @@ def test_persistence_in_a_new_process(candidates, exemplar_path, tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "out.npy"), expected)
 
 
-def test_corrupt_or_foreign_store_is_ignored_with_a_warning(candidates, tmp_path):
+def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates, tmp_path):
     pts = points_near_origin(50, 9)
     path = tmp_path / "granite.wtb"
     tex = texture(candidates, store=path)
@@ -174,8 +174,9 @@ def test_corrupt_or_foreign_store_is_ignored_with_a_warning(candidates, tmp_path
         damaged = texture(candidates, store=path)
     np.testing.assert_array_equal(damaged.query(pts), expected)
     path.write_bytes(b"not a store")
-    with pytest.warns(UserWarning, match="not a warptex brick store"):
+    with pytest.raises(StoreFileError, match="not a warptex brick store"):
         texture(candidates, store=path)
+    assert path.read_bytes() == b"not a store"
 
 
 @pytest.mark.parametrize("whole_bricks", [True, False])
