@@ -444,6 +444,26 @@ def best_2d_candidate(
     return best
 
 
+@wp.func
+def shifted_triple(tri: wp.vec3i, d: wp.vec3i, t: LevelTables) -> wp.vec3i:
+    """The triple that continues all three exemplar patches of the voxel at offset ``d``
+    (|d| <= 1), which holds ``tri``: exemplar j spans the volume axes (j+1, j+2)."""
+    out = wp.vec3i(0, 0, 0)
+    for j in range(3):
+        out[j] = step_pixel(tri[j], -d[(j + 1) % 3], -d[(j + 2) % 3], t.height[j], t.width[j])
+    return out
+
+
+@wp.func
+def triple_distance(t: LevelTables, qproj: wp.array(dtype=appearance_vector), i: int,
+                    tri: wp.vec3i) -> int:
+    """Squared distance between a voxel's projected 3-neighbourhood and triple ``tri``'s."""
+    dist = int(0)
+    for j in range(3):
+        dist += appearance_distance(t, qproj, i, j, tri[j])
+    return dist
+
+
 @wp.kernel
 def correct(
     first: int,
@@ -457,7 +477,8 @@ def correct(
     """Correction (section 5.1): replace the triple by the best matching 3D candidate.
 
     Step 2 of the two-step search gathers the 3D candidates of the three best 2D pixels
-    and compares whole 3-neighbourhoods. Strict comparisons in a fixed loop order make
+    and compares whole 3-neighbourhoods; the in-plane neighbours' triples, shifted, compete
+    with them. Strict comparisons in a fixed loop order make
     the first best win, so ties resolve identically everywhere. Voxels not listed in
     ``active`` (the step's voxels, of its sub-pass only) keep the value ``dst`` holds.
     Triples are read from the halo blocks that the projection read.
@@ -485,4 +506,23 @@ def correct(
                 tri[k1] = q
                 tri[k2] = r
                 best = tri
+    # 3D coherence, beyond section 5.1: each neighbour in the three planes offers its own
+    # triple shifted to continue here, coherent with it in all three exemplars at once.
+    # These neighbours lie inside the 3-neighbourhood, so dependencies do not grow.
+    for k in range(3):
+        s1 = halo_strides(t.half)[(k + 1) % 3]
+        s2 = halo_strides(t.half)[(k + 2) % 3]
+        for n in range(9):
+            da = n // 3 - 1
+            db = n % 3 - 1
+            tri = halo_src[centre + da * s1 + db * s2]
+            if n != 4 and tri[0] >= 0:
+                d = wp.vec3i(0, 0, 0)
+                d[(k + 1) % 3] = da
+                d[(k + 2) % 3] = db
+                shifted = shifted_triple(tri, d, t)
+                dist = triple_distance(t, qproj, i, shifted)
+                if best_d < 0 or dist < best_d:
+                    best_d = dist
+                    best = shifted
     dst[i] = best

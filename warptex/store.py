@@ -39,7 +39,7 @@ from warptex.archive import ArchiveError, is_foreign, read_archive, write_archiv
 from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
-from warptex.synthesis import Synthesizer
+from warptex.synthesis import ENGINE_VERSION, Synthesizer
 
 FILTERS = ("nearest", "trilinear")
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
@@ -225,11 +225,12 @@ class BrickStore:
 
     def identity(self) -> str:
         """Digest of everything a stored voxel depends on: exemplars, candidate
-        parameters and algorithm version, seed, jitter and engine parameters."""
+        parameters and algorithm version, seed, jitter, engine version and parameters."""
         s = self.synthesizer
         key = {
             "format": FORMAT_VERSION,
             "candidates": CANDIDATE_FORMAT,
+            "engine": ENGINE_VERSION,
             "brick": _k.BRICK,
             "digests": list(s.candidates.digests),
             "params": s.candidates.params,

@@ -24,6 +24,9 @@ from warptex.device import init_warp
 from warptex.keysets import distinct_sorted, unique
 from warptex.parallel import launch_ranges
 
+# Raised whenever the engine gives any voxel another result from the same inputs, so that
+# brick stores written by an earlier engine are not reused. 2: shifted neighbour triples.
+ENGINE_VERSION = 2
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
