@@ -164,10 +164,14 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
     np.testing.assert_array_equal(sample(whole, p, filter), first)
 
 
-def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path):
+def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path,
+                                                          monkeypatch):
     ids = {BrickStore(synthesizer(candidates, **kw)).identity() for kw in
            ({}, {"seed": 1}, {"jitter": 0.5}, {"passes": 1}, {"levels": 1})}
     assert len(ids) == 5
+    with monkeypatch.context() as m:
+        m.setattr("warptex.store.ENGINE_VERSION", -1)
+        assert BrickStore(synthesizer(candidates)).identity() not in ids
     store = BrickStore(synthesizer(candidates))
     sample(store, [brick_center((0, 0, 0))])
     path = tmp_path / "s.wtb"
