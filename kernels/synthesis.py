@@ -477,11 +477,11 @@ def correct(
     """Correction (section 5.1): replace the triple by the best matching 3D candidate.
 
     Step 2 of the two-step search gathers the 3D candidates of the three best 2D pixels
-    and compares whole 3-neighbourhoods; the in-plane neighbours' triples, shifted, compete
-    with them. Strict comparisons in a fixed loop order make
-    the first best win, so ties resolve identically everywhere. Voxels not listed in
-    ``active`` (the step's voxels, of its sub-pass only) keep the value ``dst`` holds.
-    Triples are read from the halo blocks that the projection read.
+    and compares whole 3-neighbourhoods; the in-plane neighbours' triples, shifted,
+    compete with them. Strict comparisons in a fixed loop order make the first best win,
+    so ties resolve identically everywhere. Voxels not listed in ``active`` (the step's
+    voxels, of its sub-pass only) keep the value ``dst`` holds. Triples are read from the
+    halo blocks that the projection read.
     """
     i = active[first + wp.tid()]
     centre = halo_voxel_of(halo_of, i, t.half)
@@ -515,14 +515,17 @@ def correct(
         for n in range(9):
             da = n // 3 - 1
             db = n % 3 - 1
-            tri = halo_src[centre + da * s1 + db * s2]
-            if n != 4 and tri[0] >= 0:
-                d = wp.vec3i(0, 0, 0)
-                d[(k + 1) % 3] = da
-                d[(k + 2) % 3] = db
-                shifted = shifted_triple(tri, d, t)
-                dist = triple_distance(t, qproj, i, shifted)
-                if best_d < 0 or dist < best_d:
-                    best_d = dist
-                    best = shifted
+            # A face neighbour lies in two planes: the first offers it (a repeat never wins).
+            seen = n == 4 or (k == 1 and db == 0) or (k == 2 and (da == 0 or db == 0))
+            if not seen:
+                tri = halo_src[centre + da * s1 + db * s2]
+                if tri[0] >= 0:
+                    d = wp.vec3i(0, 0, 0)
+                    d[(k + 1) % 3] = da
+                    d[(k + 2) % 3] = db
+                    shifted = shifted_triple(tri, d, t)
+                    dist = triple_distance(t, qproj, i, shifted)
+                    if best_d < 0 or dist < best_d:
+                        best_d = dist
+                        best = shifted
     dst[i] = best

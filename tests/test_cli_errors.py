@@ -54,6 +54,13 @@ CASES = [
       "-o", "{out}/b.ply"], "not a warptex brick store file"),
     (["cut", "{mesh}", "--exemplar", "{exemplar}", "--normal", "nan", "1", "0",
       "-o", "{out}/c.ply"], "--normal"),
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--uv", "mesh", "-o", "{out}/c.glb"],
+     "caps have no UVs"),
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}"], "must end in .ply or .glb"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--store", "{out}/b.ply",
+      "-o", "{out}/b.ply"], "--store names an output mesh"),
+    (["slice", "{exemplar}", "--origin", "5e6", "0", "0", "-o", "{out}/s.png"],
+     "coordinate range"),
     (["compare", "{exemplar}", "--size", "4", "-o", "{out}/cmp"], "size must be at least 8"),
     (["compare", "{exemplar}", "--size", "12", "--methods", "lazy,kopf", "-o", "{out}/cmp"],
      "multiple of 8"),
@@ -95,7 +102,7 @@ def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatc
     assert not (tmp_path / "s.png").exists()
 
 
-def test_per_axis_exemplars_reach_every_texture_command(files, tmp_path, capsys):
+def test_per_axis_exemplars_reach_volume_and_slice(files, tmp_path, capsys):
     """--ey gives the y (and so z) axis its own exemplar in volume and slice alike."""
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar

@@ -196,7 +196,13 @@ def test_a_file_of_another_kind_is_refused_and_kept(candidates, tmp_path: Path):
     for path in (notes, tmp_path):
         with pytest.raises(StoreFileError, match="not a warptex brick store file"):
             BrickStore.load(path, synthesizer(candidates))
+        with pytest.raises(StoreFileError, match="not a warptex brick store file"):
+            BrickStore(synthesizer(candidates)).save(path)
     assert notes.read_text() == "not bricks"
+    empty = tmp_path / "made_by_mktemp"
+    empty.touch()
+    with pytest.warns(UserWarning, match="ignoring brick store file"):
+        BrickStore.load(empty, synthesizer(candidates))
 
 
 def test_a_loaded_store_evicts_in_the_saved_recency_order(candidates, tmp_path: Path):

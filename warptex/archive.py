@@ -51,17 +51,21 @@ def write_archive(path: str | Path, magic: bytes, version: int,
 
 
 def is_foreign(path: str | Path, magic: bytes) -> bool:
-    """Whether ``path`` holds something other than a ``magic`` archive: a file too short
-    for the magic string or starting otherwise, or a folder. Not a file at all is not
-    foreign."""
+    """Whether ``path`` holds something other than a ``magic`` archive, which writing one
+    there would destroy: a folder, a device or pipe, or a non-empty file that starts
+    otherwise. A missing path or an empty file is not foreign.
+
+    Raises:
+        OSError: the path cannot be looked up or read.
+    """
     path = Path(path)
-    if path.is_dir():
-        return True
-    try:
-        with open(path, "rb") as file:
-            return file.read(len(magic)) != magic
-    except FileNotFoundError:
+    if not path.exists():
         return False
+    if not path.is_file():
+        return True
+    with open(path, "rb") as file:
+        head = file.read(len(magic))
+    return len(head) > 0 and head != magic
 
 
 def read_archive(path: str | Path, magic: bytes, version: int, kind: str,

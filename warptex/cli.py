@@ -43,7 +43,11 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
         endings = " or ".join([", ".join(formats[:-1]), formats[-1]] if len(formats) > 1
                               else formats)
         raise CliError(f"{path}: {what} must end in {endings}")
-    if path.is_dir():
+    try:
+        folder = path.is_dir()
+    except OSError as error:
+        raise CliError(f"{path}: cannot look up ({error.strerror or error})") from None
+    if folder:
         raise CliError(f"{path}: is a folder, expected a file name")
     _check_writable_folder(path.parent, path)
     return suffix
@@ -52,8 +56,11 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
 def _check_writable_folder(folder: Path, target: Path) -> None:
     """Raise CliError unless ``folder`` is, or can be created as, a writable folder."""
     existing = folder.absolute()
-    while not existing.exists():
-        existing = existing.parent
+    try:
+        while not existing.exists():
+            existing = existing.parent
+    except OSError as error:
+        raise CliError(f"{target}: cannot look up {existing} ({error.strerror or error})") from None
     if not existing.is_dir():
         raise CliError(f"{target}: cannot write, {existing} is a file, not a folder")
     try:  # a trial file: permission bits do not tell for root or special file systems
@@ -293,12 +300,13 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     suffix = _check_output(args.output, _VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
     _check_at_least("--passes", args.passes, 0)
-    _check_memory(args.size)
-    if args.method == "kopf":
-        return _volume_kopf(args, suffix)
-    if args.mean_shift:
+    if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
-    cs = precompute(*_load_axis_exemplars(args, _load_exemplar(args)), progress=True)
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args))
+    _check_memory(args.size, exemplars[0].features.shape[2])
+    if args.method == "kopf":
+        return _volume_kopf(args, suffix, exemplars)
+    cs = precompute(*exemplars, progress=True)
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
     except ValueError as error:
@@ -317,11 +325,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     return 0
 
 
-def _volume_kopf(args: argparse.Namespace, suffix: str) -> int:
+def _volume_kopf(args: argparse.Namespace, suffix: str, exemplars: list[Exemplar]) -> int:
     from warptex.baselines.kopf import synthesize
 
     try:
-        exemplars = _load_axis_exemplars(args, _load_exemplar(args))
         volume = synthesize(None, exemplars=exemplars, size=args.size, seed=args.seed,
                             mean_shift=args.mean_shift)
     except ValueError as error:
@@ -334,14 +341,14 @@ def _volume_kopf(args: argparse.Namespace, suffix: str) -> int:
     return 0
 
 
-def _check_memory(size: int) -> None:
-    """Refuse a cube whose colors alone (4 float32 channels at most, held twice while the
-    slabs are joined) would not fit in this machine's memory."""
+def _check_memory(size: int, channels: int) -> None:
+    """Refuse a cube whose float32 ``channels`` alone (held twice while the slabs are
+    joined) would not fit in this machine's memory."""
     try:
         memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return
-    need = 2 * 4 * 4 * size**3
+    need = 2 * 4 * channels * size**3
     if need > memory:
         raise CliError(f"--size {size}: a {size}^3 volume needs about {need / 2**30:.0f} GiB, "
                        f"this machine has {memory / 2**30:.0f} GiB; use a smaller --size, or "
@@ -468,6 +475,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         raise CliError(f"--shape must be positive, got {h} {w}")
     for name in ("origin", "u", "v"):
         _check_finite(f"--{name}", getattr(args, name))
+    _check_plane_within_limit(args.origin, args.u, args.v, (h, w))
     tex = _solid_texture(args)
     start = time.perf_counter()
     image = tex.query(plane_points(args.origin, args.u, args.v, (h, w)), filter=args.filter)
@@ -480,6 +488,19 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         _write_atomically(args.output, lambda path: writer(path, image))
     print(f"slice: {h} x {w} pixels in {elapsed:.2f} s; written: {args.output}")
     return 0
+
+
+def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],
+                              shape: tuple[int, int]) -> None:
+    from warptex.synthesis import COORD_LIMIT
+
+    h, w = shape
+    corners = [np.asarray(origin) + r * np.asarray(u) + c * np.asarray(v)
+               for r in (0, h - 1) for c in (0, w - 1)]
+    # Trilinear filtering reads one voxel beyond a point.
+    if np.abs(corners).max() >= COORD_LIMIT - 2:
+        raise CliError(f"the plane reaches beyond the texture's coordinate range "
+                       f"(+-{COORD_LIMIT - 2} voxels): check --origin, --u, --v and --shape")
 
 
 def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
@@ -500,26 +521,36 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
     _add_texture_arguments(parser, "--exemplar")
 
 
-def _check_mesh_arguments(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
-    """Everything about a bake or cut that can be wrong, checked before the work."""
+def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -> list[Path]:
+    """Everything about a bake or cut that can be wrong, checked before the work; returns
+    the mesh files to write (a cut's second half gets the suffix _b)."""
     from warptex.bake import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS
+    from warptex.synthesis import COORD_LIMIT
 
     _check_at_least("--resolution", args.resolution, 1)
+    if args.resolution > COORD_LIMIT // 2:
+        raise CliError(f"--resolution must be at most {COORD_LIMIT // 2}, got {args.resolution}")
     _check_at_least("--texture-size", args.texture_size, 1)
     if args.uv == "none":
         formats, what = VERTEX_COLOR_FORMATS, "a mesh with vertex colors (--uv none)"
     else:
         formats, what = UV_TEXTURE_FORMATS, f"a mesh with a UV texture (--uv {args.uv})"
-    for output in outputs:
-        _check_output(output, formats, what)
+    _check_output(args.output, formats, what)
+    outputs = [args.output]
+    if second_half:
+        outputs.append(args.output.with_stem(args.output.stem + "_b"))
+        _check_output(outputs[1], formats, what)
     if args.store is not None:
         from warptex.store import StoreFileError, check_store_path
 
         _check_output(args.store)
+        if any(args.store.resolve() == o.resolve() for o in outputs):
+            raise CliError(f"{args.store}: --store names an output mesh; choose another file")
         try:
             check_store_path(args.store)
         except StoreFileError as error:
             raise CliError(str(error)) from None
+    return outputs
 
 
 def _load_mesh(path: Path, uv: str = "none"):
@@ -597,7 +628,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
 
     from warptex.surface import block_transform, shell
 
-    _check_mesh_arguments(args, [args.output])
+    _check_mesh_arguments(args)
     mesh = _load_mesh(args.mesh, args.uv)
     tex = _solid_texture(args)
     start = time.perf_counter()
@@ -640,8 +671,9 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     from warptex.cut import cut
     from warptex.surface import block_transform
 
-    outputs = [args.output, args.output.with_stem(args.output.stem + "_b")]
-    _check_mesh_arguments(args, outputs)
+    if args.uv == "mesh":
+        raise CliError("--uv mesh: a cut's caps have no UVs; use --uv auto or none")
+    outputs = _check_mesh_arguments(args, second_half=True)
     _check_finite("--normal", args.normal)
     if args.origin is not None:
         _check_finite("--origin", args.origin)

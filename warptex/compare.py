@@ -228,11 +228,12 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
             seed: int = 0, progress: bool = True) -> list[MethodResult]:
     """Score every method on one exemplar, each in a fresh process."""
     unknown = [m for m in methods if m not in _RUN]
-    if unknown or not methods:
+    if unknown:
         raise ValueError(
             f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}"
-            if unknown else f"no method given; choose from {', '.join(METHODS)}"
         )
+    if not methods:
+        raise ValueError(f"no method given; choose from {', '.join(METHODS)}")
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
                          f"of slices every 2 voxels), got {size}")

@@ -166,7 +166,11 @@ class _SharedLock:
 def check_store_path(path: str | Path) -> None:
     """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
     saving a store there would destroy; a missing file or any brick store file is fine."""
-    if is_foreign(path, _MAGIC):
+    try:
+        foreign = is_foreign(path, _MAGIC)
+    except OSError as e:
+        raise StoreFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    if foreign:
         raise StoreFileError(f"{path}: exists and is not a warptex brick store file; "
                              "it would be overwritten, choose another store path")
 
@@ -331,8 +335,10 @@ class BrickStore:
 
     def save(self, path: str | Path) -> None:
         """Write the bricks to a versioned, checksummed file atomically (temporary name,
-        then rename), least recently used first."""
+        then rename), least recently used first; a file of another kind at ``path`` is
+        refused (StoreFileError), not replaced."""
         path = Path(path)
+        check_store_path(path)
         with self._lock.shared():
             live = np.flatnonzero(self._keys != _EMPTY)
             live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
