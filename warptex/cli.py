@@ -585,9 +585,7 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
             bar.set_postfix_str("unwrapping (xatlas)")
             mesh = mesh.unwrap()
         bar.update()
-        uv = getattr(mesh.visual, "uv", None)
-        if uv is None:
-            raise CliError(f"{args.mesh}: the mesh has no UVs; use --uv auto to make them")
+        uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut refuses it (no UVs on caps)
         bar.set_postfix_str(f"baking {args.texture_size}^2 texels")
         image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
         bar.update()
@@ -677,7 +675,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     _check_finite("--normal", args.normal)
     if args.origin is not None:
         _check_finite("--origin", args.origin)
-    mesh = _load_mesh(args.mesh, args.uv)
+    mesh = _load_mesh(args.mesh)
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:
         halves = cut(mesh, origin, np.asarray(args.normal))
