@@ -6,6 +6,7 @@ then the time of 256^2 planar cuts through the interior, cold and again through 
 warm coarse-level cache (bricks dropped, so the finest level is synthesized again).
 
     python benchmarks/bench_surface.py [--resolution 1024] [--mesh PATH] [--exemplar PATH]
+                                       [--passes 2]
 """
 
 from __future__ import annotations
@@ -32,11 +33,13 @@ def main() -> None:
     parser.add_argument("--mesh", type=Path, default=SHARED / "meshes" / "stanford_bunny.ply")
     parser.add_argument("--exemplar", type=Path,
                         default=SHARED / "exemplars" / "marble_black_64.png")
+    parser.add_argument("--passes", type=int, default=2,
+                        help="correction passes per pyramid level (default 2)")
     args = parser.parse_args()
     res = args.resolution
     mesh = trimesh.load(args.mesh, force="mesh")
     tex = SolidTexture(Exemplar.load(args.exemplar), seed=1, cache_bytes=8 << 30,
-                       whole_bricks=False)  # as `warptex bake` does
+                       whole_bricks=False, passes=args.passes)  # as `warptex bake` does
     tex.query(np.full((1, 3), -1000.0))  # compile kernels outside the timings
     warm = {lv: n for lv, n in tex.synthesizer.voxels_synthesized.items()}
 
@@ -49,7 +52,8 @@ def main() -> None:
     done = {lv: n - warm[lv] for lv, n in stats["voxels_synthesized"].items()}
     finest = tex.synthesizer.finest
     full_bytes = res**3 * stats["bytes_per_voxel"]
-    print(f"mesh {args.mesh.name}, block {res}^3, exemplar {args.exemplar.name}")
+    print(f"mesh {args.mesh.name}, block {res}^3, exemplar {args.exemplar.name}, "
+          f"{args.passes} correction passes per level")
     print(f"surface shell: {len(voxels)} voxels ({100 * len(voxels) / res**3:.3f}% of the "
           f"block), found in {shell_seconds:.2f} s")
     print("voxels corrected per level (finest last): "

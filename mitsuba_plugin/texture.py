@@ -8,7 +8,10 @@ Properties (XML or ``mi.load_dict``):
 ``exemplar_x``  string     optional exemplars of the three axes (Dong 2008, section 4);
 ``_y``, ``_z``             each defaults to ``exemplar``
 ``seed``        integer    synthesis seed (default 0)
-``jitter``      float      coarse-level jitter of the synthesis (default 1.0)
+``jitter``      float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
+``passes``      integer    correction passes per pyramid level (default 2; 3 come closer
+                           to the exemplar at about twice the synthesis time, see
+                           ``docs/comparisons``)
 ``scale``       float      voxels per scene unit (default 64)
 ``to_world``    transform  places the block of matter (default identity)
 ``space``       string     ``world`` (default) or ``object``, see below
@@ -50,6 +53,7 @@ import mitsuba_plugin
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
 from warptex.store import StoreFileError
+from warptex.synthesis import MAX_JITTER
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
@@ -139,6 +143,11 @@ class LazySolidTexture(mi.Texture):
         self.exemplars = exemplar_paths(props)
         self.seed = get_property(props, "seed", int, 0)
         self.jitter = get_property(props, "jitter", float, 1.0)
+        if not 0.0 <= self.jitter <= MAX_JITTER:
+            raise fail(PLUGIN, "jitter", f"must be within [0, {MAX_JITTER:g}], got {self.jitter}")
+        self.passes = get_property(props, "passes", int, 2)
+        if self.passes < 0:
+            raise fail(PLUGIN, "passes", f"must not be negative, got {self.passes}")
         self.scale = get_property(props, "scale", float, DEFAULT_SCALE)
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise fail(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
@@ -158,7 +167,8 @@ class LazySolidTexture(mi.Texture):
             raise fail(PLUGIN, "exemplar", f"cannot be used: {e}") from e
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
-                                      cache_bytes=cache_bytes, store=self.cache)
+                                      passes=self.passes, cache_bytes=cache_bytes,
+                                      store=self.cache)
         except StoreFileError as e:
             raise fail(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = exemplar_colors(candidates)
@@ -200,8 +210,8 @@ class LazySolidTexture(mi.Texture):
     def to_string(self) -> str:
         names = ", ".join(f'"{p}"' for p in dict.fromkeys(self.exemplars))
         return (f"LazySolidTexture[exemplars=[{names}], seed={self.seed}, "
-                f"jitter={self.jitter}, scale={self.scale}, space={self.space}, "
-                f"filter={self.filter}, cache={self.cache}]")
+                f"jitter={self.jitter}, passes={self.passes}, scale={self.scale}, "
+                f"space={self.space}, filter={self.filter}, cache={self.cache}]")
 
     # -- queries ----------------------------------------------------------------------
 

@@ -40,6 +40,12 @@ CASES = [
     (["volume", "{exemplar}", "-o", "{out}"], "must end in .npy, .exr or .vol"),
     (["slice", "{exemplar}", "--origin", "nan", "0", "0", "-o", "{out}/s.png"], "--origin"),
     (["slice", "{exemplar}", "-o", "{out}/s.jpg"], "must end in .png, .exr or .npy"),
+    (["slice", "{exemplar}", "--jitter", "65", "-o", "{out}/s.png"],
+     "--jitter must be within [0, 64], got 65.0"),
+    (["slice", "{exemplar}", "--passes", "-2", "-o", "{out}/s.png"], "--passes must be"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--jitter", "-1", "-o", "{out}/b.ply"],
+     "--jitter must be within"),
+    (["compare", "{exemplar}", "--passes", "-1", "-o", "{out}/cmp"], "--passes must be"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "0", "-o", "{out}/b.ply"],
      "--resolution must be at least 1"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "0", "--uv", "auto",
@@ -102,22 +108,23 @@ def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatc
     assert not (tmp_path / "s.png").exists()
 
 
-def test_per_axis_exemplars_reach_volume_and_slice(files, tmp_path, capsys):
-    """--ey gives the y (and so z) axis its own exemplar in volume and slice alike."""
+def test_texture_settings_reach_volume_and_slice(files, tmp_path, capsys):
+    """--ey gives the y (and so z) axis its own exemplar, and --passes the engine its
+    passes, in volume and slice alike."""
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar
     from warptex.synthesis import Synthesizer
 
     ex, ey = Exemplar.load(files["exemplar"]), Exemplar.load(files["other"])
-    expected = Synthesizer(precompute(ex, ey, ey)).box((0, 0, 0), (8, 8, 8))
-    same = Synthesizer(precompute(ex)).box((0, 0, 0), (8, 8, 8))
-    assert not np.array_equal(expected, same)
+    expected = Synthesizer(precompute(ex, ey, ey), passes=1).box((0, 0, 0), (8, 8, 8))
+    for other in (Synthesizer(precompute(ex), passes=1), Synthesizer(precompute(ex, ey, ey))):
+        assert not np.array_equal(expected, other.box((0, 0, 0), (8, 8, 8)))
     volume = tmp_path / "v.npy"
     assert main(["volume", str(files["exemplar"]), "--ey", str(files["other"]), "--size", "8",
-                 "-o", str(volume)]) == 0
+                 "--passes", "1", "-o", str(volume)]) == 0
     np.testing.assert_array_equal(np.load(volume), expected)
     plane = tmp_path / "s.npy"
     assert main(["slice", str(files["exemplar"]), "--ey", str(files["other"]), "--filter",
                  "nearest", "--shape", "8", "8", "--origin", "0.5", "0.5", "2.5",
-                 "-o", str(plane)]) == 0
+                 "--passes", "1", "-o", str(plane)]) == 0
     np.testing.assert_array_equal(np.load(plane), expected[:, :, 2])

@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from warptex.cli import main
 from warptex.compare import histogram_distance, repetition_score
@@ -42,6 +43,28 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     assert "| lazy |" in (out / "table.md").read_text()
     assert main(["compare", str(data_dir / "granite_64.png"), "--methods", "bogus",
                  "-o", str(out)]) == 2
+
+
+def test_compare_runs_lazy_synthesis_with_the_passes_asked_for(tmp_path, data_dir,
+                                                              warp_device):
+    from warptex import metrics
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    out = tmp_path / "cmp"
+    path = data_dir / "granite_64.png"
+    assert main(["compare", str(path), "--size", "16", "--methods", "lazy", "--seed", "3",
+                 "--passes", "1", "-o", str(out)]) == 0
+    (row,) = json.loads((out / "table.json").read_text())["methods"]
+    ex = Exemplar.load(path)
+    one = Synthesizer(precompute(ex), seed=3, passes=1).box((0, 0, 0), (16, 16, 16))
+    assert not np.array_equal(one, Synthesizer(precompute(ex), seed=3).box((0, 0, 0),
+                                                                             (16, 16, 16)))
+    expected = [metrics.neighborhood_energy(one, ex.colors, a) for a in range(3)]
+    assert row["energy"] == pytest.approx(expected, rel=1e-6)
+    assert row["notes"] == "correction passes per level: 1"
+    assert "correction passes per level: 1 |" in (out / "table.md").read_text()
 
 
 def test_compare_runs_both_kopf_variants(tmp_path, data_dir, warp_device):

@@ -37,6 +37,9 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"scale": -2.0}, "scale"),
     ({"seed": "one"}, "seed"),
     ({"cache_bytes": -1}, "cache_bytes"),
+    ({"jitter": 80.0}, "jitter"),
+    ({"passes": -1}, "passes"),
+    ({"passes": 2.5}, "passes"),
     ({"exemplar": "no/such/file.png"}, "exemplar"),
     ({"exemplar_y": "missing.png"}, "exemplar_y"),
 ])
@@ -44,6 +47,21 @@ def test_property_errors_name_the_property(granite_32_file, props, name):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}"'):
         load(granite_32_file, **props)
+
+
+def test_passes_reach_the_synthesis(granite_32_file):
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    use("scalar_rgb")
+    tex = load(granite_32_file, passes=1, seed=2)
+    assert tex.solid.synthesizer.passes == 1 and "passes=1" in tex.to_string()
+    ijk = np.array([[3, 5, 7], [-4, 0, 9]])
+    cs = precompute(Exemplar.load(granite_32_file))
+    one = Synthesizer(cs, seed=2, passes=1).voxels(ijk)
+    np.testing.assert_array_equal(tex.solid.query(ijk + 0.5, filter="nearest"), one)
+    assert not np.array_equal(one, Synthesizer(cs, seed=2).voxels(ijk))
 
 
 def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp_path):

@@ -27,6 +27,7 @@ from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
+_LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 LARGE = 256  # edge of the slice the repetition score looks at
 MIN_SIZE = 8
 
@@ -47,54 +48,58 @@ class MethodResult:
     render: np.ndarray | None = field(default=None, repr=False)
 
 
-def _lazy(ex: Exemplar, size: int, seed: int) -> np.ndarray:
+# Every method takes the seed and the lazy engine's correction passes; those that do not
+# synthesize lazily ignore the passes.
+def _lazy(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    return Synthesizer(precompute(ex), seed=seed).box((0, 0, 0), (size, size, size))
+    synth = Synthesizer(precompute(ex), seed=seed, passes=passes)
+    return synth.box((0, 0, 0), (size, size, size))
 
 
-def _lazy_large(ex: Exemplar, volume: np.ndarray, seed: int) -> np.ndarray:
+def _lazy_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    synth = Synthesizer(precompute(ex), seed=seed)
+    synth = Synthesizer(precompute(ex), seed=seed, passes=passes)
     return synth.box((0, 0, volume.shape[2] // 2), (LARGE, LARGE, 1))[:, :, 0]
 
 
-def _kopf(ex: Exemplar, size: int, seed: int, mean_shift: bool = False) -> np.ndarray:
+def _kopf(ex: Exemplar, size: int, seed: int, passes: int,
+          mean_shift: bool = False) -> np.ndarray:
     from warptex.baselines.kopf import synthesize
 
     return synthesize(ex, size=size, seed=seed, progress=False, mean_shift=mean_shift)
 
 
-def _tiled(ex: Exemplar, size: int, seed: int) -> np.ndarray:
+def _tiled(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
     # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
     # difference to `lazy` is the repetition alone.
     period = min(size, 64)
-    block = _lazy(ex, period, seed)
+    block = _lazy(ex, period, seed, passes)
     reps = -(-size // period)
     return np.tile(block, (reps, reps, reps, 1))[:size, :size, :size]
 
 
-def _extrude(ex: Exemplar, size: int, seed: int) -> np.ndarray:
+def _extrude(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
     return metrics.extrusion(_tile_slice(ex.colors, size), size, axis=2)
 
 
-def _noise(ex: Exemplar, size: int, seed: int) -> np.ndarray:
+def _noise(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
     return metrics.iid_noise(ex.colors, (size, size, size), seed)
 
 
-def _periodic_large(ex: Exemplar, volume: np.ndarray, seed: int) -> np.ndarray:
+def _periodic_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
     """A periodic volume's z-slice repeated over the large slice."""
     return _tile_slice(volume[:, :, volume.shape[2] // 2])
 
 
-def _noise_large(ex: Exemplar, volume: np.ndarray, seed: int) -> np.ndarray:
+def _noise_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
     return metrics.iid_noise(ex.colors, (LARGE, LARGE, 1), seed + 1)[:, :, 0]
 
 
-def _extrude_large(ex: Exemplar, volume: np.ndarray, seed: int) -> np.ndarray:
+def _extrude_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
     return _tile_slice(ex.colors)
 
 
@@ -186,30 +191,31 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
     return np.clip(image, 0.0, None) ** (1 / 2.2)  # display gamma for the sheet
 
 
-def _cube_texture(method: str, exemplar_path: str, volume: np.ndarray, seed: int) -> dict:
+def _cube_texture(method: str, exemplar_path: str, volume: np.ndarray, seed: int,
+                  passes: int) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
     own grid texture of their volume (both trilinear, one voxel = 1/size of the cube)."""
     size = volume.shape[0]
     if method == "lazy":
         return {"type": "lazy_solid", "exemplar": str(Path(exemplar_path).resolve()),
-                "seed": seed, "scale": float(size)}
+                "seed": seed, "passes": passes, "scale": float(size)}
     data = _mitsuba().TensorXf(np.ascontiguousarray(volume[..., :3].transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
 
 
-def _measure(method: str, exemplar_path: str, size: int, seed: int) -> dict:
+def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int) -> dict:
     """Run one method in this (fresh) process: volume, scores, time and peak memory."""
     ex = Exemplar.load(exemplar_path)
     make_volume, make_large = _RUN[method]
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
-    make_volume(ex, 8, seed)
+    make_volume(ex, 8, seed, passes)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     start = time.perf_counter()
-    volume = make_volume(ex, size, seed)
+    volume = make_volume(ex, size, seed, passes)
     seconds = time.perf_counter() - start
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    large = make_large(ex, volume, seed)
+    large = make_large(ex, volume, seed, passes)
     colors = ex.colors
     return {
         "method": method,
@@ -220,13 +226,15 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int) -> dict:
         "seconds": seconds,
         "peak_mib": max(peak - base, 0) / 1024.0,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
-        "render": render_cube(_cube_texture(method, exemplar_path, volume, seed)),
+        "render": render_cube(_cube_texture(method, exemplar_path, volume, seed, passes)),
+        "notes": f"correction passes per level: {passes}" if method in _LAZY else "",
     }
 
 
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
-            seed: int = 0, progress: bool = True) -> list[MethodResult]:
-    """Score every method on one exemplar, each in a fresh process."""
+            seed: int = 0, progress: bool = True, passes: int = 2) -> list[MethodResult]:
+    """Score every method on one exemplar, each in a fresh process; ``passes`` are the
+    lazy engine's correction passes per level (``lazy`` and ``tiled``)."""
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -234,6 +242,8 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
         )
     if not methods:
         raise ValueError(f"no method given; choose from {', '.join(METHODS)}")
+    if passes < 0:
+        raise ValueError(f"passes must not be negative, got {passes}")
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
                          f"of slices every 2 voxels), got {size}")
@@ -245,7 +255,8 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     ctx = multiprocessing.get_context("spawn")
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-            out = pool.submit(_measure, method, str(exemplar_path), size, seed).result()
+            out = pool.submit(_measure, method, str(exemplar_path), size, seed,
+                              passes).result()
         results.append(MethodResult(**out))
     return results
 
@@ -253,15 +264,15 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
 def table_markdown(results: Sequence[MethodResult]) -> str:
     lines = [
         "| method | energy x / y / z | SWD x / y / z | histogram x / y / z | repetition | "
-        "seconds | peak MiB |",
-        "|---|---|---|---|---|---|---|",
+        "seconds | peak MiB | notes |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         def trio(v: list[float]) -> str:
             return " / ".join(f"{x:.3f}" for x in v)
 
         lines.append(f"| {r.method} | {trio(r.energy)} | {trio(r.swd)} | {trio(r.histogram)} | "
-                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.0f} |")
+                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.0f} | {r.notes} |")
     return "\n".join(lines) + "\n"
 
 

@@ -32,6 +32,7 @@ _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
 COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
+MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
@@ -249,8 +250,8 @@ class Synthesizer:
     ) -> None:
         if subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
-        if not 0.0 <= jitter <= 64.0:
-            raise ValueError(f"jitter must be within [0, 64], got {jitter}")
+        if not 0.0 <= jitter <= MAX_JITTER:
+            raise ValueError(f"jitter must be within [0, {MAX_JITTER:g}], got {jitter}")
         if passes < 0 or levels < 0:
             raise ValueError("passes and levels must not be negative")
         init_warp()
