@@ -176,8 +176,18 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     sample(store, [brick_center((0, 0, 0))])
     path = tmp_path / "s.wtb"
     store.save(path)
-    with pytest.warns(UserWarning, match="another texture"):
+    with pytest.warns(UserWarning, match=r"another texture \(jitter 1.0 in the file, 0.5 here\)"):
         assert BrickStore.load(path, synthesizer(candidates, jitter=0.5)).stats()["bricks"] == 0
+    with pytest.warns(UserWarning, match=r"\(passes 2 in the file, 3 here, seed 0 in the file"):
+        BrickStore.load(path, synthesizer(candidates, passes=3, seed=4))
+    with monkeypatch.context() as m:
+        m.setattr("warptex.store.ENGINE_VERSION", -1)
+        with pytest.warns(UserWarning, match=r"\(engine version \d+ in the file, -1 here\)"):
+            BrickStore.load(path, synthesizer(candidates))
+    with monkeypatch.context() as m:
+        m.setattr(candidates, "digests", tuple("other" for _ in candidates.digests))
+        with pytest.warns(UserWarning, match=r"another texture \(exemplars\)"):
+            BrickStore.load(path, synthesizer(candidates))
     data = bytearray(path.read_bytes())
     data[8] += 1  # format version
     path.write_bytes(bytes(data))

@@ -163,6 +163,25 @@ class _SharedLock:
                 self._cond.notify_all()
 
 
+_SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
+                  "candidates": "candidate format", "engine": "engine version",
+                  "format": "file format", "brick": "brick size",
+                  "levels": "synthesized levels"}
+
+
+def _differences(stored: dict, current: dict) -> str:
+    """The settings in which a store file's texture differs from this one, in words."""
+    out = []
+    for name in sorted(set(stored) | set(current)):
+        there, here = stored.get(name), current.get(name)
+        if there != here:
+            words = _SETTING_NAMES.get(name, name)
+            if isinstance(here, int | float | str) and isinstance(there, int | float | str):
+                words += f" {there} in the file, {here} here"
+            out.append(words)
+    return ", ".join(out) or "equal settings with another identity digest"
+
+
 def check_store_path(path: str | Path) -> None:
     """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
     saving a store there would destroy; a missing file or any brick store file is fine."""
@@ -230,8 +249,13 @@ class BrickStore:
     def identity(self) -> str:
         """Digest of everything a stored voxel depends on: exemplars, candidate
         parameters and algorithm version, seed, jitter, engine version and parameters."""
+        return hashlib.sha256(json.dumps(self._settings(), sort_keys=True).encode()).hexdigest()
+
+    def _settings(self) -> dict:
+        """What :meth:`identity` digests; also stored in plain words, so that a file of
+        another texture can be told apart by the settings that differ."""
         s = self.synthesizer
-        key = {
+        return {
             "format": FORMAT_VERSION,
             "candidates": CANDIDATE_FORMAT,
             "engine": ENGINE_VERSION,
@@ -244,7 +268,6 @@ class BrickStore:
             "passes": s.passes,
             "subpasses": s.subpasses,
         }
-        return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
 
     def sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
         """Colors of float64 ``points`` (N, 3) into ``out`` (N, C) float32."""
@@ -345,7 +368,9 @@ class BrickStore:
             arrays = {"keys": self._keys[live], "triples": self._payload[self._ranges(live)],
                       "valid": self._valid[live]}
         write_archive(path, _MAGIC, FORMAT_VERSION,
-                      {"identity": np.array(self.identity()), **arrays})
+                      {"identity": np.array(self.identity()),
+                       "settings": np.array(json.dumps(self._settings(), sort_keys=True)),
+                       **arrays})
 
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,
@@ -664,8 +689,11 @@ class BrickStore:
         except KeyError as e:
             raise StoreFileError(f"{path}: unreadable brick store data ({e})") from None
         if identity != self.identity():
-            raise StoreFileError(f"{path}: written for another texture (other exemplars, "
-                                 "seed, jitter or synthesis parameters)")
+            differences = "other exemplars, seed, jitter or synthesis parameters"
+            if "settings" in z:  # files written before the settings were kept lack them
+                current = json.loads(json.dumps(self._settings(), sort_keys=True))
+                differences = _differences(json.loads(str(z["settings"])), current)
+            raise StoreFileError(f"{path}: written for another texture ({differences})")
         if valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS):
             raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")
         if triples.dtype != self._dtype or triples.shape != (int(np.bitwise_count(valid).sum()), 3):
