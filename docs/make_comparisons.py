@@ -1,5 +1,8 @@
 """Regenerate docs/comparisons/: `warptex compare` on every exemplar at 64^3, and an index.
 
+The index also reports lazy synthesis with 3 correction passes per level: a second
+`compare` of the lazy method alone, whose sheet is not kept.
+
     python docs/make_comparisons.py [--exemplars DIR] [--size 64]
 """
 

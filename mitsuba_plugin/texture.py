@@ -9,8 +9,8 @@ Properties (XML or ``mi.load_dict``):
 ``_y``, ``_z``             each defaults to ``exemplar``
 ``seed``        integer    synthesis seed (default 0)
 ``jitter``      float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
-``passes``      integer    correction passes per pyramid level (default 2; 3 come closer
-                           to the exemplar at about twice the synthesis time, see
+``passes``      integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
+                           closer to the exemplar at 1.5-2x the synthesis time, see
                            ``docs/comparisons``)
 ``scale``       float      voxels per scene unit (default 64)
 ``to_world``    transform  places the block of matter (default identity)
@@ -53,7 +53,7 @@ import mitsuba_plugin
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
 from warptex.store import StoreFileError
-from warptex.synthesis import MAX_JITTER
+from warptex.synthesis import SettingError, check_settings
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
@@ -143,11 +143,11 @@ class LazySolidTexture(mi.Texture):
         self.exemplars = exemplar_paths(props)
         self.seed = get_property(props, "seed", int, 0)
         self.jitter = get_property(props, "jitter", float, 1.0)
-        if not 0.0 <= self.jitter <= MAX_JITTER:
-            raise fail(PLUGIN, "jitter", f"must be within [0, {MAX_JITTER:g}], got {self.jitter}")
         self.passes = get_property(props, "passes", int, 2)
-        if self.passes < 0:
-            raise fail(PLUGIN, "passes", f"must not be negative, got {self.passes}")
+        try:
+            check_settings(self.jitter, self.passes)
+        except SettingError as e:
+            raise fail(PLUGIN, e.name, e.problem) from None
         self.scale = get_property(props, "scale", float, DEFAULT_SCALE)
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise fail(PLUGIN, "scale", f"must be a positive number, got {self.scale}")

@@ -67,6 +67,20 @@ def test_compare_runs_lazy_synthesis_with_the_passes_asked_for(tmp_path, data_di
     assert "correction passes per level: 1 |" in (out / "table.md").read_text()
 
 
+def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
+    from warptex.compare import _cube_texture, _tiled, compare
+    from warptex.exemplar import Exemplar
+
+    path = data_dir / "granite_64.png"
+    volume = np.zeros((8, 8, 8, 3), np.float32)
+    assert _cube_texture("lazy", str(path), volume, 0, 1)["passes"] == 1
+    ex = Exemplar.load(path)
+    one, two = (_tiled(ex, 8, 0, passes) for passes in (1, 2))
+    assert not np.array_equal(one, two)
+    with pytest.raises(ValueError, match="passes must be within"):
+        compare(path, 16, ["lazy"], passes=9, progress=False)
+
+
 def test_compare_runs_both_kopf_variants(tmp_path, data_dir, warp_device):
     out = tmp_path / "cmp"
     assert main(["compare", str(data_dir / "granite_64.png"), "--size", "16",

@@ -40,6 +40,7 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"jitter": 80.0}, "jitter"),
     ({"passes": -1}, "passes"),
     ({"passes": 2.5}, "passes"),
+    ({"passes": 9}, "passes"),
     ({"exemplar": "no/such/file.png"}, "exemplar"),
     ({"exemplar_y": "missing.png"}, "exemplar_y"),
 ])

@@ -178,7 +178,8 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     store.save(path)
     with pytest.warns(UserWarning, match=r"another texture \(jitter 1.0 in the file, 0.5 here\)"):
         assert BrickStore.load(path, synthesizer(candidates, jitter=0.5)).stats()["bricks"] == 0
-    with pytest.warns(UserWarning, match=r"\(passes 2 in the file, 3 here, seed 0 in the file"):
+    both = r"\(correction passes 2 in the file, 3 here, seed 0 in the file, 4 here\)"
+    with pytest.warns(UserWarning, match=both):
         BrickStore.load(path, synthesizer(candidates, passes=3, seed=4))
     with monkeypatch.context() as m:
         m.setattr("warptex.store.ENGINE_VERSION", -1)

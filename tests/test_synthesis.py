@@ -210,6 +210,11 @@ def test_bad_requests_are_clear(candidates):
         Synthesizer(candidates, subpasses=4)
     with pytest.raises(ValueError, match="jitter"):
         Synthesizer(candidates, jitter=-1.0)
+    for passes in (-1, 9):
+        with pytest.raises(ValueError, match=r"passes must be within \[0, 8\]"):
+            Synthesizer(candidates, passes=passes)
+    with pytest.raises(ValueError, match="levels must not be negative"):
+        Synthesizer(candidates, levels=-1)
     wide = dataclasses.replace(candidates, params={**candidates.params, "neighborhood": 11})
     with pytest.raises(ValueError, match="neighbourhoods of more than 9 voxels"):
         Synthesizer(wide)

@@ -251,6 +251,8 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 
 
 _VOLUME_FORMATS = (".npy", ".exr", ".vol")
+_DEFAULT_JITTER = 1.0  # the paper's settings, Synthesizer's defaults
+_DEFAULT_PASSES = 2
 _SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
 
 
@@ -293,9 +295,11 @@ def _cmd_volume(args: argparse.Namespace) -> int:
 
     suffix = _check_output(args.output, _VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
-    _check_synthesis_arguments(args)
+    _check_synthesis_arguments(args.jitter, args.passes)
     if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
+    if args.method == "kopf" and (args.passes, args.jitter) != (_DEFAULT_PASSES, _DEFAULT_JITTER):
+        raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args))
     _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
@@ -417,20 +421,22 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     voxels."""
     _add_axis_exemplar_arguments(parser, first)
     parser.add_argument("--seed", type=int, default=0, help="texture variation (default 0)")
-    parser.add_argument("--jitter", type=float, default=1.0,
+    parser.add_argument("--jitter", type=float, default=_DEFAULT_JITTER,
                         help="strength of the random warp that varies the tiling, 0 to 64 "
                         "(default 1)")
-    parser.add_argument("--passes", type=int, default=2,
-                        help="correction passes per pyramid level (default 2); 3 come closer "
-                        "to the exemplar at about twice the time (docs/comparisons)")
+    parser.add_argument("--passes", type=int, default=_DEFAULT_PASSES,
+                        help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
+                        "closer to the exemplar at 1.5-2x the time (docs/comparisons)")
 
 
-def _check_synthesis_arguments(args: argparse.Namespace) -> None:
-    from warptex.synthesis import MAX_JITTER
+def _check_synthesis_arguments(jitter: float = _DEFAULT_JITTER,
+                               passes: int = _DEFAULT_PASSES) -> None:
+    from warptex.synthesis import SettingError, check_settings
 
-    _check_at_least("--passes", args.passes, 0)
-    if not 0.0 <= args.jitter <= MAX_JITTER:
-        raise CliError(f"--jitter must be within [0, {MAX_JITTER:g}], got {args.jitter}")
+    try:
+        check_settings(jitter, passes)
+    except SettingError as error:
+        raise CliError(f"--{error.name} {error.problem}") from None
 
 
 def _solid_texture(args: argparse.Namespace):
@@ -483,7 +489,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     for name in ("origin", "u", "v"):
         _check_finite(f"--{name}", getattr(args, name))
     _check_plane_within_limit(args.origin, args.u, args.v, (h, w))
-    _check_synthesis_arguments(args)
+    _check_synthesis_arguments(args.jitter, args.passes)
     tex = _solid_texture(args)
     start = time.perf_counter()
     image = tex.query(plane_points(args.origin, args.u, args.v, (h, w)), filter=args.filter)
@@ -539,7 +545,7 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if args.resolution > COORD_LIMIT // 2:
         raise CliError(f"--resolution must be at most {COORD_LIMIT // 2}, got {args.resolution}")
     _check_at_least("--texture-size", args.texture_size, 1)
-    _check_synthesis_arguments(args)
+    _check_synthesis_arguments(args.jitter, args.passes)
     if args.uv == "none":
         formats, what = VERTEX_COLOR_FORMATS, "a mesh with vertex colors (--uv none)"
     else:
@@ -723,9 +729,9 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="comma-separated methods (default: all)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of every randomized method (default 0)")
-    parser.add_argument("--passes", type=int, default=2,
-                        help="correction passes per pyramid level of lazy synthesis, for the "
-                        "lazy and tiled methods (default 2)")
+    parser.add_argument("--passes", type=int, default=_DEFAULT_PASSES,
+                        help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
+                        "for the lazy and tiled methods (default 2)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
                         help="output folder")
 
@@ -737,7 +743,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
-    _check_at_least("--passes", args.passes, 0)
+    _check_synthesis_arguments(passes=args.passes)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes)

@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar
+from warptex.synthesis import check_settings
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
@@ -242,8 +243,7 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
         )
     if not methods:
         raise ValueError(f"no method given; choose from {', '.join(METHODS)}")
-    if passes < 0:
-        raise ValueError(f"passes must not be negative, got {passes}")
+    check_settings(passes=passes)
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
                          f"of slices every 2 voxels), got {size}")

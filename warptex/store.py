@@ -166,7 +166,8 @@ class _SharedLock:
 _SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
                   "candidates": "candidate format", "engine": "engine version",
                   "format": "file format", "brick": "brick size",
-                  "levels": "synthesized levels"}
+                  "levels": "synthesized levels", "passes": "correction passes",
+                  "subpasses": "sub-passes"}
 
 
 def _differences(stored: dict, current: dict) -> str:
@@ -249,7 +250,10 @@ class BrickStore:
     def identity(self) -> str:
         """Digest of everything a stored voxel depends on: exemplars, candidate
         parameters and algorithm version, seed, jitter, engine version and parameters."""
-        return hashlib.sha256(json.dumps(self._settings(), sort_keys=True).encode()).hexdigest()
+        return hashlib.sha256(self._settings_json().encode()).hexdigest()
+
+    def _settings_json(self) -> str:
+        return json.dumps(self._settings(), sort_keys=True)
 
     def _settings(self) -> dict:
         """What :meth:`identity` digests; also stored in plain words, so that a file of
@@ -369,7 +373,7 @@ class BrickStore:
                       "valid": self._valid[live]}
         write_archive(path, _MAGIC, FORMAT_VERSION,
                       {"identity": np.array(self.identity()),
-                       "settings": np.array(json.dumps(self._settings(), sort_keys=True)),
+                       "settings": np.array(self._settings_json()),
                        **arrays})
 
     @classmethod
@@ -690,9 +694,14 @@ class BrickStore:
             raise StoreFileError(f"{path}: unreadable brick store data ({e})") from None
         if identity != self.identity():
             differences = "other exemplars, seed, jitter or synthesis parameters"
-            if "settings" in z:  # files written before the settings were kept lack them
-                current = json.loads(json.dumps(self._settings(), sort_keys=True))
-                differences = _differences(json.loads(str(z["settings"])), current)
+            try:  # files written before the settings were kept lack them
+                stored = json.loads(str(z["settings"]))
+                # Through JSON, as the file's went: tuples become lists, so equal compares equal.
+                current = json.loads(self._settings_json())
+                if isinstance(stored, dict):
+                    differences = _differences(stored, current)
+            except (KeyError, ValueError):
+                pass
             raise StoreFileError(f"{path}: written for another texture ({differences})")
         if valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS):
             raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")

@@ -33,10 +33,31 @@ _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
 COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
 MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
+# Each pass widens every level's dependency region (section 5.2): at 8 the 64^3 box takes
+# about 5x the default's time, and far more would only exhaust memory.
+MAX_PASSES = 8
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
 _LOCAL = np.indices((BLOCK,) * 3).reshape(3, -1).T  # voxel offsets in a block, x slowest
+
+
+class SettingError(ValueError):
+    """A synthesis setting out of range; ``name`` is the setting, ``problem`` the rest."""
+
+    def __init__(self, name: str, problem: str) -> None:
+        super().__init__(f"{name} {problem}")
+        self.name = name
+        self.problem = problem
+
+
+def check_settings(jitter: float = 1.0, passes: int = 2) -> None:
+    """Raise SettingError unless ``jitter`` and ``passes`` are within what the engine
+    supports: the user-facing settings of :class:`Synthesizer`."""
+    if not 0.0 <= jitter <= MAX_JITTER:
+        raise SettingError("jitter", f"must be within [0, {MAX_JITTER:g}], got {jitter}")
+    if not 0 <= passes <= MAX_PASSES:
+        raise SettingError("passes", f"must be within [0, {MAX_PASSES}], got {passes}")
 
 
 def neighborhood_shape(half: int) -> np.ndarray:
@@ -250,10 +271,9 @@ class Synthesizer:
     ) -> None:
         if subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
-        if not 0.0 <= jitter <= MAX_JITTER:
-            raise ValueError(f"jitter must be within [0, {MAX_JITTER:g}], got {jitter}")
-        if passes < 0 or levels < 0:
-            raise ValueError("passes and levels must not be negative")
+        check_settings(jitter, passes)
+        if levels < 0:
+            raise ValueError(f"levels must not be negative, got {levels}")
         init_warp()
         self.candidates = candidates
         self.seed = int(seed) & 0x7FFFFFFF
