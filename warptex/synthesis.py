@@ -33,8 +33,8 @@ _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
 COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
 MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
-# Each pass widens every level's dependency region (section 5.2): at 8 the 64^3 box takes
-# about 5x the default's time, and far more would only exhaust memory.
+# Each pass widens every level's dependency region (section 5.2), so time grows faster than
+# the passes; hundreds would exhaust memory in dependency_radius's masks alone.
 MAX_PASSES = 8
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
