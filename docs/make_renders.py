@@ -37,7 +37,7 @@ def main() -> None:
     images = []
     for name, label in tqdm(SHOWN, desc="scenes"):
         scene = mi.load_file(str(SCENES / f"{name}.xml"), width=args.res, height=args.res)
-        image = mitsuba_plugin.render(scene, spp=args.spp, passes=4)
+        image = mitsuba_plugin.render(scene, spp=args.spp, batches=4)
         srgb = np.array(mi.util.convert_to_bitmap(image))[..., :3] / 255.0  # display colors
         images.append((label, srgb))
     save_png(sheet([("scenes", images)], cell=args.res), HERE / "renders" / "scenes.png")

@@ -93,12 +93,12 @@ def wavefront() -> Iterator[None]:
             dr.set_flag(f, value)
 
 
-def render(scene: mi.Scene, spp: int | None = None, passes: int = 1, seed: int = 0,
+def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int = 0,
            progress: Callable[[int, int], None] | None = None) -> mi.TensorXf:
-    """Render ``scene``: ``passes`` renders of ``spp / passes`` samples (with different
-    seeds) averaged, calling ``progress(done, passes)`` after each.
+    """Render ``scene``: ``batches`` renders of ``spp / batches`` samples (with different
+    seeds) averaged, calling ``progress(done, batches)`` after each.
 
-    Each pass is rendered in Mitsuba's symbolic mode with the textures' lookups traced,
+    Each batch is rendered in Mitsuba's symbolic mode with the textures' lookups traced,
     again after synthesizing what it missed, and kept only once it missed nothing; after
     ``TRACED_ROUNDS`` tries, or when a texture cannot be traced, it is rendered in
     wavefront mode, where every lookup synthesizes what it lacks. Either way each color
@@ -106,20 +106,20 @@ def render(scene: mi.Scene, spp: int | None = None, passes: int = 1, seed: int =
     """
     sensor = scene.sensors()[0]
     total = spp if spp is not None else sensor.sampler().sample_count()
-    passes = max(1, min(passes, total))
+    batches = max(1, min(batches, total))
     image = None
-    for i in range(passes):
-        share = total // passes + (i < total % passes)
-        part = _render_pass(scene, share, seed * passes + i)
+    for i in range(batches):
+        share = total // batches + (i < total % batches)
+        part = _render_batch(scene, share, seed * batches + i)
         weighted = part * (share / total)
         image = weighted if image is None else image + weighted
         dr.eval(image)
         if progress is not None:
-            progress(i + 1, passes)
+            progress(i + 1, batches)
     return image
 
 
-def _render_pass(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
+def _render_batch(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
     live = textures()
     if dr.is_jit_v(mi.Float):
         with _tracing:

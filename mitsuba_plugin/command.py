@@ -55,7 +55,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     loaded = time.perf_counter()
     # Read before rendering: each pass sets the sampler to its share of the samples.
     total = spp or scene.sensors()[0].sampler().sample_count()
-    image = mitsuba_plugin.render(scene, spp=total, passes=min(8, total), progress=_progress)
+    image = mitsuba_plugin.render(scene, spp=total, batches=min(8, total), progress=_progress)
     rendered = time.perf_counter()
     # Synchronously: the default asynchronous write would race the rename.
     write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False))

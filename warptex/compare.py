@@ -188,7 +188,7 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
         "cube": {"type": "cube", "to_world": T().translate([0.5, 0.5, 0.5]).scale(0.5),
                  "bsdf": {"type": "diffuse", "reflectance": texture}},
     })
-    image = np.asarray(mitsuba_plugin.render(scene, passes=1))[..., :3]
+    image = np.asarray(mitsuba_plugin.render(scene, batches=1))[..., :3]
     return np.clip(image, 0.0, None) ** (1 / 2.2)  # display gamma for the sheet
 
 
