@@ -10,7 +10,7 @@ Properties (XML or ``mi.load_dict``):
 ``seed``        integer    synthesis seed (default 0)
 ``jitter``      float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
 ``passes``      integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
-                           closer to the exemplar at 1.5-2x the synthesis time, see
+                           closer to the exemplar at about twice the synthesis time, see
                            ``docs/comparisons``)
 ``scale``       float      voxels per scene unit (default 64)
 ``to_world``    transform  places the block of matter (default identity)

@@ -426,7 +426,7 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
                         "(default 1)")
     parser.add_argument("--passes", type=int, default=_DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
-                        "closer to the exemplar at 1.5-2x the time (docs/comparisons)")
+                        "closer to the exemplar at about twice the time (docs/comparisons)")
 
 
 def _check_synthesis_arguments(jitter: float = _DEFAULT_JITTER,
