@@ -254,7 +254,9 @@ class Synthesizer:
     Voxel coordinates are integers over all of Z^3 at the finest level L; level l voxel
     v covers finest voxels ``2**(L-l) * v ...``. Synthesis starts ``levels`` levels above
     the finest with a warped tiling of the candidate slab and runs ``passes`` correction
-    passes of ``subpasses`` interleaved sub-passes per level.
+    passes of ``subpasses`` interleaved sub-passes per level. The paper's "3 last levels"
+    (section 5.2) are ``levels=2``; the default's one level more varies the texture at a
+    larger scale (lower repetition, BENCHMARKS.md).
     """
 
     def __init__(
