@@ -52,8 +52,8 @@ import numpy as np
 import mitsuba_plugin
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
+from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, SettingError, check_settings
 from warptex.store import StoreFileError
-from warptex.synthesis import SettingError, check_settings
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
@@ -142,8 +142,8 @@ class LazySolidTexture(mi.Texture):
         super().__init__(props)
         self.exemplars = exemplar_paths(props)
         self.seed = get_property(props, "seed", int, 0)
-        self.jitter = get_property(props, "jitter", float, 1.0)
-        self.passes = get_property(props, "passes", int, 2)
+        self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
+        self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
         try:
             check_settings(self.jitter, self.passes)
         except SettingError as e:

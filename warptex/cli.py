@@ -24,6 +24,12 @@ import numpy as np
 from warptex import __version__
 from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, ExemplarError
+from warptex.settings import (
+    DEFAULT_JITTER,
+    DEFAULT_PASSES,
+    SettingError,
+    check_settings,
+)
 
 # Imported inside the commands that need them, so `warptex info` stays light.
 if TYPE_CHECKING:
@@ -251,8 +257,6 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 
 
 _VOLUME_FORMATS = (".npy", ".exr", ".vol")
-_DEFAULT_JITTER = 1.0  # the paper's settings, Synthesizer's defaults
-_DEFAULT_PASSES = 2
 _SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
 
 
@@ -298,7 +302,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes)
     if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
-    if args.method == "kopf" and (args.passes, args.jitter) != (_DEFAULT_PASSES, _DEFAULT_JITTER):
+    if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
         raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args))
     _check_memory(args.size, exemplars[0].features.shape[2])
@@ -421,18 +425,16 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     voxels."""
     _add_axis_exemplar_arguments(parser, first)
     parser.add_argument("--seed", type=int, default=0, help="texture variation (default 0)")
-    parser.add_argument("--jitter", type=float, default=_DEFAULT_JITTER,
+    parser.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
                         help="strength of the random warp that varies the tiling, 0 to 64 "
                         "(default 1)")
-    parser.add_argument("--passes", type=int, default=_DEFAULT_PASSES,
+    parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
                         "closer to the exemplar at about twice the time (docs/comparisons)")
 
 
-def _check_synthesis_arguments(jitter: float = _DEFAULT_JITTER,
-                               passes: int = _DEFAULT_PASSES) -> None:
-    from warptex.synthesis import SettingError, check_settings
-
+def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER,
+                               passes: int = DEFAULT_PASSES) -> None:
     try:
         check_settings(jitter, passes)
     except SettingError as error:
@@ -729,7 +731,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="comma-separated methods (default: all)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of every randomized method (default 0)")
-    parser.add_argument("--passes", type=int, default=_DEFAULT_PASSES,
+    parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",

@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar
-from warptex.synthesis import check_settings
+from warptex.settings import DEFAULT_PASSES, check_settings
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
@@ -233,7 +233,8 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int)
 
 
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
-            seed: int = 0, progress: bool = True, passes: int = 2) -> list[MethodResult]:
+            seed: int = 0, progress: bool = True,
+            passes: int = DEFAULT_PASSES) -> list[MethodResult]:
     """Score every method on one exemplar, each in a fresh process; ``passes`` are the
     lazy engine's correction passes per level (``lazy`` and ``tiled``)."""
     unknown = [m for m in methods if m not in _RUN]

@@ -23,6 +23,7 @@ from warptex.device import device as default_device
 from warptex.device import init_warp
 from warptex.keysets import distinct_sorted, unique
 from warptex.parallel import launch_ranges
+from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
 
 # Raised whenever the engine gives any voxel another result from the same inputs, so that
 # brick stores written by an earlier engine are not reused. 2: shifted neighbour triples.
@@ -32,32 +33,10 @@ _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
 COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
-MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
-# Each pass widens every level's dependency region (section 5.2), so time grows faster than
-# the passes; hundreds would exhaust memory in dependency_radius's masks alone.
-MAX_PASSES = 8
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
 _LOCAL = np.indices((BLOCK,) * 3).reshape(3, -1).T  # voxel offsets in a block, x slowest
-
-
-class SettingError(ValueError):
-    """A synthesis setting out of range; ``name`` is the setting, ``problem`` the rest."""
-
-    def __init__(self, name: str, problem: str) -> None:
-        super().__init__(f"{name} {problem}")
-        self.name = name
-        self.problem = problem
-
-
-def check_settings(jitter: float = 1.0, passes: int = 2) -> None:
-    """Raise SettingError unless ``jitter`` and ``passes`` are within what the engine
-    supports: the user-facing settings of :class:`Synthesizer`."""
-    if not 0.0 <= jitter <= MAX_JITTER:
-        raise SettingError("jitter", f"must be within [0, {MAX_JITTER:g}], got {jitter}")
-    if not 0 <= passes <= MAX_PASSES:
-        raise SettingError("passes", f"must be within [0, {MAX_PASSES}], got {passes}")
 
 
 def neighborhood_shape(half: int) -> np.ndarray:
@@ -263,10 +242,10 @@ class Synthesizer:
         self,
         candidates: CandidateSet,
         seed: int = 0,
-        jitter: float = 1.0,
+        jitter: float = DEFAULT_JITTER,
         *,
         levels: int = 3,
-        passes: int = 2,
+        passes: int = DEFAULT_PASSES,
         subpasses: int = 1,
         device: str | None = None,
         coarse_cache_bytes: int = 256 << 20,

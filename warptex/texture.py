@@ -17,6 +17,7 @@ import warp as wp
 from warptex.candidates import CandidateSet, precompute
 from warptex.cut import plane_points
 from warptex.exemplar import Exemplar
+from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES
 from warptex.store import FILTERS, BrickStore
 from warptex.synthesis import COORD_LIMIT, Synthesizer
 
@@ -42,11 +43,11 @@ class SolidTexture:
         source: str | Path | Exemplar | CandidateSet,
         *,
         seed: int = 0,
-        jitter: float = 1.0,
+        jitter: float = DEFAULT_JITTER,
         device: str | None = None,
         cache_bytes: int = 256 << 20,
         store: str | Path | None = None,
-        passes: int = 2,
+        passes: int = DEFAULT_PASSES,
         whole_bricks: bool = True,
     ) -> None:
         candidates = source if isinstance(source, CandidateSet) else precompute(source)

@@ -1,0 +1,30 @@
+"""The synthesis settings a user chooses, their defaults and their ranges (Dong 2008,
+section 5). A module of its own, free of the engine's imports, so that commands and
+plugins can offer and check them before loading any kernels."""
+
+from __future__ import annotations
+
+DEFAULT_JITTER = 1.0
+MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
+DEFAULT_PASSES = 2  # the paper's (section 5.2)
+# Each pass widens every level's dependency region (section 5.2), so time grows faster than
+# the passes; hundreds would exhaust memory in dependency_radius's masks alone.
+MAX_PASSES = 8
+
+
+class SettingError(ValueError):
+    """A synthesis setting out of range; ``name`` is the setting, ``problem`` the rest."""
+
+    def __init__(self, name: str, problem: str) -> None:
+        super().__init__(f"{name} {problem}")
+        self.name = name
+        self.problem = problem
+
+
+def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES) -> None:
+    """Raise SettingError unless ``jitter`` and ``passes`` are within what the engine
+    supports: the user-facing settings of :class:`warptex.synthesis.Synthesizer`."""
+    if not 0.0 <= jitter <= MAX_JITTER:
+        raise SettingError("jitter", f"must be within [0, {MAX_JITTER:g}], got {jitter}")
+    if not 0 <= passes <= MAX_PASSES:
+        raise SettingError("passes", f"must be within [0, {MAX_PASSES}], got {passes}")
