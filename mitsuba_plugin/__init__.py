@@ -31,7 +31,7 @@ import mitsuba as mi
 
 import warptex
 
-# Symbolic renders of one pass before falling back to wavefront mode: each synthesizes
+# Symbolic renders of one batch before falling back to wavefront mode: each synthesizes
 # what the previous one missed; paths seldom reach new bricks after the second.
 TRACED_ROUNDS = 6
 _registered: set[str] = set()

@@ -53,7 +53,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
         raise ValueError(f"{scene_path}: cannot load the scene: {e}") from None
     loaded = time.perf_counter()
-    # Read before rendering: each pass sets the sampler to its share of the samples.
+    # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or scene.sensors()[0].sampler().sample_count()
     image = mitsuba_plugin.render(scene, spp=total, batches=min(8, total), progress=_progress)
     rendered = time.perf_counter()
@@ -77,7 +77,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 
 def _progress(done: int, total: int) -> None:
     end = "\n" if done == total else ""
-    print(f"\rrendering: pass {done}/{total}", end=end, file=sys.stderr, flush=True)
+    print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 
 
 def _texture_report(texture) -> dict:
