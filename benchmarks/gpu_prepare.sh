@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# Stage, on this machine, what a lent GPU machine lacks for benchmarks/gpu_checks.sh.
+#
+# The lent machine (see BENCHMARKS.md, "GPU checks") has Python 3.12 with NumPy, SciPy,
+# Pillow, tqdm and pytest, no network, and takes at most 64 MiB of files a call. It lacks
+# warp-lang (a 149 MB wheel) and pypng. This script downloads both wheels at the versions
+# of .venv, packs them and cuts the pack into parts of 50 MB in .gpu/1, .gpu/2, ...,
+# one to carry per call, and puts the 64 px exemplars, the 128 px rosewood and their
+# cached candidates (so the GPU run measures synthesis, not pre-computation) in .gpu/data.
+# .gpu/ is git-ignored.
+#
+#     make setup && benchmarks/gpu_prepare.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+py=.venv/bin/python
+exemplars=${EXEMPLARS:-../shared/data/exemplars}
+warp_version=$($py -c 'import warp; print(warp.__version__)')
+png_version=$($py -c 'import importlib.metadata as m; print(m.version("pypng"))')
+
+rm -rf .gpu
+mkdir -p .gpu/wheels .gpu/data/exemplars .gpu/data/cache
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+    --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+    --platform manylinux2014_x86_64 -d .gpu/wheels \
+    "warp-lang==$warp_version" "pypng==$png_version"
+tar cf - -C .gpu/wheels . | split -b 50M -d -a 1 - .gpu/part-
+rm -r .gpu/wheels
+for part in .gpu/part-*; do
+    n=$((${part##*-} + 1))
+    mkdir -p ".gpu/$n"
+    mv "$part" ".gpu/$n/"
+done
+
+# bench_synthesis.py also times a 128^3 volume from the 128 px rosewood.
+cp "$exemplars"/*_64.png "$exemplars"/wood_rosewood_128.png .gpu/data/exemplars/
+WARP_CACHE_PATH=$PWD/.cache/warp $py - <<'PY'
+import shutil
+from pathlib import Path
+
+from warptex.candidates import cached_candidate_path, precompute
+from warptex.exemplar import Exemplar
+
+for png in sorted(Path(".gpu/data/exemplars").glob("*.png")):
+    ex = Exemplar.load(png)
+    path = cached_candidate_path(ex)
+    if path is None:
+        precompute(ex)
+        path = cached_candidate_path(ex)
+    shutil.copy(path, Path(".gpu/data/cache") / path.name)
+PY
+git rev-parse --short HEAD > .gpu/data/commit
+echo "staged: $(ls -d .gpu/[0-9]* | tr '\n' ' ')and .gpu/data ($(du -sh .gpu/data | cut -f1));" \
+     "warp-lang $warp_version, pypng $png_version, commit $(cat .gpu/data/commit)"
