@@ -1,11 +1,17 @@
 """Splitting one Warp launch over CPU threads gives the result of one launch."""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import warp as wp
 
 from warptex.parallel import MIN_SPLIT, launch_ranges
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 @wp.kernel
@@ -24,3 +30,37 @@ def test_split_generic_launch_equals_one_launch(warp_device):
         launch_ranges(_double, 5, n, [a], [out], per_item=2)
         expected = np.where(np.arange(n) >= 5, 2.0 * values, -1.0)
         assert np.array_equal(out.numpy(), expected.astype(np.float32))
+
+
+_BUILD_ONCE = """
+import numpy as np
+import warp as wp
+
+import warptex.parallel as parallel
+
+parallel.THREADS = 2  # split even on a one-core machine
+
+
+@wp.kernel
+def fill(first: int, out: wp.array(dtype=wp.float32)):
+    i = first + wp.tid()
+    out[i] = float(i)
+
+
+out = wp.zeros(2 * parallel.MIN_SPLIT, dtype=wp.float32, device="cpu")
+parallel.launch_ranges(fill, 0, out.shape[0], [], [out])
+assert np.array_equal(out.numpy(), np.arange(out.shape[0], dtype=np.float32))
+"""
+
+
+def test_split_launch_builds_its_module_once(tmp_path):
+    """A split launch builds the variant of the module that CPU launches use, and no other:
+    a second variant costs a whole compile on a cold kernel cache."""
+    script = tmp_path / "build_once.py"
+    script.write_text(_BUILD_ONCE)
+    cache = tmp_path / "kernels"
+    env = {**os.environ, "WARP_CACHE_PATH": str(cache)}
+    subprocess.run([sys.executable, str(script)], check=True, env=env, cwd=REPO,
+                   capture_output=True)
+    built = [p.name for p in cache.rglob("*") if p.is_dir() and "__main__" in p.name]
+    assert len(built) == 1, built

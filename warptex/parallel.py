@@ -47,13 +47,16 @@ def launch_ranges(
         wp.launch(kernel, n * per_item, [start, *inputs], outputs, device=device)
         return
     # Warp creates a generic kernel's overload and (re)builds its module on first launch,
-    # not thread-safely: do both here, then the threads only launch.
+    # not thread-safely: the overload is made here and the first item launched from this
+    # thread, which builds the module as every launch will use it (a CPU launch's block_dim
+    # is 1, and ``Module.load`` without one would build another variant), then the threads
+    # launch the rest.
     if kernel.is_generic:
         kernel = kernel._add_normalized_overload(
             kernel.infer_argument_types([start, *inputs, *outputs])
         )
-    kernel.module.load(wp.get_device(device))
-    bounds = [int(b) for b in np.linspace(start, stop, THREADS + 1)]
+    wp.launch(kernel, per_item, [start, *inputs], outputs, device=device)
+    bounds = [int(b) for b in np.linspace(start + 1, stop, THREADS + 1)]
     jobs = [
         _pool().submit(wp.launch, kernel, (hi - lo) * per_item, [lo, *inputs], outputs,
                        device=device)
