@@ -33,10 +33,6 @@ DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
 ITERATIONS = (6, 4, 3)
 
 
-def worst_energy(volume: np.ndarray, colors: np.ndarray) -> float:
-    return max(metrics.neighborhood_energy(volume, colors, a) for a in range(3))
-
-
 def timed_kopf(ex: Exemplar, size: int, mean_shift: bool
                ) -> tuple[np.ndarray, float, list[kopf.Iteration]]:
     history: list[kopf.Iteration] = []
@@ -89,14 +85,14 @@ def main() -> None:
             fine_iteration = np.mean([h.seconds for h in history if h.level == kopf.LEVELS - 1])
             kopf_energy = lazy_energy = lazy_seconds = float("nan")
             if size == 64:
-                kopf_energy = worst_energy(volume, ex.colors)
+                kopf_energy = metrics.worst_axis_energy(volume, ex.colors)
                 engine = Synthesizer(precompute(ex, progress=False))
                 engine.box((0, 0, 0), (4, 4, 4))  # compile kernels
                 engine = Synthesizer(precompute(ex, progress=False))
                 start = time.perf_counter()
                 lazy = engine.box((0, 0, 0), (size,) * 3)
                 lazy_seconds = time.perf_counter() - start
-                lazy_energy = worst_energy(lazy, ex.colors)
+                lazy_energy = metrics.worst_axis_energy(lazy, ex.colors)
             print(f"| {name} | {size}^3 | {seconds:.1f} | {per_level(history)} | "
                   f"{kopf_energy:.3f} | {lazy_energy:.3f} | {lazy_seconds:.2f} |", flush=True)
 

@@ -119,8 +119,7 @@ def main() -> None:
             own = synth.box((0, 0, 0), (SIZE,) * 3)
             volumes = [own, vote(cs, triples, own, r, None),
                        *[vote(cs, triples, own, r, s) for s in SIGMAS]]
-            energies = [max(metrics.neighborhood_energy(v, ex.colors, a) for a in range(3))
-                        for v in volumes]
+            energies = [metrics.worst_axis_energy(v, ex.colors) for v in volumes]
             target = targets.get(name, float("nan"))
             print(f"| {name} | {passes} | " + " | ".join(f"{e:.3f}" for e in energies)
                   + f" | {target:.4f} |", flush=True)
