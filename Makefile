@@ -8,7 +8,7 @@ export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
 
 .PHONY: demo test lint setup llvm
 
-# Renders scene (1), the marble bunny, to out/bunny.png (statistics in out/bunny.png.json).
+# Renders the rosewood bunny (scenes/bunny_wood.xml) to out/bunny.png, statistics in out/bunny.png.json.
 demo: setup
 	$(VENV)/bin/warptex render scenes/bunny_wood.xml -o out/bunny.png --spp 16 --res 256x256
 

@@ -7,6 +7,7 @@ use, so the other subcommands stay light.
 from __future__ import annotations
 
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -25,6 +26,25 @@ def parse_resolution(text: str) -> tuple[int, int]:
     if width < 1 or height < 1:
         raise ValueError(f"--res must be positive, got {text!r}")
     return width, height
+
+
+def scene_error(text: str) -> str:
+    """Mitsuba's message for a scene that fails to load, as one line for a user.
+
+    A plugin written in Python that raises while it is constructed (``lazy_solid`` checking
+    its properties) reaches Mitsuba's parser as a whole Python traceback; only where in the
+    scene and the exception's own message are kept.
+    """
+    text = re.sub(r"^\[[\w.]+:\d+\] ", "", text.strip())
+    head, marker, trace = text.partition("Traceback (most recent call last):")
+    if not marker:
+        return text
+    lines = trace.strip("\n").splitlines()
+    frames = [i for i, line in enumerate(lines) if line.startswith(" ")]
+    message = " ".join(lines[frames[-1] + 1 if frames else 0:]).strip()
+    message = re.sub(r"^[A-Za-z_][\w.]*: ", "", message)
+    where = re.match(r"At (.*) \((line \d+, col \d+)\)", head)
+    return f"{where.group(2)}: {message}" if where else message
 
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
@@ -51,7 +71,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     try:
         scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
-        raise ValueError(f"{scene_path}: cannot load the scene: {e}") from None
+        raise ValueError(f"{scene_path}: cannot load the scene: {scene_error(str(e))}") from None
     loaded = time.perf_counter()
     # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or scene.sensors()[0].sampler().sample_count()

@@ -23,8 +23,13 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     scene.write_text("this is not XML")
     other = folder / "other_y.npy"
     np.save(other, _rotated(granite_32_file))
+    bad_property = folder / "bad_property.xml"
+    bad_property.write_text(
+        '<scene version="3.0.0"><bsdf type="diffuse"><texture type="lazy_solid" '
+        f'name="reflectance"><string name="exemplar" value="{granite_32_file}"/>'
+        '<string name="filter" value="cubic"/></texture></bsdf></scene>')
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
-            "other": other}
+            "other": other, "bad_property": bad_property}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -80,6 +85,8 @@ CASES = [
     (["compare", "{exemplar}", "-o", "{notes}"], "expected an output folder"),
     (["render", "{scene}", "-o", "{out}/r.jpg"], "must end in .exr or .png"),
     (["render", "{scene}", "-o", "{out}/r.png"], "cannot load the scene"),
+    (["render", "{bad_property}", "-o", "{out}/r.png"],
+     'line 1, col 46: lazy_solid: property "filter" must be "trilinear" or "nearest"'),
 ]
 
 

@@ -129,12 +129,13 @@ def test_bundled_bunny_scene_renders(tmp_path):
 
 
 def test_render_command_writes_image_and_statistics(tmp_path):
-    """`warptex render`: the image and its statistics land whole, no temporary left."""
+    """`warptex render`: the image and its statistics land whole, no temporary left; the
+    suffix's case does not matter, though Mitsuba's writer is particular about it."""
     from warptex.cli import main
 
-    out = tmp_path / "bunny.png"
+    out = tmp_path / "bunny.PNG"
     assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
                  "--spp", "1", "--res", "16x16"]) == 0
     assert list(mi.Bitmap(str(out)).size()) == [16, 16]
-    assert json.loads((tmp_path / "bunny.png.json").read_text())["spp"] == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.png", "bunny.png.json"]
+    assert json.loads((tmp_path / "bunny.PNG.json").read_text())["spp"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.PNG", "bunny.PNG.json"]

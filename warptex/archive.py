@@ -29,10 +29,12 @@ class ArchiveError(ValueError):
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     """Let ``write`` fill a temporary file beside ``path``, then rename it to ``path``:
     readers never see a partial file, and a failed write leaves nothing behind. The
-    temporary name keeps the suffix, for writers that pick the format from it."""
+    temporary name keeps the suffix, lower-cased, for writers that pick the format from it
+    (Mitsuba's bitmap writer takes ``.PNG`` for an unknown format)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.{threading.get_ident()}.tmp{path.suffix}")
+    tag = f"{os.getpid()}.{threading.get_ident()}"
+    tmp = path.with_name(f".{path.stem}.{tag}.tmp{path.suffix.lower()}")
     try:
         write(tmp)
         os.replace(tmp, path)
