@@ -28,8 +28,10 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
         '<scene version="3.0.0"><bsdf type="diffuse"><texture type="lazy_solid" '
         f'name="reflectance"><string name="exemplar" value="{granite_32_file}"/>'
         '<string name="filter" value="cubic"/></texture></bsdf></scene>')
+    gray = folder / "gray.npy"
+    np.save(gray, _rotated(granite_32_file)[..., :1])
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
-            "other": other, "bad_property": bad_property}
+            "other": other, "bad_property": bad_property, "gray": gray}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -83,6 +85,10 @@ CASES = [
      "multiple of 8"),
     (["compare", "{exemplar}", "--methods", " ", "-o", "{out}/cmp"], "no method given"),
     (["compare", "{exemplar}", "-o", "{notes}"], "expected an output folder"),
+    (["precompute", "{exemplar}", "--ey", "{gray}"],
+     "same number of feature channels; found x {exemplar} 3, y {gray} 1, z {gray} 1"),
+    (["volume", "{exemplar}", "--ez", "{gray}", "-o", "{out}/v.npy"],
+     "same number of feature channels"),
     (["render", "{scene}", "-o", "{out}/r.jpg"], "must end in .exr or .png"),
     (["render", "{scene}", "-o", "{out}/r.png"], "cannot load the scene"),
     (["render", "{bad_property}", "-o", "{out}/r.png"],
@@ -100,9 +106,24 @@ def test_bad_input_is_one_clear_error_and_writes_nothing(files, tmp_path, capsys
     code = main([a.format(**names) for a in argv])
     err = capsys.readouterr().err
     assert code == 2
-    assert err.startswith("warptex: error: ") and message in err
+    assert err.startswith("warptex: error: ") and message.format(**names) in err
     assert "Traceback" not in err
     assert not any(out.iterdir())
+    assert files["notes"].read_text() == "not bricks"
+
+
+def test_an_unwritable_cache_folder(files, tmp_path, capsys, monkeypatch):
+    """`precompute`, whose job is the cache, refuses a cache folder it cannot make before
+    any work; other commands warn that the candidates are not cached and carry on."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(files["notes"]))
+    assert main(["precompute", str(files["exemplar"])]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"warptex: error: {files['notes']}: cannot make the cache folder")
+    assert "WARPTEX_CACHE" in err
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(files["exemplar"]), "--size", "8", "-o", str(out)]) == 0
+    assert "warptex: warning: candidates not cached: cannot write" in capsys.readouterr().err
+    assert np.load(out).shape == (8, 8, 8, 3)
     assert files["notes"].read_text() == "not bricks"
 
 

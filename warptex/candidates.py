@@ -30,7 +30,7 @@ from kernels import candidates as _k
 from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
-from warptex.exemplar import Exemplar
+from warptex.exemplar import Exemplar, ExemplarError
 
 FORMAT_VERSION = 3  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
@@ -171,9 +171,16 @@ def precompute(
 
     ``ey``/``ez`` default to ``ex``. With ``cache`` the result is stored under
     ``WARPTEX_CACHE`` keyed by exemplar content and parameters, and a later call loads
-    it; a damaged cache file is reported once and recomputed.
+    it; a damaged cache file is reported once and recomputed, and a cache that cannot be
+    written is reported once and left out.
     """
     exemplars = [_as_exemplar(e) for e in (ex, ey or ex, ez or ey or ex)]
+    channels = [e.features.shape[2] for e in exemplars]
+    if len(set(channels)) != 1:
+        found = ", ".join(f"{axis} {e.path or e.name} {n}"
+                          for axis, e, n in zip("xyz", exemplars, channels, strict=True))
+        raise ExemplarError("the exemplars of the three axes must have the same number of "
+                            f"feature channels; found {found}")
     p = _resolve_params(params)
     path = cache_path(exemplars, p) if cache else None
     if path is not None and path.exists():
@@ -183,7 +190,11 @@ def precompute(
             warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     result = _compute(exemplars, p, progress)
     if path is not None:
-        result.save(path)
+        try:
+            result.save(path)
+        except OSError as e:
+            warnings.warn(f"candidates not cached: cannot write {path} ({e.strerror or e}); "
+                          "WARPTEX_CACHE sets the cache folder", stacklevel=2)
     return result
 
 
@@ -234,8 +245,6 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool) -> CandidateSet
     init_warp()
     start = time.perf_counter()
     digests = tuple(e.digest() for e in exemplars)
-    if len(set(e.features.shape[2] for e in exemplars)) != 1:
-        raise ValueError("the three exemplars must have the same number of feature channels")
     unique = list(dict.fromkeys(digests))
     axis_source = tuple(unique.index(d) for d in digests)
     srcs = [exemplars[digests.index(d)] for d in unique]

@@ -180,6 +180,8 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
         _check_output(args.output)
     exemplars = _load_axis_exemplars(args, _load_exemplar(args))
     cache = None if args.no_cache else cache_path(exemplars, dict(DEFAULT_PARAMS))
+    if cache is not None:
+        _check_cache_folder(cache.parent)
     before = _file_identity(cache)
     start = time.perf_counter()
     cs = precompute(*exemplars, cache=not args.no_cache, progress=True)
@@ -226,13 +228,24 @@ def _load_axis_exemplars(args: argparse.Namespace, ex: Exemplar) -> list[Exempla
     return [ex, ey, others[1] or ey]
 
 
+def _check_cache_folder(folder: Path) -> None:
+    """The cache folder exists or can be made, and can be written: before any work."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise CliError(f"{folder}: cannot make the cache folder ({error.strerror or error}); "
+                       "WARPTEX_CACHE sets it") from None
+    if not os.access(folder, os.W_OK):
+        raise CliError(f"{folder}: cannot write the cache folder; WARPTEX_CACHE sets it")
+
+
 def _file_identity(path: Path | None) -> tuple[int, int] | None:
     """(inode, mtime) of a file, or None: tells whether a file was replaced meanwhile."""
     if path is None:
         return None
     try:
         stat = path.stat()
-    except FileNotFoundError:
+    except OSError:
         return None
     return stat.st_ino, stat.st_mtime_ns
 

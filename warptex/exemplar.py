@@ -132,7 +132,7 @@ class Exemplar:
         array, has_alpha = _read(path)
         if has_alpha and alpha == "drop":
             warnings.warn(
-                f"{path.name}: alpha channel dropped (load with alpha='keep' to keep it)",
+                f"{path}: alpha channel dropped (load with alpha='keep' to keep it)",
                 stacklevel=2,
             )
             array = array[..., :-1]
@@ -141,18 +141,20 @@ class Exemplar:
         if feature_mask is not None:
             mask_path = Path(feature_mask)
             mask_image, _ = _read(mask_path)
-            mask = _binary_mask(mask_image, mask_path.name)
+            mask = _binary_mask(mask_image, str(mask_path))
             if mask.shape != array.shape[:2]:
                 raise ExemplarError(
-                    f"{mask_path.name}: feature mask is {_size(mask.shape)} pixels but "
-                    f"{path.name} is {_size(array.shape)}"
+                    f"{mask_path}: feature mask is {_size(mask.shape)} pixels but "
+                    f"{path} is {_size(array.shape)}"
                 )
-            distance = feature_distance_from_mask(mask, name=mask_path.name)
+            distance = feature_distance_from_mask(mask, name=str(mask_path))
         elif feature_distance:
-            colors = _validated_colors(array, path.name)
-            distance = feature_distance_from_mask(otsu_mask(colors), name=path.name)
+            colors = _validated_colors(array, str(path))
+            distance = feature_distance_from_mask(otsu_mask(colors), name=str(path))
 
-        exemplar = cls(array, name=path.name, feature_distance=distance)
+        # Errors name the file as given; the exemplar itself goes by its file name.
+        exemplar = cls(array, name=str(path), feature_distance=distance)
+        exemplar.name = path.name
         exemplar.path = path.resolve()
         return exemplar
 
