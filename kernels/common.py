@@ -19,6 +19,16 @@ def wrap(x: int, n: int) -> int:
 
 
 @wp.func
+def floor_div(x: int, n: int) -> int:
+    """``x // n`` rounded toward minus infinity for ``n > 0``, whatever the Warp version:
+    Warp's integer ``//`` truncated toward zero before NVIDIA/warp#1918 was fixed, which
+    would move every lattice cell of the jitter at negative coordinates."""
+    if x >= 0:
+        return x // n
+    return -((n - 1 - x) // n)
+
+
+@wp.func
 def pixel_index(u: int, v: int, height: int, width: int) -> int:
     """Row-major index of exemplar pixel ``(u, v)`` after toroidal wrapping."""
     return wrap(u, height) * width + wrap(v, width)

@@ -10,7 +10,7 @@ All arithmetic is on integers, so results are bit-identical on the CPU and on CU
 
 import warp as wp
 
-from kernels.common import hash_cell, pixel_index, wrap
+from kernels.common import floor_div, hash_cell, pixel_index, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -121,9 +121,9 @@ def bump_sum(pos: wp.vec3i, seed: int, jitter: int, octave: int, cell: int, rmin
     has compact support and is exact in integers, so CPU and CUDA agree bit for bit.
     """
     fine = wp.vec3i(pos[0] * 256, pos[1] * 256, pos[2] * 256)
-    cx = pos[0] // cell
-    cy = pos[1] // cell
-    cz = pos[2] // cell
+    cx = floor_div(pos[0], cell)
+    cy = floor_div(pos[1], cell)
+    cz = floor_div(pos[2], cell)
     sx = wp.int64(0)
     sy = wp.int64(0)
     sz = wp.int64(0)

@@ -125,6 +125,26 @@ def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
     assert not np.array_equal(jittered.voxels(pts), jittered.voxels(pts + period))
 
 
+def test_jitter_lattice_floors_negative_coordinates(warp_device):
+    """The jitter's lattice cells (``bump_sum``) need floor division at negative voxels;
+    Warp's integer ``//`` truncated there before NVIDIA/warp#1918, so ``floor_div`` stands in."""
+    import warp as wp
+
+    from kernels.common import floor_div
+
+    @wp.kernel
+    def divide(x: wp.array(dtype=int), n: int, out: wp.array(dtype=int)):
+        i = wp.tid()
+        out[i] = floor_div(x[i], n)
+
+    x = np.arange(-40, 41, dtype=np.int32)
+    out = wp.zeros(len(x), dtype=int, device=warp_device)
+    for n in (1, 6, 16):
+        wp.launch(divide, dim=len(x), inputs=[wp.array(x, device=warp_device), n, out],
+                  device=warp_device)
+        assert np.array_equal(out.numpy(), x // n)
+
+
 def test_subpasses_are_deterministic_too(candidates):
     pts = np.array([[2, 3, 4], [-7, 8, -9]])
     alone = Synthesizer(candidates, seed=3, subpasses=8).voxels(pts[:1])
