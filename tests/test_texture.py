@@ -93,6 +93,15 @@ def test_trilinear_blends_the_8_centers_across_brick_borders(candidates, referen
     np.testing.assert_array_equal(tex.query(BORDER + 0.5), reference.voxels(BORDER))
 
 
+def test_far_slices_read_the_voxels_their_points_lie_in(candidates, reference):
+    """A slice's points are not rounded to float32 on the way: at x = 4e6 + 0.9 that
+    would move them into the next voxel."""
+    tex = texture(candidates)
+    far = tex.slice((4_000_000.9, -3.5, 2.5), (0, 1, 0), (0, 0, 1), (2, 3), filter="nearest")
+    voxels = [[4_000_000, -4 + r, 2 + c] for r in range(2) for c in range(3)]
+    np.testing.assert_array_equal(far.reshape(6, -1), reference.voxels(np.array(voxels)))
+
+
 @pytest.mark.parametrize("filter", ["nearest", "trilinear"])
 def test_batch_composition_and_order_do_not_change_colors(candidates, filter):
     pts = points_near_origin(200, 3)

@@ -6,36 +6,135 @@ textured on demand and continue the texture of the outer surface without seams.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+import shapely
 import trimesh
 
 
 def plane_points(origin: np.ndarray, u: np.ndarray, v: np.ndarray,
                  shape: tuple[int, int]) -> np.ndarray:
-    """Points (H*W, 3) of a planar grid: pixel (r, c) lies at origin + r*u + c*v."""
+    """Points (H*W, 3) of a planar grid: pixel (r, c) lies at origin + r*u + c*v. In float64,
+    as far from the origin float32 would move them by up to half a voxel."""
     h, w = shape
     r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     origin, u, v = (np.asarray(a, np.float64) for a in (origin, u, v))
-    pts = origin + r.reshape(-1, 1) * u + c.reshape(-1, 1) * v
-    return pts.astype(np.float32)
+    return origin + r.reshape(-1, 1) * u + c.reshape(-1, 1) * v
 
 
 def cut(mesh: trimesh.Trimesh, origin: np.ndarray,
         normal: np.ndarray) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     """Split a mesh by a plane into two halves, each closed by a planar cap.
 
-    The first half lies on the side ``normal`` points to.
+    The first half lies on the side ``normal`` points to. Each cap is refined (see
+    :func:`_refined_cap`) so that vertex colours resolve the texture on it as on the outer
+    surface, and it still meets the outer surface vertex for vertex.
     """
     normal = np.asarray(normal, np.float64)
     if not np.linalg.norm(normal) > 0:
         raise ValueError("the cut plane needs a non-zero normal")
+    origin = np.asarray(origin, np.float64)
+    spacing = 2.0 * float(np.median(mesh.edges_unique_length))
     halves = []
     for side in (normal, -normal):
         half = trimesh.intersections.slice_mesh_plane(mesh, side, origin, cap=True)
         if half is None or len(half.faces) == 0:
             raise ValueError("the plane does not cut the mesh")
-        halves.append(half)
+        halves.append(_refined_cap(half, origin, normal, spacing))
     return halves[0], halves[1]
+
+
+def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
+                 max_edge: float) -> trimesh.Trimesh:
+    """``half`` with its cap triangulated anew: trimesh triangulates a cap from its outline
+    alone, in slivers that span it, so vertex colours would only interpolate the outline's.
+    The cap becomes the constrained Delaunay triangulation of the same outline vertices,
+    refined by :func:`_bisect_long_edges` until no edge of it is longer than ``max_edge``.
+    """
+    cap = cap_faces(half, origin, normal)
+    outline = np.unique(half.faces[cap])
+    n = normal / np.linalg.norm(normal)
+    e1 = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
+    e1 /= np.linalg.norm(e1)
+    uv = (half.vertices - origin) @ np.stack([e1, np.cross(n, e1)], axis=1)
+    region = shapely.union_all(shapely.polygons(uv[half.faces[cap]]))
+    triangles = shapely.get_parts(shapely.constrained_delaunay_triangles(region))
+    corners = shapely.get_coordinates(triangles).reshape(len(triangles), 4, 2)[:, :3]
+    index = {uv[i].tobytes(): i for i in outline}
+    faces = np.array([index.get(c.tobytes(), -1) for c in corners.reshape(-1, 2)]).reshape(-1, 3)
+    if len(faces) == 0 or (faces < 0).any() or len(np.unique(faces)) != len(outline):
+        warnings.warn("a cut's cap could not be refined; its colours interpolate its outline's",
+                      stacklevel=3)
+        return half
+    # Wind the new triangles as trimesh wound the cap: facing away from the half.
+    flip = _winding(uv, faces) != _winding(uv, half.faces[cap][:1])
+    faces[flip] = faces[flip][:, ::-1]
+    faces = np.concatenate([half.faces[~cap], faces])
+    refine = np.arange(len(faces)) >= (~cap).sum()
+    near = _with_neighbours(faces, refine)
+    vertices, refined = _bisect_long_edges(half.vertices, faces[near], refine[near], max_edge)
+    return trimesh.Trimesh(vertices, np.concatenate([faces[~near], refined]), process=False)
+
+
+def _bisect_long_edges(vertices: np.ndarray, faces: np.ndarray, refine: np.ndarray,
+                      max_edge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Longest-edge bisection (Rivara): each face ``refine`` with an edge longer than
+    ``max_edge`` is halved through its longest edge, until none is left. The other faces
+    holding that edge are halved with it, so the mesh gains no T-junctions; ``faces`` must
+    therefore hold every neighbour of the faces ``refine``. Returns the vertices (the given
+    ones first) and the faces.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    refine = np.asarray(refine, bool)
+    corners = np.array([[0, 1], [1, 2], [2, 0]])
+    while True:
+        pairs = np.sort(faces[:, corners], axis=2).reshape(-1, 2)
+        edges, ids = np.unique(pairs, axis=0, return_inverse=True)
+        ids = ids.reshape(-1, 3)
+        length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+        rank = np.empty(len(edges), np.int64)  # by length, ties by index: one longest edge
+        rank[np.lexsort((np.arange(len(edges)), length))] = np.arange(len(edges))
+        longest = rank[ids].argmax(axis=1)
+        chosen = np.where(refine & (length[ids].max(axis=1) > max_edge),
+                          ids[np.arange(len(faces)), longest], -1)
+        if (chosen < 0).all():
+            return vertices, faces
+        # A face outside ``refine`` goes along with the highest-ranked edge offered to it;
+        # an edge is split where every face holding it agrees, so a face splits once a round.
+        offered = np.zeros(len(edges), bool)
+        offered[chosen[chosen >= 0]] = True
+        outside = np.where(offered[ids], rank[ids], -1)
+        local = np.where(refine, longest, outside.argmax(axis=1))
+        chosen = np.where(refine | (outside.max(axis=1) < 0), chosen,
+                          ids[np.arange(len(faces)), local])
+        holders = np.bincount(ids.ravel(), minlength=len(edges))
+        agree = np.bincount(chosen[chosen >= 0], minlength=len(edges))
+        split = offered & (agree == holders)
+        midpoint = np.full(len(edges), -1)
+        midpoint[split] = len(vertices) + np.arange(split.sum())
+        vertices = np.concatenate([vertices, vertices[edges[split]].mean(axis=1)])
+        halved = (chosen >= 0) & split[np.maximum(chosen, 0)]
+        f, k = faces[halved], local[halved]
+        rows = np.arange(len(f))
+        a, b, c = f[rows, k], f[rows, (k + 1) % 3], f[rows, (k + 2) % 3]
+        m = midpoint[chosen[halved]]
+        faces = np.concatenate([faces[~halved], np.stack([a, m, c], 1), np.stack([m, b, c], 1)])
+        refine = np.concatenate([refine[~halved], refine[halved], refine[halved]])
+
+
+def _winding(uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """+1 where a triangle of 2D points turns counter-clockwise, -1 where clockwise."""
+    (ax, ay), (bx, by), (cx, cy) = (uv[faces[:, k]].T for k in range(3))
+    return np.sign((bx - ax) * (cy - ay) - (by - ay) * (cx - ax))
+
+
+def _with_neighbours(faces: np.ndarray, selected: np.ndarray) -> np.ndarray:
+    """``selected`` grown by the faces sharing an edge with it."""
+    keys = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]], axis=2)
+    keys = keys[..., 0] * (int(faces.max()) + 1) + keys[..., 1]
+    return selected | np.isin(keys, keys[selected]).any(axis=1)
 
 
 def cap_faces(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
