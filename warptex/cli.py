@@ -271,6 +271,7 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 
 _VOLUME_FORMATS = (".npy", ".exr", ".vol")
 _SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
+_SLICE_CHUNK = 1 << 16  # slice points per engine call, so that its progress bar moves
 
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -494,6 +495,8 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_slice(args: argparse.Namespace) -> int:
+    from tqdm.auto import tqdm
+
     from warptex.cut import plane_points
     from warptex.sheets import save_png, to_rgb8
 
@@ -507,8 +510,14 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes)
     tex = _solid_texture(args)
     start = time.perf_counter()
-    image = tex.query(plane_points(args.origin, args.u, args.v, (h, w)), filter=args.filter)
-    image = image.reshape(h, w, -1)
+    points = plane_points(args.origin, args.u, args.v, (h, w))
+    rows = max(1, _SLICE_CHUNK // w)
+    with tqdm(total=h, desc="slice", unit="row", disable=h <= rows) as bar:
+        parts = []
+        for first in range(0, h, rows):
+            parts.append(tex.query(points[first * w : (first + rows) * w], filter=args.filter))
+            bar.update(min(rows, h - first))
+    image = np.concatenate(parts).reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
         save_png(to_rgb8(image), args.output)
@@ -651,26 +660,34 @@ def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="output mesh: .ply or .glb (vertex colors), .glb or .obj (UV)")
 
 
-def _cmd_bake(args: argparse.Namespace) -> int:
+def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray, desc: str) -> int:
+    """Synthesize the voxels around ``mesh``'s surface, with a progress bar; returns their
+    count. They fill the same brick store that baking and a renderer then read."""
     from tqdm.auto import tqdm
 
-    from warptex.surface import block_transform, shell
+    from warptex.surface import shell
+
+    voxels = shell(mesh, resolution, transform)
+    # The shell is sorted along x, so its chunks are slabs; each costs one engine call.
+    with tqdm(total=len(voxels), desc=desc, unit="voxel", unit_scale=True) as bar:
+        for first in range(0, len(voxels), _SHELL_CHUNK):
+            part = voxels[first : first + _SHELL_CHUNK]
+            tex.query(part + 0.5, filter="nearest")
+            bar.update(len(part))
+    return len(voxels)
+
+
+def _cmd_bake(args: argparse.Namespace) -> int:
+    from warptex.surface import block_transform
 
     _check_mesh_arguments(args)
     mesh = _load_mesh(args.mesh, args.uv)
     tex = _solid_texture(args)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
-    voxels = shell(mesh, args.resolution, transform)
-    # Synthesizing the shell fills the same brick store the bake and a renderer read. The
-    # shell is sorted along x, so its chunks are slabs; each costs one engine call.
-    with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
-        for first in range(0, len(voxels), _SHELL_CHUNK):
-            part = voxels[first : first + _SHELL_CHUNK]
-            tex.query(part + 0.5, filter="nearest")
-            bar.update(len(part))
+    count = _synthesize_shell(tex, mesh, args.resolution, transform, "surface shell")
     files = _textured_export(tex, mesh, transform, args, args.output)
-    print(f"surface shell: {len(voxels)} voxels")
+    print(f"surface shell: {count} voxels")
     _report_store(tex, args.resolution, time.perf_counter() - start)
     if args.store is not None:
         files.append(tex.save())
@@ -716,6 +733,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     transform = block_transform(mesh, args.resolution)
     files = []
     for half, output in zip(halves, outputs, strict=True):
+        _synthesize_shell(tex, half, args.resolution, transform, f"shell of {output.name}")
         files += _textured_export(tex, half, transform, args, output)
     _report_store(tex, args.resolution, time.perf_counter() - start)
     if args.store is not None:

@@ -91,7 +91,8 @@ def _bisect_long_edges(vertices: np.ndarray, faces: np.ndarray, refine: np.ndarr
     corners = np.array([[0, 1], [1, 2], [2, 0]])
     while True:
         pairs = np.sort(faces[:, corners], axis=2).reshape(-1, 2)
-        edges, ids = np.unique(pairs, axis=0, return_inverse=True)
+        keys, ids = np.unique(pairs[:, 0] * len(vertices) + pairs[:, 1], return_inverse=True)
+        edges = np.stack(np.divmod(keys, len(vertices)), axis=1)
         ids = ids.reshape(-1, 3)
         length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
         rank = np.empty(len(edges), np.int64)  # by length, ties by index: one longest edge
