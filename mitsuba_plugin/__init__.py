@@ -96,7 +96,7 @@ def wavefront() -> Iterator[None]:
 def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int = 0,
            progress: Callable[[int, int], None] | None = None) -> mi.TensorXf:
     """Render ``scene``: ``batches`` renders of ``spp / batches`` samples (with different
-    seeds) averaged, calling ``progress(done, batches)`` after each.
+    seeds) averaged, calling ``progress(done, batches)`` before the first and after each.
 
     Each batch is rendered in Mitsuba's symbolic mode with the textures' lookups traced,
     again after synthesizing what it missed, and kept only once it missed nothing; after
@@ -108,6 +108,8 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     total = spp if spp is not None else sensor.sampler().sample_count()
     batches = max(1, min(batches, total))
     image = None
+    if progress is not None:
+        progress(0, batches)
     for i in range(batches):
         share = total // batches + (i < total % batches)
         part = _render_batch(scene, share, seed * batches + i)

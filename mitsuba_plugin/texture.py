@@ -162,7 +162,7 @@ class LazySolidTexture(mi.Texture):
         to_world = affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
         self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
         try:
-            candidates = precompute(*self.exemplars)
+            candidates = precompute(*self.exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:
             raise fail(PLUGIN, "exemplar", f"cannot be used: {e}") from e
         try:

@@ -123,9 +123,12 @@ def test_matches_gridvolume_texture_of_the_same_voxels(granite_32_file, synthesi
 def test_bundled_bunny_scene_renders(tmp_path):
     """scenes/bunny_wood.xml, the README's scene, at a tiny size."""
     use(warptex.best_mitsuba_variant())
-    scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=16, height=16, spp=1)
-    image = rgb(mitsuba_plugin.render(scene))
+    scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=16, height=16, spp=2)
+    calls = []
+    image = rgb(mitsuba_plugin.render(scene, batches=2,
+                                      progress=lambda *done: calls.append(done)))
     assert np.isfinite(image).all() and image.mean() > 0.05
+    assert calls == [(0, 2), (1, 2), (2, 2)]  # a bar shows before the first batch ends
 
 
 def test_render_command_writes_image_and_statistics(tmp_path):

@@ -164,7 +164,7 @@ def precompute(
     ez: Exemplar | str | Path | None = None,
     *,
     cache: bool = True,
-    progress: bool = False,
+    progress: bool | None = False,
     **params: object,
 ) -> CandidateSet:
     """Pre-compute the 3D candidates of three exemplars (Dong 2008, section 4).
@@ -172,7 +172,8 @@ def precompute(
     ``ey``/``ez`` default to ``ex``. With ``cache`` the result is stored under
     ``WARPTEX_CACHE`` keyed by exemplar content and parameters, and a later call loads
     it; a damaged cache file is reported once and recomputed, and a cache that cannot be
-    written is reported once and left out.
+    written is reported once and left out. ``progress`` shows a bar on stderr; None shows
+    it when stderr is a terminal.
     """
     exemplars = [_as_exemplar(e) for e in (ex, ey or ex, ez or ey or ex)]
     channels = [e.features.shape[2] for e in exemplars]
@@ -241,7 +242,7 @@ def _shift_pixels(pix: np.ndarray, size: tuple[int, int], du: int, dv: int) -> n
     return ((u + du) % h) * w + (v + dv) % w
 
 
-def _compute(exemplars: list[Exemplar], p: dict, progress: bool) -> CandidateSet:
+def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> CandidateSet:
     init_warp()
     start = time.perf_counter()
     digests = tuple(e.digest() for e in exemplars)
@@ -261,7 +262,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool) -> CandidateSet
     bar = tqdm(
         total=num_levels * (len(srcs) + roles_per_level),
         desc="candidates",
-        disable=not progress,
+        disable=None if progress is None else not progress,
         unit="step",
     )
     for level in range(num_levels):

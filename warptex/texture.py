@@ -50,7 +50,8 @@ class SolidTexture:
         passes: int = DEFAULT_PASSES,
         whole_bricks: bool = True,
     ) -> None:
-        candidates = source if isinstance(source, CandidateSet) else precompute(source)
+        candidates = (source if isinstance(source, CandidateSet)
+                      else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes)
         self.path = Path(store) if store is not None else None
         if self.path is not None and self.path.exists():
