@@ -1,7 +1,7 @@
 """Mitsuba 3 plugins that evaluate warptex solid textures lazily at shading points.
 
 ``register()`` adds, for the current Mitsuba variant, the texture ``lazy_solid``
-(:mod:`mitsuba_plugin.texture`) and the volume ``lazy_solid_volume``
+(:mod:`mitsuba_plugin.texture`) and the medium ``lazy_solid_medium``
 (:mod:`mitsuba_plugin.volume`). ``render()`` renders a scene so that every voxel it
 shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
 
@@ -50,7 +50,7 @@ def set_best_variant() -> str:
 
 
 def register() -> None:
-    """Register ``lazy_solid`` and ``lazy_solid_volume`` for the current variant.
+    """Register ``lazy_solid`` and ``lazy_solid_medium`` for the current variant.
 
     Mitsuba keeps plugins per variant and a Python plugin subclasses that variant's
     ``mi.Texture``, so, like Mitsuba's own Python plugins, the plugin modules are

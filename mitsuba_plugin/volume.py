@@ -1,13 +1,14 @@
-"""The ``lazy_solid_volume`` Mitsuba volume: a ``lazy_solid`` texture seen as a volume.
+"""The ``lazy_solid_medium`` Mitsuba medium: a heterogeneous medium whose albedo is a
+``lazy_solid`` texture.
 
-A heterogeneous medium reads its ``albedo`` (and ``sigma_t``) from volumes. Mitsuba's own
-texture-to-volume conversion evaluates a texture at p = 0 only, so a solid texture needs
-this wrapper, which queries the texture at the medium interaction's position::
+Mitsuba's own texture-to-volume conversion evaluates a texture at p = 0 only, and Python
+volumes cannot be registered as plugins, so this medium wraps its nested texture in a
+volume that queries it at each medium interaction's position::
 
-    <medium type="heterogeneous">
-        <volume type="lazy_solid_volume" name="albedo">
-            <texture type="lazy_solid" name="texture"> ... </texture>
-        </volume>
+    <medium type="lazy_solid_medium" name="interior">
+        <texture type="lazy_solid" name="albedo"> ... </texture>
+        <float name="sigma_t" value="6"/>   <!-- optional, default 1 -->
+        <float name="scale" value="1"/>     <!-- optional, default 1 -->
     </medium>
 """
 
@@ -17,17 +18,14 @@ import mitsuba as mi
 
 from mitsuba_plugin.texture import fail
 
-PLUGIN = "lazy_solid_volume"
+MEDIUM = "lazy_solid_medium"
 
 
 class LazySolidVolume(mi.Volume):
-    """The RGB of a nested ``lazy_solid`` texture at each medium point."""
+    """The RGB of a ``lazy_solid`` texture at each medium point."""
 
-    def __init__(self, props: mi.Properties) -> None:
-        super().__init__(props)
-        texture = props.get("texture", None)
-        if texture is None or not hasattr(texture, "colors_at"):
-            raise fail(PLUGIN, "texture", 'must be a nested texture of type "lazy_solid"')
+    def __init__(self, texture: mi.Texture) -> None:
+        super().__init__(mi.Properties())
         self.texture = texture
         self._max = texture.max()
 
@@ -52,12 +50,11 @@ class LazySolidVolume(mi.Volume):
     def to_string(self) -> str:
         return f"LazySolidVolume[texture={self.texture.to_string()}]"
 
-MEDIUM = "lazy_solid_medium"
-
 
 def lazy_solid_medium(props: mi.Properties) -> mi.Medium:
     """A ``heterogeneous`` medium whose albedo is a nested ``lazy_solid`` texture."""
-    volume = mi.Properties()
-    volume["texture"] = props["albedo"]
-    return mi.load_dict({"type": "heterogeneous", "albedo": LazySolidVolume(volume),
+    albedo = props.get("albedo", None)
+    if albedo is None or not hasattr(albedo, "colors_at"):
+        raise fail(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
+    return mi.load_dict({"type": "heterogeneous", "albedo": LazySolidVolume(albedo),
                          "sigma_t": props.get("sigma_t", 1.0), "scale": props.get("scale", 1.0)})

@@ -131,6 +131,21 @@ def test_bundled_bunny_scene_renders(tmp_path):
     assert calls == [(0, 2), (1, 2), (2, 2)]  # a bar shows before the first batch ends
 
 
+def test_bundled_medium_scene_renders_its_wood_albedo():
+    """scenes/wood_medium.xml: lazy_solid_medium scatters with the texture's colours (the
+    rosewood is red), and names its property when the albedo is not a lazy_solid."""
+    use(warptex.best_mitsuba_variant())
+    scene = mi.load_file(str(REPO / "scenes" / "wood_medium.xml"), width=32, height=32, spp=4)
+    image = rgb(mitsuba_plugin.render(scene))
+    assert np.isfinite(image).all()
+    red, _, blue = image[13:20, 13:19].reshape(-1, 3).mean(axis=0)  # inside the cube
+    assert red > 1.5 * blue
+    red, _, blue = image[:5].reshape(-1, 3).mean(axis=0)  # the grey floor behind
+    assert red < 1.2 * blue
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "albedo" must be'):
+        mi.load_dict({"type": "lazy_solid_medium", "albedo": {"type": "checkerboard"}})
+
+
 def test_render_command_writes_image_and_statistics(tmp_path):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""
