@@ -7,7 +7,7 @@ Properties (XML or ``mi.load_dict``):
                            folder (``mi.load_dict``: the working directory)
 ``exemplar_x``  string     optional exemplars of the three axes (Dong 2008, section 4);
 ``_y``, ``_z``             each defaults to ``exemplar``
-``seed``        integer    synthesis seed (default 0)
+``seed``        integer    synthesis seed, 0 to 2147483647 (default 0)
 ``jitter``      float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
 ``passes``      integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
                            closer to the exemplar at about twice the synthesis time, see
@@ -145,7 +145,7 @@ class LazySolidTexture(mi.Texture):
         self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
         self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
         try:
-            check_settings(self.jitter, self.passes)
+            check_settings(self.jitter, self.passes, self.seed)
         except SettingError as e:
             raise fail(PLUGIN, e.name, e.problem) from None
         self.scale = get_property(props, "scale", float, DEFAULT_SCALE)

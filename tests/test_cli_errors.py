@@ -43,6 +43,9 @@ def _rotated(path: Path) -> np.ndarray:
 CASES = [
     (["volume", "{exemplar}", "--size", "100000", "-o", "{out}/v.npy"], "--size 100000"),
     (["volume", "{exemplar}", "--passes", "-1", "-o", "{out}/v.npy"], "--passes must be"),
+    (["slice", "{exemplar}", "--seed", "4294967296", "-o", "{out}/s.png"],
+     "--seed must be within [0, 2147483647], got 4294967296"),
+    (["compare", "{exemplar}", "--seed", "-1", "-o", "{out}/cmp"], "--seed must be within"),
     (["volume", "{exemplar}", "-o", "{notes}/v.npy"], "is a file, not a folder"),
     (["volume", "{exemplar}", "-o", "{out}"], "must end in .npy, .exr or .vol"),
     (["slice", "{exemplar}", "--origin", "nan", "0", "0", "-o", "{out}/s.png"], "--origin"),

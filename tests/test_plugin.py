@@ -36,6 +36,7 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"filter": "cubic"}, "filter"),
     ({"scale": -2.0}, "scale"),
     ({"seed": "one"}, "seed"),
+    ({"seed": -1}, "seed"),
     ({"cache_bytes": -1}, "cache_bytes"),
     ({"jitter": 80.0}, "jitter"),
     ({"passes": -1}, "passes"),

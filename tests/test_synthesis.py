@@ -235,6 +235,9 @@ def test_bad_requests_are_clear(candidates):
             Synthesizer(candidates, passes=passes)
     with pytest.raises(ValueError, match="levels must not be negative"):
         Synthesizer(candidates, levels=-1)
+    for seed in (-1, 2**31):  # once kept to their low 31 bits: aliases of other seeds
+        with pytest.raises(ValueError, match=r"seed must be within \[0, 2147483647\]"):
+            Synthesizer(candidates, seed=seed)
     wide = dataclasses.replace(candidates, params={**candidates.params, "neighborhood": 11})
     with pytest.raises(ValueError, match="neighbourhoods of more than 9 voxels"):
         Synthesizer(wide)

@@ -313,7 +313,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
 
     suffix = _check_output(args.output, _VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
-    _check_synthesis_arguments(args.jitter, args.passes)
+    _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
     if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
@@ -438,7 +438,8 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     """The settings of lazy synthesis: every command given the same ones gets the same
     voxels."""
     _add_axis_exemplar_arguments(parser, first)
-    parser.add_argument("--seed", type=int, default=0, help="texture variation (default 0)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="texture variation, 0 to 2147483647 (default 0)")
     parser.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
                         help="strength of the random warp that varies the tiling, 0 to 64 "
                         "(default 1)")
@@ -447,10 +448,10 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
                         "closer to the exemplar at about twice the time (docs/comparisons)")
 
 
-def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER,
-                               passes: int = DEFAULT_PASSES) -> None:
+def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
+                               seed: int = 0) -> None:
     try:
-        check_settings(jitter, passes)
+        check_settings(jitter, passes, seed)
     except SettingError as error:
         raise CliError(f"--{error.name} {error.problem}") from None
 
@@ -507,7 +508,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     for name in ("origin", "u", "v"):
         _check_finite(f"--{name}", getattr(args, name))
     _check_plane_within_limit(args.origin, args.u, args.v, (h, w))
-    _check_synthesis_arguments(args.jitter, args.passes)
+    _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     tex = _solid_texture(args)
     start = time.perf_counter()
     points = plane_points(args.origin, args.u, args.v, (h, w))
@@ -569,7 +570,7 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if args.resolution > COORD_LIMIT // 2:
         raise CliError(f"--resolution must be at most {COORD_LIMIT // 2}, got {args.resolution}")
     _check_at_least("--texture-size", args.texture_size, 1)
-    _check_synthesis_arguments(args.jitter, args.passes)
+    _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.uv == "none":
         formats, what = VERTEX_COLOR_FORMATS, "a mesh with vertex colors (--uv none)"
     else:
@@ -761,7 +762,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated methods (default: all)")
     parser.add_argument("--seed", type=int, default=0,
-                        help="seed of every randomized method (default 0)")
+                        help="seed of every randomized method, 0 to 2147483647 (default 0)")
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
@@ -776,7 +777,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
-    _check_synthesis_arguments(passes=args.passes)
+    _check_synthesis_arguments(passes=args.passes, seed=args.seed)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes)

@@ -10,6 +10,7 @@ DEFAULT_PASSES = 2  # the paper's (section 5.2)
 # Each pass widens every level's dependency region (section 5.2), so time grows faster than
 # the passes; hundreds would exhaust memory in dependency_radius's masks alone.
 MAX_PASSES = 8
+MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
 
 
 class SettingError(ValueError):
@@ -21,9 +22,12 @@ class SettingError(ValueError):
         self.problem = problem
 
 
-def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES) -> None:
-    """Raise SettingError unless ``jitter`` and ``passes`` are within what the engine
-    supports: the user-facing settings of :class:`warptex.synthesis.Synthesizer`."""
+def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
+                   seed: int = 0) -> None:
+    """Raise SettingError unless ``jitter``, ``passes`` and ``seed`` are within what the
+    engine supports: the user-facing settings of :class:`warptex.synthesis.Synthesizer`."""
+    if not 0 <= seed <= MAX_SEED:
+        raise SettingError("seed", f"must be within [0, {MAX_SEED}], got {seed}")
     if not 0.0 <= jitter <= MAX_JITTER:
         raise SettingError("jitter", f"must be within [0, {MAX_JITTER:g}], got {jitter}")
     if not 0 <= passes <= MAX_PASSES:

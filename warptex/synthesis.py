@@ -252,12 +252,12 @@ class Synthesizer:
     ) -> None:
         if subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
-        check_settings(jitter, passes)
+        check_settings(jitter, passes, int(seed))
         if levels < 0:
             raise ValueError(f"levels must not be negative, got {levels}")
         init_warp()
         self.candidates = candidates
-        self.seed = int(seed) & 0x7FFFFFFF
+        self.seed = int(seed)
         self.jitter = float(jitter)
         self.passes = int(passes)
         self.subpasses = int(subpasses)
