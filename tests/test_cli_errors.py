@@ -165,3 +165,14 @@ def test_texture_settings_reach_volume_and_slice(files, tmp_path, capsys):
                  "nearest", "--shape", "8", "8", "--origin", "0.5", "0.5", "2.5",
                  "--passes", "1", "-o", str(plane)]) == 0
     np.testing.assert_array_equal(np.load(plane), expected[:, :, 2])
+
+
+def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
+    import warptex.cli
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(warptex.cli, "_check_device", interrupted)
+    assert main(["info", str(files["exemplar"])]) == 130
+    assert capsys.readouterr().err == "\nwarptex: interrupted\n"

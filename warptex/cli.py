@@ -836,7 +836,10 @@ _SUBCOMMANDS: dict[
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="warptex", description="Lazy solid texture synthesis from 2D exemplars."
+        prog="warptex", description="Lazy solid texture synthesis from 2D exemplars.",
+        epilog="environment: WARPTEX_DEVICE=cpu|cuda picks the device (default: a GPU when "
+        "there is one); WARPTEX_CACHE is the folder of the candidate cache (default "
+        "~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel cache (built on first use).",
     )
     parser.add_argument("--version", action="version", version=f"warptex {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -873,3 +876,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # outputs are renamed into place whole, so none is partial
+            print("\nwarptex: interrupted", file=sys.stderr)
+            return 130
