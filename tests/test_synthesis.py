@@ -145,6 +145,20 @@ def test_jitter_lattice_floors_negative_coordinates(warp_device):
         assert np.array_equal(out.numpy(), x // n)
 
 
+def test_the_ends_of_the_coordinate_range_are_synthesized_right(candidates):
+    """Without jitter the texture repeats with the slab's period, so the last voxels of the
+    coordinate range equal their repeats near the origin: their work regions (8 sub-passes,
+    an apron of 5 blocks) stay within the packed block keys."""
+    syn = Synthesizer(candidates, seed=5, jitter=0.0, subpasses=8)
+    n = int(candidates.params["neighborhood"])
+    period = 2 * n * 2 ** (syn.finest - syn.start)  # even at every level: sub-pass parity
+    for end, step in ((COORD_LIMIT - 1, -1), (1 - COORD_LIMIT, 1)):
+        far = np.array([[end + step * r, -3, 4] for r in range(3)])
+        near = far.copy()
+        near[:, 0] = far[:, 0] - (far[:, 0] // period) * period
+        np.testing.assert_array_equal(syn.voxels(far), syn.voxels(near))
+
+
 def test_subpasses_are_deterministic_too(candidates):
     pts = np.array([[2, 3, 4], [-7, 8, -9]])
     alone = Synthesizer(candidates, seed=3, subpasses=8).voxels(pts[:1])

@@ -32,7 +32,11 @@ BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
 _KEY_BITS = 21
-COORD_LIMIT = BLOCK * (_KEY_BIAS - 4)  # largest |voxel coordinate| at the finest level
+# Blocks kept free at the ends of the biased 21-bit key fields for the work region around a
+# request (its apron of dependencies, plus one block of neighbour lookups); settings whose
+# apron would not fit are refused, so a key field never over- or underflows.
+_KEY_MARGIN = 64
+COORD_LIMIT = BLOCK * (_KEY_BIAS - _KEY_MARGIN)  # largest |voxel coordinate| at the finest level
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
@@ -121,7 +125,7 @@ def _unpack(keys: np.ndarray) -> np.ndarray:
 
 def _key_step(d: tuple[int, int, int]) -> int:
     """What adding block offset ``d`` adds to a packed key (fields never over- or
-    underflow: coordinates stay far inside their biased 21 bits)."""
+    underflow: requests stay ``_KEY_MARGIN`` blocks inside their biased 21 bits)."""
     return (d[0] << (2 * _KEY_BITS)) + (d[1] << _KEY_BITS) + d[2]
 
 
@@ -271,6 +275,11 @@ class Synthesizer:
                              f"voxels at most {BLOCK} away through its block's neighbours")
         self._half = half
         self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
+        if self._apron + 2 > _KEY_MARGIN:
+            raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
+                             f"{self.passes} passes of {self.subpasses} sub-passes and "
+                             f"{2 * half + 1}-voxel neighbourhoods; at most "
+                             f"{_KEY_MARGIN - 2} are supported")
         reads = np.argwhere(neighborhood_shape(half)) - half
         reads = reads[np.abs(reads).sum(axis=1) > 0]
         self._shape = wp.array(reads.astype(np.int32), dtype=wp.vec3i, device=self.device)
