@@ -257,6 +257,17 @@ def test_bad_requests_are_clear(candidates):
         Synthesizer(wide)
 
 
+def test_candidate_counts_reach_the_search(small_exemplar, candidates):
+    """Synthesis searches every 2D and 3D candidate the set keeps, but the paper's 4 3D
+    candidates at the finest level (section 5.1); more candidates give another texture."""
+    more = precompute(small_exemplar, cache=False, candidates_2d=6, candidates_3d=16)
+    syn = Synthesizer(more, seed=3)
+    assert [syn._tables[lv].k2 for lv in (syn.start, syn.finest)] == [6, 2]
+    assert [syn._tables[lv].k3 for lv in (syn.start, syn.finest)] == [16, 4]
+    box = syn.box((-5, 3, 7), (8, 8, 8))
+    assert not np.array_equal(box, Synthesizer(candidates, seed=3).box((-5, 3, 7), (8, 8, 8)))
+
+
 def test_three_different_exemplars(data_dir, warp_device):
     base = Exemplar.load(data_dir / "granite_64.png").colors
     exs = [Exemplar(np.ascontiguousarray(base[i * 16 : i * 16 + 32, :32])) for i in range(3)]

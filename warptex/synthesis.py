@@ -40,6 +40,7 @@ COORD_LIMIT = BLOCK * (_KEY_BIAS - _KEY_MARGIN)  # largest |voxel coordinate| at
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
+_FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (section 5.1)
 _LOCAL = np.indices((BLOCK,) * 3).reshape(3, -1).T  # voxel offsets in a block, x slowest
 
 
@@ -515,8 +516,12 @@ class Synthesizer:
         t.half = n // 2
         t.nfeat = int(sources[0].feat.shape[2])
         t.shift = wp.vec3i(*[sources[cs.axis_source[k]].shift for k in range(3)])
-        t.k2 = min(2 if finest else 4, int(sources[0].cand2d.shape[1]))
-        t.k3 = min(4 if finest else 12, int(roles[0].cand.shape[1]))
+        # All the 2D candidates the candidate set keeps (its candidates_2d, or _finest), and
+        # its 3D candidates, but only the paper's 4 of them at the finest level (section 5.1).
+        t.k2 = int(sources[0].cand2d.shape[1])
+        t.k3 = int(roles[0].cand.shape[1])
+        if finest:
+            t.k3 = min(t.k3, _FINEST_CANDIDATES_3D)
 
         def upload(arrays: list[np.ndarray], per_axis: list[int], dtype=wp.int32) -> tuple:
             """Concatenate per-source arrays; offsets count elements of ``dtype``."""
