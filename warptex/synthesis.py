@@ -26,8 +26,9 @@ from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
 
 # Raised whenever the engine gives any voxel another result from the same inputs, so that
-# brick stores written by an earlier engine are not reused. 2: shifted neighbour triples.
-ENGINE_VERSION = 2
+# brick stores written by an earlier engine are not reused. 2: shifted neighbour triples;
+# 3: every candidate a set keeps is searched (only sets with non-default counts changed).
+ENGINE_VERSION = 3
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _KEY_BIAS = 1 << 20
