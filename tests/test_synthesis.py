@@ -108,6 +108,25 @@ def test_bit_identical_across_processes(candidates, tmp_path, small_exemplar):
     assert np.array_equal(np.load(out), here)
 
 
+def test_initialization_tiles_the_candidate_slab(candidates):
+    """Section 4.3 and 5.1: without jitter or correction a voxel holds the x exemplar's
+    pixel under it and that pixel's first 3D candidate, its two other coordinates moved
+    along the slab's depth (x): the column of the y exemplar, the row of the z one."""
+    syn = Synthesizer(candidates, jitter=0.0, passes=0, levels=0)
+    n = int(candidates.params["neighborhood"])
+    h, w = candidates.sources[syn.finest][0].size  # one exemplar on all three axes
+    vox = np.indices((n, h, w)).reshape(3, -1).T + np.array([-2 * n, 3 * h, -w])
+    got = syn.triples(vox)
+    own = (vox[:, 1] % h) * w + vox[:, 2] % w
+    first = candidates.roles[syn.finest][0].cand[own, 0, :]
+    depth = vox[:, 0] % n - n // 2
+    np.testing.assert_array_equal(got[:, 0], np.stack([vox[:, 1] % h, vox[:, 2] % w], 1))
+    np.testing.assert_array_equal(got[:, 1], np.stack([first[:, 0] // w,
+                                                       (first[:, 0] % w + depth) % w], 1))
+    np.testing.assert_array_equal(got[:, 2], np.stack([(first[:, 1] // w + depth) % h,
+                                                       first[:, 1] % w], 1))
+
+
 def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
     box_a = Synthesizer(candidates, seed=1).box((0, 0, 0), (16, 16, 16))
     box_b = Synthesizer(candidates, seed=2).box((0, 0, 0), (16, 16, 16))

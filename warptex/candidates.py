@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,9 +93,6 @@ class CandidateSet:
     colors: list[np.ndarray]  # per source, finest level, (H, W, C) float32
     sources: list[list[SourceLevel]]  # [level][source]
     roles: list[list[RoleLevel]]  # [level][role]
-    # Time this process spent computing the set; not saved (files must be byte-identical
-    # for the same input), so a loaded set reports 0.
-    seconds: float = 0.0
     stats: dict = field(default_factory=dict)
 
     @property
@@ -113,33 +109,6 @@ class CandidateSet:
 
     def role_of_axis(self, axis: int) -> int:
         return 0 if self.shared else axis
-
-    def source_of(self, level: int, axis: int) -> SourceLevel:
-        return self.sources[level][self.axis_source[axis]]
-
-    def slab(self, level: int, axis: int = 0) -> np.ndarray:
-        """Candidate slab of ``axis``'s exemplar (section 4.3), as volume triples.
-
-        Returns ``(N, h, w, 3)`` pixel indices: layer t lies at depth t - N//2 along
-        ``axis``; entry k of a triple indexes the exemplar of axis k. Built from the best
-        (first) candidate of every pixel.
-        """
-        n = int(self.params["neighborhood"])
-        half = n // 2
-        own = self.source_of(level, axis)
-        nxt = self.source_of(level, (axis + 1) % 3)
-        nnx = self.source_of(level, (axis + 2) % 3)
-        h, w = own.size
-        first = self.roles[level][self.role_of_axis(axis)].cand[:, 0, :]
-        out = np.empty((n, h * w, 3), np.int32)
-        for t in range(n):
-            depth = t - half
-            # Moving along `axis` is the second coordinate of the next exemplar and the
-            # first coordinate of the next-next one (cyclic orientation).
-            out[t, :, axis] = np.arange(h * w)
-            out[t, :, (axis + 1) % 3] = _shift_pixels(first[:, 0], nxt.size, 0, depth)
-            out[t, :, (axis + 2) % 3] = _shift_pixels(first[:, 1], nnx.size, depth, 0)
-        return out.reshape(n, h, w, 3)
 
     def nbytes(self) -> int:
         return sum(a.nbytes for a in _flatten(self).values())
@@ -236,15 +205,8 @@ def _resolve_params(params: dict) -> dict:
     return p
 
 
-def _shift_pixels(pix: np.ndarray, size: tuple[int, int], du: int, dv: int) -> np.ndarray:
-    h, w = size
-    u, v = np.divmod(pix, w)
-    return ((u + du) % h) * w + (v + dv) % w
-
-
 def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> CandidateSet:
     init_warp()
-    start = time.perf_counter()
     digests = tuple(e.digest() for e in exemplars)
     unique = list(dict.fromkeys(digests))
     axis_source = tuple(unique.index(d) for d in digests)
@@ -290,7 +252,6 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
         sources=sources,
         roles=roles,
     )
-    cs.seconds = time.perf_counter() - start
     cs.stats = {"fallback_pixels": fallbacks}
     return cs
 

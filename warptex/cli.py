@@ -397,7 +397,7 @@ def _exr_channel_names(channels: int) -> list[str]:
     return [f"C{c}" for c in range(channels)]
 
 
-def exr_sheet(volume: np.ndarray) -> np.ndarray:
+def _exr_sheet(volume: np.ndarray) -> np.ndarray:
     """The z-slices of an (X, Y, Z, C) volume side by side: pixel (row y, column z*X + x)
     holds voxel (x, y, z), so the sheet is Y rows by Z*X columns."""
     x, y, z, c = volume.shape
@@ -408,7 +408,7 @@ def _write_exr(path: Path, volume: np.ndarray) -> None:
     """One single-part scanline OpenEXR image, float32, of the z-slices side by side."""
     x, y, z, _ = volume.shape
     layout = f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)"
-    _write_exr_image(path, exr_sheet(volume), {"warptexLayout": layout})
+    _write_exr_image(path, _exr_sheet(volume), {"warptexLayout": layout})
 
 
 def _write_exr_image(path: Path, image: np.ndarray, extra: dict | None = None) -> None:
