@@ -18,6 +18,9 @@ BLOCK = 4
 BLOCK_VOXELS = 64
 MAX_DIMS = 12
 PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
+# Terms a float32 sum adds exactly in any order: |basis| <= 127 times features <= 3 * 255
+# stay below 2^24 (see project_neighborhoods).
+EXACT_ROW_TERMS = (1 << 24) // (127 * 3 * 255)
 
 appearance_vector = wp.types.vector(length=MAX_DIMS, dtype=wp.int32)
 """A PCA-projected neighbourhood; unused trailing dimensions are zero."""
@@ -363,10 +366,10 @@ def project_neighborhoods(
     axes (section 5.1), read from the halo block ``halo_of`` its block.
 
     Each row of a neighbourhood is summed in float32, which vectorizes on CPUs, and is
-    still exact integer arithmetic: a row has at most 9 * F terms of |basis| <= 127 times
-    features <= 3 * 255, below 2^24 for up to 19 features, so any order of the additions
-    gives the same sum. Rows add up in int32. The three planes accumulate side by side:
-    independent sums keep the CPU's floating-point units busy.
+    still exact integer arithmetic: a row's N * F terms of |basis| <= 127 times features
+    <= 3 * 255 stay below 2^24 (N * F <= EXACT_ROW_TERMS, which the engine checks), so any
+    order of the additions gives the same sum. Rows add up in int32. The three planes
+    accumulate side by side: independent sums keep the CPU's floating-point units busy.
     """
     i = active[first + wp.tid()]
     own = halo_voxel_of(halo_of, i, t.half)

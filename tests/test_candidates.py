@@ -411,3 +411,7 @@ def test_unknown_or_bad_parameters_are_rejected():
         precompute(ex, cache=False, strip=3)
     with pytest.raises(ValueError, match="neighborhood must be odd"):
         precompute(ex, cache=False, neighborhood=4)
+    with pytest.raises(ValueError, match=r"candidates_3d must be within \[1, 255\]"):
+        precompute(ex, cache=False, candidates_3d=300)  # its counts are stored as bytes
+    with pytest.raises(ValueError, match="candidates_2d_finest must be at least 1"):
+        precompute(ex, cache=False, candidates_2d_finest=0)

@@ -274,6 +274,10 @@ def test_bad_requests_are_clear(candidates):
     wide = dataclasses.replace(candidates, params={**candidates.params, "neighborhood": 11})
     with pytest.raises(ValueError, match="neighbourhoods of more than 9 voxels"):
         Synthesizer(wide)
+    rng = np.random.default_rng(0)
+    many = precompute(Exemplar(rng.random((16, 16, 35), np.float32)), cache=False)
+    with pytest.raises(ValueError, match=r"35 feature channels are too many .* \(at most 34\)"):
+        Synthesizer(many)
 
 
 def test_candidate_counts_reach_the_search(small_exemplar, candidates):

@@ -202,6 +202,12 @@ def _resolve_params(params: dict) -> dict:
     p = {**DEFAULT_PARAMS, **params}
     if int(p["neighborhood"]) < 3 or int(p["neighborhood"]) % 2 == 0:
         raise ValueError(f"neighborhood must be odd and >= 3, got {p['neighborhood']}")
+    # Counts of 3D candidates are stored as bytes.
+    if not 1 <= int(p["candidates_3d"]) <= 255:
+        raise ValueError(f"candidates_3d must be within [1, 255], got {p['candidates_3d']}")
+    for name in ("candidates_2d", "candidates_2d_finest"):
+        if int(p[name]) < 1:
+            raise ValueError(f"{name} must be at least 1, got {p[name]}")
     return p
 
 
@@ -299,7 +305,9 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     dims = int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"])))
     dims = min(dims, vec.shape[1], MAX_DIMS)
     basis_f = evecs[:, :dims].T
-    # Fix each component's sign so the basis is reproducible across LAPACK builds.
+    # Fix each component's sign, which LAPACK builds choose freely. The basis is still found
+    # in floating point, so another BLAS or LAPACK build may round a coefficient otherwise;
+    # machines that must agree bit for bit share a candidate file (CandidateSet.save/load).
     signs = np.sign(basis_f[np.arange(dims), np.argmax(np.abs(basis_f), axis=1)])
     basis_f *= signs[:, None]
     scale = 127.0 / max(np.abs(basis_f).max(), 1e-12)

@@ -275,6 +275,11 @@ class Synthesizer:
             raise ValueError(f"neighbourhoods of more than {2 * BLOCK + 1} voxels are not "
                              f"supported (the candidates use {2 * half + 1}): a kernel reads "
                              f"voxels at most {BLOCK} away through its block's neighbours")
+        channels = int(candidates.sources[0][0].feat.shape[2])
+        if (2 * half + 1) * channels > _k.EXACT_ROW_TERMS:
+            raise ValueError(f"{channels} feature channels are too many for exact projections "
+                             f"with {2 * half + 1}-voxel neighbourhoods (at most "
+                             f"{_k.EXACT_ROW_TERMS // (2 * half + 1)})")
         self._half = half
         self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
         if self._apron + 2 > _KEY_MARGIN:
