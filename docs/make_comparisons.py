@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from warptex.archive import write_atomically
 from warptex.compare import METHODS, compare, write_report
 
 HERE = Path(__file__).resolve().parent
@@ -58,7 +59,8 @@ def main() -> None:
             f"{r['lazy'].repetition:.3f} | {r['tiled'].repetition:.3f} |"
         )
         print(lines[-1], flush=True)
-    (out / "README.md").write_text("\n".join(lines) + "\n")
+    text = "\n".join(lines) + "\n"
+    write_atomically(out / "README.md", lambda tmp: tmp.write_text(text))
 
 
 if __name__ == "__main__":

@@ -184,9 +184,9 @@ def initialize(
     n = 2 * t.half + 1
     depth = wrap(p[0], n) - t.half
     own = pixel_index(p[1], p[2], t.height[0], t.width[0])
-    first = t.cand3d_off[0] + own * t.cand3d_stride * 2
-    q = shift_pixel(t.cand3d[first], 0, depth, t.height[1], t.width[1])
-    r = shift_pixel(t.cand3d[first + 1], depth, 0, t.height[2], t.width[2])
+    best = t.cand3d_off[0] + own * t.cand3d_stride * 2  # the pixel's first 3D candidate
+    q = shift_pixel(t.cand3d[best], 0, depth, t.height[1], t.width[1])
+    r = shift_pixel(t.cand3d[best + 1], depth, 0, t.height[2], t.width[2])
     triples[i] = wp.vec3i(own, q, r)
 
 
@@ -274,7 +274,7 @@ def spread_need(
 @wp.kernel
 def gather_halos(
     first: int,
-    chunk: int,
+    lo: int,
     blocks: wp.array(dtype=wp.int32),
     nbr: wp.array2d(dtype=wp.int32),
     src: wp.array(dtype=wp.vec3i),
@@ -287,7 +287,8 @@ def gather_halos(
     every side, in a dense (4 + 2 * half)^3 layout: projection and correction then address
     neighbours with plain strides instead of a block-neighbour lookup per neighbour
     (section 5.1). Absent voxels hold -1, which no feature sum or pixel takes. One thread
-    fills one z row of a halo block; block ``blocks[q]`` goes to halo block ``q - chunk``."""
+    fills one z row of a halo block; block ``blocks[q]`` goes to halo block ``q - lo``, ``lo``
+    being the first block of the chunk gathered."""
     side = BLOCK + 2 * t.half
     row = first + wp.tid()
     q = row // (side * side)
@@ -297,7 +298,7 @@ def gather_halos(
     # A row crosses at most three blocks along z: one table entry each, not one per voxel.
     pre = ((px >> 2) + 1) * 9 + ((py >> 2) + 1) * 3 + 1
     lxy = ((px & 3) << 4) + ((py & 3) << 2)
-    out = ((q - chunk) * side * side + r) * side * t.nfeat
+    out = ((q - lo) * side * side + r) * side * t.nfeat
     for z in range(side):
         pz = z - t.half
         slot = nbr[blocks[q], pre + (pz >> 2)]

@@ -1,4 +1,4 @@
-"""Using both CPU cores with Warp, which runs one CPU launch on one thread.
+"""Using several CPU cores (up to 8) with Warp, which runs one CPU launch on one thread.
 
 Kernels written for this take the index of their first item as their first argument, so a
 launch over items [start, stop) can be cut into contiguous ranges launched from several
