@@ -24,6 +24,7 @@ REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
 import numpy as np  # noqa: E402
+from timing import best_of  # noqa: E402
 
 from warptex.candidates import precompute  # noqa: E402
 from warptex.texture import SolidTexture  # noqa: E402
@@ -31,15 +32,6 @@ from warptex.texture import SolidTexture  # noqa: E402
 REGION = 64
 POINTS = 10_000_000
 RADIUS = 200.0
-
-
-def best_of(repeats: int, fn) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def dense_trilinear(dense: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -71,12 +63,12 @@ def warm(candidates) -> None:
         v = np.floor(pts).astype(np.intp)
         return dense[v[:, 0], v[:, 1], v[:, 2]]
 
-    t_gather = best_of(3, gather)
-    t_dense_tri = best_of(1, lambda: dense_trilinear(dense, pts))
+    t_gather = best_of(gather, 3)
+    t_dense_tri = best_of(lambda: dense_trilinear(dense, pts), 1)
     print(f"numpy dense gather:    {t_gather:.3f} s  {POINTS / t_gather / 1e6:6.2f} Mpts/s")
     print(f"numpy dense trilinear: {t_dense_tri:.3f} s  {POINTS / t_dense_tri / 1e6:6.2f} Mpts/s")
     for filter in ("nearest", "trilinear"):
-        t = best_of(3, lambda f=filter: tex.query(pts, filter=f))
+        t = best_of(lambda f=filter: tex.query(pts, filter=f), 3)
         ref = t_gather if filter == "nearest" else t_dense_tri
         print(f"store {filter:9s}:       {t:.3f} s  {POINTS / t / 1e6:6.2f} Mpts/s  "
               f"{t / t_gather:.2f}x dense gather, {t / ref:.2f}x dense {filter}")

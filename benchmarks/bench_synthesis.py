@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from timing import best_of
 
 from warptex import metrics
 from warptex.candidates import precompute
@@ -24,15 +25,6 @@ from warptex.synthesis import Synthesizer, dependency_chain
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
-
-
-def best_of(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def jitter_sweep(folder: Path) -> None:

@@ -168,7 +168,9 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_exemplar_arguments(parser)
     _add_axis_exemplar_arguments(parser, "PATH")
     parser.add_argument(
-        "-o", "--output", type=Path, metavar="FILE", help="also write the candidates to FILE"
+        "-o", "--output", type=Path, metavar="FILE",
+        help="also write the candidates to FILE, to share them with another machine "
+        "(warptex.CandidateSet.load reads it)",
     )
     parser.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
 
@@ -284,7 +286,8 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     _add_exemplar_arguments(parser)
     _add_texture_arguments(parser, "PATH")
-    parser.add_argument("--size", type=int, default=64, help="edge of the cube in voxels (64)")
+    parser.add_argument("--size", type=int, default=64,
+                        help="edge of the cube in voxels (default 64)")
     parser.add_argument(
         "--method",
         choices=("lazy", "kopf"),
@@ -531,15 +534,14 @@ def _cmd_slice(args: argparse.Namespace) -> int:
 
 def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],
                               shape: tuple[int, int]) -> None:
-    from warptex.synthesis import COORD_LIMIT
+    from warptex.texture import POINT_LIMIT
 
     h, w = shape
     corners = [np.asarray(origin) + r * np.asarray(u) + c * np.asarray(v)
                for r in (0, h - 1) for c in (0, w - 1)]
-    # Trilinear filtering reads one voxel beyond a point.
-    if np.abs(corners).max() >= COORD_LIMIT - 2:
+    if np.abs(corners).max() >= POINT_LIMIT:
         raise CliError(f"the plane reaches beyond the texture's coordinate range "
-                       f"(+-{COORD_LIMIT - 2} voxels): check --origin, --u, --v and --shape")
+                       f"(+-{POINT_LIMIT} voxels): check --origin, --u, --v and --shape")
 
 
 def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
@@ -635,6 +637,16 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
     return files
 
 
+def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:
+    """What `bake` and `cut` end with: the store's report, the store saved if asked, and
+    the files written."""
+    _report_store(tex, args.resolution, time.perf_counter() - start)
+    if args.store is not None:
+        files.append(tex.save())
+    print("written: " + ", ".join(str(f) for f in files))
+    return 0
+
+
 def _report_store(tex, resolution: int, elapsed: float) -> None:
     stats = tex.store.stats()
     block = resolution**3
@@ -689,11 +701,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     count = _synthesize_shell(tex, mesh, args.resolution, transform, "surface shell")
     files = _textured_export(tex, mesh, transform, args, args.output)
     print(f"surface shell: {count} voxels")
-    _report_store(tex, args.resolution, time.perf_counter() - start)
-    if args.store is not None:
-        files.append(tex.save())
-    print("written: " + ", ".join(str(f) for f in files))
-    return 0
+    return _finish_mesh_command(tex, args, files, start)
 
 
 def _add_cut_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -736,11 +744,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     for half, output in zip(halves, outputs, strict=True):
         _synthesize_shell(tex, half, args.resolution, transform, f"shell of {output.name}")
         files += _textured_export(tex, half, transform, args, output)
-    _report_store(tex, args.resolution, time.perf_counter() - start)
-    if args.store is not None:
-        files.append(tex.save())
-    print("written: " + ", ".join(str(f) for f in files))
-    return 0
+    return _finish_mesh_command(tex, args, files, start)
 
 
 def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -802,7 +806,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="image to write: .exr (linear) or .png (sRGB)")
     parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     parser.add_argument("--res", metavar="WxH",
-                        help="image size; sets the scene's $width and $height")
+                        help="image size (default: the scene's); sets the scene's $width and "
+                        "$height parameters, which the scene must declare as scenes/ do")
 
 
 def _cmd_render(args: argparse.Namespace) -> int:

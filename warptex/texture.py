@@ -22,7 +22,7 @@ from warptex.store import FILTERS, BrickStore
 from warptex.synthesis import COORD_LIMIT, Synthesizer
 
 _CHUNK = 1 << 20  # points per batch: bounds the memory of one lookup and synthesis
-_LIMIT = COORD_LIMIT - 2  # trilinear reads the voxel after floor(p - 0.5)
+POINT_LIMIT = COORD_LIMIT - 2  # largest |coordinate| of a query: trilinear reads a voxel beyond
 
 
 class SolidTexture:
@@ -121,8 +121,8 @@ class SolidTexture:
         return target
 
     def _sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
-        if len(points) and (points.min() <= -_LIMIT or points.max() >= _LIMIT):
-            raise ValueError(f"points must lie within +-{_LIMIT} voxels")
+        if len(points) and (points.min() <= -POINT_LIMIT or points.max() >= POINT_LIMIT):
+            raise ValueError(f"points must lie within +-{POINT_LIMIT} voxels")
         self.store.sample(np.ascontiguousarray(points, np.float64), filter, out)
 
     def _fill_color(self, fill: float | Sequence[float]) -> np.ndarray:
