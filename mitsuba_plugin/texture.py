@@ -57,10 +57,10 @@ from warptex.store import StoreFileError
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
-SPACES = ("world", "object")
+_SPACES = ("world", "object")
 FILTERS = ("trilinear", "nearest")
-DEFAULT_SCALE = 64.0
-DEFAULT_CACHE_BYTES = 256 << 20
+_DEFAULT_SCALE = 64.0
+_DEFAULT_CACHE_BYTES = 256 << 20
 
 class PropertyError(ValueError):
     """A property of a warptex plugin is missing or invalid."""
@@ -71,7 +71,7 @@ def fail(plugin: str, name: str, problem: str) -> PropertyError:
     return PropertyError(f'{plugin}: property "{name}" {problem}')
 
 
-def get_property(props: mi.Properties, name: str, kind: type, default: Any,
+def _get_property(props: mi.Properties, name: str, kind: type, default: Any,
                  plugin: str = PLUGIN) -> Any:
     """Property ``name`` converted to ``kind`` (int, float or str), or ``default``."""
     if name not in props:
@@ -84,10 +84,10 @@ def get_property(props: mi.Properties, name: str, kind: type, default: Any,
     return value
 
 
-def choice(props: mi.Properties, name: str, options: tuple[str, ...],
+def _choice(props: mi.Properties, name: str, options: tuple[str, ...],
            plugin: str = PLUGIN) -> str:
     """String property ``name``, one of ``options`` (the first is the default)."""
-    value = get_property(props, name, str, options[0], plugin)
+    value = _get_property(props, name, str, options[0], plugin)
     if value not in options:
         allowed = " or ".join(f'"{o}"' for o in options)
         raise fail(plugin, name, f'must be {allowed}, got "{value}"')
@@ -108,10 +108,10 @@ def scene_path(name: str, must_exist: bool) -> Path:
     return (Path(str(resolver[0])) / name).absolute()
 
 
-def exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
+def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
     """The exemplars of the x, y and z axes, each checked to exist."""
-    base = get_property(props, "exemplar", str, None, plugin)
-    names = [get_property(props, f"exemplar_{a}", str, base, plugin) for a in "xyz"]
+    base = _get_property(props, "exemplar", str, None, plugin)
+    names = [_get_property(props, f"exemplar_{a}", str, base, plugin) for a in "xyz"]
     paths = []
     for axis, name in zip("xyz", names, strict=True):
         if name is None:
@@ -124,7 +124,7 @@ def exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
     return paths
 
 
-def affine_matrix(transform: Any) -> np.ndarray:
+def _affine_matrix(transform: Any) -> np.ndarray:
     """The 4x4 float64 matrix of a Mitsuba transform (scalar or width-1 JIT)."""
     matrix = np.array(transform.matrix, np.float64)
     return matrix.reshape(4, 4)
@@ -140,26 +140,26 @@ class LazySolidTexture(mi.Texture):
 
     def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
-        self.exemplars = exemplar_paths(props)
-        self.seed = get_property(props, "seed", int, 0)
-        self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
-        self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
+        self.exemplars = _exemplar_paths(props)
+        self.seed = _get_property(props, "seed", int, 0)
+        self.jitter = _get_property(props, "jitter", float, DEFAULT_JITTER)
+        self.passes = _get_property(props, "passes", int, DEFAULT_PASSES)
         try:
             check_settings(self.jitter, self.passes, self.seed)
         except SettingError as e:
             raise fail(PLUGIN, e.name, e.problem) from None
-        self.scale = get_property(props, "scale", float, DEFAULT_SCALE)
+        self.scale = _get_property(props, "scale", float, _DEFAULT_SCALE)
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise fail(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
-        self.space = choice(props, "space", SPACES)
-        self.filter = choice(props, "filter", FILTERS)
-        cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES)
+        self.space = _choice(props, "space", _SPACES)
+        self.filter = _choice(props, "filter", FILTERS)
+        cache_bytes = _get_property(props, "cache_bytes", int, _DEFAULT_CACHE_BYTES)
         if cache_bytes < 0:
             raise fail(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
-        cache = get_property(props, "cache", str, None)
+        cache = _get_property(props, "cache", str, None)
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
         # A JIT-typed transform, so mi.traverse can update it in place.
-        to_world = affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
+        to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
         self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
         try:
             candidates = precompute(*self.exemplars, progress=None)  # a bar in a terminal
@@ -171,12 +171,12 @@ class LazySolidTexture(mi.Texture):
                                       store=self.cache)
         except StoreFileError as e:
             raise fail(PLUGIN, "cache", f"cannot be used: {e}") from e
-        colors = exemplar_colors(candidates)
+        colors = _exemplar_colors(candidates)
         self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
         self._mean = float(colors.mean())
         self._max = float(colors.max())
         self._traced: TracedLookup | None = None
-        self._frames: ObjectFrames | None = None
+        self._frames: _ObjectFrames | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture
         self._update_transform()
         mitsuba_plugin.live_textures.add(self)
@@ -234,7 +234,7 @@ class LazySolidTexture(mi.Texture):
             p = [mi.Float64(c) for c in it.p]
             if self.space == "object":
                 p = self._frames.to_object(it, p)
-            p = apply_affine(self._world_to_texture.tolist(), *p)
+            p = _apply_affine(self._world_to_texture.tolist(), *p)
             return self._traced.colors(p, active)
         width = dr.width(it.p)
         # One kernel interleaves the points; NumPy then views Dr.Jit's memory (DLPack).
@@ -252,7 +252,7 @@ class LazySolidTexture(mi.Texture):
 
     def query_texture_space(self, points: np.ndarray) -> np.ndarray:
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3)."""
-        return as_rgb(self.solid.query(points, filter=self.filter))
+        return _as_rgb(self.solid.query(points, filter=self.filter))
 
     # -- traced lookups (driven by mitsuba_plugin.render) --------------------------------
 
@@ -265,7 +265,7 @@ class LazySolidTexture(mi.Texture):
         if self._traced is None:
             self._traced = TracedLookup(self.solid.store, self.filter, self._mean_rgb)
         if self.space == "object":
-            self._frames = ObjectFrames(scene)
+            self._frames = _ObjectFrames(scene)
         usable = self._traced.refresh()
         self._tracing = threading.get_ident() if usable else None
         return usable
@@ -297,16 +297,16 @@ class LazySolidTexture(mi.Texture):
         """RGB (N, 3) at scene ``points`` (N, 3) of interaction ``it``."""
         points = points.astype(np.float64)
         if self.space == "object":
-            points = to_object_space(points, it, keep)
-        texture = apply_affine(self._world_to_texture.tolist(), *points.T)
+            points = _to_object_space(points, it, keep)
+        texture = _apply_affine(self._world_to_texture.tolist(), *points.T)
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
-        to_world = affine_matrix(self.to_world)
+        to_world = _affine_matrix(self.to_world)
         self._world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ np.linalg.inv(to_world)
 
 
-def apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
+def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
     """The affine map of ``rows`` (3 rows of 4 coefficients: numbers, or per-point
     arrays) applied to coordinates ``x, y, z`` (NumPy or Dr.Jit float64 arrays) in one
     fixed order of operations, so that wavefront and traced lookups of a point reach the
@@ -314,21 +314,21 @@ def apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
     return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in list(rows)[:3])
 
 
-def exemplar_colors(candidates: CandidateSet) -> np.ndarray:
+def _exemplar_colors(candidates: CandidateSet) -> np.ndarray:
     """RGB (N, 3) of every exemplar pixel: voxels average three of them, so these bound
     the texture's range and give its mean."""
-    return as_rgb(np.concatenate([c.reshape(-1, candidates.channels)
+    return _as_rgb(np.concatenate([c.reshape(-1, candidates.channels)
                                   for c in candidates.colors]))
 
 
-def as_rgb(colors: np.ndarray) -> np.ndarray:
+def _as_rgb(colors: np.ndarray) -> np.ndarray:
     """(N, 3) float32 from (N, C) colors: gray is repeated, extra channels dropped."""
     if colors.shape[1] >= 3:
         return np.ascontiguousarray(colors[:, :3], np.float32)
     return np.repeat(colors[:, :1], 3, axis=1).astype(np.float32)
 
 
-def to_object_space(points: np.ndarray, it: mi.Interaction3f,
+def _to_object_space(points: np.ndarray, it: mi.Interaction3f,
                     keep: np.ndarray | None) -> np.ndarray:
     """``points`` taken into the frame of the instance each was found on, else of its
     shape when the shape has a ``to_world`` parameter; unchanged otherwise.
@@ -345,7 +345,7 @@ def to_object_space(points: np.ndarray, it: mi.Interaction3f,
             rows &= ~placed
             if to_world is not None and rows.any():
                 to_object = np.linalg.inv(to_world).tolist()
-                out[rows] = np.stack(apply_affine(to_object, *points[rows].T), axis=1)
+                out[rows] = np.stack(_apply_affine(to_object, *points[rows].T), axis=1)
                 placed |= rows
     return out
 
@@ -366,11 +366,11 @@ def _objects(pointers: Any, keep: np.ndarray | None) -> list[tuple[np.ndarray, A
 def _frame(obj: mi.Object) -> np.ndarray | None:
     """The object's ``to_world`` matrix, if it exposes one."""
     params = mi.traverse(obj)
-    return affine_matrix(params["to_world"]) if "to_world" in params else None
+    return _affine_matrix(params["to_world"]) if "to_world" in params else None
 
 
-class ObjectFrames:
-    """:func:`to_object_space` inside a traced program: the world-to-object matrix of
+class _ObjectFrames:
+    """:func:`_to_object_space` inside a traced program: the world-to-object matrix of
     each top-level shape of a scene that has a frame (instances, shapes with a
     ``to_world`` parameter), found per lane through the shape pointers' registry ids."""
 
@@ -400,5 +400,5 @@ class ObjectFrames:
         placed = frame >= 0
         at = mi.UInt32(dr.maximum(frame, 0)) * 12
         m = [dr.gather(mi.Float64, self._matrices, at + k, placed) for k in range(12)]
-        moved = apply_affine([m[0:4], m[4:8], m[8:12]], *p)
+        moved = _apply_affine([m[0:4], m[4:8], m[8:12]], *p)
         return [dr.select(placed, q, c) for q, c in zip(moved, p, strict=True)]

@@ -51,10 +51,15 @@ class LazySolidVolume(mi.Volume):
         return f"LazySolidVolume[texture={self.texture.to_string()}]"
 
 
-def lazy_solid_medium(props: mi.Properties) -> mi.Medium:
-    """A ``heterogeneous`` medium whose albedo is a nested ``lazy_solid`` texture."""
+def lazy_solid_medium(props: mi.Properties,
+                      volume_type: type[LazySolidVolume] = LazySolidVolume) -> mi.Medium:
+    """A ``heterogeneous`` medium whose albedo is a nested ``lazy_solid`` texture.
+
+    ``volume_type`` is bound when the module is (re)loaded for a variant: a later reload
+    for another variant rebinds the module's ``LazySolidVolume``, not this default.
+    """
     albedo = props.get("albedo", None)
     if albedo is None or not hasattr(albedo, "colors_at"):
         raise fail(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
-    return mi.load_dict({"type": "heterogeneous", "albedo": LazySolidVolume(albedo),
+    return mi.load_dict({"type": "heterogeneous", "albedo": volume_type(albedo),
                          "sigma_t": props.get("sigma_t", 1.0), "scale": props.get("scale", 1.0)})

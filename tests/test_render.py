@@ -133,8 +133,10 @@ def test_bundled_bunny_scene_renders(tmp_path):
 
 def test_bundled_medium_scene_renders_its_wood_albedo():
     """scenes/wood_medium.xml: lazy_solid_medium scatters with the texture's colours (the
-    rosewood is red), and names its property when the albedo is not a lazy_solid."""
-    use(warptex.best_mitsuba_variant())
+    rosewood is red), also after the plugins were registered for another variant, and
+    names its property when the albedo is not a lazy_solid."""
+    for variant in (warptex.best_mitsuba_variant(), "scalar_rgb", warptex.best_mitsuba_variant()):
+        use(variant)  # the plugin modules are reloaded for each new variant
     scene = mi.load_file(str(REPO / "scenes" / "wood_medium.xml"), width=32, height=32, spp=4)
     image = rgb(mitsuba_plugin.render(scene))
     assert np.isfinite(image).all()

@@ -275,7 +275,7 @@ def _quantize(features: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarra
     return np.clip(q, 0, 255).astype(np.uint8)
 
 
-def neighborhoods(feat: np.ndarray, n: int) -> np.ndarray:
+def _neighborhoods(feat: np.ndarray, n: int) -> np.ndarray:
     """Toroidal N x N neighbourhood vectors, (h*w, N*N*F) int64, in (a, b, channel) order.
 
     ``a`` runs along the first pixel coordinate, ``b`` along the second, both from -N//2.
@@ -293,7 +293,7 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     """Appearance space of one exemplar level: quantized PCA and 2D k-coherent candidates."""
     n = int(p["neighborhood"])
     h, w, _ = feat.shape
-    vec = 3 * neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
+    vec = 3 * _neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
     centred = vec - vec.mean(axis=0)
     cov = centred.T.astype(np.float64) @ centred / max(len(vec) - 1, 1)
     evals, evecs = np.linalg.eigh(cov)
@@ -381,7 +381,7 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     return RoleLevel(cand=cand, cb=cb_np, count=cnt, fallback=fallback)
 
 
-def crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np.ndarray:
+def _crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np.ndarray:
     """Crossbar errors (P, K) int32 of stored candidates (section 4.1). They are derived
     data: files keep only the triples, and loading recomputes the errors."""
     init_warp()
@@ -567,7 +567,7 @@ def _unflatten(d: dict[str, np.ndarray]) -> CandidateSet:
     for lv in range(nl):
         for r, role in enumerate(roles[lv]):
             trio = [sources[lv][axis_source[(r + k) % 3]] for k in range(3)]
-            role.cb = crossbar_errors(trio, role.cand, half)
+            role.cb = _crossbar_errors(trio, role.cand, half)
     return CandidateSet(
         params=meta["params"],
         digests=tuple(meta["digests"]),
