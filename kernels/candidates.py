@@ -9,7 +9,7 @@ role k+1. The three crossbar pairs are therefore (0, 1), (1, 2) and (2, 0).
 
 import warp as wp
 
-from kernels.common import wrap
+from kernels.common import pixel_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -155,7 +155,7 @@ def has_continuous_neighbor(
             dv = -1
         else:
             dv = 1
-        q = wrap(u + du, own_height) * own_width + wrap(v + dv, own_width)
+        q = pixel_index(u + du, v + dv, own_height, own_width)
         for j in range(count[q]):
             if is_adjacent(cand_u[q, j] - cu, cand_v[q, j] - cv, height, width):
                 return True

@@ -66,6 +66,13 @@ def block_local(i: int) -> wp.vec3i:
 
 
 @wp.func
+def local_index(p: wp.vec3i) -> int:
+    """Flat index inside its 4^3 block of the voxel at position ``p`` (x slowest): the low
+    two bits of each coordinate, the inverse of ``block_local``."""
+    return ((p[0] & 3) << 4) + ((p[1] & 3) << 2) + (p[2] & 3)
+
+
+@wp.func
 def voxel_world(coords: wp.array(dtype=wp.vec3i), i: int) -> wp.vec3i:
     return coords[i >> 6] * BLOCK + block_local(i)
 
@@ -80,7 +87,7 @@ def neighbor_in_block(nbr: wp.array2d(dtype=wp.int32), block: int, local: wp.vec
     slot = nbr[block, b]
     if slot < 0:
         return -1
-    return (slot << 6) + ((p[0] & 3) << 4) + ((p[1] & 3) << 2) + (p[2] & 3)
+    return (slot << 6) + local_index(p)
 
 
 @wp.func
@@ -207,9 +214,7 @@ def upsample(
         return
     p = voxel_world(coords, i)
     half = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
-    j = slot * BLOCK_VOXELS
-    j += (half[0] & 3) * 16 + (half[1] & 3) * 4 + (half[2] & 3)
-    src = parent[j]
+    src = parent[slot * BLOCK_VOXELS + local_index(half)]
     out = wp.vec3i(0, 0, 0)
     for k in range(3):
         u = src[k] // parent_width[k]
@@ -249,8 +254,8 @@ def mark_parents(
     i = first + wp.tid()
     if need[i] != wp.uint8(0):
         p = voxel_world(coords, i)
-        local = (((p[0] >> 1) & 3) << 4) + (((p[1] >> 1) & 3) << 2) + ((p[2] >> 1) & 3)
-        parents[parent_block[i >> 6] * BLOCK_VOXELS + local] = wp.uint8(1)
+        parent = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
+        parents[parent_block[i >> 6] * BLOCK_VOXELS + local_index(parent)] = wp.uint8(1)
 
 
 @wp.kernel
