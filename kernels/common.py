@@ -8,6 +8,11 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+# Integer coordinates (of voxels, blocks or bricks) packed into one int64 key: 21 bits per
+# axis, x most significant, each biased to be non-negative. warptex.keysets packs on the host.
+KEY_BIAS = 1 << 20
+KEY_BITS = 21
+
 
 @wp.func
 def wrap(x: int, n: int) -> int:

@@ -16,6 +16,8 @@ from typing import Any
 
 import warp as wp
 
+from kernels.common import KEY_BIAS, KEY_BITS
+
 # No fused multiply-adds (CUDA's default): the plugin's traced lookups (Dr.Jit) repeat
 # the trilinear blend with separate roundings and must match to the bit.
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -25,8 +27,6 @@ BRICK_VOXELS = 512
 VALID_WORDS = 16  # 32-bit words of a brick's stored-voxel bits
 MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars
 EMPTY = wp.constant(wp.int64(-1))
-KEY_BIAS = 1 << 20
-KEY_BITS = 21
 
 _BIAS = wp.constant(wp.int64(KEY_BIAS))
 _SHIFT_Y = wp.constant(wp.int64(KEY_BITS))

@@ -23,15 +23,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from kernels.common import KEY_BIAS, KEY_BITS
 from kernels.lookup import BRICK, BRICK_VOXELS
-from warptex.keysets import unique
+from warptex.keysets import unique, unpack
 from warptex.store import CORNERS, BrickStore, brick_coords, brick_keys, brick_voxels, corner_voxels
 
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
 # a dense table; such a texture renders in wavefront mode instead.
 MAX_PAGES = 1 << 25
 LOG_CAPACITY = 1 << 20  # slots of the miss log (8 MiB); bricks that collide take another round
-_BIAS = 1 << 20  # packs a logged voxel into one 64-bit word, 21 bits per axis
 _SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
 
 
@@ -123,8 +123,7 @@ class TracedLookup:
         packed = packed[packed != 0].astype(np.int64)
         self.renders += 1
         self.renders_with_misses += bool(len(packed))
-        mask = (1 << 21) - 1
-        logged = np.stack([packed >> 42, (packed >> 21) & mask, packed & mask], 1) - _BIAS
+        logged = unpack(packed)
         self._reset_log()
         if self.usable:
             self.store.mark_used(np.flatnonzero(self._used.numpy()), self._version)
@@ -162,8 +161,9 @@ class TracedLookup:
         at = ((b[0] * 73856093 ^ b[1] * 19349663 ^ b[2] * 83492791
                ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) * self._salt
               >> 16) & (LOG_CAPACITY - 1)
-        x, y, z = (mi.UInt64(v + _BIAS) for v in voxel)
-        dr.scatter(self._log_voxels, (x << 42) | (y << 21) | z, at, missed)
+        # Packed as warptex.keysets.pack packs, in Dr.Jit's arrays.
+        x, y, z = (mi.UInt64(v + KEY_BIAS) for v in voxel)
+        dr.scatter(self._log_voxels, (x << 2 * KEY_BITS) | (y << KEY_BITS) | z, at, missed)
 
     def _reset_log(self) -> None:
         self._log_voxels = dr.zeros(mi.UInt64, LOG_CAPACITY)  # 0: empty slot

@@ -1,8 +1,9 @@
-"""Sorted key sets: the same answers as numpy's unique, empty arrays included."""
+"""Packed coordinate keys, and sorted key sets: the same answers as numpy's unique, empty
+arrays included."""
 
 import numpy as np
 
-from warptex.keysets import distinct_sorted, unique
+from warptex.keysets import distinct_sorted, pack, unique, unpack
 from warptex.surface import _unique_rows
 
 
@@ -20,3 +21,14 @@ def test_unique_rows_sorted_like_numpy():
     got = _unique_rows(v)
     np.testing.assert_array_equal(got, np.unique(v, axis=0))
     assert got.dtype == np.int32 and _unique_rows(v[:0]).shape == (0, 3)
+
+
+def test_packed_keys_round_trip_and_keep_the_order_of_coordinates():
+    rng = np.random.default_rng(3)
+    limit = (1 << 20) - 1
+    c = np.concatenate([rng.integers(-limit, limit, (3000, 3)),
+                        [[-limit, -limit, -limit], [limit, limit, limit], [-1, 0, 1]]])
+    keys = pack(c)
+    np.testing.assert_array_equal(unpack(keys), c)
+    np.testing.assert_array_equal(np.argsort(keys, kind="stable"),
+                                  np.lexsort((c[:, 2], c[:, 1], c[:, 0])))

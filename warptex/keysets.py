@@ -1,4 +1,4 @@
-"""Sets of integer keys (packed voxel or block coordinates) as sorted arrays.
+"""Integer coordinates packed into int64 keys, and sets of keys as sorted arrays.
 
 ``np.unique`` of plain values takes a hash-based path that is about twenty times slower
 than a sort on millions of int64 keys, and the engine and the brick store deduplicate
@@ -8,6 +8,24 @@ millions of keys per request.
 from __future__ import annotations
 
 import numpy as np
+
+from kernels.common import KEY_BIAS, KEY_BITS
+
+_MASK = (1 << KEY_BITS) - 1
+
+
+def pack(coords: np.ndarray) -> np.ndarray:
+    """Keys of integer coordinates (N, 3), packed as ``kernels.common`` describes; the keys
+    of coordinates keep their order when x, then y, then z are compared."""
+    c = np.asarray(coords).astype(np.int64) + KEY_BIAS
+    return (c[:, 0] << (2 * KEY_BITS)) | (c[:, 1] << KEY_BITS) | c[:, 2]
+
+
+def unpack(keys: np.ndarray) -> np.ndarray:
+    """Coordinates (N, 3) int64 of packed ``keys``; the inverse of :func:`pack`."""
+    keys = np.asarray(keys, np.int64)
+    return np.stack([keys >> (2 * KEY_BITS), (keys >> KEY_BITS) & _MASK, keys & _MASK],
+                    axis=1) - KEY_BIAS
 
 
 def distinct_sorted(a: np.ndarray) -> np.ndarray:

@@ -37,7 +37,7 @@ import warp as wp
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
 from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
-from warptex.keysets import unique
+from warptex.keysets import pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.synthesis import ENGINE_VERSION, Synthesizer
 
@@ -60,15 +60,12 @@ class StoreFileError(ArchiveError):
 def brick_keys(voxels: np.ndarray) -> np.ndarray:
     """Packed coordinates of the bricks holding integer ``voxels`` (N, 3), as
     ``kernels.lookup.brick_key`` packs them."""
-    b = (voxels.astype(np.int64) >> 3) + _k.KEY_BIAS
-    return (b[:, 0] << (2 * _k.KEY_BITS)) | (b[:, 1] << _k.KEY_BITS) | b[:, 2]
+    return pack(voxels.astype(np.int64) >> 3)
 
 
 def brick_coords(keys: np.ndarray) -> np.ndarray:
     """Brick coordinates (N, 3) int64 of packed brick ``keys``; inverse of ``brick_keys``."""
-    mask = (1 << _k.KEY_BITS) - 1
-    b = np.stack([keys >> (2 * _k.KEY_BITS), (keys >> _k.KEY_BITS) & mask, keys & mask], 1)
-    return b - _k.KEY_BIAS
+    return unpack(keys)
 
 
 def voxels_read(points: np.ndarray, filter: str) -> np.ndarray:

@@ -18,10 +18,11 @@ import warp as wp
 from scipy import ndimage
 
 from kernels import synthesis as _k
+from kernels.common import KEY_BIAS, KEY_BITS
 from warptex.candidates import CandidateSet
 from warptex.device import device as default_device
 from warptex.device import init_warp
-from warptex.keysets import distinct_sorted, unique
+from warptex.keysets import distinct_sorted, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
 
@@ -31,13 +32,11 @@ from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
 ENGINE_VERSION = 3
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
-_KEY_BIAS = 1 << 20
-_KEY_BITS = 21
 # Blocks kept free at the ends of the biased 21-bit key fields for the work region around a
 # request (its apron of dependencies, plus one block of neighbour lookups); settings whose
 # apron would not fit are refused, so a key field never over- or underflows.
 _KEY_MARGIN = 64
-COORD_LIMIT = BLOCK * (_KEY_BIAS - _KEY_MARGIN)  # largest |voxel coordinate| at the finest level
+COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # largest |voxel coordinate| at the finest level
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
@@ -114,21 +113,10 @@ def dependency_chain(half: int, passes: int, subpasses: int, levels: int) -> lis
     return counts
 
 
-def _pack(coords: np.ndarray) -> np.ndarray:
-    c = coords.astype(np.int64) + _KEY_BIAS
-    return (c[:, 0] << (2 * _KEY_BITS)) | (c[:, 1] << _KEY_BITS) | c[:, 2]
-
-
-def _unpack(keys: np.ndarray) -> np.ndarray:
-    mask = (1 << _KEY_BITS) - 1
-    out = np.stack([keys >> (2 * _KEY_BITS), (keys >> _KEY_BITS) & mask, keys & mask], axis=1)
-    return (out - _KEY_BIAS).astype(np.int32)
-
-
 def _key_step(d: tuple[int, int, int]) -> int:
     """What adding block offset ``d`` adds to a packed key (fields never over- or
     underflow: requests stay ``_KEY_MARGIN`` blocks inside their biased 21 bits)."""
-    return (d[0] << (2 * _KEY_BITS)) + (d[1] << _KEY_BITS) + d[2]
+    return (d[0] << (2 * KEY_BITS)) + (d[1] << KEY_BITS) + d[2]
 
 
 def _dilate(keys: np.ndarray, r: int) -> np.ndarray:
@@ -164,7 +152,7 @@ def _local_index(voxels: np.ndarray) -> np.ndarray:
 def _voxel_rows(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
     """Flat index (block slot * 64 + local) of each of ``voxels`` (N, 3) in the blocks of
     sorted ``keys``, which must hold them."""
-    return _lookup(keys, _pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
+    return _lookup(keys, pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
         _local_index(voxels))
 
 
@@ -339,7 +327,7 @@ class Synthesizer:
         if np.abs(ijk).max() >= COORD_LIMIT:
             raise ValueError(f"voxel coordinates must lie within +-{COORD_LIMIT}")
         ijk = ijk.astype(np.int64)
-        keys = _pack(ijk >> 2)
+        keys = pack(ijk >> 2)
         uniq = unique(keys)
         with self._lock:  # the finest level is never cached: just the voxels asked for
             level = self._synthesize(self.finest, uniq, ijk)
@@ -357,7 +345,7 @@ class Synthesizer:
             out.triples[flat[hit]] = cache.triples[found[hit]]
         missing = flat[~hit]
         if len(missing):
-            voxels = (_unpack(keys[missing // _BLOCK_VOXELS]).astype(np.int64) * BLOCK
+            voxels = (unpack(keys[missing // _BLOCK_VOXELS]).astype(np.int64) * BLOCK
                       + _LOCAL[missing % _BLOCK_VOXELS])
             blocks = distinct_sorted(keys[missing // _BLOCK_VOXELS])
             computed = self._synthesize(level, blocks, voxels)
@@ -375,7 +363,7 @@ class Synthesizer:
         parents of the voxels that the first step reads.
         """
         work = _dilate(keys, self._apron)
-        coords = _unpack(work)
+        coords = unpack(work).astype(np.int32)
         dev = self.device
         t = self._tables[level]
         nvox = len(work) * _BLOCK_VOXELS
@@ -395,7 +383,7 @@ class Synthesizer:
             parent = self._final(level - 1, *self._parents(coords_wp, coords, read,
                                                            read_blocks))
             parent_slot = np.full(len(coords), -1, np.int32)
-            parent_slot[read_blocks] = _lookup(parent.keys, _pack(coords[read_blocks] >> 1))
+            parent_slot[read_blocks] = _lookup(parent.keys, pack(coords[read_blocks] >> 1))
             pt = self._tables[level - 1]
             launch_ranges(
                 _k.upsample,
@@ -425,7 +413,7 @@ class Synthesizer:
         parents of the voxels ``read`` marks, which lie in the blocks ``read_blocks`` of
         ``coords``: block c's parents lie in block c >> 1."""
         dev = self.device
-        keys, slot = np.unique(_pack(coords[read_blocks] >> 1), return_inverse=True)
+        keys, slot = np.unique(pack(coords[read_blocks] >> 1), return_inverse=True)
         parent_block = np.full(len(coords), -1, np.int32)
         parent_block[read_blocks] = slot
         parents = wp.zeros(len(keys) * _BLOCK_VOXELS, dtype=wp.uint8, device=dev)
