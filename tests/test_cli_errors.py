@@ -167,6 +167,21 @@ def test_texture_settings_reach_volume_and_slice(files, tmp_path, capsys):
     np.testing.assert_array_equal(np.load(plane), expected[:, :, 2])
 
 
+def test_exemplar_loading_options_reach_slice_as_volume(files, tmp_path):
+    """--feature-distance changes the exemplar's features and so the voxels; slice (like
+    bake and cut) takes it as volume does, and then gives volume's voxels."""
+    volume, plain, plane = tmp_path / "v.npy", tmp_path / "p.npy", tmp_path / "s.npy"
+    args = ["--size", "8", "--passes", "1"]
+    assert main(["volume", str(files["exemplar"]), "--feature-distance", *args,
+                 "-o", str(volume)]) == 0
+    assert main(["volume", str(files["exemplar"]), *args, "-o", str(plain)]) == 0
+    assert not np.array_equal(np.load(volume), np.load(plain))
+    assert main(["slice", str(files["exemplar"]), "--feature-distance", "--filter", "nearest",
+                 "--shape", "8", "8", "--origin", "0.5", "0.5", "2.5", "--passes", "1",
+                 "-o", str(plane)]) == 0
+    np.testing.assert_array_equal(np.load(plane), np.load(volume)[:, :, 2])
+
+
 def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
     import warptex.cli
 

@@ -88,6 +88,12 @@ def _check_finite(name: str, values: Sequence[float]) -> None:
 
 def _add_exemplar_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", type=Path, help="exemplar image (PNG, JPEG, OpenEXR or .npy)")
+    _add_loading_arguments(parser)
+
+
+def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
+    """How exemplars are read: part of what decides the voxels, so every command that
+    synthesizes offers them."""
     parser.add_argument(
         "--alpha",
         choices=("drop", "keep"),
@@ -463,7 +469,9 @@ def _solid_texture(args: argparse.Namespace):
     from warptex.candidates import precompute
     from warptex.texture import SolidTexture
 
-    exemplars = _load_axis_exemplars(args, Exemplar.load(args.exemplar))
+    exemplars = _load_axis_exemplars(args, Exemplar.load(
+        args.exemplar, alpha=args.alpha, feature_mask=args.feature_mask,
+        feature_distance=args.feature_distance))
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
@@ -481,6 +489,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
         "(r, c) shows the texture at ORIGIN + r*U + c*V, in voxels of the finest level.",
     )
     parser.add_argument("exemplar", type=Path, help="exemplar image")
+    _add_loading_arguments(parser)
     parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
                         metavar=("X", "Y", "Z"),
                         help="texture point of pixel (0, 0) (default 0.5 0.5 0.5, a voxel centre)")
@@ -547,6 +556,7 @@ def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Se
 def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mesh", type=Path, help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
     parser.add_argument("--exemplar", type=Path, required=True, help="exemplar image")
+    _add_loading_arguments(parser)
     parser.add_argument("--resolution", type=int, default=1024,
                         help="the mesh's bounding box fills a block of RESOLUTION^3 voxels "
                         "(default 1024)")
