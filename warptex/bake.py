@@ -23,16 +23,18 @@ from warptex.device import device as default_device
 from warptex.device import init_warp
 from warptex.sheets import to_rgb8
 from warptex.surface import to_voxel_space
+from warptex.texture import SolidTexture, query_slabs
 
 
 class PointTexture(Protocol):
     def query(self, points: np.ndarray, filter: str = ...) -> np.ndarray: ...
 
 
-def vertex_colors(texture: PointTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
-                  filter: str = "trilinear") -> np.ndarray:
-    """Colors (V, C) of the solid texture at each vertex."""
-    return texture.query(to_voxel_space(mesh, transform), filter=filter)
+def vertex_colors(texture: SolidTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
+                  filter: str = "trilinear", progress: str | None = None) -> np.ndarray:
+    """Colors (V, C) of the solid texture at each vertex, under a progress bar named
+    ``progress`` if given."""
+    return query_slabs(texture, to_voxel_space(mesh, transform), filter, progress)
 
 
 def texel_points(

@@ -279,7 +279,6 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 
 _VOLUME_FORMATS = (".npy", ".exr", ".vol")
 _SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
-_SLICE_CHUNK = 1 << 16  # slice points per engine call, so that its progress bar moves
 
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -508,10 +507,9 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_slice(args: argparse.Namespace) -> int:
-    from tqdm.auto import tqdm
-
     from warptex.cut import plane_points
     from warptex.sheets import save_png, to_rgb8
+    from warptex.texture import query_slabs
 
     suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
     h, w = args.shape
@@ -524,13 +522,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     tex = _solid_texture(args)
     start = time.perf_counter()
     points = plane_points(args.origin, args.u, args.v, (h, w))
-    rows = max(1, _SLICE_CHUNK // w)
-    with tqdm(total=h, desc="slice", unit="row", disable=h <= rows) as bar:
-        parts = []
-        for first in range(0, h, rows):
-            parts.append(tex.query(points[first * w : (first + rows) * w], filter=args.filter))
-            bar.update(min(rows, h - first))
-    image = np.concatenate(parts).reshape(h, w, -1)
+    image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
         save_png(to_rgb8(image), args.output)
@@ -629,7 +621,8 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
     from warptex.bake import bake_uv_texture, export, vertex_colors
 
     if args.uv == "none":
-        return export(mesh, output, colors=vertex_colors(tex, mesh, transform))
+        colors = vertex_colors(tex, mesh, transform, progress=f"colours of {output.name}")
+        return export(mesh, output, colors=colors)
     # Unwrapping is one long call: the bar names the step it is in and times it.
     with tqdm(total=3, desc=f"UV texture {output.name}",
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
@@ -683,7 +676,7 @@ def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="output mesh: .ply or .glb (vertex colors), .glb or .obj (UV)")
 
 
-def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray, desc: str) -> int:
+def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     """Synthesize the voxels around ``mesh``'s surface, with a progress bar; returns their
     count. They fill the same brick store that baking and a renderer then read."""
     from tqdm.auto import tqdm
@@ -692,7 +685,7 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray, desc: s
 
     voxels = shell(mesh, resolution, transform)
     # The shell is sorted along x, so its chunks are slabs; each costs one engine call.
-    with tqdm(total=len(voxels), desc=desc, unit="voxel", unit_scale=True) as bar:
+    with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
         for first in range(0, len(voxels), _SHELL_CHUNK):
             part = voxels[first : first + _SHELL_CHUNK]
             tex.query(part + 0.5, filter="nearest")
@@ -708,7 +701,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     tex = _solid_texture(args)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
-    count = _synthesize_shell(tex, mesh, args.resolution, transform, "surface shell")
+    count = _synthesize_shell(tex, mesh, args.resolution, transform)
     files = _textured_export(tex, mesh, transform, args, args.output)
     print(f"surface shell: {count} voxels")
     return _finish_mesh_command(tex, args, files, start)
@@ -752,7 +745,6 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     transform = block_transform(mesh, args.resolution)
     files = []
     for half, output in zip(halves, outputs, strict=True):
-        _synthesize_shell(tex, half, args.resolution, transform, f"shell of {output.name}")
         files += _textured_export(tex, half, transform, args, output)
     return _finish_mesh_command(tex, args, files, start)
 

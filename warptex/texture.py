@@ -22,6 +22,7 @@ from warptex.store import FILTERS, BrickStore
 from warptex.synthesis import COORD_LIMIT, Synthesizer
 
 _CHUNK = 1 << 20  # points per batch: bounds the memory of one lookup and synthesis
+_SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
 POINT_LIMIT = COORD_LIMIT - 2  # largest |coordinate| of a query: trilinear reads a voxel beyond
 
 
@@ -143,3 +144,23 @@ def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
     return points
+
+
+def query_slabs(texture: SolidTexture, points: np.ndarray, filter: str = "trilinear",
+                progress: str | None = None) -> np.ndarray:
+    """``texture.query(points, filter)`` in slabs along x, under a progress bar named
+    ``progress`` (none if None): the same colours as one query, as every point's color
+    is its own. Points are taken in order of x, so the slabs' dependencies overlap only at
+    their faces."""
+    from tqdm.auto import tqdm
+
+    points = np.asarray(points)
+    order = np.argsort(points[:, 0], kind="stable")
+    out = np.empty((len(points), texture.channels), np.float32)
+    with tqdm(total=len(points), desc=progress, unit="point", unit_scale=True,
+              disable=progress is None or len(points) <= _SLAB) as bar:
+        for first in range(0, len(points), _SLAB):
+            part = order[first : first + _SLAB]
+            out[part] = texture.query(points[part], filter=filter)
+            bar.update(len(part))
+    return out
