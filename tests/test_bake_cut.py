@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -75,18 +76,47 @@ def test_cut_caps_continue_the_outer_surface(texture, sphere):
         cap_vertices = np.unique(half.faces[cap])
         outline = np.intersect1d(cap_vertices, half.faces[~cap])
         # The cap meets the outer surface vertex for vertex (watertight: no gap, no seam),
-        # and has vertices of its own inside, no further apart than twice the mesh's median
-        # edge, so that vertex colours carry the texture across it.
+        # and has vertices of its own inside, no further apart than twice the median of the
+        # sphere's edges that cross the plane, so vertex colours carry the texture across it.
         assert len(cap_vertices) > 2 * len(outline) > 0
         corners = half.vertices[half.faces[cap]]
         sides = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)
-        assert sides.max() <= 2 * np.median(sphere.edges_unique_length) + 1e-12
+        above = (sphere.vertices - origin) @ normal > 0
+        crossing = above[sphere.edges_unique[:, 0]] != above[sphere.edges_unique[:, 1]]
+        assert sides.max() <= 2 * np.median(sphere.edges_unique_length[crossing]) + 1e-12
         assert np.allclose((half.vertices[cap_vertices] - origin) @ normal, 0.0, atol=1e-9)
         colors = vertex_colors(texture, half, m)
         expected = texture.query(to_voxel_space(half, m))
         assert np.array_equal(colors[cap_vertices], expected[cap_vertices])
     with pytest.raises(ValueError, match="does not cut"):
         cut(sphere, np.array([5.0, 0, 0]), normal)
+
+
+@pytest.mark.parametrize(("origin", "normal"), [
+    ((0.0, 0.0, 0.0), (0.0, 2.0, 1.0)),  # trimesh's cap starts with a zero-area triangle
+    ((0.1, 0.2, 0.3), (2.0, -1.0, 2.0)),
+    ((0.0, 0.0, 0.0), (1.0, 1.0, 0.3)),  # outline vertices on straight runs of the outline
+])
+def test_refined_caps_face_outwards_and_keep_every_outline_vertex(origin, normal):
+    box = trimesh.creation.box()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no cap left unrefined
+        halves = cut(box, np.array(origin), np.array(normal))
+    n = np.asarray(normal) / np.linalg.norm(normal)
+    for half, facing in zip(halves, (-n, n), strict=True):
+        assert half.is_watertight and half.is_winding_consistent
+        cap = cap_faces(half, np.array(origin), n)
+        assert np.allclose(half.face_normals[cap] @ facing, 1.0)
+    assert np.isclose(halves[0].volume + halves[1].volume, box.volume)
+
+
+def test_cutting_an_open_mesh_where_it_has_no_inside():
+    tube = trimesh.creation.cylinder(0.5, 1.0)
+    tube.update_faces(np.abs(tube.face_normals[:, 2]) < 0.5)  # no end discs
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        halves = cut(tube, np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    assert all(len(half.faces) > 0 for half in halves)
 
 
 def test_a_cut_through_separate_parts_caps_each():

@@ -28,47 +28,61 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray,
     """Split a mesh by a plane into two halves, each closed by a planar cap.
 
     The first half lies on the side ``normal`` points to. Each cap is refined (see
-    :func:`_refined_cap`) so that vertex colours resolve the texture on it as on the outer
-    surface, and it still meets the outer surface vertex for vertex.
+    :func:`_refined_cap`) to twice the median length of the mesh's edges that cross the
+    plane, so that vertex colours resolve the texture on it about as on the surface around
+    it, and it still meets the outer surface vertex for vertex.
     """
     normal = np.asarray(normal, np.float64)
     if not np.linalg.norm(normal) > 0:
         raise ValueError("the cut plane needs a non-zero normal")
     origin = np.asarray(origin, np.float64)
-    spacing = 2.0 * float(np.median(mesh.edges_unique_length))
+    # How dense the surface is where the plane cuts it: its edges that cross the plane.
+    above = (mesh.vertices - origin) @ normal > 0
+    crossing = above[mesh.edges_unique[:, 0]] != above[mesh.edges_unique[:, 1]]
+    if not crossing.any():
+        raise ValueError("the plane does not cut the mesh")
+    spacing = 2.0 * float(np.median(mesh.edges_unique_length[crossing]))
     halves = []
     for side in (normal, -normal):
         half = trimesh.intersections.slice_mesh_plane(mesh, side, origin, cap=True)
         if half is None or len(half.faces) == 0:
             raise ValueError("the plane does not cut the mesh")
-        halves.append(_refined_cap(half, origin, normal, spacing))
+        halves.append(_refined_cap(half, origin, side, spacing))
     return halves[0], halves[1]
 
 
-def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
+def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
                  max_edge: float) -> trimesh.Trimesh:
-    """``half`` with its cap triangulated anew: trimesh triangulates a cap from its outline
-    alone, in slivers that span it, so vertex colours would only interpolate the outline's.
-    The cap becomes the constrained Delaunay triangulation of the same outline vertices,
-    refined by :func:`_bisect_long_edges` until no edge of it is longer than ``max_edge``.
+    """``half`` (the part of a mesh on the side ``side`` points to) with its cap
+    triangulated anew: trimesh triangulates a cap from its outline alone, in slivers that
+    span it, so vertex colours would only interpolate the outline's. The cap becomes the
+    constrained Delaunay triangulation of the same outline vertices, refined by
+    :func:`_bisect_long_edges` until no edge of it is longer than ``max_edge``.
     """
-    cap = cap_faces(half, origin, normal)
-    outline = np.unique(half.faces[cap])
-    n = normal / np.linalg.norm(normal)
+    cap = cap_faces(half, origin, side)
+    if not cap.any():  # an open mesh cut where it has no inside
+        return half
+    n = side / np.linalg.norm(side)
     e1 = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
     e1 /= np.linalg.norm(e1)
     uv = (half.vertices - origin) @ np.stack([e1, np.cross(n, e1)], axis=1)
-    region = shapely.union_all(shapely.polygons(uv[half.faces[cap]]))
+    # The outline: the edges that only one cap triangle holds. A region built from them
+    # keeps every outline vertex, where a union of the triangles drops collinear ones.
+    pairs = np.sort(half.faces[cap][:, [[0, 1], [1, 2], [2, 0]]], axis=2).reshape(-1, 2)
+    edges, count = np.unique(pairs, axis=0, return_counts=True)
+    outline = edges[count == 1]
+    region = shapely.build_area(shapely.union_all(shapely.linestrings(uv[outline])))
     triangles = shapely.get_parts(shapely.constrained_delaunay_triangles(region))
     corners = shapely.get_coordinates(triangles).reshape(len(triangles), 4, 2)[:, :3]
-    index = {uv[i].tobytes(): i for i in outline}
+    points = np.unique(half.faces[cap])
+    index = {uv[i].tobytes(): i for i in points}
     faces = np.array([index.get(c.tobytes(), -1) for c in corners.reshape(-1, 2)]).reshape(-1, 3)
-    if len(faces) == 0 or (faces < 0).any() or len(np.unique(faces)) != len(outline):
+    if len(faces) == 0 or (faces < 0).any() or len(np.unique(faces)) != len(points):
         warnings.warn("a cut's cap could not be refined; its colours interpolate its outline's",
                       stacklevel=3)
         return half
-    # Wind the new triangles as trimesh wound the cap: facing away from the half.
-    flip = _winding(uv, faces) != _winding(uv, half.faces[cap][:1])
+    # A cap faces away from its half, -n: clockwise in (e1, e2), whose normal is n.
+    flip = _winding(uv, faces) > 0
     faces[flip] = faces[flip][:, ::-1]
     faces = np.concatenate([half.faces[~cap], faces])
     refine = np.arange(len(faces)) >= (~cap).sum()
