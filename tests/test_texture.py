@@ -93,6 +93,18 @@ def test_trilinear_blends_the_8_centers_across_brick_borders(candidates, referen
     np.testing.assert_array_equal(tex.query(BORDER + 0.5), reference.voxels(BORDER))
 
 
+def test_the_whole_query_range_can_be_read(candidates, reference):
+    """Points up to POINT_LIMIT on either side, whole bricks filled around them (the
+    brick of the lowest point reaches the lowest voxel the engine takes)."""
+    from warptex.texture import POINT_LIMIT
+
+    tex = texture(candidates, whole_bricks=True)
+    ends = np.array([[1.0 - POINT_LIMIT, 0.5, 0.5], [POINT_LIMIT - 1.0, 0.5, 0.5]])
+    np.testing.assert_array_equal(tex.query(ends, filter="nearest"),
+                                  reference.voxels(np.floor(ends).astype(np.int64)))
+    assert tex.query(ends).shape == (2, tex.channels)
+
+
 def test_far_slices_read_the_voxels_their_points_lie_in(candidates, reference):
     """A slice's points are not rounded to float32 on the way: at x = 4e6 + 0.9 that
     would move them into the next voxel."""

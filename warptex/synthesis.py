@@ -36,7 +36,7 @@ _BLOCK_VOXELS = _k.BLOCK_VOXELS
 # request (its apron of dependencies, plus one block of neighbour lookups); settings whose
 # apron would not fit are refused, so a key field never over- or underflows.
 _KEY_MARGIN = 64
-COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # largest |voxel coordinate| at the finest level
+COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # finest voxels lie in [-COORD_LIMIT, COORD_LIMIT)
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
@@ -324,8 +324,8 @@ class Synthesizer:
                              f"{ijk.dtype} {ijk.shape}")
         if len(ijk) == 0:
             return np.zeros((0, 3), np.int32)
-        if np.abs(ijk).max() >= COORD_LIMIT:
-            raise ValueError(f"voxel coordinates must lie within +-{COORD_LIMIT}")
+        if ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT:
+            raise ValueError(f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})")
         ijk = ijk.astype(np.int64)
         keys = pack(ijk >> 2)
         uniq = unique(keys)
