@@ -28,12 +28,13 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return width, height
 
 
-def scene_error(text: str) -> str:
-    """Mitsuba's message for a scene that fails to load, as one line for a user.
+def scene_error(text: str, scene: Path | None = None) -> str:
+    """Mitsuba's message for ``scene`` failing to load, as one line for a user.
 
     A plugin written in Python that raises while it is constructed (``lazy_solid`` checking
     its properties) reaches Mitsuba's parser as a whole Python traceback; only where in the
-    scene and the exception's own message are kept.
+    scene and the exception's own message are kept. The place names its file when that is
+    not ``scene`` itself (an ``<include>``d file).
     """
     text = re.sub(r"^\[[\w.]+:\d+\] ", "", text.strip())
     head, marker, trace = text.partition("Traceback (most recent call last):")
@@ -44,7 +45,12 @@ def scene_error(text: str) -> str:
     message = " ".join(lines[frames[-1] + 1 if frames else 0:]).strip()
     message = re.sub(r"^[A-Za-z_][\w.]*: ", "", message)
     where = re.match(r"At (.*) \((line \d+, col \d+)\)", head)
-    return f"{where.group(2)}: {message}" if where else message
+    if where is None:
+        return message
+    file, place = where.groups()
+    if scene is not None and Path(file).resolve() == scene.resolve():
+        return f"{place}: {message}"
+    return f"{file} ({place}): {message}"
 
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
@@ -71,7 +77,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     try:
         scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
-        raise ValueError(f"{scene_path}: cannot load the scene: {scene_error(str(e))}") from None
+        problem = scene_error(str(e), scene_path)
+        raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()
     # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or scene.sensors()[0].sampler().sample_count()

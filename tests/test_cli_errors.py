@@ -28,10 +28,14 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
         '<scene version="3.0.0"><bsdf type="diffuse"><texture type="lazy_solid" '
         f'name="reflectance"><string name="exemplar" value="{granite_32_file}"/>'
         '<string name="filter" value="cubic"/></texture></bsdf></scene>')
+    including = folder / "including.xml"
+    including.write_text('<scene version="3.0.0">\n<include filename="bad_property.xml"/>\n'
+                         '</scene>')
     gray = folder / "gray.npy"
     np.save(gray, _rotated(granite_32_file)[..., :1])
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
-            "other": other, "bad_property": bad_property, "gray": gray}
+            "other": other, "bad_property": bad_property, "including": including,
+            "gray": gray}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -95,7 +99,10 @@ CASES = [
     (["render", "{scene}", "-o", "{out}/r.jpg"], "must end in .exr or .png"),
     (["render", "{scene}", "-o", "{out}/r.png"], "cannot load the scene"),
     (["render", "{bad_property}", "-o", "{out}/r.png"],
-     'line 1, col 46: lazy_solid: property "filter" must be "trilinear" or "nearest"'),
+     'load the scene: line 1, col 46: lazy_solid: property "filter" must be "trilinear"'),
+    (["render", "{including}", "-o", "{out}/r.png"],
+     '{including}: cannot load the scene: {bad_property} (line 1, col 46): lazy_solid: '
+     'property "filter"'),
 ]
 
 
