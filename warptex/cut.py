@@ -68,9 +68,8 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     uv = (half.vertices - origin) @ np.stack([e1, np.cross(n, e1)], axis=1)
     # The outline: the edges that only one cap triangle holds. A region built from them
     # keeps every outline vertex, where a union of the triangles drops collinear ones.
-    pairs = np.sort(half.faces[cap][:, [[0, 1], [1, 2], [2, 0]]], axis=2).reshape(-1, 2)
-    edges, count = np.unique(pairs, axis=0, return_counts=True)
-    outline = edges[count == 1]
+    keys, count = np.unique(_edge_keys(half.faces[cap], len(uv)), return_counts=True)
+    outline = _edge_ends(keys[count == 1], len(uv))
     region = shapely.build_area(shapely.union_all(shapely.linestrings(uv[outline])))
     triangles = shapely.get_parts(shapely.constrained_delaunay_triangles(region))
     corners = shapely.get_coordinates(triangles).reshape(len(triangles), 4, 2)[:, :3]
@@ -102,11 +101,9 @@ def _bisect_long_edges(vertices: np.ndarray, faces: np.ndarray, refine: np.ndarr
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     refine = np.asarray(refine, bool)
-    corners = np.array([[0, 1], [1, 2], [2, 0]])
     while True:
-        pairs = np.sort(faces[:, corners], axis=2).reshape(-1, 2)
-        keys, ids = np.unique(pairs[:, 0] * len(vertices) + pairs[:, 1], return_inverse=True)
-        edges = np.stack(np.divmod(keys, len(vertices)), axis=1)
+        keys, ids = np.unique(_edge_keys(faces, len(vertices)), return_inverse=True)
+        edges = _edge_ends(keys, len(vertices))
         ids = ids.reshape(-1, 3)
         length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
         rank = np.empty(len(edges), np.int64)  # by length, ties by index: one longest edge
@@ -147,9 +144,20 @@ def _winding(uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def _with_neighbours(faces: np.ndarray, selected: np.ndarray) -> np.ndarray:
     """``selected`` grown by the faces sharing an edge with it."""
-    keys = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]], axis=2)
-    keys = keys[..., 0] * (int(faces.max()) + 1) + keys[..., 1]
+    keys = _edge_keys(faces, int(faces.max()) + 1)
     return selected | np.isin(keys, keys[selected]).any(axis=1)
+
+
+def _edge_keys(faces: np.ndarray, vertex_count: int) -> np.ndarray:
+    """(F, 3) int64 keys of each face's edges (its vertices 0-1, 1-2, 2-0), the same for
+    both orientations of an edge: lower vertex * ``vertex_count`` + higher vertex."""
+    ends = np.sort(np.asarray(faces, np.int64)[:, [[0, 1], [1, 2], [2, 0]]], axis=2)
+    return ends[..., 0] * vertex_count + ends[..., 1]
+
+
+def _edge_ends(keys: np.ndarray, vertex_count: int) -> np.ndarray:
+    """The (E, 2) vertices of edge ``keys``; the inverse of :func:`_edge_keys`."""
+    return np.stack(np.divmod(keys, vertex_count), axis=1)
 
 
 def cap_faces(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
