@@ -116,9 +116,10 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _load_exemplar(args: argparse.Namespace) -> Exemplar:
+def _load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
+    """The exemplar at ``path``, read with the command's loading options."""
     return Exemplar.load(
-        args.path,
+        path,
         alpha=args.alpha,
         feature_mask=args.feature_mask,
         feature_distance=args.feature_distance,
@@ -134,7 +135,7 @@ def _add_info_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    exemplar = _load_exemplar(args)
+    exemplar = _load_exemplar(args, args.path)
     height, width = exemplar.shape
     print(f"file: {exemplar.path}")
     print(f"size: {width} x {height} pixels (width x height)")
@@ -186,7 +187,7 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
 
     if args.output is not None:
         _check_output(args.output)
-    exemplars = _load_axis_exemplars(args, _load_exemplar(args))
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     cache = None if args.no_cache else cache_path(exemplars, dict(DEFAULT_PARAMS))
     if cache is not None:
         _check_cache_folder(cache.parent)
@@ -221,19 +222,13 @@ def _add_axis_exemplar_arguments(parser: argparse.ArgumentParser, first: str) ->
 
 
 def _load_axis_exemplars(args: argparse.Namespace, ex: Exemplar) -> list[Exemplar]:
-    """The exemplars of the x (``ex``), y and z axes; --ey/--ez take the loading options
-    of the command, where it has them."""
-    if getattr(args, "feature_mask", None) is not None and (args.ey or args.ez):
+    """The exemplars of the x (``ex``), y and z axes; --ey/--ez are read with the
+    command's loading options (a feature mask marks one image only)."""
+    if args.feature_mask is not None and (args.ey or args.ez):
         raise CliError("--feature-mask marks one image; use --feature-distance with --ey/--ez")
-    others = [
-        Exemplar.load(path, alpha=getattr(args, "alpha", "drop"),
-                      feature_distance=getattr(args, "feature_distance", False))
-        if path is not None
-        else None
-        for path in (args.ey, args.ez)
-    ]
-    ey = others[0] or ex
-    return [ex, ey, others[1] or ey]
+    ey = ex if args.ey is None else _load_exemplar(args, args.ey)
+    ez = ey if args.ez is None else _load_exemplar(args, args.ez)
+    return [ex, ey, ez]
 
 
 def _check_cache_folder(folder: Path) -> None:
@@ -243,8 +238,10 @@ def _check_cache_folder(folder: Path) -> None:
     except OSError as error:
         raise CliError(f"{folder}: cannot make the cache folder ({error.strerror or error}); "
                        "WARPTEX_CACHE sets it") from None
-    if not os.access(folder, os.W_OK):
-        raise CliError(f"{folder}: cannot write the cache folder; WARPTEX_CACHE sets it")
+    try:
+        _check_writable_folder(folder, folder)
+    except CliError as error:
+        raise CliError(f"{error}; WARPTEX_CACHE sets it") from None
 
 
 def _file_identity(path: Path | None) -> tuple[int, int] | None:
@@ -326,7 +323,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         raise CliError("--mean-shift applies to --method kopf only")
     if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
         raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
-    exemplars = _load_axis_exemplars(args, _load_exemplar(args))
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
         return _volume_kopf(args, suffix, exemplars)
@@ -468,9 +465,7 @@ def _solid_texture(args: argparse.Namespace):
     from warptex.candidates import precompute
     from warptex.texture import SolidTexture
 
-    exemplars = _load_axis_exemplars(args, Exemplar.load(
-        args.exemplar, alpha=args.alpha, feature_mask=args.feature_mask,
-        feature_distance=args.feature_distance))
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
