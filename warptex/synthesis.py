@@ -345,7 +345,7 @@ class Synthesizer:
             out.triples[flat[hit]] = cache.triples[found[hit]]
         missing = flat[~hit]
         if len(missing):
-            voxels = (unpack(keys[missing // _BLOCK_VOXELS]).astype(np.int64) * BLOCK
+            voxels = (unpack(keys[missing // _BLOCK_VOXELS]) * BLOCK
                       + _LOCAL[missing % _BLOCK_VOXELS])
             blocks = distinct_sorted(keys[missing // _BLOCK_VOXELS])
             computed = self._synthesize(level, blocks, voxels)
