@@ -15,6 +15,13 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func
+def pixel_slot(first: int, thread: int, slots: int):
+    """(pixel, candidate slot) of ``thread`` when each pixel from ``first`` on has
+    ``slots`` threads: the layout of ``warptex.parallel.launch_ranges(per_item=slots)``."""
+    return first + thread // slots, thread - (thread // slots) * slots
+
+
+@wp.func
 def strip_distance(
     a: wp.array2d(dtype=wp.int32), pa: int, b: wp.array2d(dtype=wp.int32), pb: int
 ) -> int:
@@ -45,6 +52,7 @@ def crossbar_rest(
 
 @wp.kernel
 def best_crossbar_triples(
+    first: int,
     own_first: wp.array2d(dtype=wp.int32),
     own_second: wp.array2d(dtype=wp.int32),
     next_first: wp.array2d(dtype=wp.int32),
@@ -65,9 +73,9 @@ def best_crossbar_triples(
     second pixel coordinate; ``near1``/``near2`` the S nearest strips found in roles 1
     and 2. The crossbar pairs are (0, 1), (1, 2) and (2, 0): the second-coordinate strip
     of a role meets the first-coordinate strip of the next. Ties are broken by the rank
-    of the pair, so the order is fully reproducible.
+    of the pair, so the order is fully reproducible. Pixel ``first + tid``.
     """
-    p = wp.tid()
+    p = first + wp.tid()
     s1 = near1.shape[1]
     s2 = near2.shape[1]
     keep = keys.shape[1]
@@ -101,6 +109,7 @@ def best_crossbar_triples(
 
 @wp.kernel
 def candidate_crossbar_errors(
+    first: int,
     own_first: wp.array2d(dtype=wp.int32),
     own_second: wp.array2d(dtype=wp.int32),
     next_first: wp.array2d(dtype=wp.int32),
@@ -111,8 +120,9 @@ def candidate_crossbar_errors(
     cand2: wp.array2d(dtype=wp.int32),
     cb: wp.array2d(dtype=wp.int32),
 ):
-    """Crossbar error of stored candidate k of pixel p (section 4.1), recomputed."""
-    p, k = wp.tid()
+    """Crossbar error of stored candidate k of pixel p (section 4.1), recomputed; one
+    thread per candidate slot of pixels ``first...``."""
+    p, k = pixel_slot(first, wp.tid(), cb.shape[1])
     q = cand1[p, k]
     r = cand2[p, k]
     err = strip_distance(own_second, p, next_first, q)
@@ -164,6 +174,7 @@ def has_continuous_neighbor(
 
 @wp.kernel
 def coherent_candidates(
+    first: int,
     cand1_u: wp.array2d(dtype=wp.int32),
     cand1_v: wp.array2d(dtype=wp.int32),
     cand2_u: wp.array2d(dtype=wp.int32),
@@ -175,9 +186,10 @@ def coherent_candidates(
 ):
     """Flag the candidates forming coherent patches in all three exemplars (section 4.2).
 
-    Candidate coordinates come unpacked as (u, v) pixel coordinates of roles 1 and 2.
+    Candidate coordinates come unpacked as (u, v) pixel coordinates of roles 1 and 2. One
+    thread per candidate slot of pixels ``first...``.
     """
-    p, k = wp.tid()
+    p, k = pixel_slot(first, wp.tid(), keep.shape[1])
     flag = int(0)
     if k < count[p]:
         h0 = height[0]

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import warptex.candidates as candidates
-from warptex import Exemplar
+from warptex import Exemplar, parallel
 from warptex.candidates import (
     FORMAT_VERSION,
     CandidateCacheError,
@@ -315,6 +315,14 @@ def test_byte_identical_files_in_one_and_across_two_processes(tmp_path, warp_dev
         capture_output=True,
     )
     assert first == (tmp_path / "c.wtc").read_bytes()
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_same_candidates_on_any_number_of_threads(threads, monkeypatch, granite):
+    """The searches split over CPU threads (warptex.parallel); each pixel's result is its
+    own, so the split must not show."""
+    monkeypatch.setattr(parallel, "THREADS", threads)
+    _assert_same(precompute(GRANITE, cache=False), granite)
 
 
 def test_save_load_round_trip(tmp_path, granite):

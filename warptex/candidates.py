@@ -30,10 +30,14 @@ from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar, ExemplarError
+from warptex.parallel import THREADS, launch_ranges
 
 FORMAT_VERSION = 3  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 _MAGIC = b"WARPTEXC"
+# A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
+# lists: even the coarsest level's 64 pixels are worth splitting over the cores.
+_MIN_SPLIT_PIXELS = 64
 
 DEFAULT_PARAMS: dict[str, object] = {
     "neighborhood": 5,  # N
@@ -367,12 +371,13 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     cb = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     count = wp.zeros(npix, dtype=wp.int32, device=dev)
     strip_arrays = [wp.array(a.astype(np.int32), device=dev) for pair in strips for a in pair]
-    wp.launch(
+    launch_ranges(
         _k.best_crossbar_triples,
-        dim=npix,
-        inputs=[*strip_arrays, wp.array(near1, device=dev), wp.array(near2, device=dev)],
-        outputs=[keys, c1, c2, cb, count],
-        device=dev,
+        0,
+        npix,
+        [*strip_arrays, wp.array(near1, device=dev), wp.array(near2, device=dev)],
+        [keys, c1, c2, cb, count],
+        min_items=_MIN_SPLIT_PIXELS,
     )
     cand = np.stack([c1.numpy(), c2.numpy()], axis=2)
     cand, cb_np, cnt, fallback = _filter_coherent(
@@ -391,7 +396,8 @@ def _crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np
     cb = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
     pairs = [wp.array(np.ascontiguousarray(cand[:, :, i]), dtype=wp.int32, device=dev)
              for i in (0, 1)]
-    wp.launch(_k.candidate_crossbar_errors, cand.shape[:2], [*strips, *pairs], [cb], device=dev)
+    launch_ranges(_k.candidate_crossbar_errors, 0, cand.shape[0], [*strips, *pairs], [cb],
+                  per_item=cand.shape[1], min_items=_MIN_SPLIT_PIXELS)
     return cb.numpy()
 
 
@@ -417,7 +423,8 @@ def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarra
     todo = np.arange(len(q))
     want = min(len(db), k + 8)
     while len(todo):
-        idx = tree.query(q[todo].astype(np.float64), k=want)[1].reshape(len(todo), want)
+        idx = tree.query(q[todo].astype(np.float64), k=want, workers=THREADS)[1]
+        idx = idx.reshape(len(todo), want)
         d2 = np.concatenate([
             ((q[todo[lo:lo + 4096], None, :] - db[idx[lo:lo + 4096]]) ** 2).sum(axis=2)
             for lo in range(0, len(todo), 4096)
@@ -462,12 +469,14 @@ def _filter_coherent(
             u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
             coords += [wp.array(a.astype(np.int32), device=dev) for a in (u, v)]
         keep = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
-        wp.launch(
+        launch_ranges(
             _k.coherent_candidates,
-            dim=cand.shape[:2],
-            inputs=[*coords, wp.array(count, dtype=wp.int32, device=dev), height, width],
-            outputs=[keep],
-            device=dev,
+            0,
+            npix,
+            [*coords, wp.array(count, dtype=wp.int32, device=dev), height, width],
+            [keep],
+            per_item=cand.shape[1],
+            min_items=_MIN_SPLIT_PIXELS,
         )
         flags = keep.numpy().astype(bool)
         flags[fallback, :1] = True  # a fallback pixel keeps its single best candidate

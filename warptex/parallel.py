@@ -36,14 +36,16 @@ def launch_ranges(
     *,
     device: str = "cpu",
     per_item: int = 1,
+    min_items: int = MIN_SPLIT,
 ) -> None:
     """Launch ``kernel(first, *inputs, *outputs)`` over items ``start..stop``, each item
-    ``per_item`` threads of the launch; split over CPU threads when it pays."""
+    ``per_item`` threads of the launch; split over CPU threads when there are at least
+    ``min_items`` items (fewer for kernels whose items are long)."""
     outputs = outputs or []
     n = stop - start
     if n <= 0:
         return
-    if device != "cpu" or THREADS == 1 or n < MIN_SPLIT:
+    if device != "cpu" or THREADS == 1 or n < max(2, min_items):
         wp.launch(kernel, n * per_item, [start, *inputs], outputs, device=device)
         return
     # Warp creates a generic kernel's overload and (re)builds its module on first launch,
