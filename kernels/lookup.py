@@ -304,3 +304,11 @@ def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32),
             at = (at + wp.int64(1)) & index.mask
         index.keys[at] = keys[n]
         index.slots[at] = slots[n]
+
+
+# The two payloads a brick pool holds (warptex.store): 16-bit pixel indices while every
+# exemplar has at most 65536 pixels, else 32-bit. Declared here so that every build of the
+# module, for the CPU, for CUDA or ahead of time, has both.
+for _generic in (sample_nearest, sample_trilinear, voxel_sums):
+    for _payload in (wp.uint16, wp.int32):
+        wp.overload(_generic, {"pool": wp.array(dtype=_payload)})
