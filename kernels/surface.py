@@ -57,6 +57,7 @@ def highest_voxel(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3i:
 
 @wp.kernel
 def touched_voxels(
+    first: int,
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     offsets: wp.array(dtype=wp.int32),
@@ -65,8 +66,9 @@ def touched_voxels(
     voxels: wp.array(dtype=wp.vec3i),
 ):
     """Count the voxels each triangle touches (``write`` = 0), or write them from the
-    triangle's offset on (``write`` = 1), visiting them in the same order both times."""
-    f = wp.tid()
+    triangle's offset on (``write`` = 1), visiting them in the same order both times.
+    Triangle ``first + tid``."""
+    f = first + wp.tid()
     a = vertices[faces[f][0]]
     b = vertices[faces[f][1]]
     c = vertices[faces[f][2]]

@@ -15,6 +15,7 @@ from kernels import surface as _k
 from warptex.device import device as default_device
 from warptex.device import init_warp
 from warptex.keysets import unique
+from warptex.parallel import launch_ranges
 
 
 def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
@@ -55,13 +56,14 @@ def shell(
     nfaces = len(mesh.faces)
     counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
     none = wp.empty(0, dtype=wp.vec3i, device=dev)
-    wp.launch(_k.touched_voxels, nfaces, [vertices, faces, counts, 0], [counts, none],
-              device=dev)
+    launch_ranges(_k.touched_voxels, 0, nfaces, [vertices, faces, counts, 0], [counts, none],
+                  device=dev)
     counts_np = counts.numpy()
     offsets = np.concatenate([[0], np.cumsum(counts_np)[:-1]]).astype(np.int32)
     voxels = wp.empty(int(counts_np.sum()), dtype=wp.vec3i, device=dev)
-    wp.launch(
+    launch_ranges(
         _k.touched_voxels,
+        0,
         nfaces,
         [vertices, faces, wp.array(offsets, dtype=wp.int32, device=dev), 1],
         [counts, voxels],
