@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib
 import os
+import subprocess
+import sys
 
 import pytest
 import warp as wp
@@ -78,3 +80,37 @@ def test_init_warp_runs_once(warp_device, monkeypatch):
     monkeypatch.setattr(wp, "init", lambda: calls.append(1))
     device_module.init_warp()
     assert calls == []
+
+
+def _noisy_init() -> None:
+    """Stands in for ``wp.init`` on a machine without an NVIDIA driver: Warp's library
+    writes its warning to file descriptor 2, beside anything else worth seeing."""
+    os.write(2, b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU "
+                b"execution will not be available.\nsomething else Warp said\n")
+
+
+@pytest.mark.parametrize("requested", [None, "cpu"])
+def test_start_drops_only_the_missing_driver_warning(requested, monkeypatch, capfd):
+    if requested is None:
+        monkeypatch.delenv("WARPTEX_DEVICE", raising=False)
+    else:
+        monkeypatch.setenv("WARPTEX_DEVICE", requested)
+    monkeypatch.setattr(wp, "init", _noisy_init)
+    device_module.init_warp.__wrapped__()
+    err = capfd.readouterr().err
+    assert "NVIDIA CUDA driver" not in err
+    assert "something else Warp said" in err
+
+
+def test_start_keeps_the_warning_when_cuda_is_asked_for(monkeypatch, capfd):
+    monkeypatch.setenv("WARPTEX_DEVICE", "cuda")
+    monkeypatch.setattr(wp, "init", _noisy_init)
+    device_module.init_warp.__wrapped__()
+    assert "Could not find or load the NVIDIA CUDA driver" in capfd.readouterr().err
+
+
+def test_a_command_starts_without_the_missing_driver_warning():
+    env = {k: v for k, v in os.environ.items() if k != "WARPTEX_DEVICE"}
+    run = subprocess.run([sys.executable, "-c", "import warptex; warptex.device()"],
+                         env=env, capture_output=True, text=True, check=True)
+    assert "NVIDIA CUDA driver" not in run.stderr

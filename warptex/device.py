@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
+import tempfile
 
 import warp as wp
 
 _ENV = "WARPTEX_DEVICE"
 _CHOICES = ("cpu", "cuda")
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 
 
 @functools.cache
@@ -26,7 +29,32 @@ def init_warp() -> None:
         wp.config.log_level = wp.LOG_WARNING
     else:
         wp.config.quiet = True
-    wp.init()
+    if os.environ.get(_ENV, "").strip().lower() == "cuda":
+        wp.init()  # a user who asked for CUDA wants to know why it is missing
+    else:
+        _init_without_driver_warning()
+
+
+def _init_without_driver_warning() -> None:
+    """``wp.init()`` without Warp's native warning that no CUDA driver was found.
+
+    Without an NVIDIA GPU the CPU is the expected device, and the warning, written by
+    Warp's library straight to file descriptor 2 at every start, would interrupt every
+    command's output (in the middle of progress bars, once per worker process). All
+    else Warp writes while starting is passed on.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            captured.seek(0)
+            lines = captured.read().decode(errors="replace").splitlines(keepends=True)
+            sys.stderr.write("".join(line for line in lines if _NO_DRIVER not in line))
 
 
 def device() -> str:
