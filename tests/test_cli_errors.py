@@ -198,3 +198,16 @@ def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
     monkeypatch.setattr(warptex.cli, "_check_device", interrupted)
     assert main(["info", str(files["exemplar"])]) == 130
     assert capsys.readouterr().err == "\nwarptex: interrupted\n"
+
+
+def test_first_use_of_a_kernel_cache_is_announced(tmp_path, monkeypatch, capsys, warp_device):
+    import warp as wp
+
+    from warptex import cli
+
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    cli._note_kernel_build()
+    assert f"first use of the kernel cache {tmp_path}" in capsys.readouterr().err
+    (tmp_path / "wp_kernels.synthesis_0123abc").mkdir()
+    cli._note_kernel_build()
+    assert capsys.readouterr().err == ""

@@ -866,6 +866,20 @@ def _check_device() -> None:
             raise CliError(str(error)) from None
 
 
+def _note_kernel_build() -> None:
+    """Say why a machine's first command pauses: Warp builds the kernels into its kernel
+    cache, once (README, "first use"), and until then no bar moves."""
+    import warp as wp
+
+    from warptex.device import init_warp
+
+    init_warp()
+    cache = Path(wp.config.kernel_cache_dir)
+    if not any(cache.glob("wp_kernels.*")):
+        print(f"warptex: first use of the kernel cache {cache}: Warp builds the kernels "
+              "there once, which takes about half a minute", file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     args = _parser().parse_args(argv)
@@ -874,6 +888,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         warnings.showwarning = _show_warning
         try:
             _check_device()
+            if args.command != "info":
+                _note_kernel_build()
             return command(args)
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
