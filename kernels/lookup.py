@@ -312,3 +312,4 @@ def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32),
 for _generic in (sample_nearest, sample_trilinear, voxel_sums):
     for _payload in (wp.uint16, wp.int32):
         wp.overload(_generic, {"pool": wp.array(dtype=_payload)})
+del _generic, _payload

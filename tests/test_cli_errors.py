@@ -201,13 +201,19 @@ def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
 
 
 def test_first_use_of_a_kernel_cache_is_announced(tmp_path, monkeypatch, capsys, warp_device):
+    import importlib
+
     import warp as wp
 
     from warptex import cli
 
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    stale = tmp_path / "wp_kernels.synthesis_0123abc"  # an older version's build
+    stale.mkdir()
     cli._note_kernel_build()
-    assert f"first use of the kernel cache {tmp_path}" in capsys.readouterr().err
-    (tmp_path / "wp_kernels.synthesis_0123abc").mkdir()
+    assert f"building the kernels into {tmp_path}" in capsys.readouterr().err
+    for name in cli._KERNEL_MODULES:
+        importlib.import_module(name)  # Warp names a module's build by its kernels' code
+        (tmp_path / wp.get_module(name).get_module_identifier(block_dim=1)).mkdir()
     cli._note_kernel_build()
     assert capsys.readouterr().err == ""

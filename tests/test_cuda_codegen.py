@@ -8,13 +8,15 @@ Running that code needs a GPU: ``test_synthesis.py::test_cpu_and_cuda_agree_bit_
 from __future__ import annotations
 
 import importlib
+import pkgutil
 import re
 
 import pytest
 import warp as wp
 
-MODULES = ["kernels.bake", "kernels.candidates", "kernels.kopf", "kernels.lookup",
-           "kernels.surface", "kernels.synthesis"]
+import kernels
+
+MODULES = [f"kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
 
 
 def _cuda_arch() -> int:
@@ -27,11 +29,12 @@ def _cuda_arch() -> int:
 @pytest.mark.parametrize("name", MODULES)
 def test_kernels_compile_for_cuda(name, warp_device):
     module = importlib.import_module(name)
+    module_kernels = [k for k in vars(module).values() if isinstance(k, wp.Kernel)]
+    if not module_kernels:
+        pytest.skip(f"{name} holds only functions, built into the modules that call them")
     files = wp.compile_aot_module(module, arch=_cuda_arch(), use_ptx=True)
     entries = re.findall(r"\.entry\s+(\w+)\(", "".join(p.read_text() for p in files))
-    kernels = [k for k in vars(module).values() if isinstance(k, wp.Kernel)]
-    assert kernels
-    for kernel in kernels:
+    for kernel in module_kernels:
         # One forward entry per overload: a generic kernel compiles only those declared.
         count = max(1, len(kernel.overloads)) if kernel.is_generic else 1
         found = [e for e in entries if e.startswith(f"{kernel.key}_")]

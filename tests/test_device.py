@@ -114,3 +114,10 @@ def test_a_command_starts_without_the_missing_driver_warning():
     run = subprocess.run([sys.executable, "-c", "import warptex; warptex.device()"],
                          env=env, capture_output=True, text=True, check=True)
     assert "NVIDIA CUDA driver" not in run.stderr
+
+
+@pytest.mark.parametrize("no_stderr", ["os.close(2)", "sys.stderr = None"])
+def test_warp_starts_without_a_stderr(no_stderr):
+    code = f"import os, sys; {no_stderr}; import warptex; print(warptex.device())"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0 and run.stdout.strip() in ("cpu", "cuda")

@@ -27,10 +27,11 @@ from tqdm.auto import tqdm
 
 from kernels import candidates as _k
 from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
+from warptex import parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar, ExemplarError
-from warptex.parallel import THREADS, launch_ranges
+from warptex.parallel import launch_ranges
 
 FORMAT_VERSION = 3  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
@@ -423,7 +424,7 @@ def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarra
     todo = np.arange(len(q))
     want = min(len(db), k + 8)
     while len(todo):
-        idx = tree.query(q[todo].astype(np.float64), k=want, workers=THREADS)[1]
+        idx = tree.query(q[todo].astype(np.float64), k=want, workers=parallel.THREADS)[1]
         idx = idx.reshape(len(todo), want)
         d2 = np.concatenate([
             ((q[todo[lo:lo + 4096], None, :] - db[idx[lo:lo + 4096]]) ** 2).sum(axis=2)

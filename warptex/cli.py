@@ -855,6 +855,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"warptex: warning: {message}", file=sys.stderr)
 
 
+_KERNEL_MODULES = ("kernels.candidates", "kernels.synthesis")
+
+
 def _check_device() -> None:
     """A device asked for through the environment that cannot be had is a user error."""
     if os.environ.get("WARPTEX_DEVICE", "").strip():
@@ -868,16 +871,26 @@ def _check_device() -> None:
 
 def _note_kernel_build() -> None:
     """Say why a machine's first command pauses: Warp builds the kernels into its kernel
-    cache, once (README, "first use"), and until then no bar moves."""
+    cache, once (README, "first use"), and until then no bar moves. The candidate and
+    synthesis modules are what nearly every command builds; each is looked up under the
+    name Warp gives its current code, so a new version of either is noticed too."""
+    import importlib
+
     import warp as wp
 
-    from warptex.device import init_warp
+    from warptex.device import device
 
-    init_warp()
+    block_dim = 1 if device() == "cpu" else None  # a CPU launch's variant, else the default
     cache = Path(wp.config.kernel_cache_dir)
-    if not any(cache.glob("wp_kernels.*")):
-        print(f"warptex: first use of the kernel cache {cache}: Warp builds the kernels "
-              "there once, which takes about half a minute", file=sys.stderr)
+    try:
+        built = all((cache / wp.get_module(importlib.import_module(name).__name__)
+                     .get_module_identifier(block_dim=block_dim)).is_dir()
+                    for name in _KERNEL_MODULES)
+    except (AttributeError, TypeError):  # a Warp that names its builds otherwise
+        return
+    if not built:
+        print(f"warptex: Warp is building the kernels into {cache} (once for this version, "
+              "about half a minute)", file=sys.stderr)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -6,12 +6,14 @@ import functools
 import os
 import sys
 import tempfile
+import threading
 
 import warp as wp
 
 _ENV = "WARPTEX_DEVICE"
 _CHOICES = ("cpu", "cuda")
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+_START_LOCK = threading.Lock()
 
 
 @functools.cache
@@ -21,18 +23,21 @@ def init_warp() -> None:
     The kernel cache goes to ``WARP_CACHE_PATH`` when that is set, so tests and CI can keep
     compiled kernels in a known project-local folder.
     """
-    cache = os.environ.get("WARP_CACHE_PATH")
-    if cache and wp.config.kernel_cache_dir is None:
-        wp.config.kernel_cache_dir = cache
-    # Warp replaced ``config.quiet`` with ``config.log_level`` in 1.10; honour both.
-    if hasattr(wp.config, "log_level"):
-        wp.config.log_level = wp.LOG_WARNING
-    else:
-        wp.config.quiet = True
-    if os.environ.get(_ENV, "").strip().lower() == "cuda":
-        wp.init()  # a user who asked for CUDA wants to know why it is missing
-    else:
-        _init_without_driver_warning()
+    # functools.cache does not lock: two threads' first calls may both get here, and the
+    # capture below swaps the process's file descriptor 2.
+    with _START_LOCK:
+        cache = os.environ.get("WARP_CACHE_PATH")
+        if cache and wp.config.kernel_cache_dir is None:
+            wp.config.kernel_cache_dir = cache
+        # Warp replaced ``config.quiet`` with ``config.log_level`` in 1.10; honour both.
+        if hasattr(wp.config, "log_level"):
+            wp.config.log_level = wp.LOG_WARNING
+        else:
+            wp.config.quiet = True
+        if _requested() == "cuda":
+            wp.init()  # a user who asked for CUDA wants to know why it is missing
+        else:
+            _init_without_driver_warning()
 
 
 def _init_without_driver_warning() -> None:
@@ -41,20 +46,31 @@ def _init_without_driver_warning() -> None:
     Without an NVIDIA GPU the CPU is the expected device, and the warning, written by
     Warp's library straight to file descriptor 2 at every start, would interrupt every
     command's output (in the middle of progress bars, once per worker process). All
-    else Warp writes while starting is passed on.
+    else Warp writes while starting is passed on. Where there is no stderr to capture
+    (closed, or none at all), Warp starts as it would.
     """
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as captured:
-        os.dup2(captured.fileno(), 2)
-        try:
-            wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            captured.seek(0)
-            lines = captured.read().decode(errors="replace").splitlines(keepends=True)
-            sys.stderr.write("".join(line for line in lines if _NO_DRIVER not in line))
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (AttributeError, OSError, ValueError):
+        wp.init()
+        return
+    try:
+        with tempfile.TemporaryFile() as captured:
+            os.dup2(captured.fileno(), 2)
+            try:
+                wp.init()
+            finally:
+                os.dup2(saved, 2)
+                captured.seek(0)
+                lines = captured.read().decode(errors="replace").splitlines(keepends=True)
+                sys.stderr.write("".join(line for line in lines if _NO_DRIVER not in line))
+    finally:
+        os.close(saved)
+
+
+def _requested() -> str:
+    return os.environ.get(_ENV, "").strip().lower()
 
 
 def device() -> str:
@@ -64,7 +80,7 @@ def device() -> str:
         ValueError: ``WARPTEX_DEVICE`` is set to something other than ``cpu`` or ``cuda``.
         RuntimeError: ``WARPTEX_DEVICE=cuda`` but Warp sees no CUDA device.
     """
-    requested = os.environ.get(_ENV, "").strip().lower()
+    requested = _requested()
     if requested and requested not in _CHOICES:
         raise ValueError(
             f"{_ENV}={os.environ[_ENV]!r} is not valid; use one of: {', '.join(_CHOICES)}"
