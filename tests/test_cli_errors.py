@@ -212,8 +212,25 @@ def test_first_use_of_a_kernel_cache_is_announced(tmp_path, monkeypatch, capsys,
     stale.mkdir()
     cli._note_kernel_build()
     assert f"building the kernels into {tmp_path}" in capsys.readouterr().err
-    for name in cli._KERNEL_MODULES:
+    for name, _ in cli._KERNEL_MODULES:
         importlib.import_module(name)  # Warp names a module's build by its kernels' code
         (tmp_path / wp.get_module(name).get_module_identifier(block_dim=1)).mkdir()
+    cli._note_kernel_build()
+    assert capsys.readouterr().err == ""
+
+
+def test_kernel_build_note_on_a_gpu_machine(tmp_path, monkeypatch, capsys, warp_device):
+    """There the candidates still build for the CPU; synthesis builds for CUDA."""
+    import importlib
+
+    import warp as wp
+
+    from warptex import cli
+
+    monkeypatch.setattr(importlib.import_module("warptex.device"), "device", lambda: "cuda")
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    for name, cpu_only in cli._KERNEL_MODULES:
+        module = wp.get_module(importlib.import_module(name).__name__)
+        (tmp_path / module.get_module_identifier(block_dim=1 if cpu_only else None)).mkdir()
     cli._note_kernel_build()
     assert capsys.readouterr().err == ""

@@ -855,7 +855,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"warptex: warning: {message}", file=sys.stderr)
 
 
-_KERNEL_MODULES = ("kernels.candidates", "kernels.synthesis")
+# Modules nearly every command builds, and whether they run on the CPU whatever the device
+# (a CPU launch builds the block_dim 1 variant; CUDA launches the default one).
+_KERNEL_MODULES = (("kernels.candidates", True), ("kernels.synthesis", False))
 
 
 def _check_device() -> None:
@@ -878,14 +880,17 @@ def _note_kernel_build() -> None:
 
     import warp as wp
 
-    from warptex.device import device
+    from warptex.device import device, init_warp
 
-    block_dim = 1 if device() == "cpu" else None  # a CPU launch's variant, else the default
+    init_warp()  # which settles Warp's kernel cache folder
     cache = Path(wp.config.kernel_cache_dir)
+    on_cpu = device() == "cpu"
     try:
-        built = all((cache / wp.get_module(importlib.import_module(name).__name__)
-                     .get_module_identifier(block_dim=block_dim)).is_dir()
-                    for name in _KERNEL_MODULES)
+        built = all(
+            (cache / wp.get_module(importlib.import_module(name).__name__)
+             .get_module_identifier(block_dim=1 if on_cpu or cpu_only else None)).is_dir()
+            for name, cpu_only in _KERNEL_MODULES
+        )
     except (AttributeError, TypeError):  # a Warp that names its builds otherwise
         return
     if not built:
