@@ -237,11 +237,13 @@ class LazySolidTexture(mi.Texture):
             p = _apply_affine(self._world_to_texture.tolist(), *p)
             return self._traced.colors(p, active)
         width = dr.width(it.p)
-        # One kernel interleaves the points; NumPy then views Dr.Jit's memory (DLPack).
+        # One kernel interleaves the points; in the LLVM variants NumPy then views Dr.Jit's
+        # memory (DLPack). NumPy cannot view GPU memory: the CUDA variants copy the points.
         flat = dr.ravel(it.p, order="F")
         mask = mi.Bool(active) | dr.zeros(mi.Bool, width)
         dr.eval(flat, mask)
-        points = np.from_dlpack(flat).reshape(width, 3)
+        host = np.from_dlpack(flat) if dr.backend_v(flat) == dr.JitBackend.LLVM else flat.numpy()
+        points = host.reshape(width, 3)
         keep = mask.numpy()
         colors = np.zeros((width, 3), np.float32)
         if keep.all():
