@@ -34,7 +34,9 @@ voxels into Mitsuba's program (:mod:`mitsuba_plugin.traced`), synthesizes what a
 missed and renders again, and falls back to wavefront mode (Dr.Jit's ``SymbolicLoops``
 and ``SymbolicCalls`` off, so ``eval`` gets the concrete points of a whole wavefront)
 when a texture cannot be traced: its stored bricks scattered too widely for one page
-table, or a render that keeps reaching new bricks. Outside that helper ``eval`` raises
+table, a render that keeps reaching new bricks, or a CUDA variant (there Dr.Jit's float32
+division is approximate and the GPU compiler may fuse its multiply-adds, so traced colors
+could differ from the Warp lookups' in the last bits). Outside that helper ``eval`` raises
 inside a symbolic scope, so a plain ``mi.render`` never shows voxels that were not
 synthesized.
 """
@@ -262,8 +264,8 @@ class LazySolidTexture(mi.Texture):
         """Serve symbolic ``eval`` calls in ``scene`` from the stored voxels; False, and
         nothing changed, when this texture cannot be traced (see the module
         documentation)."""
-        if not dr.is_jit_v(mi.Float):
-            return False
+        if not dr.is_jit_v(mi.Float) or dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
+            return False  # CUDA: traced arithmetic is not bit-exact (module documentation)
         if self._traced is None:
             self._traced = TracedLookup(self.solid.store, self.filter, self._mean_rgb)
         if self.space == "object":

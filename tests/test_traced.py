@@ -269,3 +269,15 @@ def test_voxels_missing_from_a_partly_filled_brick_are_misses(granite_32_file, w
     np.testing.assert_array_equal(traced_colors(lookup, neighbour),
                                   np.array([[0.25, 0.5, 0.75]], np.float32))
     assert len(lookup.take_misses()) == 512  # the whole brick is asked for
+
+
+def test_cuda_variants_are_not_traced(granite_32_file, monkeypatch):
+    """On CUDA, Dr.Jit's float32 division is approximate and the GPU compiler may fuse its
+    multiply-adds, so traced colors would not be bit-identical to the Warp lookups:
+    textures there render in wavefront mode."""
+    import drjit as dr
+
+    scene, texture = lit_plane(granite_32_file)
+    assert texture.begin_tracing(scene) is True
+    monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
+    assert texture.begin_tracing(scene) is False

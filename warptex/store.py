@@ -279,7 +279,7 @@ class BrickStore:
             return
         kernel = _k.sample_nearest if filter == "nearest" else _k.sample_trilinear
         pts = self._on_device(points, wp.vec3d)
-        res = self._on_device(out, wp.float32)
+        res = self._results(out)
         missed = wp.zeros(n, dtype=wp.int32, device=self._device)
         count = wp.zeros(1, dtype=wp.int32, device=self._device)
         with self._lock.shared():
@@ -432,7 +432,7 @@ class BrickStore:
         """Second half of a batch: the points whose voxels were missing."""
         pts = self._on_device(np.ascontiguousarray(points), wp.vec3d)
         sub = np.empty((len(points), self.channels), np.float32)
-        res = self._on_device(sub, wp.float32)
+        res = self._results(sub)
         dev = self._device
         missed = wp.zeros(len(points), dtype=wp.int32, device=dev)
         count = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -681,6 +681,13 @@ class BrickStore:
     def _on_device(self, a: np.ndarray, dtype) -> wp.array:
         """``a`` as a Warp array; on the CPU a view, so results land in ``a`` directly."""
         return wp.array(a, dtype=dtype, device=self._device, copy=self._device != "cpu")
+
+    def _results(self, out: np.ndarray) -> wp.array:
+        """Where a launch writes colors bound for ``out``: ``out`` itself on the CPU, else
+        device memory, read back after the launch (nothing to upload first)."""
+        if self._device == "cpu":
+            return self._on_device(out, wp.float32)
+        return wp.empty(out.shape, dtype=wp.float32, device=self._device)
 
     def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         z = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
