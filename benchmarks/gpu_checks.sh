@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA GPU, as one script for a lent GPU machine (BENCHMARKS.md,
 # "GPU checks"; stage its inputs with benchmarks/gpu_prepare.sh):
-#   - CPU and CUDA synthesize bit-identical voxels (tests/test_synthesis.py);
+#   - CPU and CUDA synthesize bit-identical voxels (tests/test_synthesis.py), and agree on
+#     brick-store queries, surface shells and texel points (tests/test_cuda.py); the
+#     plugin's cuda_ad_rgb lookups equal SolidTexture.query (tests/test_plugin.py);
 #   - issue 7's speed bar: Kopf and the lazy engine at 64^3 in the same run, every 64 px
 #     exemplar (benchmarks/bench_kopf.py);
 #   - the engine's own figures (benchmarks/bench_synthesis.py).
@@ -29,8 +31,8 @@ names=${NAMES:-$(cd "$data/exemplars" && ls ./*_64.png | xargs -n1 basename | se
     echo "$(nproc) CPU cores; $(python3 --version)"
 } | tee "$out/machine.txt"
 
-timeout 180 python3 -m pytest -q -p no:cacheprovider tests/test_synthesis.py -k cuda -rs 2>&1 \
-    | tee "$out/pytest_cuda.txt"
+timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_synthesis.py \
+    tests/test_plugin.py -k cuda -rs 2>&1 | tee "$out/pytest_cuda.txt"
 # shellcheck disable=SC2086  # one exemplar name per word
 timeout 420 python3 benchmarks/bench_kopf.py --exemplars "$data/exemplars" --sizes 64 \
     --names $names 2>&1 | tee "$out/bench_kopf.txt"

@@ -3,8 +3,9 @@
 #
 # The lent machine (see BENCHMARKS.md, "GPU checks") has Python 3.12 with NumPy, SciPy,
 # Pillow, tqdm and pytest, no network, and takes at most 64 MiB of files a call. It lacks
-# warp-lang (a 149 MB wheel) and pypng. This script downloads both wheels at the versions
-# of .venv, packs them and cuts the pack into parts of 50 MB in .gpu/1, .gpu/2, ...,
+# warp-lang (a 149 MB wheel), pypng, trimesh and Mitsuba with Dr.Jit (for the cuda_ad_rgb
+# checks). This script downloads their wheels at the versions of .venv, packs them and
+# cuts the pack into parts of 50 MB in .gpu/1, .gpu/2, ...,
 # one to carry per call, and puts the 64 px exemplars, the 128 px rosewood and their
 # cached candidates (so the GPU run measures synthesis, not pre-computation) in .gpu/data.
 # .gpu/ is git-ignored.
@@ -15,14 +16,16 @@ cd "$(dirname "$0")/.."
 py=.venv/bin/python
 exemplars=${EXEMPLARS:-../shared/data/exemplars}
 warp_version=$($py -c 'import warp; print(warp.__version__)')
-png_version=$($py -c 'import importlib.metadata as m; print(m.version("pypng"))')
+pinned=$($py -c 'import importlib.metadata as m
+print(" ".join(f"{p}=={m.version(p)}" for p in ("pypng", "trimesh", "mitsuba", "drjit")))')
 
 rm -rf .gpu
 mkdir -p .gpu/wheels .gpu/data/exemplars .gpu/data/cache
+# shellcheck disable=SC2086  # one requirement per word of $pinned
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
     --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
     --platform manylinux2014_x86_64 -d .gpu/wheels \
-    "warp-lang==$warp_version" "pypng==$png_version"
+    "warp-lang==$warp_version" $pinned
 tar cf - -C .gpu/wheels . | split -b 50M -d -a 1 - .gpu/part-
 rm -r .gpu/wheels
 for part in .gpu/part-*; do
@@ -50,4 +53,4 @@ for png in sorted(Path(".gpu/data/exemplars").glob("*.png")):
 PY
 git rev-parse --short HEAD > .gpu/data/commit
 echo "staged: $(ls -d .gpu/[0-9]* | tr '\n' ' ')and .gpu/data ($(du -sh .gpu/data | cut -f1));" \
-     "warp-lang $warp_version, pypng $png_version, commit $(cat .gpu/data/commit)"
+     "warp-lang $warp_version, $pinned, commit $(cat .gpu/data/commit)"
