@@ -175,6 +175,7 @@ def has_continuous_neighbor(
 @wp.kernel
 def coherent_candidates(
     first: int,
+    pixels: wp.array(dtype=wp.int32),
     cand1_u: wp.array2d(dtype=wp.int32),
     cand1_v: wp.array2d(dtype=wp.int32),
     cand2_u: wp.array2d(dtype=wp.int32),
@@ -187,9 +188,11 @@ def coherent_candidates(
     """Flag the candidates forming coherent patches in all three exemplars (section 4.2).
 
     Candidate coordinates come unpacked as (u, v) pixel coordinates of roles 1 and 2. One
-    thread per candidate slot of pixels ``first...``.
+    thread per candidate slot of the listed ``pixels`` from ``first`` on; row i of ``keep``
+    is ``pixels[i]``.
     """
-    p, k = pixel_slot(first, wp.tid(), keep.shape[1])
+    i, k = pixel_slot(first, wp.tid(), keep.shape[1])
+    p = pixels[i]
     flag = int(0)
     if k < count[p]:
         h0 = height[0]
@@ -198,4 +201,4 @@ def coherent_candidates(
             cand1_u, cand1_v, count, p, k, h0, w0, height[1], width[1]
         ) and has_continuous_neighbor(cand2_u, cand2_v, count, p, k, h0, w0, height[2], width[2]):
             flag = 1
-    keep[p, k] = flag
+    keep[i, k] = flag

@@ -458,28 +458,35 @@ def _filter_coherent(
     round removes nothing, so the final lists are coherent with each other (except at
     fallback pixels). Every round but the last removes candidates, so this ends.
     """
-    npix = cand.shape[0]
+    npix, slots = cand.shape[:2]
     fallback = np.zeros(npix, bool)
     dev = "cpu"
     height = wp.vec3i(*[s[0] for s in sizes])
     width = wp.vec3i(*[s[1] for s in sizes])
+    # A pixel's test reads only its neighbours' lists, and a list that passed keeps
+    # passing while they stay the same: each round tests just the neighbours of the pixels
+    # whose lists changed in the round before (all pixels at first).
+    retest = np.ones(npix, bool)
     done = 0
     while True:
         coords = []
         for role in (1, 2):
             u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
             coords += [wp.array(a.astype(np.int32), device=dev) for a in (u, v)]
-        keep = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
+        listed = np.flatnonzero(retest).astype(np.int32)
+        keep = wp.zeros((len(listed), slots), dtype=wp.int32, device=dev)
         launch_ranges(
             _k.coherent_candidates,
             0,
-            npix,
-            [*coords, wp.array(count, dtype=wp.int32, device=dev), height, width],
+            len(listed),
+            [wp.array(listed, dtype=wp.int32, device=dev), *coords,
+             wp.array(count, dtype=wp.int32, device=dev), height, width],
             [keep],
-            per_item=cand.shape[1],
+            per_item=slots,
             min_items=_MIN_SPLIT_PIXELS,
         )
-        flags = keep.numpy().astype(bool)
+        flags = np.arange(slots)[None, :] < count[:, None]
+        flags[listed] = keep.numpy().astype(bool)
         flags[fallback, :1] = True  # a fallback pixel keeps its single best candidate
         kept = flags.sum(axis=1)
         empty = kept == 0
@@ -487,19 +494,22 @@ def _filter_coherent(
         fallback |= empty
         kept = flags.sum(axis=1)
         done += 1
+        before = count
         if np.array_equal(kept, count):
             if count.max() <= k3:
                 break
             count = np.minimum(count, k3)
-            continue
-        order = np.argsort(~flags, axis=1, kind="stable")
-        cand = np.take_along_axis(cand, order[:, :, None], axis=1)
-        cb = np.take_along_axis(cb, order, axis=1)
-        count = kept
-        if done >= rounds:
-            # Stopping here would leave lists whose support was just removed; cut them
-            # to k3 instead (the paper's "keep the first 12") and filter on to a fixpoint.
-            count = np.minimum(count, k3)
+        else:
+            shrunk = np.flatnonzero(kept != count)  # elsewhere the kept ones lead already
+            order = np.argsort(~flags[shrunk], axis=1, kind="stable")
+            cand[shrunk] = np.take_along_axis(cand[shrunk], order[:, :, None], axis=1)
+            cb[shrunk] = np.take_along_axis(cb[shrunk], order, axis=1)
+            count = kept
+            if done >= rounds:
+                # Stopping here would leave lists whose support was just removed; cut them
+                # to k3 instead (the paper's "keep the first 12") and filter on to a fixpoint.
+                count = np.minimum(count, k3)
+        retest = _direct_neighbours(count != before, sizes[0])
     width_k = min(k3, cand.shape[1])
     cand = cand[:, :width_k].copy()
     cb = cb[:, :width_k].copy()
@@ -509,6 +519,16 @@ def _filter_coherent(
     cand[invalid] = np.repeat(cand[:, :1], width_k, axis=1)[invalid]
     cb[invalid] = np.repeat(cb[:, :1], width_k, axis=1)[invalid]
     return cand.astype(np.int32), cb.astype(np.int32), count, fallback
+
+
+def _direct_neighbours(marked: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Pixels with a marked direct (4-connected, toroidal) neighbour, as a flat mask."""
+    grid = marked.reshape(size)
+    near = np.zeros_like(grid)
+    for axis in (0, 1):
+        for step in (-1, 1):
+            near |= np.roll(grid, step, axis=axis)
+    return near.reshape(-1)
 
 
 def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
