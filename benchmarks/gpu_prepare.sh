@@ -3,8 +3,8 @@
 #
 # The lent machine (see BENCHMARKS.md, "GPU checks") has Python 3.12 with NumPy, SciPy,
 # Pillow, tqdm and pytest, no network, and takes at most 64 MiB of files a call. It lacks
-# warp-lang (a 149 MB wheel), pypng, trimesh and Mitsuba with Dr.Jit (for the cuda_ad_rgb
-# checks). This script downloads their wheels at the versions of .venv, packs them and
+# warp-lang (a 149 MB wheel), pypng, trimesh, shapely and Mitsuba with Dr.Jit (for the
+# cuda_ad_rgb checks). This script downloads their wheels at the versions of .venv, packs them and
 # cuts the pack into parts of 50 MB in .gpu/1, .gpu/2, ...,
 # one to carry per call, and puts the 64 px exemplars, the 128 px rosewood and their
 # cached candidates (so the GPU run measures synthesis, not pre-computation) in .gpu/data.
@@ -17,7 +17,7 @@ py=.venv/bin/python
 exemplars=${EXEMPLARS:-../shared/data/exemplars}
 warp_version=$($py -c 'import warp; print(warp.__version__)')
 pinned=$($py -c 'import importlib.metadata as m
-print(" ".join(f"{p}=={m.version(p)}" for p in ("pypng", "trimesh", "mitsuba", "drjit")))')
+print(" ".join(f"{p}=={m.version(p)}" for p in ("pypng", "trimesh", "shapely", "mitsuba", "drjit")))')
 
 rm -rf .gpu
 mkdir -p .gpu/wheels .gpu/data/exemplars .gpu/data/cache

@@ -220,8 +220,9 @@ class LazySolidTexture(mi.Texture):
     def colors_at(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Color3f:
         """RGB at the points of interaction ``it`` where ``active``; zero elsewhere.
 
-        Under the JIT variants the points reach NumPy and Warp through DLPack and only
-        the active lanes are queried, so inactive lanes synthesize nothing.
+        Under the JIT variants only the active lanes are queried, so inactive lanes
+        synthesize nothing; the LLVM variants hand their points to NumPy without a copy
+        (DLPack).
         """
         if not dr.is_jit_v(mi.Float):
             if not active:

@@ -325,6 +325,15 @@ def test_same_candidates_on_any_number_of_threads(threads, monkeypatch, granite)
     _assert_same(precompute(GRANITE, cache=False), granite)
 
 
+def test_coherence_retests_what_a_full_retest_would_change(monkeypatch, three):
+    """Each coherence round retests only the neighbours of changed lists; retesting every
+    pixel every round must give the same candidates."""
+    cs, exemplars = three
+    monkeypatch.setattr(candidates, "_direct_neighbours",
+                        lambda marked, size: np.ones(marked.size, bool))
+    _assert_same(precompute(*exemplars, cache=False), cs)
+
+
 def test_save_load_round_trip(tmp_path, granite):
     granite.save(tmp_path / "g.wtc")
     loaded = CandidateSet.load(tmp_path / "g.wtc")

@@ -167,3 +167,14 @@ def test_check_vectorization(granite_32_file):
         return tex.eval(si)
 
     check_vectorization(kernel, width=12, modes=["llvm_ad"])
+
+
+def test_eval_copies_points_where_numpy_cannot_view_them(granite_32_file, monkeypatch):
+    """NumPy views only host memory: in the CUDA variants eval copies the points. Faked
+    here by reporting the LLVM variant's arrays as CUDA ones."""
+    use(LLVM)
+    tex = load(granite_32_file, scale=8.0, seed=3)
+    points = np.random.default_rng(4).uniform(-1, 1, (6, 3)).astype(np.float32)
+    monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
+    np.testing.assert_allclose(np.array(tex.eval(interaction(points))).T,
+                               tex.solid.query(points * 8.0), atol=1e-5)

@@ -458,6 +458,7 @@ def _filter_coherent(
     round removes nothing, so the final lists are coherent with each other (except at
     fallback pixels). Every round but the last removes candidates, so this ends.
     """
+    cand, cb = cand.copy(), cb.copy()  # lists are reordered in place below
     npix, slots = cand.shape[:2]
     fallback = np.zeros(npix, bool)
     dev = "cpu"
