@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from warptex.archive import write_atomically
-from warptex.compare import METHODS, compare, write_report
+from warptex.compare import METHODS, compare, run_summary, write_report
 
 HERE = Path(__file__).resolve().parent
 MORE_PASSES = 3  # the quality setting the index reports beside the default
@@ -25,6 +25,9 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=64)
     args = parser.parse_args()
     out = HERE / "comparisons"
+    run = run_summary(args.size, 0)
+    machine = f"{run['cpu']}, {run['cores']} cores, " + (f"GPU {run['gpu']}" if run["gpu"]
+                                                         else "no GPU")
     lines = [
         "# Comparisons at 64^3",
         "",
@@ -34,7 +37,8 @@ def main() -> None:
         "time, and the repetition score over a 256-voxel slice; `kopf` averages plainly,",
         "`kopf-ms` is Kopf with mean-shift clustering (`kopf-meanshift` in the sheets);",
         f"`lazy-{MORE_PASSES}` is lazy synthesis with {MORE_PASSES} correction passes per level "
-        f"(`--passes {MORE_PASSES}`, not in the sheets):",
+        f"(`--passes {MORE_PASSES}`, not in the sheets). Measured on {machine}; warptex "
+        f"{run['warptex']}, Warp {run['warp']}; {run['date']}:",
         "",
         "| exemplar | lazy energy | kopf energy | lazy / kopf | kopf-ms energy | lazy / kopf-ms "
         f"| lazy-{MORE_PASSES} energy | lazy-{MORE_PASSES} / kopf "
@@ -45,7 +49,7 @@ def main() -> None:
     for path in sorted(args.exemplars.glob("*_64.png")):
         name = path.stem.removesuffix("_64")
         results = compare(path, args.size, METHODS, progress=False)
-        write_report(results, path, out / name)
+        write_report(results, path, out / name, size=args.size, seed=0)
         r = {m.method: m for m in results}
         (more,) = compare(path, args.size, ["lazy"], passes=MORE_PASSES, progress=False)
         lazy, kopf, ms = (max(r[m].energy) for m in ("lazy", "kopf", "kopf-meanshift"))

@@ -41,6 +41,12 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     # Tiling repeats; lazy synthesis does not.
     assert rows["tiled"]["repetition"] > 0.9 > rows["lazy"]["repetition"]
     assert "| lazy |" in (out / "table.md").read_text()
+    # The figures say where they were measured: volume, machine, versions, date, device.
+    run = json.loads((out / "table.json").read_text())["run"]
+    assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1
+    assert run["cpu"] and run["warp"] and run["date"].endswith("UTC")
+    assert f"16^3, seed 0; {run['cpu']}" in (out / "table.md").read_text()
+    assert rows["lazy"]["device"] in ("cpu", "cuda") and rows["noise"]["device"] == "cpu"
     assert main(["compare", str(data_dir / "granite_64.png"), "--methods", "bogus",
                  "-o", str(out)]) == 2
 

@@ -784,7 +784,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes)
     except ValueError as error:
         raise CliError(str(error)) from None
-    files = write_report(results, args.exemplar, args.output)
+    files = write_report(results, args.exemplar, args.output, size=args.size, seed=args.seed)
     print(table_markdown(results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0

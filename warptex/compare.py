@@ -12,11 +12,14 @@ from __future__ import annotations
 import functools
 import json
 import multiprocessing
+import os
+import platform
 import resource
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +48,7 @@ class MethodResult:
     seconds: float
     peak_mib: float
     notes: str = ""
+    device: str = "cpu"  # where the method computed: the lazy engine's device, else the CPU
     slices: list[np.ndarray] = field(default_factory=list, repr=False)
     render: np.ndarray | None = field(default=None, repr=False)
 
@@ -229,7 +233,34 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int)
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
         "render": render_cube(_cube_texture(method, exemplar_path, volume, seed, passes)),
         "notes": f"correction passes per level: {passes}" if method in _LAZY else "",
+        "device": _engine_device() if method in _LAZY else "cpu",
     }
+
+
+def _engine_device() -> str:
+    from warptex.device import device
+
+    return device()
+
+
+def run_summary(size: int, seed: int) -> dict:
+    """What a comparison's seconds and memory depend on: the volume, the machine that ran
+    it (CPU model, cores, GPU), the versions and the date."""
+    import warp as wp
+
+    from warptex import __version__
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as info:
+            cpu = next(line.split(":", 1)[1].strip() for line in info
+                       if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    gpu = wp.get_device("cuda").name if _engine_device() == "cuda" else None
+    return {"size": size, "seed": seed, "cpu": cpu, "cores": os.cpu_count(), "gpu": gpu,
+            "warptex": __version__, "warp": wp.__version__,
+            "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}
 
 
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
@@ -265,21 +296,23 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
 def table_markdown(results: Sequence[MethodResult]) -> str:
     lines = [
         "| method | energy x / y / z | SWD x / y / z | histogram x / y / z | repetition | "
-        "seconds | peak MiB | notes |",
-        "|---|---|---|---|---|---|---|---|",
+        "seconds | peak MiB | device | notes |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         def trio(v: list[float]) -> str:
             return " / ".join(f"{x:.3f}" for x in v)
 
         lines.append(f"| {r.method} | {trio(r.energy)} | {trio(r.swd)} | {trio(r.histogram)} | "
-                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.0f} | {r.notes} |")
+                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.0f} | {r.device} | "
+                     f"{r.notes} |")
     return "\n".join(lines) + "\n"
 
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
-                 out_dir: str | Path) -> list[Path]:
-    """Write ``sheet.png``, ``table.md`` and ``table.json`` into ``out_dir`` atomically."""
+                 out_dir: str | Path, *, size: int, seed: int) -> list[Path]:
+    """Write ``sheet.png``, ``table.md`` and ``table.json`` into ``out_dir`` atomically,
+    with the :func:`run_summary` of the ``size^3``, ``seed`` comparison run here."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
@@ -292,11 +325,17 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
     save_png(sheet(rows), out / "sheet.png")
-    markdown = f"# {Path(exemplar_path).name}\n\n" + table_markdown(results)
+    run = run_summary(size, seed)
+    machine = (f"{run['cpu']}, {run['cores']} cores, "
+               + (f"GPU {run['gpu']}" if run["gpu"] else "no GPU"))
+    markdown = (f"# {Path(exemplar_path).name}\n\n{size}^3, seed {seed}; {machine}; "
+                f"warptex {run['warptex']}, Warp {run['warp']}; {run['date']}\n\n"
+                + table_markdown(results))
     write_atomically(out / "table.md", lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
-    table = json.dumps({"exemplar": Path(exemplar_path).name, "methods": payload}, indent=2)
+    table = json.dumps({"exemplar": Path(exemplar_path).name, "run": run,
+                        "methods": payload}, indent=2)
     write_atomically(out / "table.json", lambda tmp: tmp.write_text(table))
     return [out / "sheet.png", out / "table.md", out / "table.json"]
 
