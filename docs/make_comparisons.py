@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from warptex.archive import write_atomically
-from warptex.compare import METHODS, compare, run_summary, write_report
+from warptex.compare import METHODS, compare, run_line, run_summary, write_report
 
 HERE = Path(__file__).resolve().parent
 MORE_PASSES = 3  # the quality setting the index reports beside the default
@@ -25,9 +25,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=64)
     args = parser.parse_args()
     out = HERE / "comparisons"
-    run = run_summary(args.size, 0)
-    machine = f"{run['cpu']}, {run['cores']} cores, " + (f"GPU {run['gpu']}" if run["gpu"]
-                                                         else "no GPU")
+    run = run_line(run_summary(args.size, 0))
     lines = [
         "# Comparisons at 64^3",
         "",
@@ -37,8 +35,7 @@ def main() -> None:
         "time, and the repetition score over a 256-voxel slice; `kopf` averages plainly,",
         "`kopf-ms` is Kopf with mean-shift clustering (`kopf-meanshift` in the sheets);",
         f"`lazy-{MORE_PASSES}` is lazy synthesis with {MORE_PASSES} correction passes per level "
-        f"(`--passes {MORE_PASSES}`, not in the sheets). Measured on {machine}; warptex "
-        f"{run['warptex']}, Warp {run['warp']}; {run['date']}:",
+        f"(`--passes {MORE_PASSES}`, not in the sheets). Measured on {run}:",
         "",
         "| exemplar | lazy energy | kopf energy | lazy / kopf | kopf-ms energy | lazy / kopf-ms "
         f"| lazy-{MORE_PASSES} energy | lazy-{MORE_PASSES} / kopf "

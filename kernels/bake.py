@@ -8,7 +8,7 @@ whose UV image covers its centre, so overlapping charts resolve the same way eve
 import warp as wp
 
 # No fused multiply-adds (CUDA's default, which fuses more than the CPU build): texel
-# owners, surface points and shell voxels must come out the same on every device.
+# owners and surface points must come out the same on every device.
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 NO_TRIANGLE = wp.constant(2147483647)

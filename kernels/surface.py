@@ -7,8 +7,8 @@ separating-axis test (Akenine-Moeller 2001) finds no axis separating them.
 
 import warp as wp
 
-# No fused multiply-adds (CUDA's default, which fuses more than the CPU build): texel
-# owners, surface points and shell voxels must come out the same on every device.
+# No fused multiply-adds (CUDA's default, which fuses more than the CPU build): the shell's voxels
+# must come out the same on every device.
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 

@@ -885,15 +885,17 @@ def _note_kernel_build() -> None:
     init_warp()  # which settles Warp's kernel cache folder
     cache = Path(wp.config.kernel_cache_dir)
     on_cpu = device() == "cpu"
+
+    def built(name: str, cpu_only: bool) -> bool:
+        importlib.import_module(name)  # Warp names a build by the code of its kernels
+        block_dim = 1 if on_cpu or cpu_only else None
+        return (cache / wp.get_module(name).get_module_identifier(block_dim=block_dim)).is_dir()
+
     try:
-        built = all(
-            (cache / wp.get_module(importlib.import_module(name).__name__)
-             .get_module_identifier(block_dim=1 if on_cpu or cpu_only else None)).is_dir()
-            for name, cpu_only in _KERNEL_MODULES
-        )
+        all_built = all(built(name, cpu_only) for name, cpu_only in _KERNEL_MODULES)
     except (AttributeError, TypeError):  # a Warp that names its builds otherwise
         return
-    if not built:
+    if not all_built:
         print(f"warptex: Warp is building the kernels into {cache} (once for this version, "
               "about half a minute)", file=sys.stderr)
 

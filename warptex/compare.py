@@ -263,6 +263,13 @@ def run_summary(size: int, seed: int) -> dict:
             "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}
 
 
+def run_line(run: dict) -> str:
+    """A :func:`run_summary` as one line of text: machine, versions and date."""
+    gpu = f"GPU {run['gpu']}" if run["gpu"] else "no GPU"
+    return (f"{run['cpu']}, {run['cores']} cores, {gpu}; warptex {run['warptex']}, "
+            f"Warp {run['warp']}; {run['date']}")
+
+
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
             seed: int = 0, progress: bool = True,
             passes: int = DEFAULT_PASSES) -> list[MethodResult]:
@@ -326,10 +333,7 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
         rows.append((r.method, images))
     save_png(sheet(rows), out / "sheet.png")
     run = run_summary(size, seed)
-    machine = (f"{run['cpu']}, {run['cores']} cores, "
-               + (f"GPU {run['gpu']}" if run["gpu"] else "no GPU"))
-    markdown = (f"# {Path(exemplar_path).name}\n\n{size}^3, seed {seed}; {machine}; "
-                f"warptex {run['warptex']}, Warp {run['warp']}; {run['date']}\n\n"
+    markdown = (f"# {Path(exemplar_path).name}\n\n{size}^3, seed {seed}; {run_line(run)}\n\n"
                 + table_markdown(results))
     write_atomically(out / "table.md", lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
