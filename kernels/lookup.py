@@ -297,13 +297,20 @@ def voxel_sums(
 
 @wp.kernel
 def insert_keys(keys: wp.array(dtype=wp.int64), slots: wp.array(dtype=wp.int32), index: BrickIndex):
-    """Insert bricks into the table; one thread, since probes of new keys may collide."""
-    for n in range(keys.shape[0]):
-        at = home(keys[n], index.mask)
-        while index.keys[at] != EMPTY and index.keys[at] != keys[n]:
+    """Insert distinct new bricks into the table, one thread each: a probe claims a free
+    entry by compare-and-swap, so threads whose probes collide take different entries. Where
+    each key lands then depends on thread timing, but every key is found by
+    :func:`find_slot` whatever the layout, so no lookup result does."""
+    n = wp.tid()
+    key = keys[n]
+    at = home(key, index.mask)
+    probing = bool(True)
+    while probing:
+        if wp.atomic_cas(index.keys, int(at), EMPTY, key) == EMPTY:
+            index.slots[at] = slots[n]
+            probing = False
+        else:
             at = (at + wp.int64(1)) & index.mask
-        index.keys[at] = keys[n]
-        index.slots[at] = slots[n]
 
 
 # The two payloads a brick pool holds (warptex.store): 16-bit pixel indices while every

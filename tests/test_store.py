@@ -89,6 +89,32 @@ def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
     assert stats["bricks"] == len(keys) and stats["misses"] == 0
     assert stats["voxels"] == len(keys) * 512 and stats["voxels_added"] == 0
     assert stats["index_bytes"] <= 0.1 * stats["payload_bytes"]
+    check_table(store, keys, np.arange(len(keys)))
+
+
+def home(keys: np.ndarray, mask: int) -> np.ndarray:
+    """``kernels.lookup.home`` in NumPy: the first probe of each key."""
+    h = keys.astype(np.uint64)
+    with np.errstate(over="ignore"):
+        h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    h ^= h >> np.uint64(31)
+    return (h.view(np.int64) & mask).astype(np.int64)
+
+
+def check_table(store: BrickStore, keys: np.ndarray, slots: np.ndarray) -> None:
+    """The hash table holds exactly ``keys``, each once with its slot and reachable by
+    linear probing: no free entry between a key's first probe and where it lies."""
+    table = store._index.keys.numpy()
+    where = np.flatnonzero(table != -1)
+    assert sorted(table[where]) == sorted(keys)
+    at = {int(k): int(i) for i, k in zip(where, table[where], strict=True)}
+    entry = np.array([at[int(k)] for k in keys])
+    np.testing.assert_array_equal(store._index.slots.numpy()[entry], slots)
+    free = table == -1
+    for first, lies in zip(home(np.asarray(keys), len(table) - 1), entry, strict=True):
+        between = np.arange(first, lies if lies >= first else lies + len(table)) % len(table)
+        assert not free[between].any()
 
 
 def test_least_recently_used_brick_is_evicted(candidates):
@@ -103,6 +129,8 @@ def test_least_recently_used_brick_is_evicted(candidates):
     sample(store, [b])
     s = store.stats()
     assert s["misses"] == 4 and s["bricks"] == 2 and s["bricks_evicted"] == 2
+    live = np.flatnonzero(store._keys != -1)
+    check_table(store, store._keys[live], live)
 
 
 def test_zero_cache_still_answers(candidates):

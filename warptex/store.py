@@ -512,11 +512,7 @@ class BrickStore:
             if 2 * live > len(self._index.keys):
                 self._rebuild_table(1 << (2 * live).bit_length())
             else:
-                dev = self._device
-                wp.launch(_k.insert_keys, 1,
-                          [wp.array(fresh, dtype=wp.int64, device=dev),
-                           wp.array(free[: len(fresh)].astype(np.int32), dtype=wp.int32,
-                                    device=dev)], [self._index], device=dev)
+                self._index_bricks(fresh, free[: len(fresh)])
         slots = self._slots_of(keys)
         touched = unique(slots)
         # Old and new voxels of the touched bricks, ordered by (brick, local) and without
@@ -662,11 +658,19 @@ class BrickStore:
         self._index.slots = wp.zeros(capacity, dtype=wp.int32, device=dev)
         self._index.mask = capacity - 1
         live = np.flatnonzero(self._keys != _EMPTY)
-        if len(live):
-            wp.launch(_k.insert_keys, 1, [wp.array(self._keys[live], dtype=wp.int64, device=dev),
-                                          wp.array(live.astype(np.int32), dtype=wp.int32,
-                                                   device=dev)],
-                      [self._index], device=dev)
+        self._index_bricks(self._keys[live], live)
+
+    def _index_bricks(self, keys: np.ndarray, slots: np.ndarray) -> None:
+        """Enter distinct bricks ``keys``, absent from the table, at pool ``slots``."""
+        if len(keys) == 0:
+            return
+        dev = self._device
+        # One launch, never split over CPU threads: Warp's atomics are plain reads and
+        # writes on the CPU, atomic only between the threads of a CUDA launch.
+        wp.launch(_k.insert_keys, len(keys),
+                  [wp.array(keys, dtype=wp.int64, device=dev),
+                   wp.array(slots.astype(np.int32), dtype=wp.int32, device=dev)],
+                  [self._index], device=dev)
 
     # -- helpers ----------------------------------------------------------------------
 
