@@ -63,19 +63,25 @@ def claim_texels(
 @wp.kernel
 def texel_points(
     uv: wp.array(dtype=wp.vec2),
-    positions: wp.array(dtype=wp.vec3),
+    positions: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     owner: wp.array(dtype=wp.int32),
     width: int,
     height: int,
-    points: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3d),
 ):
-    """The surface point of each claimed texel, interpolated in its owning triangle."""
+    """The surface point of each claimed texel, interpolated in its owning triangle.
+
+    In float64 like the positions, and from the triangle's first corner: weights summing to
+    one only within float32 rounding would otherwise move points far from the origin (by
+    a tenth of a voxel 10^6 voxels out), away from the point whose color a query gets.
+    """
     t = wp.tid()
     f = owner[t]
     if f == NO_TRIANGLE:
         return
     face = faces[f]
-    w = barycentric(texel_uv(t % width, t // width, width, height), uv[face[0]], uv[face[1]],
-                    uv[face[2]])
-    points[t] = w[0] * positions[face[0]] + w[1] * positions[face[1]] + w[2] * positions[face[2]]
+    w = wp.vec3d(barycentric(texel_uv(t % width, t // width, width, height), uv[face[0]],
+                             uv[face[1]], uv[face[2]]))
+    a = positions[face[0]]
+    points[t] = a + w[1] * (positions[face[1]] - a) + w[2] * (positions[face[2]] - a)

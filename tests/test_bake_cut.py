@@ -51,6 +51,21 @@ def test_baked_texel_equals_query_at_its_surface_point(texture, sphere):
     assert np.all(radius <= scale * 1.0 + 1e-3) and np.all(radius >= scale * 0.98)
 
 
+def test_far_from_the_origin_baking_shows_the_colors_of_the_same_points(texture, sphere):
+    """Surface points stay float64 on the way to the texture, as queries and slices do:
+    1.5 million voxels out, float32 would move them by up to 1/16 of a voxel."""
+    mesh = sphere.unwrap()
+    near = block_transform(mesh, 24)
+    far = near.copy()
+    far[:3, 3] += 1.5e6
+    exact = np.asarray(mesh.vertices, np.float64) @ far[:3, :3].T + far[:3, 3]
+    assert np.array_equal(vertex_colors(texture, mesh, far), texture.query(exact))
+    points, mask = texel_points(mesh, mesh.visual.uv, far, (32, 32))
+    points_near, mask_near = texel_points(mesh, mesh.visual.uv, near, (32, 32))
+    assert np.array_equal(mask, mask_near) and mask.any()
+    assert np.allclose(points[mask] - 1.5e6, points_near[mask], rtol=0.0, atol=1e-6)
+
+
 def test_planar_slice_matches_the_volume(texture):
     box = texture.synthesizer.box((2, -3, 5), (6, 7, 1))[:, :, 0]
     pts = plane_points(np.array([2.5, -2.5, 5.5]), np.array([1, 0, 0]), np.array([0, 1, 0]),

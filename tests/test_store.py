@@ -133,6 +133,13 @@ def test_least_recently_used_brick_is_evicted(candidates):
     check_table(store, store._keys[live], live)
 
 
+def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeypatch):
+    store = BrickStore(synthesizer(candidates))
+    monkeypatch.setattr(store, "_to_store", lambda voxels: voxels[:0])
+    with pytest.raises(RuntimeError, match="2 of 2 points still read voxels missing"):
+        sample(store, [brick_center((0, 0, 0)), brick_center((3, 0, 0))])
+
+
 def test_zero_cache_still_answers(candidates):
     syn = synthesizer(candidates)
     store = BrickStore(syn, cache_bytes=0)

@@ -41,8 +41,8 @@ def texel_points(
     mesh: trimesh.Trimesh, uv: np.ndarray, transform: np.ndarray, size: tuple[int, int],
     device: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Surface points (H*W, 3) in voxel space shown by each texel, and which texels any
-    triangle covers. ``size`` is (width, height)."""
+    """Surface points (H*W, 3) float64 in voxel space shown by each texel, and which texels
+    any triangle covers. ``size`` is (width, height)."""
     init_warp()
     dev = device or default_device()
     width, height = size
@@ -51,8 +51,8 @@ def texel_points(
     owner = wp.full(width * height, _k.NO_TRIANGLE, dtype=wp.int32, device=dev)
     wp.launch(_k.claim_texels, len(mesh.faces), [uv_wp, faces, width, height], [owner],
               device=dev)
-    points = wp.zeros(width * height, dtype=wp.vec3, device=dev)
-    positions = wp.array(to_voxel_space(mesh, transform), dtype=wp.vec3, device=dev)
+    points = wp.zeros(width * height, dtype=wp.vec3d, device=dev)
+    positions = wp.array(to_voxel_space(mesh, transform), dtype=wp.vec3d, device=dev)
     wp.launch(_k.texel_points, width * height, [uv_wp, positions, faces, owner, width, height],
               [points], device=dev)
     return points.numpy(), owner.numpy() != _k.NO_TRIANGLE

@@ -438,6 +438,10 @@ class BrickStore:
         count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._with_voxels(self._to_store(voxels_read(points, filter)),
                           lambda: self._launch(kernel, pts, res, missed, count))
+        if count.numpy()[0]:
+            # Their colors were never written: a fault of the store, never a result.
+            raise RuntimeError(f"{int(count.numpy()[0])} of {len(points)} points still read "
+                               "voxels missing from the brick store after synthesizing them")
         out[rows] = res.numpy()
 
     def _to_store(self, voxels: np.ndarray) -> np.ndarray:

@@ -32,9 +32,11 @@ def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
 
 
 def to_voxel_space(mesh: trimesh.Trimesh, transform: np.ndarray) -> np.ndarray:
-    """Mesh vertices in voxel space, float32."""
+    """Mesh vertices in voxel space, float64: far from the origin float32 would move them
+    by up to half a voxel, so a baked vertex would not show the color a query of the same
+    point gets."""
     v = np.asarray(mesh.vertices, np.float64)
-    return (v @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
+    return v @ np.asarray(transform, np.float64)[:3, :3].T + transform[:3, 3]
 
 
 def shell(
@@ -51,7 +53,9 @@ def shell(
     init_warp()
     dev = device or default_device()
     m = block_transform(mesh, resolution) if transform is None else np.asarray(transform)
-    vertices = wp.array(to_voxel_space(mesh, m), dtype=wp.vec3, device=dev)
+    # The shell only decides which voxels are synthesized ahead of the queries, so float32
+    # suffices: a voxel it misses at extreme resolutions is synthesized when first read.
+    vertices = wp.array(to_voxel_space(mesh, m).astype(np.float32), dtype=wp.vec3, device=dev)
     faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
     nfaces = len(mesh.faces)
     counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
