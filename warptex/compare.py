@@ -12,7 +12,6 @@ from __future__ import annotations
 import functools
 import json
 import multiprocessing
-import os
 import platform
 import resource
 import time
@@ -249,6 +248,7 @@ def run_summary(size: int, seed: int) -> dict:
     import warp as wp
 
     from warptex import __version__
+    from warptex.parallel import usable_cores
 
     cpu = platform.processor() or platform.machine()
     try:
@@ -258,7 +258,7 @@ def run_summary(size: int, seed: int) -> dict:
     except (OSError, StopIteration):
         pass
     gpu = wp.get_device("cuda").name if _engine_device() == "cuda" else None
-    return {"size": size, "seed": seed, "cpu": cpu, "cores": os.cpu_count(), "gpu": gpu,
+    return {"size": size, "seed": seed, "cpu": cpu, "cores": usable_cores(), "gpu": gpu,
             "warptex": __version__, "warp": wp.__version__,
             "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}
 

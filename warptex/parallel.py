@@ -16,7 +16,16 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-THREADS = max(1, min(os.cpu_count() or 1, 8))
+
+def usable_cores() -> int:
+    """Cores this process may run on: its CPU affinity where the system has one (a
+    container or ``taskset`` may allow fewer than the machine has), else all of them."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
+THREADS = min(usable_cores(), 8)
 MIN_SPLIT = 4096  # fewer items than this run as one launch: threads would cost more
 
 
