@@ -93,6 +93,14 @@ def wavefront() -> Iterator[None]:
             dr.set_flag(f, value)
 
 
+def first_sensor(scene: mi.Scene) -> mi.Sensor:
+    """The sensor ``render`` renders from, or ValueError for a scene without one."""
+    sensors = scene.sensors()
+    if not sensors:
+        raise ValueError("the scene has no sensor (camera) to render from")
+    return sensors[0]
+
+
 def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int = 0,
            progress: Callable[[int, int], None] | None = None) -> mi.TensorXf:
     """Render ``scene``: ``batches`` renders of ``spp / batches`` samples (with different
@@ -104,8 +112,7 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     wavefront mode, where every lookup synthesizes what it lacks. Either way each color
     is the stored voxel's, so the image does not depend on the mode.
     """
-    sensor = scene.sensors()[0]
-    total = spp if spp is not None else sensor.sampler().sample_count()
+    total = spp if spp is not None else first_sensor(scene).sampler().sample_count()
     batches = max(1, min(batches, total))
     image = None
     if progress is not None:

@@ -10,11 +10,16 @@ import json
 import re
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from warptex.archive import write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
+# Bytes one sample's path state takes at least in a wavefront render (rays, interactions,
+# throughput, sampler state): a floor, so only renders that cannot fit are refused.
+_SAMPLE_BYTES = 64
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -26,6 +31,21 @@ def parse_resolution(text: str) -> tuple[int, int]:
     if width < 1 or height < 1:
         raise ValueError(f"--res must be positive, got {text!r}")
     return width, height
+
+
+def check_render_size(width: int, height: int, samples: int) -> None:
+    """Refuse, before rendering, a batch of ``samples`` per pixel that Dr.Jit's arrays
+    (at most 2^32 entries) or this machine's memory cannot hold."""
+    from warptex.machine import memory_problem
+
+    what = f"{width}x{height} pixels at {samples} samples per pixel in a batch"
+    # The film keeps up to 5 values per pixel (RGB, alpha, weight); a wavefront one per sample.
+    if width * height * max(samples, 5) >= 2**32:
+        raise ValueError(f"{what} exceed Mitsuba's arrays of at most 2^32 entries; lower "
+                         "--res or --spp")
+    problem = memory_problem(width * height * samples * _SAMPLE_BYTES)
+    if problem is not None:
+        raise ValueError(f"{what} {problem}; lower --res or --spp")
 
 
 def scene_error(text: str, scene: Path | None = None) -> str:
@@ -70,19 +90,33 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 
     import mitsuba_plugin
 
+    if resolution is not None:
+        check_render_size(*resolution, spp or 1)
     variant = mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
     start = time.perf_counter()
     try:
-        scene = mi.load_file(str(scene_path), **params)
+        with _status(f"loading {scene_path.name} (exemplars new to the candidate cache are "
+                     "pre-computed first)"):
+            scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
+        if params and "unused parameters" in str(e):
+            raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
+                             "which this scene does not declare (the scenes in scenes/ show "
+                             "how)") from None
         problem = scene_error(str(e), scene_path)
         raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()
+    try:
+        sensor = mitsuba_plugin.first_sensor(scene)
+    except ValueError as e:
+        raise ValueError(f"{scene_path}: {e}") from None
     # Read before rendering: each batch sets the sampler to its share of the samples.
-    total = spp or scene.sensors()[0].sampler().sample_count()
-    image = mitsuba_plugin.render(scene, spp=total, batches=min(8, total), progress=_progress)
+    total = spp or sensor.sampler().sample_count()
+    batches = min(8, total)
+    check_render_size(*sensor.film().crop_size(), -(-total // batches))
+    image = mitsuba_plugin.render(scene, spp=total, batches=batches, progress=_progress)
     rendered = time.perf_counter()
     # Synchronously: the default asynchronous write would race the rename.
     write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False))
@@ -100,6 +134,20 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     write_atomically(output.with_name(output.name + ".json"), lambda tmp: tmp.write_text(text))
     _print_report(report)
     return report
+
+
+@contextmanager
+def _status(text: str) -> Iterator[None]:
+    """``text`` on the terminal's last line while the block runs, then erased: a scene
+    loads for seconds without a bar. Not written where stderr is no terminal (logs)."""
+    shown = sys.stderr.isatty()
+    if shown:
+        print(text, end="", file=sys.stderr, flush=True)
+    try:
+        yield
+    finally:
+        if shown:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
 
 
 def _progress(done: int, total: int) -> None:
@@ -122,8 +170,8 @@ def _print_report(report: dict) -> None:
         s, t = entry["store"], entry["traced"]
         print(f"  {entry['texture']}\n    {s['voxels']} voxels in {s['bricks']} bricks "
               f"({s['bytes'] / 2**20:.2f} MiB), "
-              f"traced renders {t['renders']} ({t['renders_with_misses']} missed bricks "
-              "and were repeated), "
+              f"traced renders {t['renders']} (repeated after missing bricks: "
+              f"{t['renders_with_misses']}), "
               f"wavefront lookups {s['hits']} hits / {s['misses']} misses, "
               f"synthesis {s['synthesis_seconds']:.1f} s"
               + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))

@@ -126,6 +126,13 @@ def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
     return paths
 
 
+def _exemplar_names(props: mi.Properties) -> str:
+    """The exemplar properties a scene gave, as an error names them: the per-axis ones
+    where any is given, since those are what differ from the others."""
+    axes = [f"exemplar_{a}" for a in "xyz" if f"exemplar_{a}" in props]
+    return '", "'.join(axes) if axes else "exemplar"
+
+
 def _affine_matrix(transform: Any) -> np.ndarray:
     """The 4x4 float64 matrix of a Mitsuba transform (scalar or width-1 JIT)."""
     matrix = np.array(transform.matrix, np.float64)
@@ -166,7 +173,7 @@ class LazySolidTexture(mi.Texture):
         try:
             candidates = precompute(*self.exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:
-            raise fail(PLUGIN, "exemplar", f"cannot be used: {e}") from e
+            raise fail(PLUGIN, _exemplar_names(props), f"cannot be used: {e}") from e
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                       passes=self.passes, cache_bytes=cache_bytes,

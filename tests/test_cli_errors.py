@@ -31,11 +31,13 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     including = folder / "including.xml"
     including.write_text('<scene version="3.0.0">\n<include filename="bad_property.xml"/>\n'
                          '</scene>')
+    no_sensor = folder / "no_sensor.xml"
+    no_sensor.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
     gray = folder / "gray.npy"
     np.save(gray, _rotated(granite_32_file)[..., :1])
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
-            "gray": gray}
+            "gray": gray, "no_sensor": no_sensor}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -80,14 +82,30 @@ CASES = [
       "-o", "{out}/b.ply"], "not a warptex brick store file"),
     (["cut", "{mesh}", "--exemplar", "{exemplar}", "--normal", "nan", "1", "0",
       "-o", "{out}/c.ply"], "--normal"),
-    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--uv", "mesh", "-o", "{out}/c.glb"],
-     "caps have no UVs"),
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--normal", "0", "0", "0",
+      "-o", "{out}/c.ply"], "--normal must not be 0 0 0"),
+    (["slice", "{exemplar}", "--shape", "1000000", "1000000", "-o", "{out}/s.png"],
+     "--shape 1000000 1000000: a slice of 1000000 x 1000000 pixels needs about"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--uv", "auto", "--texture-size",
+      "50000", "-o", "{out}/b.glb"], "--texture-size must be at most 46340"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--uv", "auto", "--texture-size",
+      "40000", "-o", "{out}/b.glb"], "--texture-size 40000: a 40000^2 UV texture needs about"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "2000000",
+      "-o", "{out}/b.ply"], "--resolution 2000000: the surface passes through about"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "30000",
+      "-o", "{out}/b.ply"], "--resolution 30000: the surface passes through about"),
+    (["compare", "{exemplar}", "--size", "0", "-o", "{out}/cmp"], "--size must be at least 8"),
+    (["render", "{no_sensor}", "-o", "{out}/r.png"], "has no sensor (camera)"),
+    (["render", "{no_sensor}", "--res", "16x16", "-o", "{out}/r.png"],
+     "--res sets the parameters $width and $height, which this scene does not declare"),
+    (["render", "{no_sensor}", "--res", "100000x100000", "-o", "{out}/r.png"],
+     "100000x100000 pixels at 1 samples per pixel in a batch exceed"),
     (["cut", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}"], "must end in .ply or .glb"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--store", "{out}/b.ply",
       "-o", "{out}/b.ply"], "--store names an output mesh"),
     (["slice", "{exemplar}", "--origin", "5e6", "0", "0", "-o", "{out}/s.png"],
      "coordinate range"),
-    (["compare", "{exemplar}", "--size", "4", "-o", "{out}/cmp"], "size must be at least 8"),
+    (["compare", "{exemplar}", "--size", "4", "-o", "{out}/cmp"], "--size must be at least 8"),
     (["compare", "{exemplar}", "--size", "12", "--methods", "lazy,kopf", "-o", "{out}/cmp"],
      "multiple of 8"),
     (["compare", "{exemplar}", "--methods", " ", "-o", "{out}/cmp"], "no method given"),
@@ -187,6 +205,37 @@ def test_exemplar_loading_options_reach_slice_as_volume(files, tmp_path):
                  "--shape", "8", "8", "--origin", "0.5", "0.5", "2.5", "--passes", "1",
                  "-o", str(plane)]) == 0
     np.testing.assert_array_equal(np.load(plane), np.load(volume)[:, :, 2])
+
+
+def test_a_reader_gone_early_ends_the_command_quietly(files):
+    """`warptex info ... | head -1`: output nobody reads is no error worth a traceback."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from warptex.cli import main; sys.exit(main())",
+         "info", str(files["exemplar"])], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # before anything is written: every write fails
+    err = proc.communicate()[1].decode()
+    assert proc.returncode == 141 and err == ""
+
+
+def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
+    out = tmp_path / "s.png"
+    assert main(["slice", str(files["exemplar"]), "--alpha", "keep", "--shape", "4", "4",
+                 "--u", "0", "0", "0", "--passes", "0", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "--u and --v are zero or parallel" in err
+    assert "PNG" not in err  # RGB in [0, 1]: nothing lost
+    assert main(["slice", str(files["gray"]), "--shape", "4", "4", "--passes", "0",
+                 "-o", str(out)]) == 0
+    assert "PNG" not in capsys.readouterr().err  # gray is shown whole
+    rgba = tmp_path / "rgba.npy"
+    color = _rotated(files["exemplar"])
+    np.save(rgba, np.concatenate([color, color[..., :1]], axis=2))
+    assert main(["slice", str(rgba), "--alpha", "keep", "--shape", "4", "4", "--passes", "0",
+                 "-o", str(out)]) == 0
+    assert "the PNG keeps 8-bit RGB: 1 channel of 4 dropped" in capsys.readouterr().err
 
 
 def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):

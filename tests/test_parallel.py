@@ -69,11 +69,12 @@ def test_split_launch_builds_its_module_once(tmp_path):
 def test_threads_follow_the_cores_the_process_may_use(monkeypatch):
     """A container or ``taskset`` may allow fewer cores than the machine has: threads
     beyond them would only take turns."""
-    from warptex import parallel
+    from warptex import machine, parallel
 
+    assert min(machine.usable_cores(), 8) == parallel.THREADS
     if not hasattr(os, "sched_getaffinity"):
-        assert parallel.usable_cores() == (os.cpu_count() or 1)
+        assert machine.usable_cores() == (os.cpu_count() or 1)
         return
     monkeypatch.setattr(os, "cpu_count", lambda: 64)
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3, 5})
-    assert parallel.usable_cores() == 3
+    assert machine.usable_cores() == 3

@@ -55,6 +55,16 @@ def test_property_errors_name_the_property(granite_32_file, props, name):
         load(granite_32_file, **props)
 
 
+def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_file, tmp_path):
+    from PIL import Image
+
+    use("scalar_rgb")
+    gray = tmp_path / "gray.png"
+    Image.open(granite_32_file).convert("L").save(gray)
+    with pytest.raises(RuntimeError, match=r'property "exemplar_y" cannot be used: .*channels'):
+        load(granite_32_file, exemplar_y=str(gray))
+
+
 def test_passes_reach_the_synthesis(granite_32_file):
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar

@@ -76,6 +76,11 @@ def _check_writable_folder(folder: Path, target: Path) -> None:
                        f"({error.strerror or error})") from None
 
 
+def _count(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural unless one: "1 channel", "3 channels"."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def _check_at_least(name: str, value: int, low: int) -> None:
     if value < low:
         raise CliError(f"{name} must be at least {low}, got {value}")
@@ -87,7 +92,8 @@ def _check_finite(name: str, values: Sequence[float]) -> None:
 
 
 def _add_exemplar_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", type=Path, help="exemplar image (PNG, JPEG, OpenEXR or .npy)")
+    parser.add_argument("path", type=Path, metavar="EXEMPLAR",
+                        help="exemplar image (PNG, JPEG, OpenEXR or .npy)")
     _add_loading_arguments(parser)
 
 
@@ -173,7 +179,7 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
         "folder); prints candidates per pixel, time and size per pyramid level.",
     )
     _add_exemplar_arguments(parser)
-    _add_axis_exemplar_arguments(parser, "PATH")
+    _add_axis_exemplar_arguments(parser, "EXEMPLAR")
     parser.add_argument(
         "-o", "--output", type=Path, metavar="FILE",
         help="also write the candidates to FILE, to share them with another machine "
@@ -270,11 +276,20 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
         mean = np.concatenate([r.count for r in roles]).mean()
         fallback = sum(int(r.fallback.sum()) for r in roles)
         print(f"  {level:<5}  {sizes[level]:<{width}}  {mean:16.2f}  {fallback:15d}")
+    print("  (fallback pixels: no candidate passed the coherence test of section 4.2, so "
+          "they keep their best crossbar match)")
     print(f"time: {elapsed:.2f} s")
     print(f"bytes: {cs.nbytes()} ({cs.nbytes() / 1024:.1f} KiB)")
 
 
 _VOLUME_FORMATS = (".npy", ".exr", ".vol")
+# Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
+# up to 4 float32 channels three times over (colors, image, filled image), and the
+# int64 indices of the nearest covered texel.
+_TEXEL_BYTES = 3 * 8 + 4 + 1 + 3 * 4 * 4 + 2 * 8
+# Bytes a shell voxel takes at most at once: its coordinates, their copies and sort keys
+# while the shell is made, and its stored triple with its share of a partial brick.
+_SHELL_VOXEL_BYTES = 64
 _SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
 
 
@@ -287,7 +302,7 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         "instead.",
     )
     _add_exemplar_arguments(parser)
-    _add_texture_arguments(parser, "PATH")
+    _add_texture_arguments(parser, "EXEMPLAR")
     parser.add_argument("--size", type=int, default=64,
                         help="edge of the cube in voxels (default 64)")
     parser.add_argument(
@@ -341,7 +356,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     ]
     volume = np.concatenate(slabs, axis=0)
     _write_volume(args.output, suffix, volume)
-    print(f"volume: {size}^3 voxels, {volume.shape[3]} channels, seed {args.seed}")
+    print(f"volume: {size}^3 voxels, {_count(volume.shape[3], 'channel')}, seed {args.seed}")
     print(f"written: {args.output}")
     return 0
 
@@ -356,7 +371,8 @@ def _volume_kopf(args: argparse.Namespace, suffix: str, exemplars: list[Exemplar
         raise CliError(str(error)) from None
     _write_volume(args.output, suffix, volume)
     clustering = ", mean-shift clustering" if args.mean_shift else ""
-    print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, {volume.shape[3]} channels, "
+    print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, "
+          f"{_count(volume.shape[3], 'channel')}, "
           f"seed {args.seed}")
     print(f"written: {args.output}")
     return 0
@@ -365,15 +381,17 @@ def _volume_kopf(args: argparse.Namespace, suffix: str, exemplars: list[Exemplar
 def _check_memory(size: int, channels: int) -> None:
     """Refuse a cube whose float32 ``channels`` alone (held twice while the slabs are
     joined) would not fit in this machine's memory."""
-    try:
-        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return
-    need = 2 * 4 * channels * size**3
-    if need > memory:
-        raise CliError(f"--size {size}: a {size}^3 volume needs about {need / 2**30:.0f} GiB, "
-                       f"this machine has {memory / 2**30:.0f} GiB; use a smaller --size, or "
-                       "`warptex slice` and the Python API for parts of it")
+    _check_fits(2 * 4 * channels * size**3, f"--size {size}: a {size}^3 volume",
+                "use a smaller --size, or `warptex slice` and the Python API for parts of it")
+
+
+def _check_fits(need: int, what: str, advice: str) -> None:
+    """Refuse, before any work, what needs more than this machine's memory."""
+    from warptex.machine import memory_problem
+
+    problem = memory_problem(need)
+    if problem is not None:
+        raise CliError(f"{what} {problem}; {advice}")
 
 
 def _write_volume(path: Path, suffix: str, volume: np.ndarray) -> None:
@@ -482,7 +500,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Evaluate any plane through the solid texture (Dong 2008, 6.4). Pixel "
         "(r, c) shows the texture at ORIGIN + r*U + c*V, in voxels of the finest level.",
     )
-    parser.add_argument("exemplar", type=Path, help="exemplar image")
+    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help="exemplar image")
     _add_loading_arguments(parser)
     parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
                         metavar=("X", "Y", "Z"),
@@ -510,9 +528,16 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     h, w = args.shape
     if h < 1 or w < 1:
         raise CliError(f"--shape must be positive, got {h} {w}")
+    # Per pixel: its float64 point, its place in the slabs' order and up to 4 float32
+    # channels, held twice while the image is assembled.
+    _check_fits(h * w * (3 * 8 + 8 + 2 * 4 * 4), f"--shape {h} {w}: a slice of {h} x {w} "
+                "pixels", "use a smaller --shape, or several slices")
     for name in ("origin", "u", "v"):
         _check_finite(f"--{name}", getattr(args, name))
     _check_plane_within_limit(args.origin, args.u, args.v, (h, w))
+    if not np.cross(args.u, args.v).any():
+        warnings.warn("--u and --v are zero or parallel: the slice shows a line or a point, "
+                      "not a plane", stacklevel=1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     tex = _solid_texture(args)
     start = time.perf_counter()
@@ -520,12 +545,31 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
+        _note_png_losses(image)
         save_png(to_rgb8(image), args.output)
     else:
         writer = _write_npy if suffix == ".npy" else _write_exr_image
         _write_atomically(args.output, lambda path: writer(path, image))
-    print(f"slice: {h} x {w} pixels in {elapsed:.2f} s; written: {args.output}")
+    print(f"slice: {h} rows x {w} columns in {elapsed:.2f} s; written: {args.output}")
     return 0
+
+
+_PNG_SLACK = 1e-3  # filtering [0, 1] colors may overshoot by rounding, which is no loss
+
+
+def _note_png_losses(image: np.ndarray) -> None:
+    """Warn when an 8-bit PNG cannot show all of a slice: values outside [0, 1] (HDR
+    exemplars) are clipped and a fourth channel (--alpha keep) is dropped."""
+    lost = []
+    if image.min() < -_PNG_SLACK or image.max() > 1.0 + _PNG_SLACK:
+        lost.append("values outside [0, 1] are clipped")
+    shown = 1 if image.shape[2] < 3 else 3
+    if image.shape[2] > shown:
+        lost.append(f"{_count(image.shape[2] - shown, 'channel')} of {image.shape[2]} "
+                    "dropped")
+    if lost:
+        warnings.warn(f"the PNG keeps 8-bit RGB: {' and '.join(lost)}; .exr or .npy keep all",
+                      stacklevel=1)
 
 
 def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],
@@ -540,16 +584,19 @@ def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Se
                        f"(+-{POINT_LIMIT} voxels): check --origin, --u, --v and --shape")
 
 
-def _add_mesh_arguments(parser: argparse.ArgumentParser) -> None:
+def _add_mesh_arguments(parser: argparse.ArgumentParser,
+                        uv_sources: Sequence[str] = ("auto", "mesh", "none")) -> None:
     parser.add_argument("mesh", type=Path, help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
     parser.add_argument("--exemplar", type=Path, required=True, help="exemplar image")
     _add_loading_arguments(parser)
     parser.add_argument("--resolution", type=int, default=1024,
                         help="the mesh's bounding box fills a block of RESOLUTION^3 voxels "
                         "(default 1024)")
-    parser.add_argument("--uv", choices=("auto", "mesh", "none"), default="none",
-                        help="bake a UV texture: with the mesh's own UVs (mesh), UVs made "
-                        "by xatlas (auto), or vertex colors only (none, default)")
+    ways = {"mesh": "with the mesh's own UVs (mesh)", "auto": "UVs made by xatlas (auto)"}
+    parser.add_argument("--uv", choices=uv_sources, default="none",
+                        help="bake a UV texture: "
+                        + ", ".join(ways[w] for w in uv_sources if w in ways)
+                        + ", or vertex colors only (none, default)")
     parser.add_argument("--texture-size", type=int, default=1024,
                         help="edge of the UV texture in pixels (default 1024)")
     parser.add_argument("--store", type=Path, metavar="FILE",
@@ -569,6 +616,12 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if args.resolution > COORD_LIMIT // 2:
         raise CliError(f"--resolution must be at most {COORD_LIMIT // 2}, got {args.resolution}")
     _check_at_least("--texture-size", args.texture_size, 1)
+    if args.uv != "none":
+        size = args.texture_size
+        if size * size >= 2**31:  # texels are numbered by 32-bit integers
+            raise CliError(f"--texture-size must be at most 46340, got {size}")
+        _check_fits(size * size * _TEXEL_BYTES, f"--texture-size {size}: a {size}^2 UV texture",
+                    "use a smaller --texture-size")
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.uv == "none":
         formats, what = VERTEX_COLOR_FORMATS, "a mesh with vertex colors (--uv none)"
@@ -625,7 +678,7 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
             bar.set_postfix_str("unwrapping (xatlas)")
             mesh = mesh.unwrap()
         bar.update()
-        uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut refuses it (no UVs on caps)
+        uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut does not offer it
         bar.set_postfix_str(f"baking {args.texture_size}^2 texels")
         image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
         bar.update()
@@ -645,6 +698,10 @@ def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start
     return 0
 
 
+def _mib(n: float) -> str:
+    return f"{n / 2**20:.0f} MiB" if n >= 2**20 else f"{n / 2**20:.2g} MiB"
+
+
 def _report_store(tex, resolution: int, elapsed: float) -> None:
     stats = tex.store.stats()
     block = resolution**3
@@ -655,7 +712,7 @@ def _report_store(tex, resolution: int, elapsed: float) -> None:
           f"block); on the way the finest level corrected {corrected} "
           f"({100 * corrected / block:.3f}%: their dependencies, section 5.2)")
     print(f"stored: {stats['voxels']} voxels, {stats['bytes'] / 2**20:.1f} MiB in "
-          f"{stats['bricks']} bricks (the full volume would be {full / 2**20:.0f} MiB); "
+          f"{stats['bricks']} bricks (the full volume would be {_mib(full)}); "
           f"time {elapsed:.1f} s")
 
 
@@ -688,14 +745,27 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     return len(voxels)
 
 
+def _check_shell(mesh, transform: np.ndarray, resolution: int) -> None:
+    """Refuse, before any synthesis, a surface too large at ``resolution`` for one shell
+    or for this machine's memory."""
+    from warptex.surface import MAX_SHELL, shell_size
+
+    voxels = shell_size(mesh, transform)
+    what = f"--resolution {resolution}: the surface passes through about {voxels:.3g} voxels"
+    if voxels > MAX_SHELL:
+        raise CliError(f"{what}, more than the {MAX_SHELL} a shell may hold; lower --resolution")
+    _check_fits(voxels * _SHELL_VOXEL_BYTES, f"{what}, which", "lower --resolution")
+
+
 def _cmd_bake(args: argparse.Namespace) -> int:
     from warptex.surface import block_transform
 
     _check_mesh_arguments(args)
     mesh = _load_mesh(args.mesh, args.uv)
+    transform = block_transform(mesh, args.resolution)
+    _check_shell(mesh, transform, args.resolution)
     tex = _solid_texture(args)
     start = time.perf_counter()
-    transform = block_transform(mesh, args.resolution)
     count = _synthesize_shell(tex, mesh, args.resolution, transform)
     files = _textured_export(tex, mesh, transform, args, args.output)
     print(f"surface shell: {count} voxels")
@@ -709,7 +779,7 @@ def _add_cut_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Split a mesh by a plane, close both halves with caps and texture them "
         "from the same solid texture: the caps continue the outer surface (Dong 2008, 6.4).",
     )
-    _add_mesh_arguments(parser)
+    _add_mesh_arguments(parser, uv_sources=("auto", "none"))  # caps have no UVs of their own
     parser.add_argument("--origin", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="a point of the plane in mesh coordinates (default: box centre)")
     parser.add_argument("--normal", type=float, nargs=3, default=(1.0, 0.0, 0.0),
@@ -723,10 +793,10 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     from warptex.cut import cut
     from warptex.surface import block_transform
 
-    if args.uv == "mesh":
-        raise CliError("--uv mesh: a cut's caps have no UVs; use --uv auto or none")
     outputs = _check_mesh_arguments(args, second_half=True)
     _check_finite("--normal", args.normal)
+    if not any(args.normal):
+        raise CliError("--normal must not be 0 0 0: it is the direction across the cut")
     if args.origin is not None:
         _check_finite("--origin", args.origin)
     mesh = _load_mesh(args.mesh)
@@ -757,7 +827,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "a repetition score over a 256-voxel slice, time and peak memory. "
         f"Methods: {', '.join(METHODS)}.",
     )
-    parser.add_argument("exemplar", type=Path, help="exemplar image")
+    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help="exemplar image")
     parser.add_argument("--size", type=int, default=64,
                         help="edge of each method's volume in voxels (default 64)")
     parser.add_argument("--methods", default=",".join(METHODS),
@@ -779,6 +849,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
     _check_synthesis_arguments(passes=args.passes, seed=args.seed)
+    _check_at_least("--size", args.size, 8)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes)
@@ -910,7 +981,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             _check_device()
             if args.command != "info":
                 _note_kernel_build()
-            return command(args)
+            code = command(args)
+            sys.stdout.flush()  # here, so that a reader gone early is handled below
+            return code
+        except BrokenPipeError:  # `warptex info ... | head -1`: the reader has all it wants
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 141  # as for a command that SIGPIPE ends
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
             return 2

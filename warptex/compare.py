@@ -248,7 +248,7 @@ def run_summary(size: int, seed: int) -> dict:
     import warp as wp
 
     from warptex import __version__
-    from warptex.parallel import usable_cores
+    from warptex.machine import usable_cores
 
     cpu = platform.processor() or platform.machine()
     try:

@@ -132,7 +132,7 @@ class Exemplar:
         array, has_alpha = _read(path)
         if has_alpha and alpha == "drop":
             warnings.warn(
-                f"{path}: alpha channel dropped (load with alpha='keep' to keep it)",
+                f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in the CLI)",
                 stacklevel=2,
             )
             array = array[..., :-1]

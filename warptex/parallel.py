@@ -8,7 +8,6 @@ threads. Items of such kernels are independent, so the result equals one launch.
 from __future__ import annotations
 
 import functools
-import os
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
 from typing import Any
@@ -16,14 +15,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-
-def usable_cores() -> int:
-    """Cores this process may run on: its CPU affinity where the system has one (a
-    container or ``taskset`` may allow fewer than the machine has), else all of them."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return os.cpu_count() or 1
-
+from warptex.machine import usable_cores
 
 THREADS = min(usable_cores(), 8)
 MIN_SPLIT = 4096  # fewer items than this run as one launch: threads would cost more

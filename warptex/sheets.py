@@ -15,10 +15,11 @@ _GAP = 4
 
 
 def to_rgb8(image: np.ndarray) -> np.ndarray:
-    """An (H, W, C) float image in [0, 1] as 8-bit RGB (gray repeated, extra channels dropped)."""
+    """An (H, W, C) float image in [0, 1] as 8-bit RGB: gray (with or without alpha)
+    repeated, channels past RGB dropped."""
     img = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
-    if img.shape[2] == 1:
-        img = np.repeat(img, 3, axis=2)
+    if img.shape[2] < 3:
+        img = np.repeat(img[:, :, :1], 3, axis=2)
     return (img[:, :, :3] * 255.0 + 0.5).astype(np.uint8)
 
 
