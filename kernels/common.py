@@ -4,6 +4,8 @@ Everything here is integer arithmetic so that a kernel gives bit-identical resul
 CPU and on CUDA: exemplar features are quantized to ints and distances are exact sums.
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -63,6 +65,12 @@ def hash_cell(cx: int, cy: int, cz: int, seed: int, salt: int) -> wp.uint32:
     h = hash_u32(h ^ wp.uint32(cy))
     h = hash_u32(h ^ wp.uint32(cz))
     return hash_u32(h ^ wp.uint32(salt))
+
+
+@wp.func
+def floor_voxel(p: Any) -> wp.vec3i:
+    """The voxel (unit cube ``[v, v + 1)^3``) holding point ``p`` (float32 or float64)."""
+    return wp.vec3i(int(wp.floor(p[0])), int(wp.floor(p[1])), int(wp.floor(p[2])))
 
 
 @wp.func

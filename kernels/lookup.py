@@ -16,7 +16,7 @@ from typing import Any
 
 import warp as wp
 
-from kernels.common import KEY_BIAS, KEY_BITS
+from kernels.common import KEY_BIAS, KEY_BITS, floor_voxel
 
 # No fused multiply-adds (CUDA's default): the plugin's traced lookups (Dr.Jit) repeat
 # the trilinear blend with separate roundings and must match to the bit.
@@ -173,11 +173,6 @@ def triple_channel(
     """Channel ``c`` of a triple's color: the same float32 sum and division as
     ``Synthesizer.colors_of``, so the color is bit-identical to the engine's."""
     return triple_sum(p, col0, col1, col2, channels, c) / wp.float32(3.0)
-
-
-@wp.func
-def floor_voxel(p: wp.vec3d) -> wp.vec3i:
-    return wp.vec3i(int(wp.floor(p[0])), int(wp.floor(p[1])), int(wp.floor(p[2])))
 
 
 @wp.kernel

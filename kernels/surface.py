@@ -7,6 +7,8 @@ separating-axis test (Akenine-Moeller 2001) finds no axis separating them.
 
 import warp as wp
 
+from kernels.common import floor_voxel
+
 # No fused multiply-adds (CUDA's default, which fuses more than the CPU build): the shell's voxels
 # must come out the same on every device.
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -45,18 +47,6 @@ def triangle_touches_voxel(a: wp.vec3, b: wp.vec3, c: wp.vec3, voxel: wp.vec3i) 
     return not separated_on(wp.cross(b - a, c - a), a, b, c, half)
 
 
-@wp.func
-def lowest_voxel(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3i:
-    lo = wp.min(a, wp.min(b, c))
-    return wp.vec3i(int(wp.floor(lo[0])), int(wp.floor(lo[1])), int(wp.floor(lo[2])))
-
-
-@wp.func
-def highest_voxel(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3i:
-    hi = wp.max(a, wp.max(b, c))
-    return wp.vec3i(int(wp.floor(hi[0])), int(wp.floor(hi[1])), int(wp.floor(hi[2])))
-
-
 @wp.kernel
 def touched_voxels(
     first: int,
@@ -74,8 +64,8 @@ def touched_voxels(
     a = vertices[faces[f][0]]
     b = vertices[faces[f][1]]
     c = vertices[faces[f][2]]
-    lo = lowest_voxel(a, b, c)
-    hi = highest_voxel(a, b, c)
+    lo = floor_voxel(wp.min(a, wp.min(b, c)))
+    hi = floor_voxel(wp.max(a, wp.max(b, c)))
     n = int(0)
     if write == 1:
         n = offsets[f]

@@ -10,7 +10,7 @@ All arithmetic is on integers, so results are bit-identical on the CPU and on CU
 
 import warp as wp
 
-from kernels.common import floor_div, hash_cell, pixel_index, wrap
+from kernels.common import floor_div, hash_cell, pixel_index, plane_offset, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -213,8 +213,8 @@ def upsample(
     if slot < 0:  # a block no correction reads: its parents were not synthesized
         return
     p = voxel_world(coords, i)
-    half = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
-    src = parent[slot * BLOCK_VOXELS + local_index(half)]
+    up = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)  # the parent voxel (section 5.1)
+    src = parent[slot * BLOCK_VOXELS + local_index(up)]
     out = wp.vec3i(0, 0, 0)
     for k in range(3):
         u = src[k] // parent_width[k]
@@ -327,6 +327,13 @@ def halo_strides(half: int) -> wp.vec3i:
 
 
 @wp.func
+def plane_strides(half: int, k: int) -> wp.vec2i:
+    """Halo index steps along the two axes of the plane of axis k (see plane_offset)."""
+    s = halo_strides(half)
+    return wp.vec2i(s[(k + 1) % 3], s[(k + 2) % 3])
+
+
+@wp.func
 def halo_voxel_of(halo_of: wp.array(dtype=wp.int32), i: int, half: int) -> int:
     """Index of work voxel ``i`` in the halo block ``halo_of`` its block."""
     side = BLOCK + 2 * half
@@ -421,24 +428,23 @@ def best_2d_candidate(
     qproj: wp.array(dtype=appearance_vector),
     t: LevelTables,
     i: int,
-    own: int,
+    centre: int,
     k: int,
 ) -> int:
     """Step 1 of the two-step search (section 5.1): best k-coherent 2D candidate in the
     plane of axis k, gathered from the 3 x 3 in-plane neighbours (halo voxels around
-    ``own``), shifted back."""
+    ``centre``), shifted back."""
     h = t.height[k]
     w = t.width[k]
-    s1 = halo_strides(t.half)[(k + 1) % 3]  # the plane's axes: see plane_offset
-    s2 = halo_strides(t.half)[(k + 2) % 3]
+    s = plane_strides(t.half, k)
     best = int(-1)
     best_d = int(0)
     last = int(-1)
     for da in range(-1, 2):
         for db in range(-1, 2):
-            pix = halo_src[own + da * s1 + db * s2][k]
+            pix = halo_src[centre + da * s[0] + db * s[1]][k]
             if pix < 0:
-                pix = halo_src[own][k]
+                pix = halo_src[centre][k]
             p = step_pixel(pix, -da, -db, h, w)
             # Coherent neighbours often agree on p: its candidates were just compared, and
             # an equal distance never replaces the best, so skipping them changes nothing.
@@ -519,20 +525,16 @@ def correct(
     # triple shifted to continue here, coherent with it in all three exemplars at once.
     # These neighbours lie inside the 3-neighbourhood, so dependencies do not grow.
     for k in range(3):
-        s1 = halo_strides(t.half)[(k + 1) % 3]
-        s2 = halo_strides(t.half)[(k + 2) % 3]
+        s = plane_strides(t.half, k)
         for n in range(9):
             da = n // 3 - 1
             db = n % 3 - 1
             # A face neighbour lies in two planes: the first offers it (a repeat never wins).
             seen = n == 4 or (k == 1 and db == 0) or (k == 2 and (da == 0 or db == 0))
             if not seen:
-                tri = halo_src[centre + da * s1 + db * s2]
+                tri = halo_src[centre + da * s[0] + db * s[1]]
                 if tri[0] >= 0:
-                    d = wp.vec3i(0, 0, 0)
-                    d[(k + 1) % 3] = da
-                    d[(k + 2) % 3] = db
-                    shifted = shifted_triple(tri, d, t)
+                    shifted = shifted_triple(tri, plane_offset(k, da, db), t)
                     dist = triple_distance(t, qproj, i, shifted)
                     if best_d < 0 or dist < best_d:
                         best_d = dist

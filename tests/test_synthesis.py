@@ -194,7 +194,7 @@ def test_dependency_masks():
     # One correction reads the three N x N planes through a voxel: radius N//2 a pass.
     assert dependency_radius(2, 1, 1) == 2
     assert dependency_radius(2, 2, 1) == 4
-    assert dependency_radius(2, 2, 1, 0) == 0
+    assert dependency_radius(2, 0, 1) == 0
     # Interleaved sub-passes chain within a pass, so they reach much farther.
     assert dependency_radius(2, 2, 8) > dependency_radius(2, 2, 1)
     chain = dependency_chain(2, 2, 1, 3)

@@ -125,8 +125,8 @@ def _tile_slice(image: np.ndarray, edge: int = LARGE) -> np.ndarray:
 
 def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
                        bins: int = 16) -> float:
-    """Mean over channels of the L1 distance between normalized 16-bin histograms of the
-    slices perpendicular to ``axis`` and of the exemplar (0 = same, 2 = disjoint)."""
+    """Mean over channels of the L1 distance between normalized ``bins``-bin histograms of
+    the slices perpendicular to ``axis`` and of the exemplar (0 = same, 2 = disjoint)."""
     slices = metrics.axis_slices(volume, axis)
     values = np.concatenate([s.reshape(-1, s.shape[2]) for s in slices])
     ref = exemplar.reshape(-1, exemplar.shape[2])
@@ -152,7 +152,8 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     h, w = corr.shape
     dy = np.minimum(np.arange(h), h - np.arange(h))[:, None]
     dx = np.minimum(np.arange(w), w - np.arange(w))[None, :]
-    # Circular correlation: only shifts up to half the slice are meaningful.
+    # Circular correlation pairs a shift with its complement, and near half the slice the
+    # overlap of a pattern with itself wraps around: only shifts up to a quarter count.
     valid = (np.maximum(dy, dx) > exclude) & (dy <= h // 4) & (dx <= w // 4)
     return float(corr[valid].max())
 

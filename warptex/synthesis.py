@@ -75,11 +75,10 @@ def dependency_mask(desired: np.ndarray, half: int, steps: list[int]) -> np.ndar
 
 
 @cache
-def dependency_radius(half: int, passes: int, subpasses: int, trailing: int | None = None) -> int:
+def dependency_radius(half: int, passes: int, subpasses: int) -> int:
     """How far (Chebyshev) a voxel's dependencies reach within one level, through all
-    correction steps or only the last ``trailing`` ones."""
+    its correction steps."""
     steps = correction_steps(passes, subpasses)
-    steps = steps[len(steps) - (len(steps) if trailing is None else trailing) :]
     reach = len(steps) * half
     n = 2 * reach + 3
     worst = 0

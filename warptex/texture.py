@@ -23,7 +23,8 @@ from warptex.synthesis import COORD_LIMIT, Synthesizer
 
 _CHUNK = 1 << 20  # points per batch: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
-POINT_LIMIT = COORD_LIMIT - 2  # largest |coordinate| of a query: trilinear reads a voxel beyond
+# Queries lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
+POINT_LIMIT = COORD_LIMIT - 2
 
 
 class SolidTexture:
