@@ -29,7 +29,7 @@ DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
 
 def jitter_sweep(folder: Path) -> None:
     """Jitter varies the tiled slab (section 5.1): its effect on quality and repetition."""
-    from warptex.compare import repetition_score
+    from warptex.metrics import repetition_score
 
     for name in ("granite_64", "bricks_red_64", "rocks_in_sand_64", "dry_mud_64"):
         ex = Exemplar.load(folder / f"{name}.png")

@@ -128,7 +128,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "spp": total,
         "load_seconds": round(loaded - start, 3),
         "render_seconds": round(rendered - loaded, 3),
-        "textures": [_texture_report(t) for t in mitsuba_plugin.textures()],
+        "textures": [_save_and_report(t) for t in mitsuba_plugin.textures()],
     }
     text = json.dumps(report, indent=2) + "\n"
     write_atomically(output.with_name(output.name + ".json"), lambda tmp: tmp.write_text(text))
@@ -155,7 +155,7 @@ def _progress(done: int, total: int) -> None:
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 
 
-def _texture_report(texture) -> dict:
+def _save_and_report(texture) -> dict:
     saved = texture.save()
     return {"texture": texture.to_string(), "store": texture.solid.store.stats(),
             "traced": texture.traced_stats(),

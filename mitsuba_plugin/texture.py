@@ -68,12 +68,12 @@ class PropertyError(ValueError):
     """A property of a warptex plugin is missing or invalid."""
 
 
-def fail(plugin: str, name: str, problem: str) -> PropertyError:
-    """The Mitsuba-style error for property ``name`` of ``plugin``."""
+def property_error(plugin: str, name: str, problem: str) -> PropertyError:
+    """The Mitsuba-style error, to raise, for property ``name`` of ``plugin``."""
     return PropertyError(f'{plugin}: property "{name}" {problem}')
 
 
-def _get_property(props: mi.Properties, name: str, kind: type, default: Any,
+def get_property(props: mi.Properties, name: str, kind: type, default: Any,
                  plugin: str = PLUGIN) -> Any:
     """Property ``name`` converted to ``kind`` (int, float or str), or ``default``."""
     if name not in props:
@@ -82,17 +82,17 @@ def _get_property(props: mi.Properties, name: str, kind: type, default: Any,
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
     if not isinstance(value, kind) or isinstance(value, bool):
-        raise fail(plugin, name, f"must be a {kind.__name__}, got {value!r}")
+        raise property_error(plugin, name, f"must be a {kind.__name__}, got {value!r}")
     return value
 
 
 def _choice(props: mi.Properties, name: str, options: tuple[str, ...],
            plugin: str = PLUGIN) -> str:
     """String property ``name``, one of ``options`` (the first is the default)."""
-    value = _get_property(props, name, str, options[0], plugin)
+    value = get_property(props, name, str, options[0], plugin)
     if value not in options:
         allowed = " or ".join(f'"{o}"' for o in options)
-        raise fail(plugin, name, f'must be {allowed}, got "{value}"')
+        raise property_error(plugin, name, f'must be {allowed}, got "{value}"')
     return value
 
 
@@ -112,16 +112,17 @@ def scene_path(name: str, must_exist: bool) -> Path:
 
 def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
     """The exemplars of the x, y and z axes, each checked to exist."""
-    base = _get_property(props, "exemplar", str, None, plugin)
-    names = [_get_property(props, f"exemplar_{a}", str, base, plugin) for a in "xyz"]
+    base = get_property(props, "exemplar", str, None, plugin)
+    names = [get_property(props, f"exemplar_{a}", str, base, plugin) for a in "xyz"]
     paths = []
     for axis, name in zip("xyz", names, strict=True):
         if name is None:
-            raise fail(plugin, "exemplar", f'is required (or all of "exemplar_{axis}", ...)')
+            raise property_error(plugin, "exemplar",
+                                 f'is required (or all of "exemplar_{axis}", ...)')
         path = scene_path(name, must_exist=True)
         if not path.is_file():
             key = "exemplar" if name == base else f"exemplar_{axis}"
-            raise fail(plugin, key, f'names a file that does not exist: "{name}"')
+            raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
         paths.append(path)
     return paths
 
@@ -150,22 +151,22 @@ class LazySolidTexture(mi.Texture):
     def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
         self.exemplars = _exemplar_paths(props)
-        self.seed = _get_property(props, "seed", int, 0)
-        self.jitter = _get_property(props, "jitter", float, DEFAULT_JITTER)
-        self.passes = _get_property(props, "passes", int, DEFAULT_PASSES)
+        self.seed = get_property(props, "seed", int, 0)
+        self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
+        self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
         try:
             check_settings(self.jitter, self.passes, self.seed)
         except SettingError as e:
-            raise fail(PLUGIN, e.name, e.problem) from None
-        self.scale = _get_property(props, "scale", float, _DEFAULT_SCALE)
+            raise property_error(PLUGIN, e.name, e.problem) from None
+        self.scale = get_property(props, "scale", float, _DEFAULT_SCALE)
         if not (np.isfinite(self.scale) and self.scale > 0):
-            raise fail(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
+            raise property_error(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
         self.space = _choice(props, "space", _SPACES)
         self.filter = _choice(props, "filter", FILTERS)
-        cache_bytes = _get_property(props, "cache_bytes", int, _DEFAULT_CACHE_BYTES)
+        cache_bytes = get_property(props, "cache_bytes", int, _DEFAULT_CACHE_BYTES)
         if cache_bytes < 0:
-            raise fail(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
-        cache = _get_property(props, "cache", str, None)
+            raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
+        cache = get_property(props, "cache", str, None)
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
         # A JIT-typed transform, so mi.traverse can update it in place.
         to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
@@ -173,13 +174,13 @@ class LazySolidTexture(mi.Texture):
         try:
             candidates = precompute(*self.exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:
-            raise fail(PLUGIN, _exemplar_names(props), f"cannot be used: {e}") from e
+            raise property_error(PLUGIN, _exemplar_names(props), f"cannot be used: {e}") from e
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                       passes=self.passes, cache_bytes=cache_bytes,
                                       store=self.cache)
         except StoreFileError as e:
-            raise fail(PLUGIN, "cache", f"cannot be used: {e}") from e
+            raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = _exemplar_colors(candidates)
         self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
         self._mean = float(colors.mean())

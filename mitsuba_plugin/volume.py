@@ -7,16 +7,18 @@ volume that queries it at each medium interaction's position::
 
     <medium type="lazy_solid_medium" name="interior">
         <texture type="lazy_solid" name="albedo"> ... </texture>
-        <float name="sigma_t" value="6"/>   <!-- optional, default 1 -->
-        <float name="scale" value="1"/>     <!-- optional, default 1 -->
+        <float name="sigma_t" value="6"/>   <!-- optional, default 1; or a nested volume -->
+        <float name="scale" value="1"/>     <!-- optional, default 1: multiplies sigma_t -->
     </medium>
 """
 
 from __future__ import annotations
 
+import math
+
 import mitsuba as mi
 
-from mitsuba_plugin.texture import fail
+from mitsuba_plugin.texture import get_property, property_error
 
 MEDIUM = "lazy_solid_medium"
 
@@ -60,6 +62,12 @@ def lazy_solid_medium(props: mi.Properties,
     """
     albedo = props.get("albedo", None)
     if albedo is None or not hasattr(albedo, "colors_at"):
-        raise fail(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
+        raise property_error(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
+    sigma_t = props.get("sigma_t", 1.0)  # a number, or a nested volume Mitsuba checks
+    if isinstance(sigma_t, int | float) and not (math.isfinite(sigma_t) and sigma_t >= 0):
+        raise property_error(MEDIUM, "sigma_t", f"must not be negative, got {sigma_t}")
+    scale = get_property(props, "scale", float, 1.0, MEDIUM)
+    if not (math.isfinite(scale) and scale >= 0):
+        raise property_error(MEDIUM, "scale", f"must not be negative, got {scale}")
     return mi.load_dict({"type": "heterogeneous", "albedo": volume_type(albedo),
-                         "sigma_t": props.get("sigma_t", 1.0), "scale": props.get("scale", 1.0)})
+                         "sigma_t": sigma_t, "scale": scale})

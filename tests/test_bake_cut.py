@@ -10,10 +10,10 @@ import pytest
 import trimesh
 
 from warptex.bake import bake_uv_texture, export, texel_points, vertex_colors
-from warptex.cut import cap_faces, cut, plane_points
+from warptex.cut import cap_faces, cut
 from warptex.exemplar import Exemplar
 from warptex.surface import block_transform, shell, to_voxel_space
-from warptex.texture import SolidTexture
+from warptex.texture import SolidTexture, plane_points
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from warptex.cli import main
-from warptex.compare import histogram_distance, repetition_score
+from warptex.metrics import histogram_distance, repetition_score
 
 
 def test_repetition_score_sees_tiling():

@@ -146,6 +146,11 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     assert red < 1.2 * blue
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "albedo" must be'):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": {"type": "checkerboard"}})
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    albedo = {"type": "lazy_solid", "exemplar": str(wood)}
+    for name, value in (("sigma_t", -1.0), ("scale", "dense")):
+        with pytest.raises(RuntimeError, match=f'lazy_solid_medium: property "{name}" must'):
+            mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, name: value})
 
 
 def test_render_command_writes_image_and_statistics(tmp_path):

@@ -520,9 +520,8 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_slice(args: argparse.Namespace) -> int:
-    from warptex.cut import plane_points
     from warptex.sheets import save_png, to_rgb8
-    from warptex.texture import query_slabs
+    from warptex.texture import plane_points, query_slabs
 
     suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
     h, w = args.shape

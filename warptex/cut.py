@@ -13,16 +13,6 @@ import shapely
 import trimesh
 
 
-def plane_points(origin: np.ndarray, u: np.ndarray, v: np.ndarray,
-                 shape: tuple[int, int]) -> np.ndarray:
-    """Points (H*W, 3) of a planar grid: pixel (r, c) lies at origin + r*u + c*v. In float64,
-    as far from the origin float32 would move them by up to half a voxel."""
-    h, w = shape
-    r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    origin, u, v = (np.asarray(a, np.float64) for a in (origin, u, v))
-    return origin + r.reshape(-1, 1) * u + c.reshape(-1, 1) * v
-
-
 def cut(mesh: trimesh.Trimesh, origin: np.ndarray,
         normal: np.ndarray) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     """Split a mesh by a plane into two halves, each closed by a planar cap.

@@ -84,6 +84,45 @@ def sliced_wasserstein(
     return float(np.mean(np.abs(pa - pb)) / max(std, 1e-12))
 
 
+def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
+                       bins: int = 16) -> float:
+    """Mean over channels of the L1 distance between normalized ``bins``-bin histograms of
+    the slices perpendicular to ``axis`` and of the exemplar (0 = same, 2 = disjoint)."""
+    slices = axis_slices(volume, axis)
+    values = np.concatenate([s.reshape(-1, s.shape[2]) for s in slices])
+    ref = exemplar.reshape(-1, exemplar.shape[2])
+    total = 0.0
+    for c in range(ref.shape[1]):
+        lo, hi = float(ref[:, c].min()), float(ref[:, c].max())
+        hi = hi if hi > lo else lo + 1.0
+        a, _ = np.histogram(np.clip(values[:, c], lo, hi), bins=bins, range=(lo, hi))
+        b, _ = np.histogram(ref[:, c], bins=bins, range=(lo, hi))
+        total += float(np.abs(a / a.sum() - b / b.sum()).sum())
+    return total / ref.shape[1]
+
+
+def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
+    """Highest normalized autocorrelation of a large slice at shifts farther than
+    ``exclude`` pixels: near 1 for a tiled texture, low when nothing repeats."""
+    x = image - image.mean(axis=(0, 1))
+    spectrum = np.fft.rfft2(x, axes=(0, 1))
+    corr = np.fft.irfft2(np.abs(spectrum) ** 2, s=x.shape[:2], axes=(0, 1)).sum(axis=2)
+    if corr[0, 0] <= 0:
+        return 0.0
+    corr /= corr[0, 0]
+    h, w = corr.shape
+    dy = np.minimum(np.arange(h), h - np.arange(h))[:, None]
+    dx = np.minimum(np.arange(w), w - np.arange(w))[None, :]
+    # Circular correlation pairs a shift with its complement, and near half the slice the
+    # overlap of a pattern with itself wraps around: only shifts up to a quarter count.
+    valid = (np.maximum(dy, dx) > exclude) & (dy <= h // 4) & (dx <= w // 4)
+    return float(corr[valid].max())
+
+
+# Reference volumes: where each metric should find a solid texture worst, so that tests and
+# comparisons can check the metrics against them.
+
+
 def iid_noise(exemplar: np.ndarray, shape: tuple[int, int, int], seed: int = 0) -> np.ndarray:
     """A volume of independent exemplar pixels: right histogram, no structure."""
     flat = exemplar.reshape(-1, exemplar.shape[2])

@@ -15,7 +15,6 @@ import numpy as np
 import warp as wp
 
 from warptex.candidates import CandidateSet, precompute
-from warptex.cut import plane_points
 from warptex.exemplar import Exemplar
 from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES
 from warptex.store import FILTERS, BrickStore
@@ -133,6 +132,16 @@ class SolidTexture:
             raise ValueError(f"fill must be one finite value or {self.channels} of them, "
                              f"got {fill!r}")
         return np.broadcast_to(color, (self.channels,))
+
+
+def plane_points(origin: np.ndarray, u: np.ndarray, v: np.ndarray,
+                 shape: tuple[int, int]) -> np.ndarray:
+    """Points (H*W, 3) of a planar grid: pixel (r, c) lies at origin + r*u + c*v. In float64,
+    as far from the origin float32 would move them by up to half a voxel."""
+    h, w = shape
+    r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    origin, u, v = (np.asarray(a, np.float64) for a in (origin, u, v))
+    return origin + r.reshape(-1, 1) * u + c.reshape(-1, 1) * v
 
 
 def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
