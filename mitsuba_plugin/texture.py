@@ -54,15 +54,21 @@ import numpy as np
 import mitsuba_plugin
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
-from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, SettingError, check_settings
+from warptex.settings import (
+    DEFAULT_CACHE_BYTES,
+    DEFAULT_JITTER,
+    DEFAULT_PASSES,
+    FILTERS,
+    SettingError,
+    check_settings,
+)
 from warptex.store import StoreFileError
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
-FILTERS = ("trilinear", "nearest")
 _DEFAULT_SCALE = 64.0
-_DEFAULT_CACHE_BYTES = 256 << 20
+
 
 class PropertyError(ValueError):
     """A property of a warptex plugin is missing or invalid."""
@@ -163,7 +169,7 @@ class LazySolidTexture(mi.Texture):
             raise property_error(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
         self.space = _choice(props, "space", _SPACES)
         self.filter = _choice(props, "filter", FILTERS)
-        cache_bytes = get_property(props, "cache_bytes", int, _DEFAULT_CACHE_BYTES)
+        cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES)
         if cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
         cache = get_property(props, "cache", str, None)

@@ -170,7 +170,7 @@ def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatc
     assert not (tmp_path / "s.png").exists()
 
 
-def test_texture_settings_reach_volume_and_slice(files, tmp_path, capsys):
+def test_texture_settings_reach_volume_and_slice(files, tmp_path):
     """--ey gives the y (and so z) axis its own exemplar, and --passes the engine its
     passes, in volume and slice alike."""
     from warptex.candidates import precompute

@@ -387,7 +387,7 @@ def test_constant_per_channel_but_varying_across_channels_is_constant():
         Exemplar(data)
 
 
-def test_invalid_options(tmp_path, data_dir):
+def test_invalid_options(data_dir):
     path = data_dir / "granite_64.png"
     with pytest.raises(ValueError, match="alpha"):
         Exemplar.load(path, alpha="premultiply")

@@ -120,7 +120,7 @@ def test_matches_gridvolume_texture_of_the_same_voxels(granite_32_file, synthesi
     np.testing.assert_allclose(a.mean((0, 1)), b.mean((0, 1)), atol=0.01)
 
 
-def test_bundled_bunny_scene_renders(tmp_path):
+def test_bundled_bunny_scene_renders():
     """scenes/bunny_wood.xml, the README's scene, at a tiny size."""
     use(warptex.best_mitsuba_variant())
     scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=16, height=16, spp=2)

@@ -89,7 +89,7 @@ def test_coarse_cache_never_changes_a_result(candidates):
     assert np.array_equal(warm.voxels(second), cold.voxels(second))
 
 
-def test_bit_identical_across_processes(candidates, tmp_path, small_exemplar):
+def test_bit_identical_across_processes(candidates, tmp_path):
     pts = np.array([[1, 2, 3], [-20, 7, 11], [5, -5, 5]])
     path = tmp_path / "cands.wtc"
     candidates.save(path)

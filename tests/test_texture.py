@@ -157,7 +157,7 @@ def test_persistence_round_trip_starts_warm(candidates, tmp_path):
     assert stats["voxels"] == tex.store.stats()["voxels"]
 
 
-def test_persistence_in_a_new_process(candidates, exemplar_path, tmp_path):
+def test_persistence_in_a_new_process(candidates, tmp_path):
     pts = points_near_origin(100, 8)
     path = tmp_path / "granite.wtb"
     tex = texture(candidates, store=path)

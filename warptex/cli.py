@@ -27,6 +27,7 @@ from warptex.exemplar import Exemplar, ExemplarError
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
+    FILTERS,
     SettingError,
     check_settings,
 )
@@ -290,7 +291,6 @@ _TEXEL_BYTES = 3 * 8 + 4 + 1 + 3 * 4 * 4 + 2 * 8
 # Bytes a shell voxel takes at most at once: its coordinates, their copies and sort keys
 # while the shell is made, and its stored triple with its share of a partial brick.
 _SHELL_VOXEL_BYTES = 64
-_SHELL_CHUNK = 1 << 20  # shell voxels per engine call in `bake`, as `SolidTexture.query` batches
 
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -511,7 +511,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
                         metavar=("X", "Y", "Z"), help="step between columns (default y axis)")
     parser.add_argument("--shape", type=int, nargs=2, default=(256, 256), metavar=("H", "W"),
                         help="image rows and columns (default 256 256)")
-    parser.add_argument("--filter", choices=("trilinear", "nearest"), default="trilinear",
+    parser.add_argument("--filter", choices=FILTERS, default=FILTERS[0],
                         help="blend the 8 voxels around each point (default) or take the "
                         "voxel containing it")
     _add_texture_arguments(parser, "EXEMPLAR")
@@ -730,17 +730,12 @@ def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
 def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     """Synthesize the voxels around ``mesh``'s surface, with a progress bar; returns their
     count. They fill the same brick store that baking and a renderer then read."""
-    from tqdm.auto import tqdm
-
     from warptex.surface import shell
+    from warptex.texture import BATCH, query_slabs
 
     voxels = shell(mesh, resolution, transform)
-    # The shell is sorted along x, so its chunks are slabs; each costs one engine call.
-    with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
-        for first in range(0, len(voxels), _SHELL_CHUNK):
-            part = voxels[first : first + _SHELL_CHUNK]
-            tex.query(part + 0.5, filter="nearest")
-            bar.update(len(part))
+    # Slabs as large as a query's batches: each costs one engine call.
+    query_slabs(tex, voxels + 0.5, "nearest", progress="surface shell", slab=BATCH)
     return len(voxels)
 
 
@@ -878,11 +873,11 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from mitsuba_plugin.command import parse_resolution, render_scene
+    from mitsuba_plugin.command import IMAGE_SUFFIXES, parse_resolution, render_scene
 
     if not args.scene.is_file():
         raise CliError(f"scene not found: {args.scene}")
-    _check_output(args.output, (".exr", ".png"), "the image")
+    _check_output(args.output, IMAGE_SUFFIXES, "the image")
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
         render_scene(args.scene, args.output, spp=args.spp, resolution=resolution)
@@ -956,16 +951,17 @@ def _note_kernel_build() -> None:
     cache = Path(wp.config.kernel_cache_dir)
     on_cpu = device() == "cpu"
 
-    def built(name: str, cpu_only: bool) -> bool:
+    def built(name: str, cpu_only: bool) -> bool | None:
         importlib.import_module(name)  # Warp names a build by the code of its kernels
         block_dim = 1 if on_cpu or cpu_only else None
-        return (cache / wp.get_module(name).get_module_identifier(block_dim=block_dim)).is_dir()
+        try:
+            identifier = wp.get_module(name).get_module_identifier(block_dim=block_dim)
+        except (AttributeError, TypeError):  # a Warp that names its builds otherwise
+            return None
+        return (cache / identifier).is_dir()
 
-    try:
-        all_built = all(built(name, cpu_only) for name, cpu_only in _KERNEL_MODULES)
-    except (AttributeError, TypeError):  # a Warp that names its builds otherwise
-        return
-    if not all_built:
+    found = [built(name, cpu_only) for name, cpu_only in _KERNEL_MODULES]
+    if None not in found and not all(found):
         print(f"warptex: Warp is building the kernels into {cache} (once for this version, "
               "about half a minute)", file=sys.stderr)
 

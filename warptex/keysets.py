@@ -28,6 +28,19 @@ def unpack(keys: np.ndarray) -> np.ndarray:
                     axis=1) - KEY_BIAS
 
 
+def cell_offsets(size: int) -> np.ndarray:
+    """Offsets (size^3, 3) of the voxels of a ``size``^3 cell (a block or a brick), x
+    slowest: the order the kernels number them in."""
+    return np.indices((size,) * 3).reshape(3, -1).T
+
+
+def local_index(voxels: np.ndarray, size: int) -> np.ndarray:
+    """Position of each integer voxel (N, 3) in its ``size``^3 cell (a power of two), in
+    the order of :func:`cell_offsets`."""
+    v = voxels & (size - 1)
+    return (v[:, 0] * size + v[:, 1]) * size + v[:, 2]
+
+
 def distinct_sorted(a: np.ndarray) -> np.ndarray:
     """The distinct values of the already sorted ``a``."""
     return a[np.concatenate([[True], a[1:] != a[:-1]])] if len(a) else a

@@ -1,6 +1,6 @@
-"""The synthesis settings a user chooses, their defaults and their ranges (Dong 2008,
-section 5). A module of its own, free of the engine's imports, so that commands and
-plugins can offer and check them before loading any kernels."""
+"""The settings a user chooses, their defaults and their ranges: those of synthesis (Dong
+2008, section 5) and of lookups. A module of its own, free of the engine's imports, so that
+commands and plugins can offer and check them before loading any kernels."""
 
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ DEFAULT_PASSES = 2  # the paper's (section 5.2)
 # the passes; hundreds would exhaust memory in dependency_radius's masks alone.
 MAX_PASSES = 8
 MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
+FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered
+DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
 
 
 class SettingError(ValueError):

@@ -37,17 +37,17 @@ import warp as wp
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
 from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
-from warptex.keysets import pack, unique, unpack
+from warptex.keysets import cell_offsets, local_index, pack, unique, unpack
 from warptex.parallel import launch_ranges
+from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS
 from warptex.synthesis import ENGINE_VERSION, Synthesizer
 
-FILTERS = ("nearest", "trilinear")
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
 _MAGIC = b"WTXBRICK"
-_EMPTY = -1
+_EMPTY = int(_k.EMPTY)  # the key of a free slot, as the hash table marks free entries
 _MIN_BRICKS = 64
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
-_LOCAL = np.indices((_k.BRICK,) * 3).reshape(3, -1).T  # voxel offsets, x slowest
+_LOCAL = cell_offsets(_k.BRICK)
 CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 """Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
 corner c is ((c >> 2) & 1, (c >> 1) & 1, c & 1)."""
@@ -84,7 +84,7 @@ def unique_voxels(voxels: np.ndarray) -> np.ndarray:
     """The distinct rows of integer ``voxels`` (N, 3), grouped by brick; two 1D sorts,
     much faster than sorting rows."""
     keys, brick = np.unique(brick_keys(voxels), return_inverse=True)
-    packed = unique(brick.astype(np.int64) * _k.BRICK_VOXELS + _local_index(voxels))
+    packed = unique(brick.astype(np.int64) * _k.BRICK_VOXELS + local_index(voxels, _k.BRICK))
     return brick_coords(keys[packed // _k.BRICK_VOXELS]) * _k.BRICK + _LOCAL[
         packed % _k.BRICK_VOXELS]
 
@@ -101,12 +101,6 @@ def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     starts = np.cumsum(counts) - counts
     return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
-
-
-def _local_index(voxels: np.ndarray) -> np.ndarray:
-    """Position of each voxel in its brick, as ``kernels.lookup.local_index``."""
-    v = voxels & (_k.BRICK - 1)
-    return (v[:, 0] * _k.BRICK + v[:, 1]) * _k.BRICK + v[:, 2]
 
 
 class Snapshot(NamedTuple):
@@ -203,7 +197,7 @@ class BrickStore:
     costs 6 bytes (12 with exemplars over 65536 pixels).
     """
 
-    def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = 256 << 20,
+    def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  whole_bricks: bool = True) -> None:
         if cache_bytes < 0:
             raise ValueError(f"cache_bytes must not be negative, got {cache_bytes}")
@@ -376,7 +370,7 @@ class BrickStore:
 
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,
-             cache_bytes: int = 256 << 20, whole_bricks: bool = True) -> BrickStore:
+             cache_bytes: int = DEFAULT_CACHE_BYTES, whole_bricks: bool = True) -> BrickStore:
         """A store holding the bricks saved in ``path``, the most recently used that fit
         ``cache_bytes``; an empty one, with a warning, when the file is damaged or belongs
         to another texture. Partly filled bricks load into either kind of store: with
@@ -475,7 +469,7 @@ class BrickStore:
     def _stored(self, voxels: np.ndarray) -> np.ndarray:
         """Whether each of ``voxels`` (N, 3) is stored."""
         slots = self._slots_of(brick_keys(voxels))
-        local = _local_index(voxels)
+        local = local_index(voxels, _k.BRICK)
         found = slots >= 0
         words = self._valid[slots[found], local[found] >> 5]
         out = np.zeros(len(voxels), bool)
@@ -526,7 +520,7 @@ class BrickStore:
         old_bits = np.unpackbits(self._valid[touched].view(np.uint8), bitorder="little")
         order = np.concatenate([np.flatnonzero(old_bits),
                                 np.searchsorted(touched, slots) * _k.BRICK_VOXELS
-                                + _local_index(voxels)])
+                                + local_index(voxels, _k.BRICK)])
         order, first = np.unique(order, return_index=True)
         triples = np.concatenate([self._payload[old], payload.astype(self._dtype)])[first]
         counts = np.bincount(order // _k.BRICK_VOXELS, minlength=len(touched))

@@ -22,7 +22,7 @@ from kernels.common import KEY_BIAS, KEY_BITS
 from warptex.candidates import CandidateSet
 from warptex.device import device as default_device
 from warptex.device import init_warp
-from warptex.keysets import distinct_sorted, pack, unique, unpack
+from warptex.keysets import cell_offsets, distinct_sorted, local_index, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
 
@@ -41,7 +41,7 @@ COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # finest voxels lie in [-COORD_L
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
 _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (section 5.1)
-_LOCAL = np.indices((BLOCK,) * 3).reshape(3, -1).T  # voxel offsets in a block, x slowest
+_LOCAL = cell_offsets(BLOCK)
 
 
 def neighborhood_shape(half: int) -> np.ndarray:
@@ -143,16 +143,11 @@ def _neighbor_table(keys: np.ndarray) -> np.ndarray:
     return np.stack([_lookup(keys, keys + s) for s in steps], axis=1)
 
 
-def _local_index(voxels: np.ndarray) -> np.ndarray:
-    """Position of each voxel (N, 3) in its 4^3 block, x slowest, as the kernels number it."""
-    return (voxels[:, 0] & 3) * 16 + (voxels[:, 1] & 3) * 4 + (voxels[:, 2] & 3)
-
-
 def _voxel_rows(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
     """Flat index (block slot * 64 + local) of each of ``voxels`` (N, 3) in the blocks of
     sorted ``keys``, which must hold them."""
     return _lookup(keys, pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
-        _local_index(voxels))
+        local_index(voxels, BLOCK))
 
 
 @dataclass

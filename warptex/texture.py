@@ -16,11 +16,11 @@ import warp as wp
 
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
-from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES
-from warptex.store import FILTERS, BrickStore
+from warptex.settings import DEFAULT_CACHE_BYTES, DEFAULT_JITTER, DEFAULT_PASSES, FILTERS
+from warptex.store import BrickStore
 from warptex.synthesis import COORD_LIMIT, Synthesizer
 
-_CHUNK = 1 << 20  # points per batch: bounds the memory of one lookup and synthesis
+BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
 # Queries lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
 POINT_LIMIT = COORD_LIMIT - 2
@@ -46,7 +46,7 @@ class SolidTexture:
         seed: int = 0,
         jitter: float = DEFAULT_JITTER,
         device: str | None = None,
-        cache_bytes: int = 256 << 20,
+        cache_bytes: int = DEFAULT_CACHE_BYTES,
         store: str | Path | None = None,
         passes: int = DEFAULT_PASSES,
         whole_bricks: bool = True,
@@ -87,9 +87,9 @@ class SolidTexture:
             raise ValueError(f"{bad} of {len(pts)} points are NaN or infinite; pass fill= "
                              "to give them a color instead")
         out = np.empty((len(pts), self.channels), np.float32)
-        for start in range(0, len(pts), _CHUNK):
-            chunk = pts[start : start + _CHUNK]
-            dest = out[start : start + _CHUNK]
+        for start in range(0, len(pts), BATCH):
+            chunk = pts[start : start + BATCH]
+            dest = out[start : start + BATCH]
             good = np.isfinite(chunk).all(axis=1) if fill_color is not None else None
             if good is not None and not good.all():
                 dest[~good] = fill_color
@@ -157,20 +157,21 @@ def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
 
 
 def query_slabs(texture: SolidTexture, points: np.ndarray, filter: str = "trilinear",
-                progress: str | None = None) -> np.ndarray:
-    """``texture.query(points, filter)`` in slabs along x, under a progress bar named
-    ``progress`` (none if None): the same colours as one query, as every point's color
-    is its own. Points are taken in order of x, so the slabs' dependencies overlap only at
-    their faces."""
+                progress: str | None = None, slab: int = _SLAB) -> np.ndarray:
+    """``texture.query(points, filter)`` in slabs of ``slab`` points along x, under a
+    progress bar named ``progress`` (none if None): the same colours as one query, as every
+    point's color is its own. Points are taken in order of x, so the slabs' dependencies
+    overlap only at their faces; larger slabs repeat fewer of them, smaller ones move the
+    bar more often."""
     from tqdm.auto import tqdm
 
     points = np.asarray(points)
     order = np.argsort(points[:, 0], kind="stable")
     out = np.empty((len(points), texture.channels), np.float32)
     with tqdm(total=len(points), desc=progress, unit="point", unit_scale=True,
-              disable=progress is None or len(points) <= _SLAB) as bar:
-        for first in range(0, len(points), _SLAB):
-            part = order[first : first + _SLAB]
+              disable=progress is None or len(points) <= slab) as bar:
+        for first in range(0, len(points), slab):
+            part = order[first : first + slab]
             out[part] = texture.query(points[part], filter=filter)
             bar.update(len(part))
     return out
