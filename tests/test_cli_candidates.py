@@ -13,8 +13,9 @@ import pytest
 from PIL import Image
 
 from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
-from warptex.cli import _exr_sheet, main
+from warptex.cli import main
 from warptex.exemplar import Exemplar
+from warptex.volume_files import exr_sheet
 
 GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
 
@@ -204,7 +205,7 @@ def test_volume_exr_sheet_of_z_slices(images, expected, tmp_path):
     assert sheet.dtype == np.float32 and sheet.shape == (8, 64, 3)
     x, y, z = 5, 2, 6
     np.testing.assert_array_equal(sheet[y, z * 8 + x], expected[x, y, z])
-    np.testing.assert_array_equal(sheet, _exr_sheet(expected))
+    np.testing.assert_array_equal(sheet, exr_sheet(expected))
 
 
 def test_volume_bad_extension_names_the_path(images, tmp_path, capsys):

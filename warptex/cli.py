@@ -10,7 +10,6 @@ import argparse
 import itertools
 import math
 import os
-import struct
 import sys
 import tempfile
 import time
@@ -22,7 +21,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from warptex import __version__
-from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, ExemplarError
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -31,6 +29,7 @@ from warptex.settings import (
     SettingError,
     check_settings,
 )
+from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
 
 # Imported inside the commands that need them, so `warptex info` stays light.
 if TYPE_CHECKING:
@@ -283,7 +282,6 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
     print(f"bytes: {cs.nbytes()} ({cs.nbytes() / 1024:.1f} KiB)")
 
 
-_VOLUME_FORMATS = (".npy", ".exr", ".vol")
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
 # up to 4 float32 channels three times over (colors, image, filled image), and the
 # int64 indices of the nearest covered texel.
@@ -331,7 +329,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    suffix = _check_output(args.output, _VOLUME_FORMATS, "a volume file")
+    _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.mean_shift and args.method != "kopf":
@@ -341,7 +339,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
-        return _volume_kopf(args, suffix, exemplars)
+        return _volume_kopf(args, exemplars)
     cs = precompute(*exemplars, progress=True)
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
@@ -355,13 +353,13 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab")
     ]
     volume = np.concatenate(slabs, axis=0)
-    _write_volume(args.output, suffix, volume)
+    _write(args.output, write_volume, volume)
     print(f"volume: {size}^3 voxels, {_count(volume.shape[3], 'channel')}, seed {args.seed}")
     print(f"written: {args.output}")
     return 0
 
 
-def _volume_kopf(args: argparse.Namespace, suffix: str, exemplars: list[Exemplar]) -> int:
+def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar]) -> int:
     from warptex.baselines.kopf import synthesize
 
     try:
@@ -369,7 +367,7 @@ def _volume_kopf(args: argparse.Namespace, suffix: str, exemplars: list[Exemplar
                             mean_shift=args.mean_shift)
     except ValueError as error:
         raise CliError(str(error)) from None
-    _write_volume(args.output, suffix, volume)
+    _write(args.output, write_volume, volume)
     clustering = ", mean-shift clustering" if args.mean_shift else ""
     print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, "
           f"{_count(volume.shape[3], 'channel')}, "
@@ -394,67 +392,13 @@ def _check_fits(need: int, what: str, advice: str) -> None:
         raise CliError(f"{what} {problem}; {advice}")
 
 
-def _write_volume(path: Path, suffix: str, volume: np.ndarray) -> None:
-    writer = {".npy": _write_npy, ".exr": _write_exr, ".vol": _write_vol}[suffix]
-    _write_atomically(path, lambda tmp: writer(tmp, volume))
-
-
-def _write_atomically(path: Path, write: Callable[[Path], None]) -> None:
-    """:func:`warptex.archive.write_atomically`, with an error that names the file."""
+def _write(path: Path, write: Callable[[Path], None], thing: np.ndarray) -> None:
+    """``write(path, thing)`` (a :mod:`warptex.volume_files` writer), with an error that
+    names the file."""
     try:
-        write_atomically(path, write)
+        write(path, thing)
     except OSError as error:
         raise CliError(f"{path}: cannot write ({error.strerror or error})") from None
-
-
-def _write_npy(path: Path, volume: np.ndarray) -> None:
-    with open(path, "wb") as file:
-        np.save(file, volume)
-
-
-def _exr_channel_names(channels: int) -> list[str]:
-    if channels == 1:
-        return ["Y"]
-    if channels in (3, 4):
-        return list("RGBA"[:channels])
-    return [f"C{c}" for c in range(channels)]
-
-
-def _exr_sheet(volume: np.ndarray) -> np.ndarray:
-    """The z-slices of an (X, Y, Z, C) volume side by side: pixel (row y, column z*X + x)
-    holds voxel (x, y, z), so the sheet is Y rows by Z*X columns."""
-    x, y, z, c = volume.shape
-    return volume.transpose(1, 2, 0, 3).reshape(y, z * x, c)
-
-
-def _write_exr(path: Path, volume: np.ndarray) -> None:
-    """One single-part scanline OpenEXR image, float32, of the z-slices side by side."""
-    x, y, z, _ = volume.shape
-    layout = f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)"
-    _write_exr_image(path, _exr_sheet(volume), {"warptexLayout": layout})
-
-
-def _write_exr_image(path: Path, image: np.ndarray, extra: dict | None = None) -> None:
-    """An (H, W, C) float32 image as a single-part scanline OpenEXR file."""
-    import OpenEXR
-
-    names = _exr_channel_names(image.shape[2])
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    header.update(extra or {})
-    pixels = {name: np.ascontiguousarray(image[..., c], np.float32) for c, name in enumerate(names)}
-    with OpenEXR.File(header, pixels) as file:
-        file.write(str(path))
-
-
-def _write_vol(path: Path, volume: np.ndarray) -> None:
-    """Mitsuba 3 grid volume: b'VOL', version 3, float32 encoding, x fastest."""
-    x, y, z, c = volume.shape
-    header = b"VOL" + struct.pack("<B4i", 3, 1, x, y, z) + struct.pack("<i6f", c, 0, 0, 0, 1, 1, 1)
-    # Data index ((z * Y + y) * X + x) * C + c: transpose (x, y, z, c) to (z, y, x, c).
-    data = np.ascontiguousarray(volume.transpose(2, 1, 0, 3), dtype="<f4")
-    with open(path, "wb") as file:
-        file.write(header)
-        file.write(data.tobytes())
 
 
 def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
@@ -547,8 +491,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         _note_png_losses(image)
         save_png(to_rgb8(image), args.output)
     else:
-        writer = _write_npy if suffix == ".npy" else _write_exr_image
-        _write_atomically(args.output, lambda path: writer(path, image))
+        _write(args.output, write_image, image)
     print(f"slice: {h} rows x {w} columns in {elapsed:.2f} s; written: {args.output}")
     return 0
 

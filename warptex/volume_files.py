@@ -1,0 +1,84 @@
+"""Volumes and images written for other tools: NumPy, OpenEXR and Mitsuba 3 grid volumes.
+
+Every writer goes through :func:`warptex.archive.write_atomically`, so a file is either
+whole or absent, never half-written.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from warptex.archive import write_atomically
+
+VOLUME_FORMATS = (".npy", ".exr", ".vol")
+
+
+def write_volume(path: str | Path, volume: np.ndarray) -> None:
+    """Write an (X, Y, Z, C) float volume by the file's suffix: ``.npy`` as it is, ``.exr``
+    as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume.
+    Raises ValueError for another suffix and OSError when the file cannot be written."""
+    path = Path(path)
+    writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
+    writer = writers.get(path.suffix.lower())
+    if writer is None:
+        raise ValueError(f"{path}: a volume file must end in {', '.join(VOLUME_FORMATS)}")
+    write_atomically(path, lambda tmp: writer(tmp, volume))
+
+
+def write_image(path: str | Path, image: np.ndarray) -> None:
+    """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR."""
+    path = Path(path)
+    writer = _write_npy if path.suffix.lower() == ".npy" else _write_exr
+    write_atomically(path, lambda tmp: writer(tmp, image))
+
+
+def exr_sheet(volume: np.ndarray) -> np.ndarray:
+    """The z-slices of an (X, Y, Z, C) volume side by side: pixel (row y, column z*X + x)
+    holds voxel (x, y, z), so the sheet is Y rows by Z*X columns."""
+    x, y, z, c = volume.shape
+    return volume.transpose(1, 2, 0, 3).reshape(y, z * x, c)
+
+
+def _write_npy(path: Path, array: np.ndarray) -> None:
+    with open(path, "wb") as file:
+        np.save(file, array)
+
+
+def _exr_channel_names(channels: int) -> list[str]:
+    if channels == 1:
+        return ["Y"]
+    if channels in (3, 4):
+        return list("RGBA"[:channels])
+    return [f"C{c}" for c in range(channels)]
+
+
+def _write_exr_volume(path: Path, volume: np.ndarray) -> None:
+    x, y, z, _ = volume.shape
+    layout = f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)"
+    _write_exr(path, exr_sheet(volume), {"warptexLayout": layout})
+
+
+def _write_exr(path: Path, image: np.ndarray, extra: dict | None = None) -> None:
+    """An (H, W, C) image as a single-part scanline OpenEXR file, float32."""
+    import OpenEXR
+
+    names = _exr_channel_names(image.shape[2])
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update(extra or {})
+    pixels = {name: np.ascontiguousarray(image[..., c], np.float32) for c, name in enumerate(names)}
+    with OpenEXR.File(header, pixels) as file:
+        file.write(str(path))
+
+
+def _write_vol(path: Path, volume: np.ndarray) -> None:
+    """Mitsuba 3 grid volume: b'VOL', version 3, float32 encoding, x fastest."""
+    x, y, z, c = volume.shape
+    header = b"VOL" + struct.pack("<B4i", 3, 1, x, y, z) + struct.pack("<i6f", c, 0, 0, 0, 1, 1, 1)
+    # Data index ((z * Y + y) * X + x) * C + c: transpose (x, y, z, c) to (z, y, x, c).
+    data = np.ascontiguousarray(volume.transpose(2, 1, 0, 3), dtype="<f4")
+    with open(path, "wb") as file:
+        file.write(header)
+        file.write(data.tobytes())
