@@ -248,8 +248,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
             bar.update(1)
         lvl_roles = []
         for role in range(roles_per_level):
-            trio = [lvl_sources[axis_source[(role + k) % 3]] for k in range(3)]
-            lvl_roles.append(_role_level(trio, p, k3))
+            lvl_roles.append(_role_level(_trio(lvl_sources, axis_source, role), p, k3))
             bar.update(1)
         sources.append(lvl_sources)
         roles.append(lvl_roles)
@@ -273,6 +272,12 @@ def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
     lo = stacked.min(axis=0).astype(np.float64)
     hi = stacked.max(axis=0).astype(np.float64)
     return lo, np.where(hi > lo, hi, lo + 1.0)
+
+
+def _trio(sources: list, axis_source: tuple, role: int) -> list:
+    """The sources of role ``role``'s triples in order: its own exemplar's (the axis
+    ``role``), then those of the next two axes."""
+    return [sources[axis_source[(role + k) % 3]] for k in range(3)]
 
 
 def _quantize(features: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -597,8 +602,7 @@ def _unflatten(d: dict[str, np.ndarray]) -> CandidateSet:
     axis_source = tuple(meta["axis_source"])
     for lv in range(nl):
         for r, role in enumerate(roles[lv]):
-            trio = [sources[lv][axis_source[(r + k) % 3]] for k in range(3)]
-            role.cb = _crossbar_errors(trio, role.cand, half)
+            role.cb = _crossbar_errors(_trio(sources[lv], axis_source, r), role.cand, half)
     return CandidateSet(
         params=meta["params"],
         digests=tuple(meta["digests"]),

@@ -54,19 +54,19 @@ class MethodResult:
 
 # Every method takes the seed and the lazy engine's correction passes; those that do not
 # synthesize lazily ignore the passes.
-def _lazy(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
+def _synthesizer(ex: Exemplar, seed: int, passes: int):
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    synth = Synthesizer(precompute(ex), seed=seed, passes=passes)
-    return synth.box((0, 0, 0), (size, size, size))
+    return Synthesizer(precompute(ex), seed=seed, passes=passes)
+
+
+def _lazy(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
+    return _synthesizer(ex, seed, passes).box((0, 0, 0), (size, size, size))
 
 
 def _lazy_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
-    from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer
-
-    synth = Synthesizer(precompute(ex), seed=seed, passes=passes)
+    synth = _synthesizer(ex, seed, passes)
     return synth.box((0, 0, volume.shape[2] // 2), (LARGE, LARGE, 1))[:, :, 0]
 
 

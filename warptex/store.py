@@ -359,8 +359,7 @@ class BrickStore:
         path = Path(path)
         check_store_path(path)
         with self._lock.shared():
-            live = np.flatnonzero(self._keys != _EMPTY)
-            live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
+            live = self._by_recency()
             arrays = {"keys": self._keys[live], "triples": self._payload[self._ranges(live)],
                       "valid": self._valid[live]}
         write_archive(path, _MAGIC, FORMAT_VERSION,
@@ -389,9 +388,7 @@ class BrickStore:
             return store
         counts = np.bitwise_count(valid).sum(axis=1)
         first = np.cumsum(counts) - counts
-        # The most recently used bricks that fit the budget (the file lists them last).
-        cost = counts * store._voxel_bytes + _SLOT_BYTES
-        keep = np.cumsum(cost[::-1])[::-1] <= store.cache_bytes
+        keep = store._kept(counts)  # the file lists bricks least recently used first
         stored = np.unpackbits(valid[keep].view(np.uint8), bitorder="little").astype(bool)
         voxels = brick_voxels(keys[keep])[stored.reshape(-1)]
         rows = _ranges_of(first[keep], counts[keep])
@@ -539,13 +536,22 @@ class BrickStore:
         self._index.stamps.assign(stamps)
         self._version += 1
 
+    def _by_recency(self) -> np.ndarray:
+        """The slots of stored bricks, least recently used first (equal stamps by slot)."""
+        live = np.flatnonzero(self._keys != _EMPTY)
+        return live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
+
+    def _kept(self, counts: np.ndarray) -> np.ndarray:
+        """Which of the bricks holding ``counts`` voxels each, listed least recently used
+        first, ``cache_bytes`` keeps: the most recently used that fit."""
+        cost = counts * self._voxel_bytes + _SLOT_BYTES
+        return np.cumsum(cost[::-1])[::-1] <= self.cache_bytes
+
     def _evict(self) -> None:
         """Drop least-recently-used bricks until the stored voxels fit ``cache_bytes``."""
-        live = np.flatnonzero(self._keys != _EMPTY)
-        live = live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
+        live = self._by_recency()
         counts = self._voxel_counts(live)
-        cost = counts * self._voxel_bytes + _SLOT_BYTES
-        gone = live[np.cumsum(cost[::-1])[::-1] > self.cache_bytes]
+        gone = live[~self._kept(counts)]
         if len(gone) == 0:
             return
         self._keys[gone] = _EMPTY
