@@ -52,3 +52,14 @@ def granite_32_file(data_dir, tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("WARPTEX_CACHE", str(folder / "cache"))
         yield path
+
+
+@pytest.fixture(scope="module")
+def granite_32(data_dir):
+    """The same 32x32 granite crop as an Exemplar held in memory (no file, no cache)."""
+    import numpy as np
+
+    from warptex.exemplar import Exemplar
+
+    full = Exemplar.load(data_dir / "granite_64.png")
+    return Exemplar(np.ascontiguousarray(full.colors[:32, :32]), name="granite_32")

@@ -11,18 +11,15 @@ import trimesh
 
 from warptex.bake import bake_uv_texture, export, texel_points, vertex_colors
 from warptex.cut import cap_faces, cut
-from warptex.exemplar import Exemplar
 from warptex.surface import block_transform, shell, to_voxel_space
 from warptex.texture import SolidTexture, plane_points
 
 
 @pytest.fixture(scope="module")
-def texture(data_dir, tmp_path_factory, warp_device) -> SolidTexture:
-    full = Exemplar.load(data_dir / "granite_64.png")
-    ex = Exemplar(np.ascontiguousarray(full.colors[:32, :32]), name="granite_32")
+def texture(granite_32, warp_device) -> SolidTexture:
     from warptex.candidates import precompute
 
-    return SolidTexture(precompute(ex, cache=False), seed=2)
+    return SolidTexture(precompute(granite_32, cache=False), seed=2)
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,9 @@ SIZE = 16
 
 
 @pytest.fixture(scope="module")
-def granite(data_dir, warp_device) -> Exemplar:
-    return Exemplar(Exemplar.load(data_dir / "granite_64.png").colors[:32, :32], name="granite")
+def granite(granite_32, warp_device) -> Exemplar:
+    """The granite crop, with Warp started for the module's kernels."""
+    return granite_32
 
 
 @pytest.fixture(scope="module")

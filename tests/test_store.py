@@ -20,16 +20,10 @@ BRICK_BYTES = 512 * 6 + 68  # uint16 triples, the stored-voxel bits and the pool
 
 
 @pytest.fixture(scope="module")
-def candidates(data_dir, tmp_path_factory, warp_device):
-    from PIL import Image
-
+def candidates(granite_32_file, warp_device):
     from warptex.candidates import precompute
 
-    path = tmp_path_factory.mktemp("exemplar") / "granite_32.png"
-    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("WARPTEX_CACHE", str(tmp_path_factory.mktemp("cache")))
-        return precompute(path)
+    return precompute(granite_32_file)
 
 
 def synthesizer(candidates, **kw):

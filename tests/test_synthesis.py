@@ -24,14 +24,8 @@ from warptex.synthesis import (
 
 
 @pytest.fixture(scope="module")
-def small_exemplar(data_dir) -> Exemplar:
-    full = Exemplar.load(data_dir / "granite_64.png")
-    return Exemplar(np.ascontiguousarray(full.colors[:32, :32]), name="granite_32")
-
-
-@pytest.fixture(scope="module")
-def candidates(small_exemplar, tmp_path_factory, warp_device) -> CandidateSet:
-    return precompute(small_exemplar, cache=False)
+def candidates(granite_32, tmp_path_factory, warp_device) -> CandidateSet:
+    return precompute(granite_32, cache=False)
 
 
 def _random_voxels(rng: np.random.Generator, n: int, lo: int = -40, hi: int = 40) -> np.ndarray:
@@ -280,10 +274,10 @@ def test_bad_requests_are_clear(candidates):
         Synthesizer(many)
 
 
-def test_candidate_counts_reach_the_search(small_exemplar, candidates):
+def test_candidate_counts_reach_the_search(granite_32, candidates):
     """Synthesis searches every 2D and 3D candidate the set keeps, but the paper's 4 3D
     candidates at the finest level (section 5.1); more candidates give another texture."""
-    more = precompute(small_exemplar, cache=False, candidates_2d=6, candidates_3d=16)
+    more = precompute(granite_32, cache=False, candidates_2d=6, candidates_3d=16)
     syn = Synthesizer(more, seed=3)
     assert [syn._tables[lv].k2 for lv in (syn.start, syn.finest)] == [6, 2]
     assert [syn._tables[lv].k3 for lv in (syn.start, syn.finest)] == [16, 4]

@@ -18,22 +18,10 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
-def exemplar_path(data_dir, tmp_path_factory) -> Path:
-    """A 32x32 crop of the granite exemplar, so pre-computation and synthesis are quick."""
-    from PIL import Image
-
-    path = tmp_path_factory.mktemp("exemplar") / "granite_32.png"
-    Image.open(data_dir / "granite_64.png").crop((0, 0, 32, 32)).save(path)
-    return path
-
-
-@pytest.fixture(scope="module")
-def candidates(exemplar_path, tmp_path_factory, warp_device):
+def candidates(granite_32_file, warp_device):
     from warptex.candidates import precompute
 
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("WARPTEX_CACHE", str(tmp_path_factory.mktemp("cache")))
-        return precompute(exemplar_path)
+    return precompute(granite_32_file)
 
 
 @pytest.fixture(scope="module")
