@@ -3,7 +3,7 @@ arrays included."""
 
 import numpy as np
 
-from warptex.keysets import distinct_sorted, pack, unique, unpack
+from warptex.keysets import distinct_sorted, lookup, pack, unique, unpack
 from warptex.surface import _unique_rows
 
 
@@ -32,3 +32,13 @@ def test_packed_keys_round_trip_and_keep_the_order_of_coordinates():
     np.testing.assert_array_equal(unpack(keys), c)
     np.testing.assert_array_equal(np.argsort(keys, kind="stable"),
                                   np.lexsort((c[:, 2], c[:, 1], c[:, 0])))
+
+
+def test_lookup_finds_each_present_key_and_only_those():
+    rng = np.random.default_rng(3)
+    keys = np.unique(rng.integers(-50, 50, 40))
+    query = rng.integers(-60, 60, 500)
+    where = {int(k): i for i, k in enumerate(keys)}
+    expected = [where.get(int(q), -1) for q in query]
+    assert lookup(keys, query).tolist() == expected
+    assert lookup(keys[:0], query).tolist() == [-1] * len(query)

@@ -46,6 +46,15 @@ def distinct_sorted(a: np.ndarray) -> np.ndarray:
     return a[np.concatenate([[True], a[1:] != a[:-1]])] if len(a) else a
 
 
+def lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Position (int64) of each of ``query`` in the sorted distinct ``keys``, -1 where
+    absent."""
+    if len(keys) == 0:
+        return np.full(len(query), -1, np.int64)
+    pos = np.minimum(np.searchsorted(keys, query), len(keys) - 1)
+    return np.where(keys[pos] == query, pos, -1)
+
+
 def unique(a: np.ndarray) -> np.ndarray:
     """The distinct values of ``a``, sorted (``np.unique(a)``, by sorting)."""
     return distinct_sorted(np.sort(np.asarray(a).reshape(-1)))

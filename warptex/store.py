@@ -37,7 +37,7 @@ import warp as wp
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
 from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
-from warptex.keysets import cell_offsets, local_index, pack, unique, unpack
+from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS
 from warptex.synthesis import ENGINE_VERSION, Synthesizer
@@ -479,8 +479,8 @@ class BrickStore:
         if len(live) == 0:
             return np.full(len(keys), -1, np.int64)
         order = live[np.argsort(self._keys[live])]
-        pos = np.minimum(np.searchsorted(self._keys[order], keys), len(order) - 1)
-        return np.where(self._keys[order[pos]] == keys, order[pos], -1)
+        pos = lookup(self._keys[order], keys)
+        return np.where(pos >= 0, order[pos], -1)
 
     def _insert(self, voxels: np.ndarray, payload: np.ndarray) -> None:
         """Store ``voxels`` (N, 3) with their triples ``payload`` (N, 3).

@@ -22,7 +22,15 @@ from kernels.common import KEY_BIAS, KEY_BITS
 from warptex.candidates import CandidateSet
 from warptex.device import device as default_device
 from warptex.device import init_warp
-from warptex.keysets import cell_offsets, distinct_sorted, local_index, pack, unique, unpack
+from warptex.keysets import (
+    cell_offsets,
+    distinct_sorted,
+    local_index,
+    lookup,
+    pack,
+    unique,
+    unpack,
+)
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
 
@@ -129,24 +137,17 @@ def _dilate(keys: np.ndarray, r: int) -> np.ndarray:
     return keys
 
 
-def _lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Slot of each query key in sorted ``keys``, -1 where absent."""
-    pos = np.searchsorted(keys, query)
-    pos = np.minimum(pos, len(keys) - 1)
-    return np.where(keys[pos] == query, pos, -1).astype(np.int32)
-
-
 def _neighbor_table(keys: np.ndarray) -> np.ndarray:
     """Slot of each of the 27 blocks around each block of sorted ``keys`` (x slowest),
     -1 where absent."""
     steps = [_key_step(d) for d in np.indices((3, 3, 3)).reshape(3, -1).T - 1]
-    return np.stack([_lookup(keys, keys + s) for s in steps], axis=1)
+    return np.stack([lookup(keys, keys + s) for s in steps], axis=1).astype(np.int32)
 
 
 def _voxel_rows(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
     """Flat index (block slot * 64 + local) of each of ``voxels`` (N, 3) in the blocks of
     sorted ``keys``, which must hold them."""
-    return _lookup(keys, pack(voxels >> 2)).astype(np.int64) * _BLOCK_VOXELS + (
+    return lookup(keys, pack(voxels >> 2)) * _BLOCK_VOXELS + (
         local_index(voxels, BLOCK))
 
 
@@ -190,7 +191,7 @@ class _LevelCache:
     def _slots(self, keys: np.ndarray, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cache slot (-1 where the block is not cached) and local index of each voxel
         ``flat`` (block * 64 + local) of the blocks ``keys``."""
-        slot = _lookup(self.keys, keys).astype(np.int64)[flat // _BLOCK_VOXELS]
+        slot = lookup(self.keys, keys)[flat // _BLOCK_VOXELS]
         return slot, flat % _BLOCK_VOXELS
 
     def insert(self, keys: np.ndarray, flat: np.ndarray, triples: np.ndarray) -> None:
@@ -201,7 +202,7 @@ class _LevelCache:
             return
         if (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12 > self.max_bytes:
             self.clear()
-        fresh = new[_lookup(self.keys, new) < 0] if len(self.keys) else new
+        fresh = new[lookup(self.keys, new) < 0] if len(self.keys) else new
         if len(fresh):
             keys_all = np.concatenate([self.keys, fresh])
             order = np.argsort(keys_all, kind="stable")
@@ -377,7 +378,7 @@ class Synthesizer:
             parent = self._final(level - 1, *self._parents(coords_wp, coords, read,
                                                            read_blocks))
             parent_slot = np.full(len(coords), -1, np.int32)
-            parent_slot[read_blocks] = _lookup(parent.keys, pack(coords[read_blocks] >> 1))
+            parent_slot[read_blocks] = lookup(parent.keys, pack(coords[read_blocks] >> 1))
             pt = self._tables[level - 1]
             launch_ranges(
                 _k.upsample,
@@ -398,7 +399,7 @@ class Synthesizer:
         for step in active:
             corrected[step] = True
         self.voxels_synthesized[level] += int(corrected.sum())
-        out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[_lookup(work, keys)]
+        out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[lookup(work, keys)]
         return _Level(keys, out.reshape(-1, 3))
 
     def _parents(self, coords_wp: wp.array, coords: np.ndarray, read: wp.array,
