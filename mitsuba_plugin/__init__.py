@@ -6,6 +6,7 @@
 shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
 
     import warptex  # first: points Dr.Jit at a usable libLLVM
+    import mitsuba as mi
     import mitsuba_plugin
 
     mitsuba_plugin.set_best_variant()

@@ -11,6 +11,7 @@ then renamed).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import os
@@ -34,14 +35,20 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     temporary name keeps the suffix, lower-cased, for writers that pick the format from it
     (Mitsuba's bitmap writer takes ``.PNG`` for an unknown format)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tag = f"{os.getpid()}.{threading.get_ident()}"
     tmp = path.with_name(f".{path.stem}.{tag}.tmp{path.suffix.lower()}")
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         write(tmp)
         os.replace(tmp, path)
+    except OSError as error:
+        if error.errno is None:
+            raise
+        # Named after the file asked for: the temporary name means nothing to a user.
+        raise type(error)(error.errno, error.strerror, str(path)) from error
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # where the write failed, so may this
+            tmp.unlink(missing_ok=True)
 
 
 def write_archive(path: str | Path, magic: bytes, version: int,

@@ -149,7 +149,8 @@ def precompute(
     written is reported once and left out. ``progress`` shows a bar on stderr; None shows
     it when stderr is a terminal.
     """
-    exemplars = [_as_exemplar(e) for e in (ex, ey or ex, ez or ey or ex)]
+    ey = ex if ey is None else ey
+    exemplars = [_as_exemplar(e) for e in (ex, ey, ey if ez is None else ez)]
     channels = [e.features.shape[2] for e in exemplars]
     if len(set(channels)) != 1:
         found = ", ".join(f"{axis} {e.path or e.name} {n}"
@@ -197,7 +198,13 @@ def cached_candidate_path(ex: Exemplar) -> Path | None:
 
 
 def _as_exemplar(e: Exemplar | str | Path) -> Exemplar:
-    return e if isinstance(e, Exemplar) else Exemplar.load(e)
+    if isinstance(e, Exemplar):
+        return e
+    if isinstance(e, str | os.PathLike):
+        return Exemplar.load(e)
+    hint = " (an array becomes one as warptex.Exemplar(array))" if isinstance(e, np.ndarray) else ""
+    raise TypeError(f"an exemplar must be a warptex.Exemplar or an image path, got "
+                    f"{type(e).__name__}{hint}")
 
 
 def _resolve_params(params: dict) -> dict:

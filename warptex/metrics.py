@@ -39,12 +39,39 @@ def patches(image: np.ndarray, size: int, stride: int = 1, wrap: bool = False) -
     return win.transpose(0, 1, 3, 4, 2).reshape(-1, size * size * c).astype(np.float32)
 
 
+def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``volume`` (D, H, W, C) and ``exemplar`` (H, W, C, or a warptex.Exemplar) as float
+    arrays of the same channels, whose slices across ``axis`` hold ``size`` x ``size``
+    patches; else a ValueError or TypeError saying which argument is wrong."""
+    exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
+    volume = np.asarray(volume)
+    if volume.ndim != 4:
+        raise ValueError(f"volume must be a (D, H, W, C) array, got shape {volume.shape}")
+    if exemplar.ndim != 3:
+        raise ValueError(f"exemplar must be an (H, W, C) image, got shape {exemplar.shape}")
+    for name, a in (("volume", volume), ("exemplar", exemplar)):
+        if not np.issubdtype(a.dtype, np.floating):
+            raise TypeError(f"{name} must hold float colors (as warptex loads them), got "
+                            f"{a.dtype}")
+    if volume.shape[3] != exemplar.shape[2]:
+        raise ValueError(f"volume has {volume.shape[3]} channels, exemplar "
+                         f"{exemplar.shape[2]}")
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+    across = [volume.shape[a] for a in range(3) if a != axis]
+    if min(across) < size:
+        raise ValueError(f"slices across axis {axis} are {across[0]} x {across[1]}: too small "
+                         f"for {size} x {size} patches")
+    return volume, exemplar
+
+
 def neighborhood_energy(
     volume: np.ndarray, exemplar: np.ndarray, axis: int, size: int = 5, slices: int = 8
 ) -> float:
     """Mean squared distance from each slice patch to its nearest exemplar patch,
     normalized by the exemplar's variance and patch size (0 = every patch is in the
     exemplar; about 2 for patches of unrelated values of the same variance)."""
+    volume, exemplar = _checked(volume, exemplar, axis, size)
     ex_patches = patches(exemplar, size, wrap=True)
     tree = cKDTree(ex_patches)
     vol_patches = np.concatenate(
@@ -72,6 +99,7 @@ def sliced_wasserstein(
 ) -> float:
     """Sliced Wasserstein-1 distance between slice patches and exemplar patches,
     averaged over random unit directions and normalized by the exemplar's std."""
+    volume, exemplar = _checked(volume, exemplar, axis, size)
     a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
     b = patches(exemplar, size, wrap=True)
     rng = np.random.default_rng(seed)
@@ -88,6 +116,7 @@ def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
                        bins: int = 16) -> float:
     """Mean over channels of the L1 distance between normalized ``bins``-bin histograms of
     the slices perpendicular to ``axis`` and of the exemplar (0 = same, 2 = disjoint)."""
+    volume, exemplar = _checked(volume, exemplar, axis)
     slices = axis_slices(volume, axis)
     values = np.concatenate([s.reshape(-1, s.shape[2]) for s in slices])
     ref = exemplar.reshape(-1, exemplar.shape[2])
@@ -103,7 +132,17 @@ def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
 
 def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     """Highest normalized autocorrelation of a large slice at shifts farther than
-    ``exclude`` pixels: near 1 for a tiled texture, low when nothing repeats."""
+    ``exclude`` pixels: near 1 for a tiled texture, low when nothing repeats. ``image`` is
+    (H, W) or (H, W, C); shifts up to a quarter of it count, so it must be more than
+    ``4 * (exclude + 1)`` pixels along one side."""
+    image = np.asarray(image)
+    image = image[:, :, None] if image.ndim == 2 else image
+    if image.ndim != 3:
+        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
+    if max(image.shape[:2]) // 4 <= exclude:
+        raise ValueError(f"a {image.shape[0]} x {image.shape[1]} image is too small for the "
+                         f"repetition score: shifts past {exclude} pixels up to a quarter of "
+                         f"it need more than {4 * (exclude + 1) - 1} pixels along a side")
     x = image - image.mean(axis=(0, 1))
     spectrum = np.fft.rfft2(x, axes=(0, 1))
     corr = np.fft.irfft2(np.abs(spectrum) ** 2, s=x.shape[:2], axes=(0, 1)).sum(axis=2)

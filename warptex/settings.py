@@ -4,6 +4,8 @@ commands and plugins can offer and check them before loading any kernels."""
 
 from __future__ import annotations
 
+from numbers import Integral, Real
+
 DEFAULT_JITTER = 1.0
 MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
 DEFAULT_PASSES = 2  # the paper's (section 5.2)
@@ -28,6 +30,11 @@ def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
                    seed: int = 0) -> None:
     """Raise SettingError unless ``jitter``, ``passes`` and ``seed`` are within what the
     engine supports: the user-facing settings of :class:`warptex.synthesis.Synthesizer`."""
+    for name, value, kind in (("seed", seed, Integral), ("passes", passes, Integral),
+                              ("jitter", jitter, Real)):
+        if isinstance(value, bool) or not isinstance(value, kind):
+            noun = "an integer" if kind is Integral else "a number"
+            raise SettingError(name, f"must be {noun}, got {value!r}")
     if not 0 <= seed <= MAX_SEED:
         raise SettingError("seed", f"must be within [0, {MAX_SEED}], got {seed}")
     if not 0.0 <= jitter <= MAX_JITTER:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from functools import cache
+from numbers import Integral
 
 import numpy as np
 import warp as wp
@@ -118,6 +119,16 @@ def dependency_chain(half: int, passes: int, subpasses: int, levels: int) -> lis
             desired = np.zeros((n, n, n), bool)
             desired[tuple(parents.T)] = True
     return counts
+
+
+def _three_ints(name: str, values) -> tuple[int, int, int]:
+    """``values`` as three Python ints, or a ValueError naming ``name``: fractions are
+    refused, not truncated onto another voxel."""
+    items = tuple(values) if np.ndim(values) == 1 else ()
+    if len(items) != 3 or not all(isinstance(v, Integral) and not isinstance(v, bool)
+                                  for v in items):
+        raise ValueError(f"{name} must be three ints, got {values!r}")
+    return tuple(int(v) for v in items)
 
 
 def _key_step(d: tuple[int, int, int]) -> int:
@@ -239,6 +250,9 @@ class Synthesizer:
         device: str | None = None,
         coarse_cache_bytes: int = 256 << 20,
     ) -> None:
+        if not isinstance(candidates, CandidateSet):
+            raise TypeError(f"candidates must be a CandidateSet (warptex.precompute makes one), "
+                            f"got {type(candidates).__name__}")
         if subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
         check_settings(jitter, passes, int(seed))
@@ -296,8 +310,9 @@ class Synthesizer:
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
         """Colors of a box of voxels, (D, H, W, C) with axis 0 along x, 1 along y, 2 along z."""
-        shape = tuple(int(s) for s in shape)
-        if len(shape) != 3 or min(shape) < 0:
+        origin = _three_ints("origin", origin)
+        shape = _three_ints("shape", shape)
+        if min(shape) < 0:
             raise ValueError(f"shape must be three non-negative ints, got {shape}")
         grid = np.indices(shape).reshape(3, -1).T + np.asarray(origin, np.int64)
         return self.voxels(grid).reshape(*shape, self.candidates.channels)

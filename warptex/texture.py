@@ -8,6 +8,7 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from numbers import Integral
 from pathlib import Path
 from typing import Literal
 
@@ -110,7 +111,15 @@ class SolidTexture:
     ) -> np.ndarray:
         """Colors (H, W, C) on any plane (Dong 2008, 6.4): pixel (r, c) shows the point
         ``origin + r*u + c*v``; the plane need not be axis-aligned."""
-        points = plane_points(np.asarray(origin), np.asarray(u), np.asarray(v), shape)
+        for name, vector in (("origin", origin), ("u", u), ("v", v)):
+            a = np.asarray(vector)
+            if a.shape != (3,) or not np.issubdtype(a.dtype, np.number) or not np.isfinite(a).all():
+                raise ValueError(f"{name} must be three finite numbers, got {vector!r}")
+        rows_cols = tuple(shape) if np.ndim(shape) == 1 else ()
+        if len(rows_cols) != 2 or not all(isinstance(n, Integral) and not isinstance(n, bool)
+                                          and n > 0 for n in rows_cols):
+            raise ValueError(f"shape must be two positive ints (rows, columns), got {shape!r}")
+        points = plane_points(np.asarray(origin), np.asarray(u), np.asarray(v), rows_cols)
         return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
     def save(self, path: str | Path | None = None) -> Path:

@@ -21,6 +21,7 @@ def write_volume(path: str | Path, volume: np.ndarray) -> None:
     as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume.
     Raises ValueError for another suffix and OSError when the file cannot be written."""
     path = Path(path)
+    volume = _float_array(volume, 4, "volume", "(X, Y, Z, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
     writer = writers.get(path.suffix.lower())
     if writer is None:
@@ -31,6 +32,7 @@ def write_volume(path: str | Path, volume: np.ndarray) -> None:
 def write_image(path: str | Path, image: np.ndarray) -> None:
     """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR."""
     path = Path(path)
+    image = _float_array(image, 3, "image", "(H, W, C)")
     writer = _write_npy if path.suffix.lower() == ".npy" else _write_exr
     write_atomically(path, lambda tmp: writer(tmp, image))
 
@@ -40,6 +42,17 @@ def exr_sheet(volume: np.ndarray) -> np.ndarray:
     holds voxel (x, y, z), so the sheet is Y rows by Z*X columns."""
     x, y, z, c = volume.shape
     return volume.transpose(1, 2, 0, 3).reshape(y, z * x, c)
+
+
+def _float_array(data, ndim: int, name: str, layout: str) -> np.ndarray:
+    """``data`` as a float array of ``ndim`` axes, or a clear error: the formats hold float
+    colors, and an integer array would be written as 0-255 floats."""
+    array = np.asarray(data)
+    if array.ndim != ndim:
+        raise ValueError(f"the {name} must be a {layout} array, got shape {array.shape}")
+    if not np.issubdtype(array.dtype, np.floating):
+        raise TypeError(f"the {name} must hold float colors, got {array.dtype}")
+    return array
 
 
 def _write_npy(path: Path, array: np.ndarray) -> None:

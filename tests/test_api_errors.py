@@ -1,0 +1,94 @@
+"""The Python API refuses wrong arguments with one error naming the argument, instead of
+an error from deep inside NumPy, pathlib or Warp, or a silently truncated value."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from warptex import metrics
+from warptex.archive import write_atomically
+from warptex.candidates import precompute
+from warptex.settings import SettingError, check_settings
+from warptex.volume_files import write_image, write_volume
+
+
+@pytest.fixture(scope="module")
+def candidates(granite_32):
+    return precompute(granite_32, cache=False)
+
+
+@pytest.mark.parametrize(("kwargs", "name"), [
+    ({"seed": 1.5}, "seed"), ({"seed": None}, "seed"), ({"passes": "2"}, "passes"),
+    ({"passes": True}, "passes"), ({"jitter": "1"}, "jitter"),
+])
+def test_settings_of_the_wrong_type_are_named(kwargs, name):
+    with pytest.raises(SettingError, match=f"^{name} must be an? "):
+        check_settings(**kwargs)
+
+
+def test_sources_of_the_wrong_kind_are_named(candidates, warp_device):
+    from warptex.synthesis import Synthesizer
+
+    with pytest.raises(TypeError, match=r"warptex\.Exemplar\(array\)"):
+        precompute(np.zeros((32, 32, 3), np.float32))
+    with pytest.raises(TypeError, match="candidates must be a CandidateSet"):
+        Synthesizer("granite.png")
+    synth = Synthesizer(candidates)
+    for origin, shape in (((0.5, 0, 0), (2, 2, 2)), ((0, 0, 0), (2.7, 2, 2)), ((0, 0), (2, 2, 2))):
+        with pytest.raises(ValueError, match="must be three ints"):
+            synth.box(origin, shape)
+    assert synth.box(np.array([1, 2, 3]), (1, 1, 2)).shape == (1, 1, 2, 3)
+
+
+def test_slice_arguments_are_checked(candidates, warp_device):
+    from warptex.texture import SolidTexture
+
+    tex = SolidTexture(candidates)
+    for shape in (8, (8, 8, 3), (8.0, 8.0), (-1, 8)):
+        with pytest.raises(ValueError, match="shape must be two positive ints"):
+            tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), shape)
+    for origin in ((0, 0), "000", (0, np.nan, 0)):
+        with pytest.raises(ValueError, match="origin must be three finite numbers"):
+            tex.slice(origin, (1, 0, 0), (0, 1, 0), (2, 2))
+
+
+def test_metrics_name_what_does_not_fit(granite_32):
+    volume = np.zeros((16, 16, 16, 3), np.float32)
+    colors = granite_32.colors
+    for call in (metrics.neighborhood_energy, metrics.sliced_wasserstein,
+                 metrics.histogram_distance):
+        with pytest.raises(ValueError, match="volume has 1 channels, exemplar 3"):
+            call(volume[..., :1], colors, 0)
+        with pytest.raises(ValueError, match="axis must be 0, 1 or 2"):
+            call(volume, colors, 3)
+        with pytest.raises(TypeError, match="exemplar must hold float colors"):
+            call(volume, (colors * 255).astype(np.uint8), 0)
+    with pytest.raises(ValueError, match="too small for 5 x 5 patches"):
+        metrics.neighborhood_energy(volume[:, :4], colors, 0)
+    # An Exemplar is taken for its colors.
+    assert metrics.histogram_distance(volume, granite_32, 0) == pytest.approx(
+        metrics.histogram_distance(volume, colors, 0))
+    with pytest.raises(ValueError, match="too small for the repetition score"):
+        metrics.repetition_score(colors[:16, :16])
+    assert 0.0 <= metrics.repetition_score(np.tile(colors[..., 0], (2, 2))) <= 1.0
+
+
+def test_files_refuse_what_their_formats_cannot_hold(tmp_path):
+    with pytest.raises(ValueError, match=r"volume must be a \(X, Y, Z, C\) array"):
+        write_volume(tmp_path / "v.exr", np.zeros((4, 4, 4), np.float32))
+    with pytest.raises(TypeError, match="volume must hold float colors, got uint8"):
+        write_volume(tmp_path / "v.npy", np.zeros((4, 4, 4, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"image must be a \(H, W, C\) array"):
+        write_image(tmp_path / "i.exr", [[0.0, 1.0]])
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_failed_write_names_the_file_asked_for(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    target = blocker / "out.npy"
+    with pytest.raises(OSError) as caught:
+        write_atomically(target, lambda tmp: tmp.write_bytes(b"x"))
+    assert caught.value.filename == str(target)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
