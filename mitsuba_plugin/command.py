@@ -151,6 +151,9 @@ def _status(text: str) -> Iterator[None]:
 
 
 def _progress(done: int, total: int) -> None:
+    if not sys.stderr.isatty():  # a log: one line per batch, not carriage returns
+        print(f"rendering: batch {done}/{total}", file=sys.stderr, flush=True)
+        return
     end = "\n" if done == total else ""
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 

@@ -153,7 +153,7 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
             mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, name: value})
 
 
-def test_render_command_writes_image_and_statistics(tmp_path):
+def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""
     from warptex.cli import main
@@ -164,3 +164,5 @@ def test_render_command_writes_image_and_statistics(tmp_path):
     assert list(mi.Bitmap(str(out)).size()) == [16, 16]
     assert json.loads((tmp_path / "bunny.PNG.json").read_text())["spp"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.PNG", "bunny.PNG.json"]
+    # Captured, stderr is no terminal: progress comes a line per batch, no carriage returns.
+    assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err

@@ -538,7 +538,8 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
     parser.add_argument("--uv", choices=uv_sources, default="none",
                         help="bake a UV texture: "
                         + ", ".join(ways[w] for w in uv_sources if w in ways)
-                        + ", or vertex colors only (none, default)")
+                        + ", or vertex colors only (none, default); xatlas is slow on large "
+                        "meshes (93 s for the 69k-face bunny on 2 cores)")
     parser.add_argument("--texture-size", type=int, default=1024,
                         help="edge of the UV texture in pixels (default 1024)")
     parser.add_argument("--store", type=Path, metavar="FILE",
