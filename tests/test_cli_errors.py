@@ -220,6 +220,15 @@ def test_a_reader_gone_early_ends_the_command_quietly(files):
     assert proc.returncode == 141 and err == ""
 
 
+def test_negative_numbers_in_any_notation_are_values(files, tmp_path):
+    """argparse reads "-1e3" as an unknown option; warptex takes it as the number."""
+    a, b = tmp_path / "a.npy", tmp_path / "b.npy"
+    common = ["slice", str(files["exemplar"]), "--shape", "2", "2", "--passes", "0"]
+    assert main([*common, "--origin", "-1e3", "-2.5E1", "0", "-o", str(a)]) == 0
+    assert main([*common, "--origin", "-1000", "-25", "0", "-o", str(b)]) == 0
+    assert np.array_equal(np.load(a), np.load(b))
+
+
 def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
     out = tmp_path / "s.png"
     assert main(["slice", str(files["exemplar"]), "--alpha", "keep", "--shape", "4", "4",

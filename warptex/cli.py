@@ -10,6 +10,7 @@ import argparse
 import itertools
 import math
 import os
+import re
 import sys
 import tempfile
 import time
@@ -910,9 +911,17 @@ def _note_kernel_build() -> None:
               "about half a minute)", file=sys.stderr)
 
 
+# A negative number in any notation; argparse takes only plain ones ("-5", "-0.5") for values
+# and reads "-1e9" as an unknown option.
+_NEGATIVE_NUMBER = re.compile(r"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?|-inf(inity)?", re.IGNORECASE)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
-    args = _parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # A leading space keeps argparse from taking a value for an option; int() and float()
+    # ignore it. No option of warptex looks like a number.
+    args = _parser().parse_args([f" {a}" if _NEGATIVE_NUMBER.fullmatch(a) else a for a in argv])
     _, command = _SUBCOMMANDS[args.command]
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
