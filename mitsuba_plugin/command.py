@@ -17,9 +17,6 @@ from pathlib import Path
 from warptex.archive import write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
-# Bytes one sample's path state takes at least in a wavefront render (rays, interactions,
-# throughput, sampler state): a floor, so only renders that cannot fit are refused.
-_SAMPLE_BYTES = 64
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -35,17 +32,13 @@ def parse_resolution(text: str) -> tuple[int, int]:
 
 def check_render_size(width: int, height: int, samples: int) -> None:
     """Refuse, before rendering, a batch of ``samples`` per pixel that Dr.Jit's arrays
-    (at most 2^32 entries) or this machine's memory cannot hold."""
-    from warptex.machine import memory_problem
-
+    (at most 2^32 entries) cannot hold. Memory is not estimated: a traced render keeps a
+    sample's path in registers, a wavefront one in arrays, and the mode is chosen later."""
     what = f"{width}x{height} pixels at {samples} samples per pixel in a batch"
     # The film keeps up to 5 values per pixel (RGB, alpha, weight); a wavefront one per sample.
     if width * height * max(samples, 5) >= 2**32:
         raise ValueError(f"{what} exceed Mitsuba's arrays of at most 2^32 entries; lower "
                          "--res or --spp")
-    problem = memory_problem(width * height * samples * _SAMPLE_BYTES)
-    if problem is not None:
-        raise ValueError(f"{what} {problem}; lower --res or --spp")
 
 
 def scene_error(text: str, scene: Path | None = None) -> str:
