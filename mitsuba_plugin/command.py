@@ -83,8 +83,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 
     import mitsuba_plugin
 
-    if resolution is not None:
-        check_render_size(*resolution, spp or 1)
+    if resolution is not None:  # before loading: a film this size may not even be made
+        check_render_size(*resolution, -(-(spp or 1) // min(8, spp or 1)))
     variant = mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}

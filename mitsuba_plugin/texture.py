@@ -54,6 +54,7 @@ import numpy as np
 import mitsuba_plugin
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
+from warptex.exemplar import Exemplar
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
@@ -116,21 +117,35 @@ def scene_path(name: str, must_exist: bool) -> Path:
     return (Path(str(resolver[0])) / name).absolute()
 
 
-def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[Path]:
-    """The exemplars of the x, y and z axes, each checked to exist."""
-    base = get_property(props, "exemplar", str, None, plugin)
-    names = [get_property(props, f"exemplar_{a}", str, base, plugin) for a in "xyz"]
-    paths = []
-    for axis, name in zip("xyz", names, strict=True):
+def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
+    """The exemplars of the x, y and z axes, each checked to exist, with the property that
+    names each."""
+    get_property(props, "exemplar", str, None, plugin)  # checked even where axes override it
+    named = []
+    for axis in "xyz":
+        key = f"exemplar_{axis}" if f"exemplar_{axis}" in props else "exemplar"
+        name = get_property(props, key, str, None, plugin)
         if name is None:
             raise property_error(plugin, "exemplar",
                                  f'is required (or all of "exemplar_{axis}", ...)')
         path = scene_path(name, must_exist=True)
         if not path.is_file():
-            key = "exemplar" if name == base else f"exemplar_{axis}"
             raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
-        paths.append(path)
-    return paths
+        named.append((key, path))
+    return named
+
+
+def _load_exemplars(named: list[tuple[str, Path]], plugin: str = PLUGIN) -> list[Exemplar]:
+    """The exemplar images, each read once; one that cannot be read is blamed on the
+    property that names it."""
+    loaded: dict[Path, Exemplar] = {}
+    for key, path in named:
+        if path not in loaded:
+            try:
+                loaded[path] = Exemplar.load(path)
+            except (ValueError, OSError) as e:
+                raise property_error(plugin, key, f"cannot be used: {e}") from e
+    return [loaded[path] for _, path in named]
 
 
 def _exemplar_names(props: mi.Properties) -> str:
@@ -156,7 +171,8 @@ class LazySolidTexture(mi.Texture):
 
     def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
-        self.exemplars = _exemplar_paths(props)
+        named = _exemplar_paths(props)
+        self.exemplars = [path for _, path in named]
         self.seed = get_property(props, "seed", int, 0)
         self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
         self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
@@ -177,9 +193,10 @@ class LazySolidTexture(mi.Texture):
         # A JIT-typed transform, so mi.traverse can update it in place.
         to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
         self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
+        exemplars = _load_exemplars(named)
         try:
-            candidates = precompute(*self.exemplars, progress=None)  # a bar in a terminal
-        except ValueError as e:
+            candidates = precompute(*exemplars, progress=None)  # a bar in a terminal
+        except ValueError as e:  # the exemplars do not go together
             raise property_error(PLUGIN, _exemplar_names(props), f"cannot be used: {e}") from e
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,

@@ -34,6 +34,9 @@ def test_sources_of_the_wrong_kind_are_named(candidates, warp_device):
         precompute(np.zeros((32, 32, 3), np.float32))
     with pytest.raises(TypeError, match="candidates must be a CandidateSet"):
         Synthesizer("granite.png")
+    for seed in (1.5, "3", None):
+        with pytest.raises(SettingError, match="seed must be an integer"):
+            Synthesizer(candidates, seed=seed)
     synth = Synthesizer(candidates)
     for origin, shape in (((0.5, 0, 0), (2, 2, 2)), ((0, 0, 0), (2.7, 2, 2)), ((0, 0), (2, 2, 2))):
         with pytest.raises(ValueError, match="must be three ints"):
@@ -81,6 +84,8 @@ def test_files_refuse_what_their_formats_cannot_hold(tmp_path):
         write_volume(tmp_path / "v.npy", np.zeros((4, 4, 4, 3), np.uint8))
     with pytest.raises(ValueError, match=r"image must be a \(H, W, C\) array"):
         write_image(tmp_path / "i.exr", [[0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"must end in \.npy or \.exr"):
+        write_image(tmp_path / "i.png", np.zeros((2, 2, 3), np.float32))
     assert not any(tmp_path.iterdir())
 
 

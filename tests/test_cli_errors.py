@@ -100,6 +100,8 @@ CASES = [
      "--res sets the parameters $width and $height, which this scene does not declare"),
     (["render", "{no_sensor}", "--res", "100000x100000", "-o", "{out}/r.png"],
      "100000x100000 pixels at 1 samples per pixel in a batch exceed"),
+    (["render", "{no_sensor}", "--res", "16384x16384", "--spp", "512", "-o", "{out}/r.png"],
+     "16384x16384 pixels at 64 samples per pixel in a batch exceed"),
     (["cut", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}"], "must end in .ply or .glb"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--store", "{out}/b.ply",
       "-o", "{out}/b.ply"], "--store names an output mesh"),
@@ -221,7 +223,13 @@ def test_a_reader_gone_early_ends_the_command_quietly(files):
 
 
 def test_negative_numbers_in_any_notation_are_values(files, tmp_path):
-    """argparse reads "-1e3" as an unknown option; warptex takes it as the number."""
+    """argparse reads "-1e3" as an unknown option; warptex takes it as the number, only
+    where a float option expects one (a file may be called -5)."""
+    from warptex.cli import _negative_values
+
+    assert _negative_values(["precompute", "-5"]) == ["precompute", "-5"]
+    assert _negative_values(["x", "--normal", "-1e3", "0", "-2E-1", "-4e1"]) == [
+        "x", "--normal", " -1e3", "0", " -2E-1", "-4e1"]
     a, b = tmp_path / "a.npy", tmp_path / "b.npy"
     common = ["slice", str(files["exemplar"]), "--shape", "2", "2", "--passes", "0"]
     assert main([*common, "--origin", "-1e3", "-2.5E1", "0", "-o", str(a)]) == 0

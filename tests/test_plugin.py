@@ -63,6 +63,11 @@ def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_fil
     Image.open(granite_32_file).convert("L").save(gray)
     with pytest.raises(RuntimeError, match=r'property "exemplar_y" cannot be used: .*channels'):
         load(granite_32_file, exemplar_y=str(gray))
+    # A file that cannot be read is blamed on the property naming it, even beside others.
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not an image")
+    with pytest.raises(RuntimeError, match=r'property "exemplar" cannot be used: .*broken'):
+        load(broken, exemplar_z=str(granite_32_file))
 
 
 def test_passes_reach_the_synthesis(granite_32_file):

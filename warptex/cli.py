@@ -675,12 +675,20 @@ def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
 def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     """Synthesize the voxels around ``mesh``'s surface, with a progress bar; returns their
     count. They fill the same brick store that baking and a renderer then read."""
+    from tqdm.auto import tqdm
+
     from warptex.surface import shell
-    from warptex.texture import BATCH, query_slabs
+    from warptex.texture import BATCH
 
     voxels = shell(mesh, resolution, transform)
-    # Slabs as large as a query's batches: each costs one engine call.
-    query_slabs(tex, voxels + 0.5, "nearest", progress="surface shell", slab=BATCH)
+    # Not query_slabs: its colors would be thrown away, and holding them, with a point and
+    # an order for every shell voxel at once, would double what the shell takes in memory.
+    # The shell is sorted along x, so each batch is a slab and costs one engine call.
+    with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
+        for first in range(0, len(voxels), BATCH):
+            part = voxels[first : first + BATCH]
+            tex.query(part + 0.5, filter="nearest")
+            bar.update(len(part))
     return len(voxels)
 
 
@@ -914,14 +922,25 @@ def _note_kernel_build() -> None:
 # A negative number in any notation; argparse takes only plain ones ("-5", "-0.5") for values
 # and reads "-1e9" as an unknown option.
 _NEGATIVE_NUMBER = re.compile(r"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?|-inf(inity)?", re.IGNORECASE)
+# The options whose values are floats, and how many each takes.
+_FLOAT_OPTIONS = {"--origin": 3, "--u": 3, "--v": 3, "--normal": 3, "--jitter": 1}
+
+
+def _negative_values(argv: list[str]) -> list[str]:
+    """``argv`` with the values of float options that are negative numbers given a leading
+    space, which keeps argparse from reading them as options; float() ignores it."""
+    out = list(argv)
+    for i, arg in enumerate(argv):
+        for j in range(i + 1, min(i + 1 + _FLOAT_OPTIONS.get(arg, 0), len(argv))):
+            if _NEGATIVE_NUMBER.fullmatch(argv[j]):
+                out[j] = f" {argv[j]}"
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    # A leading space keeps argparse from taking a value for an option; int() and float()
-    # ignore it. No option of warptex looks like a number.
-    args = _parser().parse_args([f" {a}" if _NEGATIVE_NUMBER.fullmatch(a) else a for a in argv])
+    args = _parser().parse_args(_negative_values(argv))
     _, command = _SUBCOMMANDS[args.command]
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning

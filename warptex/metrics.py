@@ -1,6 +1,6 @@
 """Quality metrics of solid textures against their exemplar (Dong 2008, section 6.3).
 
-Both metrics look at axis-aligned slices, the way a viewer judges a cut: a slice
+The metrics look at axis-aligned slices, the way a viewer judges a cut: a slice
 perpendicular to axis k is read with the same orientation as the exemplar of axis k
 (volume axes k+1, k+2 as its rows and columns; see ``warptex.candidates``).
 """
@@ -133,7 +133,7 @@ def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
 def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     """Highest normalized autocorrelation of a large slice at shifts farther than
     ``exclude`` pixels: near 1 for a tiled texture, low when nothing repeats. ``image`` is
-    (H, W) or (H, W, C); shifts up to a quarter of it count, so it must be more than
+    (H, W) or (H, W, C); shifts up to a quarter of it count, so it must be at least
     ``4 * (exclude + 1)`` pixels along one side."""
     image = np.asarray(image)
     image = image[:, :, None] if image.ndim == 2 else image

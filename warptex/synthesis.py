@@ -255,7 +255,7 @@ class Synthesizer:
                             f"got {type(candidates).__name__}")
         if subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
-        check_settings(jitter, passes, int(seed))
+        check_settings(jitter, passes, seed)
         if levels < 0:
             raise ValueError(f"levels must not be negative, got {levels}")
         init_warp()

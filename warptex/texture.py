@@ -166,21 +166,20 @@ def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
 
 
 def query_slabs(texture: SolidTexture, points: np.ndarray, filter: str = "trilinear",
-                progress: str | None = None, slab: int = _SLAB) -> np.ndarray:
-    """``texture.query(points, filter)`` in slabs of ``slab`` points along x, under a
-    progress bar named ``progress`` (none if None): the same colours as one query, as every
-    point's color is its own. Points are taken in order of x, so the slabs' dependencies
-    overlap only at their faces; larger slabs repeat fewer of them, smaller ones move the
-    bar more often."""
+                progress: str | None = None) -> np.ndarray:
+    """``texture.query(points, filter)`` in slabs along x, under a progress bar named
+    ``progress`` (none if None): the same colours as one query, as every point's color
+    is its own. Points are taken in order of x, so the slabs' dependencies overlap only at
+    their faces."""
     from tqdm.auto import tqdm
 
     points = np.asarray(points)
     order = np.argsort(points[:, 0], kind="stable")
     out = np.empty((len(points), texture.channels), np.float32)
     with tqdm(total=len(points), desc=progress, unit="point", unit_scale=True,
-              disable=progress is None or len(points) <= slab) as bar:
-        for first in range(0, len(points), slab):
-            part = order[first : first + slab]
+              disable=progress is None or len(points) <= _SLAB) as bar:
+        for first in range(0, len(points), _SLAB):
+            part = order[first : first + _SLAB]
             out[part] = texture.query(points[part], filter=filter)
             bar.update(len(part))
     return out

@@ -33,7 +33,10 @@ def write_image(path: str | Path, image: np.ndarray) -> None:
     """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR."""
     path = Path(path)
     image = _float_array(image, 3, "image", "(H, W, C)")
-    writer = _write_npy if path.suffix.lower() == ".npy" else _write_exr
+    writers = {".npy": _write_npy, ".exr": _write_exr}
+    writer = writers.get(path.suffix.lower())
+    if writer is None:
+        raise ValueError(f"{path}: a lossless image file must end in .npy or .exr")
     write_atomically(path, lambda tmp: writer(tmp, image))
 
 
