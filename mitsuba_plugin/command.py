@@ -17,6 +17,12 @@ from pathlib import Path
 from warptex.archive import write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
+_BATCHES = 8  # renders of one image at most: each is a step of the progress line
+
+
+def _samples_per_batch(total: int) -> int:
+    """The most samples per pixel one of the batches of a ``total``-sample render holds."""
+    return -(-total // min(_BATCHES, total))
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -84,7 +90,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     import mitsuba_plugin
 
     if resolution is not None:  # before loading: a film this size may not even be made
-        check_render_size(*resolution, -(-(spp or 1) // min(8, spp or 1)))
+        check_render_size(*resolution, _samples_per_batch(spp or 1))
     variant = mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
@@ -107,9 +113,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         raise ValueError(f"{scene_path}: {e}") from None
     # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or sensor.sampler().sample_count()
-    batches = min(8, total)
-    check_render_size(*sensor.film().crop_size(), -(-total // batches))
-    image = mitsuba_plugin.render(scene, spp=total, batches=batches, progress=_progress)
+    check_render_size(*sensor.film().crop_size(), _samples_per_batch(total))
+    image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
+                                  progress=_progress)
     rendered = time.perf_counter()
     # Synchronously: the default asynchronous write would race the rename.
     write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False))

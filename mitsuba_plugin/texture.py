@@ -148,10 +148,10 @@ def _load_exemplars(named: list[tuple[str, Path]], plugin: str = PLUGIN) -> list
     return [loaded[path] for _, path in named]
 
 
-def _exemplar_names(props: mi.Properties) -> str:
-    """The exemplar properties a scene gave, as an error names them: the per-axis ones
-    where any is given, since those are what differ from the others."""
-    axes = [f"exemplar_{a}" for a in "xyz" if f"exemplar_{a}" in props]
+def _exemplar_names(named: list[tuple[str, Path]]) -> str:
+    """The exemplar properties of :func:`_exemplar_paths`, as an error names them: the
+    per-axis ones where any is given, since those are what differ from the others."""
+    axes = [key for key, _ in named if key != "exemplar"]
     return '", "'.join(axes) if axes else "exemplar"
 
 
@@ -197,7 +197,7 @@ class LazySolidTexture(mi.Texture):
         try:
             candidates = precompute(*exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:  # the exemplars do not go together
-            raise property_error(PLUGIN, _exemplar_names(props), f"cannot be used: {e}") from e
+            raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                       passes=self.passes, cache_bytes=cache_bytes,

@@ -290,6 +290,7 @@ _TEXEL_BYTES = 3 * 8 + 4 + 1 + 3 * 4 * 4 + 2 * 8
 # Bytes a shell voxel takes at most at once: its coordinates, their copies and sort keys
 # while the shell is made, and its stored triple with its share of a partial brick.
 _SHELL_VOXEL_BYTES = 64
+_MAX_TEXTURE_SIZE = math.isqrt(2**31 - 1)  # texels are numbered by 32-bit integers
 
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -562,8 +563,8 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     _check_at_least("--texture-size", args.texture_size, 1)
     if args.uv != "none":
         size = args.texture_size
-        if size * size >= 2**31:  # texels are numbered by 32-bit integers
-            raise CliError(f"--texture-size must be at most 46340, got {size}")
+        if size > _MAX_TEXTURE_SIZE:
+            raise CliError(f"--texture-size must be at most {_MAX_TEXTURE_SIZE}, got {size}")
         _check_fits(size * size * _TEXEL_BYTES, f"--texture-size {size}: a {size}^2 UV texture",
                     "use a smaller --texture-size")
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
@@ -695,13 +696,14 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
 def _check_shell(mesh, transform: np.ndarray, resolution: int) -> None:
     """Refuse, before any synthesis, a surface too large at ``resolution`` for one shell
     or for this machine's memory."""
-    from warptex.surface import MAX_SHELL, shell_size
+    from warptex.surface import checked_shell_size
 
-    voxels = shell_size(mesh, transform)
-    what = f"--resolution {resolution}: the surface passes through about {voxels:.3g} voxels"
-    if voxels > MAX_SHELL:
-        raise CliError(f"{what}, more than the {MAX_SHELL} a shell may hold; lower --resolution")
-    _check_fits(voxels * _SHELL_VOXEL_BYTES, f"{what}, which", "lower --resolution")
+    try:
+        voxels = checked_shell_size(mesh, transform)
+    except ValueError as error:
+        raise CliError(f"--resolution {resolution}: {error}; lower --resolution") from None
+    _check_fits(voxels * _SHELL_VOXEL_BYTES, f"--resolution {resolution}: the surface passes "
+                f"through about {voxels:.3g} voxels, which", "lower --resolution")
 
 
 def _cmd_bake(args: argparse.Namespace) -> int:
@@ -922,16 +924,23 @@ def _note_kernel_build() -> None:
 # A negative number in any notation; argparse takes only plain ones ("-5", "-0.5") for values
 # and reads "-1e9" as an unknown option.
 _NEGATIVE_NUMBER = re.compile(r"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?|-inf(inity)?", re.IGNORECASE)
-# The options whose values are floats, and how many each takes.
-_FLOAT_OPTIONS = {"--origin": 3, "--u": 3, "--v": 3, "--normal": 3, "--jitter": 1}
 
 
-def _negative_values(argv: list[str]) -> list[str]:
+def _float_options(parser: argparse.ArgumentParser) -> dict[str, int]:
+    """The options of any subcommand whose values are floats, and how many each takes."""
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {option: action.nargs if isinstance(action.nargs, int) else 1
+            for sub in commands.choices.values() for action in sub._actions
+            if action.type is float for option in action.option_strings}
+
+
+def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = None) -> list[str]:
     """``argv`` with the values of float options that are negative numbers given a leading
     space, which keeps argparse from reading them as options; float() ignores it."""
+    options = _float_options(parser or _parser())
     out = list(argv)
     for i, arg in enumerate(argv):
-        for j in range(i + 1, min(i + 1 + _FLOAT_OPTIONS.get(arg, 0), len(argv))):
+        for j in range(i + 1, min(i + 1 + options.get(arg, 0), len(argv))):
             if _NEGATIVE_NUMBER.fullmatch(argv[j]):
                 out[j] = f" {argv[j]}"
     return out
@@ -940,7 +949,8 @@ def _negative_values(argv: list[str]) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = _parser().parse_args(_negative_values(argv))
+    parser = _parser()
+    args = parser.parse_args(_negative_values(argv, parser))
     _, command = _SUBCOMMANDS[args.command]
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning

@@ -53,6 +53,15 @@ def shell_size(mesh: trimesh.Trimesh, transform: np.ndarray) -> int:
     return int(np.abs(doubled).sum() / 2)
 
 
+def checked_shell_size(mesh: trimesh.Trimesh, transform: np.ndarray) -> int:
+    """:func:`shell_size`, or a ValueError when that is more than a shell may hold."""
+    voxels = shell_size(mesh, transform)
+    if voxels > MAX_SHELL:
+        raise ValueError(f"the surface passes through about {voxels:.3g} voxels, more than "
+                         f"the {MAX_SHELL} a shell may hold")
+    return voxels
+
+
 def shell(
     mesh: trimesh.Trimesh,
     resolution: int = 1024,
@@ -65,10 +74,7 @@ def shell(
     :func:`block_transform` for ``resolution``.
     """
     m = block_transform(mesh, resolution) if transform is None else np.asarray(transform)
-    expected = shell_size(mesh, m)
-    if expected > MAX_SHELL:
-        raise ValueError(f"the surface passes through about {expected:.3g} voxels at this "
-                         f"resolution, more than the {MAX_SHELL} a shell may hold")
+    checked_shell_size(mesh, m)
     init_warp()
     dev = device or default_device()
     # The shell only decides which voxels are synthesized ahead of the queries, so float32

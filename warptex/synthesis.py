@@ -213,7 +213,7 @@ class _LevelCache:
             return
         if (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12 > self.max_bytes:
             self.clear()
-        fresh = new[lookup(self.keys, new) < 0] if len(self.keys) else new
+        fresh = new[lookup(self.keys, new) < 0]
         if len(fresh):
             keys_all = np.concatenate([self.keys, fresh])
             order = np.argsort(keys_all, kind="stable")
