@@ -21,9 +21,13 @@ MORE_PASSES = 3  # the quality setting the index reports beside the default
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     shared = HERE.parent.parent / "shared" / "data" / "exemplars"
-    parser.add_argument("--exemplars", type=Path, default=shared)
+    parser.add_argument("--exemplars", type=Path, default=shared,
+                        help=f"folder of the exemplar photos, *_64.png (default {shared})")
     parser.add_argument("--size", type=int, default=64)
     args = parser.parse_args()
+    if not any(args.exemplars.glob("*_64.png")):
+        parser.error(f"{args.exemplars} holds no *_64.png exemplars: give the folder of the "
+                     "exemplar photos with --exemplars")
     out = HERE / "comparisons"
     run = run_line(run_summary(args.size, 0))
     lines = [

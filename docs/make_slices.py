@@ -23,8 +23,13 @@ NAMES = ["granite_64", "rocks_in_sand_64", "gravel_gray_64", "marble_black_64", 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     shared = HERE.parent.parent / "shared" / "data" / "exemplars"
-    parser.add_argument("--exemplars", type=Path, default=shared)
+    parser.add_argument("--exemplars", type=Path, default=shared,
+                        help=f"folder of the exemplar photos (default {shared})")
     args = parser.parse_args()
+    missing = [f"{n}.png" for n in NAMES if not (args.exemplars / f"{n}.png").is_file()]
+    if missing:
+        parser.error(f"{args.exemplars} lacks {', '.join(missing)}: give the folder of the "
+                     "exemplar photos with --exemplars")
     rows = []
     for name in tqdm(NAMES, desc="volumes"):
         ex = Exemplar.load(args.exemplars / f"{name}.png")

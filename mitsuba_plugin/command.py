@@ -102,8 +102,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
         if params and "unused parameters" in str(e):
             raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
-                             "which this scene does not declare (the scenes in scenes/ show "
-                             "how)") from None
+                             "which this scene does not declare: add <default name=\"width\" "
+                             "value=\"256\"/> and <integer name=\"width\" value=\"$width\"/> "
+                             "in its film, the same for height") from None
         problem = scene_error(str(e), scene_path)
         raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from warptex import cli
 from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
 from warptex.cli import main
 from warptex.exemplar import Exemplar
@@ -140,8 +141,15 @@ def _volume(images, out: Path, *extra: str) -> int:
     return main([*args, *extra, "-o", str(out)])
 
 
-def test_volume_npy_equals_box(images, expected, tmp_path, capsys):
+def test_volume_slabs():
+    assert cli._slab_edges(8) == [0, 8]
+    assert cli._slab_edges(128) == [0, 64, 128]
+    assert cli._slab_edges(300) == [0, 32, 64, 96, 128, 160, 192, 224, 256, 288, 300]
+
+
+def test_volume_npy_equals_box(images, expected, tmp_path, capsys, monkeypatch):
     out = tmp_path / "v.npy"
+    monkeypatch.setattr(cli, "_slab_edges", lambda size: [0, 3, 4, size])
     assert _volume(images, out) == 0
     captured = capsys.readouterr()
     assert f"written: {out}" in captured.out

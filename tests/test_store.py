@@ -127,6 +127,25 @@ def test_least_recently_used_brick_is_evicted(candidates):
     check_table(store, store._keys[live], live)
 
 
+@pytest.mark.parametrize("kernel", ["sample_nearest", "sample_trilinear"])
+def test_misses_are_counted_exactly_in_lookups_split_over_threads(candidates, kernel):
+    import warp as wp
+
+    from kernels import lookup
+
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    for seed in range(8):  # on 2 cores, a count was lost in a third of such launches
+        points = np.random.default_rng(seed).uniform(-40, 40, (400_000, 3))
+        missed = wp.zeros(len(points), dtype=wp.int32, device="cpu")
+        count = wp.zeros(1, dtype=wp.int32, device="cpu")
+        misses = store._launch(getattr(lookup, kernel),
+                               wp.array(points, dtype=wp.vec3d, device="cpu"),
+                               wp.empty((len(points), store.channels), dtype=wp.float32,
+                                        device="cpu"), missed, count)
+        assert misses == missed.numpy().sum() > 0.99 * len(points)
+
+
 def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeypatch):
     store = BrickStore(synthesizer(candidates))
     monkeypatch.setattr(store, "_to_store", lambda voxels: voxels[:0])

@@ -10,9 +10,10 @@ import textwrap
 import numpy as np
 import pytest
 
-from warptex import metrics
+from warptex import metrics, synthesis
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
+from warptex.keysets import pack, unique
 from warptex.synthesis import (
     COORD_LIMIT,
     Synthesizer,
@@ -56,6 +57,22 @@ def test_batch_size_and_order_do_not_matter(candidates):
     assert np.array_equal(whole, np.concatenate(pieces))
     reverse = Synthesizer(candidates, seed=9).voxels(pts[::-1])[::-1]
     assert np.array_equal(whole, reverse)
+
+
+def test_requests_beyond_one_call_are_split_into_parts_with_the_same_result(candidates,
+                                                                           monkeypatch):
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([np.indices((12, 10, 9)).reshape(3, -1).T - 5, _random_voxels(rng, 60)])
+    whole = Synthesizer(candidates, seed=2)
+    expected = whole.triples(pts)
+    monkeypatch.setattr(synthesis, "MAX_WORK_VOXELS", 40 * 64)
+    parted = Synthesizer(candidates, seed=2)
+    parts = parted._parts(unique(pack(pts >> 2)))
+    assert len(parts) > 4
+    assert max(len(work) for _, work in parts) * 64 <= synthesis.MAX_WORK_VOXELS
+    assert np.array_equal(parted.triples(pts), expected)
+    # Aprons overlap between parts, so parts cost more finest voxels than one call.
+    assert parted.voxels_synthesized[parted.finest] > whole.voxels_synthesized[whole.finest]
 
 
 def test_triples_identical_and_colors_are_their_average(candidates):
@@ -344,11 +361,18 @@ def test_shifted_neighbour_triples_continue_exemplar_patches(granite):
 @pytest.mark.skipif(
     "not __import__('warp').get_cuda_device_count()", reason="no CUDA device: CPU-only machine"
 )
-def test_cpu_and_cuda_agree_bit_for_bit(candidates):
-    pts = _random_voxels(np.random.default_rng(7), 500)
-    cpu = Synthesizer(candidates, seed=8, device="cpu").voxels(pts)
-    cuda = Synthesizer(candidates, seed=8, device="cuda").voxels(pts)
-    assert np.array_equal(cpu, cuda)
+@pytest.mark.parametrize("subpasses", [1, 8])
+def test_cpu_and_cuda_agree_bit_for_bit(candidates, subpasses):
+    rng = np.random.default_rng(7)
+    n = 500 if subpasses == 1 else 50  # 8 sub-passes take about 50x the time per voxel
+    far = rng.integers(COORD_LIMIT - 50, COORD_LIMIT, (n // 10, 3))
+    pts = np.concatenate([_random_voxels(rng, n), far * rng.choice([-1, 1], far.shape)])
+    kw = {"seed": 8, "subpasses": subpasses}
+    cpu, cuda = (Synthesizer(candidates, device=d, **kw) for d in ("cpu", "cuda"))
+    assert np.array_equal(cpu.voxels(pts), cuda.voxels(pts))
+    if subpasses == 1:  # over 8192 blocks: the GPU gathers halos in several chunks
+        assert np.array_equal(cpu.box((-40, 0, 0), (96, 96, 96)),
+                              cuda.box((-40, 0, 0), (96, 96, 96)))
 
 
 def test_more_passes_change_the_texture_and_stay_deterministic(candidates):

@@ -329,7 +329,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer
+    from warptex.synthesis import MAX_WORK_VOXELS, WORK_BYTES_PER_VOXEL, Synthesizer
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
@@ -339,9 +339,11 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
         raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
-    _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
+        _check_memory(args.size, exemplars[0].features.shape[2])
         return _volume_kopf(args, exemplars)
+    _check_memory(args.size, exemplars[0].features.shape[2],
+                  MAX_WORK_VOXELS * WORK_BYTES_PER_VOXEL)
     cs = precompute(*exemplars, progress=True)
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
@@ -349,7 +351,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         raise CliError(str(error)) from None
     size = args.size
     # Results depend on position only, so slabs along x concatenate to the whole box.
-    edges = np.linspace(0, size, min(8, size) + 1).astype(int).tolist()
+    edges = _slab_edges(size)
     slabs = [
         synth.box((x0, 0, 0), (x1 - x0, size, size))
         for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab")
@@ -378,10 +380,18 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar]) -> int:
     return 0
 
 
-def _check_memory(size: int, channels: int) -> None:
-    """Refuse a cube whose float32 ``channels`` alone (held twice while the slabs are
-    joined) would not fit in this machine's memory."""
-    _check_fits(2 * 4 * channels * size**3, f"--size {size}: a {size}^3 volume",
+def _slab_edges(size: int) -> list[int]:
+    """Where the x-slabs of a ``size``^3 volume begin, and its end: slabs of about a
+    million voxels show progress, but none thinner than 32 voxels, which would spend more
+    on its apron than on itself."""
+    thickness = min(size, max(32, (1 << 20) // size**2))
+    return [*range(0, size, thickness), size]
+
+
+def _check_memory(size: int, channels: int, working: int = 0) -> None:
+    """Refuse a cube whose float32 ``channels`` (held twice while the slabs are joined),
+    with ``working`` bytes besides, would not fit in this machine's memory."""
+    _check_fits(2 * 4 * channels * size**3 + working, f"--size {size}: a {size}^3 volume",
                 "use a smaller --size, or `warptex slice` and the Python API for parts of it")
 
 
@@ -414,7 +424,7 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
                         "(default 1)")
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
-                        "closer to the exemplar at about twice the time (docs/comparisons)")
+                        "closer to the exemplar at about twice the time (the repository's docs/comparisons)")
 
 
 def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
@@ -814,7 +824,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "render",
         help="render a Mitsuba 3 scene that uses the lazy_solid texture",
-        description="Render a Mitsuba scene (e.g. scenes/bunny_wood.xml) with warptex's "
+        description="Render a Mitsuba scene (e.g. the repository's scenes/bunny_wood.xml) "
+        "with warptex's "
         "lazy_solid plugin, showing progress; the brick-store statistics are printed and "
         "written beside the image as OUTPUT.json.",
     )
@@ -824,7 +835,9 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     parser.add_argument("--res", metavar="WxH",
                         help="image size (default: the scene's); sets the scene's $width and "
-                        "$height parameters, which the scene must declare as scenes/ do")
+                        "$height parameters, which the scene must declare: <default "
+                        "name=\"width\" value=\"256\"/> and, in its film, <integer "
+                        "name=\"width\" value=\"$width\"/>; the same for height")
 
 
 def _cmd_render(args: argparse.Namespace) -> int:

@@ -29,7 +29,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import warp as wp
@@ -48,6 +48,7 @@ _EMPTY = int(_k.EMPTY)  # the key of a free slot, as the hash table marks free e
 _MIN_BRICKS = 64
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
 _LOCAL = cell_offsets(_k.BRICK)
+_T = TypeVar("_T")
 CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 """Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
 corner c is ((c >> 2) & 1, (c >> 1) & 1, c & 1)."""
@@ -278,8 +279,7 @@ class BrickStore:
         missed = wp.zeros(n, dtype=wp.int32, device=self._device)
         count = wp.zeros(1, dtype=wp.int32, device=self._device)
         with self._lock.shared():
-            self._launch(kernel, pts, res, missed, count)
-        misses = int(count.numpy()[0])
+            misses = self._launch(kernel, pts, res, missed, count)
         with self._counts:
             self._hits += n - misses
             self._misses += misses
@@ -398,8 +398,9 @@ class BrickStore:
 
     # -- batches ----------------------------------------------------------------------
 
-    def _with_voxels(self, voxels: np.ndarray, run: Callable[[], None]) -> None:
-        """Run ``run`` while all unique ``voxels`` are stored, then evict.
+    def _with_voxels(self, voxels: np.ndarray, run: Callable[[], _T]) -> _T:
+        """Run ``run`` while all unique ``voxels`` are stored, then evict; returns what
+        ``run`` returns.
 
         Absent voxels are synthesized outside the lock, so lookups of stored voxels go
         on meanwhile; voxels evicted by another thread before we get the lock again are
@@ -414,9 +415,9 @@ class BrickStore:
                     self._insert(v, payload)
                 absent = voxels[~self._stored(voxels)]
                 if len(absent) == 0:
-                    run()
+                    result = run()
                     self._evict()
-                    return
+                    return result
             made.append((absent, self._synthesize(absent)))
 
     def _finish(self, kernel, points: np.ndarray, filter: str, out: np.ndarray,
@@ -428,12 +429,12 @@ class BrickStore:
         dev = self._device
         missed = wp.zeros(len(points), dtype=wp.int32, device=dev)
         count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._with_voxels(self._to_store(voxels_read(points, filter)),
-                          lambda: self._launch(kernel, pts, res, missed, count))
-        if count.numpy()[0]:
+        misses = self._with_voxels(self._to_store(voxels_read(points, filter)),
+                                   lambda: self._launch(kernel, pts, res, missed, count))
+        if misses:
             # Their colors were never written: a fault of the store, never a result.
-            raise RuntimeError(f"{int(count.numpy()[0])} of {len(points)} points still read "
-                               "voxels missing from the brick store after synthesizing them")
+            raise RuntimeError(f"{misses} of {len(points)} points still read voxels missing "
+                               "from the brick store after synthesizing them")
         out[rows] = res.numpy()
 
     def _to_store(self, voxels: np.ndarray) -> np.ndarray:
@@ -453,13 +454,19 @@ class BrickStore:
         return (rc[:, :, 0] * self._widths + rc[:, :, 1]).astype(self._dtype)
 
     def _launch(self, kernel, points: wp.array, out: wp.array, missed: wp.array,
-                count: wp.array) -> None:
+                count: wp.array) -> int:
         """One lookup launch, split in ranges over CPU threads (Warp runs a CPU launch on
-        one thread; points are independent, so ranges give the same result)."""
+        one thread; points are independent, so ranges give the same result); returns how
+        many points missed."""
         inputs = [points, self._index, self._pool, *self._colors, self.channels,
                   wp.int64(next(self._tick))]
         launch_ranges(kernel, 0, len(points), inputs, [out, missed, count],
                       device=self._device)
+        if self._device == "cpu":
+            # Warp's CPU atomics are plain reads and writes, so threads of a split launch
+            # lose counts; a GPU counts exactly and spares copying the flags back.
+            return int(np.count_nonzero(missed.numpy()))
+        return int(count.numpy()[0])
 
     # -- mutation (exclusive lock held) -----------------------------------------------
 

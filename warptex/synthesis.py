@@ -49,6 +49,12 @@ COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # finest voxels lie in [-COORD_L
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
+# Finest voxels in the work region (request and apron) of one engine call: a larger request
+# is synthesized in several calls, one after another, so its working memory stays near
+# MAX_WORK_VOXELS * WORK_BYTES_PER_VOXEL (about 2.3 GB, host or GPU). Per voxel: the peak
+# memory growth of a 64 x 256 x 256 box (granite_64, 2 passes) over its 5.0M work voxels.
+MAX_WORK_VOXELS = 1 << 23
+WORK_BYTES_PER_VOXEL = 280
 _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (section 5.1)
 _LOCAL = cell_offsets(BLOCK)
 
@@ -264,7 +270,9 @@ class Synthesizer:
         self.jitter = float(jitter)
         self.passes = int(passes)
         self.subpasses = int(subpasses)
-        self.device = device or default_device()
+        # "cuda" names whichever GPU is current on the calling thread; resolved once
+        # ("cuda:0"), every array and launch of this engine stays on one GPU.
+        self.device = str(wp.get_device(device or default_device()))
         self.finest = candidates.num_levels - 1
         self.start = max(0, self.finest - int(levels))
         half = int(candidates.params["neighborhood"]) // 2
@@ -339,9 +347,28 @@ class Synthesizer:
         ijk = ijk.astype(np.int64)
         keys = pack(ijk >> 2)
         uniq = unique(keys)
+        out = np.empty((len(ijk), 3), np.int32)
         with self._lock:  # the finest level is never cached: just the voxels asked for
-            level = self._synthesize(self.finest, uniq, ijk)
-        return level.triples[level.rows(ijk)]
+            parts = self._parts(uniq)
+            # A voxel's triple does not depend on what else is requested (section 5.2), so
+            # the parts of a request give what one call would.
+            first = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
+            part = np.searchsorted(first, lookup(uniq, keys), side="right") - 1
+            for n, (part_keys, work) in enumerate(parts):
+                rows = np.flatnonzero(part == n)
+                level = self._synthesize(self.finest, part_keys, ijk[rows], work)
+                out[rows] = level.triples[level.rows(ijk[rows])]
+        return out
+
+    def _parts(self, keys: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Runs of the sorted block ``keys``, each with its work region (the blocks grown
+        by the apron), holding at most ``MAX_WORK_VOXELS`` finest voxels unless a single
+        block does; sorted keys run along x, so the parts of a box are slabs."""
+        work = _dilate(keys, self._apron)
+        if len(work) * _BLOCK_VOXELS <= MAX_WORK_VOXELS or len(keys) == 1:
+            return [(keys, work)]
+        half = len(keys) // 2
+        return self._parts(keys[:half]) + self._parts(keys[half:])
 
     def _final(self, level: int, keys: np.ndarray, flat: np.ndarray) -> _Level:
         """Corrected triples at ``level`` of the voxels ``flat`` (block * 64 + local,
@@ -364,15 +391,17 @@ class Synthesizer:
                 cache.insert(keys, missing, out.triples[missing])
         return out
 
-    def _synthesize(self, level: int, keys: np.ndarray, desired: np.ndarray) -> _Level:
+    def _synthesize(self, level: int, keys: np.ndarray, desired: np.ndarray,
+                    work: np.ndarray | None = None) -> _Level:
         """Synthesize the ``desired`` voxels (coordinates) of ``level``, which lie in the
-        blocks ``keys``, on a work region padded by the apron.
+        blocks ``keys``, on a work region padded by the apron (``work``, when the caller
+        has it already).
 
         Section 5.2: each correction step visits just the voxels whose value later steps
         read on the way to the desired ones, and the parent level is asked for just the
         parents of the voxels that the first step reads.
         """
-        work = _dilate(keys, self._apron)
+        work = _dilate(keys, self._apron) if work is None else work
         coords = unpack(work).astype(np.int32)
         dev = self.device
         t = self._tables[level]
