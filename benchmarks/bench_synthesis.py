@@ -6,11 +6,16 @@ of the 64^3 volume next to i.i.d. noise and the exemplar stacked along z. Warp k
 are compiled and candidates pre-computed before anything is timed.
 
     python benchmarks/bench_synthesis.py [--exemplars DIR] [--repeat 3]
+                                         [--jitter-sweep | --passes-sweep | --memory]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -21,7 +26,7 @@ from warptex import metrics
 from warptex.candidates import precompute
 from warptex.exemplar import Exemplar
 from warptex.metrics import worst_axis_energy
-from warptex.synthesis import Synthesizer, dependency_chain
+from warptex.synthesis import MAX_WORK_VOXELS, Synthesizer, dependency_chain
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
@@ -59,6 +64,41 @@ def passes_sweep(folder: Path) -> None:
         print(f"{name}: " + "; ".join(cells))
 
 
+# One box in a fresh process: its peak memory growth (RSS) and time, engine set up and
+# kernels warm before; argv: exemplar, cap of finest work voxels per call, box shape.
+_BOX_IN_A_PROCESS = textwrap.dedent("""
+    import json, resource, sys, time
+    from warptex import synthesis
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    synthesis.MAX_WORK_VOXELS = int(sys.argv[2])
+    syn = synthesis.Synthesizer(precompute(Exemplar.load(sys.argv[1])), seed=1)
+    syn.box((0, 0, 0), (8, 8, 8))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    syn.box((0, 0, 0), tuple(int(a) for a in sys.argv[3:6]))
+    seconds = time.perf_counter() - start
+    grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    print(json.dumps({"seconds": seconds, "mib": grown / 1024}))
+""")
+
+
+def memory(folder: Path) -> None:
+    """Requests beyond one engine call are synthesized in parts (MAX_WORK_VOXELS): the peak
+    memory and time of boxes in parts and in one call, each in a fresh process."""
+    exemplar = str(folder / "granite_64.png")
+    print("| box | finest work voxels per call | peak memory growth MiB | seconds |")
+    print("|---|---|---|---|")
+    for shape in ((64, 256, 256), (128, 256, 256), (256, 256, 256)):
+        for cap in (MAX_WORK_VOXELS, 1 << 40):
+            run = subprocess.run([sys.executable, "-c", _BOX_IN_A_PROCESS, exemplar, str(cap),
+                                  *map(str, shape)], capture_output=True, text=True, check=True)
+            r = json.loads(run.stdout.strip().splitlines()[-1])
+            label = f"at most {cap}" if cap == MAX_WORK_VOXELS else "one call"
+            print(f"| {' x '.join(map(str, shape))} | {label} | {r['mib']:.0f} | "
+                  f"{r['seconds']:.1f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
@@ -67,7 +107,13 @@ def main() -> None:
                         help="only print energy and repetition against the jitter strength")
     parser.add_argument("--passes-sweep", action="store_true",
                         help="only print energy and time of 64^3 against correction passes")
+    parser.add_argument("--memory", action="store_true",
+                        help="only print the peak memory and time of large boxes, in parts "
+                        "and in one engine call")
     args = parser.parse_args()
+    if args.memory:
+        memory(args.exemplars)
+        return
     if args.jitter_sweep:
         jitter_sweep(args.exemplars)
         return

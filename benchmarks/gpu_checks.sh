@@ -7,11 +7,12 @@
 #     brick-store queries, surface shells and texel points (tests/test_cuda.py); the
 #     plugin's cuda_ad_rgb lookups equal SolidTexture.query (tests/test_plugin.py);
 #   - the engine's own figures (benchmarks/bench_synthesis.py).
-# Each step has its time limit, so that the whole ends within 560 s and what finished comes
-# back. PARTS is the folder holding the staged parts carried by the earlier calls (the last
-# part travels in .gpu/data); results go to $OUT (or out/gpu). NAMES limits bench_kopf's
-# exemplars (names without .png; default every *_64.png); STEPS picks steps by name (default
-# "kopf tests synthesis"), for a rerun of what did not finish.
+# Each step has its time limit, so that the whole ends within about 570 s (unpacking
+# included) and what finished comes back. PARTS is the folder holding the staged parts
+# carried by the earlier calls (the last part travels in .gpu/data); results go to $OUT (or
+# out/gpu). NAMES limits bench_kopf's exemplars (names without .png; default every
+# *_64.png); STEPS picks steps by name (default "kopf tests synthesis"), for a rerun of what
+# did not finish. Stage from the commit to be measured: .gpu/data/commit labels the results.
 #
 #     benchmarks/gpu_checks.sh PARTS
 set -uo pipefail

@@ -6,11 +6,11 @@
 # 15 minutes of it, start-up and every call included. It lacks warp-lang (a 149 MB wheel),
 # pypng, trimesh, shapely and Mitsuba with Dr.Jit (for the cuda_ad_rgb checks). This script
 # downloads their wheels at the versions of .venv and unpacks them into one site folder,
-# packed with xz (220 MB of wheels become about 142 MB) and cut into parts of 52 MiB: .gpu/1,
+# packed with xz (220 MB of wheels become about 141 MB) and cut into parts of 52 MiB: .gpu/1,
 # .gpu/2, one to carry per call, and the last, smaller one in .gpu/data with the 64 px
 # exemplars, the 128 px rosewood and their cached candidates (so the GPU run measures
 # synthesis, not pre-computation), which the checks' call carries. .gpu/ is git-ignored.
-# Packing takes about ten minutes on a 2-core machine.
+# Packing took six minutes on a 2-core machine.
 #
 #     make setup && benchmarks/gpu_prepare.sh
 set -euo pipefail

@@ -144,6 +144,7 @@ def _volume(images, out: Path, *extra: str) -> int:
 def test_volume_slabs():
     assert cli._slab_edges(8) == [0, 8]
     assert cli._slab_edges(128) == [0, 64, 128]
+    assert cli._slab_edges(150) == [0, 44, 88, 132, 150]  # 46 voxels rounded to blocks
     assert cli._slab_edges(300) == [0, 32, 64, 96, 128, 160, 192, 224, 256, 288, 300]
 
 

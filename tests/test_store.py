@@ -128,22 +128,23 @@ def test_least_recently_used_brick_is_evicted(candidates):
 
 
 @pytest.mark.parametrize("kernel", ["sample_nearest", "sample_trilinear"])
-def test_misses_are_counted_exactly_in_lookups_split_over_threads(candidates, kernel):
+def test_cpu_lookups_count_misses_by_their_flags(candidates, kernel):
+    """Warp's CPU atomics are plain reads and writes, so the shared counter of a launch
+    split over threads can lose counts (a quarter of them, in some runs on 2 cores): on the
+    CPU the flags are counted instead, whatever the counter holds."""
     import warp as wp
 
     from kernels import lookup
 
     store = BrickStore(synthesizer(candidates))
     sample(store, [brick_center((0, 0, 0))])
-    for seed in range(8):  # on 2 cores, a count was lost in a third of such launches
-        points = np.random.default_rng(seed).uniform(-40, 40, (400_000, 3))
-        missed = wp.zeros(len(points), dtype=wp.int32, device="cpu")
-        count = wp.zeros(1, dtype=wp.int32, device="cpu")
-        misses = store._launch(getattr(lookup, kernel),
-                               wp.array(points, dtype=wp.vec3d, device="cpu"),
-                               wp.empty((len(points), store.channels), dtype=wp.float32,
-                                        device="cpu"), missed, count)
-        assert misses == missed.numpy().sum() > 0.99 * len(points)
+    points = np.random.default_rng(0).uniform(-40, 40, (100_000, 3))
+    missed = wp.zeros(len(points), dtype=wp.int32, device="cpu")
+    count = wp.full(1, 12345, dtype=wp.int32, device="cpu")
+    misses = store._launch(getattr(lookup, kernel), wp.array(points, dtype=wp.vec3d, device="cpu"),
+                           wp.empty((len(points), store.channels), dtype=wp.float32, device="cpu"),
+                           missed, count)
+    assert misses == missed.numpy().sum() > 0.99 * len(points)
 
 
 def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeypatch):

@@ -329,7 +329,13 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import MAX_WORK_VOXELS, WORK_BYTES_PER_VOXEL, Synthesizer
+    from warptex.synthesis import (
+        BLOCK,
+        MAX_WORK_VOXELS,
+        REQUEST_BYTES_PER_VOXEL,
+        WORK_BYTES_PER_VOXEL,
+        Synthesizer,
+    )
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
@@ -342,8 +348,13 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     if args.method == "kopf":
         _check_memory(args.size, exemplars[0].features.shape[2])
         return _volume_kopf(args, exemplars)
+    # Beside the volume: one slab's request, and the engine's work on one part of it (the
+    # slab and its apron, about a block at the default passes, at most MAX_WORK_VOXELS).
+    edges = _slab_edges(args.size)
+    thickness = max(b - a for a, b in itertools.pairwise(edges))
+    work = min(MAX_WORK_VOXELS, (thickness + 2 * BLOCK) * (args.size + 2 * BLOCK) ** 2)
     _check_memory(args.size, exemplars[0].features.shape[2],
-                  MAX_WORK_VOXELS * WORK_BYTES_PER_VOXEL)
+                  thickness * args.size**2 * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL)
     cs = precompute(*exemplars, progress=True)
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
@@ -351,7 +362,6 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         raise CliError(str(error)) from None
     size = args.size
     # Results depend on position only, so slabs along x concatenate to the whole box.
-    edges = _slab_edges(size)
     slabs = [
         synth.box((x0, 0, 0), (x1 - x0, size, size))
         for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab")
@@ -383,8 +393,10 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar]) -> int:
 def _slab_edges(size: int) -> list[int]:
     """Where the x-slabs of a ``size``^3 volume begin, and its end: slabs of about a
     million voxels show progress, but none thinner than 32 voxels, which would spend more
-    on its apron than on itself."""
-    thickness = min(size, max(32, (1 << 20) // size**2))
+    on its apron than on itself, and whole blocks thick, which no two slabs share."""
+    from warptex.synthesis import BLOCK
+
+    thickness = min(size, max(32, (1 << 20) // size**2 // BLOCK * BLOCK))
     return [*range(0, size, thickness), size]
 
 
@@ -424,7 +436,8 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
                         "(default 1)")
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
-                        "closer to the exemplar at about twice the time (the repository's docs/comparisons)")
+                        "closer to the exemplar at about twice the time (the repository's "
+                        "docs/comparisons)")
 
 
 def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
@@ -694,7 +707,7 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     voxels = shell(mesh, resolution, transform)
     # Not query_slabs: its colors would be thrown away, and holding them, with a point and
     # an order for every shell voxel at once, would double what the shell takes in memory.
-    # The shell is sorted along x, so each batch is a slab and costs one engine call.
+    # The shell is sorted along x, so each batch is a slab and one engine request.
     with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
         for first in range(0, len(voxels), BATCH):
             part = voxels[first : first + BATCH]

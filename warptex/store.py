@@ -5,8 +5,9 @@ once (section 6.2). Here finest voxels are kept in bricks of 8^3, found through 
 table that the lookup kernels of ``kernels.lookup`` search; a brick may be partly filled
 (one bit per voxel), and only its stored voxels take room: each brick's voxels are packed
 in one range of a shared pool, so a thin surface costs what its voxels cost. A point batch
-is looked up in one launch; the voxels it misses are synthesized in one engine call (one
-union dependency mask, section 5.2), inserted, and the missed points finished. So only
+is looked up in one launch; the voxels it misses are synthesized in one engine request (one
+union dependency mask, section 5.2, in parts beyond ``synthesis.MAX_WORK_VOXELS``),
+inserted, and the missed points finished. So only
 the voxels that queries read are ever synthesized.
 
 A brick holds each voxel's triple of exemplar pixels (section 6.2 keeps triples in 16-bit
@@ -296,7 +297,7 @@ class BrickStore:
 
     def prefetch(self, voxels: np.ndarray) -> None:
         """Store integer ``voxels`` (N, 3) (their whole bricks with ``whole_bricks``),
-        synthesizing the absent ones in one engine call."""
+        synthesizing the absent ones in one engine request."""
         if len(voxels):
             self._with_voxels(self._to_store(np.asarray(voxels, np.int64)), lambda: None)
 
@@ -444,7 +445,7 @@ class BrickStore:
         return unique_voxels(voxels)
 
     def _synthesize(self, voxels: np.ndarray) -> np.ndarray:
-        """Triples (N, 3) of ``voxels`` as pixel indices, in one engine call."""
+        """Triples (N, 3) of ``voxels`` as pixel indices, in one engine request."""
         start = time.perf_counter()
         rc = self.synthesizer.triples(voxels)
         seconds = time.perf_counter() - start

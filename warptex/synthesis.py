@@ -50,11 +50,16 @@ COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # finest voxels lie in [-COORD_L
 # N=5) that they are still cached when projected; a GPU wants many threads per launch.
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
 # Finest voxels in the work region (request and apron) of one engine call: a larger request
-# is synthesized in several calls, one after another, so its working memory stays near
-# MAX_WORK_VOXELS * WORK_BYTES_PER_VOXEL (about 2.3 GB, host or GPU). Per voxel: the peak
-# memory growth of a 64 x 256 x 256 box (granite_64, 2 passes) over its 5.0M work voxels.
-MAX_WORK_VOXELS = 1 << 23
+# is synthesized in parts, one after another, so its working memory stays under about
+# MAX_WORK_VOXELS * WORK_BYTES_PER_VOXEL (4.7 GB, host or GPU). Per voxel: the peak memory
+# growth of a 64 x 256 x 256 box (granite_64, 2 passes) over its 5.0M work voxels. A 1024^3
+# surface's query batches (about 13M work voxels each for the bunny) stay whole.
+MAX_WORK_VOXELS = 1 << 24
 WORK_BYTES_PER_VOXEL = 280
+# Host memory of a request beside the engine's, per requested voxel (its coordinates, keys,
+# parts and triples), rounded up: a 256^3 box in two parts grew by 70 bytes a voxel more
+# than one part's work.
+REQUEST_BYTES_PER_VOXEL = 100
 _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (section 5.1)
 _LOCAL = cell_offsets(BLOCK)
 
@@ -345,30 +350,40 @@ class Synthesizer:
         if ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT:
             raise ValueError(f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})")
         ijk = ijk.astype(np.int64)
+        with self._lock:  # the finest level is never cached: just the voxels asked for
+            return self._in_parts(ijk)
+
+    def _in_parts(self, ijk: np.ndarray) -> np.ndarray:
+        """Finest pixel triples of int64 voxels ``ijk``, their blocks synthesized in parts
+        of at most ``MAX_WORK_VOXELS`` work voxels. A voxel's triple does not depend on what
+        else is requested (section 5.2), so the parts give what one call would."""
         keys = pack(ijk >> 2)
         uniq = unique(keys)
+        parts = self._parts(uniq)
+        part_of_block = np.empty(len(uniq), np.int64)
+        for n, (part_keys, _) in enumerate(parts):
+            part_of_block[lookup(uniq, part_keys)] = n
+        part = part_of_block[lookup(uniq, keys)]
         out = np.empty((len(ijk), 3), np.int32)
-        with self._lock:  # the finest level is never cached: just the voxels asked for
-            parts = self._parts(uniq)
-            # A voxel's triple does not depend on what else is requested (section 5.2), so
-            # the parts of a request give what one call would.
-            first = np.cumsum([0] + [len(p) for p, _ in parts[:-1]])
-            part = np.searchsorted(first, lookup(uniq, keys), side="right") - 1
-            for n, (part_keys, work) in enumerate(parts):
-                rows = np.flatnonzero(part == n)
-                level = self._synthesize(self.finest, part_keys, ijk[rows], work)
-                out[rows] = level.triples[level.rows(ijk[rows])]
+        for n, (part_keys, work) in enumerate(parts):
+            rows = np.flatnonzero(part == n)
+            level = self._synthesize(self.finest, part_keys, ijk[rows], work)
+            out[rows] = level.triples[level.rows(ijk[rows])]
         return out
 
     def _parts(self, keys: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Runs of the sorted block ``keys``, each with its work region (the blocks grown
-        by the apron), holding at most ``MAX_WORK_VOXELS`` finest voxels unless a single
-        block does; sorted keys run along x, so the parts of a box are slabs."""
+        """The sorted block ``keys`` in parts, each with its work region (its blocks grown
+        by the apron) of at most ``MAX_WORK_VOXELS`` finest voxels unless a single block's
+        is larger: halved across the longest side of their bounding box, so that parts stay
+        compact and their aprons small."""
         work = _dilate(keys, self._apron)
         if len(work) * _BLOCK_VOXELS <= MAX_WORK_VOXELS or len(keys) == 1:
             return [(keys, work)]
-        half = len(keys) // 2
-        return self._parts(keys[:half]) + self._parts(keys[half:])
+        blocks = unpack(keys)
+        low, high = blocks.min(axis=0), blocks.max(axis=0)
+        axis = int(np.argmax(high - low))
+        below = blocks[:, axis] < (low[axis] + high[axis] + 1) // 2
+        return self._parts(keys[below]) + self._parts(keys[~below])
 
     def _final(self, level: int, keys: np.ndarray, flat: np.ndarray) -> _Level:
         """Corrected triples at ``level`` of the voxels ``flat`` (block * 64 + local,
