@@ -329,13 +329,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import (
-        BLOCK,
-        MAX_WORK_VOXELS,
-        REQUEST_BYTES_PER_VOXEL,
-        WORK_BYTES_PER_VOXEL,
-        Synthesizer,
-    )
+    from warptex.synthesis import Synthesizer, box_bytes
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_at_least("--size", args.size, 1)
@@ -348,13 +342,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     if args.method == "kopf":
         _check_memory(args.size, exemplars[0].features.shape[2])
         return _volume_kopf(args, exemplars)
-    # Beside the volume: one slab's request, and the engine's work on one part of it (the
-    # slab and its apron, about a block at the default passes, at most MAX_WORK_VOXELS).
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
-    work = min(MAX_WORK_VOXELS, (thickness + 2 * BLOCK) * (args.size + 2 * BLOCK) ** 2)
     _check_memory(args.size, exemplars[0].features.shape[2],
-                  thickness * args.size**2 * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL)
+                  box_bytes((thickness, args.size, args.size)))  # one slab at a time
     cs = precompute(*exemplars, progress=True)
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)

@@ -64,6 +64,15 @@ _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (sec
 _LOCAL = cell_offsets(BLOCK)
 
 
+def box_bytes(shape: tuple[int, int, int]) -> int:
+    """About the memory that synthesizing a box of ``shape`` takes beside its colors: its
+    request's host arrays and the engine's work on one part of it (the box and its apron,
+    a block at the default passes, at most ``MAX_WORK_VOXELS``)."""
+    d, h, w = shape
+    work = min(MAX_WORK_VOXELS, (d + 2 * BLOCK) * (h + 2 * BLOCK) * (w + 2 * BLOCK))
+    return d * h * w * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
+
+
 def neighborhood_shape(half: int) -> np.ndarray:
     """Voxels read by one correction: three orthogonal N x N planes (the 3-neighbourhood)."""
     n = 2 * half + 1
