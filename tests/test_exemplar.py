@@ -545,6 +545,19 @@ def test_digest_follows_content_not_path(tmp_path, data_dir):
     assert _load_quiet(source, feature_distance="auto").digest() != digest
 
 
+def test_digest_follows_every_channel_and_the_feature_distance(rng):
+    data = rng.random(size=(16, 16, 4)).astype(np.float32)
+    distance = rng.random(size=(16, 16)).astype(np.float32)
+    digest = Exemplar(data, feature_distance=distance).digest()
+    for c in range(4):
+        changed = data.copy()
+        changed[3, 5, c] += 0.25
+        assert Exemplar(changed, feature_distance=distance).digest() != digest, c
+    moved = distance.copy()
+    moved[3, 5] += 0.25
+    assert Exemplar(data, feature_distance=moved).digest() != digest
+
+
 def test_digest_depends_on_shape(rng):
     data = rng.random(size=(32, 32)).astype(np.float32)
     assert Exemplar(data).digest() != Exemplar(data.reshape(16, 64)).digest()

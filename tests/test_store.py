@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +85,21 @@ def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
     assert stats["voxels"] == len(keys) * 512 and stats["voxels_added"] == 0
     assert stats["index_bytes"] <= 0.1 * stats["payload_bytes"]
     check_table(store, keys, np.arange(len(keys)))
+
+
+@pytest.mark.parametrize("whole_bricks", [True, False])
+def test_a_non_square_exemplar_decodes_like_the_engine(data_dir, warp_device, whole_bricks):
+    """Stored pixels are decoded with the exemplar's width: a square exemplar would hide
+    a height read for a width."""
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+
+    full = Exemplar.load(data_dir / "granite_64.png")
+    wide = precompute(Exemplar(np.ascontiguousarray(full.colors[:32, :48])), cache=False)
+    syn = synthesizer(wide, seed=1)
+    voxels = np.random.default_rng(0).integers(-20, 20, (50, 3))
+    store = BrickStore(syn, whole_bricks=whole_bricks)
+    np.testing.assert_array_equal(sample(store, voxels + 0.5), syn.voxels(voxels))
 
 
 def home(keys: np.ndarray, mask: int) -> np.ndarray:
@@ -216,8 +232,11 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
 def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path,
                                                           monkeypatch):
     ids = {BrickStore(synthesizer(candidates, **kw)).identity() for kw in
-           ({}, {"seed": 1}, {"jitter": 0.5}, {"passes": 1}, {"levels": 1})}
-    assert len(ids) == 5
+           ({}, {"seed": 1}, {"jitter": 0.5}, {"passes": 1}, {"levels": 1}, {"subpasses": 8})}
+    assert len(ids) == 6
+    # Candidates made with other parameters make another texture from the same exemplars.
+    other_params = dataclasses.replace(candidates, params={**candidates.params, "keep": 7})
+    assert BrickStore(synthesizer(other_params)).identity() not in ids
     with monkeypatch.context() as m:
         m.setattr("warptex.store.ENGINE_VERSION", -1)
         assert BrickStore(synthesizer(candidates)).identity() not in ids
@@ -230,6 +249,10 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     both = r"\(correction passes 2 in the file, 3 here, seed 0 in the file, 4 here\)"
     with pytest.warns(UserWarning, match=both):
         BrickStore.load(path, synthesizer(candidates, passes=3, seed=4))
+    with pytest.warns(UserWarning, match=r"another texture \(sub-passes 1 in the file, 8 here\)"):
+        assert BrickStore.load(path, synthesizer(candidates, subpasses=8)).stats()["bricks"] == 0
+    with pytest.warns(UserWarning, match=r"another texture \(candidate parameters\)"):
+        BrickStore.load(path, synthesizer(other_params))
     with monkeypatch.context() as m:
         m.setattr("warptex.store.ENGINE_VERSION", -1)
         with pytest.warns(UserWarning, match=r"\(engine version \d+ in the file, -1 here\)"):

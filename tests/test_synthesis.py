@@ -6,6 +6,8 @@ import dataclasses
 import subprocess
 import sys
 import textwrap
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -98,6 +100,31 @@ def test_coarse_cache_never_changes_a_result(candidates):
     warm.voxels(first)
     cold = Synthesizer(candidates, seed=4, coarse_cache_bytes=0)
     assert np.array_equal(warm.voxels(second), cold.voxels(second))
+
+
+def test_a_full_coarse_cache_starts_over_without_changing_results(candidates):
+    small = Synthesizer(candidates, seed=4, coarse_cache_bytes=1000 * 64 * 12)
+    cold = Synthesizer(candidates, seed=4, coarse_cache_bytes=0)
+    rng = np.random.default_rng(3)
+    held = []
+    for _ in range(6):
+        voxels = _random_voxels(rng, 60, -60, 60)
+        assert np.array_equal(small.voxels(voxels), cold.voxels(voxels))
+        held.append(sum(len(c.keys) for c in small._cache.values()))
+    assert any(b < a for a, b in pairwise(held))  # the cache filled up and started over
+
+
+def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates):
+    rng = np.random.default_rng(8)
+    requests = [_random_voxels(rng, 100, -80, 80) for _ in range(12)]
+    serial = Synthesizer(candidates, seed=5, coarse_cache_bytes=0)
+    expected = [serial.voxels(r) for r in requests]
+    for _ in range(2):
+        shared = Synthesizer(candidates, seed=5)
+        with ThreadPoolExecutor(4) as pool:
+            got = list(pool.map(shared.voxels, requests))
+        for g, e in zip(got, expected, strict=True):
+            assert np.array_equal(g, e)
 
 
 def test_bit_identical_across_processes(candidates, tmp_path):
@@ -259,6 +286,27 @@ def test_box_layout_matches_voxels(candidates):
     assert box.shape == (5, 6, 7, 3)
     pts = np.array([[-3, 4, 10], [1, 9, 16], [0, 5, 12]])
     assert np.array_equal(box[[0, 4, 3], [0, 5, 1], [0, 6, 2]], syn.voxels(pts))
+
+
+def test_a_non_square_exemplar_keeps_rows_and_columns_apart(data_dir, warp_device):
+    """Pixel indices are row * width + column: a square exemplar would hide a height
+    read for a width anywhere in the engine."""
+    full = Exemplar.load(data_dir / "granite_64.png")
+    wide = precompute(Exemplar(np.ascontiguousarray(full.colors[:32, :48])), cache=False)
+    syn = Synthesizer(wide, seed=2)
+    box = syn.box((-6, -6, -6), (12, 12, 12))
+    pts = np.array([[3, 5, -2], [-6, 0, 4], [5, -6, 5]])
+    alone = np.concatenate([Synthesizer(wide, seed=2).voxels(p[None]) for p in pts])
+    assert np.array_equal(alone, box[pts[:, 0] + 6, pts[:, 1] + 6, pts[:, 2] + 6])
+    grid = np.stack(np.meshgrid(*[np.arange(-6, 6)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    tri = syn.triples(grid)
+    assert (tri[..., 0] >= 0).all() and (tri[..., 0] < 32).all()
+    assert (tri[..., 1] >= 0).all() and (tri[..., 1] < 48).all()
+    assert (tri[..., 1] >= 32).any()  # columns beyond the height are reached
+    col = wide.colors[0]
+    expected = (col[tri[:, 0, 0], tri[:, 0, 1]] + col[tri[:, 1, 0], tri[:, 1, 1]])
+    expected = (expected + col[tri[:, 2, 0], tri[:, 2, 1]]) / np.float32(3)
+    assert np.array_equal(box.reshape(-1, 3), expected.astype(np.float32))
 
 
 def test_bad_requests_are_clear(candidates):
