@@ -118,20 +118,26 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
                                   progress=_progress)
     rendered = time.perf_counter()
-    # Synchronously: the default asynchronous write would race the rename.
-    write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False))
-    report = {
-        "scene": str(scene_path),
-        "image": str(output),
-        "variant": variant,
-        "size": list(image.shape[1::-1]),
-        "spp": total,
-        "load_seconds": round(loaded - start, 3),
-        "render_seconds": round(rendered - loaded, 3),
-        "textures": [_save_and_report(t) for t in mitsuba_plugin.textures()],
-    }
-    text = json.dumps(report, indent=2) + "\n"
-    write_atomically(output.with_name(output.name + ".json"), lambda tmp: tmp.write_text(text))
+    try:
+        # Synchronously: the default asynchronous write would race the rename.
+        write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image,
+                                                                   write_async=False))
+        report = {
+            "scene": str(scene_path),
+            "image": str(output),
+            "variant": variant,
+            "size": list(image.shape[1::-1]),
+            "spp": total,
+            "load_seconds": round(loaded - start, 3),
+            "render_seconds": round(rendered - loaded, 3),
+            "textures": [_save_and_report(t) for t in mitsuba_plugin.textures()],
+        }
+        text = json.dumps(report, indent=2) + "\n"
+        write_atomically(output.with_name(output.name + ".json"),
+                         lambda tmp: tmp.write_text(text))
+    except OSError as error:  # a full disk, a lost mount: named, the files left as they were
+        where = error.filename or output  # write_atomically names the file it was asked for
+        raise ValueError(f"{where}: cannot write ({error.strerror or error})") from None
     _print_report(report)
     return report
 

@@ -142,6 +142,63 @@ def test_bad_input_is_one_clear_error_and_writes_nothing(files, tmp_path, capsys
     assert files["notes"].read_text() == "not bricks"
 
 
+REPO = Path(__file__).resolve().parent.parent
+MESH = ["--exemplar", "{exemplar}", "--resolution", "8", "--passes", "0"]
+# A command's arguments, its outputs under {out}, and the one of them whose write fails.
+WRITE_FAILURES = [
+    (["volume", "{exemplar}", "--size", "8", "--passes", "0", "-o", "{out}/v.npy"], "v.npy"),
+    (["slice", "{exemplar}", "--shape", "4", "4", "--passes", "0", "-o", "{out}/s.png"],
+     "s.png"),
+    (["slice", "{exemplar}", "--shape", "4", "4", "--passes", "0", "-o", "{out}/s.exr"],
+     "s.exr"),
+    (["precompute", "{exemplar}", "-o", "{out}/c.wtc"], "c.wtc"),
+    (["bake", "{mesh}", *MESH, "-o", "{out}/b.ply"], "b.ply"),
+    (["bake", "{mesh}", *MESH, "--store", "{out}/b.wtb", "-o", "{out}/b.ply"], "b.wtb"),
+    (["cut", "{mesh}", *MESH, "-o", "{out}/c.ply"], "c.ply"),
+    (["compare", "{exemplar}", "--size", "8", "--methods", "noise", "-o", "{out}/cmp"],
+     "cmp/table.md"),
+    (["render", str(REPO / "scenes" / "bunny_wood.xml"), "--spp", "1", "--res", "8x8",
+      "-o", "{out}/r.png"], "r.png"),
+]
+
+
+@pytest.mark.parametrize(("argv", "failing"), WRITE_FAILURES,
+                         ids=[f"{c[0][0]}: {c[1]}" for c in WRITE_FAILURES])
+def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, capsys,
+                                                             monkeypatch, argv, failing):
+    """A full disk at the end of the work: the file is named, the old one kept, and no
+    temporary is left behind (every output is written under another name, then renamed)."""
+    import errno
+    import os
+
+    out = tmp_path / "out"
+    target = out / failing
+    target.parent.mkdir(parents=True)
+    names = {k: str(v) for k, v in files.items()} | {"out": str(out)}
+    argv = [a.format(**names) for a in argv]
+    if target.suffix == ".wtb":  # a store path must hold a brick store: made by a first run
+        assert main(argv) == 0
+    else:
+        target.write_bytes(b"old")
+    before = target.read_bytes()
+    replace = os.replace
+
+    def disk_full(src, dst, *args, **kwargs):
+        if Path(dst) == target:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+        return replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", disk_full)
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    named = target.parent if failing.startswith("cmp/") else target  # compare names its folder
+    assert err.endswith(f"warptex: error: {named}: cannot write (No space left on device)\n")
+    assert "Traceback" not in err
+    assert target.read_bytes() == before
+    assert not [p for p in out.rglob(".*")]  # no temporary left
+
+
 def test_an_unwritable_cache_folder(files, tmp_path, capsys, monkeypatch):
     """`precompute`, whose job is the cache, refuses a cache folder it cannot make before
     any work; other commands warn that the candidates are not cached and carry on."""

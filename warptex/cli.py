@@ -7,6 +7,7 @@ Each subcommand NAME has an ``_add_NAME_parser(subparsers)`` that declares its a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import math
 import os
@@ -15,7 +16,7 @@ import sys
 import tempfile
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -203,10 +204,8 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
     cs = precompute(*exemplars, cache=not args.no_cache, progress=True)
     elapsed = time.perf_counter() - start
     if args.output is not None:
-        try:
-            cs.save(args.output)  # atomic itself: temporary name, then rename
-        except OSError as error:
-            raise CliError(f"{args.output}: cannot write ({error.strerror or error})") from None
+        with _writing(args.output):
+            cs.save(args.output)
     # precompute leaves a good cache file untouched and replaces a missing or damaged one.
     loaded = before is not None and before == _file_identity(cache)
     _print_summary(cs, exemplars, elapsed)
@@ -358,7 +357,8 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab")
     ]
     volume = np.concatenate(slabs, axis=0)
-    _write(args.output, write_volume, volume)
+    with _writing(args.output):
+        write_volume(args.output, volume)
     print(f"volume: {size}^3 voxels, {_count(volume.shape[3], 'channel')}, seed {args.seed}")
     print(f"written: {args.output}")
     return 0
@@ -372,7 +372,8 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar]) -> int:
                             mean_shift=args.mean_shift)
     except ValueError as error:
         raise CliError(str(error)) from None
-    _write(args.output, write_volume, volume)
+    with _writing(args.output):
+        write_volume(args.output, volume)
     clustering = ", mean-shift clustering" if args.mean_shift else ""
     print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, "
           f"{_count(volume.shape[3], 'channel')}, "
@@ -407,11 +408,12 @@ def _check_fits(need: int, what: str, advice: str) -> None:
         raise CliError(f"{what} {problem}; {advice}")
 
 
-def _write(path: Path, write: Callable[[Path], None], thing: np.ndarray) -> None:
-    """``write(path, thing)`` (a :mod:`warptex.volume_files` writer), with an error that
-    names the file."""
+@contextlib.contextmanager
+def _writing(path: Path) -> Iterator[None]:
+    """A failed write of the output ``path`` (a full disk, a lost mount) as one error that
+    names it; the writers are atomic, so the file is left as it was."""
     try:
-        write(path, thing)
+        yield
     except OSError as error:
         raise CliError(f"{path}: cannot write ({error.strerror or error})") from None
 
@@ -505,9 +507,11 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - start
     if suffix == ".png":
         _note_png_losses(image)
-        save_png(to_rgb8(image), args.output)
+        with _writing(args.output):
+            save_png(to_rgb8(image), args.output)
     else:
-        _write(args.output, write_image, image)
+        with _writing(args.output):
+            write_image(args.output, image)
     print(f"slice: {h} rows x {w} columns in {elapsed:.2f} s; written: {args.output}")
     return 0
 
@@ -629,7 +633,8 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
 
     if args.uv == "none":
         colors = vertex_colors(tex, mesh, transform, progress=f"colours of {output.name}")
-        return export(mesh, output, colors=colors)
+        with _writing(output):
+            return export(mesh, output, colors=colors)
     # Unwrapping is one long call: the bar names the step it is in and times it.
     with tqdm(total=3, desc=f"UV texture {output.name}",
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
@@ -642,7 +647,8 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
         image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
         bar.update()
         bar.set_postfix_str("writing")
-        files = export(mesh, output, image=image, uv=uv)
+        with _writing(output):
+            files = export(mesh, output, image=image, uv=uv)
         bar.update()
     return files
 
@@ -652,7 +658,8 @@ def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start
     the files written."""
     _report_store(tex, args.resolution, time.perf_counter() - start)
     if args.store is not None:
-        files.append(tex.save())
+        with _writing(args.store):
+            files.append(tex.save())
     print("written: " + ", ".join(str(f) for f in files))
     return 0
 
@@ -818,7 +825,9 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes)
     except ValueError as error:
         raise CliError(str(error)) from None
-    files = write_report(results, args.exemplar, args.output, size=args.size, seed=args.seed)
+    with _writing(args.output):
+        files = write_report(results, args.exemplar, args.output, size=args.size,
+                             seed=args.seed)
     print(table_markdown(results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0
