@@ -34,7 +34,8 @@ def test_vertex_colors_are_point_queries(texture, sphere):
 
 
 def test_baked_texel_equals_query_at_its_surface_point(texture, sphere):
-    mesh = sphere.unwrap()
+    # Off the origin and of radius 2: its normals are not its positions.
+    mesh = sphere.copy().apply_scale(2.0).apply_translation([5.0, -1.0, 0.5]).unwrap()
     m = block_transform(mesh, 24)
     image, covered = bake_uv_texture(texture, mesh, mesh.visual.uv, m, size=64)
     points, mask = texel_points(mesh, mesh.visual.uv, m, (64, 64))
@@ -43,9 +44,9 @@ def test_baked_texel_equals_query_at_its_surface_point(texture, sphere):
     flat = image.reshape(-1, image.shape[2])
     assert np.array_equal(flat[mask], texture.query(points[mask]))
     # Independently: the point of a covered texel lies in its triangle, on the surface.
-    radius = np.linalg.norm(points[mask] - 12.0, axis=1)
-    scale = m[0, 0]
-    assert np.all(radius <= scale * 1.0 + 1e-3) and np.all(radius >= scale * 0.98)
+    radius = np.linalg.norm(points[mask] - 12.0, axis=1)  # the block's centre
+    scale = m[0, 0] * 2.0
+    assert np.all(radius <= scale + 1e-3) and np.all(radius >= scale * 0.98)
 
 
 def test_far_from_the_origin_baking_shows_the_colors_of_the_same_points(texture, sphere):
@@ -144,6 +145,25 @@ def test_a_cut_through_separate_parts_caps_each():
         assert np.isclose(half.volume, 1.0)
         cap = cap_faces(half, origin, normal)
         assert np.isclose(half.area_faces[cap].sum(), 2.0)
+
+
+def test_cut_halves_agree_where_they_meet(granite_32_file, sphere, tmp_path, warp_device):
+    """Off the mesh's centre, each half has its own bounding box; both must be textured
+    in the block of the whole mesh, so the outline they share has one colour."""
+    from warptex.cli import main
+
+    mesh = tmp_path / "sphere.ply"
+    sphere.export(mesh)
+    assert main(["cut", str(mesh), "--exemplar", str(granite_32_file), "--resolution", "24",
+                 "--origin", "0.3", "0", "0", "-o", str(tmp_path / "c.ply")]) == 0
+    a = trimesh.load(tmp_path / "c.ply", process=False)
+    b = trimesh.load(tmp_path / "c_b.ply", process=False)
+    in_b = {v.tobytes(): i for i, v in enumerate(np.round(b.vertices, 6))}
+    shared = [(i, in_b[v.tobytes()]) for i, v in enumerate(np.round(a.vertices, 6))
+              if v.tobytes() in in_b]
+    assert len(shared) > 10
+    ia, ib = np.array(shared).T
+    np.testing.assert_array_equal(a.visual.vertex_colors[ia], b.visual.vertex_colors[ib])
 
 
 def test_export_formats(texture, sphere, tmp_path):

@@ -18,6 +18,7 @@ import pytest
 
 import warptex.candidates as candidates
 from warptex import Exemplar, parallel
+from warptex.archive import write_archive
 from warptex.candidates import (
     FORMAT_VERSION,
     CandidateCacheError,
@@ -404,6 +405,9 @@ def test_load_rejects_bad_magic_version_checksum_and_data(tmp_path, granite):
         "checksum": (_damage_flip(data), "checksum mismatch"),
         "payload": (_valid_header(b"garbage") + b"garbage", "unreadable candidate data"),
     }
+    # Whole and checksummed, but not the arrays a candidate set is made of.
+    write_archive(tmp_path / "arrays.wtc", candidates._MAGIC, FORMAT_VERSION, {"x": np.zeros(1)})
+    cases["arrays"] = ((tmp_path / "arrays.wtc").read_bytes(), "unreadable candidate data")
     for name, (content, message) in cases.items():
         (tmp_path / f"{name}.wtc").write_bytes(content)
         with pytest.raises(CandidateCacheError, match=message):

@@ -75,7 +75,16 @@ CASES = [
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.obj"],
      "vertex colors (--uv none) must end in .ply or .glb"),
     (["bake", "{exemplar}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
-     "cannot read mesh"),
+     "{exemplar}: cannot read mesh"),
+    (["bake", "{out}/missing.ply", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
+     "{out}/missing.ply: mesh file not found"),
+    (["render", "{out}/missing.xml", "-o", "{out}/r.png"],
+     "{out}/missing.xml: scene file not found"),
+    (["render", "{no_sensor}", "-o", "{notes}/r.png"],
+     "{notes}/r.png: cannot write, {notes} is a file, not a folder"),
+    (["precompute", "{exemplar}", "--no-cache", "-o", "{notes}/c.wtc"],
+     "{notes}/c.wtc: cannot write, {notes} is a file, not a folder"),
+    (["compare", "{notes}", "-o", "{out}/cmp"], "{notes}: not an image"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--uv", "mesh", "-o", "{out}/b.glb"],
      "has no UVs"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "8", "--store", "{notes}",
@@ -157,6 +166,8 @@ WRITE_FAILURES = [
     (["cut", "{mesh}", *MESH, "-o", "{out}/c.ply"], "c.ply"),
     (["compare", "{exemplar}", "--size", "8", "--methods", "noise", "-o", "{out}/cmp"],
      "cmp/table.md"),
+    (["compare", "{exemplar}", "--size", "8", "--methods", "noise", "-o", "{out}/cmp"],
+     "cmp/table.json"),
     (["render", str(REPO / "scenes" / "bunny_wood.xml"), "--spp", "1", "--res", "8x8",
       "-o", "{out}/r.png"], "r.png"),
 ]
@@ -197,6 +208,15 @@ def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, ca
     assert "Traceback" not in err
     assert target.read_bytes() == before
     assert not [p for p in out.rglob(".*")]  # no temporary left
+
+
+def test_cut_checks_both_halves_before_writing_either(files, tmp_path, capsys):
+    out = tmp_path / "out"
+    (out / "c_b.ply").mkdir(parents=True)
+    assert main(["cut", str(files["mesh"]), "--exemplar", str(files["exemplar"]),
+                 "--resolution", "8", "-o", str(out / "c.ply")]) == 2
+    assert f"{out / 'c_b.ply'}: is a folder, expected a file name" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["c_b.ply"]
 
 
 def test_an_unwritable_cache_folder(files, tmp_path, capsys, monkeypatch):

@@ -116,3 +116,60 @@ def test_volume_command_refuses_mean_shift_for_lazy(tmp_path, data_dir, capsys):
     assert main(["volume", str(data_dir / "granite_64.png"), "--mean-shift", "-o", str(out)]) == 2
     assert "--mean-shift applies to --method kopf only" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.fixture
+def measure(data_dir, monkeypatch):
+    """``compare._measure`` in this process, without the rendered cube."""
+    from warptex import compare
+
+    monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
+    monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
+    path = str(data_dir / "granite_64.png")
+    return lambda method, size=16: compare._measure(method, path, size, 0, 2)
+
+
+def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
+    from warptex import compare, metrics
+    from warptex.exemplar import Exemplar
+
+    row = measure("extrude")
+    ex = Exemplar.load(data_dir / "granite_64.png")
+    volume = compare._extrude(ex, 16, 0, 2)
+    for key, metric in (("energy", metrics.neighborhood_energy),
+                        ("swd", metrics.sliced_wasserstein),
+                        ("histogram", metrics.histogram_distance)):
+        assert row[key] == [metric(volume, ex.colors, axis) for axis in range(3)], key
+    assert len(set(row["energy"])) == 3  # three different values: an axis swap would show
+    large = compare._extrude_large(ex, volume, 0, 2)
+    assert large.shape[:2] == (compare.LARGE, compare.LARGE)
+    assert row["repetition"] == metrics.repetition_score(large)
+
+
+def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
+    """The first, small run builds the kernels; the time is that of the second alone."""
+    import time
+
+    from warptex import compare, metrics
+
+    def slow_first(ex, size, seed, passes):
+        if size == 8:
+            time.sleep(1.0)
+        return metrics.iid_noise(ex.colors, (size, size, size), seed)
+
+    monkeypatch.setitem(compare._RUN, "noise", (slow_first, compare._noise_large))
+    assert measure("noise")["seconds"] < 0.5
+
+
+def test_table_cells_sit_under_their_headers():
+    from warptex.compare import MethodResult, table_markdown
+
+    r = MethodResult("m", energy=[1, 2, 3], swd=[4, 5, 6], histogram=[7, 8, 9],
+                     repetition=0.5, seconds=1.25, peak_mib=2.0)
+    header, _, line = table_markdown([r]).splitlines()
+    cells = dict(zip([c.strip() for c in header.split("|")],
+                     [c.strip() for c in line.split("|")], strict=True))
+    assert cells["energy x / y / z"] == "1.000 / 2.000 / 3.000"
+    assert cells["SWD x / y / z"] == "4.000 / 5.000 / 6.000"
+    assert cells["histogram x / y / z"] == "7.000 / 8.000 / 9.000"
+    assert cells["repetition"] == "0.500" and cells["seconds"] == "1.25"

@@ -46,12 +46,14 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"passes": -1}, "passes"),
     ({"passes": 2.5}, "passes"),
     ({"passes": 9}, "passes"),
-    ({"exemplar": "no/such/file.png"}, "exemplar"),
-    ({"exemplar_y": "missing.png"}, "exemplar_y"),
+    ({"exemplar": "no/such/file.png"}, 'exemplar" names a file that does not exist'),
+    ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
+    ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
+     'exemplar" must be a str'),  # checked though every axis has its own
 ])
 def test_property_errors_name_the_property(granite_32_file, props, name):
     use("scalar_rgb")
-    with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}"'):
+    with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}'):
         load(granite_32_file, **props)
 
 

@@ -148,7 +148,8 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
         mi.load_dict({"type": "lazy_solid_medium", "albedo": {"type": "checkerboard"}})
     wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
     albedo = {"type": "lazy_solid", "exemplar": str(wood)}
-    for name, value in (("sigma_t", -1.0), ("scale", "dense")):
+    for name, value in (("sigma_t", -1.0), ("sigma_t", float("inf")), ("scale", "dense"),
+                        ("scale", -1.0)):
         with pytest.raises(RuntimeError, match=f'lazy_solid_medium: property "{name}" must'):
             mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, name: value})
 

@@ -188,6 +188,35 @@ def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates
     assert path.read_bytes() == b"not a store"
 
 
+@pytest.mark.parametrize("damage", ["no valid bits", "half the triples", "wider valid bits",
+                                    "valid bits as uint64"])
+def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, damage):
+    """Whole and checksummed, but not a store's arrays: warned about and not used."""
+    from warptex import store
+    from warptex.archive import read_archive, write_archive
+
+    pts = points_near_origin(60, 3)
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    expected = tex.query(pts)
+    tex.save()
+    arrays = read_archive(path, store._MAGIC, store.FORMAT_VERSION, "brick store",
+                          StoreFileError)
+    if damage == "no valid bits":
+        del arrays["valid"]
+    elif damage == "half the triples":
+        arrays["triples"] = arrays["triples"][: len(arrays["triples"]) // 2]
+    elif damage == "wider valid bits":
+        arrays["valid"] = np.concatenate([arrays["valid"], arrays["valid"][:, :1]], axis=1)
+    else:
+        arrays["valid"] = arrays["valid"].astype(np.uint64)
+    write_archive(path, store._MAGIC, store.FORMAT_VERSION, arrays)
+    with pytest.warns(UserWarning, match="ignoring brick store file"):
+        loaded = texture(candidates, store=path)
+    assert loaded.store.stats()["voxels"] == 0
+    np.testing.assert_array_equal(loaded.query(pts), expected)
+
+
 @pytest.mark.parametrize("whole_bricks", [True, False])
 def test_concurrent_queries_match_serial_ones(candidates, whole_bricks):
     """Threads querying one store, with room for everything or for a few bricks only

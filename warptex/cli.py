@@ -857,7 +857,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from mitsuba_plugin.command import IMAGE_SUFFIXES, parse_resolution, render_scene
 
     if not args.scene.is_file():
-        raise CliError(f"scene not found: {args.scene}")
+        raise CliError(f"{args.scene}: scene file not found")
     _check_output(args.output, IMAGE_SUFFIXES, "the image")
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
