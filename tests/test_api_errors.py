@@ -9,7 +9,7 @@ import pytest
 from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.candidates import precompute
-from warptex.settings import SettingError, check_settings
+from warptex.settings import MAX_JITTER, MAX_PASSES, MAX_SEED, SettingError, check_settings
 from warptex.volume_files import write_image, write_volume
 
 
@@ -97,3 +97,14 @@ def test_a_failed_write_names_the_file_asked_for(tmp_path):
         write_atomically(target, lambda tmp: tmp.write_bytes(b"x"))
     assert caught.value.filename == str(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_the_ends_of_every_range_are_accepted_and_one_step_beyond_refused():
+    for jitter, passes, seed in ((0.0, 0, 0), (MAX_JITTER, MAX_PASSES, MAX_SEED)):
+        check_settings(jitter=jitter, passes=passes, seed=seed)
+    for kw, name in (({"jitter": MAX_JITTER + 1e-9}, "jitter"), ({"jitter": -1e-9}, "jitter"),
+                     ({"passes": MAX_PASSES + 1}, "passes"), ({"passes": -1}, "passes"),
+                     ({"seed": MAX_SEED + 1}, "seed"), ({"seed": -1}, "seed")):
+        with pytest.raises(SettingError) as err:
+            check_settings(**kw)
+        assert err.value.name == name

@@ -436,3 +436,73 @@ def test_unknown_or_bad_parameters_are_rejected():
         precompute(ex, cache=False, candidates_3d=300)  # its counts are stored as bytes
     with pytest.raises(ValueError, match="candidates_2d_finest must be at least 1"):
         precompute(ex, cache=False, candidates_2d_finest=0)
+
+
+def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    a, b = a.astype(np.int64), b.astype(np.int64)
+    return (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2 * a @ b.T
+
+
+def _nearest(d2: np.ndarray, k: int) -> np.ndarray:
+    """Per row, the k columns of least distance, equally near ones by index."""
+    cols = np.broadcast_to(np.arange(d2.shape[1]), d2.shape)
+    return np.lexsort((cols, d2), axis=-1)[:, :k]
+
+
+def test_features_of_all_exemplars_are_quantized_over_one_range(granite_32, warp_device):
+    colors = granite_32.colors
+    images = [colors, 1.0 - colors, 0.5 * colors[:, :24]]
+    cs = precompute(*[Exemplar(np.ascontiguousarray(c, np.float32), name=str(i))
+                      for i, c in enumerate(images)], cache=False)
+    flat = np.concatenate([c.reshape(-1, 3) for c in images]).astype(np.float64)
+    lo, hi = flat.min(0), flat.max(0)
+    for j, image in enumerate(images):
+        expected = np.rint((image.astype(np.float32).astype(np.float64) - lo) / (hi - lo) * 255)
+        np.testing.assert_array_equal(cs.sources[-1][j].feat, expected.astype(np.uint8))
+
+
+def test_pca_keeps_the_fewest_dimensions_that_hold_the_variance(granite_32, warp_device):
+    cs = precompute(granite_32, cache=False, variance=0.7, min_dims=1, max_dims=12)
+    dims = []
+    for level in cs.sources:
+        feat = level[0].feat.astype(np.float64)
+        vec = np.concatenate([np.roll(feat, (-a, -b), axis=(0, 1)).reshape(-1, 3)
+                              for a in range(-2, 3) for b in range(-2, 3)], axis=1)
+        s = np.linalg.svd(vec - vec.mean(0), compute_uv=False) ** 2
+        frac = np.cumsum(s) / s.sum()
+        want = min(int(np.argmax(frac >= 0.7)) + 1, 12)
+        assert level[0].basis.shape[0] == want
+        dims.append(want)
+    assert min(dims) < 12  # the variance, not the cap, decided somewhere
+
+
+def test_2d_candidates_are_the_nearest_neighbourhoods_more_than_2_pixels_away(granite_32,
+                                                                               warp_device):
+    cs = precompute(granite_32, cache=False)
+    for level in cs.sources:
+        src = level[0]
+        h, w = src.size
+        k = src.cand2d.shape[1]
+        u, v = np.divmod(np.arange(h * w), w)
+        du = np.abs(u[:, None] - u[None, :])
+        dv = np.abs(v[:, None] - v[None, :])
+        far = (np.minimum(du, h - du) > 2) | (np.minimum(dv, w - dv) > 2)
+        d2 = np.where(far, _squared_distances(src.proj, src.proj), np.iinfo(np.int64).max)
+        np.testing.assert_array_equal(src.cand2d[:, 0], np.arange(h * w))
+        np.testing.assert_array_equal(src.cand2d[:, 1:], _nearest(d2, k - 1))
+
+
+def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
+    """Section 4.1: q among the S strips nearest p's second-coordinate strip (pair 0-1),
+    r among the S strips nearest p's first-coordinate strip (pair 2-0)."""
+    strips = 4
+    cs = precompute(granite_32, cache=False, strips=strips, keep=16)
+    for lv, level in enumerate(cs.sources):
+        feat = level[0].feat
+        first = np.concatenate([np.roll(feat, -t, axis=0).reshape(-1, 3) for t in range(-2, 3)], 1)
+        second = np.concatenate([np.roll(feat, -t, axis=1).reshape(-1, 3) for t in range(-2, 3)], 1)
+        near1 = _nearest(_squared_distances(second, first), strips)
+        near2 = _nearest(_squared_distances(first, second), strips)
+        cand = cs.roles[lv][0].cand
+        assert (cand[:, :, 0, None] == near1[:, None, :]).any(axis=2).all(), lv
+        assert (cand[:, :, 1, None] == near2[:, None, :]).any(axis=2).all(), lv

@@ -1,6 +1,8 @@
 """Quality metrics (Dong 2008, section 6.3) on volumes whose answer is known."""
 
 import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
 
 from warptex import metrics
 
@@ -37,3 +39,74 @@ def test_noise_scores_badly_on_every_axis():
         assert metrics.neighborhood_energy(noise, ex, axis) > 0.3
     assert metrics.neighborhood_energy(tiled, ex, 0) == 0.0
     assert metrics.sliced_wasserstein(noise, ex, 0) > metrics.sliced_wasserstein(tiled, ex, 0)
+
+
+def _slice(vol: np.ndarray, axis: int, i: int) -> np.ndarray:
+    """Slice i across ``axis``, read like the exemplar of that axis, written out by hand:
+    axis 0 -> (y, z), axis 1 -> (z, x), axis 2 -> (x, y)."""
+    if axis == 0:
+        return vol[i]
+    return vol[:, i].transpose(1, 0, 2) if axis == 1 else vol[:, :, i]
+
+
+def _energy_by_hand(vol, ex, axis, size):
+    h, w, c = ex.shape
+    rows = [(np.arange(i, i + size) % h)[:, None] for i in range(h)]
+    cols = [(np.arange(j, j + size) % w)[None, :] for j in range(w)]
+    ex_patches = np.array([ex[r, q].ravel() for r in rows for q in cols], np.float64)
+    best = []
+    for i in range(vol.shape[axis]):
+        s = _slice(vol, axis, i)
+        for r in range(0, s.shape[0] - size + 1, 2):
+            for q in range(0, s.shape[1] - size + 1, 2):
+                patch = s[r:r + size, q:q + size].ravel().astype(np.float64)
+                best.append(((ex_patches - patch) ** 2).sum(axis=1).min())
+    var = ex.reshape(-1, c).astype(np.float64).var(axis=0).sum()
+    return np.mean(best) / (size * size * var)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_neighborhood_energy_equals_a_brute_force_reference(axis):
+    rng = np.random.default_rng(0)
+    ex = rng.random((8, 8, 3)).astype(np.float32)
+    vol = rng.random((7, 9, 11, 3)).astype(np.float32)  # three sizes: an axis swap shows
+    got = metrics.neighborhood_energy(vol, ex, axis, size=3, slices=100)  # every slice
+    assert got == pytest.approx(_energy_by_hand(vol, ex, axis, 3), rel=1e-4)
+
+
+def test_slices_of_the_exemplar_rolled_toroidally_have_zero_energy():
+    """Exemplar patches wrap: a rolled exemplar is still made of exemplar patches."""
+    rng = np.random.default_rng(1)
+    ex = rng.random((16, 16, 3)).astype(np.float32)
+    vol = metrics.extrusion(np.roll(ex, (5, 7), axis=(0, 1)), 16, axis=2)
+    assert metrics.neighborhood_energy(vol, ex, 2) == 0.0
+
+
+def test_energy_and_swd_do_not_depend_on_the_unit_of_the_colors():
+    rng = np.random.default_rng(2)
+    ex = rng.random((16, 16, 3)).astype(np.float32)
+    vol = metrics.iid_noise(ex, (16, 16, 16))
+    for metric in (metrics.neighborhood_energy, metrics.sliced_wasserstein):
+        assert metric(4 * vol, 4 * ex, 0) == pytest.approx(metric(vol, ex, 0), rel=1e-4)
+
+
+def test_histogram_distance_of_a_constant_volume_is_known():
+    """All voxels in the lowest bin: per channel (1 - b0) + (1 - b0), b0 the share of the
+    exemplar there; the channels are averaged."""
+    rng = np.random.default_rng(3)
+    ex = rng.random((16, 16, 3)).astype(np.float32)
+    lo, hi = ex.reshape(-1, 3).min(0), ex.reshape(-1, 3).max(0)
+    vol = np.broadcast_to(lo, (8, 8, 8, 3)).astype(np.float32)
+    b0 = (ex.reshape(-1, 3) < lo + (hi - lo) / 16).mean(axis=0)
+    expected = float(np.mean(2 * (1 - b0)))
+    assert metrics.histogram_distance(vol, ex, 1) == pytest.approx(expected, rel=1e-6)
+    assert metrics.histogram_distance(vol + 5.0, ex, 1) <= 2.0  # clipped into the last bin
+
+
+def test_repetition_score_leaves_out_shifts_within_exclude():
+    """Smooth noise correlates with itself over a few pixels only: high when near shifts
+    count, low when they are excluded as the default does."""
+    rng = np.random.default_rng(4)
+    smooth = gaussian_filter(rng.standard_normal((128, 128)), 3.0, mode="wrap")
+    assert metrics.repetition_score(smooth, exclude=1) > 0.6
+    assert metrics.repetition_score(smooth) < 0.3

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -167,3 +168,21 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.PNG", "bunny.PNG.json"]
     # Captured, stderr is no terminal: progress comes a line per batch, no carriage returns.
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
+
+
+def test_medium_scatters_with_the_texture_at_each_point(granite_32_file):
+    """sigma_s = albedo(p) * sigma_t * scale, the albedo being the nested texture's colour
+    at the medium point, channel for channel."""
+    use(LLVM)
+    before = set(map(id, mitsuba_plugin.textures()))
+    medium = mi.load_dict({"type": "lazy_solid_medium", "sigma_t": 3.0, "scale": 2.0,
+                           "albedo": {"type": "lazy_solid", "exemplar": str(granite_32_file),
+                                      "scale": 8.0}})
+    (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+    points = np.random.default_rng(0).uniform(-1, 1, (5, 3)).astype(np.float32)
+    mei = dr.zeros(mi.MediumInteraction3f, len(points))
+    mei.p = mi.Point3f(*points.T)
+    sigma_s, _, sigma_t = medium.get_scattering_coefficients(mei)
+    albedo = np.array(sigma_s).T / 6.0
+    np.testing.assert_allclose(np.array(sigma_t).T, 6.0, rtol=1e-6)
+    np.testing.assert_allclose(albedo, texture.solid.query(points * 8.0), rtol=1e-5, atol=1e-6)

@@ -281,3 +281,31 @@ def test_cuda_variants_are_not_traced(granite_32_file, monkeypatch):
     assert texture.begin_tracing(scene) is True
     monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
     assert texture.begin_tracing(scene) is False
+
+
+def test_traced_renders_keep_the_nearest_filter(granite_32_file):
+    """A nearest-filtered texture renders the same image traced and in wavefront mode
+    (a traced lookup that blended would not)."""
+    before = set(map(id, mitsuba_plugin.textures()))
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 2},
+        "sensor": {"type": "orthographic",
+                   "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16},
+                   "sampler": {"type": "independent", "sample_count": 2}},
+        "plane": {"type": "rectangle",
+                  "bsdf": {"type": "diffuse",
+                           "reflectance": {"type": "lazy_solid", "scale": 6.0,
+                                           "exemplar": str(granite_32_file),
+                                           "filter": "nearest"}}},
+        "light": {"type": "constant"},
+    })
+    (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+    traced = np.array(mitsuba_plugin.render(scene, spp=2))
+    assert texture.traced_stats()["renders"] >= 1
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=2, seed=0))
+    assert traced.std() > 0.01
+    np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)

@@ -1,0 +1,51 @@
+"""Volume files for other tools (warptex.volume_files): layouts checked on a volume whose
+three sides differ, with 1 to 4 channels."""
+
+import struct
+
+import numpy as np
+import pytest
+
+from warptex.volume_files import exr_sheet, write_image, write_volume
+
+
+def _volume(channels: int) -> np.ndarray:
+    return np.random.default_rng(channels).random((2, 3, 4, channels)).astype(np.float32)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_vol_header_and_data_of_a_non_cubic_volume(tmp_path, channels):
+    """Mitsuba's grid: dims x, y, z; the channel count; the unit box; x fastest."""
+    vol = _volume(channels)
+    write_volume(tmp_path / "v.vol", vol)
+    data = (tmp_path / "v.vol").read_bytes()
+    assert data[:4] == b"VOL\x03"
+    assert struct.unpack("<5i", data[4:24]) == (1, 2, 3, 4, channels)
+    assert struct.unpack("<6f", data[24:48]) == (0, 0, 0, 1, 1, 1)
+    values = np.frombuffer(data[48:], "<f4")
+    assert values.size == vol.size
+    x, y, z, c = 1, 0, 2, channels - 1
+    assert values[((z * 3 + y) * 2 + x) * channels + c] == vol[x, y, z, c]
+    np.testing.assert_array_equal(values.reshape(4, 3, 2, channels), vol.transpose(2, 1, 0, 3))
+
+
+@pytest.mark.parametrize(("channels", "names"),
+                         [(1, ["Y"]), (2, ["C0", "C1"]), (3, list("RGB")), (4, list("RGBA"))])
+def test_exr_channel_names_and_layout(tmp_path, channels, names):
+    import OpenEXR
+
+    vol = _volume(channels)
+    write_volume(tmp_path / "v.exr", vol)
+    with OpenEXR.File(str(tmp_path / "v.exr"), separate_channels=True) as file:
+        got = {name: ch.pixels for name, ch in file.channels().items()}
+        layout = file.header()["warptexLayout"]
+    assert sorted(got) == sorted(names)
+    sheet = np.stack([got[n] for n in names], axis=2)
+    assert sheet.shape == (3, 4 * 2, channels)  # Y rows, Z*X columns
+    for x, y, z in ((0, 1, 3), (1, 2, 0)):  # pixel (y, z*X + x) holds voxel (x, y, z)
+        np.testing.assert_array_equal(sheet[y, z * 2 + x], vol[x, y, z])
+    np.testing.assert_array_equal(sheet, exr_sheet(vol))
+    assert "2x3x4" in layout
+    write_image(tmp_path / "i.exr", vol[0])
+    with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
+        assert sorted(file.channels()) == sorted(names)
