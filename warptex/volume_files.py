@@ -18,8 +18,11 @@ VOLUME_FORMATS = (".npy", ".exr", ".vol")
 
 def write_volume(path: str | Path, volume: np.ndarray) -> None:
     """Write an (X, Y, Z, C) float volume by the file's suffix: ``.npy`` as it is, ``.exr``
-    as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume.
-    Raises ValueError for another suffix and OSError when the file cannot be written."""
+    as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume
+    over the unit box (Mitsuba maps it to [0, 1]^3: a scene places and scales it with the
+    volume's ``to_world``, so voxels of a box whose sides differ come out stretched unless
+    the scene scales by the sides). Raises ValueError for another suffix and OSError when
+    the file cannot be written."""
     path = Path(path)
     volume = _float_array(volume, 4, "volume", "(X, Y, Z, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
@@ -90,7 +93,8 @@ def _write_exr(path: Path, image: np.ndarray, extra: dict | None = None) -> None
 
 
 def _write_vol(path: Path, volume: np.ndarray) -> None:
-    """Mitsuba 3 grid volume: b'VOL', version 3, float32 encoding, x fastest."""
+    """Mitsuba 3 grid volume: b'VOL', version 3, float32 encoding, x fastest, the unit box
+    as its bounds."""
     x, y, z, c = volume.shape
     header = b"VOL" + struct.pack("<B4i", 3, 1, x, y, z) + struct.pack("<i6f", c, 0, 0, 0, 1, 1, 1)
     # Data index ((z * Y + y) * X + x) * C + c: transpose (x, y, z, c) to (z, y, x, c).
