@@ -105,7 +105,7 @@ def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture):
     assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=13**3).refresh() is True
 
 
-def lit_plane(path, space: str = "world"):
+def lit_plane(path, space: str = "world", filter: str = "trilinear"):
     """A floor and a wall of one lazy_solid texture under an environment, and that
     texture: paths bounce between them, so later bounces read bricks the first did not."""
     before = set(map(id, mitsuba_plugin.textures()))
@@ -113,7 +113,8 @@ def lit_plane(path, space: str = "world"):
     T = mi.ScalarTransform4f
     scene = mi.load_dict({
         "type": "scene",
-        "tex": {"type": "lazy_solid", "exemplar": str(path), "scale": 6.0, "space": space},
+        "tex": {"type": "lazy_solid", "exemplar": str(path), "scale": 6.0, "space": space,
+                "filter": filter},
         "integrator": {"type": "path", "max_depth": 4},
         "sensor": {"type": "perspective", "fov": 50,
                    "to_world": T().look_at(origin=[0, -3, 4], target=[0, 0, 0], up=[0, 0, 1]),
@@ -130,10 +131,12 @@ def lit_plane(path, space: str = "world"):
     return scene, texture
 
 
-def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file):
+@pytest.mark.parametrize("filter", ["trilinear", "nearest"])
+def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file, filter):
     """Determinism at the renderer: a cold store (traced renders that miss, synthesis,
-    render again), a warm one (one traced render) and wavefront mode give one image."""
-    scene, texture = lit_plane(granite_32_file)
+    render again), a warm one (one traced render) and wavefront mode give one image, with
+    either filter (a traced program that ignored it would not)."""
+    scene, texture = lit_plane(granite_32_file, filter=filter)
     cold = np.array(mitsuba_plugin.render(scene, spp=4))
     first = texture.traced_stats()
     assert first["renders_with_misses"] >= 1
@@ -281,31 +284,3 @@ def test_cuda_variants_are_not_traced(granite_32_file, monkeypatch):
     assert texture.begin_tracing(scene) is True
     monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
     assert texture.begin_tracing(scene) is False
-
-
-def test_traced_renders_keep_the_nearest_filter(granite_32_file):
-    """A nearest-filtered texture renders the same image traced and in wavefront mode
-    (a traced lookup that blended would not)."""
-    before = set(map(id, mitsuba_plugin.textures()))
-    T = mi.ScalarTransform4f
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 2},
-        "sensor": {"type": "orthographic",
-                   "to_world": T().look_at(origin=[0, 0, 3], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 16, "height": 16},
-                   "sampler": {"type": "independent", "sample_count": 2}},
-        "plane": {"type": "rectangle",
-                  "bsdf": {"type": "diffuse",
-                           "reflectance": {"type": "lazy_solid", "scale": 6.0,
-                                           "exemplar": str(granite_32_file),
-                                           "filter": "nearest"}}},
-        "light": {"type": "constant"},
-    })
-    (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
-    traced = np.array(mitsuba_plugin.render(scene, spp=2))
-    assert texture.traced_stats()["renders"] >= 1
-    with mitsuba_plugin.wavefront():
-        wavefront = np.array(mi.render(scene, spp=2, seed=0))
-    assert traced.std() > 0.01
-    np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
