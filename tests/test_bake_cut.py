@@ -215,3 +215,89 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys)
     assert (tmp_path / "c.ply").exists() and (tmp_path / "c_b.ply").exists()
     assert main(["bake", str(tmp_path / "missing.ply"), "--exemplar", exemplar,
                  "-o", str(tmp_path / "x.ply")]) == 2
+
+
+def _square(z=0.0):
+    """The unit square in z = ``z`` as two triangles, its UVs its (x, y)."""
+    v = np.array([[0, 0, z], [1, 0, z], [1, 1, z], [0, 1, z]], float)
+    return trimesh.Trimesh(v, [[0, 1, 2], [0, 2, 3]], process=False), v[:, :2].copy()
+
+
+def _texel_centres(w, h):
+    x, y = np.meshgrid(np.arange(w), np.arange(h))  # row-major: texel y * w + x
+    return np.stack([(x + 0.5) / w, 1 - (y + 0.5) / h], -1).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("size", [(8, 8), (5, 7)])
+def test_texel_points_of_a_flat_square_are_its_texel_centres(size, warp_device):
+    """UV = (x, y) and the identity transform: every texel is covered (its left column, its
+    centres on the diagonal both triangles share, included) and shows the point (u, v, 0)."""
+    mesh, uv = _square()
+    # a scaled, shifted transform: points are uv * 3 + (10, -4, 2)
+    m = np.diag([3.0, 3.0, 3.0, 1.0])
+    m[:3, 3] = [10, -4, 2]
+    points, covered = texel_points(mesh, uv, m, size)
+    assert covered.all()
+    expected = np.c_[_texel_centres(*size) * 3 + [10, -4], np.full(size[0] * size[1], 2.0)]
+    np.testing.assert_allclose(points, expected, atol=1e-5)
+
+
+def test_a_skewed_triangle_interpolates_with_the_right_corner_weights(warp_device):
+    """Positions not an affine copy of the UVs with symmetric roles: swapping the weights
+    of corners b and c moves the points."""
+    v = np.array([[0, 0, 0], [4, 0, 1], [0, 2, 3]], float)
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    mesh = trimesh.Trimesh(v, [[0, 1, 2]], process=False)
+    points, covered = texel_points(mesh, uv, np.eye(4), (16, 16))
+    c = _texel_centres(16, 16)[covered]
+    assert 0.4 < covered.mean() < 0.6
+    expected = c[:, :1] * (v[1] - v[0]) + c[:, 1:] * (v[2] - v[0])
+    np.testing.assert_allclose(points[covered], expected, atol=1e-5)
+
+
+def test_overlapping_triangles_resolve_to_the_lowest_numbered(warp_device):
+    """Two charts on the same UVs: the texels show triangle 0's surface everywhere."""
+    low, uv = _square(0.0)
+    high, _ = _square(5.0)
+    mesh = trimesh.Trimesh(np.r_[low.vertices, high.vertices],
+                           [[4, 5, 6], [0, 1, 2], [4, 6, 7], [0, 2, 3]], process=False)
+    points, covered = texel_points(mesh, np.r_[uv, uv], np.eye(4), (8, 8))
+    # texels under the lower-right triangle (faces 0 and 1 overlap): face 0, z = 5;
+    # under the upper-left one (faces 2 and 3): face 2, z = 5
+    assert covered.all() and np.all(points[:, 2] == 5.0)
+
+
+class _Constant:
+    def query(self, points, filter="trilinear"):
+        return np.column_stack([points[:, 0] * 0 + 0.25, points[:, 1] * 0 + 0.5,
+                                points[:, 2] * 0 + 0.75]).astype(np.float32)
+
+
+def test_uncovered_texels_take_a_covered_color(warp_device):
+    """A triangle covering half the texture: the other half is filled, not left black,
+    so filtering does not bleed black into the seams."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    mesh = trimesh.Trimesh(v, [[0, 1, 2]], process=False)
+    image, mask = bake_uv_texture(_Constant(), mesh, v[:, :2], np.eye(4), size=16)
+    assert 0.3 < mask.mean() < 0.7
+    np.testing.assert_array_equal(image, np.broadcast_to([0.25, 0.5, 0.75], image.shape))
+
+
+def test_vertex_colors_use_the_filter_asked_for(texture):
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    m = block_transform(sphere, 24)
+    points = to_voxel_space(sphere, m)
+    nearest = vertex_colors(texture, sphere, m, filter="nearest")
+    np.testing.assert_array_equal(nearest, texture.query(points, filter="nearest"))
+    assert not np.array_equal(nearest, vertex_colors(texture, sphere, m))
+
+
+def test_exported_vertex_colors_are_rounded_clipped_and_opaque(tmp_path):
+    mesh, _ = _square()
+    colors = np.array([[0.5, 0.0, 1.0], [1.5, -0.2, 0.2], [0.999, 0.001, 0.502],
+                       [0.25, 0.75, 0.1]], np.float32)
+    written = export(mesh, tmp_path / "q.ply", colors=colors)
+    got = trimesh.load(written[0], process=False).visual.vertex_colors
+    np.testing.assert_array_equal(got[:, :3], [[128, 0, 255], [255, 0, 51], [255, 0, 128],
+                                               [64, 191, 26]])
+    assert np.all(got[:, 3] == 255)

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import warp as wp
 
 from warptex.parallel import MIN_SPLIT, launch_ranges
@@ -78,3 +79,28 @@ def test_threads_follow_the_cores_the_process_may_use(monkeypatch):
     monkeypatch.setattr(os, "cpu_count", lambda: 64)
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3, 5})
     assert machine.usable_cores() == 3
+
+
+@wp.kernel
+def _count_every_thread(first: int, per_item: int, hits: wp.array(dtype=wp.int32)):
+    wp.atomic_add(hits, first * per_item + wp.tid(), 1)
+
+
+@pytest.mark.parametrize("per_item", [1, 3])
+def test_split_launch_runs_every_thread_of_every_item_once(per_item, monkeypatch, warp_device):
+    """Counts, not idempotent writes: an item launched twice or a thread left out shows.
+    Item counts around MIN_SPLIT, starts off zero, 2 and 3 threads."""
+    from warptex import parallel
+
+    for threads in (2, 3):
+        monkeypatch.setattr(parallel, "THREADS", threads)
+        for start, n in [(0, parallel.MIN_SPLIT), (7, parallel.MIN_SPLIT - 1),
+                         (5, parallel.MIN_SPLIT + 1), (1, 2 * parallel.MIN_SPLIT + 5)]:
+            hits = wp.zeros((start + n) * per_item, dtype=wp.int32, device="cpu")
+            # the kernel's thread t of a launch from ``first`` is thread first*per_item + t
+            # of the whole; items start..stop are threads start*per_item..stop*per_item
+            parallel.launch_ranges(_count_every_thread, start, start + n, [per_item], [hits],
+                                   per_item=per_item)
+            got = hits.numpy()
+            assert np.all(got[: start * per_item] == 0)
+            assert np.all(got[start * per_item:] == 1), (threads, start, n)

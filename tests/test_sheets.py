@@ -1,0 +1,29 @@
+"""Picture sheets (warptex.sheets): 8-bit colours and the slices a row is labelled with."""
+
+import numpy as np
+
+from warptex.sheets import to_rgb8, volume_row
+
+
+def test_to_rgb8_rounds_clips_and_spreads_gray():
+    values = np.array([0.0, 0.5, 1.0, 1.7, -0.3, 0.2, 0.998], np.float32)
+    expected = np.array([0, 128, 255, 255, 0, 51, 254], np.uint8)
+    rgb = to_rgb8(np.tile(values[:, None, None], (1, 1, 3)))
+    np.testing.assert_array_equal(rgb[:, 0], np.tile(expected[:, None], (1, 3)))
+    gray_alpha = np.stack([values, np.full_like(values, 0.1)], -1)[:, None, :]
+    np.testing.assert_array_equal(to_rgb8(gray_alpha)[:, 0], np.tile(expected[:, None], (1, 3)))
+    assert to_rgb8(np.zeros((2, 3, 5))).shape == (2, 3, 3)
+
+
+def test_volume_row_slices_each_axis_at_its_label():
+    vol = np.zeros((4, 6, 8, 3), np.float32)
+    vol[..., 0] = np.arange(4)[:, None, None]
+    vol[..., 1] = np.arange(6)[None, :, None]
+    vol[..., 2] = np.arange(8)[None, None, :]
+    row = volume_row(vol)
+    assert [label for label, _ in row] == ["x = 2", "y = 3", "z = 4"]
+    for axis, (_, image) in enumerate(row):
+        assert np.all(image[..., axis] == vol.shape[axis] // 2)  # the slice it names
+        assert sorted(image.shape[:2]) == sorted(s for a, s in enumerate(vol.shape[:3])
+                                                 if a != axis)
+    assert volume_row(vol, depth=1)[2][0] == "z = 1"
