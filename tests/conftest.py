@@ -63,3 +63,15 @@ def granite_32(data_dir):
 
     full = Exemplar.load(data_dir / "granite_64.png")
     return Exemplar(np.ascontiguousarray(full.colors[:32, :32]), name="granite_32")
+
+
+@pytest.fixture(scope="module")
+def granite_32x48(data_dir):
+    """A 32-row, 48-column granite crop: pixel indices are row * width + column, and a
+    square exemplar would hide a height read for a width."""
+    import numpy as np
+
+    from warptex.exemplar import Exemplar
+
+    full = Exemplar.load(data_dir / "granite_64.png")
+    return Exemplar(np.ascontiguousarray(full.colors[:32, :48]), name="granite_32x48")

@@ -497,10 +497,12 @@ def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
     r among the S strips nearest p's first-coordinate strip (pair 2-0)."""
     strips = 4
     cs = precompute(granite_32, cache=False, strips=strips, keep=16)
+    half = int(cs.params["neighborhood"]) // 2
     for lv, level in enumerate(cs.sources):
         feat = level[0].feat
-        first = np.concatenate([np.roll(feat, -t, axis=0).reshape(-1, 3) for t in range(-2, 3)], 1)
-        second = np.concatenate([np.roll(feat, -t, axis=1).reshape(-1, 3) for t in range(-2, 3)], 1)
+        pixels = np.arange(feat.shape[0] * feat.shape[1])
+        first, second = (_strip(feat, pixels, axis, half).reshape(len(pixels), -1)
+                         for axis in (0, 1))
         near1 = _nearest(_squared_distances(second, first), strips)
         near2 = _nearest(_squared_distances(first, second), strips)
         cand = cs.roles[lv][0].cand

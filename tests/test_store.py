@@ -88,14 +88,12 @@ def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
 
 
 @pytest.mark.parametrize("whole_bricks", [True, False])
-def test_a_non_square_exemplar_decodes_like_the_engine(data_dir, warp_device, whole_bricks):
-    """Stored pixels are decoded with the exemplar's width: a square exemplar would hide
-    a height read for a width."""
+def test_a_non_square_exemplar_decodes_like_the_engine(granite_32x48, warp_device,
+                                                       whole_bricks):
+    """Stored pixels are decoded with the exemplar's width."""
     from warptex.candidates import precompute
-    from warptex.exemplar import Exemplar
 
-    full = Exemplar.load(data_dir / "granite_64.png")
-    wide = precompute(Exemplar(np.ascontiguousarray(full.colors[:32, :48])), cache=False)
+    wide = precompute(granite_32x48, cache=False)
     syn = synthesizer(wide, seed=1)
     voxels = np.random.default_rng(0).integers(-20, 20, (50, 3))
     store = BrickStore(syn, whole_bricks=whole_bricks)

@@ -23,14 +23,21 @@ def test_sphere_shell_grows_with_area_and_hugs_the_surface(resolution, warp_devi
     assert len(np.unique(voxels, axis=0)) == len(voxels)
 
 
-def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(warp_device):
+@pytest.mark.parametrize("offset", [(0, 0, 0), (-10, -20, -30), (-1, 0, -2), (100000, -3, 7)])
+def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(offset, warp_device):
+    """Moved by whole voxels too: floor (not truncation) finds the voxels of negative
+    points, and the rows come sorted below zero and far out."""
     corners = [[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]]
-    tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]])
-    voxels = shell(tri, transform=np.eye(4))
+    tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]], process=False)
+    m = np.eye(4)
+    m[:3, 3] = offset
+    voxels = shell(tri, transform=m)
     expected = {(x, y, 0) for x in range(4) for y in range(3) if x / 3 + y / 2 <= 1 + 1e-9}
     # The hypotenuse from (3.5, 0.5) to (0.5, 2.5) also crosses voxels (1, 2) and (2, 1).
     expected |= {(1, 2, 0), (2, 1, 0)}
-    assert set(map(tuple, voxels.tolist())) == expected
+    moved = {tuple(int(a) + b for a, b in zip(v, offset, strict=True)) for v in expected}
+    assert set(map(tuple, voxels.tolist())) == moved
+    assert np.array_equal(voxels, np.array(sorted(moved), np.int32))
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
@@ -47,19 +54,3 @@ def test_block_transform_fits_the_bounding_box():
     corners = box.bounds @ m[:3, :3].T + m[:3, 3]
     assert corners.min() >= 0 and corners.max() < 64
     assert np.isclose(np.ptp(corners[:, 0]), 64, atol=0.01)
-
-
-@pytest.mark.parametrize("offset", [(-10, -20, -30), (-1, 0, -2), (100000, -3, 7)])
-def test_a_triangle_moved_by_whole_voxels_touches_the_moved_voxels(offset, warp_device):
-    """The single-triangle case of test_surface, moved: floor (not truncation) finds the
-    voxels of negative points, and sorting rows works below zero and far out."""
-    corners = np.array([[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]])
-    tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]], process=False)
-    expected = {(x, y, 0) for x in range(4) for y in range(3) if x / 3 + y / 2 <= 1 + 1e-9}
-    expected |= {(1, 2, 0), (2, 1, 0)}
-    m = np.eye(4)
-    m[:3, 3] = offset
-    voxels = shell(tri, transform=m)
-    moved = {tuple(int(a) + b for a, b in zip(v, offset, strict=True)) for v in expected}
-    assert set(map(tuple, voxels.tolist())) == moved
-    assert np.array_equal(voxels, np.array(sorted(moved), np.int32))  # sorted rows

@@ -41,7 +41,7 @@ def test_exr_channel_names_and_layout(tmp_path, channels, names):
         layout = file.header()["warptexLayout"]
     assert sorted(got) == sorted(names)
     sheet = np.stack([got[n] for n in names], axis=2)
-    assert sheet.shape == (3, 4 * 2, channels)  # Y rows, Z*X columns
+    assert sheet.dtype == np.float32 and sheet.shape == (3, 4 * 2, channels)  # Y, Z*X
     for x, y, z in ((0, 1, 3), (1, 2, 0)):  # pixel (y, z*X + x) holds voxel (x, y, z)
         np.testing.assert_array_equal(sheet[y, z * 2 + x], vol[x, y, z])
     np.testing.assert_array_equal(sheet, exr_sheet(vol))
