@@ -1,6 +1,7 @@
 """Mitsuba 3 plugins that evaluate warptex solid textures lazily at shading points.
 
-``register()`` adds, for the current Mitsuba variant, the texture ``lazy_solid``
+``register()`` adds, for the current Mitsuba variant (any: RGB, spectral or monochrome;
+``use_variant()`` sets one and says what it lacks here), the texture ``lazy_solid``
 (:mod:`mitsuba_plugin.texture`) and the medium ``lazy_solid_medium``
 (:mod:`mitsuba_plugin.volume`). ``render()`` renders a scene so that every voxel it
 shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
@@ -31,6 +32,7 @@ import drjit as dr
 import mitsuba as mi
 
 import warptex
+from warptex._llvm import MIN_LLVM_MAJOR, configure_drjit
 
 # Symbolic renders of one batch before falling back to wavefront mode: each synthesizes
 # what the previous one missed; paths seldom reach new bricks after the second.
@@ -50,6 +52,25 @@ def set_best_variant() -> str:
     return variant
 
 
+def use_variant(name: str) -> str:
+    """Set and return Mitsuba variant ``name`` (``llvm_ad_spectral``, ``scalar_rgb``, ...);
+    a ValueError says why this machine cannot run it, the variant set before kept."""
+    if name not in mi.variants():
+        raise ValueError(f"unknown Mitsuba variant {name!r}; this Mitsuba has "
+                         f"{', '.join(mi.variants())}")
+    if name.startswith("llvm_") and configure_drjit() is None:
+        raise ValueError(f"Mitsuba variant {name} needs libLLVM >= {MIN_LLVM_MAJOR} (install "
+                         "libllvm19 or set DRJIT_LIBLLVM_PATH); scalar_* variants need none")
+    previous = mi.variant()
+    try:
+        mi.set_variant(name)
+    except ImportError as e:  # a CUDA variant without a usable GPU
+        if previous is not None:  # Mitsuba is left without a variant otherwise
+            mi.set_variant(previous)
+        raise ValueError(f"Mitsuba variant {name} cannot run here: {e}") from None
+    return name
+
+
 def register() -> None:
     """Register ``lazy_solid`` and ``lazy_solid_medium`` for the current variant.
 
@@ -63,9 +84,6 @@ def register() -> None:
                            "(mitsuba_plugin.set_best_variant())")
     if variant in _registered:
         return
-    if not variant.endswith("_rgb"):
-        raise RuntimeError(f"mitsuba_plugin.register: warptex textures are RGB; variant "
-                           f"{variant!r} is not an *_rgb variant")
     from mitsuba_plugin import texture, volume
 
     texture = importlib.reload(texture)

@@ -73,13 +73,15 @@ def scene_error(text: str, scene: Path | None = None) -> str:
 
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
-                 resolution: tuple[int, int] | None = None) -> dict:
+                 resolution: tuple[int, int] | None = None,
+                 variant: str | None = None) -> dict:
     """Render ``scene_path`` to ``output`` (.exr or .png) with progress on stderr, save
     brick stores that have a ``cache`` file, and write their statistics as JSON beside
     the image (``<output>.json``). Returns that report.
 
     ``resolution`` sets the scene's ``$width``/``$height`` parameters, which the scenes
-    in ``scenes/`` declare.
+    in ``scenes/`` declare. ``variant`` is the Mitsuba variant to render in (default:
+    :func:`mitsuba_plugin.set_best_variant`'s).
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
         raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
@@ -91,7 +93,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 
     if resolution is not None:  # before loading: a film this size may not even be made
         check_render_size(*resolution, _samples_per_batch(spp or 1))
-    variant = mitsuba_plugin.set_best_variant()
+    variant = (mitsuba_plugin.set_best_variant() if variant is None
+               else mitsuba_plugin.use_variant(variant))
     mitsuba_plugin.register()
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
     start = time.perf_counter()

@@ -28,6 +28,10 @@ shape when it has one (``sphere``, ``rectangle``, ...). Meshes bake their ``to_w
 into their vertices at load time, so a plain mesh has no frame to recover and object
 space equals world space for it; move meshes with ``instance`` to keep their texture.
 
+Variants: ``eval`` gives the color as the variant's spectrum (:mod:`mitsuba_plugin.spectrum`:
+as it is in RGB variants, its luminance in monochrome ones, Mitsuba's upsampling of it in
+spectral ones); ``eval_3`` is always the RGB color, ``eval_1`` its luminance.
+
 Rendering modes (JIT variants): synthesis runs in Warp kernels, outside Dr.Jit's traced
 programs. Render with :func:`mitsuba_plugin.render`: it traces the lookup of stored
 voxels into Mitsuba's program (:mod:`mitsuba_plugin.traced`), synthesizes what a render
@@ -52,6 +56,7 @@ import mitsuba as mi
 import numpy as np
 
 import mitsuba_plugin
+from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
@@ -204,9 +209,12 @@ class LazySolidTexture(mi.Texture):
                                       store=self.cache)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
+        check_upsampling()
         colors = _exemplar_colors(candidates)
         self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
-        self._mean = float(colors.mean())
+        # What eval gives on average: a monochrome variant sees luminance.
+        mean = np.ravel(mi.luminance(mi.Color3f(*self._mean_rgb)))[0]
+        self._mean = float(mean if mi.is_monochromatic else colors.mean())
         self._max = float(colors.max())
         self._traced: TracedLookup | None = None
         self._frames: _ObjectFrames | None = None
@@ -217,7 +225,7 @@ class LazySolidTexture(mi.Texture):
     # -- mi.Texture interface ---------------------------------------------------------
 
     def eval(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.UnpolarizedSpectrum:
-        return self.colors_at(si, active)
+        return spectrum(self.colors_at(si, active), si.wavelengths)
 
     def eval_3(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Color3f:
         return self.colors_at(si, active)

@@ -18,13 +18,15 @@ import math
 
 import mitsuba as mi
 
+from mitsuba_plugin.spectrum import spectrum
 from mitsuba_plugin.texture import get_property, property_error
 
 MEDIUM = "lazy_solid_medium"
 
 
 class LazySolidVolume(mi.Volume):
-    """The RGB of a ``lazy_solid`` texture at each medium point."""
+    """The color of a ``lazy_solid`` texture at each medium point, as the variant's
+    spectrum (``eval``) or as RGB (``eval_3``)."""
 
     def __init__(self, texture: mi.Texture) -> None:
         super().__init__(mi.Properties())
@@ -32,7 +34,7 @@ class LazySolidVolume(mi.Volume):
         self._max = texture.max()
 
     def eval(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.UnpolarizedSpectrum:
-        return self.texture.colors_at(it, active)
+        return spectrum(self.texture.colors_at(it, active), it.wavelengths)
 
     def eval_3(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Vector3f:
         return mi.Vector3f(self.texture.colors_at(it, active))

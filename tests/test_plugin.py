@@ -96,15 +96,6 @@ def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp
     assert notes.read_text() == "not bricks"
 
 
-def test_register_is_idempotent_and_needs_rgb():
-    use("scalar_rgb")
-    mitsuba_plugin.register()
-    mi.set_variant("scalar_spectral")
-    with pytest.raises(RuntimeError, match="not an \\*_rgb variant"):
-        mitsuba_plugin.register()
-    mi.set_variant("scalar_rgb")
-
-
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM, CUDA])
 @pytest.mark.parametrize("filter", ["trilinear", "nearest"])
 def test_eval_is_the_solid_texture_at_scaled_points(granite_32_file, variant, filter):

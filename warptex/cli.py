@@ -851,6 +851,11 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         "$height parameters, which the scene must declare: <default "
                         "name=\"width\" value=\"256\"/> and, in its film, <integer "
                         "name=\"width\" value=\"$width\"/>; the same for height")
+    parser.add_argument("--variant",
+                        help="Mitsuba variant to render in, e.g. llvm_ad_spectral or "
+                        "scalar_spectral for spectral rendering, llvm_ad_mono for "
+                        "monochrome (default: llvm_ad_rgb where libLLVM >= 16 is found, "
+                        "else scalar_rgb)")
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -861,7 +866,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
     _check_output(args.output, IMAGE_SUFFIXES, "the image")
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
-        render_scene(args.scene, args.output, spp=args.spp, resolution=resolution)
+        render_scene(args.scene, args.output, spp=args.spp, resolution=resolution,
+                     variant=args.variant)
     except ValueError as e:
         raise CliError(str(e)) from e
     return 0

@@ -1,0 +1,214 @@
+"""The plugins in spectral and monochrome Mitsuba variants: Mitsuba's own upsampling of the
+texture's colors, in eval, in the medium, in traced and wavefront renders, against RGB
+renders of the same scene, and ``warptex render --variant``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_plugin
+import warptex
+from mitsuba_plugin import spectrum
+
+REPO = Path(__file__).resolve().parent.parent
+SPECTRAL = "llvm_ad_spectral"
+
+
+def use(variant: str) -> None:
+    if variant.startswith("llvm_") and warptex.best_mitsuba_variant() != "llvm_ad_rgb":
+        pytest.skip(f"{variant} needs libLLVM >= 16 (see warptex/_llvm.py)")
+    mi.set_variant(variant)
+    mitsuba_plugin.register()
+
+
+def load(path, **props):
+    return mi.load_dict({"type": "lazy_solid", "exemplar": str(path), "scale": 8.0} | props)
+
+
+def fetched(colors: np.ndarray) -> np.ndarray:
+    """Mitsuba's own coefficients of each color, one scalar lookup at a time."""
+    return np.array([list(mi.srgb_model_fetch(mi.ScalarColor3f(*c))) for c in colors])
+
+
+def test_coefficients_are_mitsubas_own_to_the_bit():
+    use(SPECTRAL)
+    rng = np.random.default_rng(5)
+    colors = rng.uniform(-0.2, 1.2, (3000, 3))
+    grays = np.concatenate([[0.0, 1.0, 1e-7, 1 - 1e-7], rng.uniform(0, 1, 60)])
+    colors[:64] = grays[:, None]
+    colors[64:128, 1] = colors[64:128, 0]  # two largest components equal: the tie rule
+    colors[128:192, 2] = colors[128:192, 1]
+    colors = colors.astype(np.float32)
+    ours = np.array(spectrum.srgb_coefficients(mi.Color3f(colors.T))).T
+    np.testing.assert_array_equal(ours, fetched(colors))
+
+
+def _interactions(points: np.ndarray, wavelengths: np.ndarray, kind=None):
+    """Interactions at ``points`` seeing ``wavelengths`` (N, 4), for a JIT variant."""
+    it = dr.zeros(kind or mi.SurfaceInteraction3f, len(points))
+    it.p = mi.Point3f(points.T)
+    it.wavelengths = type(it.wavelengths)(wavelengths.T)
+    return it
+
+
+def _points_and_wavelengths(n: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(2)
+    return (rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+            rng.uniform(360, 830, (n, 4)).astype(np.float32))
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", SPECTRAL, "llvm_ad_spectral_polarized"])
+def test_eval_is_the_upsampled_color_at_each_point(granite_32_file, variant):
+    use(variant)
+    tex = load(granite_32_file, seed=3)
+    points, wavelengths = _points_and_wavelengths()
+    rgb = tex.solid.query(points * 8.0)[:, :3]
+    coefficients = fetched(rgb)
+    if dr.is_jit_v(mi.Float):
+        si = _interactions(points, wavelengths)
+        got = np.array(tex.eval(si)).T
+        expected = np.array(mi.srgb_model_eval(mi.Vector3f(coefficients.T),
+                                               si.wavelengths)).T
+        np.testing.assert_array_equal(np.array(tex.eval_3(si)).T, rgb)
+        np.testing.assert_allclose(np.array(tex.eval_1(si)),
+                                   np.array(mi.luminance(mi.Color3f(rgb.T))), rtol=1e-6)
+    else:
+        si = mi.SurfaceInteraction3f()
+        got, expected = [], []
+        for p, w, c in zip(points, wavelengths, coefficients, strict=True):
+            si.p, si.wavelengths = mi.Point3f(*p), type(si.wavelengths)(*w)
+            got.append(list(tex.eval(si)))
+            expected.append(list(mi.srgb_model_eval(mi.ScalarVector3f(*c), si.wavelengths)))
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7)
+    assert np.min(got) > 0.0 and np.max(got) < 1.0
+
+
+def test_monochrome_variants_see_luminance(granite_32_file):
+    use("llvm_ad_mono")
+    tex = load(granite_32_file)
+    points, _ = _points_and_wavelengths()
+    si = dr.zeros(mi.SurfaceInteraction3f, len(points))
+    si.p = mi.Point3f(points.T)
+    rgb = tex.solid.query(points * 8.0)[:, :3]
+    luminance = np.array(mi.luminance(mi.Color3f(rgb.T)))
+    np.testing.assert_allclose(np.array(tex.eval(si))[0], luminance, rtol=1e-6)
+    mean_rgb = mi.Color3f(*tex._mean_rgb)
+    np.testing.assert_allclose(np.array(tex.mean()), np.array(mi.luminance(mean_rgb)),
+                               rtol=1e-6)
+
+
+def test_the_medium_albedo_is_upsampled_like_the_texture(granite_32_file):
+    use(SPECTRAL)
+    from mitsuba_plugin.volume import LazySolidVolume
+
+    tex = load(granite_32_file)
+    points, wavelengths = _points_and_wavelengths()
+    albedo = LazySolidVolume(tex).eval(_interactions(points, wavelengths,
+                                                     mi.MediumInteraction3f))
+    surface = tex.eval(_interactions(points, wavelengths))
+    np.testing.assert_array_equal(np.array(albedo), np.array(surface))
+
+
+def test_a_mitsuba_that_upsamples_otherwise_is_refused(granite_32_file, monkeypatch):
+    """Another Mitsuba release's lookup would show colors Mitsuba itself would not give:
+    the texture is refused when it loads, naming the color that differs."""
+    use(SPECTRAL)
+    exact = spectrum.srgb_coefficients
+    monkeypatch.setattr(spectrum, "srgb_coefficients", lambda rgb: exact(rgb) * 1.01)
+    spectrum._check_upsampling.cache_clear()
+    try:
+        with pytest.raises(RuntimeError, match="upsamples RGB to spectra otherwise than"):
+            load(granite_32_file)
+    finally:
+        spectrum._check_upsampling.cache_clear()
+
+
+def plane(texture: dict, emissive: bool) -> mi.Scene:
+    """A plane seen from above, whose reflectance (under a white sky) or radiance is
+    ``texture``."""
+    T = mi.ScalarTransform4f
+    shape = {"type": "rectangle", "to_world": T().scale([2, 2, 1])}
+    if emissive:
+        shape |= {"emitter": {"type": "area", "radiance": texture},
+                  "bsdf": {"type": "diffuse", "reflectance": 0.0}}
+        lights = {}
+    else:
+        shape["bsdf"] = {"type": "diffuse", "reflectance": texture}
+        lights = {"sky": {"type": "constant"}}
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 2},
+        "sensor": {"type": "orthographic",
+                   "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16,
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 16}},
+        "plane": shape} | lights)
+
+
+@pytest.mark.parametrize("emissive", [False, True], ids=["reflectance", "radiance"])
+def test_spectral_renders_are_traced_and_match_the_rgb_render(emissive):
+    """A spectral render reads stored voxels in its traced program as the wavefront one
+    does, and comes out in the colors of the RGB render of the same scene: a reflectance
+    as it is, a radiance wrapped in ``d65`` as Mitsuba does with its own bitmaps."""
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    tex = {"type": "lazy_solid", "exemplar": str(wood), "scale": 8.0}
+    if emissive:
+        tex = {"type": "d65", "texture": tex}
+    means = {}
+    for variant in ("llvm_ad_rgb", SPECTRAL):
+        use(variant)
+        before = set(map(id, mitsuba_plugin.textures()))
+        scene = plane(tex, emissive)
+        (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+        image = np.array(mitsuba_plugin.render(scene, spp=16))[..., :3]
+        means[variant] = image.reshape(-1, 3).mean(axis=0)
+    assert texture.traced_stats()["renders"] >= 2  # missed, synthesized, rendered again
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=16, seed=0))[..., :3]
+    np.testing.assert_allclose(image, wavefront, rtol=1e-5, atol=1e-6)
+    red, _, blue = means["llvm_ad_rgb"]
+    assert red > 2 * blue  # rosewood: a gray or blue-tinted spectral image would fail below
+    np.testing.assert_allclose(means[SPECTRAL], means["llvm_ad_rgb"], rtol=0.03)
+
+
+def test_register_works_in_every_variant_that_runs_here(granite_32_file):
+    for variant in mi.variants():
+        if variant.startswith("cuda_"):
+            continue  # test_cuda covers the GPU
+        use(variant)
+        mitsuba_plugin.register()  # a second time does nothing
+        assert mi.variant() == variant
+
+
+def test_use_variant_says_what_a_variant_lacks_here(monkeypatch):
+    import warp as wp
+
+    mi.set_variant("scalar_rgb")
+    with pytest.raises(ValueError, match="unknown Mitsuba variant 'llvm_rgb'; this Mitsuba"):
+        mitsuba_plugin.use_variant("llvm_rgb")
+    if not wp.get_cuda_device_count():
+        with pytest.raises(ValueError, match="cuda_ad_spectral cannot run here"):
+            mitsuba_plugin.use_variant("cuda_ad_spectral")
+        assert mi.variant() == "scalar_rgb"
+    with monkeypatch.context() as mp:
+        mp.setattr(mitsuba_plugin, "configure_drjit", lambda: None)
+        with pytest.raises(ValueError, match="llvm_ad_mono needs libLLVM >= 16"):
+            mitsuba_plugin.use_variant("llvm_ad_mono")
+    assert mitsuba_plugin.use_variant("scalar_spectral") == mi.variant() == "scalar_spectral"
+
+
+def test_render_command_takes_a_variant(tmp_path, capsys):
+    from warptex.cli import main
+
+    out = tmp_path / "bunny.exr"
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
+                 "--spp", "1", "--res", "8x8", "--variant", "scalar_spectral"]) == 0
+    assert json.loads((tmp_path / "bunny.exr.json").read_text())["variant"] == "scalar_spectral"
+    assert "scalar_spectral" in capsys.readouterr().out
+    assert np.array(mi.Bitmap(str(out))).mean() > 0.05
