@@ -14,6 +14,7 @@ Renders, each timed after a warm-up render that compiles the kernels:
   default (symbolic, megakernel) mode and in wavefront mode.
 
 Prints the figures and the ratio warm / grid in the default mode (target <= 1.5).
+``--variant llvm_ad_spectral`` measures both textures in a spectral variant.
 """
 
 from __future__ import annotations
@@ -71,8 +72,10 @@ def main() -> None:
     parser.add_argument("--res", type=int, default=256)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--variant", help="Mitsuba variant (default: the best RGB one)")
     args = parser.parse_args()
-    variant = mitsuba_plugin.set_best_variant()
+    variant = (mitsuba_plugin.use_variant(args.variant) if args.variant
+               else mitsuba_plugin.set_best_variant())
     mitsuba_plugin.register()
     path = SCENES / "bunny_wood.xml"
     size = {"width": args.res, "height": args.res}
