@@ -47,7 +47,8 @@ if [[ $steps == *" kopf "* ]]; then
 fi
 if [[ $steps == *" tests "* ]]; then
     timeout 220 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py \
-        tests/test_synthesis.py tests/test_plugin.py -k cuda -rs 2>&1 | tee "$out/pytest_cuda.txt"
+        tests/test_synthesis.py tests/test_plugin.py tests/test_spectral.py -k cuda -rs 2>&1 \
+        | tee "$out/pytest_cuda.txt"
 fi
 if [[ $steps == *" synthesis "* ]]; then
     timeout 90 python3 benchmarks/bench_synthesis.py --exemplars "$data/exemplars" --repeat 2 \

@@ -67,7 +67,8 @@ def use_variant(name: str) -> str:
     except ImportError as e:  # a CUDA variant without a usable GPU
         if previous is not None:  # Mitsuba is left without a variant otherwise
             mi.set_variant(previous)
-        raise ValueError(f"Mitsuba variant {name} cannot run here: {e}") from None
+        raise ValueError(f"Mitsuba variant {name} needs a CUDA GPU and its driver, which "
+                         f"Dr.Jit does not find here ({e})") from None
     return name
 
 

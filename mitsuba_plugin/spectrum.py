@@ -26,8 +26,9 @@ _TABLE = "data/srgb.coeff"
 _GRAY_LIMIT = 8192.0
 
 
-def spectrum(rgb: mi.Color3f, wavelengths: Any) -> mi.UnpolarizedSpectrum:
-    """``rgb`` as the current variant's spectrum at ``wavelengths`` (spectral variants)."""
+def spectrum(rgb: mi.Color3f, wavelengths: mi.UnpolarizedSpectrum) -> mi.UnpolarizedSpectrum:
+    """``rgb`` as the current variant's spectrum at ``wavelengths`` (an interaction's; read
+    in spectral variants only)."""
     if mi.is_spectral:
         return mi.srgb_model_eval(srgb_coefficients(rgb), wavelengths)
     if mi.is_monochromatic:
@@ -35,7 +36,7 @@ def spectrum(rgb: mi.Color3f, wavelengths: Any) -> mi.UnpolarizedSpectrum:
     return rgb
 
 
-def srgb_coefficients(rgb: mi.Color3f) -> Any:
+def srgb_coefficients(rgb: mi.Color3f) -> mi.Vector3f:
     """Coefficients of the spectral upsampling model for colors ``rgb``, clamped to
     [0, 1] first: ``mi.srgb_model_fetch``, for JIT arrays too."""
     if not dr.is_jit_v(mi.Float):
@@ -51,7 +52,7 @@ def srgb_coefficients(rgb: mi.Color3f) -> Any:
         z = dr.select(take, c[j], z)
     after = dr.select(largest == 0, c[1], dr.select(largest == 1, c[2], c[0]))
     before = dr.select(largest == 0, c[2], dr.select(largest == 1, c[0], c[1]))
-    step = (res - 1) / z
+    step = (res - 1) / dr.select(z > 0.0, z, 1.0)  # black is a gray: its value comes below
     x, y = after * step, before * step
     xi = dr.minimum(mi.UInt32(x), res - 2)
     yi = dr.minimum(mi.UInt32(y), res - 2)
@@ -105,14 +106,15 @@ def _check_upsampling(variant: str) -> None:
     probes = _probe_colors()
     ours = np.array(srgb_coefficients(mi.Color3f(probes.T))).T
     theirs = np.array([list(mi.srgb_model_fetch(mi.ScalarColor3f(*c))) for c in probes])
-    # CUDA divides in approximate float32: equal to a few units in the last place there.
+    # Equal to the bit on the CPU (tests); CUDA divides in approximate float32, so there
+    # the lookup may differ in the last bits, which the tolerance allows.
     if not np.allclose(ours, theirs, rtol=1e-4, atol=1e-6):
         worst = int(np.argmax(np.abs(ours - theirs).max(axis=1)))
         raise RuntimeError(
             f"warptex: Mitsuba {mi.__version__} ({variant}) upsamples RGB to spectra "
-            f"otherwise than warptex: color {probes[worst].tolist()} gives "
-            f"{theirs[worst].tolist()} there and {ours[worst].tolist()} here; render "
-            "lazy_solid textures in an RGB variant")
+            f"otherwise than warptex: for color {probes[worst].tolist()} Mitsuba gives "
+            f"coefficients {theirs[worst].tolist()}, warptex {ours[worst].tolist()}; render "
+            "lazy_solid textures in an RGB or monochrome variant")
 
 
 @cache

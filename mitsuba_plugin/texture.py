@@ -176,6 +176,7 @@ class LazySolidTexture(mi.Texture):
 
     def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
+        check_upsampling()  # before any work: this Mitsuba's spectra may be refused
         named = _exemplar_paths(props)
         self.exemplars = [path for _, path in named]
         self.seed = get_property(props, "seed", int, 0)
@@ -209,13 +210,14 @@ class LazySolidTexture(mi.Texture):
                                       store=self.cache)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
-        check_upsampling()
         colors = _exemplar_colors(candidates)
         self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
-        # What eval gives on average: a monochrome variant sees luminance.
-        mean = np.ravel(mi.luminance(mi.Color3f(*self._mean_rgb)))[0]
-        self._mean = float(mean if mi.is_monochromatic else colors.mean())
-        self._max = float(colors.max())
+        # What eval gives on average and at most: a monochrome variant sees luminance, a
+        # spectral one spectra that may exceed a color's largest channel but never 1.
+        self._mean = float(colors.mean())
+        if mi.is_monochromatic:
+            self._mean = float(np.ravel(mi.luminance(mi.Color3f(*self._mean_rgb)))[0])
+        self._max = 1.0 if mi.is_spectral else float(colors.max())
         self._traced: TracedLookup | None = None
         self._frames: _ObjectFrames | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture

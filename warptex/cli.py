@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from warptex import __version__
+from warptex._llvm import MIN_LLVM_MAJOR
 from warptex.exemplar import Exemplar, ExemplarError
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -854,8 +855,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--variant",
                         help="Mitsuba variant to render in, e.g. llvm_ad_spectral or "
                         "scalar_spectral for spectral rendering, llvm_ad_mono for "
-                        "monochrome (default: llvm_ad_rgb where libLLVM >= 16 is found, "
-                        "else scalar_rgb)")
+                        f"monochrome (default: llvm_ad_rgb where libLLVM >= {MIN_LLVM_MAJOR} "
+                        "is found, else scalar_rgb)")
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
