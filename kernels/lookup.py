@@ -269,6 +269,7 @@ def sample_trilinear(
 
 @wp.kernel
 def voxel_sums(
+    slots: wp.array(dtype=wp.int32),
     index: BrickIndex,
     pool: wp.array(dtype=Any),
     col0: wp.array(dtype=wp.float32),
@@ -277,10 +278,11 @@ def voxel_sums(
     channels: int,
     out: wp.array2d(dtype=wp.float32),
 ):
-    """Three-color sum of every voxel of every brick slot, as the lookups compute it, for
-    readers outside Warp (the Mitsuba plugin's traced lookups); NaN where not stored."""
+    """Three-color sum of every voxel of the bricks in pool ``slots`` (-1: absent), as the
+    lookups compute it, for readers outside Warp (the Mitsuba plugin's traced and scalar
+    lookups); NaN where not stored."""
     v = wp.tid()
-    slot = v // BRICK_VOXELS
+    slot = slots[v // BRICK_VOXELS]
     if voxel_stored(index, slot, v % BRICK_VOXELS):
         p = voxel_triple(index, pool, slot, v % BRICK_VOXELS)
         for c in range(channels):

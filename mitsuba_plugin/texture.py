@@ -17,7 +17,8 @@ Properties (XML or ``mi.load_dict``):
 ``space``       string     ``world`` (default) or ``object``, see below
 ``filter``      string     ``trilinear`` (default) or ``nearest``
 ``cache``       string     brick store file: loaded when it exists, written by ``save()``
-``cache_bytes`` integer    memory bound of the brick store (default 256 MiB)
+``cache_bytes`` integer    memory bound of the brick store (default 256 MiB; scalar
+                           variants keep up to as much again, see below)
 ==============  =========  ==============================================================
 
 A scene point p has texture coordinates ``scale * to_world^-1 * p``: one texture unit is
@@ -43,6 +44,10 @@ division is approximate and the GPU compiler may fuse its multiply-adds, so trac
 could differ from the Warp lookups' in the last bits). Outside that helper ``eval`` raises
 inside a symbolic scope, so a plain ``mi.render`` never shows voxels that were not
 synthesized.
+
+Scalar variants evaluate one point at a time, from host copies of the bricks read
+(:mod:`mitsuba_plugin.scalar`, up to ``cache_bytes`` more); a point they lack is left to
+the store, which synthesizes it. Any render works there, ``mi.render`` included.
 """
 
 from __future__ import annotations
@@ -56,6 +61,8 @@ import mitsuba as mi
 import numpy as np
 
 import mitsuba_plugin
+from kernels.lookup import BRICK_VOXELS
+from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
@@ -219,6 +226,9 @@ class LazySolidTexture(mi.Texture):
             self._mean = float(np.ravel(mi.luminance(mi.Color3f(*self._mean_rgb)))[0])
         self._max = 1.0 if mi.is_spectral else float(colors.max())
         self._traced: TracedLookup | None = None
+        # The scalar variants' mirror, as large as the store may be.
+        self._scalar = None if dr.is_jit_v(mi.Float) else ScalarLookup(
+            self.solid.store, self.filter, cache_bytes // (BRICK_VOXELS * 4 * candidates.channels))
         self._frames: _ObjectFrames | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture
         self._update_transform()
@@ -266,9 +276,7 @@ class LazySolidTexture(mi.Texture):
         (DLPack).
         """
         if not dr.is_jit_v(mi.Float):
-            if not active:
-                return mi.Color3f(0.0)
-            return mi.Color3f(*self._query(np.array([it.p], np.float64), it, None)[0])
+            return mi.Color3f(*self._scalar_color(it)) if active else mi.Color3f(0.0)
         if dr.flag(dr.JitFlag.SymbolicScope):
             if self._tracing != threading.get_ident():
                 raise RuntimeError(f"{PLUGIN}: render with mitsuba_plugin.render, which "
@@ -278,7 +286,7 @@ class LazySolidTexture(mi.Texture):
             p = [mi.Float64(c) for c in it.p]
             if self.space == "object":
                 p = self._frames.to_object(it, p)
-            p = _apply_affine(self._world_to_texture.tolist(), *p)
+            p = _apply_affine(self._world_to_texture, *p)
             return self._traced.colors(p, active)
         width = dr.width(it.p)
         # One kernel interleaves the points; in the LLVM variants NumPy then views Dr.Jit's
@@ -338,18 +346,33 @@ class LazySolidTexture(mi.Texture):
         """Write the brick store to the ``cache`` file, if one was given."""
         return self.solid.save() if self.cache is not None else None
 
+    def _scalar_color(self, it: mi.Interaction3f) -> list[float]:
+        """RGB at the point of a scalar variant's interaction ``it``: from the mirrored
+        bricks (:mod:`mitsuba_plugin.scalar`), else from the store, which synthesizes."""
+        p = [float(c) for c in it.p]
+        if self.space == "object":
+            p = _to_object_space(np.array([p]), it, None)[0].tolist()
+        point = _apply_affine(self._world_to_texture, *p)
+        color = self._scalar.color(point)
+        if color is None:
+            self._scalar.forget(point)
+            return self.query_texture_space(np.array([point])).tolist()[0]
+        return color[:3] if len(color) >= 3 else color[:1] * 3
+
     def _query(self, points: np.ndarray, it: mi.Interaction3f,
                keep: np.ndarray | None) -> np.ndarray:
         """RGB (N, 3) at scene ``points`` (N, 3) of interaction ``it``."""
         points = points.astype(np.float64)
         if self.space == "object":
             points = _to_object_space(points, it, keep)
-        texture = _apply_affine(self._world_to_texture.tolist(), *points.T)
+        texture = _apply_affine(self._world_to_texture, *points.T)
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
         to_world = _affine_matrix(self.to_world)
-        self._world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ np.linalg.inv(to_world)
+        # Rows of plain floats: _apply_affine runs on single points in scalar variants.
+        self._world_to_texture = (np.diag([self.scale] * 3 + [1.0])
+                                  @ np.linalg.inv(to_world)).tolist()
 
 
 def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:

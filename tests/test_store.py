@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from kernels.lookup import BRICK_VOXELS
 from warptex.store import (
     BrickStore,
     StoreFileError,
@@ -322,6 +323,14 @@ def test_partly_filled_bricks_cost_only_their_voxels(candidates, tmp_path: Path)
     assert store.stats()["misses"] == 0
     snap = store.snapshot()
     assert np.isfinite(snap.sums[:, 0]).sum() == len(voxels)
+    # Bricks asked for by key, in any order, absent ones all NaN: the snapshot's rows.
+    live = np.flatnonzero(snap.keys >= 0)[::-1]
+    absent = brick_keys(np.array([[400, 0, 0]]))
+    asked = store.brick_sums(np.concatenate([snap.keys[live], absent])).reshape(
+        len(live) + 1, BRICK_VOXELS, -1)
+    np.testing.assert_array_equal(asked[:-1],
+                                  snap.sums.reshape(-1, BRICK_VOXELS, asked.shape[2])[live])
+    assert np.isnan(asked[-1]).all()
 
     path = tmp_path / "packed.wtb"
     store.save(path)

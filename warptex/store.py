@@ -314,14 +314,25 @@ class BrickStore:
     def snapshot(self) -> Snapshot:
         """The stored bricks and their voxels' color sums (see :class:`Snapshot`)."""
         with self._lock.shared():
-            dev = self._device
-            sums = wp.empty((len(self._keys) * _k.BRICK_VOXELS, self.channels),
-                            dtype=wp.float32, device=dev)
-            if sums.shape[0]:
-                wp.launch(_k.voxel_sums, sums.shape[0],
-                          [self._index, self._pool, *self._colors, self.channels], [sums],
-                          device=dev)
-            return Snapshot(self._version, self._keys.copy(), sums.numpy())
+            slots = np.arange(len(self._keys))
+            return Snapshot(self._version, self._keys.copy(), self._voxel_sums(slots))
+
+    def brick_sums(self, keys: np.ndarray) -> np.ndarray:
+        """Color sums (len(keys) * 512, C) of the voxels of bricks ``keys``, in the layout
+        and with the NaNs of :class:`Snapshot`'s; all NaN for a brick not stored."""
+        with self._lock.shared():
+            return self._voxel_sums(self._slots_of(np.asarray(keys, np.int64)))
+
+    def _voxel_sums(self, slots: np.ndarray) -> np.ndarray:
+        """:class:`Snapshot` sums of the bricks in pool ``slots`` (-1: absent)."""
+        sums = wp.empty((len(slots) * _k.BRICK_VOXELS, self.channels), dtype=wp.float32,
+                        device=self._device)
+        if sums.shape[0]:
+            slots = slots.astype(np.int32)  # held while the launch views it
+            wp.launch(_k.voxel_sums, sums.shape[0],
+                      [self._on_device(slots, wp.int32), self._index, self._pool,
+                       *self._colors, self.channels], [sums], device=self._device)
+        return sums.numpy()
 
     def stats(self) -> dict:
         """Bricks and stored voxels, bytes, lookups served from the store (hits) or not

@@ -1,0 +1,71 @@
+"""Scalar variants' lookups (mitsuba_plugin.scalar): the store's colors to the bit, cold
+and warm, with either filter, from partly filled bricks and through a mirror that starts
+over, with warm points served without the store."""
+
+from __future__ import annotations
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mitsuba_plugin
+from mitsuba_plugin.scalar import ScalarLookup
+
+
+def sample_points(rng: np.random.Generator, n: int, low: float, high: float) -> np.ndarray:
+    """Random points, a quarter of them on voxel faces and centers, where rounding bites."""
+    points = rng.uniform(low, high, (n, 3))
+    points[: n // 8] = np.round(points[: n // 8])
+    points[n // 8 : n // 4] = np.round(points[n // 8 : n // 4]) + 0.5
+    return points
+
+
+@pytest.mark.parametrize("filter", ["trilinear", "nearest"])
+def test_eval_is_the_store_to_the_bit_cold_and_warm(granite_32_file, filter):
+    mi.set_variant("scalar_rgb")
+    mitsuba_plugin.register()
+    tex = mi.load_dict({"type": "lazy_solid", "exemplar": str(granite_32_file),
+                        "scale": 8.0, "filter": filter})
+    world = sample_points(np.random.default_rng(4), 300, -3.0, 3.0) / 8.0
+    si = mi.SurfaceInteraction3f()
+
+    def evaluated() -> np.ndarray:
+        out = []
+        for p in world:
+            si.p = mi.Point3f(*p)
+            out.append(list(tex.eval(si)))
+        return np.array(out, np.float32)
+
+    cold = evaluated()  # bricks synthesized as points reach them
+    before = tex.solid.store.stats()
+    warm = evaluated()
+    after = tex.solid.store.stats()
+    assert (after["hits"], after["misses"]) == (before["hits"], before["misses"])
+    # The points as the plugin maps them: float32 scene points, scaled in float64.
+    expected = tex.solid.query(world.astype(np.float32).astype(np.float64) * 8.0,
+                               filter=filter)
+    np.testing.assert_array_equal(cold, expected)
+    np.testing.assert_array_equal(warm, expected)
+
+
+@pytest.mark.parametrize("filter", ["trilinear", "nearest"])
+def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_file,
+                                                                    warp_device, filter):
+    from warptex.texture import SolidTexture
+
+    tex = SolidTexture(granite_32_file, whole_bricks=False, device=warp_device)
+    tex.query(np.array([[3.5, 3.5, 3.5]]), filter="nearest")  # one voxel of its brick
+    lookup = ScalarLookup(tex.store, filter, max_bricks=1)  # starts over at every brick
+    points = sample_points(np.random.default_rng(6), 200, -12.0, 12.0)
+    got = []
+    for p in points:
+        color = lookup.color(tuple(p))
+        if color is None:
+            lookup.forget(tuple(p))
+            tex.query(p[None], filter=filter)
+            color = lookup.color(tuple(p))
+        got.append(color)
+    assert lookup.color(tuple(points[0])) is not None  # stored by now
+    assert ScalarLookup(tex.store, filter, 8).color((40.0, 40.0, 40.0)) is None  # not stored
+    np.testing.assert_array_equal(np.array(got, np.float64).astype(np.float32),
+                                  tex.query(points, filter=filter))
