@@ -180,11 +180,14 @@ def _print_report(report: dict) -> None:
           f"render {report['render_seconds']:.1f} s")
     for entry in report["textures"]:
         s, t = entry["store"], entry["traced"]
+        if "scalar_hits" in t:  # a scalar variant: points from brick copies, else the store
+            lookups = (f"scalar lookups {t['scalar_hits']} from brick copies / "
+                       f"{t['scalar_misses']} left to the store, store lookups")
+        else:
+            lookups = (f"traced renders {t['renders']} (repeated after missing bricks: "
+                       f"{t['renders_with_misses']}), wavefront lookups")
         print(f"  {entry['texture']}\n    {s['voxels']} voxels in {s['bricks']} bricks "
-              f"({s['bytes'] / 2**20:.2f} MiB), "
-              f"traced renders {t['renders']} (repeated after missing bricks: "
-              f"{t['renders_with_misses']}), "
-              f"wavefront lookups {s['hits']} hits / {s['misses']} misses, "
-              f"synthesis {s['synthesis_seconds']:.1f} s"
+              f"({s['bytes'] / 2**20:.2f} MiB), {lookups} {s['hits']} hits / "
+              f"{s['misses']} misses, synthesis {s['synthesis_seconds']:.1f} s"
               + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))
     print(f"  statistics: {report['image']}.json")

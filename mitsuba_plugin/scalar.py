@@ -9,7 +9,10 @@ host arrays and blends them in plain Python with the float operations of
 ``kernels.lookup``: the colors are bit-identical to the store's. A point whose voxels are
 not all stored is left to the store, which synthesizes them; the mirror then reads those
 bricks afresh. Stored voxels never change value, so a mirrored brick stays right even
-after the store evicts it; the mirror starts over when it holds ``max_bricks``.
+after the store evicts it; the mirror starts over when it holds ``max_bricks`` (6.8 KB a
+brick of RGB sums, Python's objects included). The store counts a brick as used when it is
+copied, not at each read, so under a tight ``cache_bytes`` it may evict bricks the copies
+still serve, and synthesize them again once the mirror has started over.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 
 from kernels.lookup import BRICK
 from warptex.store import CORNERS, BrickStore, brick_keys
+from warptex.texture import POINT_LIMIT
 
 _SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
 _MASK = BRICK - 1
@@ -37,10 +41,31 @@ class ScalarLookup:
         self._channels = store.channels
         self._bricks: dict[tuple[int, int, int], memoryview] = {}
         self._lock = threading.Lock()  # Mitsuba's render threads share the mirror
+        # [served, left to the store] per render thread: no increment races another.
+        self._counts: list[list[int]] = []
+        self._local = threading.local()
+
+    def stats(self) -> dict:
+        """Points served from the copies (``hits``) and left to the store (``misses``)."""
+        with self._lock:
+            return {"hits": sum(c[0] for c in self._counts),
+                    "misses": sum(c[1] for c in self._counts)}
 
     def color(self, p: tuple[float, float, float]) -> list[float] | None:
-        """Channel values at point ``p``, or None where a voxel it reads is not stored;
-        the arithmetic of ``kernels.lookup.sample_nearest`` / ``sample_trilinear``."""
+        """Channel values at point ``p``, or None where a voxel it reads is not stored
+        (or ``p`` lies beyond the texture's range, which the store then reports); the
+        arithmetic of ``kernels.lookup.sample_nearest`` / ``sample_trilinear``."""
+        inside = all(abs(c) < POINT_LIMIT for c in p)  # False for NaN too
+        color = self._color(p) if inside else None
+        counts = getattr(self._local, "counts", None)
+        if counts is None:
+            counts = self._local.counts = [0, 0]
+            with self._lock:
+                self._counts.append(counts)
+        counts[color is None] += 1
+        return color
+
+    def _color(self, p: tuple[float, float, float]) -> list[float] | None:
         if self.filter == "nearest":
             sums = self._voxel_sums(math.floor(p[0]), math.floor(p[1]), math.floor(p[2]))
             return None if sums is None else [s / 3.0 for s in sums]
@@ -82,7 +107,8 @@ class ScalarLookup:
 
     def _mirror(self, brick: tuple[int, int, int]) -> memoryview:
         voxel = np.array([brick], np.int64) << _SHIFT
-        sums = memoryview(self.store.brick_sums(brick_keys(voxel)).reshape(-1))
+        # A compact copy: a view would keep the store's whole result array alive.
+        sums = memoryview(self.store.brick_sums(brick_keys(voxel)).tobytes()).cast("f")
         with self._lock:
             if len(self._bricks) >= self.max_bricks:
                 self._bricks.clear()

@@ -18,7 +18,7 @@ Properties (XML or ``mi.load_dict``):
 ``filter``      string     ``trilinear`` (default) or ``nearest``
 ``cache``       string     brick store file: loaded when it exists, written by ``save()``
 ``cache_bytes`` integer    memory bound of the brick store (default 256 MiB; scalar
-                           variants keep up to as much again, see below)
+                           variants keep up to about as much again, see below)
 ==============  =========  ==============================================================
 
 A scene point p has texture coordinates ``scale * to_world^-1 * p``: one texture unit is
@@ -46,7 +46,7 @@ inside a symbolic scope, so a plain ``mi.render`` never shows voxels that were n
 synthesized.
 
 Scalar variants evaluate one point at a time, from host copies of the bricks read
-(:mod:`mitsuba_plugin.scalar`, up to ``cache_bytes`` more); a point they lack is left to
+(:mod:`mitsuba_plugin.scalar`, up to about ``cache_bytes`` more); a point they lack is left to
 the store, which synthesizes it. Any render works there, ``mi.render`` included.
 """
 
@@ -337,10 +337,15 @@ class LazySolidTexture(mi.Texture):
 
     def traced_stats(self) -> dict:
         """Symbolic renders with traced lookups, and how many of them missed a brick
-        (those are rendered again)."""
+        (those are rendered again); in scalar variants, the points served from the copies
+        of bricks (``scalar_hits``) and left to the store (``scalar_misses``)."""
         t = self._traced
-        return {"renders": t.renders if t else 0,
-                "renders_with_misses": t.renders_with_misses if t else 0}
+        stats = {"renders": t.renders if t else 0,
+                 "renders_with_misses": t.renders_with_misses if t else 0}
+        if self._scalar is not None:
+            counts = self._scalar.stats()
+            stats |= {"scalar_hits": counts["hits"], "scalar_misses": counts["misses"]}
+        return stats
 
     def save(self) -> Path | None:
         """Write the brick store to the ``cache`` file, if one was given."""

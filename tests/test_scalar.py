@@ -37,10 +37,12 @@ def test_eval_is_the_store_to_the_bit_cold_and_warm(granite_32_file, filter):
         return np.array(out, np.float32)
 
     cold = evaluated()  # bricks synthesized as points reach them
-    before = tex.solid.store.stats()
+    before, counted = tex.solid.store.stats(), tex.traced_stats()
     warm = evaluated()
     after = tex.solid.store.stats()
     assert (after["hits"], after["misses"]) == (before["hits"], before["misses"])
+    assert tex.traced_stats()["scalar_hits"] == counted["scalar_hits"] + len(world)
+    assert tex.traced_stats()["scalar_misses"] == counted["scalar_misses"] > 0
     # The points as the plugin maps them: float32 scene points, scaled in float64.
     expected = tex.solid.query(world.astype(np.float32).astype(np.float64) * 8.0,
                                filter=filter)
@@ -69,3 +71,29 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
     assert ScalarLookup(tex.store, filter, 8).color((40.0, 40.0, 40.0)) is None  # not stored
     np.testing.assert_array_equal(np.array(got, np.float64).astype(np.float32),
                                   tex.query(points, filter=filter))
+
+
+def test_gray_exemplars_and_points_out_of_range(granite_32_file, tmp_path):
+    """A one-channel exemplar gives gray RGB as the store's query does; a point beyond the
+    texture's range is the store's error, not another brick's color (packed brick keys
+    would wrap there)."""
+    from PIL import Image
+
+    from warptex.texture import POINT_LIMIT
+
+    gray = tmp_path / "gray.png"
+    Image.open(granite_32_file).convert("L").save(gray)
+    mi.set_variant("scalar_rgb")
+    mitsuba_plugin.register()
+    tex = mi.load_dict({"type": "lazy_solid", "exemplar": str(gray), "scale": 1.0})
+    si = mi.SurfaceInteraction3f()
+    si.p = mi.Point3f(3.25, -7.5, 12.0)
+    expected = tex.solid.query(np.array([[3.25, -7.5, 12.0]]))[0, 0]
+    for _ in range(2):  # cold, then from the copies
+        assert list(tex.eval(si)) == [pytest.approx(expected, abs=0.0)] * 3
+    lookup = tex._scalar
+    assert lookup.color((3.5, 3.5, 2.0**24 + 3.5)) is None
+    assert lookup.color((float("nan"), 0.0, 0.0)) is None
+    si.p = mi.Point3f(3.5, 3.5, POINT_LIMIT + 8.0)
+    with pytest.raises(ValueError, match="points must lie within"):
+        tex.eval(si)
