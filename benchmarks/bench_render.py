@@ -100,6 +100,7 @@ def main() -> None:
     cold = timed(render(scene))
     stats = texture.solid.store.stats()
     rounds = texture.traced_stats()
+    scalar = texture.scalar_stats()
     warm = [timed(render(scene)) for _ in range(args.repeat)]
     timed(render(scene, "wavefront"))
     warm_wavefront = [timed(render(scene, "wavefront")) for _ in range(args.repeat)]
@@ -123,10 +124,11 @@ def main() -> None:
     w, ww, g, gw = (statistics.median(x)
                     for x in (warm, warm_wavefront, grid_default, grid_wavefront))
     print(f"variant {variant}, {args.res}x{args.res}, {args.spp} spp, median of {args.repeat}")
+    served = (f"{rounds['renders']} traced renders, {rounds['renders_with_misses']} of them "
+              "with misses" if scalar is None else
+              f"{scalar['hits']} points from brick copies, {scalar['misses']} left to the store")
     print(f"cold lazy_solid render:   {cold:6.2f} s  "
-          f"(synthesis {stats['synthesis_seconds']:.2f} s, {stats['bricks']} bricks, "
-          f"{rounds['renders']} traced renders, {rounds['renders_with_misses']} of them "
-          "with misses)")
+          f"(synthesis {stats['synthesis_seconds']:.2f} s, {stats['bricks']} bricks, {served})")
     print(f"warm lazy_solid render:   {w:6.2f} s  {[round(x, 2) for x in warm]}")
     print(f"warm, wavefront mode:     {ww:6.2f} s  {[round(x, 2) for x in warm_wavefront]}")
     print(f"gridvolume, default mode: {g:6.2f} s  {[round(x, 2) for x in grid_default]}")

@@ -5,7 +5,9 @@
 #     64 px exemplar (benchmarks/bench_kopf.py);
 #   - CPU and CUDA synthesize bit-identical voxels (tests/test_synthesis.py), and agree on
 #     brick-store queries, surface shells and texel points (tests/test_cuda.py); the
-#     plugin's cuda_ad_rgb lookups equal SolidTexture.query (tests/test_plugin.py);
+#     plugin's cuda_ad_rgb lookups equal SolidTexture.query (tests/test_plugin.py), and its
+#     cuda_* variants register, evaluate and upsample spectra as Mitsuba does
+#     (tests/test_spectral.py);
 #   - the engine's own figures (benchmarks/bench_synthesis.py).
 # Each step has its time limit, so that the whole ends within about 570 s (unpacking
 # included) and what finished comes back. PARTS is the folder holding the staged parts

@@ -93,8 +93,11 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 
     if resolution is not None:  # before loading: a film this size may not even be made
         check_render_size(*resolution, _samples_per_batch(spp or 1))
-    variant = (mitsuba_plugin.set_best_variant() if variant is None
-               else mitsuba_plugin.use_variant(variant))
+    try:
+        variant = (mitsuba_plugin.set_best_variant() if variant is None
+                   else mitsuba_plugin.use_variant(variant))
+    except ValueError as e:
+        raise ValueError(f"--variant {variant}: {e}") from None
     mitsuba_plugin.register()
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
     start = time.perf_counter()
@@ -170,7 +173,7 @@ def _progress(done: int, total: int) -> None:
 def _save_and_report(texture) -> dict:
     saved = texture.save()
     return {"texture": texture.to_string(), "store": texture.solid.store.stats(),
-            "traced": texture.traced_stats(),
+            "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
             "saved_to": None if saved is None else str(saved)}
 
 
@@ -179,10 +182,10 @@ def _print_report(report: dict) -> None:
           f"{report['spp']} spp, {report['variant']}): load {report['load_seconds']:.1f} s, "
           f"render {report['render_seconds']:.1f} s")
     for entry in report["textures"]:
-        s, t = entry["store"], entry["traced"]
-        if "scalar_hits" in t:  # a scalar variant: points from brick copies, else the store
-            lookups = (f"scalar lookups {t['scalar_hits']} from brick copies / "
-                       f"{t['scalar_misses']} left to the store, store lookups")
+        s, t, c = entry["store"], entry["traced"], entry["scalar"]
+        if c is not None:  # a scalar variant: points from brick copies, else the store
+            lookups = (f"scalar lookups {c['hits']} from brick copies / {c['misses']} left "
+                       "to the store, store lookups")
         else:
             lookups = (f"traced renders {t['renders']} (repeated after missing bricks: "
                        f"{t['renders_with_misses']}), wavefront lookups")

@@ -9,10 +9,11 @@ host arrays and blends them in plain Python with the float operations of
 ``kernels.lookup``: the colors are bit-identical to the store's. A point whose voxels are
 not all stored is left to the store, which synthesizes them; the mirror then reads those
 bricks afresh. Stored voxels never change value, so a mirrored brick stays right even
-after the store evicts it; the mirror starts over when it holds ``max_bricks`` (6.8 KB a
-brick of RGB sums, Python's objects included). The store counts a brick as used when it is
-copied, not at each read, so under a tight ``cache_bytes`` it may evict bricks the copies
-still serve, and synthesize them again once the mirror has started over.
+after the store evicts it; the mirror starts over when its copies' floats reach
+``max_bytes`` (6.8 KB a brick of RGB sums, Python's objects included). The store counts a
+brick as used when it is copied, not at each read, so under a tight ``cache_bytes`` it may
+evict bricks the copies still serve, and synthesize them again once the mirror has started
+over.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import threading
 
 import numpy as np
 
-from kernels.lookup import BRICK
+from kernels.lookup import BRICK, BRICK_VOXELS
 from warptex.store import CORNERS, BrickStore, brick_keys
 from warptex.texture import POINT_LIMIT
 
@@ -34,11 +35,11 @@ _CORNERS = [tuple(int(v) for v in d) for d in CORNERS]  # plain ints: this runs 
 class ScalarLookup:
     """Colors of single texture-space points from mirrored bricks of one brick store."""
 
-    def __init__(self, store: BrickStore, filter: str, max_bricks: int) -> None:
+    def __init__(self, store: BrickStore, filter: str, max_bytes: int) -> None:
         self.store = store
         self.filter = filter
-        self.max_bricks = max(1, max_bricks)
         self._channels = store.channels
+        self.max_bricks = max(1, max_bytes // (BRICK_VOXELS * 4 * self._channels))
         self._bricks: dict[tuple[int, int, int], memoryview] = {}
         self._lock = threading.Lock()  # Mitsuba's render threads share the mirror
         # [served, left to the store] per render thread: no increment races another.

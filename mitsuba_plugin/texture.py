@@ -61,7 +61,6 @@ import mitsuba as mi
 import numpy as np
 
 import mitsuba_plugin
-from kernels.lookup import BRICK_VOXELS
 from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
@@ -219,16 +218,16 @@ class LazySolidTexture(mi.Texture):
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = _exemplar_colors(candidates)
         self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
-        # What eval gives on average and at most: a monochrome variant sees luminance, a
-        # spectral one spectra that may exceed a color's largest channel but never 1.
+        # What eval gives on average (the mean channel; luminance in a monochrome variant)
+        # and at most (spectra may exceed a color's largest channel, but never 1).
         self._mean = float(colors.mean())
         if mi.is_monochromatic:
             self._mean = float(np.ravel(mi.luminance(mi.Color3f(*self._mean_rgb)))[0])
         self._max = 1.0 if mi.is_spectral else float(colors.max())
         self._traced: TracedLookup | None = None
-        # The scalar variants' mirror, as large as the store may be.
-        self._scalar = None if dr.is_jit_v(mi.Float) else ScalarLookup(
-            self.solid.store, self.filter, cache_bytes // (BRICK_VOXELS * 4 * candidates.channels))
+        # The scalar variants' copies of bricks, as large as the store may be.
+        self._scalar = (None if dr.is_jit_v(mi.Float)
+                        else ScalarLookup(self.solid.store, self.filter, cache_bytes))
         self._frames: _ObjectFrames | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture
         self._update_transform()
@@ -337,15 +336,15 @@ class LazySolidTexture(mi.Texture):
 
     def traced_stats(self) -> dict:
         """Symbolic renders with traced lookups, and how many of them missed a brick
-        (those are rendered again); in scalar variants, the points served from the copies
-        of bricks (``scalar_hits``) and left to the store (``scalar_misses``)."""
+        (those are rendered again)."""
         t = self._traced
-        stats = {"renders": t.renders if t else 0,
-                 "renders_with_misses": t.renders_with_misses if t else 0}
-        if self._scalar is not None:
-            counts = self._scalar.stats()
-            stats |= {"scalar_hits": counts["hits"], "scalar_misses": counts["misses"]}
-        return stats
+        return {"renders": t.renders if t else 0,
+                "renders_with_misses": t.renders_with_misses if t else 0}
+
+    def scalar_stats(self) -> dict | None:
+        """In scalar variants, the points served from the copies of bricks (``hits``) and
+        left to the store (``misses``); None in the JIT variants."""
+        return None if self._scalar is None else self._scalar.stats()
 
     def save(self) -> Path | None:
         """Write the brick store to the ``cache`` file, if one was given."""
@@ -362,7 +361,7 @@ class LazySolidTexture(mi.Texture):
         if color is None:
             self._scalar.forget(point)
             return self.query_texture_space(np.array([point])).tolist()[0]
-        return color[:3] if len(color) >= 3 else color[:1] * 3
+        return _as_rgb(np.array([color])).tolist()[0]  # float32, as Color3f rounds
 
     def _query(self, points: np.ndarray, it: mi.Interaction3f,
                keep: np.ndarray | None) -> np.ndarray:
@@ -382,7 +381,7 @@ class LazySolidTexture(mi.Texture):
 
 def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
     """The affine map of ``rows`` (3 rows of 4 coefficients: numbers, or per-point
-    arrays) applied to coordinates ``x, y, z`` (NumPy or Dr.Jit float64 arrays) in one
+    arrays) applied to coordinates ``x, y, z`` (floats, or NumPy or Dr.Jit float64 arrays) in one
     fixed order of operations, so that wavefront and traced lookups of a point reach the
     same voxel coordinates to the last bit."""
     return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in list(rows)[:3])

@@ -127,7 +127,7 @@ CASES = [
      "same number of feature channels"),
     (["render", "{scene}", "-o", "{out}/r.jpg"], "must end in .exr or .png"),
     (["render", "{scene}", "--variant", "rgb", "-o", "{out}/r.png"],
-     "unknown Mitsuba variant 'rgb'; this Mitsuba has scalar_rgb"),
+     "--variant rgb: unknown Mitsuba variant 'rgb'; this Mitsuba has scalar_rgb"),
     (["render", "{scene}", "-o", "{out}/r.png"], "cannot load the scene"),
     (["render", "{bad_property}", "-o", "{out}/r.png"],
      'load the scene: line 1, col 46: lazy_solid: property "filter" must be "trilinear"'),

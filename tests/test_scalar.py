@@ -37,12 +37,13 @@ def test_eval_is_the_store_to_the_bit_cold_and_warm(granite_32_file, filter):
         return np.array(out, np.float32)
 
     cold = evaluated()  # bricks synthesized as points reach them
-    before, counted = tex.solid.store.stats(), tex.traced_stats()
+    before, counted = tex.solid.store.stats(), tex.scalar_stats()
     warm = evaluated()
     after = tex.solid.store.stats()
     assert (after["hits"], after["misses"]) == (before["hits"], before["misses"])
-    assert tex.traced_stats()["scalar_hits"] == counted["scalar_hits"] + len(world)
-    assert tex.traced_stats()["scalar_misses"] == counted["scalar_misses"] > 0
+    assert tex.scalar_stats() == {"hits": counted["hits"] + len(world),
+                                  "misses": counted["misses"]}
+    assert counted["misses"] > 0
     # The points as the plugin maps them: float32 scene points, scaled in float64.
     expected = tex.solid.query(world.astype(np.float32).astype(np.float64) * 8.0,
                                filter=filter)
@@ -57,7 +58,7 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
 
     tex = SolidTexture(granite_32_file, whole_bricks=False, device=warp_device)
     tex.query(np.array([[3.5, 3.5, 3.5]]), filter="nearest")  # one voxel of its brick
-    lookup = ScalarLookup(tex.store, filter, max_bricks=1)  # starts over at every brick
+    lookup = ScalarLookup(tex.store, filter, max_bytes=1)  # starts over at every brick
     points = sample_points(np.random.default_rng(6), 200, -12.0, 12.0)
     got = []
     for p in points:
@@ -68,7 +69,7 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
             color = lookup.color(tuple(p))
         got.append(color)
     assert lookup.color(tuple(points[0])) is not None  # stored by now
-    assert ScalarLookup(tex.store, filter, 8).color((40.0, 40.0, 40.0)) is None  # not stored
+    assert ScalarLookup(tex.store, filter, 1 << 20).color((40.0, 40.0, 40.0)) is None
     np.testing.assert_array_equal(np.array(got, np.float64).astype(np.float32),
                                   tex.query(points, filter=filter))
 

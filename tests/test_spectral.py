@@ -214,8 +214,6 @@ def test_every_variant_registers_once_and_evaluates(granite_32_file, variant):
 
 
 def test_use_variant_says_what_a_variant_lacks_here(monkeypatch):
-    import warp as wp
-
     mi.set_variant("scalar_rgb")
     with pytest.raises(ValueError, match="unknown Mitsuba variant 'llvm_rgb'; this Mitsuba"):
         mitsuba_plugin.use_variant("llvm_rgb")

@@ -287,6 +287,19 @@ def test_a_file_of_another_kind_is_refused_and_kept(candidates, tmp_path: Path):
         BrickStore.load(empty, synthesizer(candidates))
 
 
+def test_bricks_read_through_brick_sums_count_as_used(candidates):
+    """The scalar plugin's copies read bricks through brick_sums: those count for
+    least-recently-used eviction like a lookup's."""
+    store = BrickStore(synthesizer(candidates))
+    for b in [(0, 0, 0), (1, 0, 0), (2, 0, 0)]:
+        sample(store, [brick_center(b)])
+    store.brick_sums(brick_keys(np.array([[0, 0, 0]])))  # the oldest becomes the newest
+    store.cache_bytes = 2 * BRICK_BYTES
+    store.prefetch(np.array([[0, 40, 0]]))
+    snap = store.snapshot()
+    assert set(snap.keys[snap.keys >= 0]) == set(brick_keys(np.array([[0, 0, 0], [0, 40, 0]])))
+
+
 def test_a_loaded_store_evicts_in_the_saved_recency_order(candidates, tmp_path: Path):
     syn = synthesizer(candidates)
     store = BrickStore(syn)

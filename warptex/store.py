@@ -319,9 +319,13 @@ class BrickStore:
 
     def brick_sums(self, keys: np.ndarray) -> np.ndarray:
         """Color sums (len(keys) * 512, C) of the voxels of bricks ``keys``, in the layout
-        and with the NaNs of :class:`Snapshot`'s; all NaN for a brick not stored."""
+        and with the NaNs of :class:`Snapshot`'s; all NaN for a brick not stored. The
+        stored ones count as just used, for least-recently-used eviction."""
         with self._lock.shared():
-            return self._voxel_sums(self._slots_of(np.asarray(keys, np.int64)))
+            slots = self._slots_of(np.asarray(keys, np.int64))
+            sums, version = self._voxel_sums(slots), self._version
+        self.mark_used(slots[slots >= 0], version)
+        return sums
 
     def _voxel_sums(self, slots: np.ndarray) -> np.ndarray:
         """:class:`Snapshot` sums of the bricks in pool ``slots`` (-1: absent)."""
