@@ -15,9 +15,10 @@ shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
     image = mitsuba_plugin.render(mi.load_file("scenes/bunny_wood.xml"), spp=16)
 
 Under the JIT variants a symbolic render traces every live BSDF, so while a
-``lazy_solid`` texture is alive in the process, render through ``render()`` or in
-``wavefront()`` mode; a plain symbolic ``mi.render`` raises rather than show voxels that
-were never synthesized.
+``lazy_solid`` texture is alive in the process, render through ``render()``, in
+``wavefront()`` mode, or inside a ``traced_renders()`` block (your own ``mi.render`` calls
+with parameters and gradients, once ``render()`` has stored what they read); a plain
+symbolic ``mi.render`` raises rather than show voxels that were never synthesized.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ TRACED_ROUNDS = 6
 _registered: set[str] = set()
 # One traced render at a time: textures keep one miss log each.
 _tracing = threading.Lock()
+_tracer: list[int | None] = [None]  # the thread holding it
 # Every lazy_solid texture alive, so a render helper can report and save brick stores;
 # kept here because the plugin modules are re-run per variant.
 live_textures: weakref.WeakSet = weakref.WeakSet()
@@ -148,29 +150,80 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     return image
 
 
-def _render_batch(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
+class MissedVoxels(RuntimeError):
+    """Renders in a :func:`traced_renders` block read voxels that were not stored: they showed a
+    stand-in color and are synthesized now, so the block is to be run again."""
+
+
+@contextmanager
+def traced_renders(scene: mi.Scene) -> Iterator[None]:
+    """Symbolic renders of ``scene`` in the block, as your own code makes them: ``mi.render``
+    with scene parameters, gradients and ``dr.backward`` (differentiable rendering with
+    ``prb``, say), the ``lazy_solid`` textures' stored voxels traced into their programs.
+
+    Render the scene once with :func:`render` first, so that what the block reads is
+    stored. Voxels it reads that are not show a stand-in color; leaving the block
+    synthesizes them and raises :class:`MissedVoxels`. A texture that cannot be traced
+    (a CUDA variant, bricks scattered too widely) is a RuntimeError: render in
+    :func:`wavefront` mode then. Scalar variants need no block: any render works there.
+    """
+    if not dr.is_jit_v(mi.Float):
+        yield
+        return
+    outcome: dict[str, int] = {}
+    with _traced_lookups(scene, outcome) as usable:
+        if not usable:
+            raise RuntimeError("lazy_solid: a texture of this scene cannot be traced (a CUDA "
+                               "variant, or stored bricks scattered too widely): render in "
+                               "mitsuba_plugin.wavefront() mode instead")
+        yield
+    if outcome["missed"]:
+        raise MissedVoxels(f"lazy_solid: the block's renders read {outcome['missed']} voxels "
+                           "that were not stored, shown in a stand-in color; they are "
+                           "synthesized now: run the block again")
+
+
+@contextmanager
+def _traced_lookups(scene: mi.Scene, outcome: dict[str, int]) -> Iterator[bool]:
+    """Serve the live textures' symbolic evals in ``scene`` from their stored voxels for
+    the block, which is told whether every texture can be traced; on leaving, the voxels
+    its renders missed are synthesized and counted in ``outcome["missed"]``."""
+    if _tracer[0] == threading.get_ident():  # the lock would wait for this very thread
+        raise RuntimeError("mitsuba_plugin: render() and traced_renders() cannot run "
+                           "inside a traced_renders() block")
     live = textures()
+    with _tracing:
+        _tracer[0] = threading.get_ident()
+        usable = all([t.begin_tracing(scene) for t in live])
+        try:
+            yield usable
+        finally:
+            for t in live:
+                t.end_tracing()
+            _tracer[0] = None
+        if usable:
+            outcome["missed"] = sum(t.fill_misses() for t in live)
+
+
+def _render_batch(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
     if dr.is_jit_v(mi.Float):
-        with _tracing:
-            image = _render_traced(scene, spp, seed, live)
+        image = _render_traced(scene, spp, seed)
         if image is not None:
             return image
     with wavefront():
         return mi.render(scene, spp=spp, seed=seed)
 
 
-def _render_traced(scene: mi.Scene, spp: int, seed: int, live: list) -> mi.TensorXf | None:
+def _render_traced(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf | None:
     """A render whose lookups all found stored voxels, or None (see :func:`render`)."""
     for _ in range(TRACED_ROUNDS):
-        try:
-            if not all([t.begin_tracing(scene) for t in live]):
+        outcome: dict[str, int] = {}
+        with _traced_lookups(scene, outcome) as usable:
+            if not usable:
                 return None
             image = mi.render(scene, spp=spp, seed=seed)
             dr.eval(image)
-        finally:
-            for t in live:
-                t.end_tracing()
-        if not sum(t.fill_misses() for t in live):
+        if not outcome["missed"]:
             return image
     return None
 

@@ -41,9 +41,10 @@ and ``SymbolicCalls`` off, so ``eval`` gets the concrete points of a whole wavef
 when a texture cannot be traced: its stored bricks scattered too widely for one page
 table, a render that keeps reaching new bricks, or a CUDA variant (there Dr.Jit's float32
 division is approximate and the GPU compiler may fuse its multiply-adds, so traced colors
-could differ from the Warp lookups' in the last bits). Outside that helper ``eval`` raises
-inside a symbolic scope, so a plain ``mi.render`` never shows voxels that were not
-synthesized.
+could differ from the Warp lookups' in the last bits). Your own symbolic renders
+(differentiable ones, say) trace the same lookups inside a
+:func:`mitsuba_plugin.traced_renders` block. Outside these ``eval`` raises inside a
+symbolic scope, so a plain ``mi.render`` never shows voxels that were not synthesized.
 
 Scalar variants evaluate one point at a time, from host copies of the bricks read
 (:mod:`mitsuba_plugin.scalar`, up to about ``cache_bytes`` more); a point they lack is left to

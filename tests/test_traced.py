@@ -226,8 +226,8 @@ def test_only_the_rendering_thread_reads_traced_colors(granite_32_file):
     assert len(errors) == 1
 
 
-def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granite_32_file):
-    scene, _ = lit_plane(granite_32_file)
+def assert_plain_render_refused(scene: mi.Scene) -> None:
+    """A plain symbolic render of ``scene`` raises the texture's error."""
     with pytest.raises(RuntimeError) as raised:
         mi.render(scene, spp=1)
     # Mitsuba wraps the texture's error; the texture's own message is the cause.
@@ -235,6 +235,10 @@ def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granit
     while causes[-1].__cause__ is not None:
         causes.append(causes[-1].__cause__)
     assert any("lazy_solid: render with mitsuba_plugin.render" in str(e) for e in causes)
+
+
+def test_a_plain_symbolic_render_raises_instead_of_showing_missing_voxels(granite_32_file):
+    assert_plain_render_refused(lit_plane(granite_32_file)[0])
 
 
 def test_traced_reads_count_for_least_recently_used_eviction(texture):
@@ -284,3 +288,57 @@ def test_cuda_variants_are_not_traced(granite_32_file, monkeypatch):
     assert texture.begin_tracing(scene) is True
     monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
     assert texture.begin_tracing(scene) is False
+
+
+def test_traced_blocks_serve_your_own_differentiable_renders(granite_32_file):
+    """mitsuba_plugin.traced_renders: a prb render's loss and gradient with respect to the sky
+    equal the path integrator's in wavefront mode (where Warp serves every lookup); a
+    cold block synthesizes what it missed and raises MissedVoxels, then runs clean."""
+    import drjit as dr
+
+    scene, _ = lit_plane(granite_32_file)
+    params = mi.traverse(scene)
+    key = "light.radiance.value"
+
+    def loss_and_gradient(integrator=None) -> tuple[float, np.ndarray]:
+        dr.enable_grad(params[key])
+        params.update()
+        image = mi.render(scene, params, spp=4, seed=0, integrator=integrator)
+        loss = dr.mean(image, axis=None)
+        dr.backward(loss)
+        grad = np.array(dr.grad(params[key]))
+        dr.disable_grad(params[key])
+        return float(np.ravel(loss)[0]), grad
+
+    prb = mi.load_dict({"type": "prb", "max_depth": 4})
+    with (pytest.raises(mitsuba_plugin.MissedVoxels, match="run the block again"),
+          mitsuba_plugin.traced_renders(scene)):
+        loss_and_gradient(prb)
+    for _ in range(mitsuba_plugin.TRACED_ROUNDS):  # later bounces reach further bricks
+        try:
+            with mitsuba_plugin.traced_renders(scene):
+                traced = loss_and_gradient(prb)
+            break
+        except mitsuba_plugin.MissedVoxels:
+            continue
+    with mitsuba_plugin.wavefront():
+        reference = loss_and_gradient(mi.load_dict({"type": "path", "max_depth": 4}))
+    assert traced[0] > 0.05 and (traced[1] > 0).all()
+    np.testing.assert_allclose(traced[0], reference[0], rtol=1e-4)
+    np.testing.assert_allclose(traced[1], reference[1], rtol=1e-3)
+
+
+def test_traced_blocks_end_their_tracing_and_do_not_nest(granite_32_file, monkeypatch):
+    scene, texture = lit_plane(granite_32_file)
+    # The block's own error comes through, not a MissedVoxels.
+    with pytest.raises(KeyError, match="raised in the block"), \
+            mitsuba_plugin.traced_renders(scene):
+        raise KeyError("raised in the block")
+    assert_plain_render_refused(scene)  # outside the block, symbolic evals raise again
+    with pytest.raises(RuntimeError, match=r"cannot run inside a traced_renders\(\) block"), \
+            mitsuba_plugin.traced_renders(scene):
+        mitsuba_plugin.render(scene, spp=1)
+    monkeypatch.setattr(type(texture), "begin_tracing", lambda self, scene: False)
+    with pytest.raises(RuntimeError, match="cannot be traced"), \
+            mitsuba_plugin.traced_renders(scene):
+        pass
