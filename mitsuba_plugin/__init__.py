@@ -162,8 +162,11 @@ def traced_renders(scene: mi.Scene) -> Iterator[None]:
     ``prb``, say), the ``lazy_solid`` textures' stored voxels traced into their programs.
 
     Render the scene once with :func:`render` first, so that what the block reads is
-    stored. Voxels it reads that are not show a stand-in color; leaving the block
-    synthesizes them and raises :class:`MissedVoxels`. A texture that cannot be traced
+    stored, and keep ``dr.backward`` inside the block: a backward pass renders again.
+    Render only ``scene`` in it: object-space textures find their frames among its
+    shapes. Voxels the block reads that are not stored show a stand-in color; leaving the
+    block synthesizes them and raises :class:`MissedVoxels`, and the gradients it left
+    are of stand-in colors: clear them and run it again. A texture that cannot be traced
     (a CUDA variant, bricks scattered too widely) is a RuntimeError: render in
     :func:`wavefront` mode then. Scalar variants need no block: any render works there.
     """
@@ -173,8 +176,8 @@ def traced_renders(scene: mi.Scene) -> Iterator[None]:
     outcome: dict[str, int] = {}
     with _traced_lookups(scene, outcome) as usable:
         if not usable:
-            raise RuntimeError("lazy_solid: a texture of this scene cannot be traced (a CUDA "
-                               "variant, or stored bricks scattered too widely): render in "
+            raise RuntimeError("lazy_solid: a texture cannot be traced (a CUDA variant, or "
+                               "stored bricks scattered too widely): render in "
                                "mitsuba_plugin.wavefront() mode instead")
         yield
     if outcome["missed"]:
@@ -193,9 +196,9 @@ def _traced_lookups(scene: mi.Scene, outcome: dict[str, int]) -> Iterator[bool]:
                            "inside a traced_renders() block")
     live = textures()
     with _tracing:
-        _tracer[0] = threading.get_ident()
-        usable = all([t.begin_tracing(scene) for t in live])
         try:
+            _tracer[0] = threading.get_ident()
+            usable = all([t.begin_tracing(scene) for t in live])
             yield usable
         finally:
             for t in live:

@@ -280,9 +280,10 @@ class LazySolidTexture(mi.Texture):
         if dr.flag(dr.JitFlag.SymbolicScope):
             if self._tracing != threading.get_ident():
                 raise RuntimeError(f"{PLUGIN}: render with mitsuba_plugin.render, which "
-                                   "synthesizes what a symbolic render reads, or in "
-                                   "wavefront mode (Dr.Jit's SymbolicLoops and SymbolicCalls "
-                                   "flags off)")
+                                   "synthesizes what a symbolic render reads, inside a "
+                                   "mitsuba_plugin.traced_renders block (backward passes "
+                                   "too), or in wavefront mode (Dr.Jit's SymbolicLoops and "
+                                   "SymbolicCalls flags off)")
             p = [mi.Float64(c) for c in it.p]
             if self.space == "object":
                 p = self._frames.to_object(it, p)
@@ -308,7 +309,7 @@ class LazySolidTexture(mi.Texture):
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3)."""
         return _as_rgb(self.solid.query(points, filter=self.filter))
 
-    # -- traced lookups (driven by mitsuba_plugin.render) --------------------------------
+    # -- traced lookups (driven by mitsuba_plugin.render and traced_renders) ------------
 
     def begin_tracing(self, scene: mi.Scene) -> bool:
         """Serve symbolic ``eval`` calls in ``scene`` from the stored voxels; False, and

@@ -321,6 +321,8 @@ def test_traced_blocks_serve_your_own_differentiable_renders(granite_32_file):
             break
         except mitsuba_plugin.MissedVoxels:
             continue
+    else:
+        pytest.fail(f"still missing voxels after {mitsuba_plugin.TRACED_ROUNDS} blocks")
     with mitsuba_plugin.wavefront():
         reference = loss_and_gradient(mi.load_dict({"type": "path", "max_depth": 4}))
     assert traced[0] > 0.05 and (traced[1] > 0).all()
@@ -342,3 +344,14 @@ def test_traced_blocks_end_their_tracing_and_do_not_nest(granite_32_file, monkey
     with pytest.raises(RuntimeError, match="cannot be traced"), \
             mitsuba_plugin.traced_renders(scene):
         pass
+
+    def failing(self, scene):
+        raise MemoryError("while mirroring the store")
+
+    # A texture failing to start tracing leaves nothing traced and nothing locked.
+    monkeypatch.setattr(type(texture), "begin_tracing", failing)
+    with pytest.raises(MemoryError), mitsuba_plugin.traced_renders(scene):
+        pass
+    monkeypatch.undo()
+    assert_plain_render_refused(scene)
+    assert mitsuba_plugin.render(scene, spp=1).shape[0] > 0
