@@ -23,6 +23,7 @@ from kernels.common import KEY_BIAS, KEY_BITS, floor_voxel
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 BRICK = 8
+BRICK_SHIFT = 3  # bricks are 2^BRICK_SHIFT voxels wide
 BRICK_VOXELS = 512
 VALID_WORDS = 16  # 32-bit words of a brick's stored-voxel bits
 MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars

@@ -23,11 +23,10 @@ import threading
 
 import numpy as np
 
-from kernels.lookup import BRICK, BRICK_VOXELS
-from warptex.store import CORNERS, BrickStore, brick_keys
+from kernels.lookup import BRICK, BRICK_SHIFT, BRICK_VOXELS
+from warptex.store import CORNERS, BrickStore, brick_keys, voxels_read
 from warptex.texture import POINT_LIMIT
 
-_SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
 _MASK = BRICK - 1
 _CORNERS = [tuple(int(v) for v in d) for d in CORNERS]  # plain ints: this runs per point
 
@@ -89,25 +88,23 @@ class ScalarLookup:
     def forget(self, p: tuple[float, float, float]) -> None:
         """Drop the mirrored bricks that point ``p`` reads, to be read afresh once the
         store has synthesized what they lacked."""
-        reach = 0.5 if self.filter == "trilinear" else 0.0
-        for c0 in {math.floor(p[0] - reach), math.floor(p[0] + reach)}:
-            for c1 in {math.floor(p[1] - reach), math.floor(p[1] + reach)}:
-                for c2 in {math.floor(p[2] - reach), math.floor(p[2] + reach)}:
-                    self._bricks.pop((c0 >> _SHIFT, c1 >> _SHIFT, c2 >> _SHIFT), None)
+        read = voxels_read(np.array([p], np.float64), self.filter) >> BRICK_SHIFT
+        for brick in {tuple(b) for b in read.tolist()}:
+            self._bricks.pop(brick, None)
 
     def _voxel_sums(self, x: int, y: int, z: int) -> list[float] | None:
         """The three-color sums of voxel (x, y, z), None if it is not stored."""
-        brick = (x >> _SHIFT, y >> _SHIFT, z >> _SHIFT)
+        brick = (x >> BRICK_SHIFT, y >> BRICK_SHIFT, z >> BRICK_SHIFT)
         sums = self._bricks.get(brick)
         if sums is None:
             sums = self._mirror(brick)
-        local = ((x & _MASK) << (2 * _SHIFT)) + ((y & _MASK) << _SHIFT) + (z & _MASK)
+        local = ((x & _MASK) << (2 * BRICK_SHIFT)) + ((y & _MASK) << BRICK_SHIFT) + (z & _MASK)
         at = local * self._channels
         values = sums[at:at + self._channels].tolist()
         return None if values[0] != values[0] else values  # NaN: not stored
 
     def _mirror(self, brick: tuple[int, int, int]) -> memoryview:
-        voxel = np.array([brick], np.int64) << _SHIFT
+        voxel = np.array([brick], np.int64) << BRICK_SHIFT
         # A compact copy: a view would keep the store's whole result array alive.
         sums = memoryview(self.store.brick_sums(brick_keys(voxel)).tobytes()).cast("f")
         with self._lock:

@@ -24,7 +24,7 @@ import mitsuba as mi
 import numpy as np
 
 from kernels.common import KEY_BIAS, KEY_BITS
-from kernels.lookup import BRICK, BRICK_VOXELS
+from kernels.lookup import BRICK, BRICK_SHIFT, BRICK_VOXELS
 from warptex.keysets import unique, unpack
 from warptex.store import CORNERS, BrickStore, brick_coords, brick_keys, brick_voxels, corner_voxels
 
@@ -32,7 +32,6 @@ from warptex.store import CORNERS, BrickStore, brick_coords, brick_keys, brick_v
 # a dense table; such a texture renders in wavefront mode instead.
 MAX_PAGES = 1 << 25
 LOG_CAPACITY = 1 << 20  # slots of the miss log (8 MiB); bricks that collide take another round
-_SHIFT = BRICK.bit_length() - 1  # bricks are 2^_SHIFT voxels wide
 
 
 class TracedLookup:
@@ -136,7 +135,7 @@ class TracedLookup:
                     mark: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:
         """Color sums of integer ``voxel`` and whether it is stored; where ``mark``,
         its brick is flagged as used, for least-recently-used eviction."""
-        rel = [(v >> _SHIFT) - lo for v, lo in zip(voxel, self._lo, strict=True)]
+        rel = [(v >> BRICK_SHIFT) - lo for v, lo in zip(voxel, self._lo, strict=True)]
         inside = mi.Bool(active)
         for r, n in zip(rel, self._dims, strict=True):
             inside &= (r >= 0) & (r < n)
@@ -156,7 +155,7 @@ class TracedLookup:
         their corners reach: lanes that read the same bricks overwrite each other. The
         hash changes every render, so bricks that collide are logged the next one.
         (Plain scatters: a counter could not be advanced twice in one traced program.)"""
-        b = [mi.UInt32(v >> _SHIFT) for v in voxel]
+        b = [mi.UInt32(v >> BRICK_SHIFT) for v in voxel]
         edge = [mi.UInt32((v & (BRICK - 1)) == BRICK - 1) for v in voxel]
         at = ((b[0] * 73856093 ^ b[1] * 19349663 ^ b[2] * 83492791
                ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) * self._salt

@@ -62,7 +62,7 @@ class StoreFileError(ArchiveError):
 def brick_keys(voxels: np.ndarray) -> np.ndarray:
     """Packed coordinates of the bricks holding integer ``voxels`` (N, 3), as
     ``kernels.lookup.brick_key`` packs them."""
-    return pack(voxels.astype(np.int64) >> 3)
+    return pack(voxels.astype(np.int64) >> _k.BRICK_SHIFT)
 
 
 def brick_coords(keys: np.ndarray) -> np.ndarray:
