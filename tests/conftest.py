@@ -75,3 +75,39 @@ def granite_32x48(data_dir):
 
     full = Exemplar.load(data_dir / "granite_64.png")
     return Exemplar(np.ascontiguousarray(full.colors[:32, :48]), name="granite_32x48")
+
+
+def _plane_scene(texture: dict, emissive: bool, x: float = 0.0, size: int = 8,
+                 spp: int = 4):
+    """A [-1, 1]^2 plane at z = 0 seen by an orthographic camera centred at (x, 0).
+
+    Emissive: the texture is the plane's radiance, seen directly, so pixels are exact.
+    Otherwise it is a diffuse reflectance under a white environment. Built in the Mitsuba
+    variant current at the call.
+    """
+    import mitsuba as mi
+
+    sensor = {
+        "type": "orthographic",
+        "to_world": mi.ScalarTransform4f().look_at(origin=[x, 0, 5], target=[x, 0, 0],
+                                                   up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
+        "sampler": {"type": "independent", "sample_count": spp},
+    }
+    plane = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2, 2, 1])}
+    if emissive:
+        plane |= {"emitter": {"type": "area", "radiance": texture},
+                  "bsdf": {"type": "diffuse", "reflectance": 0.0}}
+        lights = {}
+    else:
+        plane["bsdf"] = {"type": "diffuse", "reflectance": texture}
+        lights = {"light": {"type": "constant"}}
+    return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2},
+                         "sensor": sensor, "plane": plane} | lights)
+
+
+@pytest.fixture(scope="session")
+def plane_scene():
+    """A builder of the scene of a textured plane, ``plane_scene(texture, emissive, x=0,
+    size=8, spp=4)`` (see ``_plane_scene``)."""
+    return _plane_scene

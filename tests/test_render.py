@@ -34,32 +34,6 @@ def use(variant: str) -> None:
     mitsuba_plugin.register()
 
 
-def plane_scene(texture: dict, emissive: bool, x: float = 0.0, size: int = 8,
-                spp: int = 4) -> mi.Scene:
-    """A [-1, 1]^2 plane at z = 0 seen by an orthographic camera centred at (x, 0).
-
-    Emissive: the texture is the plane's radiance, seen directly, so pixels are exact.
-    Otherwise it is a diffuse reflectance under a white environment.
-    """
-    sensor = {
-        "type": "orthographic",
-        "to_world": mi.ScalarTransform4f().look_at(origin=[x, 0, 5], target=[x, 0, 0],
-                                                   up=[0, 1, 0]),
-        "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
-        "sampler": {"type": "independent", "sample_count": spp},
-    }
-    plane = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale([2, 2, 1])}
-    if emissive:
-        plane |= {"emitter": {"type": "area", "radiance": texture},
-                  "bsdf": {"type": "diffuse", "reflectance": 0.0}}
-        lights = {}
-    else:
-        plane["bsdf"] = {"type": "diffuse", "reflectance": texture}
-        lights = {"light": {"type": "constant"}}
-    return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": 2},
-                         "sensor": sensor, "plane": plane} | lights)
-
-
 def lazy(path, filter: str = "nearest") -> dict:
     return {"type": "lazy_solid", "exemplar": str(path), "scale": SCALE,
             "filter": filter}
@@ -70,7 +44,8 @@ def rgb(image) -> np.ndarray:
 
 
 def pixel_voxels(size: int = 8) -> np.ndarray:
-    """Voxel (x, y, z) seen at each pixel of ``plane_scene``: image rows go down in y."""
+    """Voxel (x, y, z) seen at each pixel of a ``plane_scene`` (conftest): image rows go
+    down in y."""
     x = np.arange(size) - size // 2
     y = size // 2 - 1 - np.arange(size)
     grid = np.stack(np.meshgrid(x, y, indexing="xy"), -1)
@@ -78,7 +53,8 @@ def pixel_voxels(size: int = 8) -> np.ndarray:
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
-def test_pixels_carry_the_synthesized_voxels(granite_32_file, synthesizer, variant):
+def test_pixels_carry_the_synthesized_voxels(granite_32_file, synthesizer, variant,
+                                              plane_scene):
     use(variant)
     image = rgb(mitsuba_plugin.render(plane_scene(lazy(granite_32_file), emissive=True)))
     voxels = pixel_voxels().reshape(-1, 3)
@@ -90,7 +66,7 @@ def test_pixels_carry_the_synthesized_voxels(granite_32_file, synthesizer, varia
     assert image.std() > 0.01
 
 
-def test_two_cameras_agree_at_shared_points(granite_32_file):
+def test_two_cameras_agree_at_shared_points(granite_32_file, plane_scene):
     use(LLVM)
     left = rgb(mitsuba_plugin.render(plane_scene(lazy(granite_32_file, "trilinear"), True, x=0.0,
                                                  size=16, spp=16)))
@@ -110,7 +86,8 @@ def gridvolume(synthesizer, origin=(-6, -6, -2), shape=(12, 12, 4)) -> dict:
                                          "to_world": place, "filter_type": "trilinear"}}
 
 
-def test_matches_gridvolume_texture_of_the_same_voxels(granite_32_file, synthesizer):
+def test_matches_gridvolume_texture_of_the_same_voxels(granite_32_file, synthesizer,
+                                                       plane_scene):
     """Same scene, same seed, Mitsuba's grid texture instead: equal within MC noise."""
     use(LLVM)
     ours = plane_scene(lazy(granite_32_file, "trilinear"), emissive=False, size=16, spp=16)

@@ -144,30 +144,8 @@ def test_a_mitsuba_that_upsamples_otherwise_is_refused(granite_32_file, monkeypa
         spectrum._check_upsampling.cache_clear()
 
 
-def plane(texture: dict, emissive: bool) -> mi.Scene:
-    """A plane seen from above, whose reflectance (under a white sky) or radiance is
-    ``texture``."""
-    T = mi.ScalarTransform4f
-    shape = {"type": "rectangle", "to_world": T().scale([2, 2, 1])}
-    if emissive:
-        shape |= {"emitter": {"type": "area", "radiance": texture},
-                  "bsdf": {"type": "diffuse", "reflectance": 0.0}}
-        lights = {}
-    else:
-        shape["bsdf"] = {"type": "diffuse", "reflectance": texture}
-        lights = {"sky": {"type": "constant"}}
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "path", "max_depth": 2},
-        "sensor": {"type": "orthographic",
-                   "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 16, "height": 16,
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": 16}},
-        "plane": shape} | lights)
-
-
 @pytest.mark.parametrize("emissive", [False, True], ids=["reflectance", "radiance"])
-def test_spectral_renders_are_traced_and_match_the_rgb_render(emissive):
+def test_spectral_renders_are_traced_and_match_the_rgb_render(emissive, plane_scene):
     """A spectral render reads stored voxels in its traced program as the wavefront one
     does, and comes out in the colors of the RGB render of the same scene: a reflectance
     as it is, a radiance wrapped in ``d65`` as Mitsuba does with its own bitmaps."""
@@ -179,7 +157,7 @@ def test_spectral_renders_are_traced_and_match_the_rgb_render(emissive):
     for variant in ("llvm_ad_rgb", SPECTRAL):
         use(variant)
         before = set(map(id, mitsuba_plugin.textures()))
-        scene = plane(tex, emissive)
+        scene = plane_scene(tex, emissive, size=16, spp=16)
         (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
         image = np.array(mitsuba_plugin.render(scene, spp=16))[..., :3]
         means[variant] = image.reshape(-1, 3).mean(axis=0)
