@@ -2,24 +2,26 @@
 
 Properties (XML or ``mi.load_dict``):
 
-==============  =========  ==============================================================
-``exemplar``    string     exemplar image; relative paths are taken from the scene file's
-                           folder (``mi.load_dict``: the working directory)
-``exemplar_x``  string     optional exemplars of the three axes (Dong 2008, section 4);
-``_y``, ``_z``             each defaults to ``exemplar``
-``seed``        integer    synthesis seed, 0 to 2147483647 (default 0)
-``jitter``      float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
-``passes``      integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
-                           closer to the exemplar at about twice the synthesis time, see
-                           ``docs/comparisons``)
-``scale``       float      voxels per scene unit (default 64)
-``to_world``    transform  places the block of matter (default identity)
-``space``       string     ``world`` (default) or ``object``, see below
-``filter``      string     ``trilinear`` (default) or ``nearest``
-``cache``       string     brick store file: loaded when it exists, written by ``save()``
-``cache_bytes`` integer    memory bound of the brick store (default 256 MiB; scalar
-                           variants keep up to about as much again, see below)
-==============  =========  ==============================================================
+=====================  =========  ==============================================================
+``exemplar``           string     exemplar image; relative paths are taken from the scene file's
+                                  folder (``mi.load_dict``: the working directory)
+``exemplar_x``         string     optional exemplars of the three axes (Dong 2008, section 4);
+``_y``, ``_z``                    each defaults to ``exemplar``
+``exemplar_max_size``  integer    shrink larger exemplars (area-averaged) until their larger side
+                                  is this many pixels, at least 16 (default: as they are)
+``seed``               integer    synthesis seed, 0 to 2147483647 (default 0)
+``jitter``             float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
+``passes``             integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
+                                  closer to the exemplar at about twice the synthesis time, see
+                                  ``docs/comparisons``)
+``scale``              float      voxels per scene unit (default 64)
+``to_world``           transform  places the block of matter (default identity)
+``space``              string     ``world`` (default) or ``object``, see below
+``filter``             string     ``trilinear`` (default) or ``nearest``
+``cache``              string     brick store file: loaded when it exists, written by ``save()``
+``cache_bytes``        integer    memory bound of the brick store (default 256 MiB; scalar
+                                  variants keep up to about as much again, see below)
+=====================  =========  ==============================================================
 
 A scene point p has texture coordinates ``scale * to_world^-1 * p``: one texture unit is
 one finest voxel (see :mod:`warptex.texture`). With ``space="object"`` p is first taken
@@ -66,7 +68,7 @@ from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
-from warptex.exemplar import Exemplar
+from warptex.exemplar import MIN_SIZE, Exemplar
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
@@ -147,14 +149,15 @@ def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[st
     return named
 
 
-def _load_exemplars(named: list[tuple[str, Path]], plugin: str = PLUGIN) -> list[Exemplar]:
-    """The exemplar images, each read once; one that cannot be read is blamed on the
-    property that names it."""
+def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
+                    plugin: str = PLUGIN) -> list[Exemplar]:
+    """The exemplar images, each read once and shrunk to ``max_size``; one that cannot be
+    read is blamed on the property that names it."""
     loaded: dict[Path, Exemplar] = {}
     for key, path in named:
         if path not in loaded:
             try:
-                loaded[path] = Exemplar.load(path)
+                loaded[path] = Exemplar.load(path, max_size=max_size)
             except (ValueError, OSError) as e:
                 raise property_error(plugin, key, f"cannot be used: {e}") from e
     return [loaded[path] for _, path in named]
@@ -186,6 +189,10 @@ class LazySolidTexture(mi.Texture):
         check_upsampling()  # before any work: this Mitsuba's spectra may be refused
         named = _exemplar_paths(props)
         self.exemplars = [path for _, path in named]
+        max_size = get_property(props, "exemplar_max_size", int, None)
+        if max_size is not None and max_size < MIN_SIZE:
+            raise property_error(PLUGIN, "exemplar_max_size",
+                                 f"must be at least {MIN_SIZE} pixels, got {max_size}")
         self.seed = get_property(props, "seed", int, 0)
         self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
         self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
@@ -206,7 +213,7 @@ class LazySolidTexture(mi.Texture):
         # A JIT-typed transform, so mi.traverse can update it in place.
         to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
         self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
-        exemplars = _load_exemplars(named)
+        exemplars = _load_exemplars(named, max_size)
         try:
             candidates = precompute(*exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:  # the exemplars do not go together

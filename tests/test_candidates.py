@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import warptex.candidates as candidates
-from warptex import Exemplar, parallel
+from warptex import Exemplar, ExemplarError, parallel
 from warptex.archive import write_archive
 from warptex.candidates import (
     FORMAT_VERSION,
@@ -359,6 +359,40 @@ def test_second_call_loads_the_cache(monkeypatch, private_cache, warp_device):
     _assert_same(first, precompute(Exemplar(ex.colors.copy(), name="other")))
     with pytest.raises(AssertionError, match="recomputed"):
         precompute(ex, candidates_3d=8)
+
+
+def test_exemplars_beyond_the_memory_are_refused_before_any_work(monkeypatch, warp_device):
+    import warptex.machine
+
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 300 << 20)
+
+    def computed(*args):
+        raise RuntimeError("computed")
+
+    monkeypatch.setattr(candidates, "_compute", computed)
+    small, large = _crop(slice(0, 16), slice(0, 16)), Exemplar.load(GRANITE)  # 259, 304 MiB
+    with pytest.raises(ExemplarError, match=r"granite_64\.png: 64x64 pixels; pre-computing its "
+                       r"candidates needs about 304 MiB, this machine has 300 MiB; shrink it "
+                       r"when loading: Exemplar\.load\(\.\.\., max_size=256\), "
+                       r"--exemplar-max-size 256 in the CLI, exemplar_max_size in a scene"):
+        precompute(large)
+    with pytest.raises(ExemplarError, match=r"granite_64\.png: 64x64"):  # the largest axis
+        precompute(small, large, small)
+    with pytest.raises(RuntimeError, match="computed"):  # a small one fits
+        precompute(small)
+
+
+def test_large_exemplars_are_warned_of_when_computed_not_when_cached(monkeypatch, warp_device):
+    ex = _crop(slice(0, 16), slice(0, 20))
+    monkeypatch.setattr(candidates, "LARGE_PIXELS", 16 * 20 - 1)
+    with pytest.warns(UserWarning, match=r"crop: 20x16 pixels, a large exemplar: pre-computing "
+                      r"its candidates takes minutes .* as they are cached; to shrink it"):
+        first = precompute(ex)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _assert_same(first, precompute(ex))
+        monkeypatch.setattr(candidates, "LARGE_PIXELS", 16 * 20)
+        precompute(ex, cache=False)
 
 
 def _damage_truncate(data: bytes) -> bytes:

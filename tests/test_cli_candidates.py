@@ -160,6 +160,18 @@ def test_volume_npy_equals_box(images, expected, tmp_path, capsys, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.npy"]  # no temporary left
 
 
+def test_volume_reads_exemplars_shrunk_to_max_size(tmp_path):
+    from warptex.synthesis import Synthesizer
+
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(GRANITE), "--exemplar-max-size", "32", "--size", "8",
+                 "--seed", "7", "-o", str(out)]) == 0
+    shrunk = Exemplar.load(GRANITE, max_size=32)
+    assert shrunk.shape == (32, 32)
+    box = Synthesizer(precompute(shrunk), seed=7).box((0, 0, 0), (8, 8, 8))
+    np.testing.assert_array_equal(np.load(out), box)
+
+
 def test_volume_seed_changes_result(images, expected, tmp_path):
     assert main(["volume", str(images["a"]), "--size", "8", "-o", str(tmp_path / "s.npy")]) == 0
     assert not np.array_equal(np.load(tmp_path / "s.npy"), expected)

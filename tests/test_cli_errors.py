@@ -59,6 +59,8 @@ CASES = [
     (["slice", "{exemplar}", "--jitter", "65", "-o", "{out}/s.png"],
      "--jitter must be within [0, 64], got 65.0"),
     (["slice", "{exemplar}", "--passes", "-2", "-o", "{out}/s.png"], "--passes must be"),
+    (["slice", "{exemplar}", "--exemplar-max-size", "8", "-o", "{out}/s.png"],
+     "--exemplar-max-size must be at least 16, got 8"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--jitter", "-1", "-o", "{out}/b.ply"],
      "--jitter must be within"),
     (["compare", "{exemplar}", "--passes", "-1", "-o", "{out}/cmp"], "--passes must be"),

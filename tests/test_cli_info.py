@@ -46,6 +46,13 @@ def test_info_non_square_with_feature_distance(tmp_path, capsys, no_candidates):
     assert "pyramid: 5 levels (7x3, 13x5, 25x10, 50x19, 100x37)" in out
 
 
+def test_info_of_an_exemplar_shrunk_to_max_size(data_dir, capsys, no_candidates):
+    assert main(["info", "--exemplar-max-size", "24", str(data_dir / "granite_64.png")]) == 0
+    out = capsys.readouterr().out
+    assert "size: 24 x 24 pixels" in out
+    assert "pyramid: 3 levels (6x6, 12x12, 24x24)" in out
+
+
 def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
     seen = []
 

@@ -477,6 +477,83 @@ def test_feature_mask_problems(tmp_path, data_dir):
         Exemplar.load(path, feature_mask=tmp_path / "missing_mask.png")
 
 
+# --- shrinking (max_size) ------------------------------------------------------------------
+
+
+def _area_reference(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Area averaging by brute force: every pixel repeated onto a grid that both sizes
+    divide, then each output pixel's block of it averaged."""
+    h, w = image.shape[:2]
+    fine_h, fine_w = np.lcm(h, shape[0]), np.lcm(w, shape[1])
+    fine = np.repeat(np.repeat(image.astype(np.float64), fine_h // h, axis=0), fine_w // w, axis=1)
+    blocks = fine.reshape(shape[0], fine_h // shape[0], shape[1], fine_w // shape[1], -1)
+    return blocks.mean(axis=(1, 3))
+
+
+@pytest.mark.parametrize(("size", "max_size", "shrunk"), [
+    ((48, 64), 32, (24, 32)),  # halved: 2 x 2 blocks
+    ((64, 64), 24, (24, 24)),  # 8 / 3 pixels per output pixel
+    ((42, 100), 50, (21, 50)),  # portrait and landscape alike
+    ((100, 42), 50, (50, 21)),
+    ((45, 100), 50, (22, 50)),  # 22.5 rounds to even
+])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_max_size_area_averages_keeping_the_aspect(tmp_path, rng, size, max_size, shrunk, dtype):
+    pixels = rng.integers(0, 255, size=(*size, 3)).astype(dtype)
+    np.save(tmp_path / "photo.npy", pixels)
+    plain = _load_quiet(tmp_path / "photo.npy")
+    exemplar = _load_quiet(tmp_path / "photo.npy", max_size=max_size)
+    assert exemplar.shape == shrunk
+    assert exemplar.colors.dtype == np.float32 and not exemplar.colors.flags.writeable
+    np.testing.assert_allclose(exemplar.colors, _area_reference(plain.colors, shrunk),
+                               rtol=1e-6, atol=1e-6 * float(plain.colors.max()))
+
+
+def test_max_size_keeps_images_that_fit(data_dir):
+    path = data_dir / "granite_64.png"
+    plain = _load_quiet(path)
+    for max_size in (64, 100):
+        assert _load_quiet(path, max_size=max_size).digest() == plain.digest()
+    assert _load_quiet(path, max_size=63).shape == (63, 63)
+
+
+def test_max_size_shrinks_the_feature_mask_with_the_image(tmp_path):
+    image = np.full((40, 32, 3), 40, dtype=np.uint8)
+    image[8:28, 6:22] = 220
+    Image.fromarray(image).save(tmp_path / "blob.png")
+    mask = np.zeros((40, 32), dtype=np.uint8)
+    mask[8:28, 6:22] = 255
+    Image.fromarray(mask).save(tmp_path / "blob_mask.png")
+    exemplar = _load_quiet(tmp_path / "blob.png", feature_mask=tmp_path / "blob_mask.png",
+                           max_size=20)
+    assert exemplar.features.shape == (20, 16, 4)
+    shrunk_mask = _area_reference(mask[..., None] / 255.0, (20, 16))[..., 0] > 0.5
+    np.testing.assert_array_equal(exemplar.features[..., 3],
+                                  feature_distance_from_mask(shrunk_mask))
+    automatic = _load_quiet(tmp_path / "blob.png", feature_distance="auto", max_size=20)
+    np.testing.assert_array_equal(automatic.features[..., 3],
+                                  feature_distance_from_mask(otsu_mask(automatic.colors)))
+    # Sizes are compared as the files hold them.
+    Image.fromarray(mask[:20, :16]).save(tmp_path / "small_mask.png")
+    with pytest.raises(ExemplarError, match=r"small_mask\.png: feature mask is 16x20 .* 32x40"):
+        Exemplar.load(tmp_path / "blob.png", feature_mask=tmp_path / "small_mask.png",
+                      max_size=20)
+
+
+@pytest.mark.parametrize("max_size", [15, 0, 32.0, True, "32"])
+def test_max_size_must_be_a_size(data_dir, max_size):
+    with pytest.raises(ValueError, match="max_size must be a whole number of at least 16"):
+        Exemplar.load(data_dir / "granite_64.png", max_size=max_size)
+
+
+def test_max_size_names_a_file_it_would_shrink_too_far(tmp_path, rng):
+    np.save(tmp_path / "strip.npy", rng.random(size=(20, 200)).astype(np.float32))
+    with pytest.raises(ExemplarError,
+                       match=r"strip\.npy: image is 200x20 pixels, which max_size=32 shrinks "
+                             r"to 32x3; at least 16x16"):
+        Exemplar.load(tmp_path / "strip.npy", max_size=32)
+
+
 # --- pyramid -------------------------------------------------------------------------------
 
 

@@ -46,6 +46,8 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"passes": -1}, "passes"),
     ({"passes": 2.5}, "passes"),
     ({"passes": 9}, "passes"),
+    ({"exemplar_max_size": 15}, 'exemplar_max_size" must be at least 16 pixels, got 15'),
+    ({"exemplar_max_size": 32.0}, 'exemplar_max_size" must be a int'),
     ({"exemplar": "no/such/file.png"}, 'exemplar" names a file that does not exist'),
     ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
@@ -85,6 +87,20 @@ def test_passes_reach_the_synthesis(granite_32_file):
     one = Synthesizer(cs, seed=2, passes=1).voxels(ijk)
     np.testing.assert_array_equal(tex.solid.query(ijk + 0.5, filter="nearest"), one)
     assert not np.array_equal(one, Synthesizer(cs, seed=2).voxels(ijk))
+
+
+def test_exemplar_max_size_shrinks_the_exemplars(granite_32_file):
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    use("scalar_rgb")
+    tex = load(granite_32_file, exemplar_max_size=16, seed=3)
+    shrunk = Exemplar.load(granite_32_file, max_size=16)
+    assert tex.solid.synthesizer.candidates.digests == (shrunk.digest(),) * 3
+    ijk = np.array([[3, 5, 7], [-4, 0, 9]])
+    np.testing.assert_array_equal(tex.solid.query(ijk + 0.5, filter="nearest"),
+                                  Synthesizer(precompute(shrunk), seed=3).voxels(ijk))
 
 
 def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp_path):

@@ -31,6 +31,7 @@ from warptex import parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar, ExemplarError
+from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 
 FORMAT_VERSION = 3  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does
@@ -39,6 +40,14 @@ _MAGIC = b"WARPTEXC"
 # A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
 # lists: even the coarsest level's 64 pixels are worth splitting over the cores.
 _MIN_SPLIT_PIXELS = 64
+# Peak memory of a pre-computation: a base and so much per pixel of its largest exemplar,
+# rounded up from 10.7-11.6 KB a pixel measured at 256^2 and 512^2 (BENCHMARKS.md, "Large
+# exemplars"). Larger exemplars than LARGE_PIXELS take minutes, and are warned of.
+_BASE_BYTES = 256 << 20
+_BYTES_PER_PIXEL = 12 << 10
+LARGE_PIXELS = 256 * 256
+_SHRINK_ADVICE = ("shrink it when loading: Exemplar.load(..., max_size=256), "
+                  "--exemplar-max-size 256 in the CLI, exemplar_max_size in a scene")
 
 DEFAULT_PARAMS: dict[str, object] = {
     "neighborhood": 5,  # N
@@ -164,6 +173,7 @@ def precompute(
             return CandidateSet.load(path)
         except CandidateCacheError as e:
             warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
+    _check_size(exemplars)
     result = _compute(exemplars, p, progress)
     if path is not None:
         try:
@@ -172,6 +182,21 @@ def precompute(
             warnings.warn(f"candidates not cached: cannot write {path} ({e.strerror or e}); "
                           "WARPTEX_CACHE sets the cache folder", stacklevel=2)
     return result
+
+
+def _check_size(exemplars: list[Exemplar]) -> None:
+    """Refuse, before any work, exemplars whose pre-computation would not fit in this
+    machine's memory, and warn of those that take minutes (a photograph as it comes)."""
+    largest = max(exemplars, key=lambda e: e.shape[0] * e.shape[1])
+    h, w = largest.shape
+    what = f"{largest.path or largest.name}: {w}x{h} pixels"
+    problem = memory_problem(_BASE_BYTES + h * w * _BYTES_PER_PIXEL)
+    if problem is not None:
+        raise ExemplarError(f"{what}; pre-computing its candidates {problem}; {_SHRINK_ADVICE}")
+    if h * w > LARGE_PIXELS:
+        warnings.warn(f"{what}, a large exemplar: pre-computing its candidates takes minutes "
+                      "to hours (5 minutes at 512x512 on 2 CPU cores), once, as they are "
+                      f"cached; to {_SHRINK_ADVICE}", stacklevel=3)
 
 
 def cache_dir() -> Path:
@@ -239,11 +264,16 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
     sources: list[list[SourceLevel]] = []
     roles: list[list[RoleLevel]] = []
     fallbacks: list[int] = []
+    # Work grows with the pixels of a level (the finest holds three quarters of them), so
+    # the bar counts pixels rather than steps.
+    pixels = [max(pyr[level].shape[0] * pyr[level].shape[1] for pyr in pyramids)
+              for level in range(num_levels)]
     bar = tqdm(
-        total=num_levels * (len(srcs) + roles_per_level),
+        total=sum(pixels) * (len(srcs) + roles_per_level),
         desc="candidates",
         disable=None if progress is None else not progress,
-        unit="step",
+        unit="px",
+        unit_scale=True,
     )
     for level in range(num_levels):
         k2 = int(p["candidates_2d_finest" if level == num_levels - 1 else "candidates_2d"])
@@ -252,11 +282,11 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
         for pyr in pyramids:
             feat = _quantize(pyr[level].features, lo, hi)
             lvl_sources.append(_source_level(feat, p, k2))
-            bar.update(1)
+            bar.update(pixels[level])
         lvl_roles = []
         for role in range(roles_per_level):
             lvl_roles.append(_role_level(_trio(lvl_sources, axis_source, role), p, k3))
-            bar.update(1)
+            bar.update(pixels[level])
         sources.append(lvl_sources)
         roles.append(lvl_roles)
         fallbacks.append(int(sum(r.fallback.sum() for r in lvl_roles)))

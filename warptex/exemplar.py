@@ -101,6 +101,7 @@ class Exemplar:
         alpha: str = "drop",
         feature_mask: str | Path | None = None,
         feature_distance: bool | str = False,
+        max_size: int | None = None,
     ) -> Exemplar:
         """Load an exemplar from PNG, JPEG (or another Pillow format), OpenEXR or ``.npy``.
 
@@ -114,10 +115,15 @@ class Exemplar:
                 feature-distance channel computed from it.
             feature_distance: ``"auto"`` (or True) adds a feature-distance channel from an
                 automatic (Otsu) threshold of the luminance when no ``feature_mask`` is given.
+            max_size: shrink a larger image, and its feature mask, by area averaging until its
+                larger side is ``max_size`` pixels, keeping its aspect ratio: photographs are
+                often far larger than the pre-computation of candidates affords (a voxel is
+                one pixel of the shrunk image). Smaller images are kept as they are.
 
         Raises:
-            ExemplarError: missing or unreadable file, not an image, fewer than 16x16 pixels,
-                NaN/Inf values, zero or more than 64 channels, or an unusable feature mask.
+            ExemplarError: missing or unreadable file, not an image, fewer than 16x16 pixels
+                (after shrinking), NaN/Inf values, zero or more than 64 channels, or an
+                unusable feature mask.
         """
         if alpha not in ("drop", "keep"):
             raise ValueError(f"alpha must be 'drop' or 'keep', not {alpha!r}")
@@ -127,6 +133,11 @@ class Exemplar:
             )
         if feature_mask is not None and feature_distance == "auto":
             raise ValueError("give either feature_mask or feature_distance='auto', not both")
+        if max_size is not None and (
+            isinstance(max_size, bool) or not isinstance(max_size, int) or max_size < MIN_SIZE
+        ):
+            raise ValueError(f"max_size must be a whole number of at least {MIN_SIZE} pixels, "
+                             f"not {max_size!r}")
 
         path = Path(path)
         array, has_alpha = _read(path)
@@ -136,17 +147,23 @@ class Exemplar:
                 stacklevel=2,
             )
             array = array[..., :-1]
+        read_shape = array.shape
+        if max_size is not None:
+            array = _shrunk(_validated_colors(array, str(path)), max_size, str(path))
 
         distance = None
         if feature_mask is not None:
             mask_path = Path(feature_mask)
             mask_image, _ = _read(mask_path)
-            mask = _binary_mask(mask_image, str(mask_path))
-            if mask.shape != array.shape[:2]:
+            if mask_image.shape[:2] != read_shape[:2]:
                 raise ExemplarError(
-                    f"{mask_path}: feature mask is {_size(mask.shape)} pixels but "
-                    f"{path} is {_size(array.shape)}"
+                    f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
+                    f"{path} is {_size(read_shape)}"
                 )
+            if array.shape[:2] != read_shape[:2]:
+                mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), max_size,
+                                     str(mask_path))
+            mask = _binary_mask(mask_image, str(mask_path))
             distance = feature_distance_from_mask(mask, name=str(mask_path))
         elif feature_distance:
             colors = _validated_colors(array, str(path))
@@ -250,6 +267,32 @@ def _downsample(image: np.ndarray) -> np.ndarray:
     level = np.ascontiguousarray(blurred[::2, ::2])
     level.setflags(write=False)
     return level
+
+
+def _shrunk(image: np.ndarray, max_size: int, name: str) -> np.ndarray:
+    """``image`` (H, W[, C]) float, area-averaged down until its larger side is ``max_size``
+    pixels (each side rounded to whole pixels); as it is when it fits already."""
+    h, w = image.shape[:2]
+    if max(h, w) <= max_size:
+        return image
+    shape = tuple(round(side * max_size / max(h, w)) for side in (h, w))
+    if min(shape) < MIN_SIZE:
+        raise ExemplarError(f"{name}: image is {_size((h, w))} pixels, which max_size={max_size} "
+                            f"shrinks to {_size(shape)}; at least {MIN_SIZE}x{MIN_SIZE} needed")
+    rows = np.tensordot(_area_weights(h, shape[0]), image, axes=(1, 0))
+    both = np.tensordot(_area_weights(w, shape[1]), rows, axes=(1, 1)).swapaxes(0, 1)
+    out = np.ascontiguousarray(both, dtype=np.float32)
+    out.setflags(write=False)
+    return out
+
+
+def _area_weights(size: int, new: int) -> np.ndarray:
+    """(new, size) weights of area averaging: how much of output pixel i's footprint
+    ``[i, i + 1) * size / new`` each input pixel ``[j, j + 1)`` covers, rows summing to 1."""
+    edges = np.arange(new + 1) * (size / new)
+    pixels = np.arange(size)
+    overlap = (np.minimum(edges[1:, None], pixels + 1) - np.maximum(edges[:-1, None], pixels))
+    return np.clip(overlap, 0.0, None) * (new / size)
 
 
 def _validated_colors(array: object, name: str) -> np.ndarray:
