@@ -2,13 +2,16 @@
 section 4), the figures behind ``Exemplar.load(..., max_size=)`` and the memory check of
 ``warptex.candidates.precompute``.
 
-Each side runs in a fresh process: a photo (default ``dry_mud_256``) resampled to SIDE x
-SIDE pixels (bicubic, so sides beyond the photo's own are enlarged copies of it), Warp
-kernels warmed on a tiny exemplar first, then one uncached pre-computation. Prints its wall
+Each side runs in a fresh process: photos resampled to SIDE x SIDE pixels (bicubic, so
+sides beyond a photo's own are enlarged copies of it), Warp kernels warmed on a tiny
+exemplar first, then one uncached pre-computation: of the first photo on all three axes
+(default ``dry_mud_256``), or of three photos, one per axis, given three. Prints its wall
 seconds, the process's peak resident memory and its growth over the warmed-up process, and
-the peak that ``precompute`` estimates before refusing an exemplar.
+the peak that ``precompute`` estimates before refusing exemplars
+(``warptex.candidates.precompute_bytes``).
 
-    .venv/bin/python benchmarks/bench_large_exemplars.py [--photo PATH] [--sides 128 256 512]
+    .venv/bin/python benchmarks/bench_large_exemplars.py [--photos PATH [PATH PATH]]
+                                                         [--sides 128 256 512]
 """
 
 from __future__ import annotations
@@ -31,45 +34,51 @@ def _peak_bytes() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux: KiB
 
 
-def one(photo: Path, side: int) -> dict:
-    """Pre-compute one resampled exemplar in this process; its figures."""
+def one(photos: list[Path], side: int) -> dict:
+    """Pre-compute the resampled exemplars in this process; its figures."""
     import numpy as np
     from PIL import Image
 
     import warptex.candidates as candidates
     from warptex.exemplar import Exemplar
 
-    rgb = Image.open(photo).convert("RGB")
-    pixels = np.asarray(rgb.resize((side, side), Image.Resampling.BICUBIC))
-    ex = Exemplar(pixels, name=f"{photo.stem}@{side}")
+    exemplars = []
+    for photo in photos:
+        rgb = Image.open(photo).convert("RGB")
+        pixels = np.asarray(rgb.resize((side, side), Image.Resampling.BICUBIC))
+        exemplars.append(Exemplar(pixels, name=f"{photo.stem}@{side}"))
     candidates.precompute(Exemplar(pixels[:16, :16], name="warm-up"), cache=False)
     warm = _peak_bytes()
     start = time.perf_counter()
-    candidates.precompute(ex, cache=False)
+    candidates.precompute(*exemplars, cache=False)
     seconds = time.perf_counter() - start
     peak = _peak_bytes()
-    estimate = candidates._BASE_BYTES + side * side * candidates._BYTES_PER_PIXEL
-    return {"seconds": seconds, "peak": peak, "growth": peak - warm, "estimate": estimate}
+    return {"seconds": seconds, "peak": peak, "growth": peak - warm,
+            "estimate": candidates.precompute_bytes(exemplars)}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--photo", type=Path, default=PHOTO)
+    parser.add_argument("--photos", nargs="+", type=Path, default=[PHOTO],
+                        help="one photo for all three axes, or three, one per axis")
     parser.add_argument("--sides", nargs="+", type=int, default=[128, 256, 512])
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # the child's side
     args = parser.parse_args()
+    if len(args.photos) not in (1, 3):
+        parser.error("give one photo or three")
     if args.one is not None:
-        print(json.dumps(one(args.photo, args.one)))
+        print(json.dumps(one(args.photos, args.one)))
         return
 
     mib = 2**20
-    print(f"photo {args.photo.name}, resampled to SIDE x SIDE, one fresh process per side")
+    names = ", ".join(p.name for p in args.photos)
+    print(f"photos {names}, resampled to SIDE x SIDE, one fresh process per side")
     print("\n| side | pixels | seconds | peak MiB | growth MiB | growth KB/pixel "
           "| precompute's estimate MiB |")
     print("|---|---|---|---|---|---|---|")
     for side in args.sides:
         child = subprocess.run(
-            [sys.executable, __file__, "--photo", str(args.photo), "--one", str(side)],
+            [sys.executable, __file__, "--photos", *map(str, args.photos), "--one", str(side)],
             check=True, capture_output=True, text=True,
         )
         r = json.loads(child.stdout.strip().splitlines()[-1])

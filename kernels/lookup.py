@@ -29,6 +29,9 @@ VALID_WORDS = 16  # 32-bit words of a brick's stored-voxel bits
 MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars
 EMPTY = wp.constant(wp.int64(-1))
 
+_SHIFT = wp.constant(BRICK_SHIFT)
+_LOW_BITS = wp.constant(BRICK - 1)  # a voxel's position in its brick, along one axis
+_BRICK = wp.constant(BRICK)
 _BIAS = wp.constant(wp.int64(KEY_BIAS))
 _SHIFT_Y = wp.constant(wp.int64(KEY_BITS))
 _SHIFT_X = wp.constant(wp.int64(2 * KEY_BITS))
@@ -52,9 +55,9 @@ class BrickIndex:
 @wp.func
 def brick_key(voxel: wp.vec3i) -> wp.int64:
     """Packed coordinates of the brick holding ``voxel`` (21 bits per axis, biased)."""
-    bx = wp.int64(voxel[0] >> 3) + _BIAS
-    by = wp.int64(voxel[1] >> 3) + _BIAS
-    bz = wp.int64(voxel[2] >> 3) + _BIAS
+    bx = wp.int64(voxel[0] >> _SHIFT) + _BIAS
+    by = wp.int64(voxel[1] >> _SHIFT) + _BIAS
+    bz = wp.int64(voxel[2] >> _SHIFT) + _BIAS
     return (bx << _SHIFT_X) | (by << _SHIFT_Y) | bz
 
 
@@ -96,7 +99,8 @@ def touch(index: BrickIndex, slot: int, tick: wp.int64):
 @wp.func
 def local_index(voxel: wp.vec3i) -> int:
     """Position of ``voxel`` in its brick, x slowest."""
-    return (voxel[0] & 7) * 64 + (voxel[1] & 7) * 8 + (voxel[2] & 7)
+    return ((voxel[0] & _LOW_BITS) * _BRICK + (voxel[1] & _LOW_BITS)) * _BRICK + (
+        voxel[2] & _LOW_BITS)
 
 
 @wp.func

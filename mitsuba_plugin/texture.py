@@ -68,19 +68,22 @@ from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
-from warptex.exemplar import MIN_SIZE, Exemplar
+from warptex.exemplar import Exemplar
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     FILTERS,
     SettingError,
+    check_max_size,
     check_settings,
 )
 from warptex.store import StoreFileError
 from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
+# How a property of each kind is written in a scene, for errors that name the wrong one.
+_KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>'}
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
 
@@ -103,7 +106,7 @@ def get_property(props: mi.Properties, name: str, kind: type, default: Any,
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
     if not isinstance(value, kind) or isinstance(value, bool):
-        raise property_error(plugin, name, f"must be a {kind.__name__}, got {value!r}")
+        raise property_error(plugin, name, f"must be {_KINDS[kind]}, got {value!r}")
     return value
 
 
@@ -189,10 +192,11 @@ class LazySolidTexture(mi.Texture):
         check_upsampling()  # before any work: this Mitsuba's spectra may be refused
         named = _exemplar_paths(props)
         self.exemplars = [path for _, path in named]
-        max_size = get_property(props, "exemplar_max_size", int, None)
-        if max_size is not None and max_size < MIN_SIZE:
-            raise property_error(PLUGIN, "exemplar_max_size",
-                                 f"must be at least {MIN_SIZE} pixels, got {max_size}")
+        self.max_size = get_property(props, "exemplar_max_size", int, None)
+        try:
+            check_max_size(self.max_size)
+        except SettingError as e:
+            raise property_error(PLUGIN, "exemplar_max_size", e.problem) from None
         self.seed = get_property(props, "seed", int, 0)
         self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
         self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
@@ -213,7 +217,7 @@ class LazySolidTexture(mi.Texture):
         # A JIT-typed transform, so mi.traverse can update it in place.
         to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
         self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
-        exemplars = _load_exemplars(named, max_size)
+        exemplars = _load_exemplars(named, self.max_size)
         try:
             candidates = precompute(*exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:  # the exemplars do not go together
@@ -269,7 +273,8 @@ class LazySolidTexture(mi.Texture):
 
     def to_string(self) -> str:
         names = ", ".join(f'"{p}"' for p in dict.fromkeys(self.exemplars))
-        return (f"LazySolidTexture[exemplars=[{names}], seed={self.seed}, "
+        shrunk = "" if self.max_size is None else f", exemplar_max_size={self.max_size}"
+        return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={self.seed}, "
                 f"jitter={self.jitter}, passes={self.passes}, scale={self.scale}, "
                 f"space={self.space}, filter={self.filter}, cache={self.cache}]")
 

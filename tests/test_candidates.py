@@ -370,16 +370,24 @@ def test_exemplars_beyond_the_memory_are_refused_before_any_work(monkeypatch, wa
         raise RuntimeError("computed")
 
     monkeypatch.setattr(candidates, "_compute", computed)
-    small, large = _crop(slice(0, 16), slice(0, 16)), Exemplar.load(GRANITE)  # 259, 304 MiB
+    small, large = _crop(slice(0, 16), slice(0, 16)), Exemplar.load(GRANITE)  # 260, 312 MiB
     with pytest.raises(ExemplarError, match=r"granite_64\.png: 64x64 pixels; pre-computing its "
-                       r"candidates needs about 304 MiB, this machine has 300 MiB; shrink it "
-                       r"when loading: Exemplar\.load\(\.\.\., max_size=256\), "
-                       r"--exemplar-max-size 256 in the CLI, exemplar_max_size in a scene"):
+                       r"candidates needs about 312 MiB, this machine has 300 MiB; shrink it "
+                       r"when loading: max_size=256 in Exemplar\.load, --exemplar-max-size 256 "
+                       r'on the command line, <integer name="exemplar_max_size" value="256"/> '
+                       r"in a scene"):
         precompute(large)
     with pytest.raises(ExemplarError, match=r"granite_64\.png: 64x64"):  # the largest axis
         precompute(small, large, small)
     with pytest.raises(RuntimeError, match="computed"):  # a small one fits
         precompute(small)
+    # Exemplars of their own per axis take more: 256 MiB + 1024 pixels x 14, 16 or 18 KiB.
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 273 << 20)
+    crops = [_crop(slice(0, 32), slice(c, c + 32)) for c in (0, 16, 32)]
+    with pytest.raises(RuntimeError, match="computed"):
+        precompute(crops[0], crops[1], crops[1])
+    with pytest.raises(ExemplarError, match="needs about 274 MiB, this machine has 273 MiB"):
+        precompute(*crops)
 
 
 def test_large_exemplars_are_warned_of_when_computed_not_when_cached(monkeypatch, warp_device):

@@ -49,7 +49,7 @@ def test_info_non_square_with_feature_distance(tmp_path, capsys, no_candidates):
 def test_info_of_an_exemplar_shrunk_to_max_size(data_dir, capsys, no_candidates):
     assert main(["info", "--exemplar-max-size", "24", str(data_dir / "granite_64.png")]) == 0
     out = capsys.readouterr().out
-    assert "size: 24 x 24 pixels" in out
+    assert "size: 24 x 24 pixels (width x height), shrunk from 64 x 64\n" in out
     assert "pyramid: 3 levels (6x6, 12x12, 24x24)" in out
 
 
@@ -62,6 +62,8 @@ def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
 
     fake = types.ModuleType("warptex.candidates")
     fake.cached_candidate_path = cached_candidate_path
+    fake.precompute_bytes = lambda exemplars: 3 << 30
+    fake.LARGE_PIXELS = 64 * 64
     monkeypatch.setitem(sys.modules, "warptex.candidates", fake)
     assert main(["info", str(data_dir / "granite_64.png")]) == 0
     assert "candidates: cached at /cache/granite.npz" in capsys.readouterr().out
@@ -69,7 +71,16 @@ def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
 
     fake.cached_candidate_path = lambda exemplar: None
     assert main(["info", str(data_dir / "granite_64.png")]) == 0
-    assert "candidates: not cached" in capsys.readouterr().out
+    assert ("candidates: not cached; pre-computing them takes about 3 GiB of memory\n"
+            in capsys.readouterr().out)
+    fake.LARGE_PIXELS = 64 * 64 - 1
+    assert main(["info", str(data_dir / "granite_64.png")]) == 0
+    assert ("candidates: not cached; pre-computing them takes about 3 GiB of memory and "
+            "minutes (over 63x63 pixels)\n" in capsys.readouterr().out)
+    monkeypatch.setattr("warptex.machine.physical_memory", lambda: 2 << 30)
+    assert main(["info", str(data_dir / "granite_64.png")]) == 0
+    assert ("candidates: not cached; pre-computing them needs about 3 GiB, this machine has "
+            "2 GiB: shrink it with --exemplar-max-size" in capsys.readouterr().out)
 
 
 def test_info_alpha_keep(tmp_path, capsys, no_candidates):

@@ -73,13 +73,34 @@ def test_compare_runs_lazy_synthesis_with_the_passes_asked_for(tmp_path, data_di
     assert "correction passes per level: 1 |" in (out / "table.md").read_text()
 
 
+def test_compare_shrinks_the_exemplar_to_max_size(tmp_path, data_dir, warp_device):
+    from warptex import metrics
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    out = tmp_path / "cmp"
+    path = data_dir / "granite_64.png"
+    assert main(["compare", str(path), "--size", "16", "--methods", "lazy",
+                 "--exemplar-max-size", "32", "-o", str(out)]) == 0
+    table = json.loads((out / "table.json").read_text())
+    ex = Exemplar.load(path, max_size=32)
+    box = Synthesizer(precompute(ex)).box((0, 0, 0), (16, 16, 16))
+    expected = [metrics.neighborhood_energy(box, ex.colors, a) for a in range(3)]
+    assert table["methods"][0]["energy"] == pytest.approx(expected, rel=1e-6)
+    assert table["run"]["exemplar_size"] == [32, 32]
+    assert (out / "table.md").read_text().startswith("# granite_64.png, shrunk to 32x32\n")
+
+
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
     from warptex.compare import _cube_texture, _tiled, compare
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
     volume = np.zeros((8, 8, 8, 3), np.float32)
-    assert _cube_texture("lazy", str(path), volume, 0, 1)["passes"] == 1
+    assert _cube_texture("lazy", str(path), volume, 0, 1, None)["passes"] == 1
+    assert "exemplar_max_size" not in _cube_texture("lazy", str(path), volume, 0, 1, None)
+    assert _cube_texture("lazy", str(path), volume, 0, 1, 24)["exemplar_max_size"] == 24
     ex = Exemplar.load(path)
     one, two = (_tiled(ex, 8, 0, passes) for passes in (1, 2))
     assert not np.array_equal(one, two)
@@ -126,7 +147,7 @@ def measure(data_dir, monkeypatch):
     monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     path = str(data_dir / "granite_64.png")
-    return lambda method, size=16: compare._measure(method, path, size, 0, 2)
+    return lambda method, size=16: compare._measure(method, path, size, 0, 2, None)
 
 
 def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):

@@ -19,6 +19,7 @@ from warptex.exemplar import (
     feature_distance_from_mask,
     otsu_mask,
 )
+from warptex.settings import SettingError
 
 
 @pytest.fixture
@@ -142,6 +143,23 @@ def test_jpeg_rgb_close_to_source(tmp_path):
     assert exemplar.shape == (48, 64)
     assert exemplar.channels == 3
     assert np.abs(exemplar.colors - smooth).mean() < 0.01
+
+
+@pytest.mark.parametrize(("orientation", "turns"), [(1, 0), (3, 2), (6, -1), (8, 1)])
+def test_jpeg_camera_orientation_is_applied(tmp_path, orientation, turns):
+    """EXIF orientation 6: a portrait photo stored sideways, shown turned a quarter
+    clockwise (np.rot90 with k=-1); 8 the other way; 3 upside down."""
+    y, x = np.mgrid[0:48, 0:64]
+    smooth = np.stack([x / 63, y / 47, (x + y) / 110], axis=2)
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(np.round(smooth * 255).astype(np.uint8)).save(
+        tmp_path / "camera.jpg", quality=100, exif=exif
+    )
+    exemplar = _load_quiet(tmp_path / "camera.jpg")
+    upright = np.rot90(smooth, k=turns)
+    assert exemplar.shape == upright.shape[:2]
+    assert np.abs(exemplar.colors - upright).mean() < 0.01
 
 
 def test_jpeg_grayscale_is_one_channel(tmp_path):
@@ -433,13 +451,20 @@ def test_otsu_mask_splits_two_levels(rng):
     np.testing.assert_array_equal(otsu_mask(image), expected)
 
 
+def _blob_files(folder: Path, shape: tuple[int, int], rows: slice, cols: slice) -> np.ndarray:
+    """``blob.png``, a light rectangle on a dark ground, and ``blob_mask.png`` marking it,
+    in ``folder``; returns the mask."""
+    image = np.full((*shape, 3), 40, dtype=np.uint8)
+    image[rows, cols] = 220
+    Image.fromarray(image).save(folder / "blob.png")
+    mask = np.zeros(shape, dtype=np.uint8)
+    mask[rows, cols] = 255
+    Image.fromarray(mask).save(folder / "blob_mask.png")
+    return mask
+
+
 def test_feature_distance_in_features_not_colors(tmp_path):
-    image = np.full((24, 20, 3), 40, dtype=np.uint8)
-    image[6:14, 5:12] = 220
-    Image.fromarray(image).save(tmp_path / "blob.png")
-    mask = np.zeros((24, 20), dtype=np.uint8)
-    mask[6:14, 5:12] = 255
-    Image.fromarray(mask).save(tmp_path / "blob_mask.png")
+    mask = _blob_files(tmp_path, (24, 20), slice(6, 14), slice(5, 12))
 
     from_mask = _load_quiet(tmp_path / "blob.png", feature_mask=tmp_path / "blob_mask.png")
     automatic = _load_quiet(tmp_path / "blob.png", feature_distance="auto")
@@ -496,6 +521,7 @@ def _area_reference(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     ((42, 100), 50, (21, 50)),  # portrait and landscape alike
     ((100, 42), 50, (50, 21)),
     ((45, 100), 50, (22, 50)),  # 22.5 rounds to even
+    ((47, 100), 50, (24, 50)),  # 23.5 too
 ])
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
 def test_max_size_area_averages_keeping_the_aspect(tmp_path, rng, size, max_size, shrunk, dtype):
@@ -518,19 +544,16 @@ def test_max_size_keeps_images_that_fit(data_dir):
 
 
 def test_max_size_shrinks_the_feature_mask_with_the_image(tmp_path):
-    image = np.full((40, 32, 3), 40, dtype=np.uint8)
-    image[8:28, 6:22] = 220
-    Image.fromarray(image).save(tmp_path / "blob.png")
-    mask = np.zeros((40, 32), dtype=np.uint8)
-    mask[8:28, 6:22] = 255
-    Image.fromarray(mask).save(tmp_path / "blob_mask.png")
+    # Edges inside the 5/3-pixel footprints: shrunk pixels the blob covers partly.
+    mask = _blob_files(tmp_path, (40, 32), slice(7, 29), slice(5, 23))
     exemplar = _load_quiet(tmp_path / "blob.png", feature_mask=tmp_path / "blob_mask.png",
-                           max_size=20)
-    assert exemplar.features.shape == (20, 16, 4)
-    shrunk_mask = _area_reference(mask[..., None] / 255.0, (20, 16))[..., 0] > 0.5
+                           max_size=24)
+    assert exemplar.features.shape == (24, 19, 4)
+    coverage = _area_reference(mask[..., None] / 255.0, (24, 19))[..., 0]
+    assert ((coverage > 0) & (coverage < 0.5)).any() and ((coverage > 0.5) & (coverage < 1)).any()
     np.testing.assert_array_equal(exemplar.features[..., 3],
-                                  feature_distance_from_mask(shrunk_mask))
-    automatic = _load_quiet(tmp_path / "blob.png", feature_distance="auto", max_size=20)
+                                  feature_distance_from_mask(coverage > 0.5))
+    automatic = _load_quiet(tmp_path / "blob.png", feature_distance="auto", max_size=24)
     np.testing.assert_array_equal(automatic.features[..., 3],
                                   feature_distance_from_mask(otsu_mask(automatic.colors)))
     # Sizes are compared as the files hold them.
@@ -540,17 +563,22 @@ def test_max_size_shrinks_the_feature_mask_with_the_image(tmp_path):
                       max_size=20)
 
 
-@pytest.mark.parametrize("max_size", [15, 0, 32.0, True, "32"])
-def test_max_size_must_be_a_size(data_dir, max_size):
-    with pytest.raises(ValueError, match="max_size must be a whole number of at least 16"):
+@pytest.mark.parametrize(("max_size", "problem"), [
+    (15, "must be at least 16 pixels, got 15"), (0, "must be at least 16 pixels, got 0"),
+    (32.0, "must be an integer, got 32.0"), (True, "must be an integer, got True"),
+    ("32", "must be an integer, got '32'"),
+])
+def test_max_size_must_be_a_size(data_dir, max_size, problem):
+    with pytest.raises(SettingError, match=f"^max_size {problem}$"):
         Exemplar.load(data_dir / "granite_64.png", max_size=max_size)
+    assert Exemplar.load(data_dir / "granite_64.png", max_size=np.int64(32)).shape == (32, 32)
 
 
 def test_max_size_names_a_file_it_would_shrink_too_far(tmp_path, rng):
     np.save(tmp_path / "strip.npy", rng.random(size=(20, 200)).astype(np.float32))
     with pytest.raises(ExemplarError,
-                       match=r"strip\.npy: image is 200x20 pixels, which max_size=32 shrinks "
-                             r"to 32x3; at least 16x16"):
+                       match=r"strip\.npy: image is 200x20 pixels, 32x3 when shrunk to a "
+                             r"larger side of 32; at least 16x16 needed"):
         Exemplar.load(tmp_path / "strip.npy", max_size=32)
 
 

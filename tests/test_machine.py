@@ -23,6 +23,28 @@ def test_volume_memory_counts_the_join_and_the_working_bytes(monkeypatch):
             cli._check_memory(size, channels, working)
 
 
+@pytest.mark.parametrize(("v2", "v1", "expected"), [
+    ("max\n", None, "total"),                      # cgroup v2 without a limit
+    ("1073741824\n", None, 1 << 30),               # a container of 1 GiB
+    (None, "2147483648\n", 2 << 30),               # cgroup v1
+    (None, "9223372036854771712\n", "total"),      # v1 without a limit: the machine's
+    (None, None, "total"),                          # no cgroup files
+])
+def test_physical_memory_is_a_containers_limit_where_lower(tmp_path, monkeypatch, v2, v1,
+                                                          expected):
+    from warptex import machine
+
+    monkeypatch.setattr(machine, "_CGROUP_LIMITS", ())
+    total = machine.physical_memory()
+    paths = []
+    for name, text in (("memory.max", v2), ("memory.limit_in_bytes", v1)):
+        paths.append(tmp_path / name)
+        if text is not None:
+            paths[-1].write_text(text)
+    monkeypatch.setattr(machine, "_CGROUP_LIMITS", tuple(paths))
+    assert machine.physical_memory() == (total if expected == "total" else expected)
+
+
 def test_physical_memory_is_the_systems_total():
     import os
 

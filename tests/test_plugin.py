@@ -47,11 +47,12 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"passes": 2.5}, "passes"),
     ({"passes": 9}, "passes"),
     ({"exemplar_max_size": 15}, 'exemplar_max_size" must be at least 16 pixels, got 15'),
-    ({"exemplar_max_size": 32.0}, 'exemplar_max_size" must be a int'),
+    ({"exemplar_max_size": 32.0}, 'exemplar_max_size" must be an <integer ...>, got 32.0'),
+    ({"exemplar_max_size": "32"}, "exemplar_max_size\" must be an <integer ...>, got '32'"),
     ({"exemplar": "no/such/file.png"}, 'exemplar" names a file that does not exist'),
     ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
-     'exemplar" must be a str'),  # checked though every axis has its own
+     'exemplar" must be a <string ...>'),  # checked though every axis has its own
 ])
 def test_property_errors_name_the_property(granite_32_file, props, name):
     use("scalar_rgb")
@@ -96,11 +97,28 @@ def test_exemplar_max_size_shrinks_the_exemplars(granite_32_file):
 
     use("scalar_rgb")
     tex = load(granite_32_file, exemplar_max_size=16, seed=3)
+    assert "], exemplar_max_size=16, seed=3," in tex.to_string()
+    assert "exemplar_max_size" not in load(granite_32_file).to_string()
     shrunk = Exemplar.load(granite_32_file, max_size=16)
     assert tex.solid.synthesizer.candidates.digests == (shrunk.digest(),) * 3
     ijk = np.array([[3, 5, 7], [-4, 0, 9]])
     np.testing.assert_array_equal(tex.solid.query(ijk + 0.5, filter="nearest"),
                                   Synthesizer(precompute(shrunk), seed=3).voxels(ijk))
+
+
+def test_an_exemplar_too_large_for_the_memory_is_refused_with_the_scene_line(
+        granite_32_file, tmp_path, monkeypatch):
+    import warptex.machine
+
+    use("scalar_rgb")
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))  # nothing cached
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 260 << 20)
+    with pytest.raises(RuntimeError, match=r'lazy_solid: property "exemplar" cannot be used: '
+                       r'.*granite_32\.png: 32x32 pixels; pre-computing its candidates needs '
+                       r'about 270 MiB, this machine has 260 MiB; .*<integer '
+                       r'name="exemplar_max_size" value="256"/> in a scene'):
+        load(granite_32_file)
+    assert load(granite_32_file, exemplar_max_size=16) is not None  # 259.5 MiB
 
 
 def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp_path):

@@ -147,6 +147,22 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
 
 
+def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while a texture pre-computes its candidates is an interruption, not a scene
+    error, though Mitsuba wraps what a plugin raises."""
+    import mitsuba_plugin.texture
+    from warptex.cli import main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mitsuba_plugin.texture, "precompute", interrupted)
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
+                 str(tmp_path / "b.png"), "--spp", "1", "--res", "16x16"]) == 130
+    assert capsys.readouterr().err.endswith("warptex: interrupted\n")
+    assert not any(tmp_path.iterdir())
+
+
 def test_medium_scatters_with_the_texture_at_each_point(granite_32_file):
     """sigma_s = albedo(p) * sigma_t * scale, the albedo being the nested texture's colour
     at the medium point, channel for channel."""

@@ -17,6 +17,7 @@ import hashlib
 import json
 import os
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,14 +41,17 @@ _MAGIC = b"WARPTEXC"
 # A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
 # lists: even the coarsest level's 64 pixels are worth splitting over the cores.
 _MIN_SPLIT_PIXELS = 64
-# Peak memory of a pre-computation: a base and so much per pixel of its largest exemplar,
-# rounded up from 10.7-11.6 KB a pixel measured at 256^2 and 512^2 (BENCHMARKS.md, "Large
-# exemplars"). Larger exemplars than LARGE_PIXELS take minutes, and are warned of.
+# Peak memory of a pre-computation at the default parameters: a base and so much per pixel
+# of its largest exemplar, more where the axes have exemplars of their own; above every peak
+# measured (BENCHMARKS.md, "Large exemplars"). Larger exemplars than LARGE_PIXELS take
+# minutes, and are warned of.
 _BASE_BYTES = 256 << 20
-_BYTES_PER_PIXEL = 12 << 10
+_BYTES_PER_PIXEL = 14 << 10
+_BYTES_PER_PIXEL_PER_SOURCE = 2 << 10  # for each exemplar beyond the first
 LARGE_PIXELS = 256 * 256
-_SHRINK_ADVICE = ("shrink it when loading: Exemplar.load(..., max_size=256), "
-                  "--exemplar-max-size 256 in the CLI, exemplar_max_size in a scene")
+_SHRINK_ADVICE = ("shrink it when loading: max_size=256 in Exemplar.load, --exemplar-max-size "
+                  '256 on the command line, <integer name="exemplar_max_size" value="256"/> in '
+                  "a scene")
 
 DEFAULT_PARAMS: dict[str, object] = {
     "neighborhood": 5,  # N
@@ -184,13 +188,23 @@ def precompute(
     return result
 
 
+def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:
+    """About the peak memory of pre-computing the candidates of the exemplars of the three
+    axes (or one for all) at the default parameters: the largest decides, and each distinct
+    exemplar adds some (BENCHMARKS.md, "Large exemplars")."""
+    pixels = max(e.shape[0] * e.shape[1] for e in exemplars)
+    sources = len({e.digest() for e in exemplars})
+    per_pixel = _BYTES_PER_PIXEL + (sources - 1) * _BYTES_PER_PIXEL_PER_SOURCE
+    return _BASE_BYTES + pixels * per_pixel
+
+
 def _check_size(exemplars: list[Exemplar]) -> None:
     """Refuse, before any work, exemplars whose pre-computation would not fit in this
     machine's memory, and warn of those that take minutes (a photograph as it comes)."""
     largest = max(exemplars, key=lambda e: e.shape[0] * e.shape[1])
     h, w = largest.shape
     what = f"{largest.path or largest.name}: {w}x{h} pixels"
-    problem = memory_problem(_BASE_BYTES + h * w * _BYTES_PER_PIXEL)
+    problem = memory_problem(precompute_bytes(exemplars))
     if problem is not None:
         raise ExemplarError(f"{what}; pre-computing its candidates {problem}; {_SHRINK_ADVICE}")
     if h * w > LARGE_PIXELS:

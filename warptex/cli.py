@@ -24,12 +24,14 @@ import numpy as np
 
 from warptex import __version__
 from warptex._llvm import MIN_LLVM_MAJOR
-from warptex.exemplar import MIN_SIZE, Exemplar, ExemplarError
+from warptex.exemplar import Exemplar, ExemplarError
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     FILTERS,
+    MIN_EXEMPLAR_SIZE,
     SettingError,
+    check_max_size,
     check_settings,
 )
 from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
@@ -123,27 +125,39 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
         default=False,
         help="add a feature-distance channel from an automatic luminance threshold",
     )
+    _add_max_size_argument(parser)
+
+
+def _add_max_size_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--exemplar-max-size",
         type=int,
         metavar="PIXELS",
         help="shrink larger exemplars (area-averaged, aspect kept) until their larger side is "
-        "PIXELS, as photographs often need: pre-computing the candidates of a 512x512 image "
-        "takes 5 minutes on 2 CPU cores, of a 256x256 one about a minute; a voxel is a pixel "
-        "of the shrunk image",
+        f"PIXELS (at least {MIN_EXEMPLAR_SIZE}), as photographs often need: pre-computing the "
+        "candidates of a 512x512 image takes 5 minutes on 2 CPU cores, of a 256x256 one about a "
+        "minute. A voxel is a pixel of the shrunk image, so features come out smaller in voxels "
+        "(a scene's scale divided by the same factor keeps their size)",
     )
+
+
+def _max_size(args: argparse.Namespace) -> int | None:
+    """--exemplar-max-size, checked."""
+    try:
+        check_max_size(args.exemplar_max_size)
+    except SettingError as error:
+        raise CliError(f"--exemplar-max-size {error.problem}") from None
+    return args.exemplar_max_size
 
 
 def _load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
     """The exemplar at ``path``, read with the command's loading options."""
-    if args.exemplar_max_size is not None:
-        _check_at_least("--exemplar-max-size", args.exemplar_max_size, MIN_SIZE)
     return Exemplar.load(
         path,
         alpha=args.alpha,
         feature_mask=args.feature_mask,
         feature_distance=args.feature_distance,
-        max_size=args.exemplar_max_size,
+        max_size=_max_size(args),
     )
 
 
@@ -159,7 +173,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
     exemplar = _load_exemplar(args, args.path)
     height, width = exemplar.shape
     print(f"file: {exemplar.path}")
-    print(f"size: {width} x {height} pixels (width x height)")
+    file_height, file_width = exemplar.file_shape
+    shrunk = "" if (file_height, file_width) == exemplar.shape else (
+        f", shrunk from {file_width} x {file_height}")
+    print(f"size: {width} x {height} pixels (width x height){shrunk}")
     feature_note = " + feature distance" if exemplar.features.shape[2] > exemplar.channels else ""
     print(f"channels: {exemplar.channels}{feature_note}")
     print("value range:")
@@ -176,14 +193,26 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _candidate_status(exemplar: Exemplar) -> str:
+    """Where the candidates are cached, or what pre-computing them will cost here."""
     try:
-        from warptex.candidates import cached_candidate_path
+        from warptex.candidates import LARGE_PIXELS, cached_candidate_path, precompute_bytes
     except ModuleNotFoundError as error:
         if error.name != "warptex.candidates":
             raise
         return "not available"
+    from warptex.machine import byte_size, memory_problem
+
     cached = cached_candidate_path(exemplar)
-    return f"cached at {cached}" if cached is not None else "not cached"
+    if cached is not None:
+        return f"cached at {cached}"
+    need = precompute_bytes([exemplar])
+    problem = memory_problem(need)
+    if problem is not None:
+        return f"not cached; pre-computing them {problem}: shrink it with --exemplar-max-size"
+    height, width = exemplar.shape
+    side = math.isqrt(LARGE_PIXELS)
+    slow = f" and minutes (over {side}x{side} pixels)" if height * width > LARGE_PIXELS else ""
+    return f"not cached; pre-computing them takes about {byte_size(need)} of memory{slow}"
 
 
 def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -820,6 +849,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
+    _add_max_size_argument(parser)
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
                         help="output folder")
 
@@ -827,7 +857,8 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import compare, table_markdown, write_report
 
-    Exemplar.load(args.exemplar)  # one clear error for a bad image before any work
+    # One clear error for a bad image before any work.
+    Exemplar.load(args.exemplar, max_size=_max_size(args))
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
@@ -835,12 +866,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_at_least("--size", args.size, 8)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes)
+        results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes,
+                          max_size=args.exemplar_max_size)
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
         files = write_report(results, args.exemplar, args.output, size=args.size,
-                             seed=args.seed)
+                             seed=args.seed, max_size=args.exemplar_max_size)
     print(table_markdown(results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0
@@ -853,7 +885,9 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Render a Mitsuba scene (e.g. the repository's scenes/bunny_wood.xml) "
         "with warptex's "
         "lazy_solid plugin, showing progress; the brick-store statistics are printed and "
-        "written beside the image as OUTPUT.json.",
+        "written beside the image as OUTPUT.json. The scene's textures read their exemplars "
+        "themselves: shrink a large photograph there, with <integer name=\"exemplar_max_size\" "
+        "value=\"256\"/> in its lazy_solid.",
     )
     parser.add_argument("scene", type=Path, help="Mitsuba 3 scene file (.xml)")
     parser.add_argument("-o", "--output", type=Path, required=True,
@@ -1000,6 +1034,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning
         try:
+            if "exemplar_max_size" in args:  # before any work, a mesh's loading included
+                _max_size(args)
             _check_device()
             if args.command != "info":
                 _note_kernel_build()

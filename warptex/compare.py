@@ -162,21 +162,23 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
 
 
 def _cube_texture(method: str, exemplar_path: str, volume: np.ndarray, seed: int,
-                  passes: int) -> dict:
+                  passes: int, max_size: int | None) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
     own grid texture of their volume (both trilinear, one voxel = 1/size of the cube)."""
     size = volume.shape[0]
     if method == "lazy":
+        shrink = {} if max_size is None else {"exemplar_max_size": max_size}
         return {"type": "lazy_solid", "exemplar": str(Path(exemplar_path).resolve()),
-                "seed": seed, "passes": passes, "scale": float(size)}
+                "seed": seed, "passes": passes, "scale": float(size)} | shrink
     data = _mitsuba().TensorXf(np.ascontiguousarray(volume[..., :3].transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
 
 
-def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int) -> dict:
+def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int,
+             max_size: int | None) -> dict:
     """Run one method in this (fresh) process: volume, scores, time and peak memory."""
-    ex = Exemplar.load(exemplar_path)
+    ex = Exemplar.load(exemplar_path, max_size=max_size)
     make_volume, make_large = _RUN[method]
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(ex, 8, seed, passes)
@@ -196,7 +198,8 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int)
         "seconds": seconds,
         "peak_mib": max(peak - base, 0) / 1024.0,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
-        "render": render_cube(_cube_texture(method, exemplar_path, volume, seed, passes)),
+        "render": render_cube(_cube_texture(method, exemplar_path, volume, seed, passes,
+                                            max_size)),
         "notes": f"correction passes per level: {passes}" if method in _LAZY else "",
         "device": _engine_device() if method in _LAZY else "cpu",
     }
@@ -237,10 +240,11 @@ def run_line(run: dict) -> str:
 
 
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
-            seed: int = 0, progress: bool = True,
-            passes: int = DEFAULT_PASSES) -> list[MethodResult]:
+            seed: int = 0, progress: bool = True, passes: int = DEFAULT_PASSES,
+            max_size: int | None = None) -> list[MethodResult]:
     """Score every method on one exemplar, each in a fresh process; ``passes`` are the
-    lazy engine's correction passes per level (``lazy`` and ``tiled``)."""
+    lazy engine's correction passes per level (``lazy`` and ``tiled``), ``max_size`` how
+    far the exemplar is shrunk when loaded (``Exemplar.load``)."""
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -261,7 +265,7 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
             out = pool.submit(_measure, method, str(exemplar_path), size, seed,
-                              passes).result()
+                              passes, max_size).result()
         results.append(MethodResult(**out))
     return results
 
@@ -283,14 +287,16 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
 
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
-                 out_dir: str | Path, *, size: int, seed: int) -> list[Path]:
+                 out_dir: str | Path, *, size: int, seed: int,
+                 max_size: int | None = None) -> list[Path]:
     """Write ``sheet.png``, ``table.md`` and ``table.json`` into ``out_dir`` atomically,
-    with the :func:`run_summary` of the ``size^3``, ``seed`` comparison run here."""
+    with the :func:`run_summary` of the ``size^3``, ``seed`` comparison run here on the
+    exemplar as loaded with ``max_size``."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ex = Exemplar.load(exemplar_path)
+    ex = Exemplar.load(exemplar_path, max_size=max_size)
     rows = [("exemplar", [("exemplar", ex.colors)])]
     for r in results:
         images = [(f"{name} slice", s) for name, s in zip("xyz", r.slices, strict=True)]
@@ -298,9 +304,10 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
     save_png(sheet(rows), out / "sheet.png")
-    run = run_summary(size, seed)
-    markdown = (f"# {Path(exemplar_path).name}\n\n{size}^3, seed {seed}; {run_line(run)}\n\n"
-                + table_markdown(results))
+    run = run_summary(size, seed) | {"exemplar_size": list(ex.shape[::-1])}
+    shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
+    markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}; "
+                f"{run_line(run)}\n\n" + table_markdown(results))
     write_atomically(out / "table.md", lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]

@@ -22,16 +22,19 @@ from pathlib import Path
 
 import numpy as np
 import png
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 from scipy import ndimage
 
-MIN_SIZE = 16
+from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size
+
+MIN_SIZE = MIN_EXEMPLAR_SIZE
 MAX_CHANNELS = 64
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
 _NPY_MAGIC = b"\x93NUMPY"
 _REC709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+_SHRINK_BAND = 256  # columns shrunk at once
 # sigma of the blur applied before each 2x decimation; 1 pixel suppresses aliasing while keeping
 # the coarse levels close to the fine ones.
 _PYRAMID_SIGMA = 1.0
@@ -83,6 +86,7 @@ class Exemplar:
     ) -> None:
         self.name = name
         self.path: Path | None = None
+        self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
         self.colors = _validated_colors(array, name)
         if feature_distance is None:
             self.features = self.colors
@@ -133,11 +137,7 @@ class Exemplar:
             )
         if feature_mask is not None and feature_distance == "auto":
             raise ValueError("give either feature_mask or feature_distance='auto', not both")
-        if max_size is not None and (
-            isinstance(max_size, bool) or not isinstance(max_size, int) or max_size < MIN_SIZE
-        ):
-            raise ValueError(f"max_size must be a whole number of at least {MIN_SIZE} pixels, "
-                             f"not {max_size!r}")
+        check_max_size(max_size)
 
         path = Path(path)
         array, has_alpha = _read(path)
@@ -149,7 +149,7 @@ class Exemplar:
             array = array[..., :-1]
         read_shape = array.shape
         if max_size is not None:
-            array = _shrunk(_validated_colors(array, str(path)), max_size, str(path))
+            array = _shrunk(_validated_colors(array, str(path)), int(max_size), str(path))
 
         distance = None
         if feature_mask is not None:
@@ -161,7 +161,7 @@ class Exemplar:
                     f"{path} is {_size(read_shape)}"
                 )
             if array.shape[:2] != read_shape[:2]:
-                mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), max_size,
+                mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
                                      str(mask_path))
             mask = _binary_mask(mask_image, str(mask_path))
             distance = feature_distance_from_mask(mask, name=str(mask_path))
@@ -173,6 +173,7 @@ class Exemplar:
         exemplar = cls(array, name=str(path), feature_distance=distance)
         exemplar.name = path.name
         exemplar.path = path.resolve()
+        exemplar.file_shape = read_shape[:2]
         return exemplar
 
     @property
@@ -277,9 +278,13 @@ def _shrunk(image: np.ndarray, max_size: int, name: str) -> np.ndarray:
         return image
     shape = tuple(round(side * max_size / max(h, w)) for side in (h, w))
     if min(shape) < MIN_SIZE:
-        raise ExemplarError(f"{name}: image is {_size((h, w))} pixels, which max_size={max_size} "
-                            f"shrinks to {_size(shape)}; at least {MIN_SIZE}x{MIN_SIZE} needed")
-    rows = np.tensordot(_area_weights(h, shape[0]), image, axes=(1, 0))
+        raise ExemplarError(f"{name}: image is {_size((h, w))} pixels, {_size(shape)} when "
+                            f"shrunk to a larger side of {max_size}; at least "
+                            f"{MIN_SIZE}x{MIN_SIZE} needed")
+    weights = _area_weights(h, shape[0])
+    # Rows first, a band of columns at a time: a whole photo in float64 would double it.
+    rows = np.concatenate([np.tensordot(weights, image[:, c:c + _SHRINK_BAND], axes=(1, 0))
+                           for c in range(0, w, _SHRINK_BAND)], axis=1)
     both = np.tensordot(_area_weights(w, shape[1]), rows, axes=(1, 1)).swapaxes(0, 1)
     out = np.ascontiguousarray(both, dtype=np.float32)
     out.setflags(write=False)
@@ -430,7 +435,9 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
     try:
         with Image.open(path) as image:
             image.load()
-            return _pillow_pixels(image)
+            # Cameras store portrait photos sideways and say so in EXIF: upright, as viewers
+            # show them, since grain and layers run the way the photo shows.
+            return _pillow_pixels(ImageOps.exif_transpose(image))
     except UnidentifiedImageError:
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except (OSError, ValueError, SyntaxError) as error:

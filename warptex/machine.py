@@ -7,6 +7,12 @@ the machine gets one clear error instead of a crash or a swap storm half-way.
 from __future__ import annotations
 
 import os
+from pathlib import Path
+
+# Where a container's memory limit is read: cgroup v2, then v1 ("max" or a huge number when
+# there is none).
+_CGROUP_LIMITS = (Path("/sys/fs/cgroup/memory.max"),
+                  Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"))
 
 
 def usable_cores() -> int:
@@ -18,11 +24,25 @@ def usable_cores() -> int:
 
 
 def physical_memory() -> int | None:
-    """Bytes of physical memory, or None where the system does not say."""
+    """Bytes of memory this process may have: the machine's, or its container's limit
+    (cgroup) where that is lower; None where the system says neither."""
     try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
-        return None
+        total = None
+    known = [n for n in (total, _cgroup_limit()) if n is not None]
+    return min(known) if known else None
+
+
+def _cgroup_limit() -> int | None:
+    for path in _CGROUP_LIMITS:
+        try:
+            text = path.read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            return int(text)
+    return None
 
 
 def memory_problem(need: int) -> str | None:
@@ -31,8 +51,9 @@ def memory_problem(need: int) -> str | None:
     memory = physical_memory()
     if memory is None or need <= memory:
         return None
-    return f"needs about {_gib(need)}, this machine has {_gib(memory)}"
+    return f"needs about {byte_size(need)}, this machine has {byte_size(memory)}"
 
 
-def _gib(n: int) -> str:
+def byte_size(n: int) -> str:
+    """``n`` bytes in GiB, or MiB below one GiB: "24 GiB", "304 MiB"."""
     return f"{n / 2**30:.0f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"

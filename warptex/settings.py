@@ -15,6 +15,7 @@ MAX_PASSES = 8
 MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
 FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered
 DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
+MIN_EXEMPLAR_SIZE = 16  # pixels a side: a pyramid of at least two levels of 5 x 5 patches
 
 
 class SettingError(ValueError):
@@ -41,3 +42,15 @@ def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
         raise SettingError("jitter", f"must be within [0, {MAX_JITTER:g}], got {jitter}")
     if not 0 <= passes <= MAX_PASSES:
         raise SettingError("passes", f"must be within [0, {MAX_PASSES}], got {passes}")
+
+
+def check_max_size(max_size: int | None) -> None:
+    """Raise SettingError unless ``max_size``, the larger side an exemplar is shrunk to when
+    loaded (``Exemplar.load``), is None or an integer of at least MIN_EXEMPLAR_SIZE."""
+    if max_size is None:
+        return
+    if isinstance(max_size, bool) or not isinstance(max_size, Integral):
+        raise SettingError("max_size", f"must be an integer, got {max_size!r}")
+    if max_size < MIN_EXEMPLAR_SIZE:
+        raise SettingError("max_size", f"must be at least {MIN_EXEMPLAR_SIZE} pixels, got "
+                           f"{max_size}")
