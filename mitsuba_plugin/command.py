@@ -106,7 +106,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                      "pre-computed first)"):
             scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
-        if re.search(r"\bKeyboardInterrupt\b", str(e)):  # Ctrl-C in a plugin, so wrapped
+        # Ctrl-C in a plugin that Mitsuba built on this thread comes wrapped, the Python
+        # exception's own line last; one on a loading thread arrives when loading ends.
+        if re.search(r"^KeyboardInterrupt\b", str(e), re.MULTILINE):
             raise KeyboardInterrupt from None
         if params and "unused parameters" in str(e):
             raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "

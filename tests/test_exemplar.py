@@ -524,7 +524,12 @@ def _area_reference(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     ((47, 100), 50, (24, 50)),  # 23.5 too
 ])
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
-def test_max_size_area_averages_keeping_the_aspect(tmp_path, rng, size, max_size, shrunk, dtype):
+@pytest.mark.parametrize("band", [256, 7])  # photos are shrunk a band of columns at a time
+def test_max_size_area_averages_keeping_the_aspect(tmp_path, rng, monkeypatch, size, max_size,
+                                                   shrunk, dtype, band):
+    import warptex.exemplar
+
+    monkeypatch.setattr(warptex.exemplar, "_SHRINK_BAND", band)
     pixels = rng.integers(0, 255, size=(*size, 3)).astype(dtype)
     np.save(tmp_path / "photo.npy", pixels)
     plain = _load_quiet(tmp_path / "photo.npy")

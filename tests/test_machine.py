@@ -1,6 +1,8 @@
 """What a command may use of this machine (warptex.machine) and the memory checks that
 refuse a job too large for it before any work."""
 
+from pathlib import Path
+
 import pytest
 
 
@@ -23,32 +25,43 @@ def test_volume_memory_counts_the_join_and_the_working_bytes(monkeypatch):
             cli._check_memory(size, channels, working)
 
 
-@pytest.mark.parametrize(("v2", "v1", "expected"), [
-    ("max\n", None, "total"),                      # cgroup v2 without a limit
-    ("1073741824\n", None, 1 << 30),               # a container of 1 GiB
-    (None, "2147483648\n", 2 << 30),               # cgroup v1
-    (None, "9223372036854771712\n", "total"),      # v1 without a limit: the machine's
-    (None, None, "total"),                          # no cgroup files
+@pytest.mark.parametrize(("groups", "files", "expected"), [
+    ("0::/\n", {"memory.max": "max"}, "total"),                      # v2 without a limit
+    ("0::/\n", {"memory.max": "1073741824"}, 1 << 30),               # a container of 1 GiB
+    ("0::/user/job\n", {"user/job/memory.max": "max", "user/memory.max": "1073741824",
+                        "memory.max": "max"}, 1 << 30),               # a limit further up
+    ("0::/job\n", {"job/memory.max": "2147483648", "memory.max": "1073741824"}, 1 << 30),
+    ("5:cpu:/x\n4:memory:/job\n", {"memory/job/memory.limit_in_bytes": "2147483648"},
+     2 << 30),                                                         # cgroup v1
+    ("4:memory,pids:/\n", {"memory/memory.limit_in_bytes": "9223372036854771712"},
+     "total"),                                                         # v1 without a limit
+    ("4:cpu:/\n", {"memory.max": "1073741824"}, "total"),            # no memory controller
+    (None, {}, "total"),                                              # no cgroups at all
 ])
-def test_physical_memory_is_a_containers_limit_where_lower(tmp_path, monkeypatch, v2, v1,
-                                                          expected):
+def test_physical_memory_is_a_containers_limit_where_lower(tmp_path, monkeypatch, groups,
+                                                          files, expected):
     from warptex import machine
 
-    monkeypatch.setattr(machine, "_CGROUP_LIMITS", ())
+    monkeypatch.setattr(machine, "_PROC_CGROUP", tmp_path / "missing")
     total = machine.physical_memory()
-    paths = []
-    for name, text in (("memory.max", v2), ("memory.limit_in_bytes", v1)):
-        paths.append(tmp_path / name)
-        if text is not None:
-            paths[-1].write_text(text)
-    monkeypatch.setattr(machine, "_CGROUP_LIMITS", tuple(paths))
+    root = tmp_path / "cgroup"
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text + "\n")
+    if groups is not None:
+        (tmp_path / "proc_cgroup").write_text(groups)
+        monkeypatch.setattr(machine, "_PROC_CGROUP", tmp_path / "proc_cgroup")
+    monkeypatch.setattr(machine, "_CGROUP_ROOT", root)
     assert machine.physical_memory() == (total if expected == "total" else expected)
 
 
-def test_physical_memory_is_the_systems_total():
+def test_physical_memory_is_the_systems_total(monkeypatch):
     import os
 
+    from warptex import machine
     from warptex.machine import physical_memory
+
+    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))  # no container limit
 
     if not os.path.exists("/proc/meminfo"):
         pytest.skip("no /proc/meminfo")

@@ -147,20 +147,34 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
 
 
-def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("folder", ["plain", "KeyboardInterrupt"])
+def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch, folder):
     """Ctrl-C while a texture pre-computes its candidates is an interruption, not a scene
-    error, though Mitsuba wraps what a plugin raises."""
-    import mitsuba_plugin.texture
+    error, though Mitsuba wraps what a plugin raises; a path that happens to hold the word
+    does not make an error one."""
+    import shutil
+
     from warptex.cli import main
+
+    mitsuba_plugin.set_best_variant()
+    mitsuba_plugin.register()  # as render does, before the plugin module is patched
+    scenes = tmp_path / folder
+    shutil.copytree(REPO / "scenes", scenes)
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mitsuba_plugin.texture, "precompute", interrupted)
-    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
-                 str(tmp_path / "b.png"), "--spp", "1", "--res", "16x16"]) == 130
+    out = tmp_path / "out"
+    argv = ["render", str(scenes / "bunny_wood.xml"), "-o", str(out / "b.png"), "--spp",
+            "1", "--res", "16x16"]
+    with monkeypatch.context() as patch:
+        patch.setattr(mitsuba_plugin.texture, "precompute", interrupted)
+        assert main(argv) == 130
     assert capsys.readouterr().err.endswith("warptex: interrupted\n")
-    assert not any(tmp_path.iterdir())
+    (scenes / "textures" / "wood_rosewood_64.png").write_bytes(b"broken")
+    assert main(argv) == 2
+    assert "cannot be used" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_medium_scatters_with_the_texture_at_each_point(granite_32_file):

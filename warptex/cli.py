@@ -136,8 +136,9 @@ def _add_max_size_argument(parser: argparse.ArgumentParser) -> None:
         help="shrink larger exemplars (area-averaged, aspect kept) until their larger side is "
         f"PIXELS (at least {MIN_EXEMPLAR_SIZE}), as photographs often need: pre-computing the "
         "candidates of a 512x512 image takes 5 minutes on 2 CPU cores, of a 256x256 one about a "
-        "minute. A voxel is a pixel of the shrunk image, so features come out smaller in voxels "
-        "(a scene's scale divided by the same factor keeps their size)",
+        "minute (several with --ey/--ez). A voxel is a pixel of the shrunk image, so features "
+        "come out smaller in voxels (dividing bake's and cut's --resolution, or a scene's "
+        "scale, by the same factor keeps their size)",
     )
 
 

@@ -437,7 +437,8 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
             image.load()
             # Cameras store portrait photos sideways and say so in EXIF: upright, as viewers
             # show them, since grain and layers run the way the photo shows.
-            return _pillow_pixels(ImageOps.exif_transpose(image))
+            ImageOps.exif_transpose(image, in_place=True)
+            return _pillow_pixels(image)
     except UnidentifiedImageError:
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except (OSError, ValueError, SyntaxError) as error:

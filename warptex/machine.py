@@ -9,10 +9,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-# Where a container's memory limit is read: cgroup v2, then v1 ("max" or a huge number when
-# there is none).
-_CGROUP_LIMITS = (Path("/sys/fs/cgroup/memory.max"),
-                  Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"))
+# This process's control groups ("ID:controllers:path" lines) and where their memory limits
+# are read: cgroup v2's memory.max ("max" when there is none), v1's memory.limit_in_bytes (a
+# huge number when there is none).
+_PROC_CGROUP = Path("/proc/self/cgroup")
+_CGROUP_ROOT = Path("/sys/fs/cgroup")
 
 
 def usable_cores() -> int:
@@ -35,14 +36,32 @@ def physical_memory() -> int | None:
 
 
 def _cgroup_limit() -> int | None:
-    for path in _CGROUP_LIMITS:
-        try:
-            text = path.read_text().strip()
-        except OSError:
+    """The lowest memory limit of this process's cgroup and those above it, as far as the
+    cgroup file system shows them (a container sees its own group as the root)."""
+    try:
+        lines = _PROC_CGROUP.read_text().splitlines()
+    except OSError:
+        return None
+    limits = []
+    for line in lines:
+        _, controllers, group = line.split(":", 2)
+        if controllers == "":
+            base, name = _CGROUP_ROOT, "memory.max"
+        elif "memory" in controllers.split(","):
+            base, name = _CGROUP_ROOT / "memory", "memory.limit_in_bytes"
+        else:
             continue
-        if text.isdigit():
-            return int(text)
-    return None
+        folder = base / group.lstrip("/")
+        for level in [folder, *folder.parents]:
+            if not level.is_relative_to(base):
+                break
+            try:
+                text = (level / name).read_text().strip()
+            except OSError:
+                continue
+            if text.isdigit():
+                limits.append(int(text))
+    return min(limits, default=None)
 
 
 def memory_problem(need: int) -> str | None:
