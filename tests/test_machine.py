@@ -37,6 +37,7 @@ def test_volume_memory_counts_the_join_and_the_working_bytes(monkeypatch):
      "total"),                                                         # v1 without a limit
     ("4:cpu:/\n", {"memory.max": "1073741824"}, "total"),            # no memory controller
     (None, {}, "total"),                                              # no cgroups at all
+    ("garbled\n0::/\n", {"memory.max": "1073741824"}, 1 << 30),     # a line it cannot read
 ])
 def test_physical_memory_is_a_containers_limit_where_lower(tmp_path, monkeypatch, groups,
                                                           files, expected):

@@ -27,7 +27,6 @@ from scipy import ndimage
 
 from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size
 
-MIN_SIZE = MIN_EXEMPLAR_SIZE
 MAX_CHANNELS = 64
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -277,10 +276,10 @@ def _shrunk(image: np.ndarray, max_size: int, name: str) -> np.ndarray:
     if max(h, w) <= max_size:
         return image
     shape = tuple(round(side * max_size / max(h, w)) for side in (h, w))
-    if min(shape) < MIN_SIZE:
+    if min(shape) < MIN_EXEMPLAR_SIZE:
         raise ExemplarError(f"{name}: image is {_size((h, w))} pixels, {_size(shape)} when "
                             f"shrunk to a larger side of {max_size}; at least "
-                            f"{MIN_SIZE}x{MIN_SIZE} needed")
+                            f"{MIN_EXEMPLAR_SIZE}x{MIN_EXEMPLAR_SIZE} needed")
     weights = _area_weights(h, shape[0])
     # Rows first, a band of columns at a time: a whole photo in float64 would double it.
     rows = np.concatenate([np.tensordot(weights, image[:, c:c + _SHRINK_BAND], axes=(1, 0))
@@ -317,9 +316,10 @@ def _validated_colors(array: object, name: str) -> np.ndarray:
         raise ExemplarError(
             f"{name}: image has {data.shape[2]} channels; at most {MAX_CHANNELS} are supported"
         )
-    if data.shape[0] < MIN_SIZE or data.shape[1] < MIN_SIZE:
+    if data.shape[0] < MIN_EXEMPLAR_SIZE or data.shape[1] < MIN_EXEMPLAR_SIZE:
         raise ExemplarError(
-            f"{name}: image is {_size(data.shape)} pixels; at least {MIN_SIZE}x{MIN_SIZE} needed"
+            f"{name}: image is {_size(data.shape)} pixels; at least "
+            f"{MIN_EXEMPLAR_SIZE}x{MIN_EXEMPLAR_SIZE} needed"
         )
     colors = _to_float32(data, name)
     if not np.isfinite(colors).all():

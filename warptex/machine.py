@@ -44,7 +44,10 @@ def _cgroup_limit() -> int | None:
         return None
     limits = []
     for line in lines:
-        _, controllers, group = line.split(":", 2)
+        fields = line.split(":", 2)
+        if len(fields) != 3:
+            continue
+        _, controllers, group = fields
         if controllers == "":
             base, name = _CGROUP_ROOT, "memory.max"
         elif "memory" in controllers.split(","):
