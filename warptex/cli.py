@@ -142,13 +142,12 @@ def _add_max_size_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _max_size(args: argparse.Namespace) -> int | None:
-    """--exemplar-max-size, checked."""
+def _check_max_size(args: argparse.Namespace) -> None:
+    """Refuse a bad --exemplar-max-size; ``main`` asks before any command's work."""
     try:
         check_max_size(args.exemplar_max_size)
     except SettingError as error:
         raise CliError(f"--exemplar-max-size {error.problem}") from None
-    return args.exemplar_max_size
 
 
 def _load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
@@ -158,7 +157,7 @@ def _load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
         alpha=args.alpha,
         feature_mask=args.feature_mask,
         feature_distance=args.feature_distance,
-        max_size=_max_size(args),
+        max_size=args.exemplar_max_size,
     )
 
 
@@ -859,7 +858,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import compare, table_markdown, write_report
 
     # One clear error for a bad image before any work.
-    Exemplar.load(args.exemplar, max_size=_max_size(args))
+    Exemplar.load(args.exemplar, max_size=args.exemplar_max_size)
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
@@ -1036,7 +1035,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         warnings.showwarning = _show_warning
         try:
             if "exemplar_max_size" in args:  # before any work, a mesh's loading included
-                _max_size(args)
+                _check_max_size(args)
             _check_device()
             if args.command != "info":
                 _note_kernel_build()
