@@ -18,6 +18,8 @@ Properties (XML or ``mi.load_dict``):
 ``to_world``           transform  places the block of matter (default identity)
 ``space``              string     ``world`` (default) or ``object``, see below
 ``filter``             string     ``trilinear`` (default) or ``nearest``
+``raw``                boolean    render an 8- or 16-bit exemplar's values as they are stored,
+                                  without decoding sRGB (default false, as Mitsuba's ``bitmap``)
 ``cache``              string     brick store file: loaded when it exists, written by ``save()``
 ``cache_bytes``        integer    memory bound of the brick store (default 256 MiB; scalar
                                   variants keep up to about as much again, see below)
@@ -30,6 +32,13 @@ the frame of the ``instance`` the hit belongs to, else the ``to_world`` paramete
 shape when it has one (``sphere``, ``rectangle``, ...). Meshes bake their ``to_world``
 into their vertices at load time, so a plain mesh has no frame to recover and object
 space equals world space for it; move meshes with ``instance`` to keep their texture.
+
+Colors: as Mitsuba's ``bitmap`` does, the plugin gives renders linear colors, so the
+sRGB-encoded values of 8- and 16-bit exemplars (``Exemplar.srgb``) are decoded unless
+``raw`` is set; float exemplars (OpenEXR, ``.npy``) are linear already. Synthesis and the
+brick store keep the stored values, which the other warptex commands write as they are; the
+plugin decodes the filtered color of each point (Mitsuba's bitmap filters decoded texels, a
+difference of a fraction of a quantization step inside a voxel).
 
 Variants: ``eval`` gives the color as the variant's spectrum (:mod:`mitsuba_plugin.spectrum`:
 as it is in RGB variants, its luminance in monochrome ones, Mitsuba's upsampling of it in
@@ -68,7 +77,7 @@ from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.candidates import CandidateSet, precompute
-from warptex.exemplar import Exemplar
+from warptex.exemplar import Exemplar, ExemplarError, srgb_encoded, srgb_to_linear
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
@@ -83,7 +92,8 @@ from warptex.texture import SolidTexture
 
 PLUGIN = "lazy_solid"
 # How a property of each kind is written in a scene, for errors that name the wrong one.
-_KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>'}
+_KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>',
+          bool: 'a <boolean ...>'}
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
 
@@ -99,13 +109,13 @@ def property_error(plugin: str, name: str, problem: str) -> PropertyError:
 
 def get_property(props: mi.Properties, name: str, kind: type, default: Any,
                  plugin: str = PLUGIN) -> Any:
-    """Property ``name`` converted to ``kind`` (int, float or str), or ``default``."""
+    """Property ``name`` converted to ``kind`` (int, float, str or bool), or ``default``."""
     if name not in props:
         return default
     value = props[name]
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
-    if not isinstance(value, kind) or isinstance(value, bool):
+    if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
         raise property_error(plugin, name, f"must be {_KINDS[kind]}, got {value!r}")
     return value
 
@@ -209,6 +219,7 @@ class LazySolidTexture(mi.Texture):
             raise property_error(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
         self.space = _choice(props, "space", _SPACES)
         self.filter = _choice(props, "filter", FILTERS)
+        self.raw = get_property(props, "raw", bool, False)
         cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES)
         if cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
@@ -218,6 +229,10 @@ class LazySolidTexture(mi.Texture):
         to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
         self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
         exemplars = _load_exemplars(named, self.max_size)
+        try:
+            self._decode_srgb = not self.raw and srgb_encoded(exemplars)
+        except ExemplarError as e:
+            raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
             candidates = precompute(*exemplars, progress=None)  # a bar in a terminal
         except ValueError as e:  # the exemplars do not go together
@@ -229,12 +244,16 @@ class LazySolidTexture(mi.Texture):
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = _exemplar_colors(candidates)
-        self._mean_rgb = tuple(float(c) for c in colors.mean(axis=0))
+        # Traced lookups give voxels not yet stored this color, in stored values as theirs.
+        self._stand_in = tuple(float(c) for c in colors.mean(axis=0))
+        if self._decode_srgb:
+            colors = srgb_to_linear(colors)
         # What eval gives on average (the mean channel; luminance in a monochrome variant)
         # and at most (spectra may exceed a color's largest channel, but never 1).
         self._mean = float(colors.mean())
         if mi.is_monochromatic:
-            self._mean = float(np.ravel(mi.luminance(mi.Color3f(*self._mean_rgb)))[0])
+            mean_rgb = mi.Color3f(*(float(c) for c in colors.mean(axis=0)))
+            self._mean = float(np.ravel(mi.luminance(mean_rgb))[0])
         self._max = 1.0 if mi.is_spectral else float(colors.max())
         self._traced: TracedLookup | None = None
         # The scalar variants' copies of bricks, as large as the store may be.
@@ -276,12 +295,23 @@ class LazySolidTexture(mi.Texture):
         shrunk = "" if self.max_size is None else f", exemplar_max_size={self.max_size}"
         return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={self.seed}, "
                 f"jitter={self.jitter}, passes={self.passes}, scale={self.scale}, "
-                f"space={self.space}, filter={self.filter}, cache={self.cache}]")
+                f"space={self.space}, filter={self.filter}, raw={self.raw}, "
+                f"cache={self.cache}]")
 
     # -- queries ----------------------------------------------------------------------
 
     def colors_at(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Color3f:
-        """RGB at the points of interaction ``it`` where ``active``; zero elsewhere.
+        """Linear RGB at the points of interaction ``it`` where ``active``; zero elsewhere:
+        the stored colors, decoded from sRGB unless ``raw`` (module documentation)."""
+        rgb = self._stored_colors(it, active)
+        return dr.srgb_to_linear(rgb) if self._decode_srgb else rgb
+
+    def query_texture_space(self, points: np.ndarray) -> np.ndarray:
+        """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded)."""
+        return _as_rgb(self.solid.query(points, filter=self.filter))
+
+    def _stored_colors(self, it: mi.Interaction3f, active: mi.Bool) -> mi.Color3f:
+        """RGB at the points of ``it`` where ``active``, as stored; zero elsewhere.
 
         Under the JIT variants only the active lanes are queried, so inactive lanes
         synthesize nothing; the LLVM variants hand their points to NumPy without a copy
@@ -317,10 +347,6 @@ class LazySolidTexture(mi.Texture):
             colors[keep] = self._query(points[keep], it, keep)
         return mi.Color3f(colors.T)
 
-    def query_texture_space(self, points: np.ndarray) -> np.ndarray:
-        """RGB (N, 3) float32 at texture-space ``points`` (N, 3)."""
-        return _as_rgb(self.solid.query(points, filter=self.filter))
-
     # -- traced lookups (driven by mitsuba_plugin.render and traced_renders) ------------
 
     def begin_tracing(self, scene: mi.Scene) -> bool:
@@ -330,7 +356,7 @@ class LazySolidTexture(mi.Texture):
         if not dr.is_jit_v(mi.Float) or dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
             return False  # CUDA: traced arithmetic is not bit-exact (module documentation)
         if self._traced is None:
-            self._traced = TracedLookup(self.solid.store, self.filter, self._mean_rgb)
+            self._traced = TracedLookup(self.solid.store, self.filter, self._stand_in)
         if self.space == "object":
             self._frames = _ObjectFrames(scene)
         usable = self._traced.refresh()

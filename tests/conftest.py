@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
@@ -38,6 +39,16 @@ def exemplar_dir() -> Path:
     if not path.is_dir():
         pytest.skip(f"shared exemplars not found at {path}")
     return path
+
+
+@pytest.fixture(scope="session")
+def srgb_decoded():
+    """The sRGB transfer function inverted (IEC 61966-2-1), computed apart from Mitsuba:
+    the linear colors a render sees of an 8-bit exemplar's values."""
+    def decoded(srgb: np.ndarray) -> np.ndarray:
+        srgb = np.asarray(srgb, np.float64)
+        return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    return decoded
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -181,6 +182,41 @@ def test_export_formats(texture, sphere, tmp_path):
     with pytest.raises(ValueError, match=r"\.glb or \.obj"):
         export(mesh, tmp_path / "t.ply", image=image, uv=mesh.visual.uv)
     assert not list(tmp_path.glob(".t.ply*"))
+
+
+def test_cli_slice_writes_each_format_in_its_own_encoding(tmp_path, data_dir, warp_device,
+                                                         srgb_decoded):
+    """An 8-bit exemplar's slice: .npy as synthesized, .exr decoded to linear, .png as the
+    values are; a float (linear) exemplar's .png is encoded to sRGB; --raw writes stored
+    values everywhere."""
+    from PIL import Image
+
+    from warptex.cli import main
+    from warptex.exemplar import linear_to_srgb
+
+    def sliced(exemplar: Path, name: str, *extra: str) -> np.ndarray:
+        out = tmp_path / name
+        assert main(["slice", str(exemplar), "--shape", "8", "12", *extra, "-o", str(out)]) == 0
+        if out.suffix == ".png":
+            return np.asarray(Image.open(out))
+        if out.suffix == ".npy":
+            return np.load(out)
+        import OpenEXR
+
+        with OpenEXR.File(str(out)) as file:
+            return file.channels()["RGB"].pixels
+
+    png = data_dir / "granite_64.png"
+    stored = sliced(png, "s.npy")
+    np.testing.assert_allclose(sliced(png, "s.exr"), srgb_decoded(stored), rtol=1e-5)
+    np.testing.assert_array_equal(sliced(png, "raw.exr", "--raw"), stored)
+    np.testing.assert_array_equal(sliced(png, "s.png"), np.round(stored * 255))
+    floats = tmp_path / "granite.npy"
+    np.save(floats, np.asarray(Image.open(png), np.float32) / 255)
+    assert np.array_equal(sliced(floats, "f.npy"), stored)  # the same values, synthesized alike
+    np.testing.assert_array_equal(sliced(floats, "f.png"), np.round(linear_to_srgb(stored) * 255))
+    np.testing.assert_array_equal(sliced(floats, "raw.png", "--raw"), np.round(stored * 255))
+    np.testing.assert_array_equal(sliced(floats, "f.exr"), stored)
 
 
 def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys):

@@ -179,12 +179,15 @@ def test_volume_seed_changes_result(images, expected, tmp_path):
 
 def test_volume_vol_and_exr_are_the_box_written_by_volume_files(images, expected, tmp_path):
     """The command writes the engine's box as warptex.volume_files does (whose layouts
-    tests/test_volume_files.py checks), byte for byte."""
+    tests/test_volume_files.py checks), byte for byte: the PNG's colors decoded to linear,
+    as these formats are read, or as stored with --raw."""
     for suffix in (".vol", ".exr"):
-        out, reference = tmp_path / f"v{suffix}", tmp_path / f"reference{suffix}"
-        assert _volume(images, out) == 0
-        write_volume(reference, expected)
-        assert out.read_bytes() == reference.read_bytes(), suffix
+        for raw in (False, True):
+            out, reference = tmp_path / f"v{raw}{suffix}", tmp_path / f"reference{suffix}"
+            assert _volume(images, out, *(["--raw"] if raw else [])) == 0
+            write_volume(reference, expected, srgb=not raw)
+            assert out.read_bytes() == reference.read_bytes(), (suffix, raw)
+    assert (tmp_path / "vFalse.vol").read_bytes() != (tmp_path / "vTrue.vol").read_bytes()
 
 
 _MITSUBA_READ = """
@@ -196,7 +199,7 @@ np.save(sys.argv[2], np.array(mi.VolumeGrid(sys.argv[1])))
 """
 
 
-def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path):
+def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path, srgb_decoded):
     pytest.importorskip("mitsuba")
     assert _volume(images, tmp_path / "v.vol") == 0
     # A child process, so the Mitsuba variant chosen here leaves other tests alone.
@@ -205,7 +208,21 @@ def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path):
         check=True,
         capture_output=True,
     )
-    np.testing.assert_array_equal(np.load(tmp_path / "m.npy"), expected.transpose(2, 1, 0, 3))
+    np.testing.assert_allclose(np.load(tmp_path / "m.npy"),
+                               srgb_decoded(expected).transpose(2, 1, 0, 3), rtol=1e-5)
+
+
+def test_volume_of_exemplars_encoded_differently_is_refused_unless_raw(images, tmp_path,
+                                                                      capsys):
+    linear = tmp_path / "linear.npy"
+    np.save(linear, np.asarray(Image.open(images["b"]), np.float32) / 255)
+    out = tmp_path / "v.npy"
+    assert _volume(images, out, "--ey", str(linear)) == 2
+    assert capsys.readouterr().err == (
+        "warptex: error: the exemplars' colors are encoded differently (a.png sRGB-encoded, "
+        "linear.npy linear): convert one image, or keep the values as stored (raw)\n")
+    assert not out.exists()
+    assert _volume(images, out, "--ey", str(linear), "--raw") == 0
 
 
 def test_volume_bad_extension_names_the_path(images, tmp_path, capsys):

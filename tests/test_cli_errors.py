@@ -41,9 +41,10 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
 
 
 def _rotated(path: Path) -> np.ndarray:
+    """The PNG's 8-bit pixels turned, so they are sRGB-encoded as the PNG's are."""
     from PIL import Image
 
-    return np.rot90(np.asarray(Image.open(path).convert("RGB"), np.float32) / 255).copy()
+    return np.rot90(np.asarray(Image.open(path).convert("RGB"))).copy()
 
 
 CASES = [

@@ -30,8 +30,15 @@ def test_info_prints_size_channels_range_pyramid(data_dir, capsys, no_candidates
     for channel in range(3):
         low, high = colors[..., channel].min(), colors[..., channel].max()
         assert f"channel {channel}: {low:.4f} .. {high:.4f}" in out
+    assert "encoding: sRGB (the Mitsuba plugin decodes it to linear colors unless raw)" in out
     assert "pyramid: 4 levels (8x8, 16x16, 32x32, 64x64)" in out
     assert "candidates: not available" in out
+
+
+def test_info_says_a_float_image_is_linear(tmp_path, capsys, no_candidates):
+    np.save(tmp_path / "float.npy", np.random.default_rng(0).random((16, 16, 3)))
+    assert main(["info", str(tmp_path / "float.npy")]) == 0
+    assert "encoding: linear (rendered as stored)\n" in capsys.readouterr().out
 
 
 def test_info_non_square_with_feature_distance(tmp_path, capsys, no_candidates):

@@ -97,15 +97,29 @@ def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
-    volume = np.zeros((8, 8, 8, 3), np.float32)
-    assert _cube_texture("lazy", str(path), volume, 0, 1, None)["passes"] == 1
-    assert "exemplar_max_size" not in _cube_texture("lazy", str(path), volume, 0, 1, None)
-    assert _cube_texture("lazy", str(path), volume, 0, 1, 24)["exemplar_max_size"] == 24
     ex = Exemplar.load(path)
+    volume = np.zeros((8, 8, 8, 3), np.float32)
+    assert _cube_texture("lazy", ex, volume, 0, 1, None)["passes"] == 1
+    assert "exemplar_max_size" not in _cube_texture("lazy", ex, volume, 0, 1, None)
+    assert _cube_texture("lazy", ex, volume, 0, 1, 24)["exemplar_max_size"] == 24
     one, two = (_tiled(ex, 8, 0, passes) for passes in (1, 2))
     assert not np.array_equal(one, two)
     with pytest.raises(ValueError, match="passes must be within"):
         compare(path, 16, ["lazy"], passes=9, progress=False)
+
+
+def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
+    """The grid textures of the other methods are decoded from sRGB as the plugin decodes
+    the lazy cube's, so cubes compare in one color space; a float exemplar is left as is."""
+    from warptex.compare import _cube_texture
+    from warptex.exemplar import Exemplar
+
+    ex = Exemplar.load(data_dir / "granite_64.png")
+    volume = np.random.default_rng(0).random((4, 5, 6, 3)).astype(np.float32)
+    for srgb, expected in ((True, srgb_decoded(volume)), (False, volume)):
+        ex.srgb = srgb
+        grid = _cube_texture("tiled", ex, volume, 0, 2, None)["volume"]["data"]
+        np.testing.assert_allclose(np.array(grid), expected.transpose(2, 1, 0, 3), rtol=1e-5)
 
 
 def test_compare_runs_both_kopf_variants(tmp_path, data_dir, warp_device):

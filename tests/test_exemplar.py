@@ -248,6 +248,49 @@ def test_array_kinds(rng):
     np.testing.assert_array_equal(Exemplar(mask).colors[..., 0], mask.astype(np.float32))
 
 
+def _write_png8(path: Path, pixels: np.ndarray, **options) -> Path:
+    height, width, _ = pixels.shape
+    with path.open("wb") as file:
+        writer = png.Writer(width, height, greyscale=False, **options)
+        writer.write(file, pixels.reshape(height, -1).tolist())
+    return path
+
+
+def _write_pillow(path: Path, pixels: np.ndarray) -> Path:
+    Image.fromarray(pixels).save(path)
+    return path
+
+
+@pytest.mark.parametrize(("write", "srgb"), [
+    (lambda p, c: _write_png8(p / "a.png", c), True),
+    (lambda p, c: _write_png8(p / "a.png", c, gamma=0.45455), True),
+    (lambda p, c: _write_png8(p / "a.png", c, gamma=1.0), False),  # declared linear
+    (lambda p, c: _write_png16(p / "a.png", c.astype(np.uint16) * 257), True),
+    (lambda p, c: _write_pillow(p / "a.jpg", c), True),
+    (lambda p, c: _write_pillow(p / "a.tif", c), True),
+    (lambda p, c: _write_pillow(p / "a.tif", c[..., 0] / np.float32(255)), False),
+    (lambda p, c: _write_exr(p / "a.exr", {"RGB": c / np.float32(255)}), False),
+    (lambda p, c: np.save(p / "a.npy", c) or p / "a.npy", True),
+    (lambda p, c: np.save(p / "a.npy", c / np.float32(255)) or p / "a.npy", False),
+], ids=["png", "png-gamma-srgb", "png-gamma-1", "png16", "jpeg", "tiff", "tiff-float", "exr",
+        "npy-uint8", "npy-float"])
+def test_integer_images_are_srgb_encoded_float_images_linear(tmp_path, rng, write, srgb):
+    """As Mitsuba's bitmap reads them, so the plugin decodes what it would decode."""
+    pixels = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    path = write(tmp_path, pixels)
+    assert _load_quiet(path).srgb is srgb
+    assert _load_quiet(path, max_size=16).srgb is srgb  # shrinking makes floats of integers
+    assert _load_quiet(path, srgb=not srgb).srgb is not srgb
+    assert ("linear" in repr(_load_quiet(path))) is not srgb
+
+
+def test_array_encoding_follows_the_dtype_unless_given(rng):
+    pixels = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    assert Exemplar(pixels).srgb and Exemplar(pixels.astype(np.uint16)).srgb
+    assert not Exemplar(pixels / 255.0).srgb and not Exemplar(pixels > 127).srgb
+    assert Exemplar(pixels / 255.0, srgb=True).srgb and not Exemplar(pixels, srgb=False).srgb
+
+
 def test_arrays_are_read_only_copies(rng):
     source = rng.random(size=(16, 16, 3)).astype(np.float32)
     exemplar = Exemplar(source)

@@ -35,6 +35,19 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     return si
 
 
+def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
+    """``tex.eval`` at ``points`` (N, 3) as (N, 3): one call in the JIT variants, a call per
+    point in the scalar ones."""
+    if dr.is_jit_v(mi.Float):
+        return np.array(tex.eval(interaction(points))).T
+    si = mi.SurfaceInteraction3f()
+    got = []
+    for p in points:
+        si.p = mi.Point3f(*p)
+        got.append(np.array(tex.eval(si)))
+    return np.array(got)
+
+
 @pytest.mark.parametrize(("props", "name"), [
     ({"space": "foo"}, "space"),
     ({"filter": "cubic"}, "filter"),
@@ -46,6 +59,7 @@ def interaction(points: np.ndarray) -> mi.SurfaceInteraction3f:
     ({"passes": -1}, "passes"),
     ({"passes": 2.5}, "passes"),
     ({"passes": 9}, "passes"),
+    ({"raw": 1}, 'raw" must be a <boolean ...>, got 1'),
     ({"exemplar_max_size": 15}, 'exemplar_max_size" must be at least 16 pixels, got 15'),
     ({"exemplar_max_size": 32.0}, 'exemplar_max_size" must be an <integer ...>, got 32.0'),
     ({"exemplar_max_size": "32"}, "exemplar_max_size\" must be an <integer ...>, got '32'"),
@@ -131,26 +145,59 @@ def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM, CUDA])
-@pytest.mark.parametrize("filter", ["trilinear", "nearest"])
-def test_eval_is_the_solid_texture_at_scaled_points(granite_32_file, variant, filter):
+@pytest.mark.parametrize(("filter", "raw"), [("trilinear", False), ("nearest", False),
+                                             ("trilinear", True)])
+def test_eval_is_the_solid_texture_at_scaled_points(granite_32_file, srgb_decoded, variant,
+                                                    filter, raw):
+    """Decoded from the PNG's sRGB to linear, as Mitsuba's bitmap does, unless raw."""
     use(variant)
     to_world = mi.ScalarTransform4f().translate([0.5, -1.0, 2.0])
-    tex = load(granite_32_file, scale=8.0, filter=filter, seed=3, to_world=to_world)
+    tex = load(granite_32_file, scale=8.0, filter=filter, seed=3, to_world=to_world, raw=raw)
     points = np.random.default_rng(1).uniform(-1, 1, (6, 3)).astype(np.float32)
-    expected = tex.solid.query((points - [0.5, -1.0, 2.0]) * 8.0, filter=filter)
-    if variant != "scalar_rgb":
-        got = np.array(tex.eval(interaction(points))).T
-    else:
-        si = mi.SurfaceInteraction3f()
-        got = []
-        for p in points:
-            si.p = mi.Point3f(*p)
-            got.append(np.array(tex.eval(si)))
-    np.testing.assert_allclose(got, expected, atol=1e-5)
+    stored = tex.solid.query((points - [0.5, -1.0, 2.0]) * 8.0, filter=filter)
+    expected = stored if raw else srgb_decoded(stored)
+    np.testing.assert_allclose(eval_at(tex, points), expected, atol=1e-5)
     assert tex.is_spatially_varying()
     assert tex.mean()[0] > 0.0 if variant != "scalar_rgb" else tex.mean() > 0.0
     assert tex.max() <= 1.0
-    assert "seed=3" in tex.to_string()
+    assert "seed=3" in tex.to_string() and f"raw={raw}" in tex.to_string()
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_colors_render_as_mitsubas_bitmap_of_the_exemplar(tmp_path, variant):
+    """One photo as a lazy_solid and as Mitsuba's bitmap: the same colors reach a render
+    (an exemplar of nearly one gray, so every voxel's color is close to the texels')."""
+    from PIL import Image
+
+    use(variant)
+    gray = np.random.default_rng(5).integers(100, 104, (16, 16, 3)).astype(np.uint8)
+    Image.fromarray(gray).save(tmp_path / "gray.png")
+    solid = load(tmp_path / "gray.png", scale=4.0)
+    bitmap = mi.load_dict({"type": "bitmap", "filename": str(tmp_path / "gray.png")})
+    points = np.random.default_rng(6).uniform(-2, 2, (32, 3)).astype(np.float32)
+    texel = float(np.ravel(bitmap.mean())[0])
+    np.testing.assert_allclose(eval_at(solid, points).mean(axis=0), texel, rtol=0.02)
+    np.testing.assert_allclose(np.ravel(solid.mean())[0], texel, rtol=1e-3)
+    raw = load(tmp_path / "gray.png", scale=4.0, raw=True)
+    assert np.ravel(raw.mean())[0] == pytest.approx(gray.mean() / 255, rel=1e-3)
+
+
+def test_float_exemplars_are_linear_already(granite_32_file, tmp_path):
+    from PIL import Image
+
+    use(LLVM)
+    path = tmp_path / "granite.npy"
+    np.save(path, np.asarray(Image.open(granite_32_file), np.float32) / 255)
+    tex = load(path, scale=8.0)
+    points = np.random.default_rng(7).uniform(-1, 1, (6, 3)).astype(np.float32)
+    np.testing.assert_allclose(np.array(tex.eval(interaction(points))).T,
+                               tex.solid.query(points * 8.0), atol=1e-5)
+    # Averaging a linear color with encoded ones means nothing: refused unless raw.
+    with pytest.raises(RuntimeError, match=r'property "exemplar_y" cannot be used: the '
+                       r"exemplars' colors are encoded differently \(granite\.npy linear, "
+                       r"granite_32\.png sRGB-encoded\)"):
+        load(path, exemplar_y=str(granite_32_file))
+    assert "raw=True" in load(path, exemplar_y=str(granite_32_file), raw=True).to_string()
 
 
 def test_inactive_lanes_are_zero_and_not_synthesized(granite_32_file):
@@ -211,7 +258,8 @@ def test_check_vectorization(granite_32_file):
     check_vectorization(kernel, width=12, modes=["llvm_ad"])
 
 
-def test_eval_copies_points_where_numpy_cannot_view_them(granite_32_file, monkeypatch):
+def test_eval_copies_points_where_numpy_cannot_view_them(granite_32_file, srgb_decoded,
+                                                         monkeypatch):
     """NumPy views only host memory: in the CUDA variants eval copies the points. Faked
     here by reporting the LLVM variant's arrays as CUDA ones."""
     use(LLVM)
@@ -219,4 +267,4 @@ def test_eval_copies_points_where_numpy_cannot_view_them(granite_32_file, monkey
     points = np.random.default_rng(4).uniform(-1, 1, (6, 3)).astype(np.float32)
     monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
     np.testing.assert_allclose(np.array(tex.eval(interaction(points))).T,
-                               tex.solid.query(points * 8.0), atol=1e-5)
+                               srgb_decoded(tex.solid.query(points * 8.0)), atol=1e-5)

@@ -24,8 +24,9 @@ def sample_points(rng: np.random.Generator, n: int, low: float, high: float) -> 
 def test_eval_is_the_store_to_the_bit_cold_and_warm(granite_32_file, filter):
     mi.set_variant("scalar_rgb")
     mitsuba_plugin.register()
+    # raw: the stored colors, undecoded (tests/test_plugin.py decodes in scalar_rgb too).
     tex = mi.load_dict({"type": "lazy_solid", "exemplar": str(granite_32_file),
-                        "scale": 8.0, "filter": filter})
+                        "scale": 8.0, "filter": filter, "raw": True})
     world = sample_points(np.random.default_rng(4), 300, -3.0, 3.0) / 8.0
     si = mi.SurfaceInteraction3f()
 
@@ -75,7 +76,7 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
                                   tex.query(points, filter=filter))
 
 
-def test_gray_exemplars_and_points_out_of_range(granite_32_file, tmp_path):
+def test_gray_exemplars_and_points_out_of_range(granite_32_file, srgb_decoded, tmp_path):
     """A one-channel exemplar gives gray RGB as the store's query does; a point beyond the
     texture's range is the store's error, not another brick's color (packed brick keys
     would wrap there)."""
@@ -90,9 +91,9 @@ def test_gray_exemplars_and_points_out_of_range(granite_32_file, tmp_path):
     tex = mi.load_dict({"type": "lazy_solid", "exemplar": str(gray), "scale": 1.0})
     si = mi.SurfaceInteraction3f()
     si.p = mi.Point3f(3.25, -7.5, 12.0)
-    expected = tex.solid.query(np.array([[3.25, -7.5, 12.0]]))[0, 0]
+    expected = srgb_decoded(tex.solid.query(np.array([[3.25, -7.5, 12.0]]))[0, 0])
     for _ in range(2):  # cold, then from the copies
-        assert list(tex.eval(si)) == [pytest.approx(expected, abs=0.0)] * 3
+        assert list(tex.eval(si)) == [pytest.approx(expected, rel=1e-6)] * 3
     lookup = tex._scalar
     assert lookup.color((3.5, 3.5, 2.0**24 + 3.5)) is None
     assert lookup.color((float("nan"), 0.0, 0.0)) is None

@@ -49,3 +49,30 @@ def test_exr_channel_names_and_layout(tmp_path, channels, names):
     write_image(tmp_path / "i.exr", vol[0])
     with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
         assert sorted(file.channels()) == sorted(names)
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, srgb_decoded):
+    """.exr and .vol hold linear colors, as their readers assume: sRGB-encoded ones are
+    decoded there, in the color channels only (RGB of RGBA, gray of gray-alpha); .npy
+    keeps what was synthesized."""
+    import OpenEXR
+
+    vol = _volume(channels)
+    linear = vol.astype(np.float64)
+    color = 3 if channels >= 3 else 1
+    linear[..., :color] = srgb_decoded(vol[..., :color])
+    write_volume(tmp_path / "v.vol", vol, srgb=True)
+    values = np.frombuffer((tmp_path / "v.vol").read_bytes()[48:], "<f4")
+    np.testing.assert_allclose(values.reshape(4, 3, 2, channels), linear.transpose(2, 1, 0, 3),
+                               rtol=1e-5)
+    write_image(tmp_path / "i.exr", vol[0], srgb=True)
+    with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
+        got = file.channels()
+        names = sorted(got, key=lambda n: ["R", "G", "B", "A", "Y", "C0", "C1"].index(n))
+        image = np.stack([got[n].pixels for n in names], axis=2)
+    np.testing.assert_allclose(image, linear[0], rtol=1e-5)
+    for name in ("v.npy", "i.npy"):
+        data = vol if name == "v.npy" else vol[0]
+        (write_volume if name == "v.npy" else write_image)(tmp_path / name, data, srgb=True)
+        np.testing.assert_array_equal(np.load(tmp_path / name), data)

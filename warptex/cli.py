@@ -24,7 +24,13 @@ import numpy as np
 
 from warptex import __version__
 from warptex._llvm import MIN_LLVM_MAJOR
-from warptex.exemplar import Exemplar, ExemplarError
+from warptex.exemplar import (
+    Exemplar,
+    ExemplarError,
+    color_channels,
+    linear_to_srgb,
+    srgb_encoded,
+)
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -164,8 +170,9 @@ def _load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
 def _add_info_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "info", help="describe an exemplar and its pyramid",
-        description="Print an exemplar's size, channels, value range, Gaussian pyramid, "
-        "content digest and whether its 3D candidates are cached.")
+        description="Print an exemplar's size, channels, value range and encoding (what "
+        "renders see of it), Gaussian pyramid, content digest and whether its 3D candidates "
+        "are cached.")
     _add_exemplar_arguments(parser)
 
 
@@ -184,6 +191,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     high = exemplar.colors.max(axis=(0, 1))
     for channel, (lo, hi) in enumerate(zip(low, high, strict=True)):
         print(f"  channel {channel}: {lo:.4f} .. {hi:.4f}")
+    print("encoding: " + ("sRGB (the Mitsuba plugin decodes it to linear colors unless raw)"
+                          if exemplar.srgb else "linear (rendered as stored)"))
     levels = exemplar.pyramid()
     sizes = ", ".join(f"{level.shape[1]}x{level.shape[0]}" for level in levels)
     print(f"pyramid: {len(levels)} levels ({sizes})")
@@ -364,6 +373,7 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="out.npy (x, y, z, channel), out.exr (z-slices side by side) or out.vol (Mitsuba 3)",
     )
+    _add_raw_argument(parser, ".exr and .vol (linear) files")
 
 
 def _cmd_volume(args: argparse.Namespace) -> int:
@@ -380,9 +390,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
         raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
+    srgb = bool(_colors_srgb(args, exemplars))
     if args.method == "kopf":
         _check_memory(args.size, exemplars[0].features.shape[2])
-        return _volume_kopf(args, exemplars)
+        return _volume_kopf(args, exemplars, srgb)
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
     _check_memory(args.size, exemplars[0].features.shape[2],
@@ -400,13 +411,13 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     ]
     volume = np.concatenate(slabs, axis=0)
     with _writing(args.output):
-        write_volume(args.output, volume)
+        write_volume(args.output, volume, srgb=srgb)
     print(f"volume: {size}^3 voxels, {_count(volume.shape[3], 'channel')}, seed {args.seed}")
     print(f"written: {args.output}")
     return 0
 
 
-def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar]) -> int:
+def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar], srgb: bool) -> int:
     from warptex.baselines.kopf import synthesize
 
     try:
@@ -415,7 +426,7 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar]) -> int:
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
-        write_volume(args.output, volume)
+        write_volume(args.output, volume, srgb=srgb)
     clustering = ", mean-shift clustering" if args.mean_shift else ""
     print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, "
           f"{_count(volume.shape[3], 'channel')}, "
@@ -475,6 +486,19 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
                         "docs/comparisons)")
 
 
+def _add_raw_argument(parser: argparse.ArgumentParser, formats: str) -> None:
+    parser.add_argument("--raw", action="store_true",
+                        help=f"write the exemplar's values as stored; by default {formats} "
+                        "get colors in the encoding their readers assume, as Mitsuba's bitmap "
+                        "does (see `warptex info`)")
+
+
+def _colors_srgb(args: argparse.Namespace, exemplars: list[Exemplar]) -> bool | None:
+    """Whether the colors to write are sRGB-encoded; None with --raw (write them as they
+    are). Exemplars encoded differently are refused unless --raw."""
+    return None if args.raw else srgb_encoded(exemplars)
+
+
 def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
                                seed: int = 0) -> None:
     try:
@@ -483,11 +507,13 @@ def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEF
         raise CliError(f"--{error.name} {error.problem}") from None
 
 
-def _solid_texture(args: argparse.Namespace):
+def _solid_texture(args: argparse.Namespace, exemplars: list[Exemplar] | None = None):
+    """The texture of the command's exemplars (``exemplars``, when already loaded)."""
     from warptex.candidates import precompute
     from warptex.texture import SolidTexture
 
-    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
+    if exemplars is None:
+        exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
@@ -521,6 +547,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_texture_arguments(parser, "EXEMPLAR")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output image: .png (8-bit), .exr or .npy (float)")
+    _add_raw_argument(parser, ".png (sRGB) and .exr (linear) images")
 
 
 def _cmd_slice(args: argparse.Namespace) -> int:
@@ -542,18 +569,23 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         warnings.warn("--u and --v are zero or parallel: the slice shows a line or a point, "
                       "not a plane", stacklevel=1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
-    tex = _solid_texture(args)
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
+    srgb = _colors_srgb(args, exemplars)
+    tex = _solid_texture(args, exemplars)
     start = time.perf_counter()
     points = plane_points(args.origin, args.u, args.v, (h, w))
     image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
         _note_png_losses(image)
+        if srgb is False:  # linear colors, shown as an 8-bit image shows colors
+            color = color_channels(image.shape[2])
+            image[..., :color] = linear_to_srgb(image[..., :color])
         with _writing(args.output):
             save_png(to_rgb8(image), args.output)
     else:
         with _writing(args.output):
-            write_image(args.output, image)
+            write_image(args.output, image, srgb=bool(srgb))
     print(f"slice: {h} rows x {w} columns in {elapsed:.2f} s; written: {args.output}")
     return 0
 

@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from warptex import metrics
 from warptex.archive import write_atomically
-from warptex.exemplar import Exemplar
+from warptex.exemplar import Exemplar, srgb_to_linear
 from warptex.settings import DEFAULT_PASSES, check_settings
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
@@ -161,16 +161,18 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
     return np.clip(image, 0.0, None) ** (1 / 2.2)  # display gamma for the sheet
 
 
-def _cube_texture(method: str, exemplar_path: str, volume: np.ndarray, seed: int,
+def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, seed: int,
                   passes: int, max_size: int | None) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
-    own grid texture of their volume (both trilinear, one voxel = 1/size of the cube)."""
+    own grid texture of their volume (both trilinear, one voxel = 1/size of the cube),
+    decoded from sRGB as the plugin decodes the lazy one's."""
     size = volume.shape[0]
     if method == "lazy":
         shrink = {} if max_size is None else {"exemplar_max_size": max_size}
-        return {"type": "lazy_solid", "exemplar": str(Path(exemplar_path).resolve()),
+        return {"type": "lazy_solid", "exemplar": str(exemplar.path),
                 "seed": seed, "passes": passes, "scale": float(size)} | shrink
-    data = _mitsuba().TensorXf(np.ascontiguousarray(volume[..., :3].transpose(2, 1, 0, 3)))
+    colors = srgb_to_linear(volume[..., :3]) if exemplar.srgb else volume[..., :3]
+    data = _mitsuba().TensorXf(np.ascontiguousarray(colors.transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
 
@@ -198,8 +200,7 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int,
         "seconds": seconds,
         "peak_mib": max(peak - base, 0) / 1024.0,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
-        "render": render_cube(_cube_texture(method, exemplar_path, volume, seed, passes,
-                                            max_size)),
+        "render": render_cube(_cube_texture(method, ex, volume, seed, passes, max_size)),
         "notes": f"correction passes per level: {passes}" if method in _LAZY else "",
         "device": _engine_device() if method in _LAZY else "cpu",
     }

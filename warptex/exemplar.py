@@ -9,8 +9,11 @@ features that helps matching keep structures such as veins or cells intact. It i
 the last feature channel and never returned as color.
 
 Values are float32. 8- and 16-bit images are scaled linearly to [0, 1] (value / 255 or
-value / 65535) with no sRGB decoding, so a texture reproduces the stored values; float images
-(OpenEXR, ``.npy``, float arrays) are kept as stored.
+value / 65535) with no sRGB decoding, so synthesis matches and reproduces the stored values;
+float images (OpenEXR, ``.npy``, float arrays) are kept as stored. ``Exemplar.srgb`` records
+which of the two a renderer is given: integer images hold sRGB-encoded values (as Mitsuba's
+``bitmap`` assumes; a PNG may declare itself linear with a gamma of 1), float images linear
+ones.
 """
 
 from __future__ import annotations
@@ -71,6 +74,8 @@ class Exemplar:
         name: what error messages and ``warptex info`` call it.
         feature_distance: optional ``(H, W)`` feature-distance channel appended to ``features``;
             see :func:`feature_distance_from_mask`.
+        srgb: whether the colors are sRGB-encoded rather than linear; by default, whether
+            ``array`` holds integers (see the module documentation).
 
     Raises:
         ExemplarError: the array cannot serve as an exemplar (see :meth:`load`).
@@ -82,11 +87,13 @@ class Exemplar:
         *,
         name: str = "array",
         feature_distance: np.ndarray | None = None,
+        srgb: bool | None = None,
     ) -> None:
         self.name = name
         self.path: Path | None = None
         self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
         self.colors = _validated_colors(array, name)
+        self.srgb = _integer(array) if srgb is None else bool(srgb)
         if feature_distance is None:
             self.features = self.colors
         else:
@@ -105,6 +112,7 @@ class Exemplar:
         feature_mask: str | Path | None = None,
         feature_distance: bool | str = False,
         max_size: int | None = None,
+        srgb: bool | None = None,
     ) -> Exemplar:
         """Load an exemplar from PNG, JPEG (or another Pillow format), OpenEXR or ``.npy``.
 
@@ -122,6 +130,8 @@ class Exemplar:
                 larger side is ``max_size`` pixels, keeping its aspect ratio: photographs are
                 often far larger than the pre-computation of candidates affords (a voxel is
                 one pixel of the shrunk image). Smaller images are kept as they are.
+            srgb: whether the file's colors are sRGB-encoded; by default as the file says:
+                8- and 16-bit images are, unless a PNG's gamma is 1; float images are linear.
 
         Raises:
             ExemplarError: missing or unreadable file, not an image, fewer than 16x16 pixels
@@ -139,7 +149,7 @@ class Exemplar:
         check_max_size(max_size)
 
         path = Path(path)
-        array, has_alpha = _read(path)
+        array, has_alpha, stored_srgb = _read(path)
         if has_alpha and alpha == "drop":
             warnings.warn(
                 f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in the CLI)",
@@ -153,7 +163,7 @@ class Exemplar:
         distance = None
         if feature_mask is not None:
             mask_path = Path(feature_mask)
-            mask_image, _ = _read(mask_path)
+            mask_image = _read(mask_path)[0]
             if mask_image.shape[:2] != read_shape[:2]:
                 raise ExemplarError(
                     f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
@@ -169,7 +179,8 @@ class Exemplar:
             distance = feature_distance_from_mask(otsu_mask(colors), name=str(path))
 
         # Errors name the file as given; the exemplar itself goes by its file name.
-        exemplar = cls(array, name=str(path), feature_distance=distance)
+        exemplar = cls(array, name=str(path), feature_distance=distance,
+                       srgb=stored_srgb if srgb is None else srgb)
         exemplar.name = path.name
         exemplar.path = path.resolve()
         exemplar.file_shape = read_shape[:2]
@@ -215,8 +226,42 @@ class Exemplar:
         extra = self.features.shape[2] - self.channels
         return (
             f"Exemplar({self.name!r}, {w}x{h}, channels={self.channels}"
-            f"{', feature_distance=True' if extra else ''})"
+            f"{', feature_distance=True' if extra else ''}{', linear' if not self.srgb else ''})"
         )
+
+
+def srgb_encoded(exemplars: list[Exemplar]) -> bool:
+    """Whether the exemplars of the three axes hold sRGB-encoded colors (``srgb``); an
+    ExemplarError naming them where some do and others are linear, as a voxel's color
+    averages colors of all three."""
+    if len({e.srgb for e in exemplars}) == 1:
+        return exemplars[0].srgb
+    kinds = ", ".join(dict.fromkeys(
+        f"{e.name} {'sRGB-encoded' if e.srgb else 'linear'}" for e in exemplars))
+    raise ExemplarError(f"the exemplars' colors are encoded differently ({kinds}): convert "
+                        "one image, or keep the values as stored (raw)")
+
+
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """Linear float32 values of sRGB-encoded ``values`` in [0, 1] (IEC 61966-2-1), what a
+    renderer makes of the colors of an exemplar whose ``srgb`` is set."""
+    values = np.asarray(values, np.float32)
+    return np.where(values <= np.float32(0.04045), values / np.float32(12.92),
+                    ((values + np.float32(0.055)) / np.float32(1.055)) ** np.float32(2.4))
+
+
+def linear_to_srgb(values: np.ndarray) -> np.ndarray:
+    """sRGB-encoded float32 values of linear ``values``, clipped to [0, 1] first: what an
+    8-bit image shows of a linear exemplar's colors (the inverse of :func:`srgb_to_linear`)."""
+    values = np.clip(np.asarray(values, np.float32), 0, 1)
+    return np.where(values <= np.float32(0.0031308), values * np.float32(12.92),
+                    np.float32(1.055) * values ** np.float32(1 / 2.4) - np.float32(0.055))
+
+
+def color_channels(channels: int) -> int:
+    """How many of an exemplar's leading channels are color, which encodings apply to: three
+    of RGB(A) and more, one of gray (with alpha); the rest are data, never encoded."""
+    return 3 if channels >= 3 else 1
 
 
 def feature_distance_from_mask(mask: np.ndarray, *, name: str = "mask") -> np.ndarray:
@@ -328,6 +373,11 @@ def _validated_colors(array: object, name: str) -> np.ndarray:
     return colors
 
 
+def _integer(array: object) -> bool:
+    """Whether ``array`` holds 8- or 16-bit integers, which images store sRGB-encoded."""
+    return np.asarray(array).dtype in (np.uint8, np.uint16)
+
+
 def _to_float32(data: np.ndarray, name: str) -> np.ndarray:
     if data.dtype == np.uint8:
         return data.astype(np.float32) / np.float32(255)
@@ -361,8 +411,9 @@ def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:
     return values > 0.5 * values.max() if values.max() > 0 else values > 0
 
 
-def _read(path: Path) -> tuple[np.ndarray, bool]:
-    """Read an image file as ``(H, W[, C])`` in its stored dtype, and whether it has alpha."""
+def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
+    """Read an image file as ``(H, W[, C])`` in its stored dtype, whether it has alpha and
+    whether its colors are sRGB-encoded."""
     if not path.exists():
         raise ExemplarError(f"{path}: file not found")
     if path.is_dir():
@@ -375,13 +426,15 @@ def _read(path: Path) -> tuple[np.ndarray, bool]:
     if head.startswith(_PNG_MAGIC):
         return _read_png(path)
     if head.startswith(_EXR_MAGIC):
-        return _read_exr(path)
+        return *_read_exr(path), False
     if head.startswith(_NPY_MAGIC):
-        return _read_npy(path)
-    return _read_pillow(path)
+        pixels = _read_npy(path)
+        return pixels, False, _integer(pixels)
+    pixels, has_alpha = _read_pillow(path)
+    return pixels, has_alpha, pixels.dtype != np.float32
 
 
-def _read_png(path: Path) -> tuple[np.ndarray, bool]:
+def _read_png(path: Path) -> tuple[np.ndarray, bool, bool]:
     # pypng rather than Pillow: Pillow reduces 16-bit RGB(A) PNGs to 8 bits.
     try:
         with path.open("rb") as file:
@@ -398,7 +451,8 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
         pixels = pixels.astype(np.uint8)
     else:  # 1, 2 or 4 bits: rescale so that full intensity is 1.0 like any other depth
         pixels = pixels.astype(np.float32) / np.float32(2**bitdepth - 1)
-    return pixels, bool(info["alpha"])
+    # A gAMA chunk of 1 (pypng reports the decoding exponent) marks linear values.
+    return pixels, bool(info["alpha"]), info.get("gamma") != 1.0
 
 
 def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
@@ -424,9 +478,9 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
     return pixels, "A" in channels
 
 
-def _read_npy(path: Path) -> tuple[np.ndarray, bool]:
+def _read_npy(path: Path) -> np.ndarray:
     try:
-        return np.load(path, allow_pickle=False), False
+        return np.load(path, allow_pickle=False)
     except (OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
 

@@ -1,7 +1,9 @@
 """Volumes and images written for other tools: NumPy, OpenEXR and Mitsuba 3 grid volumes.
 
 Every writer goes through :func:`warptex.archive.write_atomically`, so a file is either
-whole or absent, never half-written.
+whole or absent, never half-written. OpenEXR files and Mitsuba grids hold linear colors, as
+the tools reading them assume: the sRGB-encoded colors of 8- and 16-bit exemplars are decoded
+there (``srgb=True``), while ``.npy`` files keep every value as synthesized.
 """
 
 from __future__ import annotations
@@ -12,35 +14,50 @@ from pathlib import Path
 import numpy as np
 
 from warptex.archive import write_atomically
+from warptex.exemplar import color_channels, srgb_to_linear
 
 VOLUME_FORMATS = (".npy", ".exr", ".vol")
 
 
-def write_volume(path: str | Path, volume: np.ndarray) -> None:
+def write_volume(path: str | Path, volume: np.ndarray, srgb: bool = False) -> None:
     """Write an (X, Y, Z, C) float volume by the file's suffix: ``.npy`` as it is, ``.exr``
     as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume
     over the unit box (Mitsuba maps it to [0, 1]^3: a scene places and scales it with the
     volume's ``to_world``, so voxels of a box whose sides differ come out stretched unless
-    the scene scales by the sides). Raises ValueError for another suffix and OSError when
-    the file cannot be written."""
+    the scene scales by the sides). ``srgb``: the colors are sRGB-encoded (``Exemplar.srgb``),
+    so ``.exr`` and ``.vol`` get them decoded. Raises ValueError for another suffix and
+    OSError when the file cannot be written."""
     path = Path(path)
     volume = _float_array(volume, 4, "volume", "(X, Y, Z, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
     writer = writers.get(path.suffix.lower())
     if writer is None:
         raise ValueError(f"{path}: a volume file must end in {', '.join(VOLUME_FORMATS)}")
+    if srgb and writer is not _write_npy:
+        volume = _linear_colors(volume)
     write_atomically(path, lambda tmp: writer(tmp, volume))
 
 
-def write_image(path: str | Path, image: np.ndarray) -> None:
-    """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR."""
+def write_image(path: str | Path, image: np.ndarray, srgb: bool = False) -> None:
+    """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR, which
+    gets sRGB-encoded colors (``srgb``) decoded."""
     path = Path(path)
     image = _float_array(image, 3, "image", "(H, W, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr}
     writer = writers.get(path.suffix.lower())
     if writer is None:
         raise ValueError(f"{path}: a lossless image file must end in .npy or .exr")
+    if srgb and writer is _write_exr:
+        image = _linear_colors(image)
     write_atomically(path, lambda tmp: writer(tmp, image))
+
+
+def _linear_colors(array: np.ndarray) -> np.ndarray:
+    """``array`` (..., C) with its color channels decoded from sRGB, other channels kept."""
+    out = np.array(array, np.float32)
+    color = color_channels(out.shape[-1])
+    out[..., :color] = srgb_to_linear(out[..., :color])
+    return out
 
 
 def exr_sheet(volume: np.ndarray) -> np.ndarray:
