@@ -219,7 +219,7 @@ def test_cli_slice_writes_each_format_in_its_own_encoding(tmp_path, data_dir, wa
     np.testing.assert_array_equal(sliced(floats, "f.exr"), stored)
 
 
-def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys):
+def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys, srgb_decoded):
     from warptex.cli import main
 
     exemplar = str(data_dir / "granite_64.png")
@@ -231,6 +231,16 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys)
                  "-o", str(tmp_path / "b.ply")]) == 0
     assert len(trimesh.load(tmp_path / "b.ply").vertices) == len(sphere.vertices)
     report = capsys.readouterr().out
+    # glTF vertex colors are linear: the PNG's colors decoded, unless --raw.
+    ply = trimesh.load(tmp_path / "b.ply", process=False).visual.vertex_colors[:, :3]
+    linear = srgb_decoded(ply / 255) * 255  # within 2 of the decoded colors rounded twice
+    assert np.abs(linear - ply).max() > 20
+    for extra, expected in (([], linear), (["--raw"], ply)):
+        assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
+                     *extra, "-o", str(tmp_path / "b.glb")]) == 0
+        glb = trimesh.load(tmp_path / "b.glb", process=False, force="mesh")
+        np.testing.assert_allclose(glb.visual.vertex_colors[:, :3], expected, atol=2)
+    capsys.readouterr()
     shell_voxels = int(re.search(r"surface shell: (\d+) voxels", report).group(1))
     made, corrected = (int(n) for n in re.search(
         r"voxels synthesized: (\d+) .* corrected (\d+)", report).groups())
@@ -338,3 +348,35 @@ def test_exported_vertex_colors_are_rounded_clipped_and_opaque(tmp_path):
     np.testing.assert_array_equal(got[:, :3], [[128, 0, 255], [255, 0, 51], [255, 0, 128],
                                                [64, 191, 26]])
     assert np.all(got[:, 3] == 255)
+
+
+def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_decoded):
+    """PLY vertex colors and PNG textures sRGB, glTF vertex colors linear (glTF 2.0): an
+    sRGB exemplar's colors are decoded for .glb only, a linear exemplar's encoded for the
+    others; srgb=None writes them as they are."""
+    from PIL import Image
+
+    from warptex.exemplar import linear_to_srgb
+
+    mesh, uv = _square()
+    colors = np.array([[0.5, 0.0, 1.0], [0.2, 0.75, 0.04], [0.9, 0.3, 0.6],
+                       [0.25, 0.1, 0.4]], np.float32)
+
+    def vertex_rgb(name: str, srgb: bool | None) -> np.ndarray:
+        written = export(mesh, tmp_path / name, colors=colors, srgb=srgb)
+        return trimesh.load(written[0], process=False, force="mesh").visual.vertex_colors[:, :3]
+
+    def rgb8(values: np.ndarray) -> np.ndarray:
+        return np.floor(np.asarray(values) * 255 + 0.5)
+
+    for srgb in (True, None):
+        np.testing.assert_array_equal(vertex_rgb("s.ply", srgb), rgb8(colors))
+    np.testing.assert_array_equal(vertex_rgb("s.glb", True), rgb8(srgb_decoded(colors)))
+    np.testing.assert_array_equal(vertex_rgb("s.glb", None), rgb8(colors))
+    np.testing.assert_array_equal(vertex_rgb("l.ply", False), rgb8(linear_to_srgb(colors)))
+    np.testing.assert_array_equal(vertex_rgb("l.glb", False), rgb8(colors))
+    image = np.tile(colors[:2, None, :], (1, 16, 1)).reshape(2, 16, 3).repeat(8, axis=0)
+    for srgb, expected in ((True, image), (False, linear_to_srgb(image))):
+        files = export(mesh, tmp_path / f"t{srgb}.obj", image=image, uv=uv, srgb=srgb)
+        png = next(f for f in files if f.suffix == ".png")
+        np.testing.assert_array_equal(np.asarray(Image.open(png))[..., :3], rgb8(expected))

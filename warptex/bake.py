@@ -21,6 +21,7 @@ from scipy import ndimage
 from kernels import bake as _k
 from warptex.device import device as default_device
 from warptex.device import init_warp
+from warptex.exemplar import reencoded
 from warptex.sheets import to_rgb8
 from warptex.surface import to_voxel_space
 from warptex.texture import SolidTexture, query_slabs
@@ -82,14 +83,22 @@ UV_TEXTURE_FORMATS = (".glb", ".obj")
 
 
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
-           image: np.ndarray | None = None, uv: np.ndarray | None = None) -> list[Path]:
+           image: np.ndarray | None = None, uv: np.ndarray | None = None,
+           srgb: bool | None = None) -> list[Path]:
     """Write a textured mesh atomically: PLY/GLB with vertex ``colors``, or GLB (embedded
-    PNG) / OBJ (+ MTL + PNG) with a UV ``image``. Returns the files written."""
+    PNG) / OBJ (+ MTL + PNG) with a UV ``image``. Returns the files written.
+
+    ``srgb``: whether the colors are sRGB-encoded (``Exemplar.srgb``), so that each file
+    holds what its readers assume: PNG textures and PLY vertex colors sRGB-encoded, glTF
+    vertex colors linear (glTF 2.0, ``COLOR_0``); None writes them as they are.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if image is not None:
         if suffix not in UV_TEXTURE_FORMATS:
             raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
+        if srgb is not None:
+            image = reencoded(image, srgb, to_srgb=True)
         material = trimesh.visual.material.SimpleMaterial(
             image=Image.fromarray(to_rgb8(image)), name=path.stem
         )
@@ -97,6 +106,8 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
     elif colors is not None:
         if suffix not in VERTEX_COLOR_FORMATS:
             raise ValueError(f"{path}: vertex colors need a .ply or .glb file")
+        if srgb is not None:
+            colors = reencoded(colors, srgb, to_srgb=suffix != ".glb")
         rgb = to_rgb8(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
         visual = trimesh.visual.ColorVisuals(vertex_colors=np.c_[rgb, np.full(len(rgb), 255)])
     else:

@@ -24,13 +24,7 @@ import numpy as np
 
 from warptex import __version__
 from warptex._llvm import MIN_LLVM_MAJOR
-from warptex.exemplar import (
-    Exemplar,
-    ExemplarError,
-    color_channels,
-    linear_to_srgb,
-    srgb_encoded,
-)
+from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -507,18 +501,19 @@ def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEF
         raise CliError(f"--{error.name} {error.problem}") from None
 
 
-def _solid_texture(args: argparse.Namespace, exemplars: list[Exemplar] | None = None):
-    """The texture of the command's exemplars (``exemplars``, when already loaded)."""
+def _solid_texture(args: argparse.Namespace):
+    """The texture of the command's exemplars, and whether its colors are sRGB-encoded (None
+    with --raw: written as they are)."""
     from warptex.candidates import precompute
     from warptex.texture import SolidTexture
 
-    if exemplars is None:
-        exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
+    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
+    srgb = _colors_srgb(args, exemplars)
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
                             jitter=args.jitter, passes=args.passes, whole_bricks=False,
-                            store=getattr(args, "store", None))
+                            store=getattr(args, "store", None)), srgb
     except ValueError as error:
         raise CliError(str(error)) from None
 
@@ -569,18 +564,15 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         warnings.warn("--u and --v are zero or parallel: the slice shows a line or a point, "
                       "not a plane", stacklevel=1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
-    exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
-    srgb = _colors_srgb(args, exemplars)
-    tex = _solid_texture(args, exemplars)
+    tex, srgb = _solid_texture(args)
     start = time.perf_counter()
     points = plane_points(args.origin, args.u, args.v, (h, w))
     image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
         _note_png_losses(image)
-        if srgb is False:  # linear colors, shown as an 8-bit image shows colors
-            color = color_channels(image.shape[2])
-            image[..., :color] = linear_to_srgb(image[..., :color])
+        if srgb is not None:
+            image = reencoded(image, srgb, to_srgb=True)
         with _writing(args.output):
             save_png(to_rgb8(image), args.output)
     else:
@@ -641,6 +633,8 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
                         "same texture are read from it, and all are written back at the end "
                         "(also usable as the lazy_solid plugin's cache)")
     _add_texture_arguments(parser, "--exemplar")
+    _add_raw_argument(parser, "PNG textures and PLY vertex colors (sRGB) and glTF vertex "
+                      "colors (linear)")
 
 
 def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -> list[Path]:
@@ -699,8 +693,9 @@ def _load_mesh(path: Path, uv: str = "none"):
 
 
 def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
-                     output: Path) -> list[Path]:
-    """Bake ``mesh`` as asked by --uv and write it; returns the files written."""
+                     output: Path, srgb: bool | None) -> list[Path]:
+    """Bake ``mesh`` as asked by --uv and write it, its colors in each format's encoding
+    (``srgb``: see warptex.bake.export); returns the files written."""
     from tqdm.auto import tqdm
 
     from warptex.bake import bake_uv_texture, export, vertex_colors
@@ -708,7 +703,7 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
     if args.uv == "none":
         colors = vertex_colors(tex, mesh, transform, progress=f"colours of {output.name}")
         with _writing(output):
-            return export(mesh, output, colors=colors)
+            return export(mesh, output, colors=colors, srgb=srgb)
     # Unwrapping is one long call: the bar names the step it is in and times it.
     with tqdm(total=3, desc=f"UV texture {output.name}",
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
@@ -722,7 +717,7 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
         bar.update()
         bar.set_postfix_str("writing")
         with _writing(output):
-            files = export(mesh, output, image=image, uv=uv)
+            files = export(mesh, output, image=image, uv=uv, srgb=srgb)
         bar.update()
     return files
 
@@ -808,10 +803,10 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     mesh = _load_mesh(args.mesh, args.uv)
     transform = block_transform(mesh, args.resolution)
     _check_shell(mesh, transform, args.resolution)
-    tex = _solid_texture(args)
+    tex, srgb = _solid_texture(args)
     start = time.perf_counter()
     count = _synthesize_shell(tex, mesh, args.resolution, transform)
-    files = _textured_export(tex, mesh, transform, args, args.output)
+    files = _textured_export(tex, mesh, transform, args, args.output, srgb)
     print(f"surface shell: {count} voxels")
     return _finish_mesh_command(tex, args, files, start)
 
@@ -849,12 +844,12 @@ def _cmd_cut(args: argparse.Namespace) -> int:
         halves = cut(mesh, origin, np.asarray(args.normal))
     except ValueError as error:
         raise CliError(f"{args.mesh}: {error}") from None
-    tex = _solid_texture(args)
+    tex, srgb = _solid_texture(args)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
     files = []
     for half, output in zip(halves, outputs, strict=True):
-        files += _textured_export(tex, half, transform, args, output)
+        files += _textured_export(tex, half, transform, args, output, srgb)
     return _finish_mesh_command(tex, args, files, start)
 
 

@@ -258,10 +258,16 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
                     np.float32(1.055) * values ** np.float32(1 / 2.4) - np.float32(0.055))
 
 
-def color_channels(channels: int) -> int:
-    """How many of an exemplar's leading channels are color, which encodings apply to: three
-    of RGB(A) and more, one of gray (with alpha); the rest are data, never encoded."""
-    return 3 if channels >= 3 else 1
+def reencoded(values: np.ndarray, srgb: bool, to_srgb: bool) -> np.ndarray:
+    """``values`` (..., C), whose colors are sRGB-encoded if ``srgb``, as float32 with the
+    colors sRGB-encoded if ``to_srgb``, else linear: what a file format's readers assume.
+    Colors are the leading channels, three of RGB(A) and more, one of gray (with alpha); the
+    rest are data, kept as they are."""
+    out = np.array(values, np.float32)
+    if srgb != to_srgb:
+        color = 3 if out.shape[-1] >= 3 else 1
+        out[..., :color] = (linear_to_srgb if to_srgb else srgb_to_linear)(out[..., :color])
+    return out
 
 
 def feature_distance_from_mask(mask: np.ndarray, *, name: str = "mask") -> np.ndarray:

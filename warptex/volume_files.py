@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from warptex.archive import write_atomically
-from warptex.exemplar import color_channels, srgb_to_linear
+from warptex.exemplar import reencoded
 
 VOLUME_FORMATS = (".npy", ".exr", ".vol")
 
@@ -33,8 +33,8 @@ def write_volume(path: str | Path, volume: np.ndarray, srgb: bool = False) -> No
     writer = writers.get(path.suffix.lower())
     if writer is None:
         raise ValueError(f"{path}: a volume file must end in {', '.join(VOLUME_FORMATS)}")
-    if srgb and writer is not _write_npy:
-        volume = _linear_colors(volume)
+    if writer is not _write_npy:
+        volume = reencoded(volume, srgb, to_srgb=False)
     write_atomically(path, lambda tmp: writer(tmp, volume))
 
 
@@ -47,17 +47,10 @@ def write_image(path: str | Path, image: np.ndarray, srgb: bool = False) -> None
     writer = writers.get(path.suffix.lower())
     if writer is None:
         raise ValueError(f"{path}: a lossless image file must end in .npy or .exr")
-    if srgb and writer is _write_exr:
-        image = _linear_colors(image)
+    if writer is _write_exr:
+        image = reencoded(image, srgb, to_srgb=False)
     write_atomically(path, lambda tmp: writer(tmp, image))
 
-
-def _linear_colors(array: np.ndarray) -> np.ndarray:
-    """``array`` (..., C) with its color channels decoded from sRGB, other channels kept."""
-    out = np.array(array, np.float32)
-    color = color_channels(out.shape[-1])
-    out[..., :color] = srgb_to_linear(out[..., :color])
-    return out
 
 
 def exr_sheet(volume: np.ndarray) -> np.ndarray:
