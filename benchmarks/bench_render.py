@@ -33,6 +33,7 @@ import numpy as np
 
 import mitsuba_plugin
 import warptex  # noqa: F401  (before Mitsuba: points Dr.Jit at libLLVM)
+from warptex.exemplar import srgb_to_linear
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 TEXTURE = re.compile(r'<texture type="lazy_solid".*?</texture>', re.S)
@@ -108,6 +109,7 @@ def main() -> None:
     start = time.perf_counter()
     box = texture.solid.synthesizer.box(ORIGIN, SHAPE)[..., :3]
     box_seconds = time.perf_counter() - start
+    box = srgb_to_linear(box)  # the colors the plugin renders, decoded from the PNG's sRGB
     scale = texture.scale
     # A symbolic render traces every live BSDF, so no lazy_solid may be left for it.
     del scene, texture

@@ -36,9 +36,12 @@ space equals world space for it; move meshes with ``instance`` to keep their tex
 Colors: as Mitsuba's ``bitmap`` does, the plugin gives renders linear colors, so the
 sRGB-encoded values of 8- and 16-bit exemplars (``Exemplar.srgb``) are decoded unless
 ``raw`` is set; float exemplars (OpenEXR, ``.npy``) are linear already. Synthesis and the
-brick store keep the stored values, which the other warptex commands write as they are; the
-plugin decodes the filtered color of each point (Mitsuba's bitmap filters decoded texels, a
-difference of a fraction of a quantization step inside a voxel).
+brick store keep the stored values; the plugin decodes the filtered color of each point.
+Mitsuba's bitmap decodes texels before filtering instead: the same at voxel centres and with
+the ``nearest`` filter, darker half way between voxels, by 0.003 where two mid-gray
+neighbours differ by 0.1 and 0.026 where they differ by 0.3. Unlike the bitmap's ``raw``, this
+one leaves spectral upsampling on. On CUDA the decoding, like Dr.Jit's float32 division there,
+may differ from the CPU's in the last bits.
 
 Variants: ``eval`` gives the color as the variant's spectrum (:mod:`mitsuba_plugin.spectrum`:
 as it is in RGB variants, its luminance in monochrome ones, Mitsuba's upsampling of it in
@@ -301,24 +304,27 @@ class LazySolidTexture(mi.Texture):
     # -- queries ----------------------------------------------------------------------
 
     def colors_at(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Color3f:
-        """Linear RGB at the points of interaction ``it`` where ``active``; zero elsewhere:
-        the stored colors, decoded from sRGB unless ``raw`` (module documentation)."""
-        rgb = self._stored_colors(it, active)
-        return dr.srgb_to_linear(rgb) if self._decode_srgb else rgb
+        """RGB at the points of interaction ``it`` where ``active``, zero elsewhere: the
+        stored colors, decoded from sRGB to linear unless ``raw`` (module documentation)."""
+        if not dr.is_jit_v(mi.Float):
+            if not active:
+                return mi.Color3f(0.0)
+            rgb = self._scalar_color(it)
+            return mi.Color3f(*(map(_srgb_decoded, rgb) if self._decode_srgb else rgb))
+        rgb = self._jit_colors(it, active)
+        return srgb_to_linear(rgb, dr.select) if self._decode_srgb else rgb
 
     def query_texture_space(self, points: np.ndarray) -> np.ndarray:
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded)."""
         return _as_rgb(self.solid.query(points, filter=self.filter))
 
-    def _stored_colors(self, it: mi.Interaction3f, active: mi.Bool) -> mi.Color3f:
-        """RGB at the points of ``it`` where ``active``, as stored; zero elsewhere.
+    def _jit_colors(self, it: mi.Interaction3f, active: mi.Bool) -> mi.Color3f:
+        """RGB at the points of ``it`` where ``active``, as stored; zero elsewhere (JIT
+        variants).
 
-        Under the JIT variants only the active lanes are queried, so inactive lanes
-        synthesize nothing; the LLVM variants hand their points to NumPy without a copy
-        (DLPack).
+        Only the active lanes are queried, so inactive lanes synthesize nothing; the LLVM
+        variants hand their points to NumPy without a copy (DLPack).
         """
-        if not dr.is_jit_v(mi.Float):
-            return mi.Color3f(*self._scalar_color(it)) if active else mi.Color3f(0.0)
         if dr.flag(dr.JitFlag.SymbolicScope):
             if self._tracing != threading.get_ident():
                 raise RuntimeError(f"{PLUGIN}: render with mitsuba_plugin.render, which "
@@ -417,6 +423,12 @@ class LazySolidTexture(mi.Texture):
         # Rows of plain floats: _apply_affine runs on single points in scalar variants.
         self._world_to_texture = (np.diag([self.scale] * 3 + [1.0])
                                   @ np.linalg.inv(to_world)).tolist()
+
+
+def _srgb_decoded(value: float) -> float:
+    """:func:`srgb_to_linear` of one Python float, for the scalar variants' one point per
+    call, where a NumPy or Dr.Jit call (about 6 us) would cost as much as the lookup."""
+    return srgb_to_linear(value, lambda encoded_low, low, high: low if encoded_low else high)
 
 
 def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:

@@ -79,13 +79,13 @@ def test_metrics_name_what_does_not_fit(granite_32):
 
 def test_files_refuse_what_their_formats_cannot_hold(tmp_path):
     with pytest.raises(ValueError, match=r"volume must be a \(X, Y, Z, C\) array"):
-        write_volume(tmp_path / "v.exr", np.zeros((4, 4, 4), np.float32))
+        write_volume(tmp_path / "v.exr", np.zeros((4, 4, 4), np.float32), srgb=False)
     with pytest.raises(TypeError, match="volume must hold float colors, got uint8"):
-        write_volume(tmp_path / "v.npy", np.zeros((4, 4, 4, 3), np.uint8))
+        write_volume(tmp_path / "v.npy", np.zeros((4, 4, 4, 3), np.uint8), srgb=False)
     with pytest.raises(ValueError, match=r"image must be a \(H, W, C\) array"):
-        write_image(tmp_path / "i.exr", [[0.0, 1.0]])
+        write_image(tmp_path / "i.exr", [[0.0, 1.0]], srgb=False)
     with pytest.raises(ValueError, match=r"must end in \.npy or \.exr"):
-        write_image(tmp_path / "i.png", np.zeros((2, 2, 3), np.float32))
+        write_image(tmp_path / "i.png", np.zeros((2, 2, 3), np.float32), srgb=False)
     assert not any(tmp_path.iterdir())
 
 

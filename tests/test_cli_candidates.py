@@ -185,7 +185,7 @@ def test_volume_vol_and_exr_are_the_box_written_by_volume_files(images, expected
         for raw in (False, True):
             out, reference = tmp_path / f"v{raw}{suffix}", tmp_path / f"reference{suffix}"
             assert _volume(images, out, *(["--raw"] if raw else [])) == 0
-            write_volume(reference, expected, srgb=not raw)
+            write_volume(reference, expected, srgb=not raw)  # raw: nothing to decode
             assert out.read_bytes() == reference.read_bytes(), (suffix, raw)
     assert (tmp_path / "vFalse.vol").read_bytes() != (tmp_path / "vTrue.vol").read_bytes()
 
@@ -199,7 +199,9 @@ np.save(sys.argv[2], np.array(mi.VolumeGrid(sys.argv[1])))
 """
 
 
-def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path, srgb_decoded):
+def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path):
+    from warptex.exemplar import srgb_to_linear
+
     pytest.importorskip("mitsuba")
     assert _volume(images, tmp_path / "v.vol") == 0
     # A child process, so the Mitsuba variant chosen here leaves other tests alone.
@@ -208,21 +210,22 @@ def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path, srgb_decoded):
         check=True,
         capture_output=True,
     )
-    np.testing.assert_allclose(np.load(tmp_path / "m.npy"),
-                               srgb_decoded(expected).transpose(2, 1, 0, 3), rtol=1e-5)
+    np.testing.assert_array_equal(np.load(tmp_path / "m.npy"),
+                                  srgb_to_linear(expected).transpose(2, 1, 0, 3))
 
 
-def test_volume_of_exemplars_encoded_differently_is_refused_unless_raw(images, tmp_path,
-                                                                      capsys):
+def test_volume_of_exemplars_encoded_differently_is_refused_unless_stored_as_is(
+        images, tmp_path, capsys):
     linear = tmp_path / "linear.npy"
     np.save(linear, np.asarray(Image.open(images["b"]), np.float32) / 255)
-    out = tmp_path / "v.npy"
+    out = tmp_path / "v.vol"
     assert _volume(images, out, "--ey", str(linear)) == 2
     assert capsys.readouterr().err == (
         "warptex: error: the exemplars' colors are encoded differently (a.png sRGB-encoded, "
         "linear.npy linear): convert one image, or keep the values as stored (raw)\n")
     assert not out.exists()
     assert _volume(images, out, "--ey", str(linear), "--raw") == 0
+    assert _volume(images, tmp_path / "v.npy", "--ey", str(linear)) == 0  # values as stored
 
 
 def test_volume_bad_extension_names_the_path(images, tmp_path, capsys):

@@ -264,7 +264,7 @@ def _write_pillow(path: Path, pixels: np.ndarray) -> Path:
 @pytest.mark.parametrize(("write", "srgb"), [
     (lambda p, c: _write_png8(p / "a.png", c), True),
     (lambda p, c: _write_png8(p / "a.png", c, gamma=0.45455), True),
-    (lambda p, c: _write_png8(p / "a.png", c, gamma=1.0), False),  # declared linear
+    (lambda p, c: _write_png8(p / "a.png", c, gamma=1.0), True),  # gAMA ignored, as Mitsuba
     (lambda p, c: _write_png16(p / "a.png", c.astype(np.uint16) * 257), True),
     (lambda p, c: _write_pillow(p / "a.jpg", c), True),
     (lambda p, c: _write_pillow(p / "a.tif", c), True),
@@ -282,6 +282,26 @@ def test_integer_images_are_srgb_encoded_float_images_linear(tmp_path, rng, writ
     assert _load_quiet(path, max_size=16).srgb is srgb  # shrinking makes floats of integers
     assert _load_quiet(path, srgb=not srgb).srgb is not srgb
     assert ("linear" in repr(_load_quiet(path))) is not srgb
+
+
+def test_srgb_transfer_functions():
+    """IEC 61966-2-1: the linear segment, its joint and a known mid-tone; each the other's
+    inverse; re-encoding touches the leading color channels only."""
+    from warptex.exemplar import linear_to_srgb, reencoded, srgb_to_linear
+
+    np.testing.assert_allclose(srgb_to_linear([0.0, 0.04045, 0.5, 1.0]),
+                               [0.0, 0.0031308, 0.2140411, 1.0], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(linear_to_srgb([0.0, 0.0031308, 0.2140411, 1.0, 1.7, -0.2]),
+                               [0.0, 0.04045, 0.5, 1.0, 1.0, 0.0], rtol=1e-5, atol=1e-7)
+    values = np.linspace(0, 1, 1001, dtype=np.float32)
+    np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(values)), values, atol=1e-6)
+    rgba = np.random.default_rng(0).random((5, 4)).astype(np.float32)
+    decoded = reencoded(rgba, srgb=True, to_srgb=False)
+    np.testing.assert_array_equal(decoded[:, :3], srgb_to_linear(rgba[:, :3]))
+    np.testing.assert_array_equal(decoded[:, 3], rgba[:, 3])
+    gray_alpha = reencoded(rgba[:, :2], srgb=False, to_srgb=True)
+    np.testing.assert_array_equal(gray_alpha, np.c_[linear_to_srgb(rgba[:, 0]), rgba[:, 1]])
+    np.testing.assert_array_equal(reencoded(rgba, srgb=True, to_srgb=True), rgba)
 
 
 def test_array_encoding_follows_the_dtype_unless_given(rng):

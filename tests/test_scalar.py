@@ -92,8 +92,9 @@ def test_gray_exemplars_and_points_out_of_range(granite_32_file, srgb_decoded, t
     si = mi.SurfaceInteraction3f()
     si.p = mi.Point3f(3.25, -7.5, 12.0)
     expected = srgb_decoded(tex.solid.query(np.array([[3.25, -7.5, 12.0]]))[0, 0])
-    for _ in range(2):  # cold, then from the copies
-        assert list(tex.eval(si)) == [pytest.approx(expected, rel=1e-6)] * 3
+    cold, warm = (list(tex.eval(si)) for _ in range(2))  # then from the copies
+    assert cold == warm == [pytest.approx(expected, rel=1e-6)] * 3
+    assert cold[0] == cold[1] == cold[2]
     lookup = tex._scalar
     assert lookup.color((3.5, 3.5, 2.0**24 + 3.5)) is None
     assert lookup.color((float("nan"), 0.0, 0.0)) is None

@@ -17,7 +17,7 @@ def _volume(channels: int) -> np.ndarray:
 def test_vol_header_and_data_of_a_non_cubic_volume(tmp_path, channels):
     """Mitsuba's grid: dims x, y, z; the channel count; the unit box; x fastest."""
     vol = _volume(channels)
-    write_volume(tmp_path / "v.vol", vol)
+    write_volume(tmp_path / "v.vol", vol, srgb=False)
     data = (tmp_path / "v.vol").read_bytes()
     assert data[:4] == b"VOL\x03"
     assert struct.unpack("<5i", data[4:24]) == (1, 2, 3, 4, channels)
@@ -35,7 +35,7 @@ def test_exr_channel_names_and_layout(tmp_path, channels, names):
     import OpenEXR
 
     vol = _volume(channels)
-    write_volume(tmp_path / "v.exr", vol)
+    write_volume(tmp_path / "v.exr", vol, srgb=False)
     with OpenEXR.File(str(tmp_path / "v.exr"), separate_channels=True) as file:
         got = {name: ch.pixels for name, ch in file.channels().items()}
         layout = file.header()["warptexLayout"]
@@ -46,7 +46,7 @@ def test_exr_channel_names_and_layout(tmp_path, channels, names):
         np.testing.assert_array_equal(sheet[y, z * 2 + x], vol[x, y, z])
     np.testing.assert_array_equal(sheet, exr_sheet(vol))
     assert "2x3x4" in layout
-    write_image(tmp_path / "i.exr", vol[0])
+    write_image(tmp_path / "i.exr", vol[0], srgb=False)
     with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
         assert sorted(file.channels()) == sorted(names)
 

@@ -98,7 +98,7 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
         if suffix not in UV_TEXTURE_FORMATS:
             raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
         if srgb is not None:
-            image = reencoded(image, srgb, to_srgb=True)
+            image = reencoded(image, srgb=srgb, to_srgb=True)
         material = trimesh.visual.material.SimpleMaterial(
             image=Image.fromarray(to_rgb8(image)), name=path.stem
         )
@@ -107,7 +107,7 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
         if suffix not in VERTEX_COLOR_FORMATS:
             raise ValueError(f"{path}: vertex colors need a .ply or .glb file")
         if srgb is not None:
-            colors = reencoded(colors, srgb, to_srgb=suffix != ".glb")
+            colors = reencoded(colors, srgb=srgb, to_srgb=suffix != ".glb")
         rgb = to_rgb8(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
         visual = trimesh.visual.ColorVisuals(vertex_colors=np.c_[rgb, np.full(len(rgb), 255)])
     else:

@@ -488,9 +488,11 @@ def _add_raw_argument(parser: argparse.ArgumentParser, formats: str) -> None:
 
 
 def _colors_srgb(args: argparse.Namespace, exemplars: list[Exemplar]) -> bool | None:
-    """Whether the colors to write are sRGB-encoded; None with --raw (write them as they
-    are). Exemplars encoded differently are refused unless --raw."""
-    return None if args.raw else srgb_encoded(exemplars)
+    """Whether the colors to write are sRGB-encoded; None where they are written as they
+    are (--raw, or a .npy output). Exemplars encoded differently are refused otherwise."""
+    if args.raw or args.output.suffix.lower() == ".npy":
+        return None
+    return srgb_encoded(exemplars)
 
 
 def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
@@ -572,7 +574,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     if suffix == ".png":
         _note_png_losses(image)
         if srgb is not None:
-            image = reencoded(image, srgb, to_srgb=True)
+            image = reencoded(image, srgb=srgb, to_srgb=True)
         with _writing(args.output):
             save_png(to_rgb8(image), args.output)
     else:

@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from warptex import metrics
 from warptex.archive import write_atomically
-from warptex.exemplar import Exemplar, srgb_to_linear
+from warptex.exemplar import Exemplar, reencoded
 from warptex.settings import DEFAULT_PASSES, check_settings
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
@@ -171,7 +171,7 @@ def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, seed: int
         shrink = {} if max_size is None else {"exemplar_max_size": max_size}
         return {"type": "lazy_solid", "exemplar": str(exemplar.path),
                 "seed": seed, "passes": passes, "scale": float(size)} | shrink
-    colors = srgb_to_linear(volume[..., :3]) if exemplar.srgb else volume[..., :3]
+    colors = reencoded(volume[..., :3], srgb=exemplar.srgb, to_srgb=False)
     data = _mitsuba().TensorXf(np.ascontiguousarray(colors.transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
@@ -298,9 +298,13 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ex = Exemplar.load(exemplar_path, max_size=max_size)
-    rows = [("exemplar", [("exemplar", ex.colors)])]
+
+    def shown(image: np.ndarray) -> np.ndarray:  # as an 8-bit picture shows colors: sRGB
+        return reencoded(image, srgb=ex.srgb, to_srgb=True)
+
+    rows = [("exemplar", [("exemplar", shown(ex.colors))])]
     for r in results:
-        images = [(f"{name} slice", s) for name, s in zip("xyz", r.slices, strict=True)]
+        images = [(f"{name} slice", shown(s)) for name, s in zip("xyz", r.slices, strict=True)]
         if r.render is not None:
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))

@@ -11,17 +11,18 @@ the last feature channel and never returned as color.
 Values are float32. 8- and 16-bit images are scaled linearly to [0, 1] (value / 255 or
 value / 65535) with no sRGB decoding, so synthesis matches and reproduces the stored values;
 float images (OpenEXR, ``.npy``, float arrays) are kept as stored. ``Exemplar.srgb`` records
-which of the two a renderer is given: integer images hold sRGB-encoded values (as Mitsuba's
-``bitmap`` assumes; a PNG may declare itself linear with a gamma of 1), float images linear
-ones.
+which of the two a renderer is given: as Mitsuba's ``bitmap`` reads them, integer images hold
+sRGB-encoded values (whatever gamma a PNG declares), float images linear ones.
 """
 
 from __future__ import annotations
 
 import hashlib
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import png
@@ -130,8 +131,8 @@ class Exemplar:
                 larger side is ``max_size`` pixels, keeping its aspect ratio: photographs are
                 often far larger than the pre-computation of candidates affords (a voxel is
                 one pixel of the shrunk image). Smaller images are kept as they are.
-            srgb: whether the file's colors are sRGB-encoded; by default as the file says:
-                8- and 16-bit images are, unless a PNG's gamma is 1; float images are linear.
+            srgb: whether the file's colors are sRGB-encoded; by default, as Mitsuba's
+                ``bitmap`` has it, those of 8- and 16-bit images are, float images' are linear.
 
         Raises:
             ExemplarError: missing or unreadable file, not an image, fewer than 16x16 pixels
@@ -242,12 +243,13 @@ def srgb_encoded(exemplars: list[Exemplar]) -> bool:
                         "one image, or keep the values as stored (raw)")
 
 
-def srgb_to_linear(values: np.ndarray) -> np.ndarray:
-    """Linear float32 values of sRGB-encoded ``values`` in [0, 1] (IEC 61966-2-1), what a
-    renderer makes of the colors of an exemplar whose ``srgb`` is set."""
-    values = np.asarray(values, np.float32)
-    return np.where(values <= np.float32(0.04045), values / np.float32(12.92),
-                    ((values + np.float32(0.055)) / np.float32(1.055)) ** np.float32(2.4))
+def srgb_to_linear(values: Any, select: Callable = np.where) -> Any:
+    """Linear values of sRGB-encoded ``values`` in [0, 1] (IEC 61966-2-1), what a renderer
+    makes of the colors of an exemplar whose ``srgb`` is set: float32 of NumPy arrays, or of
+    Dr.Jit arrays with ``select=drjit.select``, so renders decode by this same formula."""
+    if select is np.where:
+        values = np.asarray(values, np.float32)
+    return select(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
 
 
 def linear_to_srgb(values: np.ndarray) -> np.ndarray:
@@ -258,7 +260,7 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
                     np.float32(1.055) * values ** np.float32(1 / 2.4) - np.float32(0.055))
 
 
-def reencoded(values: np.ndarray, srgb: bool, to_srgb: bool) -> np.ndarray:
+def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool) -> np.ndarray:
     """``values`` (..., C), whose colors are sRGB-encoded if ``srgb``, as float32 with the
     colors sRGB-encoded if ``to_srgb``, else linear: what a file format's readers assume.
     Colors are the leading channels, three of RGB(A) and more, one of gray (with alpha); the
@@ -430,17 +432,17 @@ def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
     except OSError as error:
         raise ExemplarError(f"{path}: cannot read file ({error.strerror})") from None
     if head.startswith(_PNG_MAGIC):
-        return _read_png(path)
+        return *_read_png(path), True
     if head.startswith(_EXR_MAGIC):
         return *_read_exr(path), False
     if head.startswith(_NPY_MAGIC):
         pixels = _read_npy(path)
         return pixels, False, _integer(pixels)
     pixels, has_alpha = _read_pillow(path)
-    return pixels, has_alpha, pixels.dtype != np.float32
+    return pixels, has_alpha, _integer(pixels)
 
 
-def _read_png(path: Path) -> tuple[np.ndarray, bool, bool]:
+def _read_png(path: Path) -> tuple[np.ndarray, bool]:
     # pypng rather than Pillow: Pillow reduces 16-bit RGB(A) PNGs to 8 bits.
     try:
         with path.open("rb") as file:
@@ -457,8 +459,7 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool, bool]:
         pixels = pixels.astype(np.uint8)
     else:  # 1, 2 or 4 bits: rescale so that full intensity is 1.0 like any other depth
         pixels = pixels.astype(np.float32) / np.float32(2**bitdepth - 1)
-    # A gAMA chunk of 1 (pypng reports the decoding exponent) marks linear values.
-    return pixels, bool(info["alpha"]), info.get("gamma") != 1.0
+    return pixels, bool(info["alpha"])
 
 
 def _read_exr(path: Path) -> tuple[np.ndarray, bool]:

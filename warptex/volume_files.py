@@ -19,14 +19,14 @@ from warptex.exemplar import reencoded
 VOLUME_FORMATS = (".npy", ".exr", ".vol")
 
 
-def write_volume(path: str | Path, volume: np.ndarray, srgb: bool = False) -> None:
+def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool) -> None:
     """Write an (X, Y, Z, C) float volume by the file's suffix: ``.npy`` as it is, ``.exr``
     as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume
     over the unit box (Mitsuba maps it to [0, 1]^3: a scene places and scales it with the
     volume's ``to_world``, so voxels of a box whose sides differ come out stretched unless
-    the scene scales by the sides). ``srgb``: the colors are sRGB-encoded (``Exemplar.srgb``),
-    so ``.exr`` and ``.vol`` get them decoded. Raises ValueError for another suffix and
-    OSError when the file cannot be written."""
+    the scene scales by the sides). ``srgb``: whether the colors are sRGB-encoded, as those
+    of an exemplar whose ``Exemplar.srgb`` is set: ``.exr`` and ``.vol`` get them decoded.
+    Raises ValueError for another suffix and OSError when the file cannot be written."""
     path = Path(path)
     volume = _float_array(volume, 4, "volume", "(X, Y, Z, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
@@ -34,13 +34,13 @@ def write_volume(path: str | Path, volume: np.ndarray, srgb: bool = False) -> No
     if writer is None:
         raise ValueError(f"{path}: a volume file must end in {', '.join(VOLUME_FORMATS)}")
     if writer is not _write_npy:
-        volume = reencoded(volume, srgb, to_srgb=False)
+        volume = reencoded(volume, srgb=srgb, to_srgb=False)
     write_atomically(path, lambda tmp: writer(tmp, volume))
 
 
-def write_image(path: str | Path, image: np.ndarray, srgb: bool = False) -> None:
+def write_image(path: str | Path, image: np.ndarray, *, srgb: bool) -> None:
     """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR, which
-    gets sRGB-encoded colors (``srgb``) decoded."""
+    gets sRGB-encoded colors (``srgb``, as for :func:`write_volume`) decoded."""
     path = Path(path)
     image = _float_array(image, 3, "image", "(H, W, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr}
@@ -48,9 +48,8 @@ def write_image(path: str | Path, image: np.ndarray, srgb: bool = False) -> None
     if writer is None:
         raise ValueError(f"{path}: a lossless image file must end in .npy or .exr")
     if writer is _write_exr:
-        image = reencoded(image, srgb, to_srgb=False)
+        image = reencoded(image, srgb=srgb, to_srgb=False)
     write_atomically(path, lambda tmp: writer(tmp, image))
-
 
 
 def exr_sheet(volume: np.ndarray) -> np.ndarray:
