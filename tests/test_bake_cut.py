@@ -184,6 +184,38 @@ def test_export_formats(texture, sphere, tmp_path):
     assert not list(tmp_path.glob(".t.ply*"))
 
 
+def glb_vertex_colors(path: Path) -> np.ndarray:
+    """RGB vertex colors (COLOR_0) of a one-mesh .glb: trimesh keeps them beside a material
+    as a vertex attribute of the scene's geometry (force="mesh" would drop them)."""
+    (geometry,) = trimesh.load(path, process=False).geometry.values()
+    return geometry.visual.vertex_attributes["color"][:, :3]
+
+
+def _gltf_json(path: Path) -> dict:
+    import json
+    import struct
+
+    data = path.read_bytes()
+    (length,) = struct.unpack("<I", data[12:16])
+    return json.loads(data[20:20 + length])
+
+
+def test_exported_materials_are_white_and_matte(tmp_path):
+    """The colors show as baked: not tinted by trimesh's default 0.4 gray in .mtl files, not
+    metallic as glTF's default material is."""
+    mesh, uv = _square()
+    image = np.full((8, 8, 3), 0.5, np.float32)
+    for name, colors in (("t.glb", None), ("v.glb", np.full((4, 3), 0.5, np.float32))):
+        export(mesh, tmp_path / name, colors=colors, image=None if colors is not None else image,
+               uv=uv)
+        (material,) = _gltf_json(tmp_path / name)["materials"]
+        pbr = material["pbrMetallicRoughness"]
+        assert pbr["metallicFactor"] == 0.0 and pbr.get("baseColorFactor", [1] * 4) == [1] * 4
+    export(mesh, tmp_path / "t.obj", image=image, uv=uv)
+    mtl = (tmp_path / "t.mtl").read_text()
+    assert "Kd 1.00000000 1.00000000 1.00000000" in mtl and "Ks 0.00000000" in mtl
+
+
 def test_cli_slice_writes_each_format_in_its_own_encoding(tmp_path, data_dir, warp_device,
                                                          srgb_decoded):
     """An 8-bit exemplar's slice: .npy as synthesized, .exr decoded to linear, .png as the
@@ -238,8 +270,7 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys,
     for extra, expected in (([], linear), (["--raw"], ply)):
         assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
                      *extra, "-o", str(tmp_path / "b.glb")]) == 0
-        glb = trimesh.load(tmp_path / "b.glb", process=False, force="mesh")
-        np.testing.assert_allclose(glb.visual.vertex_colors[:, :3], expected, atol=2)
+        np.testing.assert_allclose(glb_vertex_colors(tmp_path / "b.glb"), expected, atol=2)
     capsys.readouterr()
     shell_voxels = int(re.search(r"surface shell: (\d+) voxels", report).group(1))
     made, corrected = (int(n) for n in re.search(
@@ -363,8 +394,10 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
                        [0.25, 0.1, 0.4]], np.float32)
 
     def vertex_rgb(name: str, srgb: bool | None) -> np.ndarray:
-        written = export(mesh, tmp_path / name, colors=colors, srgb=srgb)
-        return trimesh.load(written[0], process=False, force="mesh").visual.vertex_colors[:, :3]
+        written = export(mesh, tmp_path / name, colors=colors, srgb=srgb)[0]
+        if written.suffix == ".glb":
+            return glb_vertex_colors(written)
+        return trimesh.load(written, process=False).visual.vertex_colors[:, :3]
 
     def rgb8(values: np.ndarray) -> np.ndarray:
         return np.floor(np.asarray(values) * 255 + 0.5)

@@ -187,7 +187,9 @@ def test_volume_vol_and_exr_are_the_box_written_by_volume_files(images, expected
             assert _volume(images, out, *(["--raw"] if raw else [])) == 0
             write_volume(reference, expected, srgb=not raw)  # raw: nothing to decode
             assert out.read_bytes() == reference.read_bytes(), (suffix, raw)
-    assert (tmp_path / "vFalse.vol").read_bytes() != (tmp_path / "vTrue.vol").read_bytes()
+    for suffix in (".vol", ".exr"):  # decoded, then raw
+        decoded, raw = (tmp_path / f"v{raw}{suffix}" for raw in (False, True))
+        assert decoded.read_bytes() != raw.read_bytes(), suffix
 
 
 _MITSUBA_READ = """

@@ -82,6 +82,17 @@ VERTEX_COLOR_FORMATS = (".ply", ".glb")
 UV_TEXTURE_FORMATS = (".glb", ".obj")
 
 
+def _matte(suffix: str, image: Image.Image | None,
+           name: str) -> trimesh.visual.material.Material:
+    """A white, matte material showing ``image`` (or the vertex colors) as baked: trimesh's
+    default tints textures with 0.4 gray, and glTF's default material is metallic."""
+    if suffix == ".glb":
+        return trimesh.visual.material.PBRMaterial(
+            name=name, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0)
+    return trimesh.visual.material.SimpleMaterial(
+        image=image, name=name, diffuse=[255] * 4, ambient=[255] * 4, specular=[0, 0, 0, 255])
+
+
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None,
            srgb: bool | None = None) -> list[Path]:
@@ -99,9 +110,7 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
             raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
         if srgb is not None:
             image = reencoded(image, srgb=srgb, to_srgb=True)
-        material = trimesh.visual.material.SimpleMaterial(
-            image=Image.fromarray(to_rgb8(image)), name=path.stem
-        )
+        material = _matte(suffix, Image.fromarray(to_rgb8(image)), path.stem)
         visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
     elif colors is not None:
         if suffix not in VERTEX_COLOR_FORMATS:
@@ -109,7 +118,12 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
         if srgb is not None:
             colors = reencoded(colors, srgb=srgb, to_srgb=suffix != ".glb")
         rgb = to_rgb8(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
-        visual = trimesh.visual.ColorVisuals(vertex_colors=np.c_[rgb, np.full(len(rgb), 255)])
+        rgba = np.c_[rgb, np.full(len(rgb), 255, np.uint8)]
+        if suffix == ".glb":  # COLOR_0 beside a material, else glTF's default is metallic
+            visual = trimesh.visual.TextureVisuals(material=_matte(suffix, None, path.stem))
+            visual.vertex_attributes["color"] = rgba
+        else:
+            visual = trimesh.visual.ColorVisuals(vertex_colors=rgba)
     else:
         raise ValueError("nothing to export: give colors or an image")
     out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, visual=visual, process=False)

@@ -246,7 +246,8 @@ def srgb_encoded(exemplars: list[Exemplar]) -> bool:
 def srgb_to_linear(values: Any, select: Callable = np.where) -> Any:
     """Linear values of sRGB-encoded ``values`` in [0, 1] (IEC 61966-2-1), what a renderer
     makes of the colors of an exemplar whose ``srgb`` is set: float32 of NumPy arrays, or of
-    Dr.Jit arrays with ``select=drjit.select``, so renders decode by this same formula."""
+    Dr.Jit arrays with ``select=drjit.select``, or of a Python float with a plain choice
+    (``select(low, a, b)`` is ``a if low else b``), so every lookup decodes by this formula."""
     if select is np.where:
         values = np.asarray(values, np.float32)
     return select(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
