@@ -505,7 +505,7 @@ def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEF
 
 def _solid_texture(args: argparse.Namespace):
     """The texture of the command's exemplars, and whether its colors are sRGB-encoded (None
-    with --raw: written as they are)."""
+    where they are written as they are: see _colors_srgb)."""
     from warptex.candidates import precompute
     from warptex.texture import SolidTexture
 
