@@ -22,10 +22,10 @@ from kernels.common import KEY_BIAS, KEY_BITS, floor_voxel
 # the trilinear blend with separate roundings and must match to the bit.
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-BRICK = 8
 BRICK_SHIFT = 3  # bricks are 2^BRICK_SHIFT voxels wide
-BRICK_VOXELS = 512
-VALID_WORDS = 16  # 32-bit words of a brick's stored-voxel bits
+BRICK = 1 << BRICK_SHIFT
+BRICK_VOXELS = BRICK**3
+VALID_WORDS = BRICK_VOXELS // 32  # 32-bit words of a brick's stored-voxel bits
 MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars
 EMPTY = wp.constant(wp.int64(-1))
 
