@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from warptex import metrics
 from warptex.archive import write_atomically
-from warptex.exemplar import Exemplar, reencoded
+from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
 from warptex.settings import DEFAULT_PASSES, check_settings
 
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
@@ -136,7 +136,7 @@ def _mitsuba():
 
 def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarray:
     """A unit cube at [0, 1]^3 wearing ``texture`` (a Mitsuba texture dict), seen from a
-    corner under sky and sun; the (H, W, 3) image with display gamma."""
+    corner under sky and sun; the (H, W, 3) image sRGB-encoded, as the sheet shows it."""
     import mitsuba_plugin
 
     mi = _mitsuba()
@@ -158,7 +158,7 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
                  "bsdf": {"type": "diffuse", "reflectance": texture}},
     })
     image = np.asarray(mitsuba_plugin.render(scene, batches=1))[..., :3]
-    return np.clip(image, 0.0, None) ** (1 / 2.2)  # display gamma for the sheet
+    return linear_to_srgb(image)
 
 
 def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, seed: int,
