@@ -430,6 +430,32 @@ def test_corrupt_cache_is_reported_once_and_replaced(damage, warp_device):
         _assert_same(good, precompute(ex))
 
 
+def test_a_cache_file_of_other_exemplars_is_reported_and_replaced(warp_device):
+    """A cache file copied or renamed onto another exemplar's name is whole and checksummed,
+    but holds other candidates: they must not be served under this exemplar."""
+    ex = _crop(slice(0, 16), slice(0, 16))
+    other = _crop(slice(16, 32), slice(16, 32))
+    good = precompute(ex)
+    path = cached_candidate_path(ex)
+    good_bytes = path.read_bytes()
+    precompute(other)
+    path.write_bytes(cached_candidate_path(other).read_bytes())
+    with pytest.warns(UserWarning, match="candidates of other exemplars or parameters") as record:
+        again = precompute(ex)
+    assert len(record) == 1 and str(path) in str(record[0].message)
+    _assert_same(good, again)
+    assert path.read_bytes() == good_bytes
+
+
+def test_content_digest_is_kept_through_a_file_and_sees_one_coefficient(tmp_path, granite):
+    granite.save(tmp_path / "g.wtc")
+    assert CandidateSet.load(tmp_path / "g.wtc").content_digest == granite.content_digest
+    # Another LAPACK may round one PCA coefficient otherwise, under the same cache key.
+    loaded = CandidateSet.load(tmp_path / "g.wtc")
+    loaded.sources[1][0].basis[0, 0] += 1
+    assert loaded.content_digest != granite.content_digest
+
+
 def _valid_header(payload: bytes, version: int = FORMAT_VERSION) -> bytes:
     return b"WARPTEXC" + version.to_bytes(4, "little") + hashlib.sha256(payload).digest()
 

@@ -260,6 +260,14 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
         m.setattr(candidates, "digests", tuple("other" for _ in candidates.digests))
         with pytest.warns(UserWarning, match=r"another texture \(exemplars\)"):
             BrickStore.load(path, synthesizer(candidates))
+    # Candidates recomputed under the same exemplars and parameters, one PCA coefficient
+    # rounded otherwise (another LAPACK): every voxel may differ, so the file is refused.
+    rounded = dataclasses.replace(candidates, sources=[
+        [dataclasses.replace(s, basis=s.basis.copy()) for s in level]
+        for level in candidates.sources])
+    rounded.sources[-1][0].basis[0, 0] += 1
+    with pytest.warns(UserWarning, match=r"another texture \(pre-computed candidates\)"):
+        assert BrickStore.load(path, synthesizer(rounded)).stats()["bricks"] == 0
     data = bytearray(path.read_bytes())
     data[8] += 1  # format version
     path.write_bytes(bytes(data))

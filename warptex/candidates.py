@@ -19,6 +19,7 @@ import os
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -131,6 +132,21 @@ class CandidateSet:
     def nbytes(self) -> int:
         return sum(a.nbytes for a in _flatten(self).values())
 
+    @cached_property
+    def content_digest(self) -> str:
+        """SHA-256 of everything synthesis reads from these candidates, so that a brick store
+        is never mixed with candidates computed otherwise under the same exemplars and
+        parameters (another LAPACK rounding a PCA coefficient, a cache recomputed since)."""
+        flat = _flatten(self)
+        layout = {"axis_source": list(self.axis_source),
+                  "shifts": [[s.shift for s in lvl] for lvl in self.sources]}
+        digest = hashlib.sha256(json.dumps(layout).encode())
+        for name in sorted(flat.keys() - {"meta"}):
+            array = np.ascontiguousarray(flat[name])
+            digest.update(f"{name} {array.dtype.str} {array.shape}".encode())
+            digest.update(array.data)
+        return digest.hexdigest()
+
     def save(self, path: str | Path) -> None:
         """Write a versioned, checksummed file atomically (temporary name, then rename)."""
         write_archive(path, _MAGIC, FORMAT_VERSION, _flatten(self))
@@ -158,8 +174,9 @@ def precompute(
 
     ``ey``/``ez`` default to ``ex``. With ``cache`` the result is stored under
     ``WARPTEX_CACHE`` keyed by exemplar content and parameters, and a later call loads
-    it; a damaged cache file is reported once and recomputed, and a cache that cannot be
-    written is reported once and left out. ``progress`` shows a bar on stderr; None shows
+    it; a damaged cache file, or one that holds the candidates of other exemplars or
+    parameters (copied or renamed), is reported once and recomputed, and a cache that
+    cannot be written is reported once and left out. ``progress`` shows a bar on stderr; None shows
     it when stderr is a terminal.
     """
     ey = ex if ey is None else ey
@@ -174,7 +191,7 @@ def precompute(
     path = cache_path(exemplars, p) if cache else None
     if path is not None and path.exists():
         try:
-            return CandidateSet.load(path)
+            return _cached(path, exemplars, p)
         except CandidateCacheError as e:
             warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     _check_size(exemplars)
@@ -186,6 +203,17 @@ def precompute(
             warnings.warn(f"candidates not cached: cannot write {path} ({e.strerror or e}); "
                           "WARPTEX_CACHE sets the cache folder", stacklevel=2)
     return result
+
+
+def _cached(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet:
+    """The candidates cached at ``path``, if they are those of ``exemplars`` and ``params``."""
+    loaded = CandidateSet.load(path)
+    # Through JSON, as the file's went: tuples become lists, so equal compares equal.
+    wanted = json.loads(json.dumps({"digests": [e.digest() for e in exemplars], "params": params}))
+    if wanted != {"digests": list(loaded.digests), "params": loaded.params}:
+        raise CandidateCacheError(f"{path}: holds the candidates of other exemplars or "
+                                  "parameters (a copied or renamed cache file)")
+    return loaded
 
 
 def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:

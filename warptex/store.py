@@ -37,7 +37,6 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
-from warptex.candidates import FORMAT_VERSION as CANDIDATE_FORMAT
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS
@@ -157,7 +156,7 @@ class _SharedLock:
 
 
 _SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
-                  "candidates": "candidate format", "engine": "engine version",
+                  "candidates": "pre-computed candidates", "engine": "engine version",
                   "format": "file format", "brick": "brick size",
                   "levels": "synthesized levels", "passes": "correction passes",
                   "subpasses": "sub-passes"}
@@ -170,7 +169,7 @@ def _differences(stored: dict, current: dict) -> str:
         there, here = stored.get(name), current.get(name)
         if there != here:
             words = _SETTING_NAMES.get(name, name)
-            if isinstance(here, int | float | str) and isinstance(there, int | float | str):
+            if isinstance(here, int | float) and isinstance(there, int | float):
                 words += f" {there} in the file, {here} here"
             out.append(words)
     return ", ".join(out) or "equal settings with another identity digest"
@@ -255,7 +254,7 @@ class BrickStore:
         s = self.synthesizer
         return {
             "format": FORMAT_VERSION,
-            "candidates": CANDIDATE_FORMAT,
+            "candidates": s.candidates.content_digest,
             "engine": ENGINE_VERSION,
             "brick": _k.BRICK,
             "digests": list(s.candidates.digests),
