@@ -10,11 +10,12 @@ import json
 import re
 import sys
 import time
+import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from warptex.archive import write_atomically
+from warptex.archive import overwritten_input, write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
 _BATCHES = 8  # renders of one image at most: each is a step of the progress line
@@ -72,6 +73,22 @@ def scene_error(text: str, scene: Path | None = None) -> str:
     return f"{file} ({place}): {message}"
 
 
+def scene_files(scene_path: Path) -> list[Path]:
+    """The files a scene names (exemplars, meshes, included scenes, brick stores) that exist,
+    looked up as Mitsuba does: beside the scene, else from the working folder. A scene that
+    does not parse names none; loading it reports why."""
+    try:
+        root = ElementTree.parse(scene_path).getroot()
+    except (ElementTree.ParseError, OSError):
+        return []
+    found = []
+    for element in root.iter():
+        for value in (element.get("value"), element.get("filename")):
+            if value and "$" not in value:
+                found += [p for p in (scene_path.parent / value, Path(value)) if p.is_file()]
+    return found
+
+
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                  resolution: tuple[int, int] | None = None,
                  variant: str | None = None) -> dict:
@@ -87,6 +104,11 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
     if spp is not None and spp < 1:
         raise ValueError(f"--spp must be positive, got {spp}")
+    statistics = output.with_name(output.name + ".json")
+    clash = overwritten_input([output, statistics], [scene_path, *scene_files(scene_path)])
+    if clash is not None:
+        raise ValueError(f"{clash[0]}: would overwrite {clash[1]}, which the scene reads; "
+                         "choose another output name")
     import mitsuba as mi
 
     import mitsuba_plugin
@@ -143,8 +165,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             "textures": [_save_and_report(t) for t in mitsuba_plugin.textures()],
         }
         text = json.dumps(report, indent=2) + "\n"
-        write_atomically(output.with_name(output.name + ".json"),
-                         lambda tmp: tmp.write_text(text))
+        write_atomically(statistics, lambda tmp: tmp.write_text(text))
     except OSError as error:  # a full disk, a lost mount: named, the files left as they were
         where = error.filename or output  # write_atomically names the file it was asked for
         raise ValueError(f"{where}: cannot write ({error.strerror or error})") from None

@@ -120,7 +120,7 @@ CASES = [
      "16384x16384 pixels at 64 samples per pixel in a batch exceed"),
     (["cut", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}"], "must end in .ply or .glb"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--store", "{out}/b.ply",
-      "-o", "{out}/b.ply"], "--store names an output mesh"),
+      "-o", "{out}/b.ply"], "--store names an output file"),
     (["slice", "{exemplar}", "--origin", "5e6", "0", "0", "-o", "{out}/s.png"],
      "coordinate range"),
     (["compare", "{exemplar}", "--size", "4", "-o", "{out}/cmp"], "--size must be at least 8"),
@@ -386,3 +386,47 @@ def test_kernel_build_note_on_a_gpu_machine(tmp_path, monkeypatch, capsys, warp_
         (tmp_path / module.get_module_identifier(block_dim=1 if cpu_only else None)).mkdir()
     cli._note_kernel_build()
     assert capsys.readouterr().err == ""
+
+
+# A command's arguments and the input file that one of its outputs would overwrite; the
+# inputs are copies in {work}, whatever their role: wood.png the exemplar, ball.ply the mesh.
+OVERWRITES = [
+    (["precompute", "{work}/wood.png", "--no-cache", "-o", "{work}/wood.png"], "wood.png"),
+    (["volume", "{work}/wood.npy", "--size", "8", "-o", "{work}/wood.npy"], "wood.npy"),
+    (["slice", "{work}/wood.png", "--ey", "{work}/y.png", "-o", "{work}/y.png"], "y.png"),
+    (["bake", "{work}/ball.ply", "--exemplar", "{work}/wood.png", "-o", "{work}/ball.ply"],
+     "ball.ply"),
+    # An .obj comes with its texture, named after it: wood.obj writes wood.png.
+    (["bake", "{work}/ball.ply", "--exemplar", "{work}/wood.png", "--uv", "auto",
+      "-o", "{work}/wood.obj"], "wood.png"),
+    (["cut", "{work}/ball.ply", "--exemplar", "{work}/half_b.png", "--uv", "auto",
+      "-o", "{work}/half.obj"], "half_b.png"),
+    (["compare", "{work}/sheet.png", "--methods", "noise", "-o", "{work}"], "sheet.png"),
+    (["render", "{work}/scene.xml", "-o", "{work}/wood.png"], "wood.png"),
+    # The statistics go to OUTPUT.json, here the scene itself.
+    (["render", "{work}/shot.png.json", "-o", "{work}/shot.png"], "shot.png.json"),
+]
+
+
+@pytest.mark.parametrize(("argv", "victim"), OVERWRITES,
+                         ids=[f"{c[0][0]}: {c[1]}" for c in OVERWRITES])
+def test_no_output_overwrites_an_input(files, tmp_path, capsys, argv, victim):
+    work = tmp_path / "work"
+    work.mkdir()
+    image = files["exemplar"].read_bytes()
+    for name in ("wood.png", "y.png", "half_b.png", "sheet.png"):
+        (work / name).write_bytes(image)
+    np.save(work / "wood.npy", np.load(files["other"]))
+    (work / "ball.ply").write_bytes(files["mesh"].read_bytes())
+    for name in ("scene.xml", "shot.png.json"):
+        (work / name).write_text(
+            '<scene version="3.0.0"><shape type="sphere"><bsdf type="diffuse"><texture '
+            'type="lazy_solid" name="reflectance"><string name="exemplar" value="wood.png"/>'
+            "</texture></bsdf></shape></scene>")
+    before = {p.name: p.read_bytes() for p in work.iterdir()}
+    code = main([a.format(work=work) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert f"would overwrite {work / victim}" in err or \
+        f"would overwrite the input {work / victim}" in err
+    assert {p.name: p.read_bytes() for p in work.iterdir()} == before

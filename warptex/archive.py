@@ -16,7 +16,7 @@ import hashlib
 import io
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,19 @@ _DIGEST_BYTES = 32
 
 class ArchiveError(ValueError):
     """A file is unreadable, damaged, of another kind or of another format version."""
+
+
+def overwritten_input(outputs: Sequence[str | Path],
+                      inputs: Sequence[str | Path]) -> tuple[Path, Path] | None:
+    """The first (output, input) pair of files that are one and the same file (by path,
+    link or hard link): writing that output would destroy an input of the same work.
+    Missing paths are no input and overwrite nothing."""
+    for output in map(Path, outputs):
+        for source in map(Path, inputs):
+            with contextlib.suppress(OSError):
+                if output.is_file() and source.is_file() and output.samefile(source):
+                    return output, source
+    return None
 
 
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:

@@ -93,11 +93,21 @@ def _matte(suffix: str, image: Image.Image | None,
         image=image, name=name, diffuse=[255] * 4, ambient=[255] * 4, specular=[0, 0, 0, 255])
 
 
+def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
+    """The files :func:`export` writes for ``path``: an OBJ with a UV texture comes with its
+    material library and its PNG texture, named after it."""
+    path = Path(path)
+    if uv_texture and path.suffix.lower() == ".obj":
+        return [path, path.with_suffix(".mtl"), path.with_suffix(".png")]
+    return [path]
+
+
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None,
            srgb: bool | None = None) -> list[Path]:
     """Write a textured mesh atomically: PLY/GLB with vertex ``colors``, or GLB (embedded
-    PNG) / OBJ (+ MTL + PNG) with a UV ``image``. Returns the files written.
+    PNG) / OBJ (+ MTL + PNG, :func:`exported_files`) with a UV ``image``. Returns the files
+    written.
 
     ``srgb``: whether the colors are sRGB-encoded (``Exemplar.srgb``), so that each file
     holds what its readers assume: PNG textures and PLY vertex colors sRGB-encoded, glTF

@@ -24,6 +24,7 @@ import numpy as np
 
 from warptex import __version__
 from warptex._llvm import MIN_LLVM_MAJOR
+from warptex.archive import overwritten_input
 from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -62,6 +63,21 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
         raise CliError(f"{path}: is a folder, expected a file name")
     _check_writable_folder(path.parent, path)
     return suffix
+
+
+_INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
+
+
+def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
+    """Refuse, before any work, outputs that are one of the command's input files: -o
+    naming the exemplar, or the texture an .obj comes with named like it."""
+    inputs = [p for name in _INPUT_ARGUMENTS if isinstance(p := getattr(args, name, None), Path)]
+    clash = overwritten_input(outputs, inputs)
+    if clash is not None:
+        output, source = clash
+        written = "" if output == outputs[0] else f" (written with {outputs[0]})"
+        raise CliError(f"{output}{written}: would overwrite the input {source}; choose another "
+                       "output name")
 
 
 def _check_writable_folder(folder: Path, target: Path) -> None:
@@ -240,6 +256,7 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
 
     if args.output is not None:
         _check_output(args.output)
+        _check_inputs_kept(args, [args.output])
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     cache = None if args.no_cache else cache_path(exemplars, dict(DEFAULT_PARAMS))
     if cache is not None:
@@ -377,6 +394,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from warptex.synthesis import Synthesizer, box_bytes
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
+    _check_inputs_kept(args, [args.output])
     _check_at_least("--size", args.size, 1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.mean_shift and args.method != "kopf":
@@ -552,6 +570,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     from warptex.texture import plane_points, query_slabs
 
     suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
+    _check_inputs_kept(args, [args.output])
     h, w = args.shape
     if h < 1 or w < 1:
         raise CliError(f"--shape must be positive, got {h} {w}")
@@ -642,7 +661,7 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
 def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -> list[Path]:
     """Everything about a bake or cut that can be wrong, checked before the work; returns
     the mesh files to write (a cut's second half gets the suffix _b)."""
-    from warptex.bake import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS
+    from warptex.bake import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS, exported_files
     from warptex.synthesis import COORD_LIMIT
 
     _check_at_least("--resolution", args.resolution, 1)
@@ -665,12 +684,15 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if second_half:
         outputs.append(args.output.with_stem(args.output.stem + "_b"))
         _check_output(outputs[1], formats, what)
+    for output in outputs:
+        _check_inputs_kept(args, exported_files(output, uv_texture=args.uv != "none"))
     if args.store is not None:
         from warptex.store import StoreFileError, check_store_path
 
         _check_output(args.store)
-        if any(args.store.resolve() == o.resolve() for o in outputs):
-            raise CliError(f"{args.store}: --store names an output mesh; choose another file")
+        written = [f for o in outputs for f in exported_files(o, uv_texture=args.uv != "none")]
+        if any(args.store.resolve() == f.resolve() for f in written):
+            raise CliError(f"{args.store}: --store names an output file; choose another file")
         try:
             check_store_path(args.store)
         except StoreFileError as error:
@@ -884,13 +906,14 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from warptex.compare import compare, table_markdown, write_report
+    from warptex.compare import REPORT_FILES, compare, table_markdown, write_report
 
     # One clear error for a bad image before any work.
     Exemplar.load(args.exemplar, max_size=args.exemplar_max_size)
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
+    _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
     _check_synthesis_arguments(passes=args.passes, seed=args.seed)
     _check_at_least("--size", args.size, 8)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]

@@ -29,6 +29,7 @@ from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
 from warptex.settings import DEFAULT_PASSES, check_settings
 
+REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 LARGE = 256  # edge of the slice the repetition score looks at
@@ -290,13 +291,14 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
                  out_dir: str | Path, *, size: int, seed: int,
                  max_size: int | None = None) -> list[Path]:
-    """Write ``sheet.png``, ``table.md`` and ``table.json`` into ``out_dir`` atomically,
-    with the :func:`run_summary` of the ``size^3``, ``seed`` comparison run here on the
-    exemplar as loaded with ``max_size``."""
+    """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) into
+    ``out_dir`` atomically, with the :func:`run_summary` of the ``size^3``, ``seed``
+    comparison run here on the exemplar as loaded with ``max_size``."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
     ex = Exemplar.load(exemplar_path, max_size=max_size)
 
     def shown(image: np.ndarray) -> np.ndarray:  # as an 8-bit picture shows colors: sRGB
@@ -308,16 +310,16 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
         if r.render is not None:
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
-    save_png(sheet(rows), out / "sheet.png")
+    save_png(sheet(rows), sheet_file)
     run = run_summary(size, seed) | {"exemplar_size": list(ex.shape[::-1])}
     shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
     markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}; "
                 f"{run_line(run)}\n\n" + table_markdown(results))
-    write_atomically(out / "table.md", lambda tmp: tmp.write_text(markdown))
+    write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
     table = json.dumps({"exemplar": Path(exemplar_path).name, "run": run,
                         "methods": payload}, indent=2)
-    write_atomically(out / "table.json", lambda tmp: tmp.write_text(table))
-    return [out / "sheet.png", out / "table.md", out / "table.json"]
+    write_atomically(json_file, lambda tmp: tmp.write_text(table))
+    return files
 
