@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from warptex.bake import bake_uv_texture, export, texel_points, vertex_colors
+from warptex.bake import bake_uv_texture, export, exported_files, texel_points, vertex_colors
 from warptex.cut import cap_faces, cut
 from warptex.surface import block_transform, shell, to_voxel_space
 from warptex.texture import SolidTexture, plane_points
@@ -175,9 +175,12 @@ def test_export_formats(texture, sphere, tmp_path):
     mesh = sphere.unwrap()
     image, _ = bake_uv_texture(texture, mesh, mesh.visual.uv, m, size=32)
     files = export(mesh, tmp_path / "t.obj", image=image, uv=mesh.visual.uv)
-    assert {f.suffix for f in files} == {".obj", ".mtl", ".png"}
-    glb = trimesh.load(export(mesh, tmp_path / "t.glb", image=image, uv=mesh.visual.uv)[0],
-                       force="mesh")
+    # What the command line checks against its inputs before baking.
+    assert sorted(files) == sorted(exported_files(tmp_path / "t.obj", uv_texture=True))
+    assert written == exported_files(tmp_path / "s.ply", uv_texture=False)
+    glb_files = export(mesh, tmp_path / "t.glb", image=image, uv=mesh.visual.uv)
+    assert glb_files == exported_files(tmp_path / "t.glb", uv_texture=True)
+    glb = trimesh.load(glb_files[0], force="mesh")
     assert glb.visual.uv.shape == mesh.visual.uv.shape
     with pytest.raises(ValueError, match=r"\.glb or \.obj"):
         export(mesh, tmp_path / "t.ply", image=image, uv=mesh.visual.uv)
