@@ -26,12 +26,15 @@ Properties (XML or ``mi.load_dict``):
 =====================  =========  ==============================================================
 
 A scene point p has texture coordinates ``scale * to_world^-1 * p``: one texture unit is
-one finest voxel (see :mod:`warptex.texture`). With ``space="object"`` p is first taken
-into the frame of the object that was hit, so the texture sticks to it when it moves:
-the frame of the ``instance`` the hit belongs to, else the ``to_world`` parameter of the
-shape when it has one (``sphere``, ``rectangle``, ...). Meshes bake their ``to_world``
-into their vertices at load time, so a plain mesh has no frame to recover and object
-space equals world space for it; move meshes with ``instance`` to keep their texture.
+one finest voxel (see :mod:`warptex.texture`). The texture never stops a render: beyond its
+coordinate range (``POINT_LIMIT``) points are moved by whole periods of 2^22 voxels
+(:func:`warptex.texture.wrap_far`), the same in every mode, and NaN or infinite ones are black.
+With ``space="object"`` p is first taken into the frame of the object that was hit, so the
+texture sticks to it when it moves: the frame of the ``instance`` the hit belongs to, else
+the ``to_world`` parameter of the shape when it has one (``sphere``, ``rectangle``, ...).
+Meshes bake their ``to_world`` into their vertices at load time, so a plain mesh has no frame
+to recover and object space equals world space for it; move meshes with ``instance`` to keep
+their texture.
 
 Colors: as Mitsuba's ``bitmap`` does, the plugin gives renders linear colors, so the
 sRGB-encoded values of 8- and 16-bit exemplars (``Exemplar.srgb``) are decoded unless
@@ -67,6 +70,7 @@ the store, which synthesizes it. Any render works there, ``mi.render`` included.
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any
@@ -91,7 +95,7 @@ from warptex.settings import (
     check_settings,
 )
 from warptex.store import StoreFileError
-from warptex.texture import SolidTexture
+from warptex.texture import SolidTexture, wrap_far
 
 PLUGIN = "lazy_solid"
 # How a property of each kind is written in a scene, for errors that name the wrong one.
@@ -315,8 +319,12 @@ class LazySolidTexture(mi.Texture):
         return srgb_to_linear(rgb, dr.select) if self._decode_srgb else rgb
 
     def query_texture_space(self, points: np.ndarray) -> np.ndarray:
-        """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded)."""
-        return _as_rgb(self.solid.query(points, filter=self.filter))
+        """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded):
+        beyond the texture's coordinate range as :func:`warptex.texture.wrap_far` moves
+        them, black where a point is NaN or infinite, as Mitsuba's textures never raise."""
+        with np.errstate(invalid="ignore"):  # infinity minus infinity: NaN, filled black
+            points = wrap_far(points)
+        return _as_rgb(self.solid.query(points, filter=self.filter, fill=0.0))
 
     def _jit_colors(self, it: mi.Interaction3f, active: mi.Bool) -> mi.Color3f:
         """RGB at the points of ``it`` where ``active``, as stored; zero elsewhere (JIT
@@ -335,8 +343,12 @@ class LazySolidTexture(mi.Texture):
             p = [mi.Float64(c) for c in it.p]
             if self.space == "object":
                 p = self._frames.to_object(it, p)
-            p = _apply_affine(self._world_to_texture, *p)
-            return self._traced.colors(p, active)
+            p = [wrap_far(c, dr.select, dr.round)
+                 for c in _apply_affine(self._world_to_texture, *p)]
+            finite = dr.isfinite(p[0]) & dr.isfinite(p[1]) & dr.isfinite(p[2])
+            p = [dr.select(finite, c, 0.0) for c in p]
+            rgb = self._traced.colors(p, active & finite)
+            return dr.select(finite, rgb, mi.Color3f(0.0))
         width = dr.width(it.p)
         # One kernel interleaves the points; in the LLVM variants NumPy then views Dr.Jit's
         # memory (DLPack). NumPy cannot view GPU memory: the CUDA variants copy the points.
@@ -403,6 +415,9 @@ class LazySolidTexture(mi.Texture):
         if self.space == "object":
             p = _to_object_space(np.array([p]), it, None)[0].tolist()
         point = _apply_affine(self._world_to_texture, *p)
+        if not all(map(math.isfinite, point)):  # before round(), which raises on them
+            return [0.0, 0.0, 0.0]
+        point = tuple(wrap_far(c, _choice_of, round) for c in point)
         color = self._scalar.color(point)
         if color is None:
             self._scalar.forget(point)
@@ -413,9 +428,10 @@ class LazySolidTexture(mi.Texture):
                keep: np.ndarray | None) -> np.ndarray:
         """RGB (N, 3) at scene ``points`` (N, 3) of interaction ``it``."""
         points = points.astype(np.float64)
-        if self.space == "object":
-            points = _to_object_space(points, it, keep)
-        texture = _apply_affine(self._world_to_texture, *points.T)
+        with np.errstate(invalid="ignore"):  # zero times infinity: NaN, filled black
+            if self.space == "object":
+                points = _to_object_space(points, it, keep)
+            texture = _apply_affine(self._world_to_texture, *points.T)
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
@@ -425,10 +441,15 @@ class LazySolidTexture(mi.Texture):
                                   @ np.linalg.inv(to_world)).tolist()
 
 
+def _choice_of(condition: bool, if_true: float, if_false: float) -> float:
+    """``select`` of one Python float, for :func:`wrap_far` in the scalar variants."""
+    return if_true if condition else if_false
+
+
 def _srgb_decoded(value: float) -> float:
     """:func:`srgb_to_linear` of one Python float, for the scalar variants' one point per
     call, where a NumPy or Dr.Jit call (about 6 us) would cost as much as the lookup."""
-    return srgb_to_linear(value, lambda encoded_low, low, high: low if encoded_low else high)
+    return srgb_to_linear(value, _choice_of)
 
 
 def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:

@@ -209,6 +209,45 @@ def test_inactive_lanes_are_zero_and_not_synthesized(granite_32_file):
     assert tex.solid.store.stats()["misses"] == 1
 
 
+def test_wrap_far_is_exact_and_alike_in_numpy_drjit_and_python():
+    use(LLVM)
+    from mitsuba_plugin.texture import _choice_of
+    from warptex.texture import FAR_PERIOD, POINT_LIMIT, wrap_far
+
+    rng = np.random.default_rng(5)
+    c = np.concatenate([rng.uniform(-POINT_LIMIT + 1, POINT_LIMIT - 1, 50),
+                        rng.uniform(-1, 1, 50) * 10.0 ** rng.integers(6, 300, 50),
+                        [POINT_LIMIT, -POINT_LIMIT, 1.5 * FAR_PERIOD, 2.5 * FAR_PERIOD]])
+    wrapped = wrap_far(c)
+    inside = np.abs(c) < POINT_LIMIT
+    np.testing.assert_array_equal(wrapped[inside], c[inside])
+    assert (np.abs(wrapped[~inside]) <= FAR_PERIOD / 2).all()
+    # Whole periods away, exactly: the float64 remainder rounds nothing.
+    np.testing.assert_array_equal(np.fmod(c - wrapped, FAR_PERIOD), 0.0)
+    np.testing.assert_array_equal(np.array(wrap_far(mi.Float64(c), dr.select, dr.round)),
+                                  wrapped)
+    assert [wrap_far(float(v), _choice_of, round) for v in c] == wrapped.tolist()
+
+
+@pytest.mark.filterwarnings("error")
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_points_beyond_the_range_wrap_and_non_finite_ones_are_black(granite_32_file, variant):
+    """Mitsuba's textures never raise: a point past the texture's coordinate range gets the
+    color whole periods away (wrap_far), a NaN or infinite one black."""
+    from warptex.texture import FAR_PERIOD
+
+    use(variant)
+    tex = load(granite_32_file, scale=1.0)
+    # Exact in float32, whose steps are halves between 2^22 and 2^23.
+    near = np.array([[3.5, -7.5, 12.0], [-100.5, 40.5, 0.5]], np.float32)
+    shift = np.array([[FAR_PERIOD, 0, 0], [0, -FAR_PERIOD, FAR_PERIOD]], np.float32)
+    odd = np.array([[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]], np.float32)
+    colors = eval_at(tex, np.concatenate([near, near + shift, odd]))
+    assert (colors[:2] > 0).all()
+    np.testing.assert_array_equal(colors[2:4], colors[:2])
+    np.testing.assert_array_equal(colors[4:], 0.0)
+
+
 def test_traverse_updates_to_world(granite_32_file):
     use(LLVM)
     tex = load(granite_32_file, scale=8.0)

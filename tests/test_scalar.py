@@ -77,12 +77,12 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
 
 
 def test_gray_exemplars_and_points_out_of_range(granite_32_file, srgb_decoded, tmp_path):
-    """A one-channel exemplar gives gray RGB as the store's query does; a point beyond the
-    texture's range is the store's error, not another brick's color (packed brick keys
-    would wrap there)."""
+    """A one-channel exemplar gives gray RGB as the store's query does; the brick copies
+    hold no point beyond the texture's range (packed brick keys would wrap there), and
+    eval moves such a point by whole periods (wrap_far) instead."""
     from PIL import Image
 
-    from warptex.texture import POINT_LIMIT
+    from warptex.texture import FAR_PERIOD, POINT_LIMIT
 
     gray = tmp_path / "gray.png"
     Image.open(granite_32_file).convert("L").save(gray)
@@ -99,5 +99,6 @@ def test_gray_exemplars_and_points_out_of_range(granite_32_file, srgb_decoded, t
     assert lookup.color((3.5, 3.5, 2.0**24 + 3.5)) is None
     assert lookup.color((float("nan"), 0.0, 0.0)) is None
     si.p = mi.Point3f(3.5, 3.5, POINT_LIMIT + 8.0)
-    with pytest.raises(ValueError, match="points must lie within"):
-        tex.eval(si)
+    far = list(tex.eval(si))
+    si.p = mi.Point3f(3.5, 3.5, POINT_LIMIT + 8.0 - FAR_PERIOD)
+    assert far == list(tex.eval(si))

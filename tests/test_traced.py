@@ -105,7 +105,7 @@ def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture):
     assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=13**3).refresh() is True
 
 
-def lit_plane(path, space: str = "world", filter: str = "trilinear"):
+def lit_plane(path, space: str = "world", filter: str = "trilinear", **props):
     """A floor and a wall of one lazy_solid texture under an environment, and that
     texture: paths bounce between them, so later bounces read bricks the first did not."""
     before = set(map(id, mitsuba_plugin.textures()))
@@ -114,7 +114,7 @@ def lit_plane(path, space: str = "world", filter: str = "trilinear"):
     scene = mi.load_dict({
         "type": "scene",
         "tex": {"type": "lazy_solid", "exemplar": str(path), "scale": 6.0, "space": space,
-                "filter": filter},
+                "filter": filter} | props,
         "integrator": {"type": "path", "max_depth": 4},
         "sensor": {"type": "perspective", "fov": 50,
                    "to_world": T().look_at(origin=[0, -3, 4], target=[0, 0, 0], up=[0, 0, 1]),
@@ -153,6 +153,20 @@ def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file, filter):
     # above).
     np.testing.assert_allclose(cold, warm, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(warm, wavefront, rtol=1e-5, atol=1e-6)
+
+
+def test_a_block_placed_beyond_the_texture_range_renders_as_in_wavefront_mode(granite_32_file):
+    """Shading points a million scene units out (6 million voxels, beyond POINT_LIMIT) are
+    moved by whole periods (wrap_far) in the traced program as in wavefront mode: a render,
+    not an error."""
+    far = mi.ScalarTransform4f().translate([-1e6, 0, 0])
+    scene, texture = lit_plane(granite_32_file, to_world=far)
+    traced = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats()["renders"] >= 1
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+    assert traced.mean() > 0.05
+    np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
 
 
 def test_object_space_is_traced_and_agrees_with_wavefront_mode(granite_32_file):

@@ -25,6 +25,18 @@ BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup 
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
 # Queries lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
 POINT_LIMIT = COORD_LIMIT - 2
+# Beyond it, a renderer's points are moved by whole periods of this many voxels (wrap_far).
+FAR_PERIOD = 1 << 22
+
+
+def wrap_far(c, select=np.where, rint=np.rint):
+    """Texture coordinates ``c`` as a renderer reads them: unchanged strictly within
+    +-POINT_LIMIT, else moved by whole periods of FAR_PERIOD voxels to within FAR_PERIOD / 2
+    of the origin, so that every finite shading point has a color (the texture repeats only
+    that far out). Exact in float64 at any magnitude, as the period is a power of two; NaN
+    and infinity come out NaN. ``select`` and ``rint`` (ties to even) are NumPy's by
+    default: Dr.Jit's and Python's give the same bits."""
+    return select(abs(c) < POINT_LIMIT, c, c - FAR_PERIOD * rint(c / FAR_PERIOD))
 
 
 class SolidTexture:
