@@ -48,7 +48,10 @@ may differ from the CPU's in the last bits.
 
 Variants: ``eval`` gives the color as the variant's spectrum (:mod:`mitsuba_plugin.spectrum`:
 as it is in RGB variants, its luminance in monochrome ones, Mitsuba's upsampling of it in
-spectral ones); ``eval_3`` is always the RGB color, ``eval_1`` its luminance.
+spectral ones); ``eval_3`` is always the RGB color, ``eval_1`` its luminance. ``bumpmap``
+reads ``eval_1_grad`` (forward differences half a voxel long along ``dp_du`` and ``dp_dv``), and
+light tracing from a textured emitter ``sample_spectrum`` (wavelengths sampled as for
+Mitsuba's color-based spectra).
 
 Rendering modes (JIT variants): synthesis runs in Warp kernels, outside Dr.Jit's traced
 programs. Render with :func:`mitsuba_plugin.render`: it traces the lookup of stored
@@ -281,6 +284,32 @@ class LazySolidTexture(mi.Texture):
 
     def eval_1(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Float:
         return mi.luminance(self.colors_at(si, active))
+
+    def sample_spectrum(self, si: mi.SurfaceInteraction3f, sample: Any,
+                        active: mi.Bool = True) -> tuple[Any, mi.UnpolarizedSpectrum]:
+        """Wavelengths for an emitter's radiance (light tracing, ``sample_ray``): sampled
+        over the visible range as Mitsuba's color-based spectra do, each weighted by the
+        texture's spectrum there; in RGB and monochrome variants the color as it is."""
+        if not mi.is_spectral:
+            return si.wavelengths, self.eval(si, active)
+        wavelengths, weight = mi.sample_rgb_spectrum(sample)
+        at = mi.SurfaceInteraction3f(si)
+        at.wavelengths = wavelengths
+        return wavelengths, weight * self.eval(at, active)
+
+    def eval_1_grad(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Vector2f:
+        """Gradient of ``eval_1`` with respect to the surface's (u, v), as ``bumpmap`` reads
+        it: forward differences half a voxel long along ``dp_du`` and ``dp_dv`` (a solid
+        texture has no UV parametrization of its own)."""
+        base = self.eval_1(si, active)
+        slopes = []
+        for dp in (si.dp_du, si.dp_dv):
+            length = dr.norm(dp)
+            # A degenerate parametrization (dp = 0) stays in place and has no slope.
+            moved = mi.SurfaceInteraction3f(si)
+            moved.p = si.p + (0.5 / (self.scale * dr.maximum(length, 1e-30))) * dp
+            slopes.append((self.eval_1(moved, active) - base) * (2.0 * self.scale * length))
+        return mi.Vector2f(*slopes)
 
     def mean(self) -> mi.Float:
         return mi.Float(self._mean)

@@ -307,3 +307,57 @@ def test_eval_copies_points_where_numpy_cannot_view_them(granite_32_file, srgb_d
     monkeypatch.setattr(dr, "backend_v", lambda _: dr.JitBackend.CUDA)
     np.testing.assert_allclose(np.array(tex.eval(interaction(points))).T,
                                srgb_decoded(tex.solid.query(points * 8.0)), atol=1e-5)
+
+
+def _emitting_rectangle(granite_32_file, integrator: str) -> mi.Scene:
+    T = mi.ScalarTransform4f
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": 3},
+        "sensor": {"type": "perspective",
+                   "to_world": T().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+        "rectangle": {"type": "rectangle", "emitter": {
+            "type": "area", "radiance": {"type": "lazy_solid", "exemplar": str(granite_32_file),
+                                         "scale": 8.0}}}})
+
+
+@pytest.mark.parametrize("variant", [LLVM, "llvm_ad_spectral"])
+def test_an_emitter_traced_from_the_light_shows_what_the_camera_sees(granite_32_file, variant):
+    """Light tracing samples the emitter's wavelengths (sample_spectrum): its image of a
+    textured area light agrees with the path tracer's, which only evaluates the texture."""
+    use(LLVM)
+    if variant not in mi.variants():
+        pytest.skip(f"this Mitsuba lacks {variant}")
+    mi.set_variant(variant)
+    mitsuba_plugin.register()
+    path, light = (np.array(mitsuba_plugin.render(_emitting_rectangle(granite_32_file, i),
+                                                  spp=64))
+                   for i in ("path", "ptracer"))
+    assert path.mean() > 0.02
+    np.testing.assert_allclose(light.mean(), path.mean(), rtol=0.02)
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_eval_1_grad_is_the_slope_along_the_surface(granite_32_file, variant):
+    """bumpmap reads eval_1_grad: forward differences half a voxel long, in (u, v) units, so
+    a parametrization twice as fast doubles the slope; a degenerate one has none."""
+    use(variant)
+    tex = load(granite_32_file, scale=8.0)
+
+    def grad(dp_du, dp_dv) -> np.ndarray:
+        si = dr.zeros(mi.SurfaceInteraction3f) if dr.is_jit_v(mi.Float) \
+            else mi.SurfaceInteraction3f()
+        si.p = mi.Point3f(0.3, 0.7, 0.2)
+        si.dp_du, si.dp_dv = mi.Vector3f(*dp_du), mi.Vector3f(*dp_dv)
+        return np.ravel(np.array(tex.eval_1_grad(si)))
+
+    base = grad((1, 0, 0), (0, 0, 0))
+    assert base[0] != 0 and base[1] == 0
+    np.testing.assert_allclose(grad((2, 0, 0), (0, 1, 0))[0], 2 * base[0], rtol=1e-4)
+    si = mi.SurfaceInteraction3f() if not dr.is_jit_v(mi.Float) else dr.zeros(
+        mi.SurfaceInteraction3f)
+    si.p = mi.Point3f(0.3, 0.7, 0.2)
+    here = float(np.ravel(np.array(tex.eval_1(si)))[0])
+    si.p = mi.Point3f(0.3 + 0.5 / 8.0, 0.7, 0.2)
+    ahead = float(np.ravel(np.array(tex.eval_1(si)))[0])
+    np.testing.assert_allclose(base[0], (ahead - here) / (0.5 / 8.0), rtol=1e-3)
