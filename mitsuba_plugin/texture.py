@@ -199,6 +199,25 @@ def _affine_matrix(transform: Any) -> np.ndarray:
     return matrix.reshape(4, 4)
 
 
+def _to_world(props: mi.Properties) -> np.ndarray:
+    """The ``to_world`` property's matrix: a transform that can be inverted, since shading
+    points are taken into the block of matter it places."""
+    value = props.get("to_world", mi.ScalarTransform4f())
+    try:
+        matrix = _affine_matrix(value)
+    except (AttributeError, TypeError, ValueError):
+        raise property_error(PLUGIN, "to_world",
+                             f"must be a <transform ...>, got {value!r}") from None
+    try:
+        inverse = np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        inverse = None
+    if inverse is None or not np.isfinite(inverse).all():
+        raise property_error(PLUGIN, "to_world", "must be invertible: a scale of zero "
+                             "collapses the block of matter")
+    return matrix
+
+
 class LazySolidTexture(mi.Texture):
     """A solid texture synthesized lazily by warptex (Dong et al. 2008).
 
@@ -236,8 +255,7 @@ class LazySolidTexture(mi.Texture):
         cache = get_property(props, "cache", str, None)
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
         # A JIT-typed transform, so mi.traverse can update it in place.
-        to_world = _affine_matrix(props.get("to_world", mi.ScalarTransform4f()))
-        self.to_world = mi.AffineTransform4f(to_world.astype(np.float32))
+        self.to_world = mi.AffineTransform4f(_to_world(props).astype(np.float32))
         exemplars = _load_exemplars(named, self.max_size)
         try:
             self._decode_srgb = not self.raw and srgb_encoded(exemplars)

@@ -67,11 +67,18 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
      'exemplar" must be a <string ...>'),  # checked though every axis has its own
+    ({"to_world": "identity"}, "to_world\" must be a <transform ...>, got 'identity'"),
 ])
 def test_property_errors_name_the_property(granite_32_file, props, name):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}'):
         load(granite_32_file, **props)
+
+
+def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_file):
+    use("scalar_rgb")
+    with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be invertible'):
+        load(granite_32_file, to_world=mi.ScalarTransform4f().scale([1, 0, 1]))
 
 
 def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_file, tmp_path):
