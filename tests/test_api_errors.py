@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import warptex
 from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.candidates import precompute
@@ -108,3 +109,18 @@ def test_the_ends_of_every_range_are_accepted_and_one_step_beyond_refused():
         with pytest.raises(SettingError) as err:
             check_settings(**kw)
         assert err.value.name == name
+
+
+def test_the_modules_the_readme_names_are_reached_from_a_plain_import():
+    """`import warptex` alone, in a fresh interpreter: `warptex.volume_files.write_volume`
+    and the like work as the README writes them."""
+    import subprocess
+    import sys
+
+    names = ["volume_files.write_volume", "metrics.neighborhood_energy",
+             "synthesis.MAX_WORK_VOXELS", "texture.wrap_far", "baselines.kopf"]
+    code = "import warptex\n" + "".join(f"warptex.{n}\n" for n in names)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    with pytest.raises(AttributeError, match="no attribute 'volumes'"):
+        warptex.volumes  # noqa: B018

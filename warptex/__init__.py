@@ -27,6 +27,9 @@ _LAZY = {
     "Synthesizer": "warptex.synthesis",
     "SolidTexture": "warptex.texture",
 }
+# Submodules the README names as ``warptex.<module>.<name>``, imported on first access too.
+_SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "metrics", "sheets",
+               "store", "surface", "synthesis", "texture", "volume_files")
 
 __all__ = [
     "CandidateSet",
@@ -44,6 +47,8 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:
     """Import the heavier synthesis modules on first access (PEP 562)."""
+    if name in _SUBMODULES:
+        return importlib.import_module(f"warptex.{name}")
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'warptex' has no attribute {name!r}")
@@ -53,4 +58,4 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+    return sorted(set(globals()) | set(_LAZY) | set(_SUBMODULES))
