@@ -401,10 +401,12 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         raise CliError("--mean-shift applies to --method kopf only")
     if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
         raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
+    if args.method == "kopf":
+        _check_kopf_size(args.size)
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     srgb = bool(_colors_srgb(args, exemplars))
+    _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
-        _check_memory(args.size, exemplars[0].features.shape[2])
         return _volume_kopf(args, exemplars, srgb)
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
@@ -445,6 +447,15 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar], srgb: bool
           f"seed {args.seed}")
     print(f"written: {args.output}")
     return 0
+
+
+def _check_kopf_size(size: int) -> None:
+    from warptex.baselines.kopf import check_size
+
+    try:
+        check_size(size)
+    except ValueError as error:
+        raise CliError(f"--{error}") from None
 
 
 def _slab_edges(size: int) -> list[int]:
@@ -703,6 +714,8 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
 def _load_mesh(path: Path, uv: str = "none"):
     import trimesh
 
+    if path.is_dir():
+        raise CliError(f"{path}: is a folder, expected a mesh file")
     if not path.is_file():
         raise CliError(f"{path}: mesh file not found")
     try:
@@ -909,14 +922,17 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import REPORT_FILES, compare, table_markdown, write_report
 
     # One clear error for a bad image before any work.
-    Exemplar.load(args.exemplar, max_size=args.exemplar_max_size)
+    exemplar = Exemplar.load(args.exemplar, max_size=args.exemplar_max_size)
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
     _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
     _check_synthesis_arguments(passes=args.passes, seed=args.seed)
     _check_at_least("--size", args.size, 8)
+    _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if any(m.startswith("kopf") for m in methods):
+        _check_kopf_size(args.size)
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes,
                           max_size=args.exemplar_max_size)
@@ -960,6 +976,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
 def _cmd_render(args: argparse.Namespace) -> int:
     from mitsuba_plugin.command import IMAGE_SUFFIXES, parse_resolution, render_scene
 
+    if args.scene.is_dir():
+        raise CliError(f"{args.scene}: is a folder, expected a scene file")
     if not args.scene.is_file():
         raise CliError(f"{args.scene}: scene file not found")
     _check_output(args.output, IMAGE_SUFFIXES, "the image")

@@ -101,7 +101,9 @@ class _Axis:
 def check_size(size: int) -> None:
     """Raise ValueError unless ``size`` halves evenly through the pyramid's levels."""
     if size < 1 or size % (1 << LEVELS) != 0:
-        raise ValueError(f"size must be a positive multiple of {1 << LEVELS}, got {size}")
+        raise ValueError(f"size must be a positive multiple of {1 << LEVELS} for Kopf's method "
+                         f"(its {LEVELS} levels halve it, the coarsest onto an even grid), "
+                         f"got {size}")
 
 
 def synthesize(
