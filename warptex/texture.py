@@ -188,8 +188,10 @@ def query_slabs(texture: SolidTexture, points: np.ndarray, filter: str = "trilin
     points = np.asarray(points)
     order = np.argsort(points[:, 0], kind="stable")
     out = np.empty((len(points), texture.channels), np.float32)
+    # Shown for one slab too: a cut's vertices are one, and synthesizing what they read at a
+    # fine resolution takes minutes; the bar names the step meanwhile.
     with tqdm(total=len(points), desc=progress, unit="point", unit_scale=True,
-              disable=progress is None or len(points) <= _SLAB) as bar:
+              disable=progress is None) as bar:
         for first in range(0, len(points), _SLAB):
             part = order[first : first + _SLAB]
             out[part] = texture.query(points[part], filter=filter)
