@@ -8,6 +8,8 @@ Small exemplars (crops of ``tests/data/granite_64.png``) keep the file fast.
 from __future__ import annotations
 
 import hashlib
+import os
+import platform
 import subprocess
 import sys
 import warnings
@@ -316,6 +318,59 @@ def test_byte_identical_files_in_one_and_across_two_processes(tmp_path, warp_dev
         capture_output=True,
     )
     assert first == (tmp_path / "c.wtc").read_bytes()
+
+
+# A gray noise exemplar: its neighbourhood covariance has many nearly equal eigenvalues,
+# whose eigenvectors a last-bit difference turns. The script prints digests of what the
+# candidates' PCA makes of it, of LAPACK's eigenvectors, and of a shrunk photo and its
+# Otsu mask, each computed under the BLAS kernels that OPENBLAS_CORETYPE selects.
+_BLAS_SUBPROCESS = """
+import hashlib
+import numpy as np
+from warptex import candidates, exemplar
+gray = np.random.default_rng(7).integers(0, 256, (16, 16, 1), dtype=np.uint8)
+level = candidates._source_level(np.repeat(gray, 3, axis=2), dict(candidates.DEFAULT_PARAMS), 2)
+cov = np.cov(3 * candidates._neighborhoods(np.repeat(gray, 3, axis=2), 5), rowvar=False)
+photo = np.random.default_rng(3).random((997, 1503, 3)).astype(np.float32)
+shrunk = exemplar._shrunk(photo, 64, "photo")
+mask = exemplar.otsu_mask(photo)
+for array in (level.basis, level.proj, level.cand2d, np.linalg.eigh(cov)[1], shrunk, mask):
+    print(hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest())
+"""
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
+                    reason="OPENBLAS_CORETYPE names x86-64 kernels")
+def test_same_candidates_whatever_blas_kernels_the_cpu_selects():
+    """Machines of one render farm run other BLAS kernels (SSE3 on one, AVX on another);
+    the PCA basis and the exemplars must not follow them (section 6.1's appearance space)."""
+    def digests(core: str) -> list[str]:
+        env = {**os.environ, "OPENBLAS_CORETYPE": core}
+        run = subprocess.run([sys.executable, "-c", _BLAS_SUBPROCESS], env=env, check=True,
+                             capture_output=True, text=True)
+        return run.stdout.split()
+
+    sse3, avx = digests("Prescott"), digests("Sandybridge")
+    if sse3[3] == avx[3]:
+        pytest.skip("this numpy's LAPACK does not change with OPENBLAS_CORETYPE")
+    assert sse3[:3] == avx[:3], "the candidates' PCA follows the BLAS kernels"
+    assert sse3[4:] == avx[4:], "a shrunk exemplar or its Otsu mask follows the BLAS kernels"
+
+
+@pytest.mark.parametrize("eigenvalues", [
+    [5.0, 4.0, 3.0, 2.5, 1.0, 0.5, 0.1, 0.0, -1.0],  # odd size, a zero and a negative one
+    [3.0, 3.0, 3.0, 1.0, 1.0, 0.0, 0.0, 0.0],  # repeated eigenvalues
+    [0.0] * 4,
+])
+def test_symmetric_eigen_decomposes(eigenvalues):
+    rng = np.random.default_rng(len(eigenvalues))
+    basis = np.linalg.qr(rng.normal(size=(len(eigenvalues),) * 2))[0]
+    matrix = basis @ np.diag(eigenvalues) @ basis.T
+    matrix = (matrix + matrix.T) / 2
+    values, vectors = candidates._symmetric_eigen(matrix)
+    assert np.allclose(np.sort(values), np.sort(eigenvalues), atol=1e-12)
+    assert np.allclose(vectors.T @ vectors, np.eye(len(values)), atol=1e-12)
+    assert np.allclose(matrix @ vectors, vectors * values, atol=1e-12)
 
 
 @pytest.mark.parametrize("threads", [1, 3])

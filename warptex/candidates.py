@@ -36,7 +36,8 @@ from warptex.exemplar import Exemplar, ExemplarError
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 
-FORMAT_VERSION = 3  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does
+FORMAT_VERSION = 4  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
+# 4: the PCA basis found without BLAS or LAPACK, the same on every CPU
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 _MAGIC = b"WARPTEXC"
 # A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
@@ -136,7 +137,7 @@ class CandidateSet:
     def content_digest(self) -> str:
         """SHA-256 of everything synthesis reads from these candidates, so that a brick store
         is never mixed with candidates computed otherwise under the same exemplars and
-        parameters (another LAPACK rounding a PCA coefficient, a cache recomputed since)."""
+        parameters (by another warptex version, or a candidate file edited since)."""
         flat = _flatten(self)
         layout = {"axis_source": list(self.axis_source),
                   "shifts": [[s.shift for s in lvl] for lvl in self.sources]}
@@ -383,20 +384,16 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     n = int(p["neighborhood"])
     h, w, _ = feat.shape
     vec = 3 * _neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
-    centred = vec - vec.mean(axis=0)
-    cov = centred.T.astype(np.float64) @ centred / max(len(vec) - 1, 1)
-    evals, evecs = np.linalg.eigh(cov)
-    order = np.argsort(evals)[::-1]
+    evals, evecs = _symmetric_eigen(_covariance(vec))
+    order = np.argsort(-evals, kind="stable")
     evals, evecs = np.clip(evals[order], 0, None), evecs[:, order]
-    total = evals.sum()
-    frac = np.cumsum(evals) / total if total > 0 else np.ones_like(evals)
+    cumulative = np.cumsum(evals)
+    frac = cumulative / cumulative[-1] if cumulative[-1] > 0 else np.ones_like(evals)
     dims = int(np.searchsorted(frac, float(p["variance"])) + 1)
     dims = int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"])))
     dims = min(dims, vec.shape[1], MAX_DIMS)
     basis_f = evecs[:, :dims].T
-    # Fix each component's sign, which LAPACK builds choose freely. The basis is still found
-    # in floating point, so another BLAS or LAPACK build may round a coefficient otherwise;
-    # machines that must agree bit for bit share a candidate file (CandidateSet.save/load).
+    # Fix each component's sign, which an eigensolver leaves free.
     signs = np.sign(basis_f[np.arange(dims), np.argmax(np.abs(basis_f), axis=1)])
     basis_f *= signs[:, None]
     scale = 127.0 / max(np.abs(basis_f).max(), 1e-12)
@@ -411,6 +408,71 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
         proj=proj,
         cand2d=_kcoherent(proj, h, w, k2),
     )
+
+
+def _covariance(vec: np.ndarray) -> np.ndarray:
+    """Covariance of integer neighbourhood vectors, the same bits on every machine.
+
+    A BLAS sums in an order of its own CPU kernel's, and a last-bit difference is enough to
+    turn the eigenvectors of nearly equal eigenvalues (isotropic or gray exemplars have many)
+    into another quantized basis, hence other candidates and another texture. Products of
+    features below 2^10 summed over fewer than 2^33 pixels are integers below 2^53, exact in
+    float64 in any order; the centring is done in Python integers.
+    """
+    rows = len(vec)
+    values = vec.astype(np.float64)
+    scatter = (values.T @ values).astype(np.int64).astype(object)
+    sums = vec.sum(axis=0).astype(object)
+    centred = scatter * rows - np.outer(sums, sums)  # rows * (rows - 1) * covariance
+    return centred.astype(np.float64) / float(rows * max(rows - 1, 1))
+
+
+def _symmetric_eigen(matrix: np.ndarray, max_sweeps: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues and eigenvectors (columns) of a symmetric matrix by cyclic Jacobi
+    rotations, in elementwise IEEE operations only, so the result is a function of the
+    matrix's bits alone; LAPACK's depends on the BLAS kernels a CPU selects.
+
+    Each round rotates n/2 disjoint index pairs at once (round-robin ordering), which keeps
+    the work in whole-array numpy operations.
+    """
+    n = len(matrix)
+    m = n + n % 2  # an even size: the padding index pairs with each index once per sweep
+    # The matrix above its eigenvectors: a rotation turns the columns of both.
+    stacked = np.zeros((2 * m, m))
+    stacked[:n, :n] = matrix
+    stacked[m:] = np.eye(m)
+    a = stacked[:m]
+    players = np.arange(m)
+    rounds = []
+    for _ in range(m - 1):
+        rounds.append((players[: m // 2], players[m // 2 :][::-1]))
+        players = np.concatenate([players[:1], players[-1:], players[1:-1]])
+    for _ in range(max_sweeps):
+        diag = np.abs(np.diagonal(a)).max()
+        off = np.abs(a - np.diag(np.diagonal(a))).max()
+        if off <= 1e-13 * diag:  # eigenvectors far finer than the basis's 127 steps
+            break
+        for p, q in rounds:
+            _rotate(stacked, m, p, q)
+    return np.diagonal(a)[:n].copy(), stacked[m:m + n, :n].copy()
+
+
+def _rotate(stacked: np.ndarray, m: int, p: np.ndarray, q: np.ndarray) -> None:
+    """One Jacobi rotation per pair (p, q), zeroing a[p, q] of the matrix ``a``, the first
+    ``m`` rows of ``stacked`` (Numerical Recipes, 11.1)."""
+    a = stacked[:m]
+    apq = a[p, q]
+    rotating = apq != 0.0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        theta = np.where(rotating, (a[q, q] - a[p, p]) / (2.0 * apq), 0.0)
+        t = np.where(theta >= 0, 1.0, -1.0) / (np.abs(theta) + np.sqrt(theta * theta + 1.0))
+    t = np.where(rotating & np.isfinite(theta), t, 0.0)
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    s = t * c
+    x, y = stacked[:, p], stacked[:, q]
+    stacked[:, p], stacked[:, q] = x * c - y * s, x * s + y * c
+    x, y, c, s = a[p], a[q], c[:, None], s[:, None]
+    a[p], a[q] = x * c - y * s, x * s + y * c
 
 
 def _kcoherent(proj: np.ndarray, h: int, w: int, k: int) -> np.ndarray:

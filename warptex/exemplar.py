@@ -298,7 +298,11 @@ def otsu_mask(colors: np.ndarray) -> np.ndarray:
     Luminance is Rec. 709 of the first three channels when there are at least three, else the
     first channel.
     """
-    luminance = colors[..., :3] @ _REC709 if colors.shape[2] >= 3 else colors[..., 0]
+    if colors.shape[2] >= 3:
+        # Term by term, not as a BLAS product, which rounds otherwise on other CPUs.
+        luminance = sum(colors[..., c] * _REC709[c] for c in range(3))
+    else:
+        luminance = colors[..., 0]
     counts, edges = np.histogram(luminance, bins=256)
     centres = 0.5 * (edges[:-1] + edges[1:])
     weight_low = np.cumsum(counts)
@@ -334,13 +338,31 @@ def _shrunk(image: np.ndarray, max_size: int, name: str) -> np.ndarray:
         raise ExemplarError(f"{name}: image is {_size((h, w))} pixels, {_size(shape)} when "
                             f"shrunk to a larger side of {max_size}; at least "
                             f"{MIN_EXEMPLAR_SIZE}x{MIN_EXEMPLAR_SIZE} needed")
-    weights = _area_weights(h, shape[0])
     # Rows first, a band of columns at a time: a whole photo in float64 would double it.
-    rows = np.concatenate([np.tensordot(weights, image[:, c:c + _SHRINK_BAND], axes=(1, 0))
+    rows = np.concatenate([_area_average(image[:, c:c + _SHRINK_BAND], shape[0])
                            for c in range(0, w, _SHRINK_BAND)], axis=1)
-    both = np.tensordot(_area_weights(w, shape[1]), rows, axes=(1, 1)).swapaxes(0, 1)
+    both = _area_average(rows.swapaxes(0, 1), shape[1]).swapaxes(0, 1)
     out = np.ascontiguousarray(both, dtype=np.float32)
     out.setflags(write=False)
+    return out
+
+
+def _area_average(image: np.ndarray, new: int) -> np.ndarray:
+    """``image`` area-averaged along its first axis to ``new`` rows, in float64.
+
+    Each output row adds its input rows' shares one at a time, in the same order on every
+    machine: a BLAS product would sum in its CPU kernel's order, and the exemplar, hence
+    every voxel, would differ in its last bits between machines.
+    """
+    size = image.shape[0]
+    weights = _area_weights(size, new)
+    first = np.argmax(weights > 0, axis=1)
+    span = int((weights > 0).sum(axis=1).max())
+    out = np.zeros((new, *image.shape[1:]))
+    for k in range(span):
+        index = first + k
+        share = np.where(index < size, weights[np.arange(new), np.minimum(index, size - 1)], 0.0)
+        out += share.reshape(-1, *[1] * (image.ndim - 1)) * image[np.minimum(index, size - 1)]
     return out
 
 
