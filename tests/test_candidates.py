@@ -322,39 +322,61 @@ def test_byte_identical_files_in_one_and_across_two_processes(tmp_path, warp_dev
 
 # A gray noise exemplar: its neighbourhood covariance has many nearly equal eigenvalues,
 # whose eigenvectors a last-bit difference turns. The script prints digests of what the
-# candidates' PCA makes of it, of LAPACK's eigenvectors, and of a shrunk photo and its
-# Otsu mask, each computed under the BLAS kernels that OPENBLAS_CORETYPE selects.
+# candidates' PCA makes of it and of a 7-channel one (orthogonal iteration, not Jacobi),
+# of LAPACK's eigenvectors, and of a shrunk photo and its Otsu mask, each computed under
+# the BLAS kernels that OPENBLAS_CORETYPE selects.
 _BLAS_SUBPROCESS = """
 import hashlib
 import numpy as np
 from warptex import candidates, exemplar
-gray = np.random.default_rng(7).integers(0, 256, (16, 16, 1), dtype=np.uint8)
-level = candidates._source_level(np.repeat(gray, 3, axis=2), dict(candidates.DEFAULT_PARAMS), 2)
-cov = np.cov(3 * candidates._neighborhoods(np.repeat(gray, 3, axis=2), 5), rowvar=False)
+rng = np.random.default_rng(7)
+gray = np.repeat(rng.integers(0, 256, (16, 16, 1), dtype=np.uint8), 3, axis=2)
+wide = rng.integers(0, 256, (8, 8, 7), dtype=np.uint8)
+params = dict(candidates.DEFAULT_PARAMS)
+levels = [candidates._source_level(feat, params, 2) for feat in (gray, wide)]
+cov = np.cov(3 * candidates._neighborhoods(gray, 5), rowvar=False)
 photo = np.random.default_rng(3).random((997, 1503, 3)).astype(np.float32)
-shrunk = exemplar._shrunk(photo, 64, "photo")
-mask = exemplar.otsu_mask(photo)
-for array in (level.basis, level.proj, level.cand2d, np.linalg.eigh(cov)[1], shrunk, mask):
+arrays = [array for level in levels for array in (level.basis, level.proj, level.cand2d)]
+arrays += [exemplar._shrunk(photo, 64, "photo"), exemplar.otsu_mask(photo)]
+arrays += [np.linalg.eigh(cov)[1]]
+for array in arrays:
     print(hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest())
 """
+
+
+def _cpu_flags() -> set[str]:
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return set()
+    return next((set(line.split(":", 1)[1].split()) for line in lines
+                 if line.startswith("flags")), set())
 
 
 @pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
                     reason="OPENBLAS_CORETYPE names x86-64 kernels")
 def test_same_candidates_whatever_blas_kernels_the_cpu_selects():
-    """Machines of one render farm run other BLAS kernels (SSE3 on one, AVX on another);
-    the PCA basis and the exemplars must not follow them (section 6.1's appearance space)."""
+    """Machines of one render farm run other BLAS kernels (SSE3 on one, AVX-512 on
+    another); the PCA basis and the exemplars must not follow them (section 6.1's
+    appearance space). Each kernel set this CPU can run is tried."""
     def digests(core: str) -> list[str]:
         env = {**os.environ, "OPENBLAS_CORETYPE": core}
         run = subprocess.run([sys.executable, "-c", _BLAS_SUBPROCESS], env=env, check=True,
                              capture_output=True, text=True)
         return run.stdout.split()
 
-    sse3, avx = digests("Prescott"), digests("Sandybridge")
-    if sse3[3] == avx[3]:
-        pytest.skip("this numpy's LAPACK does not change with OPENBLAS_CORETYPE")
-    assert sse3[:3] == avx[:3], "the candidates' PCA follows the BLAS kernels"
-    assert sse3[4:] == avx[4:], "a shrunk exemplar or its Otsu mask follows the BLAS kernels"
+    flags = _cpu_flags()
+    cores = ["Prescott", *(["Sandybridge"] if "avx" in flags else []),
+             *(["Haswell"] if "avx2" in flags else []),
+             *(["SkylakeX"] if "avx512f" in flags else [])]
+    runs = {core: digests(core) for core in cores}
+    first = runs["Prescott"]
+    for core, run in runs.items():
+        assert run[6:8] == first[6:8], f"a shrunk exemplar or its Otsu mask differ under {core}"
+        assert run[:6] == first[:6], f"the candidates' PCA differs under {core}"
+    if len({run[8] for run in runs.values()}) == 1:
+        pytest.skip(f"LAPACK gives the same eigenvectors under {', '.join(cores)} here, so "
+                    "the kernels were not shown to differ")
 
 
 @pytest.mark.parametrize("eigenvalues", [
@@ -371,6 +393,26 @@ def test_symmetric_eigen_decomposes(eigenvalues):
     assert np.allclose(np.sort(values), np.sort(eigenvalues), atol=1e-12)
     assert np.allclose(vectors.T @ vectors, np.eye(len(values)), atol=1e-12)
     assert np.allclose(matrix @ vectors, vectors * values, atol=1e-12)
+
+
+@pytest.mark.parametrize("rank", [None, 30, 5])
+def test_leading_eigen_finds_the_principal_axes_of_wide_neighbourhoods(rank):
+    """Beyond _JACOBI_MAX_DIMS (multi-channel exemplars) only the leading axes are found, by
+    orthogonal iteration on exact products; a matrix of low rank leaves vectors unused."""
+    n = candidates._JACOBI_MAX_DIMS + 10
+    rank = n if rank is None else rank
+    rng = np.random.default_rng(rank)
+    basis = np.linalg.qr(rng.normal(size=(n, n)))[0][:, :rank]
+    spectrum = 100.0 * 0.8 ** np.arange(rank)
+    matrix = basis @ np.diag(spectrum) @ basis.T
+    values, vectors, total = candidates._principal_axes((matrix + matrix.T) / 2, 12)
+    found = min(12, rank)
+    assert np.allclose(values[:found], spectrum[:found], rtol=1e-5, atol=1e-6)
+    assert np.allclose(values[found:], 0.0, atol=1e-6 * spectrum[0])  # the rounding's noise
+    assert total == pytest.approx(spectrum.sum())
+    leading = vectors[:, :found]
+    assert np.allclose(leading.T @ leading, np.eye(found), atol=1e-6)
+    assert np.allclose(matrix @ leading, leading * values[:found], atol=1e-3)
 
 
 @pytest.mark.parametrize("threads", [1, 3])
@@ -474,6 +516,7 @@ def test_corrupt_cache_is_reported_once_and_replaced(damage, warp_device):
     path = cached_candidate_path(ex)
     good_bytes = path.read_bytes()
     path.write_bytes(damage(good_bytes))
+    assert cached_candidate_path(ex) is None  # `warptex info` must not call it cached
     with pytest.warns(UserWarning, match="damaged candidate cache") as record:
         again = precompute(ex)
     assert len(record) == 1
@@ -495,6 +538,7 @@ def test_a_cache_file_of_other_exemplars_is_reported_and_replaced(warp_device):
     good_bytes = path.read_bytes()
     precompute(other)
     path.write_bytes(cached_candidate_path(other).read_bytes())
+    assert cached_candidate_path(ex) is None
     with pytest.warns(UserWarning, match="candidates of other exemplars or parameters") as record:
         again = precompute(ex)
     assert len(record) == 1 and str(path) in str(record[0].message)
@@ -539,7 +583,7 @@ def test_load_rejects_bad_magic_version_checksum_and_data(tmp_path, granite):
         CandidateSet.load(tmp_path / "missing.wtc")
 
 
-def test_cache_file_name_depends_on_content_and_parameters(warp_device):
+def test_cache_file_name_depends_on_content_parameters_and_code(warp_device, monkeypatch):
     a = _crop(slice(0, 16), slice(0, 16))
     b = _crop(slice(0, 16), slice(16, 32))
     params = dict(candidates.DEFAULT_PARAMS)
@@ -547,6 +591,28 @@ def test_cache_file_name_depends_on_content_and_parameters(warp_device):
     assert cache_path([a, a, a], params) != cache_path([b, b, b], params)
     assert cache_path([a, b, a], params) != cache_path([a, a, b], params)
     assert cache_path([a, a, a], params) != cache_path([a, a, a], {**params, "strips": 33})
+    before = cache_path([a, a, a], params)
+    uncached_code_digest = candidates._code_digest.__wrapped__
+    monkeypatch.setattr(candidates, "_code_digest", lambda: "other code")
+    assert cache_path([a, a, a], params) != before
+    # Sources that are not files (a zip or frozen application) key by the version instead.
+    monkeypatch.setattr(candidates, "_deciding_sources", lambda: [Path("/no/such/module.py")])
+    assert len(uncached_code_digest()) == 64
+
+
+def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):
+    root = Path(candidates.__file__).resolve().parents[1]
+    assert sorted(p.resolve().relative_to(root).as_posix()
+                  for p in candidates._deciding_sources()) == [
+        "kernels/candidates.py", "kernels/common.py", "warptex/candidates.py",
+        "warptex/exemplar.py"]
+    files = [tmp_path / "a.py", tmp_path / "b.py"]
+    for f in files:
+        f.write_text("x = 1\n")
+    first = candidates._sources_digest(files, "12 127")
+    files[1].write_text("x = 2\n")
+    assert candidates._sources_digest(files, "12 127") != first
+    assert candidates._sources_digest(files, "12 127") != candidates._sources_digest(files, "8 127")
 
 
 def test_unknown_or_bad_parameters_are_rejected():

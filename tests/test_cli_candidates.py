@@ -92,6 +92,30 @@ def test_precompute_summary_file_and_cache(images, tmp_path, private_cache, caps
     assert _rows(out) == _level_lines(cs)
 
 
+def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, private_cache,
+                                                                  capsys, monkeypatch):
+    """A damaged cache file that cannot be replaced (a full disk) is left as it was; the
+    summary must not call it loaded, nor written."""
+    ex = Exemplar.load(images["a"])
+    cache = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_bytes(b"damaged")
+
+    def disk_full(self, path):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(CandidateSet, "save", disk_full)
+    assert main(["precompute", str(images["a"])]) == 0
+    captured = capsys.readouterr()
+    assert "ignoring damaged candidate cache" in captured.err
+    assert "candidates not cached: cannot write" in captured.err
+    assert "loaded from cache" not in captured.out
+    assert "(cache)" not in captured.out
+    assert ("written: nothing (the cache could not be written: see the warning above)"
+            in captured.out)
+    assert cache.read_bytes() == b"damaged"
+
+
 def test_precompute_no_cache_three_exemplars(images, private_cache, capsys):
     before = set(private_cache.iterdir())
     args = ["precompute", str(images["a"]), "--ey", str(images["b"]), "--ez", str(images["c"])]

@@ -55,6 +55,7 @@ CASES = [
     (["compare", "{exemplar}", "--seed", "-1", "-o", "{out}/cmp"], "--seed must be within"),
     (["volume", "{exemplar}", "-o", "{notes}/v.npy"], "is a file, not a folder"),
     (["volume", "{exemplar}", "-o", "{out}"], "must end in .npy, .exr or .vol"),
+    (["precompute", "{exemplar}", "-o", "{out}/c.npz"], "a candidate file must end in .wtc"),
     (["slice", "{exemplar}", "--origin", "nan", "0", "0", "-o", "{out}/s.png"], "--origin"),
     (["slice", "{exemplar}", "-o", "{out}/s.jpg"], "must end in .png, .exr or .npy"),
     (["slice", "{exemplar}", "--jitter", "65", "-o", "{out}/s.png"],
@@ -402,7 +403,6 @@ def test_kernel_build_note_on_a_gpu_machine(tmp_path, monkeypatch, capsys, warp_
 # A command's arguments and the input file that one of its outputs would overwrite; the
 # inputs are copies in {work}, whatever their role: wood.png the exemplar, ball.ply the mesh.
 OVERWRITES = [
-    (["precompute", "{work}/wood.png", "--no-cache", "-o", "{work}/wood.png"], "wood.png"),
     (["volume", "{work}/wood.npy", "--size", "8", "-o", "{work}/wood.npy"], "wood.npy"),
     (["slice", "{work}/wood.png", "--ey", "{work}/y.png", "-o", "{work}/y.png"], "y.png"),
     (["bake", "{work}/ball.ply", "--exemplar", "{work}/wood.png", "-o", "{work}/ball.ply"],

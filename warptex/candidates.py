@@ -16,10 +16,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cache, cached_property
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from kernels import candidates as _k
+from kernels import common as _common
 from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
 from warptex import parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
@@ -37,9 +39,17 @@ from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 
 FORMAT_VERSION = 4  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
-# 4: the PCA basis found without BLAS or LAPACK, the same on every CPU
+# 4: the PCA basis the same on every CPU (no LAPACK; BLAS only where its sums are exact)
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 _MAGIC = b"WARPTEXC"
+# Jacobi rotations find every eigenvector at a cost of D^3 per sweep: up to 4 channels' 5 x 5
+# neighbourhoods (RGB and a feature channel, or RGBA). Wider ones get only their leading
+# axes, by at most _ITERATIONS rounds of orthogonal iteration (BENCHMARKS.md, "Candidates
+# identical on every CPU").
+_JACOBI_MAX_DIMS = 100
+_ITERATIONS = 300
+_SETTLED = 1e-5  # largest residual of a leading Ritz pair, relative to the top eigenvalue
+_CHECK_EVERY = 5
 # A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
 # lists: even the coarsest level's 64 pixels are worth splitting over the cores.
 _MIN_SPLIT_PIXELS = 64
@@ -114,6 +124,9 @@ class CandidateSet:
     sources: list[list[SourceLevel]]  # [level][source]
     roles: list[list[RoleLevel]]  # [level][role]
     stats: dict = field(default_factory=dict)
+    # How precompute got these: "loaded" from its cache, "written" to it, "not written"
+    # (the cache could not be written), or "" without a cache. Not saved in files.
+    cache_status: str = field(default="", compare=False, repr=False)
 
     @property
     def num_levels(self) -> int:
@@ -156,10 +169,7 @@ class CandidateSet:
     def load(cls, path: str | Path) -> CandidateSet:
         """Read a file written by :meth:`save`; raise CandidateCacheError if it is damaged."""
         arrays = read_archive(path, _MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
-        try:
-            return _unflatten(arrays)
-        except (ValueError, KeyError) as e:
-            raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+        return _unflatten(arrays, path)
 
 
 def precompute(
@@ -192,7 +202,9 @@ def precompute(
     path = cache_path(exemplars, p) if cache else None
     if path is not None and path.exists():
         try:
-            return _cached(path, exemplars, p)
+            loaded = _cached(path, exemplars, p)
+            loaded.cache_status = "loaded"
+            return loaded
         except CandidateCacheError as e:
             warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     _check_size(exemplars)
@@ -200,7 +212,9 @@ def precompute(
     if path is not None:
         try:
             result.save(path)
+            result.cache_status = "written"
         except OSError as e:
+            result.cache_status = "not written"
             warnings.warn(f"candidates not cached: cannot write {path} ({e.strerror or e}); "
                           "WARPTEX_CACHE sets the cache folder", stacklevel=2)
     return result
@@ -208,13 +222,24 @@ def precompute(
 
 def _cached(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet:
     """The candidates cached at ``path``, if they are those of ``exemplars`` and ``params``."""
-    loaded = CandidateSet.load(path)
+    return _unflatten(_cached_arrays(path, exemplars, params), path)
+
+
+def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[str, np.ndarray]:
+    """The arrays of the cache file ``path``, whole (checksummed) and of ``exemplars`` and
+    ``params``; CandidateCacheError otherwise."""
+    arrays = read_archive(path, _MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
+    try:
+        meta = json.loads(bytes(arrays["meta"]).decode())
+        found = {"digests": meta["digests"], "params": meta["params"]}
+    except (ValueError, KeyError) as e:
+        raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
     # Through JSON, as the file's went: tuples become lists, so equal compares equal.
     wanted = json.loads(json.dumps({"digests": [e.digest() for e in exemplars], "params": params}))
-    if wanted != {"digests": list(loaded.digests), "params": loaded.params}:
+    if wanted != found:
         raise CandidateCacheError(f"{path}: holds the candidates of other exemplars or "
                                   "parameters (a copied or renamed cache file)")
-    return loaded
+    return arrays
 
 
 def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:
@@ -253,16 +278,59 @@ def cache_dir() -> Path:
 
 def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
     key = json.dumps(
-        {"v": FORMAT_VERSION, "params": params, "digests": [e.digest() for e in exemplars]},
+        {"v": FORMAT_VERSION, "params": params, "digests": [e.digest() for e in exemplars],
+         "code": _code_digest()},
         sort_keys=True,
     )
     return cache_dir() / f"candidates-{hashlib.sha256(key.encode()).hexdigest()[:40]}.wtc"
 
 
+@cache
+def _code_digest() -> str:
+    """Digest of the code that decides the candidates: a cache made by other code, even at
+    the same FORMAT_VERSION, is another file and never served (caches are never silently
+    wrong), at the price of a recomputation after each change to these modules."""
+    constants = f"{MAX_DIMS} {PROJ_LIMIT}"
+    try:
+        return _sources_digest(_deciding_sources(), constants)
+    except (OSError, TypeError):  # sources not on disk (a zip or frozen application)
+        return hashlib.sha256(f"{constants} {_package_version()}".encode()).hexdigest()
+
+
+def _deciding_sources() -> list[Path]:
+    """This module, its kernels and their building blocks, and the exemplar's pyramid."""
+    modules = (sys.modules[__name__], _k, _common, sys.modules[Exemplar.__module__])
+    return [Path(getattr(m, "__file__", None)) for m in modules]
+
+
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("warptex")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _sources_digest(paths: Sequence[Path], constants: str) -> str:
+    digest = hashlib.sha256(constants.encode())
+    for path in paths:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
 def cached_candidate_path(ex: Exemplar) -> Path | None:
-    """The cache file of ``ex`` repeated thrice with default parameters, if it exists."""
-    path = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
-    return path if path.exists() else None
+    """The cache file of ``ex`` repeated thrice with default parameters, if it is there,
+    whole (checksummed) and of these exemplars and parameters; None for a damaged one."""
+    exemplars = [ex, ex, ex]
+    path = cache_path(exemplars, dict(DEFAULT_PARAMS))
+    if not path.exists():
+        return None
+    try:
+        _cached_arrays(path, exemplars, dict(DEFAULT_PARAMS))
+    except CandidateCacheError:
+        return None
+    return path
 
 
 def _as_exemplar(e: Exemplar | str | Path) -> Exemplar:
@@ -384,14 +452,11 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     n = int(p["neighborhood"])
     h, w, _ = feat.shape
     vec = 3 * _neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
-    evals, evecs = _symmetric_eigen(_covariance(vec))
-    order = np.argsort(-evals, kind="stable")
-    evals, evecs = np.clip(evals[order], 0, None), evecs[:, order]
-    cumulative = np.cumsum(evals)
-    frac = cumulative / cumulative[-1] if cumulative[-1] > 0 else np.ones_like(evals)
+    most = min(int(p["max_dims"]), vec.shape[1], MAX_DIMS)
+    evals, evecs, total = _principal_axes(_covariance(vec), most)
+    frac = np.cumsum(evals) / total if total > 0 else np.ones_like(evals)
     dims = int(np.searchsorted(frac, float(p["variance"])) + 1)
-    dims = int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"])))
-    dims = min(dims, vec.shape[1], MAX_DIMS)
+    dims = min(int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"]))), most)
     basis_f = evecs[:, :dims].T
     # Fix each component's sign, which an eigensolver leaves free.
     signs = np.sign(basis_f[np.arange(dims), np.argmax(np.abs(basis_f), axis=1)])
@@ -425,6 +490,84 @@ def _covariance(vec: np.ndarray) -> np.ndarray:
     sums = vec.sum(axis=0).astype(object)
     centred = scatter * rows - np.outer(sums, sums)  # rows * (rows - 1) * covariance
     return centred.astype(np.float64) / float(rows * max(rows - 1, 1))
+
+
+def _principal_axes(cov: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """At least the ``most`` leading variances (descending, clipped at 0) and axes
+    (columns) of a covariance, and the total variance, the same bits on every machine."""
+    if len(cov) > _JACOBI_MAX_DIMS:
+        values, vectors = _leading_eigen(cov, most)
+        values = np.clip(values, 0, None)
+        return values, vectors, max(float(np.cumsum(np.diagonal(cov))[-1]), 0.0)
+    values, vectors = _symmetric_eigen(cov)
+    order = np.argsort(-values, kind="stable")
+    values = np.clip(values[order], 0, None)
+    return values, vectors[:, order], float(np.cumsum(values)[-1])
+
+
+def _leading_eigen(matrix: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``count`` largest eigenvalues (descending) and their eigenvectors of a symmetric
+    positive semi-definite matrix, by orthogonal iteration on twice as many vectors and a
+    Rayleigh-Ritz step (Golub and Van Loan, 8.2.4), with sums that no BLAS can reorder.
+
+    The iterated product runs on integers (the matrix and the vectors scaled and rounded)
+    small enough that their products and sums over ``n`` terms stay below 2^53: exact in
+    float64 in any order, so BLAS may compute it. The rounding perturbs the axes by about
+    2^-21, far below the basis's 127 steps.
+    """
+    n = len(matrix)
+    unit = float(1 << ((53 - n.bit_length()) // 2))
+    scale = unit / max(float(np.abs(matrix).max()), 1e-300)
+    fixed = np.rint(matrix * scale)
+    width = min(n, 2 * count)
+    # Integers: a float generator's logarithms may round otherwise on other machines.
+    start = np.random.default_rng(0).integers(-8, 9, (n, width)).astype(np.float64)
+    basis = _orthonormal(start)
+    for step in range(1, _ITERATIONS + 1):
+        image = fixed @ np.rint(basis * unit)
+        if step % _CHECK_EVERY == 0 or step == _ITERATIONS:
+            # Converged when the leading Ritz pairs are eigenpairs; vectors within a cluster
+            # of nearly equal eigenvalues keep turning long after their span has settled.
+            values, vectors, residual = _ritz(basis, image / (scale * unit), count)
+            if residual <= _SETTLED * max(float(np.abs(values).max()), 1e-300):
+                break
+        basis = _orthonormal(image)
+    return values, vectors
+
+
+def _ritz(basis: np.ndarray, image: np.ndarray,
+          count: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """The ``count`` leading Ritz pairs of a matrix on an orthonormal ``basis`` whose
+    ``image`` under it is given, and their largest residual."""
+    small = _product(basis.T, image)
+    values, axes = _symmetric_eigen((small + small.T) / 2)
+    order = np.argsort(-values, kind="stable")[:count]
+    values, axes = values[order], axes[:, order]
+    residual = _product(image, axes) - _product(basis, axes) * values
+    return values, _product(basis, axes), float(np.abs(residual).max())
+
+
+def _product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` with each sum taken in index order (a cumulative sum), where a BLAS would
+    sum in its CPU kernel's order."""
+    out = np.empty((a.shape[0], b.shape[1]))
+    for j in range(b.shape[1]):
+        out[:, j] = np.cumsum(a * b[:, j], axis=1)[:, -1]
+    return out
+
+
+def _orthonormal(columns: np.ndarray) -> np.ndarray:
+    """Modified Gram-Schmidt on the columns, sums in index order; a column left without a
+    direction of its own (a matrix of lower rank) becomes zero."""
+    out = np.zeros_like(columns)
+    for j in range(columns.shape[1]):
+        v = columns[:, j].copy()
+        for i in range(j):
+            v -= np.cumsum(out[:, i] * v)[-1] * out[:, i]
+        norm = np.sqrt(np.cumsum(v * v)[-1])
+        if norm > 1e-12 * max(np.sqrt(np.cumsum(columns[:, j] ** 2)[-1]), 1e-300):
+            out[:, j] = v / norm
+    return out
 
 
 def _symmetric_eigen(matrix: np.ndarray, max_sweeps: int = 60) -> tuple[np.ndarray, np.ndarray]:
@@ -709,7 +852,14 @@ def _compact_index(a: np.ndarray) -> np.ndarray:
     return a.astype(np.uint16) if a.max(initial=0) < 65536 else a.astype(np.int32)
 
 
-def _unflatten(d: dict[str, np.ndarray]) -> CandidateSet:
+def _unflatten(d: dict[str, np.ndarray], path: str | Path) -> CandidateSet:
+    try:
+        return _from_arrays(d)
+    except (ValueError, KeyError) as e:
+        raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+
+
+def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
     meta = json.loads(bytes(d["meta"]).decode())
     nl, ns, nr = meta["num_levels"], meta["num_sources"], meta["num_roles"]
     colors = [d[f"colors/{j}"] for j in range(ns)]

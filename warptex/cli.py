@@ -144,7 +144,12 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
     _add_max_size_argument(parser)
 
 
-def _add_max_size_argument(parser: argparse.ArgumentParser) -> None:
+_SCALE_ADVICE = (" (several with --ey/--ez). A voxel is a pixel of the shrunk image, so features "
+                 "come out smaller in voxels (dividing bake's and cut's --resolution, or a "
+                 "scene's scale, by the same factor keeps their size)")
+
+
+def _add_max_size_argument(parser: argparse.ArgumentParser, advice: str = _SCALE_ADVICE) -> None:
     parser.add_argument(
         "--exemplar-max-size",
         type=int,
@@ -152,9 +157,7 @@ def _add_max_size_argument(parser: argparse.ArgumentParser) -> None:
         help="shrink larger exemplars (area-averaged, aspect kept) until their larger side is "
         f"PIXELS (at least {MIN_EXEMPLAR_SIZE}), as photographs often need: pre-computing the "
         "candidates of a 512x512 image takes 5 minutes on 2 CPU cores, of a 256x256 one about a "
-        "minute (several with --ey/--ez). A voxel is a pixel of the shrunk image, so features "
-        "come out smaller in voxels (dividing bake's and cut's --resolution, or a scene's "
-        "scale, by the same factor keeps their size)",
+        f"minute{advice}",
     )
 
 
@@ -245,7 +248,7 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_axis_exemplar_arguments(parser, "EXEMPLAR")
     parser.add_argument(
         "-o", "--output", type=Path, metavar="FILE",
-        help="also write the candidates to FILE, to share them with another machine "
+        help="also write the candidates to FILE (.wtc), to share them with another machine "
         "(warptex.CandidateSet.load reads it)",
     )
     parser.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
@@ -255,30 +258,28 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
     from warptex.candidates import DEFAULT_PARAMS, cache_path, precompute
 
     if args.output is not None:
-        _check_output(args.output)
-        _check_inputs_kept(args, [args.output])
+        _check_output(args.output, (".wtc",), "a candidate file")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     cache = None if args.no_cache else cache_path(exemplars, dict(DEFAULT_PARAMS))
     if cache is not None:
         _check_cache_folder(cache.parent)
-    before = _file_identity(cache)
     start = time.perf_counter()
     cs = precompute(*exemplars, cache=not args.no_cache, progress=True)
     elapsed = time.perf_counter() - start
     if args.output is not None:
         with _writing(args.output):
             cs.save(args.output)
-    # precompute leaves a good cache file untouched and replaces a missing or damaged one.
-    loaded = before is not None and before == _file_identity(cache)
     _print_summary(cs, exemplars, elapsed)
-    if loaded:
+    if cs.cache_status == "loaded":
         print(f"loaded from cache: {cache}")
-    elif cache is not None:
+    elif cs.cache_status == "written":
         print(f"written: {cache} (cache)")
     if args.output is not None:
         print(f"written: {args.output}")
     elif cache is None:
         print("written: nothing (--no-cache without -o)")
+    elif cs.cache_status == "not written":
+        print("written: nothing (the cache could not be written: see the warning above)")
     return 0
 
 
@@ -310,17 +311,6 @@ def _check_cache_folder(folder: Path) -> None:
         _check_writable_folder(folder, folder)
     except CliError as error:
         raise CliError(f"{error}; WARPTEX_CACHE sets it") from None
-
-
-def _file_identity(path: Path | None) -> tuple[int, int] | None:
-    """(inode, mtime) of a file, or None: tells whether a file was replaced meanwhile."""
-    if path is None:
-        return None
-    try:
-        stat = path.stat()
-    except OSError:
-        return None
-    return stat.st_ino, stat.st_mtime_ns
 
 
 def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) -> None:
@@ -780,9 +770,11 @@ def _report_store(tex, resolution: int, elapsed: float) -> None:
     corrected = stats["voxels_synthesized"].get(tex.synthesizer.finest, 0)
     full = block * stats["bytes_per_voxel"]
     made = stats["voxels_added"]
-    print(f"voxels synthesized: {made} ({100 * made / block:.3f}% of the {resolution}^3 "
-          f"block); on the way the finest level corrected {corrected} "
-          f"({100 * corrected / block:.3f}%: their dependencies, section 5.2)")
+    # Counted against the block's size, not as a part of it: at small resolutions the
+    # surface's filter neighbours and their dependencies reach past the block, past 100%.
+    print(f"voxels synthesized: {made} ({100 * made / block:.3f}% as many as the "
+          f"{resolution}^3 block holds); on the way the finest level corrected {corrected} "
+          f"({100 * corrected / block:.3f}% as many: their dependencies, section 5.2)")
     print(f"stored: {stats['voxels']} voxels, {stats['bytes'] / 2**20:.1f} MiB in "
           f"{stats['bricks']} bricks (the full volume would be {_mib(full)}); "
           f"time {elapsed:.1f} s")
@@ -913,7 +905,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
-    _add_max_size_argument(parser)
+    _add_max_size_argument(parser, advice="; every method reads the shrunk image")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
                         help="output folder")
 
