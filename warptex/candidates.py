@@ -322,12 +322,12 @@ def _sources_digest(paths: Sequence[Path], constants: str) -> str:
 def cached_candidate_path(ex: Exemplar) -> Path | None:
     """The cache file of ``ex`` repeated thrice with default parameters, if it is there,
     whole (checksummed) and of these exemplars and parameters; None for a damaged one."""
-    exemplars = [ex, ex, ex]
-    path = cache_path(exemplars, dict(DEFAULT_PARAMS))
+    exemplars, params = [ex, ex, ex], dict(DEFAULT_PARAMS)
+    path = cache_path(exemplars, params)
     if not path.exists():
         return None
     try:
-        _cached_arrays(path, exemplars, dict(DEFAULT_PARAMS))
+        _cached_arrays(path, exemplars, params)
     except CandidateCacheError:
         return None
     return path
@@ -543,8 +543,9 @@ def _ritz(basis: np.ndarray, image: np.ndarray,
     values, axes = _symmetric_eigen((small + small.T) / 2)
     order = np.argsort(-values, kind="stable")[:count]
     values, axes = values[order], axes[:, order]
-    residual = _product(image, axes) - _product(basis, axes) * values
-    return values, _product(basis, axes), float(np.abs(residual).max())
+    vectors = _product(basis, axes)
+    residual = _product(image, axes) - vectors * values
+    return values, vectors, float(np.abs(residual).max())
 
 
 def _product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -563,11 +564,16 @@ def _orthonormal(columns: np.ndarray) -> np.ndarray:
     for j in range(columns.shape[1]):
         v = columns[:, j].copy()
         for i in range(j):
-            v -= np.cumsum(out[:, i] * v)[-1] * out[:, i]
-        norm = np.sqrt(np.cumsum(v * v)[-1])
-        if norm > 1e-12 * max(np.sqrt(np.cumsum(columns[:, j] ** 2)[-1]), 1e-300):
+            v -= _dot(out[:, i], v) * out[:, i]
+        norm = np.sqrt(_dot(v, v))
+        if norm > 1e-12 * max(np.sqrt(_dot(columns[:, j], columns[:, j])), 1e-300):
             out[:, j] = v / norm
     return out
+
+
+def _dot(x: np.ndarray, y: np.ndarray) -> float:
+    """``x . y`` summed in index order, as :func:`_product` sums."""
+    return np.cumsum(x * y)[-1]
 
 
 def _symmetric_eigen(matrix: np.ndarray, max_sweeps: int = 60) -> tuple[np.ndarray, np.ndarray]:

@@ -361,8 +361,9 @@ def _area_average(image: np.ndarray, new: int) -> np.ndarray:
     out = np.zeros((new, *image.shape[1:]))
     for k in range(span):
         index = first + k
-        share = np.where(index < size, weights[np.arange(new), np.minimum(index, size - 1)], 0.0)
-        out += share.reshape(-1, *[1] * (image.ndim - 1)) * image[np.minimum(index, size - 1)]
+        row = np.minimum(index, size - 1)
+        share = np.where(index < size, weights[np.arange(new), row], 0.0)
+        out += share.reshape(-1, *[1] * (image.ndim - 1)) * image[row]
     return out
 
 
