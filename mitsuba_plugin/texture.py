@@ -20,7 +20,8 @@ Properties (XML or ``mi.load_dict``):
 ``filter``             string     ``trilinear`` (default) or ``nearest``
 ``raw``                boolean    render an 8- or 16-bit exemplar's values as they are stored,
                                   without decoding sRGB (default false, as Mitsuba's ``bitmap``)
-``cache``              string     brick store file: loaded when it exists, written by ``save()``
+``cache``              string     brick store file: loaded when it exists, written by ``save()``;
+                                  refused when a live texture of other settings has it
 ``cache_bytes``        integer    memory bound of the brick store (default 256 MiB; scalar
                                   variants keep up to about as much again, see below)
 =====================  =========  ==============================================================

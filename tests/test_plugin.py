@@ -151,6 +151,18 @@ def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp
     assert notes.read_text() == "not bricks"
 
 
+def test_a_cache_of_another_live_texture_of_other_settings_is_refused(granite_32_file,
+                                                                      tmp_path):
+    use("scalar_rgb")
+    cache = str(tmp_path / "granite.wtb")
+    first = load(granite_32_file, cache=cache)
+    with pytest.raises(RuntimeError, match=r'lazy_solid: property "cache".*granite\.wtb.*'
+                                           r"seed 0 in the other texture, 3 here"):
+        load(granite_32_file, cache=cache, seed=3)
+    assert load(granite_32_file, cache=cache) is not None
+    assert first is not None
+
+
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM, CUDA])
 @pytest.mark.parametrize(("filter", "raw"), [("trilinear", False), ("nearest", False),
                                              ("trilinear", True)])

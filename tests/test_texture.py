@@ -173,9 +173,11 @@ def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates
     tex = texture(candidates, store=path)
     expected = tex.query(pts)
     tex.save()
+    del tex  # a live texture of other settings would be refused the file
     with pytest.warns(UserWarning, match="another texture"):
         other = texture(candidates, seed=1, store=path)
     assert other.store.stats()["bricks"] == 0
+    del other
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     path.write_bytes(bytes(data))
@@ -186,6 +188,31 @@ def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates
     with pytest.raises(StoreFileError, match="not a warptex brick store"):
         texture(candidates, store=path)
     assert path.read_bytes() == b"not a store"
+
+
+def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(candidates,
+                                                                           tmp_path):
+    """Each would start empty from the other's file and discard its bricks on saving;
+    textures of the same settings share a file, as their voxels are the same."""
+    pts = points_near_origin(40, 4)
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    expected = tex.query(pts)
+    tex.save()
+    saved = path.read_bytes()
+    with pytest.raises(StoreFileError, match=r"granite\.wtb.*another texture.*seed 0 in the "
+                                             r"other texture, 1 here"):
+        texture(candidates, seed=1, store=tmp_path / "." / "granite.wtb")
+    twin = texture(candidates, store=path)
+    np.testing.assert_array_equal(twin.query(pts), expected)
+    assert twin.store.stats()["voxels_added"] == 0
+    elsewhere = texture(candidates, passes=1, store=tmp_path / "other.wtb")
+    with pytest.raises(StoreFileError, match="correction passes 2 in the other texture, 1 here"):
+        elsewhere.save(path)
+    assert path.read_bytes() == saved
+    del tex, twin
+    elsewhere.save(path)
+    assert path.read_bytes() != saved
 
 
 @pytest.mark.parametrize("damage", ["no valid bits", "half the triples", "wider valid bits",

@@ -162,17 +162,46 @@ _SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
                   "subpasses": "sub-passes"}
 
 
-def _differences(stored: dict, current: dict) -> str:
-    """The settings in which a store file's texture differs from this one, in words."""
+def _differences(stored: dict, current: dict, where: str = "in the file") -> str:
+    """The settings in which a store file's texture (or another texture, ``where``)
+    differs from this one, in words."""
     out = []
     for name in sorted(set(stored) | set(current)):
         there, here = stored.get(name), current.get(name)
         if there != here:
             words = _SETTING_NAMES.get(name, name)
             if isinstance(here, int | float) and isinstance(there, int | float):
-                words += f" {there} in the file, {here} here"
+                words += f" {there} {where}, {here} here"
             out.append(words)
     return ", ".join(out) or "equal settings with another identity digest"
+
+
+def store_settings(synthesizer: Synthesizer) -> dict:
+    """Everything a stored voxel depends on: exemplars, candidate parameters and algorithm
+    version, seed, jitter, engine version and parameters; digested by
+    :meth:`BrickStore.identity` and kept in store files in plain words, so that a file of
+    another texture can be told apart by the settings that differ."""
+    s = synthesizer
+    return {
+        "format": FORMAT_VERSION,
+        "candidates": s.candidates.content_digest,
+        "engine": ENGINE_VERSION,
+        "brick": _k.BRICK,
+        "digests": list(s.candidates.digests),
+        "params": s.candidates.params,
+        "seed": s.seed,
+        "jitter": s.jitter,
+        "levels": s.finest - s.start,
+        "passes": s.passes,
+        "subpasses": s.subpasses,
+    }
+
+
+def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
+    """The settings in which ``other``'s stored voxels would differ from ``this``'s, in
+    words; empty when they would be the same."""
+    theirs, mine = store_settings(other), store_settings(this)
+    return "" if theirs == mine else _differences(theirs, mine, "in the other texture")
 
 
 def check_store_path(path: str | Path) -> None:
@@ -241,30 +270,11 @@ class BrickStore:
     # -- public API -------------------------------------------------------------------
 
     def identity(self) -> str:
-        """Digest of everything a stored voxel depends on: exemplars, candidate
-        parameters and algorithm version, seed, jitter, engine version and parameters."""
+        """Digest of everything a stored voxel depends on (:func:`store_settings`)."""
         return hashlib.sha256(self._settings_json().encode()).hexdigest()
 
     def _settings_json(self) -> str:
-        return json.dumps(self._settings(), sort_keys=True)
-
-    def _settings(self) -> dict:
-        """What :meth:`identity` digests; also stored in plain words, so that a file of
-        another texture can be told apart by the settings that differ."""
-        s = self.synthesizer
-        return {
-            "format": FORMAT_VERSION,
-            "candidates": s.candidates.content_digest,
-            "engine": ENGINE_VERSION,
-            "brick": _k.BRICK,
-            "digests": list(s.candidates.digests),
-            "params": s.candidates.params,
-            "seed": s.seed,
-            "jitter": s.jitter,
-            "levels": s.finest - s.start,
-            "passes": s.passes,
-            "subpasses": s.subpasses,
-        }
+        return json.dumps(store_settings(self.synthesizer), sort_keys=True)
 
     def sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
         """Colors of float64 ``points`` (N, 3) into ``out`` (N, C) float32."""

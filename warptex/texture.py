@@ -7,6 +7,7 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Sequence
 from numbers import Integral
 from pathlib import Path
@@ -18,7 +19,7 @@ import warp as wp
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
 from warptex.settings import DEFAULT_CACHE_BYTES, DEFAULT_JITTER, DEFAULT_PASSES, FILTERS
-from warptex.store import BrickStore
+from warptex.store import BrickStore, StoreFileError, settings_differences
 from warptex.synthesis import COORD_LIMIT, Synthesizer
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
@@ -39,12 +40,32 @@ def wrap_far(c, select=np.where, rint=np.rint):
     return select(abs(c) < POINT_LIMIT, c, c - FAR_PERIOD * rint(c / FAR_PERIOD))
 
 
+# Textures of this process that have a store file, so that two of other settings are not
+# given the same one: each would start empty from the other's file and replace it on saving.
+_WITH_STORE_FILES: weakref.WeakSet[SolidTexture] = weakref.WeakSet()
+
+
+def _check_unshared(path: Path, synthesizer: Synthesizer) -> None:
+    """Raise StoreFileError if a live texture of other settings has ``path`` as its store
+    file. Textures of the same settings may share one: their voxels are the same."""
+    where = path.resolve()
+    for other in list(_WITH_STORE_FILES):
+        if other.path is not None and other.path.resolve() == where:
+            differences = settings_differences(other.synthesizer, synthesizer)
+            if differences:
+                raise StoreFileError(
+                    f"{path}: already the brick store file of another texture of this process "
+                    f"({differences}); each would discard the other's bricks, so give each "
+                    "texture its own file")
+
+
 class SolidTexture:
     """An unbounded solid texture synthesized from exemplar photos, queried at points.
 
     ``source`` is an exemplar path, an :class:`Exemplar` or a :class:`CandidateSet`
     (pre-computation is cached on disk). ``store`` names a brick store file: loaded when
-    it exists and matches this texture, written by :meth:`save`. ``cache_bytes`` bounds
+    it exists and matches this texture, written by :meth:`save`; a store file that a live
+    texture of other settings has is refused (StoreFileError). ``cache_bytes`` bounds
     the bricks kept in memory. ``passes`` is the number of correction passes per level
     (Dong 2008, 5.1): more look better and cost more (see BENCHMARKS.md).
     ``whole_bricks=False`` synthesizes only the voxels queries read instead of their whole
@@ -68,12 +89,16 @@ class SolidTexture:
                       else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes)
         self.path = Path(store) if store is not None else None
+        if self.path is not None:
+            _check_unshared(self.path, self.synthesizer)
         if self.path is not None and self.path.exists():
             self.store = BrickStore.load(self.path, self.synthesizer, cache_bytes=cache_bytes,
                                          whole_bricks=whole_bricks)
         else:
             self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
                                     whole_bricks=whole_bricks)
+        if self.path is not None:
+            _WITH_STORE_FILES.add(self)
 
     @property
     def channels(self) -> int:
@@ -135,10 +160,12 @@ class SolidTexture:
         return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
     def save(self, path: str | Path | None = None) -> Path:
-        """Write the brick store to ``path`` or to the ``store`` path given at creation."""
+        """Write the brick store to ``path`` or to the ``store`` path given at creation;
+        the store file of a live texture of other settings is refused (StoreFileError)."""
         target = Path(path) if path is not None else self.path
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
+        _check_unshared(target, self.synthesizer)
         self.store.save(target)
         return target
 
