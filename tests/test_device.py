@@ -121,3 +121,65 @@ def test_warp_starts_without_a_stderr(no_stderr):
     code = f"import os, sys; {no_stderr}; import warptex; print(warptex.device())"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert run.returncode == 0 and run.stdout.strip() in ("cpu", "cuda")
+
+
+_DOUBLING = '''
+import numpy as np
+import warp as wp
+from warptex.device import init_warp, launch
+
+@wp.kernel
+def double(a: wp.array(dtype=float), out: wp.array(dtype=float)):
+    i = wp.tid()
+    out[i] = 2.0 * a[i]
+
+init_warp()
+out = wp.zeros(3, dtype=float, device="cpu")
+launch(double, 3, [wp.array(np.arange(3, dtype=np.float32), device="cpu")], [out])
+print(out.numpy().tolist())
+'''
+
+
+@pytest.mark.parametrize("damage", ["object file", "metadata"])
+def test_a_damaged_kernel_build_is_built_again_with_a_warning(tmp_path, damage):
+    """Warp alone fails on such a build in every later run, until someone deletes it."""
+    script = tmp_path / "doubling.py"
+    script.write_text(_DOUBLING)
+    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "kernels")}
+
+    def run() -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                              env=env, timeout=300)
+
+    first = run()
+    assert first.returncode == 0, first.stderr
+    assert first.stdout.strip() == "[0.0, 2.0, 4.0]"
+    suffix = ".o" if damage == "object file" else ".meta"
+    (built,) = (tmp_path / "kernels").rglob(f"wp___main__*/*{suffix}")
+    built.write_bytes(built.read_bytes()[:100])
+    healed = run()
+    assert healed.returncode == 0, healed.stderr
+    assert healed.stdout.strip() == "[0.0, 2.0, 4.0]"
+    assert "damaged build of __main__" in healed.stderr
+    again = run()
+    assert again.returncode == 0 and "damaged" not in again.stderr
+    assert again.stdout.strip() == "[0.0, 2.0, 4.0]"
+
+
+def test_an_unloadable_kernel_build_is_a_clear_error(tmp_path, monkeypatch, warp_device):
+    """When building again does not help (a full disk, say), the error names the folder."""
+    calls = []
+
+    def failing_launch(kernel, *args, **kwargs):
+        calls.append(kernel)
+        raise Exception("Failed to load CPU module 'kernels.lookup' (device='cpu')")
+
+    monkeypatch.setattr(wp, "launch", failing_launch)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    from kernels import lookup
+
+    refusal = f"kernels of kernels.lookup.*{tmp_path}.*WARP_CACHE_PATH"
+    with (pytest.warns(UserWarning, match="damaged build of kernels.lookup"),
+          pytest.raises(RuntimeError, match=refusal)):
+        device_module.launch(lookup.insert_keys, 1, [], [])
+    assert len(calls) == 2

@@ -20,7 +20,7 @@ from scipy import ndimage
 
 from kernels import bake as _k
 from warptex.device import device as default_device
-from warptex.device import init_warp
+from warptex.device import init_warp, launch
 from warptex.exemplar import reencoded
 from warptex.sheets import to_rgb8
 from warptex.surface import to_voxel_space
@@ -50,12 +50,12 @@ def texel_points(
     faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
     uv_wp = wp.array(np.asarray(uv, np.float32), dtype=wp.vec2, device=dev)
     owner = wp.full(width * height, _k.NO_TRIANGLE, dtype=wp.int32, device=dev)
-    wp.launch(_k.claim_texels, len(mesh.faces), [uv_wp, faces, width, height], [owner],
-              device=dev)
+    launch(_k.claim_texels, len(mesh.faces), [uv_wp, faces, width, height], [owner],
+           device=dev)
     points = wp.zeros(width * height, dtype=wp.vec3d, device=dev)
     positions = wp.array(to_voxel_space(mesh, transform), dtype=wp.vec3d, device=dev)
-    wp.launch(_k.texel_points, width * height, [uv_wp, positions, faces, owner, width, height],
-              [points], device=dev)
+    launch(_k.texel_points, width * height, [uv_wp, positions, faces, owner, width, height],
+           [points], device=dev)
     return points.numpy(), owner.numpy() != _k.NO_TRIANGLE
 
 

@@ -1,12 +1,19 @@
-"""Choice of the Warp device that synthesis runs on, and one-time quiet Warp start-up."""
+"""Choice of the Warp device that synthesis runs on, one-time quiet Warp start-up, and
+launches that survive a damaged kernel cache."""
 
 from __future__ import annotations
 
 import functools
+import json
 import os
+import shutil
 import sys
 import tempfile
 import threading
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import warp as wp
 
@@ -92,3 +99,56 @@ def device() -> str:
     if requested == "cuda" and not has_gpu:
         raise RuntimeError(f"{_ENV}=cuda but Warp sees no CUDA device")
     return "cuda" if has_gpu else "cpu"
+
+
+def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
+           device: str = "cpu") -> None:
+    """``wp.launch``, except that a damaged build of the kernel's module in Warp's kernel
+    cache (a truncated object file or metadata, after a full disk or a copy cut short) is
+    deleted, with a warning, and built again, once; Warp itself would fail on it forever.
+
+    Raises:
+        RuntimeError: the module built again cannot be loaded either.
+    """
+    try:
+        wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
+        return
+    except Exception as error:
+        if not _unloadable(error):
+            raise
+        folders = _drop_builds(kernel.module)
+        warnings.warn(f"Warp's kernel cache held a damaged build of {kernel.module.name} "
+                      f"({error}); deleted {', '.join(folders) or 'nothing'}, building it "
+                      "again", stacklevel=2)
+    try:
+        wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
+    except Exception as error:
+        if not _unloadable(error):
+            raise
+        raise RuntimeError(
+            f"Warp cannot load the kernels of {kernel.module.name} that it builds in "
+            f"{wp.config.kernel_cache_dir} ({error}); check that the folder is writable and "
+            "its disk not full, or set WARP_CACHE_PATH to another folder") from None
+
+
+def _unloadable(error: Exception) -> bool:
+    """Whether ``error`` is Warp failing to load a module build found in its cache."""
+    return (isinstance(error, json.JSONDecodeError | FileNotFoundError)
+            or str(error).startswith(("Failed to load CPU module", "Failed to load CUDA module")))
+
+
+def _drop_builds(module: Any) -> list[str]:
+    """Delete every cached build of a Warp module (its folders are named after the module
+    and a hash), renamed first so that no other process loads a half-deleted one."""
+    cache = Path(wp.config.kernel_cache_dir)
+    prefix = module.get_module_identifier().rsplit("_", 1)[0] + "_"
+    dropped = []
+    for folder in cache.glob(f"{prefix}*"):
+        doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
+        try:
+            folder.rename(doomed)
+        except OSError:
+            continue
+        shutil.rmtree(doomed, ignore_errors=True)
+        dropped.append(str(folder))
+    return dropped

@@ -13,8 +13,8 @@ from itertools import pairwise
 from typing import Any
 
 import numpy as np
-import warp as wp
 
+from warptex.device import launch
 from warptex.machine import usable_cores
 
 THREADS = min(usable_cores(), 8)
@@ -47,7 +47,7 @@ def launch_ranges(
     if n <= 0:
         return
     if device != "cpu" or THREADS == 1 or n < max(2, min_items):
-        wp.launch(kernel, n * per_item, [start, *inputs], outputs, device=device)
+        launch(kernel, n * per_item, [start, *inputs], outputs, device=device)
         return
     # Warp creates a generic kernel's overload and (re)builds its module on first launch,
     # not thread-safely: the overload is made here and the first item launched from this
@@ -58,10 +58,10 @@ def launch_ranges(
         kernel = kernel._add_normalized_overload(
             kernel.infer_argument_types([start, *inputs, *outputs])
         )
-    wp.launch(kernel, per_item, [start, *inputs], outputs, device=device)
+    launch(kernel, per_item, [start, *inputs], outputs, device=device)
     bounds = [int(b) for b in np.linspace(start + 1, stop, THREADS + 1)]
     jobs = [
-        _pool().submit(wp.launch, kernel, (hi - lo) * per_item, [lo, *inputs], outputs,
+        _pool().submit(launch, kernel, (hi - lo) * per_item, [lo, *inputs], outputs,
                        device=device)
         for lo, hi in pairwise(bounds)
     ]

@@ -37,6 +37,7 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
+from warptex.device import launch
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS
@@ -342,9 +343,9 @@ class BrickStore:
                         device=self._device)
         if sums.shape[0]:
             slots = slots.astype(np.int32)  # held while the launch views it
-            wp.launch(_k.voxel_sums, sums.shape[0],
-                      [self._on_device(slots, wp.int32), self._index, self._pool,
-                       *self._colors, self.channels], [sums], device=self._device)
+            launch(_k.voxel_sums, sums.shape[0],
+                   [self._on_device(slots, wp.int32), self._index, self._pool,
+                    *self._colors, self.channels], [sums], device=self._device)
         return sums.numpy()
 
     def stats(self) -> dict:
@@ -704,10 +705,10 @@ class BrickStore:
         dev = self._device
         # One launch, never split over CPU threads: Warp's atomics are plain reads and
         # writes on the CPU, atomic only between the threads of a CUDA launch.
-        wp.launch(_k.insert_keys, len(keys),
-                  [wp.array(keys, dtype=wp.int64, device=dev),
-                   wp.array(slots.astype(np.int32), dtype=wp.int32, device=dev)],
-                  [self._index], device=dev)
+        launch(_k.insert_keys, len(keys),
+               [wp.array(keys, dtype=wp.int64, device=dev),
+                wp.array(slots.astype(np.int32), dtype=wp.int32, device=dev)],
+               [self._index], device=dev)
 
     # -- helpers ----------------------------------------------------------------------
 

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from kernels import kopf as _k
-from warptex.device import init_warp
+from warptex.device import init_warp, launch
 from warptex.exemplar import Exemplar
 from warptex.parallel import THREADS, launch_ranges
 
@@ -207,7 +207,7 @@ def _random_solid(feats: list[np.ndarray | None], n: int, rng: np.random.Generat
 
 def _upsample(coarse: wp.array, n: int) -> wp.array:
     fine = wp.empty(((2 * n) ** 3, coarse.shape[1]), dtype=wp.float32, device=_DEVICE)
-    wp.launch(_k.upsample_trilinear, fine.shape[0], [coarse, n], [fine], device=_DEVICE)
+    launch(_k.upsample_trilinear, fine.shape[0], [coarse, n], [fine], device=_DEVICE)
     return fine
 
 
