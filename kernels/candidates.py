@@ -13,6 +13,10 @@ from kernels.common import pixel_index
 
 wp.set_module_options({"enable_backward": False})
 
+# Direct (4-connected) pixel offsets: up, down, left, right.
+_STEP_U = wp.constant(wp.vec4i(-1, 1, 0, 0))
+_STEP_V = wp.constant(wp.vec4i(0, 0, -1, 1))
+
 
 @wp.func
 def pixel_slot(first: int, thread: int, slots: int):
@@ -33,23 +37,6 @@ def strip_distance(
     return total
 
 
-@wp.func
-def crossbar_rest(
-    next_second: wp.array2d(dtype=wp.int32),
-    nnext_first: wp.array2d(dtype=wp.int32),
-    nnext_second: wp.array2d(dtype=wp.int32),
-    own_first: wp.array2d(dtype=wp.int32),
-    p: int,
-    q: int,
-    r: int,
-) -> int:
-    """The crossbar pairs (1, 2) and (2, 0) of triple (p, q, r); pair (0, 1) depends on
-    (p, q) alone, so the search computes it once per q."""
-    return strip_distance(next_second, q, nnext_first, r) + strip_distance(
-        nnext_second, r, own_first, p
-    )
-
-
 @wp.kernel
 def best_crossbar_triples(
     first: int,
@@ -61,6 +48,7 @@ def best_crossbar_triples(
     nnext_second: wp.array2d(dtype=wp.int32),
     near1: wp.array2d(dtype=wp.int32),
     near2: wp.array2d(dtype=wp.int32),
+    closing: wp.array2d(dtype=wp.int32),
     keys: wp.array2d(dtype=wp.int64),
     cand1: wp.array2d(dtype=wp.int32),
     cand2: wp.array2d(dtype=wp.int32),
@@ -72,20 +60,25 @@ def best_crossbar_triples(
     Section 4.1. ``*_first``/``*_second`` are the strips of each role along its first and
     second pixel coordinate; ``near1``/``near2`` the S nearest strips found in roles 1
     and 2. The crossbar pairs are (0, 1), (1, 2) and (2, 0): the second-coordinate strip
-    of a role meets the first-coordinate strip of the next. Ties are broken by the rank
-    of the pair, so the order is fully reproducible. Pixel ``first + tid``.
+    of a role meets the first-coordinate strip of the next. Pair (0, 1) depends on the
+    role-1 pixel alone and pair (2, 0) on the role-2 pixel alone, so each is computed once
+    (the latter into this pixel's row of scratch ``closing``), and only pair (1, 2) for
+    every triple. Ties are broken by the rank of the pair, so the order is fully
+    reproducible. Pixel ``first + tid``.
     """
     p = first + wp.tid()
     s1 = near1.shape[1]
     s2 = near2.shape[1]
     keep = keys.shape[1]
+    for j in range(s2):
+        closing[p, j] = strip_distance(nnext_second, near2[p, j], own_first, p)
     n = int(0)
     for i in range(s1):
         q = near1[p, i]
         e01 = strip_distance(own_second, p, next_first, q)
         for j in range(s2):
             r = near2[p, j]
-            err = e01 + crossbar_rest(next_second, nnext_first, nnext_second, own_first, p, q, r)
+            err = e01 + strip_distance(next_second, q, nnext_first, r) + closing[p, j]
             key = wp.int64(err) * wp.int64(s1 * s2) + wp.int64(i * s2 + j)
             pos = int(-1)
             if n < keep:
@@ -125,56 +118,70 @@ def candidate_crossbar_errors(
     p, k = pixel_slot(first, wp.tid(), cb.shape[1])
     q = cand1[p, k]
     r = cand2[p, k]
-    err = strip_distance(own_second, p, next_first, q)
-    cb[p, k] = err + crossbar_rest(next_second, nnext_first, nnext_second, own_first, p, q, r)
+    cb[p, k] = (strip_distance(own_second, p, next_first, q)
+                + strip_distance(next_second, q, nnext_first, r)
+                + strip_distance(nnext_second, r, own_first, p))
 
 
 @wp.func
-def is_adjacent(du: int, dv: int, height: int, width: int) -> bool:
-    """True when a pixel offset (du, dv) joins direct (4-connected, toroidal) neighbours."""
-    du = wp.abs(du)
-    dv = wp.abs(dv)
-    return wp.min(du, height - du) + wp.min(dv, width - dv) == 1
-
-
-@wp.func
-def has_continuous_neighbor(
+def mark_continuations(
     cand_u: wp.array2d(dtype=wp.int32),
     cand_v: wp.array2d(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
     p: int,
-    k: int,
     own_height: int,
     own_width: int,
     height: int,
     width: int,
-) -> bool:
-    """Section 4.2: a candidate of a direct neighbour of p continues candidate k of p."""
+    marks: wp.array2d(dtype=wp.uint32),
+    row: int,
+    setting: bool,
+):
+    """Section 4.2: set (or, with ``setting`` false, clear) in bitmap row ``row`` the
+    exemplar pixels that continue a candidate of a direct neighbour of p: the direct
+    (4-connected, toroidal) neighbours of its coordinates. Clearing zeroes whole words, as
+    every bit set in the row was set here."""
     u = p // own_width
     v = p - u * own_width
-    cu = cand_u[p, k]
-    cv = cand_v[p, k]
     for d in range(4):
-        du = int(0)
-        dv = int(0)
-        if d == 0:
-            du = -1
-        elif d == 1:
-            du = 1
-        elif d == 2:
-            dv = -1
-        else:
-            dv = 1
-        q = pixel_index(u + du, v + dv, own_height, own_width)
+        q = pixel_index(u + _STEP_U[d], v + _STEP_V[d], own_height, own_width)
         for j in range(count[q]):
-            if is_adjacent(cand_u[q, j] - cu, cand_v[q, j] - cv, height, width):
-                return True
-    return False
+            for e in range(4):
+                du = _STEP_U[e]
+                dv = _STEP_V[e]
+                # Along a side of one pixel a neighbour would be the pixel itself.
+                if (du != 0 and height > 1) or (dv != 0 and width > 1):
+                    at = pixel_index(cand_u[q, j] + du, cand_v[q, j] + dv, height, width)
+                    word = at >> 5
+                    if setting:
+                        marks[row, word] = marks[row, word] | (wp.uint32(1) << wp.uint32(at & 31))
+                    else:
+                        marks[row, word] = wp.uint32(0)
+
+
+@wp.func
+def keep_marked(
+    cand_u: wp.array2d(dtype=wp.int32),
+    cand_v: wp.array2d(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    p: int,
+    width: int,
+    marks: wp.array2d(dtype=wp.uint32),
+    row: int,
+    keep: wp.array2d(dtype=wp.int32),
+    i: int,
+):
+    """Clear the flag of each candidate of p whose coordinates are not marked."""
+    for k in range(count[p]):
+        at = cand_u[p, k] * width + cand_v[p, k]
+        if (marks[row, at >> 5] >> wp.uint32(at & 31)) & wp.uint32(1) == wp.uint32(0):
+            keep[i, k] = 0
 
 
 @wp.kernel
 def coherent_candidates(
     first: int,
+    batch_first: int,
     pixels: wp.array(dtype=wp.int32),
     cand1_u: wp.array2d(dtype=wp.int32),
     cand1_v: wp.array2d(dtype=wp.int32),
@@ -183,22 +190,29 @@ def coherent_candidates(
     count: wp.array(dtype=wp.int32),
     height: wp.vec3i,
     width: wp.vec3i,
+    marks: wp.array2d(dtype=wp.uint32),
     keep: wp.array2d(dtype=wp.int32),
 ):
-    """Flag the candidates forming coherent patches in all three exemplars (section 4.2).
+    """Flag the candidates forming coherent patches in all three exemplars (section 4.2):
+    a candidate is kept when, in both other exemplars, its coordinates continue a
+    candidate of one of its pixel's direct neighbours.
 
     Candidate coordinates come unpacked as (u, v) pixel coordinates of roles 1 and 2. One
-    thread per candidate slot of the listed ``pixels`` from ``first`` on; row i of ``keep``
-    is ``pixels[i]``.
+    thread per listed pixel ``pixels[i]``, i from ``first`` on, whose candidates are flagged
+    in row i of ``keep``; it marks the continued pixels of each role in row
+    ``i - batch_first`` of the zeroed bitmaps ``marks`` (one bit per pixel of the larger
+    exemplar) and leaves that row zeroed again.
     """
-    i, k = pixel_slot(first, wp.tid(), keep.shape[1])
+    i = first + wp.tid()
     p = pixels[i]
-    flag = int(0)
-    if k < count[p]:
-        h0 = height[0]
-        w0 = width[0]
-        if has_continuous_neighbor(
-            cand1_u, cand1_v, count, p, k, h0, w0, height[1], width[1]
-        ) and has_continuous_neighbor(cand2_u, cand2_v, count, p, k, h0, w0, height[2], width[2]):
-            flag = 1
-    keep[i, k] = flag
+    row = i - batch_first
+    for k in range(keep.shape[1]):
+        keep[i, k] = wp.where(k < count[p], 1, 0)
+    h0 = height[0]
+    w0 = width[0]
+    mark_continuations(cand1_u, cand1_v, count, p, h0, w0, height[1], width[1], marks, row, True)
+    keep_marked(cand1_u, cand1_v, count, p, width[1], marks, row, keep, i)
+    mark_continuations(cand1_u, cand1_v, count, p, h0, w0, height[1], width[1], marks, row, False)
+    mark_continuations(cand2_u, cand2_v, count, p, h0, w0, height[2], width[2], marks, row, True)
+    keep_marked(cand2_u, cand2_v, count, p, width[2], marks, row, keep, i)
+    mark_continuations(cand2_u, cand2_v, count, p, h0, w0, height[2], width[2], marks, row, False)

@@ -256,6 +256,24 @@ def test_coherence_holds_when_rounds_run_out(warp_device):
 # -- different exemplars per axis ---------------------------------------------------------
 
 
+@pytest.mark.parametrize("sizes", [[(8, 8), (8, 8), (8, 8)],
+                                   [(4, 6), (1, 7), (2, 3)],
+                                   [(3, 5), (6, 1), (9, 4)]])
+def test_coherence_test_matches_a_numpy_reference(sizes, warp_device):
+    """The kernel's bitmaps of continued pixels against pairwise distances, on random lists
+    dense enough that both outcomes are common, over exemplars one and two pixels wide."""
+    rng = np.random.default_rng(len(sizes[1]) + sizes[1][0])
+    npix, slots = sizes[0][0] * sizes[0][1], 6
+    cand = np.stack([rng.integers(0, h * w, (npix, slots)) for h, w in sizes[1:]], axis=2)
+    count = rng.integers(1, slots + 1, npix)
+    listed = np.flatnonzero(rng.random(npix) < 0.7)
+    valid = np.arange(slots)[None, :] < count[:, None]
+    expected = (valid & ~_incoherent(cand, count, sizes))[listed]
+    got = candidates._continued(cand, count, sizes, listed)
+    assert 0 < expected.sum() < valid[listed].sum()
+    np.testing.assert_array_equal(got, expected)
+
+
 def test_three_different_exemplars_have_three_roles(three):
     cs, exemplars = three
     assert not cs.shared and cs.axis_source == (0, 1, 2)

@@ -53,6 +53,7 @@ _CHECK_EVERY = 5
 # A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
 # lists: even the coarsest level's 64 pixels are worth splitting over the cores.
 _MIN_SPLIT_PIXELS = 64
+_MARK_BYTES = 16 << 20  # scratch bitmaps of the coherence test
 # Peak memory of a pre-computation at the default parameters: a base and so much per pixel
 # of its largest exemplar, more where the axes have exemplars of their own; above every peak
 # measured (BENCHMARKS.md, "Large exemplars"). Larger exemplars than LARGE_PIXELS take
@@ -666,12 +667,13 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     c2 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     cb = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     count = wp.zeros(npix, dtype=wp.int32, device=dev)
+    closing = wp.empty(near2.shape, dtype=wp.int32, device=dev)
     strip_arrays = [wp.array(a.astype(np.int32), device=dev) for pair in strips for a in pair]
     launch_ranges(
         _k.best_crossbar_triples,
         0,
         npix,
-        [*strip_arrays, wp.array(near1, device=dev), wp.array(near2, device=dev)],
+        [*strip_arrays, wp.array(near1, device=dev), wp.array(near2, device=dev), closing],
         [keys, c1, c2, cb, count],
         min_items=_MIN_SPLIT_PIXELS,
     )
@@ -756,33 +758,15 @@ def _filter_coherent(
     cand, cb = cand.copy(), cb.copy()  # lists are reordered in place below
     npix, slots = cand.shape[:2]
     fallback = np.zeros(npix, bool)
-    dev = "cpu"
-    height = wp.vec3i(*[s[0] for s in sizes])
-    width = wp.vec3i(*[s[1] for s in sizes])
     # A pixel's test reads only its neighbours' lists, and a list that passed keeps
     # passing while they stay the same: each round tests just the neighbours of the pixels
     # whose lists changed in the round before (all pixels at first).
     retest = np.ones(npix, bool)
     done = 0
     while True:
-        coords = []
-        for role in (1, 2):
-            u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
-            coords += [wp.array(a.astype(np.int32), device=dev) for a in (u, v)]
-        listed = np.flatnonzero(retest).astype(np.int32)
-        keep = wp.zeros((len(listed), slots), dtype=wp.int32, device=dev)
-        launch_ranges(
-            _k.coherent_candidates,
-            0,
-            len(listed),
-            [wp.array(listed, dtype=wp.int32, device=dev), *coords,
-             wp.array(count, dtype=wp.int32, device=dev), height, width],
-            [keep],
-            per_item=slots,
-            min_items=_MIN_SPLIT_PIXELS,
-        )
+        listed = np.flatnonzero(retest)
         flags = np.arange(slots)[None, :] < count[:, None]
-        flags[listed] = keep.numpy().astype(bool)
+        flags[listed] = _continued(cand, count, sizes, listed)
         flags[fallback, :1] = True  # a fallback pixel keeps its single best candidate
         kept = flags.sum(axis=1)
         empty = kept == 0
@@ -815,6 +799,31 @@ def _filter_coherent(
     cand[invalid] = np.repeat(cand[:, :1], width_k, axis=1)[invalid]
     cb[invalid] = np.repeat(cb[:, :1], width_k, axis=1)[invalid]
     return cand.astype(np.int32), cb.astype(np.int32), count, fallback
+
+
+def _continued(cand: np.ndarray, count: np.ndarray, sizes: list[tuple[int, int]],
+               listed: np.ndarray) -> np.ndarray:
+    """Flags (len(listed), K) of the valid candidates of the ``listed`` pixels whose
+    coordinates continue a candidate of a direct neighbour in both other exemplars
+    (section 4.2); ``cand`` (P, K, 2) holds the role-1 and role-2 pixels of each list."""
+    dev = "cpu"
+    coords = []
+    for role in (1, 2):
+        u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
+        coords += [wp.array(a.astype(np.int32), device=dev) for a in (u, v)]
+    # A bitmap row of the larger exemplar's pixels per pixel tested at once, in batches of
+    # at most _MARK_BYTES.
+    words = -(-max(h * w for h, w in sizes[1:]) // 32)
+    batch = max(1, min(len(listed), _MARK_BYTES // (4 * words)))
+    keep = wp.zeros((len(listed), cand.shape[1]), dtype=wp.int32, device=dev)
+    inputs = [wp.array(listed.astype(np.int32), dtype=wp.int32, device=dev), *coords,
+              wp.array(count, dtype=wp.int32, device=dev),
+              wp.vec3i(*[s[0] for s in sizes]), wp.vec3i(*[s[1] for s in sizes]),
+              wp.zeros((batch, words), dtype=wp.uint32, device=dev)]
+    for lo in range(0, len(listed), batch):
+        launch_ranges(_k.coherent_candidates, lo, min(lo + batch, len(listed)),
+                      [lo, *inputs], [keep], min_items=_MIN_SPLIT_PIXELS)
+    return keep.numpy().astype(bool)
 
 
 def _direct_neighbours(marked: np.ndarray, size: tuple[int, int]) -> np.ndarray:
