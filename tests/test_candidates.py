@@ -614,8 +614,12 @@ def test_cache_file_name_depends_on_content_parameters_and_code(warp_device, mon
     monkeypatch.setattr(candidates, "_code_digest", lambda: "other code")
     assert cache_path([a, a, a], params) != before
     # Sources that are not files (a zip or frozen application) key by the version instead.
+    from_sources = uncached_code_digest()
     monkeypatch.setattr(candidates, "_deciding_sources", lambda: [Path("/no/such/module.py")])
-    assert len(uncached_code_digest()) == 64
+    by_version = uncached_code_digest()
+    assert len(by_version) == 64 and by_version != from_sources
+    monkeypatch.setattr(candidates, "_deciding_sources", lambda: None)
+    assert uncached_code_digest() == by_version
 
 
 def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):

@@ -292,16 +292,21 @@ def _code_digest() -> str:
     the same FORMAT_VERSION, is another file and never served (caches are never silently
     wrong), at the price of a recomputation after each change to these modules."""
     constants = f"{MAX_DIMS} {PROJ_LIMIT}"
-    try:
-        return _sources_digest(_deciding_sources(), constants)
-    except (OSError, TypeError):  # sources not on disk (a zip or frozen application)
-        return hashlib.sha256(f"{constants} {_package_version()}".encode()).hexdigest()
+    sources = _deciding_sources()
+    if sources is not None:
+        try:
+            return _sources_digest(sources, constants)
+        except OSError:  # listed but unreadable (a zip or frozen application)
+            pass
+    return hashlib.sha256(f"{constants} {_package_version()}".encode()).hexdigest()
 
 
-def _deciding_sources() -> list[Path]:
-    """This module, its kernels and their building blocks, and the exemplar's pyramid."""
+def _deciding_sources() -> list[Path] | None:
+    """This module, its kernels and their building blocks, and the exemplar's pyramid;
+    None where a module has no source file."""
     modules = (sys.modules[__name__], _k, _common, sys.modules[Exemplar.__module__])
-    return [Path(getattr(m, "__file__", None)) for m in modules]
+    files = [getattr(m, "__file__", None) for m in modules]
+    return None if None in files else [Path(f) for f in files]
 
 
 def _package_version() -> str:
