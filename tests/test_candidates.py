@@ -256,16 +256,23 @@ def test_coherence_holds_when_rounds_run_out(warp_device):
 # -- different exemplars per axis ---------------------------------------------------------
 
 
-@pytest.mark.parametrize("sizes", [[(8, 8), (8, 8), (8, 8)],
-                                   [(4, 6), (1, 7), (2, 3)],
-                                   [(3, 5), (6, 1), (9, 4)]])
-def test_coherence_test_matches_a_numpy_reference(sizes, warp_device):
+@pytest.mark.parametrize(("sizes", "batch_rows"), [([(8, 8), (8, 8), (8, 8)], None),
+                                                   ([(4, 6), (1, 7), (2, 3)], None),
+                                                   ([(3, 5), (6, 1), (9, 4)], None),
+                                                   ([(12, 12), (9, 40), (33, 33)], 70)])
+def test_coherence_test_matches_a_numpy_reference(sizes, batch_rows, monkeypatch, warp_device):
     """The kernel's bitmaps of continued pixels against pairwise distances, on random lists
-    dense enough that both outcomes are common, over exemplars one and two pixels wide."""
-    rng = np.random.default_rng(len(sizes[1]) + sizes[1][0])
+    (repeated and empty ones too) dense enough that both outcomes are common, over
+    exemplars one and two pixels wide; the last case in batches of bitmap rows, split over
+    the CPU threads, so that a row left marked by one pixel would wrong the next."""
+    if batch_rows is not None:
+        words = -(-max(h * w for h, w in sizes[1:]) // 32)
+        monkeypatch.setattr(candidates, "_MARK_BYTES", 4 * words * batch_rows)
+    rng = np.random.default_rng(3)
     npix, slots = sizes[0][0] * sizes[0][1], 6
-    cand = np.stack([rng.integers(0, h * w, (npix, slots)) for h, w in sizes[1:]], axis=2)
-    count = rng.integers(1, slots + 1, npix)
+    cand = np.stack([rng.integers(0, min(h * w, 60), (npix, slots)) for h, w in sizes[1:]],
+                    axis=2)
+    count = rng.integers(0, slots + 1, npix)
     listed = np.flatnonzero(rng.random(npix) < 0.7)
     valid = np.arange(slots)[None, :] < count[:, None]
     expected = (valid & ~_incoherent(cand, count, sizes))[listed]

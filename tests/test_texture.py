@@ -215,6 +215,38 @@ def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(cand
     assert path.read_bytes() != saved
 
 
+def test_textures_built_at_once_on_threads_get_no_shared_store_file(candidates, tmp_path,
+                                                                     monkeypatch):
+    """Mitsuba builds a scene's plugins on several threads: of two textures of other
+    settings given one store file at the same time, exactly one is refused, however long
+    setting up a store takes."""
+    import time
+
+    import warptex.texture
+
+    class SlowStore(BrickStore):
+        def __init__(self, *args, **kwargs):
+            time.sleep(0.3)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(warptex.texture, "BrickStore", SlowStore)
+    path = tmp_path / "granite.wtb"
+    made, refused = [], []
+
+    def make(seed: int) -> None:
+        try:
+            made.append(texture(candidates, seed=seed, store=path))
+        except StoreFileError as e:
+            refused.append(e)
+
+    threads = [threading.Thread(target=make, args=(seed,)) for seed in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(made) == 1 and len(refused) == 1
+
+
 @pytest.mark.parametrize("damage", ["no valid bits", "half the triples", "wider valid bits",
                                     "valid bits as uint64"])
 def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, damage):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -133,7 +134,7 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
 
 def _unloadable(error: Exception) -> bool:
     """Whether ``error`` is Warp failing to load a module build found in its cache."""
-    return (isinstance(error, json.JSONDecodeError | FileNotFoundError)
+    return (isinstance(error, json.JSONDecodeError)
             or str(error).startswith(("Failed to load CPU module", "Failed to load CUDA module")))
 
 
@@ -141,9 +142,13 @@ def _drop_builds(module: Any) -> list[str]:
     """Delete every cached build of a Warp module (its folders are named after the module
     and a hash), renamed first so that no other process loads a half-deleted one."""
     cache = Path(wp.config.kernel_cache_dir)
-    prefix = module.get_module_identifier().rsplit("_", 1)[0] + "_"
+    prefix = f"wp_{module.name}_"
     dropped = []
     for folder in cache.glob(f"{prefix}*"):
+        # Not another module whose name continues this one's, nor a build in progress
+        # (Warp builds in a folder named after the process and thread, then renames it).
+        if not re.fullmatch("[0-9a-f]{7}", folder.name[len(prefix):]):
+            continue
         doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
         try:
             folder.rename(doomed)

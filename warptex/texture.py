@@ -7,6 +7,7 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 
 from __future__ import annotations
 
+import threading
 import weakref
 from collections.abc import Sequence
 from numbers import Integral
@@ -42,21 +43,29 @@ def wrap_far(c, select=np.where, rint=np.rint):
 
 # Textures of this process that have a store file, so that two of other settings are not
 # given the same one: each would start empty from the other's file and replace it on saving.
+# Mitsuba builds a scene's plugins on several threads, so checking and joining are one step.
 _WITH_STORE_FILES: weakref.WeakSet[SolidTexture] = weakref.WeakSet()
+_STORE_FILES_LOCK = threading.Lock()
 
 
-def _check_unshared(path: Path, synthesizer: Synthesizer) -> None:
+def _check_unshared(path: Path, synthesizer: Synthesizer,
+                    joining: SolidTexture | None = None) -> None:
     """Raise StoreFileError if a live texture of other settings has ``path`` as its store
-    file. Textures of the same settings may share one: their voxels are the same."""
+    file; else let ``joining``, if given, join them. Textures of the same settings may
+    share one, as their voxels are the same (the last to save replaces the file, so its
+    twin's bricks go unsaved)."""
     where = path.resolve()
-    for other in list(_WITH_STORE_FILES):
-        if other.path is not None and other.path.resolve() == where:
-            differences = settings_differences(other.synthesizer, synthesizer)
-            if differences:
-                raise StoreFileError(
-                    f"{path}: already the brick store file of another texture of this process "
-                    f"({differences}); each would discard the other's bricks, so give each "
-                    "texture its own file")
+    with _STORE_FILES_LOCK:
+        for other in list(_WITH_STORE_FILES):
+            if other.path is not None and other.path.resolve() == where:
+                differences = settings_differences(other.synthesizer, synthesizer)
+                if differences:
+                    raise StoreFileError(
+                        f"{path}: already the brick store file of another texture of this "
+                        f"process ({differences}); each would discard the other's bricks, so "
+                        "give each texture its own file")
+        if joining is not None:
+            _WITH_STORE_FILES.add(joining)
 
 
 class SolidTexture:
@@ -89,16 +98,21 @@ class SolidTexture:
                       else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes)
         self.path = Path(store) if store is not None else None
-        if self.path is not None:
-            _check_unshared(self.path, self.synthesizer)
-        if self.path is not None and self.path.exists():
-            self.store = BrickStore.load(self.path, self.synthesizer, cache_bytes=cache_bytes,
-                                         whole_bricks=whole_bricks)
-        else:
+        if self.path is None:
             self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
                                     whole_bricks=whole_bricks)
-        if self.path is not None:
-            _WITH_STORE_FILES.add(self)
+            return
+        _check_unshared(self.path, self.synthesizer, joining=self)
+        try:
+            if self.path.exists():
+                self.store = BrickStore.load(self.path, self.synthesizer,
+                                             cache_bytes=cache_bytes, whole_bricks=whole_bricks)
+            else:
+                self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
+                                        whole_bricks=whole_bricks)
+        except BaseException:
+            _WITH_STORE_FILES.discard(self)
+            raise
 
     @property
     def channels(self) -> int:
