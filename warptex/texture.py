@@ -98,20 +98,17 @@ class SolidTexture:
                       else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes)
         self.path = Path(store) if store is not None else None
-        if self.path is None:
-            self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
-                                    whole_bricks=whole_bricks)
-            return
-        _check_unshared(self.path, self.synthesizer, joining=self)
+        if self.path is not None:
+            _check_unshared(self.path, self.synthesizer, joining=self)
         try:
-            if self.path.exists():
+            if self.path is not None and self.path.exists():
                 self.store = BrickStore.load(self.path, self.synthesizer,
                                              cache_bytes=cache_bytes, whole_bricks=whole_bricks)
             else:
                 self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
                                         whole_bricks=whole_bricks)
         except BaseException:
-            _WITH_STORE_FILES.discard(self)
+            _WITH_STORE_FILES.discard(self)  # no store file of its own after all
             raise
 
     @property
