@@ -92,6 +92,21 @@ def is_foreign(path: str | Path, magic: bytes) -> bool:
     return len(head) > 0 and head != magic
 
 
+def archive_version(path: str | Path, magic: bytes) -> int | None:
+    """The format version in the header of a ``magic`` archive; None for a file too short to
+    hold a header or one that starts otherwise. Only the header is read, so a whole file
+    of the version is not vouched for (:func:`read_archive` checks that).
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    with open(path, "rb") as file:
+        head = file.read(len(magic) + _VERSION_BYTES + _DIGEST_BYTES)
+    if len(head) < len(magic) + _VERSION_BYTES + _DIGEST_BYTES or head[: len(magic)] != magic:
+        return None
+    return int.from_bytes(head[len(magic) : len(magic) + _VERSION_BYTES], "little")
+
+
 def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
                  error: type[ArchiveError] = ArchiveError) -> dict[str, np.ndarray]:
     """The arrays of a file written by :func:`write_archive`; ``error`` (naming the file

@@ -41,7 +41,8 @@ from warptex.parallel import launch_ranges
 FORMAT_VERSION = 4  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
 # 4: the PCA basis the same on every CPU (no LAPACK; BLAS only where its sums are exact)
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
-_MAGIC = b"WARPTEXC"
+FILE_MAGIC = b"WARPTEXC"
+CACHE_PREFIX, CACHE_SUFFIX = "candidates-", ".wtc"
 # Jacobi rotations find every eigenvector at a cost of D^3 per sweep: up to 4 channels' 5 x 5
 # neighbourhoods (RGB and a feature channel, or RGBA). Wider ones get only their leading
 # axes, by at most _ITERATIONS rounds of orthogonal iteration (BENCHMARKS.md, "Candidates
@@ -125,6 +126,9 @@ class CandidateSet:
     sources: list[list[SourceLevel]]  # [level][source]
     roles: list[list[RoleLevel]]  # [level][role]
     stats: dict = field(default_factory=dict)
+    # The exemplars' names (x, y, z) when computed, for people listing cache files; the
+    # digests, not the names, say what the candidates are of.
+    names: tuple[str, ...] = field(default=(), compare=False)
     # How precompute got these: "loaded" from its cache, "written" to it, "not written"
     # (the cache could not be written), or "" without a cache. Not saved in files.
     cache_status: str = field(default="", compare=False, repr=False)
@@ -164,12 +168,12 @@ class CandidateSet:
 
     def save(self, path: str | Path) -> None:
         """Write a versioned, checksummed file atomically (temporary name, then rename)."""
-        write_archive(path, _MAGIC, FORMAT_VERSION, _flatten(self))
+        write_archive(path, FILE_MAGIC, FORMAT_VERSION, _flatten(self))
 
     @classmethod
     def load(cls, path: str | Path) -> CandidateSet:
         """Read a file written by :meth:`save`; raise CandidateCacheError if it is damaged."""
-        arrays = read_archive(path, _MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
+        arrays = read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
         return _unflatten(arrays, path)
 
 
@@ -229,18 +233,33 @@ def _cached(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet
 def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[str, np.ndarray]:
     """The arrays of the cache file ``path``, whole (checksummed) and of ``exemplars`` and
     ``params``; CandidateCacheError otherwise."""
-    arrays = read_archive(path, _MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
-    try:
-        meta = json.loads(bytes(arrays["meta"]).decode())
-        found = {"digests": meta["digests"], "params": meta["params"]}
-    except (ValueError, KeyError) as e:
-        raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+    arrays = read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
+    meta = _meta(arrays, path)
+    found = {"digests": meta["digests"], "params": meta["params"]}
     # Through JSON, as the file's went: tuples become lists, so equal compares equal.
     wanted = json.loads(json.dumps({"digests": [e.digest() for e in exemplars], "params": params}))
     if wanted != found:
         raise CandidateCacheError(f"{path}: holds the candidates of other exemplars or "
                                   "parameters (a copied or renamed cache file)")
     return arrays
+
+
+def read_cache_meta(path: Path) -> dict:
+    """What a whole (checksummed) candidate file of this format version says it holds:
+    ``digests`` and ``params``, which name it (:func:`cache_file_name`), and ``names``
+    where recorded; CandidateCacheError otherwise."""
+    return _meta(read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate",
+                              CandidateCacheError), path)
+
+
+def _meta(arrays: dict[str, np.ndarray], path: Path) -> dict:
+    try:
+        meta = json.loads(bytes(arrays["meta"]).decode())
+        if not isinstance(meta, dict) or not {"digests", "params"} <= meta.keys():
+            raise KeyError("digests, params")
+    except (ValueError, KeyError) as e:
+        raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+    return meta
 
 
 def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:
@@ -278,12 +297,18 @@ def cache_dir() -> Path:
 
 
 def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
+    return cache_dir() / cache_file_name([e.digest() for e in exemplars], params)
+
+
+def cache_file_name(digests: Sequence[str], params: dict) -> str:
+    """The name this warptex gives the cache file of exemplars of these content digests
+    (x, y, z) and parameters; a file under another name is never read by it."""
     key = json.dumps(
-        {"v": FORMAT_VERSION, "params": params, "digests": [e.digest() for e in exemplars],
+        {"v": FORMAT_VERSION, "params": params, "digests": list(digests),
          "code": _code_digest()},
         sort_keys=True,
     )
-    return cache_dir() / f"candidates-{hashlib.sha256(key.encode()).hexdigest()[:40]}.wtc"
+    return f"{CACHE_PREFIX}{hashlib.sha256(key.encode()).hexdigest()[:40]}{CACHE_SUFFIX}"
 
 
 @cache
@@ -415,6 +440,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
         colors=[pyr[-1].colors.astype(np.float32) for pyr in pyramids],
         sources=sources,
         roles=roles,
+        names=tuple(e.name for e in exemplars),
     )
     cs.stats = {"fallback_pixels": fallbacks}
     return cs
@@ -851,6 +877,7 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
         "num_roles": len(cs.roles[0]),
         "shifts": [[s.shift for s in lvl] for lvl in cs.sources],
         "stats": cs.stats,
+        "names": list(cs.names),
     }
     out: dict[str, np.ndarray] = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     for j, c in enumerate(cs.colors):
@@ -922,4 +949,5 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
         sources=sources,
         roles=roles,
         stats=meta["stats"],
+        names=tuple(meta.get("names", ())),
     )

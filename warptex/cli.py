@@ -334,6 +334,91 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
     print(f"bytes: {cs.nbytes()} ({cs.nbytes() / 1024:.1f} KiB)")
 
 
+def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "cache", help="list the candidate cache; prune the files no run will read again",
+        description="List the candidate cache (WARPTEX_CACHE, default ~/.cache/warptex): "
+        "each file's date, size, exemplars and status. 'in use': read whenever its "
+        "exemplars come up. 'other version': written by another warptex version (or "
+        "renamed), which this one never reads. 'damaged': truncated or corrupt, computed "
+        "again when needed. 'unfinished': left by a write that died over an hour ago. "
+        "'being written': a write of another run, perhaps still going. Files stay until "
+        "deleted here. Also says where Warp's kernel cache is and how large.",
+        epilog="Deleted candidates are computed again when next needed (a few seconds for a "
+        "64 px exemplar, minutes for 256 px).",
+    )
+    what = parser.add_mutually_exclusive_group()
+    what.add_argument("--prune", action="store_true",
+                      help="delete the 'other version', 'damaged' and 'unfinished' files")
+    what.add_argument("--clear", action="store_true",
+                      help="delete every candidate file but those 'being written'")
+
+
+def _cmd_cache(args: argparse.Namespace) -> int:
+    from warptex import candidate_cache as cc
+
+    folder = cc.cache_dir()
+    try:
+        files = cc.cache_files(folder)
+    except OSError as error:
+        raise CliError(f"{error.filename or folder}: cannot list the candidate cache "
+                       f"({error.strerror or error}); WARPTEX_CACHE sets its folder") from None
+    print(f"candidate cache: {folder} (WARPTEX_CACHE sets it)")
+    if files:
+        print(f"  {'written':<16}  {'size':>9}  {'status':<13}  {'file':<55}  exemplars")
+    for f in files:
+        written = time.strftime("%Y-%m-%d %H:%M", time.localtime(f.modified))
+        print(f"  {written:<16}  {_mib_tenths(f.size):>9}  {f.status:<13}  {f.path.name:<55}  "
+              f"{_exemplar_names(f.names)}")
+    if not files:
+        print("no candidate files")
+    else:
+        counts = ", ".join(f"{n} {status}" for status in cc.STATUSES
+                           if (n := sum(f.status == status for f in files)))
+        print(f"{len(files)} files, {_mib_tenths(sum(f.size for f in files))}: {counts}")
+    never = [f for f in files if f.status in cc.NEVER_READ]
+    doomed = [f for f in files if f.status != cc.BEING_WRITTEN] if args.clear else never
+    if args.prune or args.clear:
+        try:
+            freed = cc.remove(doomed)
+        except OSError as error:
+            raise CliError(f"{error.filename}: cannot delete ({error.strerror or error})"
+                           ) from None
+        print(f"deleted: {len(doomed)} files, {_mib_tenths(freed)}")
+    elif never:
+        print(f"warptex cache --prune deletes the {len(never)} that no run of this warptex "
+              f"reads ({_mib_tenths(sum(f.size for f in never))})")
+    print(_kernel_cache_line())
+    return 0
+
+
+def _exemplar_names(names: tuple[str, ...]) -> str:
+    if not names:
+        return "(not recorded)"
+    short = [Path(n).name for n in names]
+    if len(set(short)) == 1:
+        return short[0]
+    return ", ".join(f"{axis} {n}" for axis, n in zip("xyz", short, strict=False))
+
+
+def _mib_tenths(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def _kernel_cache_line() -> str:
+    """Where Warp keeps the built kernels, and how much they take: every warptex version
+    builds its own, and Warp never deletes old ones."""
+    import warp as wp
+
+    from warptex.device import init_warp
+
+    init_warp()
+    folder = Path(wp.config.kernel_cache_dir)
+    size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else 0
+    return (f"Warp's kernel cache: {folder} (WARP_CACHE_PATH sets it), {_mib_tenths(size)}; "
+            "built again when missing, so it may be emptied between runs")
+
+
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
 # up to 4 float32 channels three times over (colors, image, filled image), and the
 # int64 indices of the nearest covered texel.
@@ -988,6 +1073,7 @@ _SUBCOMMANDS: dict[
 ] = {
     "info": (_add_info_parser, _cmd_info),
     "precompute": (_add_precompute_parser, _cmd_precompute),
+    "cache": (_add_cache_parser, _cmd_cache),
     "volume": (_add_volume_parser, _cmd_volume),
     "slice": (_add_slice_parser, _cmd_slice),
     "bake": (_add_bake_parser, _cmd_bake),
@@ -1099,7 +1185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if "exemplar_max_size" in args:  # before any work, a mesh's loading included
                 _check_max_size(args)
             _check_device()
-            if args.command != "info":
+            if args.command not in ("info", "cache"):
                 _note_kernel_build()
             code = command(args)
             sys.stdout.flush()  # here, so that a reader gone early is handled below

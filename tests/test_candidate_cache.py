@@ -1,0 +1,174 @@
+"""The candidate cache folder: ``warptex cache`` lists its files and prunes those that no
+run of this warptex reads, and never one that it reads."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from warptex import candidate_cache as cc
+from warptex import candidates
+from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
+from warptex.cli import main
+from warptex.exemplar import Exemplar
+
+GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
+
+
+@pytest.fixture(scope="module")
+def image(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("image") / "granite_16.png"
+    Image.open(GRANITE).convert("RGB").crop((0, 0, 16, 16)).save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def computed(image, tmp_path_factory) -> tuple[Path, Path]:
+    """A cache file of this warptex and one of other code (a warptex whose candidate
+    code differs: same exemplar, same format, another name)."""
+    folder = tmp_path_factory.mktemp("computed")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("WARPTEX_CACHE", str(folder))
+        ex = Exemplar.load(image)
+        precompute(ex)
+        current = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
+        mp.setattr(candidates, "_code_digest", lambda: "the code of another version")
+        precompute(ex)
+        other = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
+    assert current.exists() and other.exists() and current != other
+    return current, other
+
+
+@pytest.fixture
+def folder(computed, tmp_path, monkeypatch) -> Path:
+    """A cache folder holding one file of each kind, and files of other tools."""
+    current, other = computed
+    folder = tmp_path / "cache"
+    folder.mkdir()
+    shutil.copy(current, folder / current.name)
+    shutil.copy(other, folder / other.name)
+    data = current.read_bytes()
+    at = len(candidates.FILE_MAGIC)
+    older = data[:at] + (candidates.FORMAT_VERSION - 1).to_bytes(4, "little") + data[at + 4:]
+    (folder / f"{candidates.CACHE_PREFIX}{'0' * 40}.wtc").write_bytes(older)
+    (folder / f"{candidates.CACHE_PREFIX}{'1' * 40}.wtc").write_bytes(data[: len(data) // 2])
+    (folder / f"{candidates.CACHE_PREFIX}{'2' * 40}.wtc").write_bytes(b"not candidates at all")
+    unfinished = folder / f".{current.stem}.123.456.tmp.wtc"
+    unfinished.write_bytes(data[:100])
+    hours_ago = time.time() - 2 * cc.UNFINISHED_AGE
+    os.utime(unfinished, (hours_ago, hours_ago))
+    (folder / f".{current.stem}.789.1.tmp.wtc").write_bytes(data[:100])
+    (folder / "notes.txt").write_text("another tool's file")
+    (folder / "bunny.wtb").write_bytes(b"a brick store kept here by hand")
+    monkeypatch.setenv("WARPTEX_CACHE", str(folder))
+    return folder
+
+
+def _statuses(folder: Path) -> dict[str, str]:
+    return {f.path.name: f.status for f in cc.cache_files(folder)}
+
+
+def test_cache_files_tell_each_kind_apart(folder, computed, image):
+    current, other = computed
+    files = {f.path.name: f for f in cc.cache_files(folder)}
+    assert {name: f.status for name, f in files.items()} == {
+        current.name: cc.IN_USE,
+        other.name: cc.OTHER_VERSION,
+        f"candidates-{'0' * 40}.wtc": cc.OTHER_VERSION,  # an older format
+        f"candidates-{'1' * 40}.wtc": cc.DAMAGED,  # truncated
+        f"candidates-{'2' * 40}.wtc": cc.DAMAGED,  # not a candidate file
+        f".{current.stem}.123.456.tmp.wtc": cc.UNFINISHED,
+        f".{current.stem}.789.1.tmp.wtc": cc.BEING_WRITTEN,
+    }
+    assert files[current.name].names == (image.name,) * 3
+    assert files[current.name].size == current.stat().st_size
+    assert [f.modified for f in files.values()] == sorted(f.modified for f in files.values())
+    assert cc.cache_files(folder / "not yet made") == []
+
+
+def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):
+    current, _ = computed
+    renamed = folder / f"{candidates.CACHE_PREFIX}{'3' * 40}.wtc"
+    shutil.copy(current, renamed)
+    assert _statuses(folder)[renamed.name] == cc.OTHER_VERSION
+
+
+def test_prune_deletes_what_no_run_reads_and_keeps_the_rest(folder, computed, image, capsys):
+    current, _ = computed
+    assert main(["cache"]) == 0
+    out = capsys.readouterr().out
+    assert f"candidate cache: {folder}" in out
+    assert "7 files" in out
+    assert "1 in use, 2 other version, 2 damaged, 1 unfinished, 1 being written" in out
+    assert "warptex cache --prune deletes the 5 that no run of this warptex reads" in out
+    assert f"{current.name}  granite_16.png" in out
+    assert "Warp's kernel cache: " in out
+    assert len(_statuses(folder)) == 7  # listing deletes nothing
+
+    assert main(["cache", "--prune"]) == 0
+    assert "deleted: 5 files" in capsys.readouterr().out
+    assert _statuses(folder) == {current.name: cc.IN_USE,
+                                 f".{current.stem}.789.1.tmp.wtc": cc.BEING_WRITTEN}
+    assert (folder / "notes.txt").exists() and (folder / "bunny.wtb").exists()
+    again = precompute(Exemplar.load(image))
+    assert again.cache_status == "loaded"
+    assert again.names == (image.name,) * 3
+
+
+def test_clear_deletes_every_candidate_file_but_writes_in_progress(folder, image, capsys):
+    assert main(["cache", "--clear"]) == 0
+    assert "deleted: 6 files" in capsys.readouterr().out
+    assert [f.status for f in cc.cache_files(folder)] == [cc.BEING_WRITTEN]
+    assert (folder / "notes.txt").exists() and (folder / "bunny.wtb").exists()
+    assert precompute(Exemplar.load(image)).cache_status == "written"
+
+
+def test_a_missing_cache_folder_is_reported_and_not_made(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "nothing here"))
+    assert main(["cache", "--prune"]) == 0
+    out = capsys.readouterr().out
+    assert "no candidate files" in out and "deleted: 0 files, 0.0 MiB" in out
+    assert not (tmp_path / "nothing here").exists()
+
+
+def test_a_cache_folder_that_is_a_file_is_one_clear_error(tmp_path, monkeypatch, capsys):
+    path = tmp_path / "cache"
+    path.write_text("a file")
+    monkeypatch.setenv("WARPTEX_CACHE", str(path))
+    assert main(["cache"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"warptex: error: {path}: ") and "WARPTEX_CACHE" in err
+    assert "Traceback" not in err and path.read_text() == "a file"
+
+
+def test_a_file_that_cannot_be_deleted_is_named(folder, monkeypatch, capsys):
+    real_unlink = Path.unlink
+
+    def refuse(self, missing_ok=False):
+        if self.name.endswith("1" * 40 + ".wtc"):
+            raise PermissionError(13, "Permission denied", str(self))
+        real_unlink(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", refuse)
+    assert main(["cache", "--prune"]) == 2
+    err = capsys.readouterr().err
+    assert f"{'1' * 40}.wtc: cannot delete (Permission denied)" in err
+
+
+def test_names_are_kept_in_candidate_files(computed, image, tmp_path):
+    current, _ = computed
+    assert CandidateSet.load(current).names == (image.name,) * 3
+    ex = Exemplar.load(image)
+    path = tmp_path / "renamed.wtc"
+    shutil.copy(image, tmp_path / "same pixels.png")
+    same = precompute(Exemplar.load(tmp_path / "same pixels.png"), cache=False)
+    same.save(path)
+    loaded = CandidateSet.load(path)
+    assert loaded.names == ("same pixels.png",) * 3
+    assert loaded.content_digest == CandidateSet.load(current).content_digest
+    assert loaded.digests == (ex.digest(),) * 3

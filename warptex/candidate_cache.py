@@ -1,0 +1,122 @@
+"""The candidate cache folder (``WARPTEX_CACHE``): what its files hold, and which of them no
+run of this warptex will ever read again.
+
+A cache file is named by its exemplars' content, the parameters and the code that computed
+it (:func:`warptex.candidates.cache_file_name`), so the files of other warptex versions are
+never served, and no run removes them either: they stay until pruned here (``warptex
+cache --prune``). Only files named like cache files are looked at; a folder shared with
+other tools keeps their files.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from warptex.archive import archive_version
+from warptex.candidates import (
+    CACHE_PREFIX,
+    CACHE_SUFFIX,
+    FILE_MAGIC,
+    FORMAT_VERSION,
+    CandidateCacheError,
+    cache_dir,
+    cache_file_name,
+    read_cache_meta,
+)
+
+IN_USE = "in use"  # read by this warptex when its exemplars and parameters come up
+OTHER_VERSION = "other version"  # written by other warptex code (or renamed): never read
+DAMAGED = "damaged"  # truncated, corrupt or not a candidate file: recomputed, never read
+UNFINISHED = "unfinished"  # the temporary file of a write that never finished
+BEING_WRITTEN = "being written"  # a temporary file young enough to be another run's write
+STATUSES = (IN_USE, OTHER_VERSION, DAMAGED, UNFINISHED, BEING_WRITTEN)
+# What ``--prune`` deletes: files no run of this warptex reads, now or later.
+NEVER_READ = (OTHER_VERSION, DAMAGED, UNFINISHED)
+# A write renames its temporary file within seconds (``archive.write_atomically``); one
+# older than this was left by a process that died, even on a slow shared folder.
+UNFINISHED_AGE = 3600.0
+
+
+@dataclass(frozen=True)
+class CacheFile:
+    """One file of the candidate cache folder."""
+
+    path: Path
+    size: int  # bytes
+    modified: float  # seconds since the epoch
+    status: str  # IN_USE, OTHER_VERSION, DAMAGED, UNFINISHED or BEING_WRITTEN
+    names: tuple[str, ...] = ()  # the exemplars (x, y, z) as named when computed, if recorded
+
+
+def cache_files(folder: Path | None = None, now: float | None = None) -> list[CacheFile]:
+    """The cache files in ``folder`` (default: :func:`warptex.candidates.cache_dir`), oldest
+    first; none for a folder that does not exist yet.
+
+    Raises:
+        NotADirectoryError: ``folder`` is a file.
+        OSError: the folder or one of its cache files cannot be read.
+    """
+    folder = cache_dir() if folder is None else Path(folder)
+    if not folder.exists():
+        return []
+    if not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: the candidate cache is not a folder")
+    now = time.time() if now is None else now
+    found = []
+    for path in folder.iterdir():
+        cached = path.name.startswith(CACHE_PREFIX) and path.name.endswith(CACHE_SUFFIX)
+        if not cached and not _is_temporary(path.name):
+            continue
+        try:
+            info = path.stat()
+            if cached:
+                status, names = _status(path)
+            else:
+                old = now - info.st_mtime > UNFINISHED_AGE
+                status, names = (UNFINISHED if old else BEING_WRITTEN), ()
+        except FileNotFoundError:  # renamed into place or pruned by another run meanwhile
+            continue
+        found.append(CacheFile(path, info.st_size, info.st_mtime, status, names))
+    return sorted(found, key=lambda f: (f.modified, f.path.name))
+
+
+def remove(files: Iterable[CacheFile]) -> int:
+    """Delete ``files`` (those already gone are skipped); returns the bytes freed.
+
+    Raises:
+        OSError: a file cannot be deleted, named in the error.
+    """
+    freed = 0
+    for file in files:
+        try:
+            file.path.unlink()
+        except FileNotFoundError:  # pruned by another run meanwhile
+            continue
+        freed += file.size
+    return freed
+
+
+def _status(path: Path) -> tuple[str, tuple[str, ...]]:
+    version = archive_version(path, FILE_MAGIC)
+    if version is None:
+        return DAMAGED, ()
+    if version != FORMAT_VERSION:
+        return OTHER_VERSION, ()
+    try:
+        meta = read_cache_meta(path)
+    except CandidateCacheError:
+        return DAMAGED, ()
+    names = tuple(str(n) for n in meta.get("names", ()))
+    try:
+        expected = cache_file_name(meta["digests"], meta["params"])
+    except TypeError:  # not JSON-serializable: cannot come from any warptex
+        return DAMAGED, names
+    return (IN_USE if path.name == expected else OTHER_VERSION), names
+
+
+def _is_temporary(name: str) -> bool:
+    """A temporary name ``archive.write_atomically`` gives a cache file while writing it."""
+    return name.startswith("." + CACHE_PREFIX) and name.endswith(".tmp" + CACHE_SUFFIX)
