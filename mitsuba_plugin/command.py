@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from warptex.archive import overwritten_input, write_atomically
+from warptex.archive import file_problem, overwritten_input, write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
 _BATCHES = 8  # renders of one image at most: each is a step of the progress line
@@ -142,6 +142,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     loaded = time.perf_counter()
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
+        for texture in mitsuba_plugin.textures():
+            _check_store_file(texture, [output, statistics])
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     # Read before rendering: each batch sets the sampler to its share of the samples.
@@ -171,6 +173,24 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         raise ValueError(f"{where}: cannot write ({error.strerror or error})") from None
     _print_report(report)
     return report
+
+
+def _check_store_file(texture, outputs: list[Path]) -> None:
+    """Refuse, before rendering, a ``cache`` file that the render's end could not save: one
+    this command writes as its image or statistics, or one in a place that cannot be
+    written (the plugin accepts an existing store there, to read)."""
+    cache = texture.cache
+    if cache is None:
+        return
+    for output in outputs:
+        if cache.absolute() == output.absolute() or (
+                cache.exists() and output.exists() and cache.samefile(output)):
+            raise ValueError(f'lazy_solid: property "cache" names {output}, which this render '
+                             "writes: choose another output name")
+    problem = file_problem(cache)
+    if problem is not None:
+        raise ValueError(f'lazy_solid: property "cache": the brick store could not be saved to '
+                         f"{cache} after rendering: {problem}")
 
 
 @contextmanager

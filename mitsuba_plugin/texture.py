@@ -87,6 +87,7 @@ import mitsuba_plugin
 from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
+from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar, ExemplarError, srgb_encoded, srgb_to_linear
 from warptex.settings import (
@@ -255,6 +256,13 @@ class LazySolidTexture(mi.Texture):
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
         cache = get_property(props, "cache", str, None)
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
+        # A store file yet to be made that never can be would only fail its first save,
+        # after a render's work; one that exists is loaded even from a read-only place.
+        if self.cache is not None and not self.cache.exists():
+            problem = file_problem(self.cache)
+            if problem is not None:
+                raise property_error(PLUGIN, "cache",
+                                     f"cannot be saved to {self.cache}: {problem}")
         # A JIT-typed transform, so mi.traverse can update it in place.
         self.to_world = mi.AffineTransform4f(_to_world(props).astype(np.float32))
         exemplars = _load_exemplars(named, self.max_size)

@@ -598,7 +598,8 @@ def test_load_rejects_bad_magic_version_checksum_and_data(tmp_path, granite):
         "payload": (_valid_header(b"garbage") + b"garbage", "unreadable candidate data"),
     }
     # Whole and checksummed, but not the arrays a candidate set is made of.
-    write_archive(tmp_path / "arrays.wtc", candidates.FILE_MAGIC, FORMAT_VERSION, {"x": np.zeros(1)})
+    write_archive(tmp_path / "arrays.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                  {"x": np.zeros(1)})
     cases["arrays"] = ((tmp_path / "arrays.wtc").read_bytes(), "unreadable candidate data")
     for name, (content, message) in cases.items():
         (tmp_path / f"{name}.wtc").write_bytes(content)

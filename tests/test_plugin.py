@@ -151,6 +151,19 @@ def test_a_cache_that_is_no_brick_store_is_refused_and_kept(granite_32_file, tmp
     assert notes.read_text() == "not bricks"
 
 
+def test_a_cache_that_could_never_be_saved_is_refused_at_loading(granite_32_file, tmp_path):
+    """A store file yet to be made under a file (or anywhere not writable) would only fail
+    the save after a render; one that exists is read, wherever it is."""
+    use("scalar_rgb")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a folder")
+    with pytest.raises(RuntimeError, match=r'lazy_solid: property "cache" cannot be saved to '
+                       r'.*notes\.txt/bricks\.wtb: cannot write, .*notes\.txt is a file'):
+        load(granite_32_file, cache=str(notes / "bricks.wtb"))
+    assert notes.read_text() == "not a folder"
+    assert load(granite_32_file, cache=str(tmp_path / "new" / "bricks.wtb")) is not None
+
+
 def test_a_cache_of_another_live_texture_of_other_settings_is_refused(granite_32_file,
                                                                       tmp_path):
     use("scalar_rgb")

@@ -149,6 +149,79 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
 
 
+def _scene_with_cache(tmp_path: Path, cache: str) -> Path:
+    """The bunny scene copied with its texture's brick store in ``cache``."""
+    import shutil
+
+    scenes = tmp_path / "scenes"
+    shutil.copytree(REPO / "scenes", scenes)
+    scene = scenes / "bunny_wood.xml"
+    text = scene.read_text()
+    seed = '<integer name="seed" value="1"/>'
+    assert seed in text
+    scene.write_text(text.replace(seed, f'{seed}<string name="cache" value="{cache}"/>'))
+    return scene
+
+
+def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path):
+    """The plugin's ``cache``: `warptex render` saves the brick store, and the next render
+    of the scene reads every voxel from it, to the same image."""
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    reports, images = [], []
+    for run in range(2):
+        out = tmp_path / f"run{run}.exr"
+        assert main(["render", str(scene), "-o", str(out), "--spp", "1", "--res", "16x16"]) == 0
+        reports.append(json.loads((tmp_path / f"run{run}.exr.json").read_text())["textures"])
+        images.append(rgb(mi.Bitmap(str(out))))
+        mitsuba_plugin.live_textures.clear()  # as a new process would start
+    store = scene.parent / "bricks" / "bunny.wtb"
+    assert [r[0]["saved_to"] for r in reports] == [str(store)] * 2
+    cold, warm = (r[0]["store"] for r in reports)
+    assert cold["voxels_added"] == cold["voxels"] > 0
+    assert warm["voxels_added"] == 0 and warm["voxels"] == cold["voxels"]
+    assert sum(warm["voxels_synthesized"].values()) == 0
+    assert reports[1][0]["traced"]["renders_with_misses"] == 0
+    # Mitsuba's film adds samples with atomics, so pixels agree to float rounding only.
+    np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["the output", "its statistics", "read-only"])
+def test_render_command_refuses_a_store_it_could_not_save_before_rendering(
+        tmp_path, capsys, monkeypatch, case):
+    """A ``cache`` that this render writes as its image or statistics, or that cannot be
+    written, is refused before the render's work, which would be lost otherwise."""
+    import mitsuba_plugin.command
+    from warptex.cli import main
+
+    out = tmp_path / "out" / "bunny.png"
+    cache = {"the output": out, "its statistics": out.with_name("bunny.png.json"),
+             "read-only": tmp_path / "stores" / "bunny.wtb"}[case]
+    scene = _scene_with_cache(tmp_path, str(cache))
+    if case == "read-only":  # root writes anywhere: the folder's answer is stood in for
+        monkeypatch.setattr(mitsuba_plugin.command, "file_problem",
+                            lambda path: f"cannot write in {path.parent} (Read-only file system)")
+    rendered = []
+    monkeypatch.setattr(mitsuba_plugin, "render", lambda *a, **k: rendered.append(a))
+    assert main(["render", str(scene), "-o", str(out), "--spp", "1", "--res", "16x16"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"warptex: error: {scene}: lazy_solid: property \"cache\"")
+    assert ("which this render writes" in err if case != "read-only"
+            else "Read-only file system" in err)
+    assert rendered == [] and not out.exists() and not cache.exists()
+
+
+def test_bundled_cut_sphere_scene_renders():
+    """scenes/cut_sphere.xml: object-space texture on instanced halves, at a tiny size."""
+    use(warptex.best_mitsuba_variant())
+    scene = mi.load_file(str(REPO / "scenes" / "cut_sphere.xml"), width=16, height=16, spp=2)
+    image = rgb(mitsuba_plugin.render(scene))
+    assert np.isfinite(image).all() and image.mean() > 0.05
+    (texture,) = [t for t in mitsuba_plugin.textures() if t.space == "object"]
+    assert texture.solid.store.stats()["voxels"] > 0
+
+
 @pytest.mark.parametrize("folder", ["plain", "KeyboardInterrupt"])
 def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch, folder):
     """Ctrl-C while a texture pre-computes its candidates is an interruption, not a scene

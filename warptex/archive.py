@@ -15,6 +15,7 @@ import contextlib
 import hashlib
 import io
 import os
+import tempfile
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -40,6 +41,34 @@ def overwritten_input(outputs: Sequence[str | Path],
                 if output.is_file() and source.is_file() and output.samefile(source):
                     return output, source
     return None
+
+
+def folder_problem(folder: str | Path) -> str | None:
+    """Why files cannot be written in ``folder`` (which need not exist yet:
+    :func:`write_atomically` makes it), or None when they can."""
+    existing = Path(folder).absolute()
+    try:
+        while not existing.exists():
+            existing = existing.parent
+    except OSError as error:
+        return f"cannot look up {existing} ({error.strerror or error})"
+    if not existing.is_dir():
+        return f"cannot write, {existing} is a file, not a folder"
+    try:  # a trial file: permission bits do not tell for root or special file systems
+        tempfile.TemporaryFile(dir=existing).close()
+    except OSError as error:
+        return f"cannot write in {existing} ({error.strerror or error})"
+    return None
+
+
+def file_problem(path: str | Path) -> str | None:
+    """Why a file cannot be written at ``path``, or None when it can."""
+    try:
+        if Path(path).is_dir():
+            return "is a folder, expected a file name"
+    except OSError as error:
+        return f"cannot look up ({error.strerror or error})"
+    return folder_problem(Path(path).parent)
 
 
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:

@@ -13,7 +13,6 @@ import math
 import os
 import re
 import sys
-import tempfile
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -24,7 +23,7 @@ import numpy as np
 
 from warptex import __version__
 from warptex._llvm import MIN_LLVM_MAJOR
-from warptex.archive import overwritten_input
+from warptex.archive import file_problem, folder_problem, overwritten_input
 from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -55,13 +54,9 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
         endings = " or ".join([", ".join(formats[:-1]), formats[-1]] if len(formats) > 1
                               else formats)
         raise CliError(f"{path}: {what} must end in {endings}")
-    try:
-        folder = path.is_dir()
-    except OSError as error:
-        raise CliError(f"{path}: cannot look up ({error.strerror or error})") from None
-    if folder:
-        raise CliError(f"{path}: is a folder, expected a file name")
-    _check_writable_folder(path.parent, path)
+    problem = file_problem(path)
+    if problem is not None:
+        raise CliError(f"{path}: {problem}")
     return suffix
 
 
@@ -82,19 +77,9 @@ def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> Non
 
 def _check_writable_folder(folder: Path, target: Path) -> None:
     """Raise CliError unless ``folder`` is, or can be created as, a writable folder."""
-    existing = folder.absolute()
-    try:
-        while not existing.exists():
-            existing = existing.parent
-    except OSError as error:
-        raise CliError(f"{target}: cannot look up {existing} ({error.strerror or error})") from None
-    if not existing.is_dir():
-        raise CliError(f"{target}: cannot write, {existing} is a file, not a folder")
-    try:  # a trial file: permission bits do not tell for root or special file systems
-        tempfile.TemporaryFile(dir=existing).close()
-    except OSError as error:
-        raise CliError(f"{target}: cannot write in {existing} "
-                       f"({error.strerror or error})") from None
+    problem = folder_problem(folder)
+    if problem is not None:
+        raise CliError(f"{target}: {problem}")
 
 
 def _count(n: int, noun: str) -> str:
