@@ -44,8 +44,10 @@ brick store keep the stored values; the plugin decodes the filtered color of eac
 Mitsuba's bitmap decodes texels before filtering instead: the same at voxel centres and with
 the ``nearest`` filter, darker half way between voxels, by 0.003 where two mid-gray
 neighbours differ by 0.1 and 0.026 where they differ by 0.3. Unlike the bitmap's ``raw``, this
-one leaves spectral upsampling on. On CUDA the decoding, like Dr.Jit's float32 division there,
-may differ from the CPU's in the last bits.
+one leaves spectral upsampling on. The decoding widens colors to float64 and rounds the
+result to float32, as :func:`warptex.exemplar.srgb_to_linear` does: the scalar and the LLVM
+variants and NumPy give a point the same bits (float32 powers differ between them in the
+last bits); the CUDA variants should too (not yet checked on a GPU).
 
 Variants: ``eval`` gives the color as the variant's spectrum (:mod:`mitsuba_plugin.spectrum`:
 as it is in RGB variants, its luminance in monochrome ones, Mitsuba's upsampling of it in
@@ -75,6 +77,7 @@ the store, which synthesizes it. Any render works there, ``mi.render`` included.
 from __future__ import annotations
 
 import math
+import struct
 import threading
 from pathlib import Path
 from typing import Any
@@ -89,7 +92,13 @@ from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
-from warptex.exemplar import Exemplar, ExemplarError, srgb_encoded, srgb_to_linear
+from warptex.exemplar import (
+    Exemplar,
+    ExemplarError,
+    srgb_decoded,
+    srgb_encoded,
+    srgb_to_linear,
+)
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
@@ -107,6 +116,7 @@ PLUGIN = "lazy_solid"
 _KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>',
           bool: 'a <boolean ...>'}
 _SPACES = ("world", "object")
+_FLOAT32 = struct.Struct("f")  # rounds a Python float to float32, as Color3f does
 _DEFAULT_SCALE = 64.0
 
 
@@ -372,7 +382,9 @@ class LazySolidTexture(mi.Texture):
             rgb = self._scalar_color(it)
             return mi.Color3f(*(map(_srgb_decoded, rgb) if self._decode_srgb else rgb))
         rgb = self._jit_colors(it, active)
-        return srgb_to_linear(rgb, dr.select) if self._decode_srgb else rgb
+        if not self._decode_srgb:
+            return rgb
+        return mi.Color3f(srgb_decoded(dr.float64_array_t(mi.Color3f)(rgb), dr.select))
 
     def query_texture_space(self, points: np.ndarray) -> np.ndarray:
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded):
@@ -503,9 +515,10 @@ def _choice_of(condition: bool, if_true: float, if_false: float) -> float:
 
 
 def _srgb_decoded(value: float) -> float:
-    """:func:`srgb_to_linear` of one Python float, for the scalar variants' one point per
+    """:func:`srgb_to_linear` of one Python float (rounded to float32 first, as a lookup's
+    color is, and by the caller's Color3f after), for the scalar variants' one point per
     call, where a NumPy or Dr.Jit call (about 6 us) would cost as much as the lookup."""
-    return srgb_to_linear(value, _choice_of)
+    return srgb_decoded(_FLOAT32.unpack(_FLOAT32.pack(value))[0], _choice_of)
 
 
 def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:

@@ -243,22 +243,31 @@ def srgb_encoded(exemplars: list[Exemplar]) -> bool:
                         "one image, or keep the values as stored (raw)")
 
 
-def srgb_to_linear(values: Any, select: Callable = np.where) -> Any:
-    """Linear values of sRGB-encoded ``values`` in [0, 1] (IEC 61966-2-1), what a renderer
-    makes of the colors of an exemplar whose ``srgb`` is set: float32 of NumPy arrays, or of
-    Dr.Jit arrays with ``select=drjit.select``, or of a Python float with a plain choice
-    (``select(low, a, b)`` is ``a if low else b``), so every lookup decodes by this formula."""
-    if select is np.where:
-        values = np.asarray(values, np.float32)
+def srgb_to_linear(values: Any) -> np.ndarray:
+    """Linear float32 values of sRGB-encoded float32 ``values`` in [0, 1] (IEC 61966-2-1),
+    what a renderer makes of the colors of an exemplar whose ``srgb`` is set; the plugin's
+    lookups decode alike (:func:`srgb_decoded`), to the same bits."""
+    return srgb_decoded(np.asarray(values, np.float32).astype(np.float64), np.where).astype(
+        np.float32)
+
+
+def srgb_decoded(values: Any, select: Callable) -> Any:
+    """The formula of :func:`srgb_to_linear` on float64 ``values``: NumPy arrays with
+    ``np.where``, Dr.Jit arrays with ``drjit.select``, a Python float with a plain choice
+    (``select(low, a, b)`` is ``a if low else b``). Each decoder of float32 colors widens them
+    to float64, decodes here and rounds the result to float32 once: float32 powers differ
+    between NumPy, Dr.Jit and the C library in their last bits, float64 ones rounded to
+    float32 agree but within float64 error of a rounding boundary (one value in ~10^7)."""
     return select(values <= 0.04045, values / 12.92, ((values + 0.055) / 1.055) ** 2.4)
 
 
 def linear_to_srgb(values: np.ndarray) -> np.ndarray:
     """sRGB-encoded float32 values of linear ``values``, clipped to [0, 1] first: what an
-    8-bit image shows of a linear exemplar's colors (the inverse of :func:`srgb_to_linear`)."""
-    values = np.clip(np.asarray(values, np.float32), 0, 1)
-    return np.where(values <= np.float32(0.0031308), values * np.float32(12.92),
-                    np.float32(1.055) * values ** np.float32(1 / 2.4) - np.float32(0.055))
+    8-bit image shows of a linear exemplar's colors (the inverse of :func:`srgb_to_linear`),
+    computed in float64 like it."""
+    values = np.clip(np.asarray(values, np.float32), 0, 1).astype(np.float64)
+    return np.where(values <= 0.0031308, values * 12.92,
+                    1.055 * values ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
 def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool) -> np.ndarray:
