@@ -267,13 +267,16 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys,
     assert len(trimesh.load(tmp_path / "b.ply").vertices) == len(sphere.vertices)
     report = capsys.readouterr().out
     # glTF vertex colors are linear: the PNG's colors decoded, unless --raw.
-    ply = trimesh.load(tmp_path / "b.ply", process=False).visual.vertex_colors[:, :3]
-    linear = srgb_decoded(ply / 255) * 255  # within 2 of the decoded colors rounded twice
-    assert np.abs(linear - ply).max() > 20
+    ply = trimesh.load(tmp_path / "b.ply", process=False).visual.vertex_colors[:, :3] / 255
+    linear = srgb_decoded(ply)
+    assert np.abs(linear - ply).max() > 20 / 255
     for extra, expected in (([], linear), (["--raw"], ply)):
         assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
                      *extra, "-o", str(tmp_path / "b.glb")]) == 0
-        np.testing.assert_allclose(glb_vertex_colors(tmp_path / "b.glb"), expected, atol=2)
+        # Float colors in the .glb; the .ply's are rounded to 8 bits.
+        got = glb_vertex_colors(tmp_path / "b.glb")
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, expected, atol=0.51 / 255 if extra else 0.008)
     capsys.readouterr()
     shell_voxels = int(re.search(r"surface shell: (\d+) voxels", report).group(1))
     made, corrected = (int(n) for n in re.search(
@@ -390,7 +393,7 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
     others; srgb=None writes them as they are."""
     from PIL import Image
 
-    from warptex.exemplar import linear_to_srgb
+    from warptex.exemplar import linear_to_srgb, srgb_to_linear
 
     mesh, uv = _square()
     colors = np.array([[0.5, 0.0, 1.0], [0.2, 0.75, 0.04], [0.9, 0.3, 0.6],
@@ -407,10 +410,16 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
 
     for srgb in (True, None):
         np.testing.assert_array_equal(vertex_rgb("s.ply", srgb), rgb8(colors))
-    np.testing.assert_array_equal(vertex_rgb("s.glb", True), rgb8(srgb_decoded(colors)))
-    np.testing.assert_array_equal(vertex_rgb("s.glb", None), rgb8(colors))
+    # glTF's COLOR_0 is float: 8 linear bits would band the darks.
+    np.testing.assert_array_equal(vertex_rgb("s.glb", True), srgb_to_linear(colors))
+    np.testing.assert_allclose(vertex_rgb("s.glb", True), srgb_decoded(colors), atol=1e-7)
+    np.testing.assert_array_equal(vertex_rgb("s.glb", None), colors)
     np.testing.assert_array_equal(vertex_rgb("l.ply", False), rgb8(linear_to_srgb(colors)))
-    np.testing.assert_array_equal(vertex_rgb("l.glb", False), rgb8(colors))
+    np.testing.assert_array_equal(vertex_rgb("l.glb", False), colors)
+    # Dark sRGB steps stay apart, where 8 linear bits would keep 2 of these 4.
+    dark = np.array([0.0, 0.01, 0.02, 0.03], np.float32)[:, None].repeat(3, axis=1)
+    export(mesh, tmp_path / "d.glb", colors=dark, srgb=True)
+    assert len(np.unique(glb_vertex_colors(tmp_path / "d.glb")[:, 0])) == 4
     image = np.tile(colors[:2, None, :], (1, 16, 1)).reshape(2, 16, 3).repeat(8, axis=0)
     for srgb, expected in ((True, image), (False, linear_to_srgb(image))):
         files = export(mesh, tmp_path / f"t{srgb}.obj", image=image, uv=uv, srgb=srgb)

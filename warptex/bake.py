@@ -22,7 +22,7 @@ from kernels import bake as _k
 from warptex.device import device as default_device
 from warptex.device import init_warp, launch
 from warptex.exemplar import reencoded
-from warptex.sheets import to_rgb8
+from warptex.sheets import to_rgb, to_rgb8
 from warptex.surface import to_voxel_space
 from warptex.texture import SolidTexture, query_slabs
 
@@ -79,6 +79,7 @@ def bake_uv_texture(
 
 
 VERTEX_COLOR_FORMATS = (".ply", ".glb")
+_GLB_COLOR = "_linear_color"  # a mesh attribute trimesh writes as it is: float, VEC3
 UV_TEXTURE_FORMATS = (".glb", ".obj")
 
 
@@ -91,6 +92,17 @@ def _matte(suffix: str, image: Image.Image | None,
             name=name, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0)
     return trimesh.visual.material.SimpleMaterial(
         image=image, name=name, diffuse=[255] * 4, ambient=[255] * 4, specular=[0, 0, 0, 255])
+
+
+def _float_color_0(tree: dict) -> None:
+    """Name the float colors :func:`export` gives a glTF file its ``COLOR_0``: glTF's vertex
+    colors are linear, and trimesh writes ``COLOR_0`` in 8 bits, which band the darks
+    (a dark sRGB gradient kept 10 of its 47 levels)."""
+    for mesh in tree.get("meshes", []):
+        for primitive in mesh["primitives"]:
+            attributes = primitive["attributes"]
+            if _GLB_COLOR in attributes:
+                attributes["COLOR_0"] = attributes.pop(_GLB_COLOR)
 
 
 def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
@@ -115,6 +127,8 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    options: dict = {}
+    attributes: dict[str, np.ndarray] = {}
     if image is not None:
         if suffix not in UV_TEXTURE_FORMATS:
             raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
@@ -127,20 +141,24 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
             raise ValueError(f"{path}: vertex colors need a .ply or .glb file")
         if srgb is not None:
             colors = reencoded(colors, srgb=srgb, to_srgb=suffix != ".glb")
-        rgb = to_rgb8(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
-        rgba = np.c_[rgb, np.full(len(rgb), 255, np.uint8)]
+        rgb = to_rgb(colors.reshape(-1, 1, colors.shape[1])).reshape(-1, 3)
         if suffix == ".glb":  # COLOR_0 beside a material, else glTF's default is metallic
             visual = trimesh.visual.TextureVisuals(material=_matte(suffix, None, path.stem))
-            visual.vertex_attributes["color"] = rgba
+            attributes[_GLB_COLOR] = rgb
+            options["tree_postprocessor"] = _float_color_0
         else:
+            rgb8 = (rgb * 255.0 + 0.5).astype(np.uint8)
+            rgba = np.c_[rgb8, np.full(len(rgb8), 255, np.uint8)]
             visual = trimesh.visual.ColorVisuals(vertex_colors=rgba)
     else:
         raise ValueError("nothing to export: give colors or an image")
-    out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, visual=visual, process=False)
+    out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, visual=visual,
+                          vertex_attributes=attributes, process=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
         staged = Path(tmp) / path.name
-        options = {"mtl_name": f"{path.stem}.mtl"} if suffix == ".obj" else {}
+        if suffix == ".obj":
+            options["mtl_name"] = f"{path.stem}.mtl"
         out.export(staged, **options)
         written = []
         for f in sorted(Path(tmp).iterdir()):

@@ -14,13 +14,18 @@ _LABEL_HEIGHT = 14
 _GAP = 4
 
 
-def to_rgb8(image: np.ndarray) -> np.ndarray:
-    """An (H, W, C) float image in [0, 1] as 8-bit RGB: gray (with or without alpha)
-    repeated, channels past RGB dropped."""
+def to_rgb(image: np.ndarray) -> np.ndarray:
+    """An (H, W, C) float image as float32 RGB clipped to [0, 1]: gray (with or without
+    alpha) repeated, channels past RGB dropped."""
     img = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
     if img.shape[2] < 3:
         img = np.repeat(img[:, :, :1], 3, axis=2)
-    return (img[:, :, :3] * 255.0 + 0.5).astype(np.uint8)
+    return np.ascontiguousarray(img[:, :, :3])
+
+
+def to_rgb8(image: np.ndarray) -> np.ndarray:
+    """An (H, W, C) float image in [0, 1] as 8-bit RGB, as :func:`to_rgb` makes it RGB."""
+    return (to_rgb(image) * 255.0 + 0.5).astype(np.uint8)
 
 
 def volume_row(volume: np.ndarray, depth: int | None = None) -> list[tuple[str, np.ndarray]]:
