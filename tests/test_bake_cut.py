@@ -133,6 +133,27 @@ def test_cutting_an_open_mesh_where_it_has_no_inside():
     assert all(len(half.faces) > 0 for half in halves)
 
 
+def test_triangles_of_zero_area_are_left_out_of_a_cut():
+    """A box with a sliver on the plane and one across it cuts as the box does; a mesh of
+    slivers alone is refused (its cap failed with an IndexError)."""
+    box = trimesh.creation.box()
+    corners = [[0.0, -0.5, -0.5], [0.0, 0.0, 0.0], [0.0, 0.5, 0.5], [-0.4, -0.1, -0.1],
+               [0.4, 0.1, 0.1]]
+    n = len(box.vertices)
+    slivers = trimesh.Trimesh(np.vstack([box.vertices, corners]),
+                              np.vstack([box.faces, [[n, n + 1, n + 2], [n + 3, n + 1, n + 4]]]),
+                              process=False)
+    origin, normal = np.zeros(3), np.array([1.0, 0.0, 0.0])
+    for with_slivers, plain in zip(cut(slivers, origin, normal), cut(box, origin, normal),
+                                   strict=True):
+        assert with_slivers.is_watertight
+        np.testing.assert_array_equal(with_slivers.faces, plain.faces)
+        np.testing.assert_array_equal(with_slivers.vertices, plain.vertices)
+    line = trimesh.Trimesh(corners[:3], [[0, 1, 2]], process=False)
+    with pytest.raises(ValueError, match="every triangle of the mesh has zero area"):
+        cut(line, origin, np.array([0.0, 1.0, 0.0]))
+
+
 def test_a_cut_through_separate_parts_caps_each():
     """Two boxes cut together: the cap has two outlines, which trimesh nests with rtree."""
     box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

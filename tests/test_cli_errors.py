@@ -17,6 +17,8 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("inputs")
     mesh = folder / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    flat = folder / "flat.ply"  # one triangle whose corners lie on a line
+    trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], process=False).export(flat)
     notes = folder / "notes.txt"
     notes.write_text("not bricks")
     scene = folder / "scene.xml"
@@ -37,7 +39,7 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     np.save(gray, _rotated(granite_32_file)[..., :1])
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
-            "gray": gray, "no_sensor": no_sensor}
+            "gray": gray, "no_sensor": no_sensor, "flat": flat}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -86,6 +88,10 @@ CASES = [
      "{exemplar}: cannot read mesh"),
     (["bake", "{out}/missing.ply", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
      "{out}/missing.ply: mesh file not found"),
+    (["bake", "{flat}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
+     "{flat}: every triangle has zero area"),
+    (["cut", "{flat}", "--exemplar", "{exemplar}", "-o", "{out}/c.ply"],
+     "{flat}: every triangle has zero area"),
     (["render", "{out}/missing.xml", "-o", "{out}/r.png"],
      "{out}/missing.xml: scene file not found"),
     (["render", "{no_sensor}", "-o", "{notes}/r.png"],

@@ -784,6 +784,8 @@ def _load_mesh(path: Path, uv: str = "none"):
         raise CliError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from None
     if len(getattr(mesh, "faces", ())) == 0:
         raise CliError(f"{path}: no triangles found")
+    if not mesh.area > 0:
+        raise CliError(f"{path}: every triangle has zero area: the mesh has no surface")
     if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
         raise CliError(f"{path}: the mesh has no UVs; use --uv auto to make them")
     return mesh

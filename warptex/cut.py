@@ -26,6 +26,12 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray,
     if not np.linalg.norm(normal) > 0:
         raise ValueError("the cut plane needs a non-zero normal")
     origin = np.asarray(origin, np.float64)
+    # Triangles of zero area bound nothing, and the cap's triangulation fails on them.
+    kept = mesh.nondegenerate_faces()
+    if not kept.any():
+        raise ValueError("every triangle of the mesh has zero area")
+    if not kept.all():
+        mesh = mesh.submesh([kept], append=True, repair=False)
     # How dense the surface is where the plane cuts it: its edges that cross the plane.
     above = (mesh.vertices - origin) @ normal > 0
     crossing = above[mesh.edges_unique[:, 0]] != above[mesh.edges_unique[:, 1]]
