@@ -23,7 +23,8 @@ def main() -> None:
     shared = HERE.parent.parent / "shared" / "data" / "exemplars"
     parser.add_argument("--exemplars", type=Path, default=shared,
                         help=f"folder of the exemplar photos, *_64.png (default {shared})")
-    parser.add_argument("--size", type=int, default=64)
+    parser.add_argument("--size", type=int, default=64,
+                        help="edge of each method's volume in voxels (default 64)")
     args = parser.parse_args()
     if not any(args.exemplars.glob("*_64.png")):
         parser.error(f"{args.exemplars} holds no *_64.png exemplars: give the folder of the "

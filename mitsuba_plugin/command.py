@@ -236,6 +236,7 @@ def _print_report(report: dict) -> None:
                        f"{t['renders_with_misses']}), wavefront lookups")
         print(f"  {entry['texture']}\n    {s['voxels']} voxels in {s['bricks']} bricks "
               f"({s['bytes'] / 2**20:.2f} MiB), {lookups} {s['hits']} hits / "
-              f"{s['misses']} misses, synthesis {s['synthesis_seconds']:.1f} s"
+              f"{s['misses']} misses, synthesis {s['synthesis_seconds']:.1f} s (summed over "
+              "the threads that synthesized)"
               + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))
     print(f"  statistics: {report['image']}.json")

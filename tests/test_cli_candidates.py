@@ -248,7 +248,7 @@ def test_volume_of_exemplars_encoded_differently_is_refused_unless_stored_as_is(
     assert _volume(images, out, "--ey", str(linear)) == 2
     assert capsys.readouterr().err == (
         "warptex: error: the exemplars' colors are encoded differently (a.png sRGB-encoded, "
-        "linear.npy linear): convert one image, or keep the values as stored (raw)\n")
+        "linear.npy linear): convert one image, or keep the values as stored (--raw)\n")
     assert not out.exists()
     assert _volume(images, out, "--ey", str(linear), "--raw") == 0
     assert _volume(images, tmp_path / "v.npy", "--ey", str(linear)) == 0  # values as stored

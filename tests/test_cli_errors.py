@@ -17,6 +17,8 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     folder = tmp_path_factory.mktemp("inputs")
     mesh = folder / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=1).export(mesh)
+    other_linear = folder / "other_linear.npy"  # float: linear colors, the PNG's are sRGB
+    np.save(other_linear, _rotated(granite_32_file).astype(np.float32) / 255)
     flat = folder / "flat.ply"  # one triangle whose corners lie on a line
     trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], process=False).export(flat)
     notes = folder / "notes.txt"
@@ -39,7 +41,8 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     np.save(gray, _rotated(granite_32_file)[..., :1])
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
-            "gray": gray, "no_sensor": no_sensor, "flat": flat}
+            "gray": gray, "no_sensor": no_sensor, "flat": flat,
+            "other_linear": other_linear}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -60,6 +63,9 @@ CASES = [
     (["precompute", "{exemplar}", "-o", "{out}/c.npz"], "a candidate file must end in .wtc"),
     (["slice", "{exemplar}", "--origin", "nan", "0", "0", "-o", "{out}/s.png"], "--origin"),
     (["slice", "{exemplar}", "-o", "{out}/s.jpg"], "must end in .png, .exr or .npy"),
+    (["slice", "{exemplar}", "-o", "{out}/.png"], "the image needs a name before .png"),
+    (["volume", "{exemplar}", "--ey", "{other_linear}", "--size", "8", "-o", "{out}/v.vol"],
+     "keep the values as stored (--raw)"),
     (["slice", "{exemplar}", "--jitter", "65", "-o", "{out}/s.png"],
      "--jitter must be within [0, 64], got 65.0"),
     (["slice", "{exemplar}", "--passes", "-2", "-o", "{out}/s.png"], "--passes must be"),
@@ -274,6 +280,10 @@ def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatc
     assert main(["slice", str(files["exemplar"]), "-o", str(tmp_path / "s.png")]) == 2
     assert capsys.readouterr().err.startswith("warptex: error: WARPTEX_DEVICE=")
     assert not (tmp_path / "s.png").exists()
+    # Describing an exemplar or the cache uses no device.
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
+    assert main(["info", str(files["exemplar"])]) == 0
+    assert main(["cache"]) == 0
 
 
 def test_texture_settings_reach_volume_and_slice(files, tmp_path):
@@ -366,7 +376,7 @@ def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(warptex.cli, "_check_device", interrupted)
-    assert main(["info", str(files["exemplar"])]) == 130
+    assert main(["slice", str(files["exemplar"]), "-o", "never.png"]) == 130
     assert capsys.readouterr().err == "\nwarptex: interrupted\n"
 
 

@@ -50,6 +50,8 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
     that it is one of ``formats`` and that the file can be written where it is asked for
     (missing folders are created then)."""
     suffix = path.suffix.lower()
+    if formats is not None and not suffix and path.name.lower() in formats:
+        raise CliError(f"{path}: {what} needs a name before {path.name} (out{path.name}, say)")
     if formats is not None and suffix not in formats:
         endings = " or ".join([", ".join(formats[:-1]), formats[-1]] if len(formats) > 1
                               else formats)
@@ -227,7 +229,8 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
         "precompute", help="pre-compute the 3D candidates of an exemplar (Dong 2008, section 4)",
         description="Pre-compute the 3D candidates of an exemplar (Dong 2008, section 4) into "
         "the candidate cache, which every other command reads (WARPTEX_CACHE sets its "
-        "folder); prints candidates per pixel, time and size per pyramid level.",
+        "folder); prints each pyramid level's candidates per pixel and fallback pixels, "
+        "then the time taken and the candidates' size.",
     )
     _add_exemplar_arguments(parser)
     _add_axis_exemplar_arguments(parser, "EXEMPLAR")
@@ -316,7 +319,8 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
     print("  (fallback pixels: no candidate passed the coherence test of section 4.2, so "
           "they keep their best crossbar match)")
     print(f"time: {elapsed:.2f} s")
-    print(f"bytes: {cs.nbytes()} ({cs.nbytes() / 1024:.1f} KiB)")
+    print(f"bytes: {cs.nbytes()} ({cs.nbytes() / 1024:.1f} KiB of arrays; a .wtc file adds "
+          "its header and layout)")
 
 
 def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -581,7 +585,7 @@ def _colors_srgb(args: argparse.Namespace, exemplars: list[Exemplar]) -> bool | 
     are (--raw, or a .npy output). Exemplars encoded differently are refused otherwise."""
     if args.raw or args.output.suffix.lower() == ".npy":
         return None
-    return srgb_encoded(exemplars)
+    return srgb_encoded(exemplars, raw="--raw")
 
 
 def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
@@ -1171,8 +1175,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             if "exemplar_max_size" in args:  # before any work, a mesh's loading included
                 _check_max_size(args)
-            _check_device()
-            if args.command not in ("info", "cache"):
+            if args.command not in ("info", "cache"):  # the two that use no device
+                _check_device()
                 _note_kernel_build()
             code = command(args)
             sys.stdout.flush()  # here, so that a reader gone early is handled below

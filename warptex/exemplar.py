@@ -231,16 +231,16 @@ class Exemplar:
         )
 
 
-def srgb_encoded(exemplars: list[Exemplar]) -> bool:
+def srgb_encoded(exemplars: list[Exemplar], raw: str = "raw") -> bool:
     """Whether the exemplars of the three axes hold sRGB-encoded colors (``srgb``); an
     ExemplarError naming them where some do and others are linear, as a voxel's color
-    averages colors of all three."""
+    averages colors of all three; ``raw`` names the setting that keeps values as stored."""
     if len({e.srgb for e in exemplars}) == 1:
         return exemplars[0].srgb
     kinds = ", ".join(dict.fromkeys(
         f"{e.name} {'sRGB-encoded' if e.srgb else 'linear'}" for e in exemplars))
     raise ExemplarError(f"the exemplars' colors are encoded differently ({kinds}): convert "
-                        "one image, or keep the values as stored (raw)")
+                        f"one image, or keep the values as stored ({raw})")
 
 
 def srgb_to_linear(values: Any) -> np.ndarray:
