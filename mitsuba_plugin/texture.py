@@ -220,6 +220,9 @@ def _to_world(props: mi.Properties) -> np.ndarray:
     except (AttributeError, TypeError, ValueError):
         raise property_error(PLUGIN, "to_world",
                              f"must be a <transform ...>, got {value!r}") from None
+    if not np.isfinite(matrix).all():
+        raise property_error(PLUGIN, "to_world", "must be finite: it has NaN or infinite "
+                             "entries")
     try:
         inverse = np.linalg.inv(matrix)
     except np.linalg.LinAlgError:

@@ -9,6 +9,7 @@ volume that queries it at each medium interaction's position::
         <texture type="lazy_solid" name="albedo"> ... </texture>
         <float name="sigma_t" value="6"/>   <!-- optional, default 1; or a nested volume -->
         <float name="scale" value="1"/>     <!-- optional, default 1: multiplies sigma_t -->
+        <phase type="hg"> ... </phase>      <!-- optional, default isotropic -->
     </medium>
 """
 
@@ -66,10 +67,20 @@ def lazy_solid_medium(props: mi.Properties,
     if albedo is None or not hasattr(albedo, "colors_at"):
         raise property_error(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
     sigma_t = props.get("sigma_t", 1.0)  # a number, or a nested volume Mitsuba checks
-    if isinstance(sigma_t, int | float) and not (math.isfinite(sigma_t) and sigma_t >= 0):
-        raise property_error(MEDIUM, "sigma_t", f"must not be negative, got {sigma_t}")
+    if isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
+        sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too
+        if not (math.isfinite(sigma_t) and sigma_t >= 0):
+            raise property_error(MEDIUM, "sigma_t", f"must not be negative, got {sigma_t}")
     scale = get_property(props, "scale", float, 1.0, MEDIUM)
     if not (math.isfinite(scale) and scale >= 0):
         raise property_error(MEDIUM, "scale", f"must not be negative, got {scale}")
-    return mi.load_dict({"type": "heterogeneous", "albedo": volume_type(albedo),
-                         "sigma_t": sigma_t, "scale": scale})
+    medium = {"type": "heterogeneous", "albedo": volume_type(albedo), "sigma_t": sigma_t,
+              "scale": scale}
+    # A nested phase function arrives under a name of the parser's ("_arg_0").
+    phases = [props[name] for name, value in props.items()
+              if isinstance(value, mi.PhaseFunction)]  # props[name] marks it as read
+    if len(phases) > 1:
+        raise property_error(MEDIUM, "phase", f"must be given once, got {len(phases)}")
+    if phases:
+        medium["phase"] = phases[0]
+    return mi.load_dict(medium)

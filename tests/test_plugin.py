@@ -79,6 +79,8 @@ def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_fi
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be invertible'):
         load(granite_32_file, to_world=mi.ScalarTransform4f().scale([1, 0, 1]))
+    with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be finite'):
+        load(granite_32_file, to_world=mi.ScalarTransform4f().scale([1, float("nan"), 1]))
 
 
 def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_file, tmp_path):

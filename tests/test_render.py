@@ -128,10 +128,32 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
         mi.load_dict({"type": "lazy_solid_medium", "albedo": {"type": "checkerboard"}})
     wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
     albedo = {"type": "lazy_solid", "exemplar": str(wood)}
-    for name, value in (("sigma_t", -1.0), ("sigma_t", float("inf")), ("scale", "dense"),
-                        ("scale", -1.0)):
+    for name, value in (("sigma_t", -1.0), ("sigma_t", float("inf")), ("sigma_t", -2),
+                        ("scale", "dense"), ("scale", -1.0)):
         with pytest.raises(RuntimeError, match=f'lazy_solid_medium: property "{name}" must'):
             mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, name: value})
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "phase" must be given '
+                       "once, got 2"):
+        mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                      "front": {"type": "hg"}, "back": {"type": "isotropic"}})
+
+
+def test_medium_takes_a_nested_phase_function_and_an_integer_sigma_t():
+    """Like Mitsuba's own media: a phase function nested in the scene (isotropic without),
+    and <integer name="sigma_t" .../> as well as a float."""
+    use("scalar_rgb")
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    xml = ('<scene version="3.0.0"><medium type="lazy_solid_medium" id="m">'
+           f'<texture type="lazy_solid" name="albedo"><string name="exemplar" value="{wood}"/>'
+           '</texture><integer name="sigma_t" value="6"/>{phase}</medium>'
+           '<shape type="sphere"><ref name="interior" id="m"/></shape></scene>')
+    for phase, expected in (('<phase type="hg"><float name="g" value="0.7"/></phase>', "g = 0.7"),
+                            ("", "IsotropicPhaseFunction")):
+        scene = mi.load_string(xml.replace("{phase}", phase))
+        (shape,) = scene.shapes()
+        medium = shape.interior_medium()
+        assert expected in str(medium.phase_function())
+        assert "UniformSpectrum[value=6.000000]" in str(medium)
 
 
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):
