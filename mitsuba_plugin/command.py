@@ -183,7 +183,7 @@ def _check_store_file(texture, outputs: list[Path]) -> None:
     if cache is None:
         return
     for output in outputs:
-        if cache.absolute() == output.absolute() or (
+        if cache.resolve() == output.resolve() or (
                 cache.exists() and output.exists() and cache.samefile(output)):
             raise ValueError(f'lazy_solid: property "cache" names {output}, which this render '
                              "writes: choose another output name")

@@ -77,7 +77,6 @@ the store, which synthesizes it. Any render works there, ``mi.render`` included.
 from __future__ import annotations
 
 import math
-import struct
 import threading
 from pathlib import Path
 from typing import Any
@@ -116,7 +115,6 @@ PLUGIN = "lazy_solid"
 _KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>',
           bool: 'a <boolean ...>'}
 _SPACES = ("world", "object")
-_FLOAT32 = struct.Struct("f")  # rounds a Python float to float32, as Color3f does
 _DEFAULT_SCALE = 64.0
 
 
@@ -518,10 +516,10 @@ def _choice_of(condition: bool, if_true: float, if_false: float) -> float:
 
 
 def _srgb_decoded(value: float) -> float:
-    """:func:`srgb_to_linear` of one Python float (rounded to float32 first, as a lookup's
-    color is, and by the caller's Color3f after), for the scalar variants' one point per
-    call, where a NumPy or Dr.Jit call (about 6 us) would cost as much as the lookup."""
-    return srgb_decoded(_FLOAT32.unpack(_FLOAT32.pack(value))[0], _choice_of)
+    """:func:`srgb_to_linear` of one Python float holding a float32 color, rounded to float32
+    by the caller's Color3f, for the scalar variants' one point per call, where a NumPy or
+    Dr.Jit call (about 6 us) would cost as much as the lookup."""
+    return srgb_decoded(value, _choice_of)
 
 
 def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:

@@ -70,17 +70,22 @@ def lazy_solid_medium(props: mi.Properties,
     if isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
         sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too
         if not (math.isfinite(sigma_t) and sigma_t >= 0):
-            raise property_error(MEDIUM, "sigma_t", f"must not be negative, got {sigma_t}")
+            raise property_error(MEDIUM, "sigma_t",
+                                 f"must be finite and not negative, got {sigma_t}")
     scale = get_property(props, "scale", float, 1.0, MEDIUM)
     if not (math.isfinite(scale) and scale >= 0):
         raise property_error(MEDIUM, "scale", f"must not be negative, got {scale}")
     medium = {"type": "heterogeneous", "albedo": volume_type(albedo), "sigma_t": sigma_t,
               "scale": scale}
-    # A nested phase function arrives under a name of the parser's ("_arg_0").
-    phases = [props[name] for name, value in props.items()
-              if isinstance(value, mi.PhaseFunction)]  # props[name] marks it as read
-    if len(phases) > 1:
-        raise property_error(MEDIUM, "phase", f"must be given once, got {len(phases)}")
-    if phases:
-        medium["phase"] = phases[0]
+    # A nested phase function arrives under a name of the parser's ("_arg_0"). Only nested
+    # objects are read here, so Mitsuba still reports a misspelled property as unreferenced.
+    nested = [name for name in props if name not in ("albedo", "sigma_t")
+              and props.type(name) == mi.Properties.Type.Object]
+    for name in nested:
+        if not isinstance(props[name], mi.PhaseFunction):
+            raise property_error(MEDIUM, name, "must be a nested phase function (<phase ...>)")
+    if len(nested) > 1:
+        raise property_error(MEDIUM, "phase", f"must be given once, got {len(nested)}")
+    if nested:
+        medium["phase"] = props[nested[0]]
     return mi.load_dict(medium)

@@ -98,6 +98,27 @@ def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):
     assert _statuses(folder)[renamed.name] == cc.OTHER_VERSION
 
 
+def test_unreadable_and_replaced_files_are_left_alone(folder, computed):
+    """A folder named like a cache file is listed, never deleted; a damaged file that another
+    run replaced after the listing (recomputed candidates) is not the file judged."""
+    current, _ = computed
+    odd = folder / f"{candidates.CACHE_PREFIX}{'4' * 40}.wtc"
+    odd.mkdir()
+    listed = {f.path.name: f for f in cc.cache_files(folder)}
+    assert listed[odd.name].status == cc.UNREADABLE
+    damaged = folder / f"{candidates.CACHE_PREFIX}{'1' * 40}.wtc"
+    assert listed[damaged.name].status == cc.DAMAGED
+    replaced = folder / ".replacement"
+    shutil.copy(current, replaced)
+    os.replace(replaced, damaged)  # as write_atomically puts a recomputed file in place
+    never = [f for f in listed.values() if f.status in cc.NEVER_READ]
+    count, _ = cc.remove(never)
+    assert count == len(never) - 1
+    assert damaged.read_bytes() == current.read_bytes() and odd.is_dir()
+    assert main(["cache", "--clear"]) == 0
+    assert odd.is_dir()
+
+
 def test_prune_deletes_what_no_run_reads_and_keeps_the_rest(folder, computed, image, capsys):
     current, _ = computed
     assert main(["cache"]) == 0

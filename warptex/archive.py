@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+_TEMPORARY = ".tmp"  # before the suffix of a file being written
 _VERSION_BYTES = 4
 _DIGEST_BYTES = 32
 
@@ -78,7 +79,7 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     (Mitsuba's bitmap writer takes ``.PNG`` for an unknown format)."""
     path = Path(path)
     tag = f"{os.getpid()}.{threading.get_ident()}"
-    tmp = path.with_name(f".{path.stem}.{tag}.tmp{path.suffix.lower()}")
+    tmp = path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         write(tmp)
@@ -91,6 +92,13 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     finally:
         with contextlib.suppress(OSError):  # where the write failed, so may this
             tmp.unlink(missing_ok=True)
+
+
+def is_temporary(name: str, prefix: str, suffix: str) -> bool:
+    """Whether ``name`` is one :func:`write_atomically` gives a file while writing it, of a
+    file whose name starts with ``prefix`` and ends in ``suffix``: one a write that died
+    may have left."""
+    return name.startswith("." + prefix) and name.endswith(_TEMPORARY + suffix.lower())
 
 
 def write_archive(path: str | Path, magic: bytes, version: int,

@@ -147,7 +147,7 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
             attributes[_GLB_COLOR] = rgb
             options["tree_postprocessor"] = _float_color_0
         else:
-            rgb8 = (rgb * 255.0 + 0.5).astype(np.uint8)
+            rgb8 = to_rgb8(rgb[:, None, :])[:, 0]
             rgba = np.c_[rgb8, np.full(len(rgb8), 255, np.uint8)]
             visual = trimesh.visual.ColorVisuals(vertex_colors=rgba)
     else:

@@ -10,12 +10,14 @@ other tools keeps their files.
 
 from __future__ import annotations
 
+import errno
+import os
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from warptex.archive import archive_version
+from warptex.archive import archive_version, is_temporary
 from warptex.candidates import (
     CACHE_PREFIX,
     CACHE_SUFFIX,
@@ -32,7 +34,8 @@ OTHER_VERSION = "other version"  # written by other warptex code (or renamed): n
 DAMAGED = "damaged"  # truncated, corrupt or not a candidate file: recomputed, never read
 UNFINISHED = "unfinished"  # the temporary file of a write that never finished
 BEING_WRITTEN = "being written"  # a temporary file young enough to be another run's write
-STATUSES = (IN_USE, OTHER_VERSION, DAMAGED, UNFINISHED, BEING_WRITTEN)
+UNREADABLE = "unreadable"  # cannot be read here (permissions, a folder): left alone
+STATUSES = (IN_USE, OTHER_VERSION, DAMAGED, UNFINISHED, BEING_WRITTEN, UNREADABLE)
 # What ``--prune`` deletes: files no run of this warptex reads, now or later.
 NEVER_READ = (OTHER_VERSION, DAMAGED, UNFINISHED)
 # A write renames its temporary file within seconds (``archive.write_atomically``); one
@@ -47,8 +50,11 @@ class CacheFile:
     path: Path
     size: int  # bytes
     modified: float  # seconds since the epoch
-    status: str  # IN_USE, OTHER_VERSION, DAMAGED, UNFINISHED or BEING_WRITTEN
+    status: str  # one of STATUSES
     names: tuple[str, ...] = ()  # the exemplars (x, y, z) as named when computed, if recorded
+    # Inode, modification time (ns) and size when listed: a file replaced since (a damaged
+    # one recomputed by another run) is not the file judged, and is not deleted.
+    identity: tuple[int, int, int] = (0, 0, 0)
 
 
 def cache_files(folder: Path | None = None, now: float | None = None) -> list[CacheFile]:
@@ -63,12 +69,12 @@ def cache_files(folder: Path | None = None, now: float | None = None) -> list[Ca
     if not folder.exists():
         return []
     if not folder.is_dir():
-        raise NotADirectoryError(f"{folder}: the candidate cache is not a folder")
+        raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(folder))
     now = time.time() if now is None else now
     found = []
     for path in folder.iterdir():
         cached = path.name.startswith(CACHE_PREFIX) and path.name.endswith(CACHE_SUFFIX)
-        if not cached and not _is_temporary(path.name):
+        if not cached and not is_temporary(path.name, CACHE_PREFIX, CACHE_SUFFIX):
             continue
         try:
             info = path.stat()
@@ -79,28 +85,42 @@ def cache_files(folder: Path | None = None, now: float | None = None) -> list[Ca
                 status, names = (UNFINISHED if old else BEING_WRITTEN), ()
         except FileNotFoundError:  # renamed into place or pruned by another run meanwhile
             continue
-        found.append(CacheFile(path, info.st_size, info.st_mtime, status, names))
+        found.append(CacheFile(path, info.st_size, info.st_mtime, status, names,
+                               _identity(info)))
     return sorted(found, key=lambda f: (f.modified, f.path.name))
 
 
-def remove(files: Iterable[CacheFile]) -> int:
-    """Delete ``files`` (those already gone are skipped); returns the bytes freed.
+def remove(files: Iterable[CacheFile]) -> tuple[int, int]:
+    """Delete ``files`` that are still as listed (those gone or replaced since are left);
+    returns how many were deleted and their bytes.
 
     Raises:
         OSError: a file cannot be deleted, named in the error.
     """
-    freed = 0
+    count = freed = 0
     for file in files:
         try:
+            if _identity(file.path.stat()) != file.identity:
+                continue
             file.path.unlink()
         except FileNotFoundError:  # pruned by another run meanwhile
             continue
+        count += 1
         freed += file.size
-    return freed
+    return count, freed
+
+
+def _identity(info: os.stat_result) -> tuple[int, int, int]:
+    return info.st_ino, info.st_mtime_ns, info.st_size
 
 
 def _status(path: Path) -> tuple[str, tuple[str, ...]]:
-    version = archive_version(path, FILE_MAGIC)
+    try:
+        version = archive_version(path, FILE_MAGIC)
+    except FileNotFoundError:
+        raise
+    except OSError:  # another user's file in a shared folder, or a folder of that name
+        return UNREADABLE, ()
     if version is None:
         return DAMAGED, ()
     if version != FORMAT_VERSION:
@@ -115,8 +135,3 @@ def _status(path: Path) -> tuple[str, tuple[str, ...]]:
     except TypeError:  # not JSON-serializable: cannot come from any warptex
         return DAMAGED, names
     return (IN_USE if path.name == expected else OTHER_VERSION), names
-
-
-def _is_temporary(name: str) -> bool:
-    """A temporary name ``archive.write_atomically`` gives a cache file while writing it."""
-    return name.startswith("." + CACHE_PREFIX) and name.endswith(".tmp" + CACHE_SUFFIX)

@@ -331,7 +331,8 @@ def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
         "exemplars come up. 'other version': written by another warptex version (or "
         "renamed), which this one never reads. 'damaged': truncated or corrupt, computed "
         "again when needed. 'unfinished': left by a write that died over an hour ago. "
-        "'being written': a write of another run, perhaps still going. Files stay until "
+        "'being written': a write of another run, perhaps still going. 'unreadable': not "
+        "readable here (another user's file, a folder), left alone. Files stay until "
         "deleted here. Also says where Warp's kernel cache is and how large.",
         epilog="Deleted candidates are computed again when next needed (a few seconds for a "
         "64 px exemplar, minutes for 256 px).",
@@ -340,7 +341,8 @@ def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
     what.add_argument("--prune", action="store_true",
                       help="delete the 'other version', 'damaged' and 'unfinished' files")
     what.add_argument("--clear", action="store_true",
-                      help="delete every candidate file but those 'being written'")
+                      help="delete every candidate file but those 'being written' or "
+                      "'unreadable'")
 
 
 def _cmd_cache(args: argparse.Namespace) -> int:
@@ -366,14 +368,15 @@ def _cmd_cache(args: argparse.Namespace) -> int:
                            if (n := sum(f.status == status for f in files)))
         print(f"{len(files)} files, {_mib_tenths(sum(f.size for f in files))}: {counts}")
     never = [f for f in files if f.status in cc.NEVER_READ]
-    doomed = [f for f in files if f.status != cc.BEING_WRITTEN] if args.clear else never
+    kept = (cc.BEING_WRITTEN, cc.UNREADABLE)
+    doomed = [f for f in files if f.status not in kept] if args.clear else never
     if args.prune or args.clear:
         try:
-            freed = cc.remove(doomed)
+            count, freed = cc.remove(doomed)
         except OSError as error:
             raise CliError(f"{error.filename}: cannot delete ({error.strerror or error})"
                            ) from None
-        print(f"deleted: {len(doomed)} files, {_mib_tenths(freed)}")
+        print(f"deleted: {count} files, {_mib_tenths(freed)}")
     elif never:
         print(f"warptex cache --prune deletes the {len(never)} that no run of this warptex "
               f"reads ({_mib_tenths(sum(f.size for f in never))})")
@@ -403,7 +406,11 @@ def _kernel_cache_line() -> str:
 
     init_warp()
     folder = Path(wp.config.kernel_cache_dir)
-    size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else 0
+    size = 0
+    for parent, _, names in os.walk(folder):  # unreadable folders are skipped
+        for name in names:
+            with contextlib.suppress(OSError):  # removed by a build meanwhile
+                size += os.stat(os.path.join(parent, name), follow_symlinks=False).st_size
     return (f"Warp's kernel cache: {folder} (WARP_CACHE_PATH sets it), {_mib_tenths(size)}; "
             "built again when missing, so it may be emptied between runs")
 

@@ -27,7 +27,7 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray,
         raise ValueError("the cut plane needs a non-zero normal")
     origin = np.asarray(origin, np.float64)
     # Triangles of zero area bound nothing, and the cap's triangulation fails on them.
-    kept = mesh.nondegenerate_faces()
+    kept = mesh.area_faces > 0
     if not kept.any():
         raise ValueError("every triangle of the mesh has zero area")
     if not kept.all():
