@@ -105,7 +105,7 @@ def verdict(size: int, result: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
         "--names", nargs="+", default=["granite", "marble_black", "rust", "bricks_red"]
     )

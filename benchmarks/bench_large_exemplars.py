@@ -58,7 +58,7 @@ def one(photos: list[Path], side: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--photos", nargs="+", type=Path, default=[PHOTO],
                         help="one photo for all three axes, or three, one per axis")
     parser.add_argument("--sides", nargs="+", type=int, default=[128, 256, 512])

@@ -69,7 +69,7 @@ def diffuse_xml(xml: str) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--res", type=int, default=256)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--repeat", type=int, default=3)

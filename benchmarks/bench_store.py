@@ -108,7 +108,7 @@ def cold(candidates) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--exemplar", default=str(REPO / "tests" / "data" / "granite_64.png"))
     parser.add_argument("--skip-cold", action="store_true")
     args = parser.parse_args()

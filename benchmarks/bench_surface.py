@@ -28,7 +28,7 @@ SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--resolution", type=int, default=1024)
     parser.add_argument("--mesh", type=Path, default=SHARED / "meshes" / "stanford_bunny.ply")
     parser.add_argument("--exemplar", type=Path,

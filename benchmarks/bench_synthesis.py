@@ -100,7 +100,7 @@ def memory(folder: Path) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--jitter-sweep", action="store_true",

@@ -90,7 +90,7 @@ def cut_cost(cs: CandidateSet, passes: int, radius: int) -> tuple[int, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
     parser.add_argument("--names", nargs="+", default=None,
                         help="exemplar names without _64 (default: every *_64.png)")

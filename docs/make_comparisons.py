@@ -19,7 +19,7 @@ MORE_PASSES = 3  # the quality setting the index reports beside the default
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     shared = HERE.parent.parent / "shared" / "data" / "exemplars"
     parser.add_argument("--exemplars", type=Path, default=shared,
                         help=f"folder of the exemplar photos, *_64.png (default {shared})")

@@ -30,7 +30,7 @@ def main() -> None:
 
     import mitsuba_plugin
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     parser.add_argument("--res", type=int, default=256,
                         help="width and height of each render in pixels (default 256)")

@@ -21,7 +21,7 @@ NAMES = ["granite_64", "rocks_in_sand_64", "gravel_gray_64", "marble_black_64", 
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     shared = HERE.parent.parent / "shared" / "data" / "exemplars"
     parser.add_argument("--exemplars", type=Path, default=shared,
                         help=f"folder of the exemplar photos (default {shared})")

@@ -151,6 +151,8 @@ CASES = [
      "{out}: is a folder, expected a mesh file"),
     (["render", "{out}", "-o", "{out}/r.png"], "{out}: is a folder, expected a scene file"),
     (["compare", "{exemplar}", "--methods", " ", "-o", "{out}/cmp"], "no method given"),
+    (["compare", "{exemplar}", "--methods", "noise,extrude,noise", "-o", "{out}/cmp"],
+     "method(s) given more than once: noise"),
     (["compare", "{exemplar}", "-o", "{notes}"], "expected an output folder"),
     (["precompute", "{exemplar}", "--ey", "{gray}"],
      "same number of feature channels; found x {exemplar} 3, y {gray} 1, z {gray} 1"),

@@ -13,7 +13,6 @@ import functools
 import json
 import multiprocessing
 import platform
-import resource
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -27,6 +26,7 @@ from tqdm.auto import tqdm
 from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
+from warptex.machine import PeakMemory, map_large_blocks
 from warptex.settings import DEFAULT_PASSES, check_settings
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
@@ -185,11 +185,10 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int,
     make_volume, make_large = _RUN[method]
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(ex, 8, seed, passes)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    start = time.perf_counter()
-    volume = make_volume(ex, size, seed, passes)
-    seconds = time.perf_counter() - start
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with PeakMemory() as memory:
+        start = time.perf_counter()
+        volume = make_volume(ex, size, seed, passes)
+        seconds = time.perf_counter() - start
     large = make_large(ex, volume, seed, passes)
     colors = ex.colors
     return {
@@ -199,7 +198,7 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int,
         "histogram": [metrics.histogram_distance(volume, colors, a) for a in range(3)],
         "repetition": metrics.repetition_score(large),
         "seconds": seconds,
-        "peak_mib": max(peak - base, 0) / 1024.0,
+        "peak_mib": memory.growth / 2**20,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
         "render": render_cube(_cube_texture(method, ex, volume, seed, passes, max_size)),
         "notes": f"correction passes per level: {passes}" if method in _LAZY else "",
@@ -254,6 +253,9 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
         )
     if not methods:
         raise ValueError(f"no method given; choose from {', '.join(METHODS)}")
+    repeated = sorted({m for m in methods if list(methods).count(m) > 1})
+    if repeated:
+        raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_settings(passes=passes)
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
@@ -265,7 +267,8 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     results = []
     ctx = multiprocessing.get_context("spawn")
     for method in tqdm(methods, desc="methods", disable=not progress):
-        with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
+                                 initializer=map_large_blocks) as pool:
             out = pool.submit(_measure, method, str(exemplar_path), size, seed,
                               passes, max_size).result()
         results.append(MethodResult(**out))
@@ -283,7 +286,7 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
             return " / ".join(f"{x:.3f}" for x in v)
 
         lines.append(f"| {r.method} | {trio(r.energy)} | {trio(r.swd)} | {trio(r.histogram)} | "
-                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.0f} | {r.device} | "
+                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.1f} | {r.device} | "
                      f"{r.notes} |")
     return "\n".join(lines) + "\n"
 
@@ -293,7 +296,8 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
                  max_size: int | None = None) -> list[Path]:
     """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) into
     ``out_dir`` atomically, with the :func:`run_summary` of the ``size^3``, ``seed``
-    comparison run here on the exemplar as loaded with ``max_size``."""
+    comparison run here on the exemplar as loaded with ``max_size`` (its size, as
+    ``exemplar_size`` [width, height] in the JSON's ``run``)."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
