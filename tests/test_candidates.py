@@ -653,8 +653,29 @@ def test_unknown_or_bad_parameters_are_rejected():
         precompute(ex, cache=False, neighborhood=4)
     with pytest.raises(ValueError, match=r"candidates_3d must be within \[1, 255\]"):
         precompute(ex, cache=False, candidates_3d=300)  # its counts are stored as bytes
-    with pytest.raises(ValueError, match="candidates_2d_finest must be at least 1"):
+    with pytest.raises(ValueError, match=r"candidates_2d_finest must be within \[1, 64\]"):
         precompute(ex, cache=False, candidates_2d_finest=0)
+    # Each of these crashed a kernel (keep 0), ran for hours (strips 100000), failed with a
+    # message naming no parameter, or was kept and cached as given.
+    bad = [({"keep": 0}, ValueError, r"keep must be within \[1, 65535\], got 0"),
+           ({"strips": 100000}, ValueError, r"strips must be within \[1, 256\]"),
+           ({"strips": -1}, ValueError, "strips must be within"),
+           ({"max_dims": 0}, ValueError, "max_dims must be within"),
+           ({"neighborhood": 11}, ValueError, r"neighborhood must be within \[3, 9\]"),
+           ({"neighborhood": 5.5}, TypeError, "neighborhood must be an integer, got 5.5"),
+           ({"neighborhood": "5"}, TypeError, "neighborhood must be an integer"),
+           ({"keep": True}, TypeError, "keep must be an integer"),
+           ({"coherence_rounds": -1}, ValueError, "coherence_rounds must be within"),
+           ({"min_dims": 12, "max_dims": 8}, ValueError, r"min_dims \(12\) must not exceed"),
+           ({"variance": 2.0}, ValueError, r"variance .* must be within \(0, 1\]"),
+           ({"variance": float("nan")}, ValueError, "variance"),
+           ({"variance": "0.9"}, ValueError, "variance")]
+    for params, error, message in bad:
+        with pytest.raises(error, match=message):
+            precompute(ex, cache=False, **params)
+    # A NumPy integer is an integer, and keys the cache as the plain one does.
+    resolved = candidates._resolve_params({"neighborhood": np.int64(5)})
+    assert resolved == candidates.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int
 
 
 def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:

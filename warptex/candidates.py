@@ -21,6 +21,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cache, cached_property
+from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from tqdm.auto import tqdm
 
 from kernels import candidates as _k
 from kernels import common as _common
-from kernels.synthesis import MAX_DIMS, PROJ_LIMIT
+from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
@@ -78,6 +79,22 @@ DEFAULT_PARAMS: dict[str, object] = {
     "min_dims": 8,
     "max_dims": 12,
     "coherence_rounds": 16,
+}
+
+
+# What each integer parameter may be. Beyond these a pre-computation failed deep inside (keep
+# 0 crashed a kernel), ran for hours (the crossbar search grows as strips^2) or made
+# candidates the engine refuses (it reads at most BLOCK voxels away, so N <= 2 BLOCK + 1).
+_PARAM_RANGES: dict[str, tuple[int, int]] = {
+    "neighborhood": (3, 2 * BLOCK + 1),
+    "strips": (1, 256),
+    "keep": (1, 65535),
+    "candidates_3d": (1, 255),  # counts of 3D candidates are stored as bytes
+    "candidates_2d": (1, 64),
+    "candidates_2d_finest": (1, 64),
+    "min_dims": (1, MAX_DIMS),
+    "max_dims": (1, MAX_DIMS),
+    "coherence_rounds": (1, 1024),
 }
 
 
@@ -375,18 +392,29 @@ def _as_exemplar(e: Exemplar | str | Path) -> Exemplar:
 
 
 def _resolve_params(params: dict) -> dict:
+    """The parameters with their defaults, each checked against :data:`_PARAM_RANGES` (and
+    made a plain int or float, as cache keys and files hold them)."""
     unknown = set(params) - set(DEFAULT_PARAMS)
     if unknown:
         raise TypeError(f"unknown candidate parameter(s): {', '.join(sorted(unknown))}")
     p = {**DEFAULT_PARAMS, **params}
-    if int(p["neighborhood"]) < 3 or int(p["neighborhood"]) % 2 == 0:
-        raise ValueError(f"neighborhood must be odd and >= 3, got {p['neighborhood']}")
-    # Counts of 3D candidates are stored as bytes.
-    if not 1 <= int(p["candidates_3d"]) <= 255:
-        raise ValueError(f"candidates_3d must be within [1, 255], got {p['candidates_3d']}")
-    for name in ("candidates_2d", "candidates_2d_finest"):
-        if int(p[name]) < 1:
-            raise ValueError(f"{name} must be at least 1, got {p[name]}")
+    for name, (low, high) in _PARAM_RANGES.items():
+        value = p[name]
+        if isinstance(value, bool) or not isinstance(value, Integral):
+            raise TypeError(f"{name} must be an integer, got {value!r}")
+        if not low <= value <= high:
+            raise ValueError(f"{name} must be within [{low}, {high}], got {value}")
+        p[name] = int(value)
+    if p["neighborhood"] % 2 == 0:
+        raise ValueError(f"neighborhood must be odd, got {p['neighborhood']}")
+    if p["min_dims"] > p["max_dims"]:
+        raise ValueError(f"min_dims ({p['min_dims']}) must not exceed max_dims "
+                         f"({p['max_dims']})")
+    variance = p["variance"]
+    if isinstance(variance, bool) or not isinstance(variance, Real) or not 0 < variance <= 1:
+        raise ValueError(f"variance (the share of PCA variance kept) must be within (0, 1], "
+                         f"got {variance!r}")
+    p["variance"] = float(variance)
     return p
 
 
