@@ -110,3 +110,31 @@ def test_repetition_score_leaves_out_shifts_within_exclude():
     smooth = gaussian_filter(rng.standard_normal((128, 128)), 3.0, mode="wrap")
     assert metrics.repetition_score(smooth, exclude=1) > 0.6
     assert metrics.repetition_score(smooth) < 0.3
+
+
+def test_inputs_without_a_meaning_are_one_clear_error():
+    """A flat exemplar has no variance to measure in (it gave 2.6e11), NaN colors gave NaN,
+    and the other arguments failed deep inside or returned a number that meant nothing."""
+    rng = np.random.default_rng(5)
+    ex = rng.random((16, 16, 3)).astype(np.float32)
+    vol = metrics.iid_noise(ex, (8, 8, 8))
+    nan_vol = vol.copy()
+    nan_vol[0, 0, 0, 0] = np.nan
+    cases = [
+        (metrics.neighborhood_energy, (vol, np.full_like(ex, 0.5), 0), {}, "exemplar is constant"),
+        (metrics.sliced_wasserstein, (nan_vol, ex, 0), {}, "volume holds NaN"),
+        (metrics.histogram_distance, (nan_vol, ex, 0), {}, "volume holds NaN"),
+        (metrics.sliced_wasserstein, (vol, ex, 0), {"directions": 0}, "directions must be"),
+        (metrics.neighborhood_energy, (vol, ex, 0), {"slices": 0}, "count of slices"),
+        (metrics.neighborhood_energy, (vol, ex, 0), {"size": 0}, "size .* positive integer"),
+        (metrics.neighborhood_energy, (vol, ex, 1.0), {}, "axis must be 0, 1 or 2"),
+        (metrics.neighborhood_energy, (vol[:0], ex, 0), {}, "too few or too small"),
+        (metrics.repetition_score, (np.full((64, 64), np.nan),), {}, "image holds NaN"),
+        (metrics.repetition_score, (rng.random((64, 64)),), {"exclude": -1}, "exclude must"),
+    ]
+    for metric, args, kwargs, message in cases:
+        with pytest.raises(ValueError, match=message):
+            metric(*args, **kwargs)
+    from warptex.exemplar import Exemplar
+
+    assert metrics.iid_noise(Exemplar(ex), (2, 2, 2)).shape == (2, 2, 2, 3)

@@ -7,6 +7,8 @@ perpendicular to axis k is read with the same orientation as the exemplar of axi
 
 from __future__ import annotations
 
+from numbers import Integral
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -14,6 +16,8 @@ from scipy.spatial import cKDTree
 def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarray]:
     """``count`` evenly spaced slices perpendicular to ``axis``, as (rows, cols, C) images
     oriented like the exemplar of that axis."""
+    if count < 1:
+        raise ValueError(f"the count of slices must be at least 1, got {count}")
     depth = volume.shape[axis]
     picks = np.unique(np.linspace(0, depth - 1, min(count, depth)).astype(int))
     order = [(axis + 1) % 3, (axis + 2) % 3]
@@ -56,12 +60,21 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     if volume.shape[3] != exemplar.shape[2]:
         raise ValueError(f"volume has {volume.shape[3]} channels, exemplar "
                          f"{exemplar.shape[2]}")
-    if axis not in (0, 1, 2):
+    if isinstance(axis, bool) or not isinstance(axis, Integral) or axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+    if isinstance(size, bool) or not isinstance(size, Integral) or size < 1:
+        raise ValueError(f"size (of the patches) must be a positive integer, got {size!r}")
     across = [volume.shape[a] for a in range(3) if a != axis]
-    if min(across) < size:
-        raise ValueError(f"slices across axis {axis} are {across[0]} x {across[1]}: too small "
-                         f"for {size} x {size} patches")
+    if min(across) < size or volume.shape[axis] < 1:
+        raise ValueError(f"slices across axis {axis} are {across[0]} x {across[1]}, "
+                         f"{volume.shape[axis]} of them: too few or too small for {size} x "
+                         f"{size} patches")
+    for name, a in (("volume", volume), ("exemplar", exemplar)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} holds NaN or infinite values")
+    # Distances are measured in units of the exemplar's spread: a flat one has none.
+    if not exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum() > 0:
+        raise ValueError("exemplar is constant: the metrics measure in units of its variance")
     return volume, exemplar
 
 
@@ -79,7 +92,7 @@ def neighborhood_energy(
     )
     dist, _ = tree.query(vol_patches, k=1, workers=-1)
     var = float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
-    return float(np.mean(dist**2) / (size * size * max(var, 1e-12)))
+    return float(np.mean(dist**2) / (size * size * var))
 
 
 def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray) -> float:
@@ -100,6 +113,8 @@ def sliced_wasserstein(
     """Sliced Wasserstein-1 distance between slice patches and exemplar patches,
     averaged over random unit directions and normalized by the exemplar's std."""
     volume, exemplar = _checked(volume, exemplar, axis, size)
+    if directions < 1:
+        raise ValueError(f"directions must be at least 1, got {directions}")
     a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
     b = patches(exemplar, size, wrap=True)
     rng = np.random.default_rng(seed)
@@ -109,7 +124,7 @@ def sliced_wasserstein(
     pa = np.quantile(a @ dirs, q, axis=0)
     pb = np.quantile(b @ dirs, q, axis=0)
     std = float(np.sqrt(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum()))
-    return float(np.mean(np.abs(pa - pb)) / max(std, 1e-12))
+    return float(np.mean(np.abs(pa - pb)) / std)
 
 
 def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
@@ -139,6 +154,10 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     image = image[:, :, None] if image.ndim == 2 else image
     if image.ndim != 3:
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
+    if not np.isfinite(image).all():
+        raise ValueError("image holds NaN or infinite values")
+    if exclude < 0:
+        raise ValueError(f"exclude must not be negative (shift 0 matches itself), got {exclude}")
     if max(image.shape[:2]) // 4 <= exclude:
         raise ValueError(f"a {image.shape[0]} x {image.shape[1]} image is too small for the "
                          f"repetition score: shifts past {exclude} pixels up to a quarter of "
@@ -164,6 +183,7 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
 
 def iid_noise(exemplar: np.ndarray, shape: tuple[int, int, int], seed: int = 0) -> np.ndarray:
     """A volume of independent exemplar pixels: right histogram, no structure."""
+    exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
     flat = exemplar.reshape(-1, exemplar.shape[2])
     idx = np.random.default_rng(seed).integers(0, len(flat), size=int(np.prod(shape)))
     return flat[idx].reshape(*shape, exemplar.shape[2])
