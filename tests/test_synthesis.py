@@ -322,8 +322,14 @@ def test_bad_requests_are_clear(candidates):
     for passes in (-1, 9):
         with pytest.raises(ValueError, match=r"passes must be within \[0, 8\]"):
             Synthesizer(candidates, passes=passes)
-    with pytest.raises(ValueError, match="levels must not be negative"):
+    with pytest.raises(ValueError, match="levels must be at least 0, got -1"):
         Synthesizer(candidates, levels=-1)
+    # Once truncated (2.5), or a raw comparison error (None), or kept (-1).
+    for name, value in (("levels", 2.5), ("levels", None), ("coarse_cache_bytes", "1")):
+        with pytest.raises(ValueError, match=f"{name} must be an integer"):
+            Synthesizer(candidates, **{name: value})
+    with pytest.raises(ValueError, match="coarse_cache_bytes must be at least 0"):
+        Synthesizer(candidates, coarse_cache_bytes=-1)
     for seed in (-1, 2**31):  # once kept to their low 31 bits: aliases of other seeds
         with pytest.raises(ValueError, match=r"seed must be within \[0, 2147483647\]"):
             Synthesizer(candidates, seed=seed)

@@ -336,6 +336,12 @@ def test_bad_shapes_dtypes_and_empty_input(candidates):
         tex.query(np.zeros((4, 3)), fill=[0.0, 1.0])
     empty = tex.query(np.zeros((0, 3), np.float32))
     assert empty.shape == (0, tex.channels) and empty.dtype == np.float32
+    # Once a comparison error naming nothing ("1"), or a truthy string kept ("no").
+    with pytest.raises(ValueError, match="cache_bytes must be an integer, got '1'"):
+        texture(candidates, cache_bytes="1")
+    with pytest.raises(ValueError, match="whole_bricks must be True or False, got 'no'"):
+        texture(candidates, whole_bricks="no")
+    assert texture(candidates, whole_bricks=np.bool_(False)).store.whole_bricks is False
 
 
 def test_warp_arrays_are_accepted(candidates):

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from numbers import Integral, Real
 
+import numpy as np
+
 DEFAULT_JITTER = 1.0
 MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
 DEFAULT_PASSES = 2  # the paper's (section 5.2)
@@ -42,6 +44,23 @@ def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
         raise SettingError("jitter", f"must be within [0, {MAX_JITTER:g}], got {jitter}")
     if not 0 <= passes <= MAX_PASSES:
         raise SettingError("passes", f"must be within [0, {MAX_PASSES}], got {passes}")
+
+
+def check_count(name: str, value: object, low: int = 0) -> int:
+    """``value`` as an int, after a SettingError unless it is an integer of at least ``low``
+    (a count or a number of bytes; a bool or a float is refused, not truncated)."""
+    if isinstance(value, bool) or not isinstance(value, Integral):
+        raise SettingError(name, f"must be an integer, got {value!r}")
+    if value < low:
+        raise SettingError(name, f"must be at least {low}, got {value}")
+    return int(value)
+
+
+def check_flag(name: str, value: object) -> bool:
+    """``value`` after a SettingError unless it is a bool ("no" would count as true)."""
+    if not isinstance(value, bool | np.bool_):
+        raise SettingError(name, f"must be True or False, got {value!r}")
+    return bool(value)
 
 
 def check_max_size(max_size: int | None) -> None:

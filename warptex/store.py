@@ -40,7 +40,7 @@ from warptex.archive import ArchiveError, is_foreign, read_archive, write_archiv
 from warptex.device import launch
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
-from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS
+from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
 from warptex.synthesis import ENGINE_VERSION, Synthesizer
 
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
@@ -230,8 +230,8 @@ class BrickStore:
 
     def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  whole_bricks: bool = True) -> None:
-        if cache_bytes < 0:
-            raise ValueError(f"cache_bytes must not be negative, got {cache_bytes}")
+        cache_bytes = check_count("cache_bytes", cache_bytes)
+        whole_bricks = check_flag("whole_bricks", whole_bricks)
         self.synthesizer = synthesizer
         self.cache_bytes = int(cache_bytes)
         self.whole_bricks = bool(whole_bricks)

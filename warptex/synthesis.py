@@ -33,7 +33,7 @@ from warptex.keysets import (
     unpack,
 )
 from warptex.parallel import launch_ranges
-from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_settings
+from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_count, check_settings
 
 # Raised whenever the engine gives any voxel another result from the same inputs, so that
 # brick stores written by an earlier engine are not reused. 2: shifted neighbour triples;
@@ -276,8 +276,8 @@ class Synthesizer:
         if subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
         check_settings(jitter, passes, seed)
-        if levels < 0:
-            raise ValueError(f"levels must not be negative, got {levels}")
+        levels = check_count("levels", levels)
+        coarse_cache_bytes = check_count("coarse_cache_bytes", coarse_cache_bytes)
         init_warp()
         self.candidates = candidates
         self.seed = int(seed)
