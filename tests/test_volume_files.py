@@ -76,3 +76,18 @@ def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, s
         data = vol if name == "v.npy" else vol[0]
         (write_volume if name == "v.npy" else write_image)(tmp_path / name, data, srgb=True)
         np.testing.assert_array_equal(np.load(tmp_path / name), data)
+
+
+def test_empty_volumes_and_images_and_a_non_bool_srgb_are_refused(tmp_path):
+    """An empty volume once failed inside OpenEXR naming a temporary file, or was written
+    as a 48-byte grid; srgb="no" counted as true."""
+    from warptex.volume_files import write_image, write_volume
+
+    for suffix in (".exr", ".vol", ".npy"):
+        with pytest.raises(ValueError, match=r"the volume is empty: shape \(0, 2, 2, 3\)"):
+            write_volume(tmp_path / f"e{suffix}", np.zeros((0, 2, 2, 3), np.float32), srgb=True)
+    with pytest.raises(ValueError, match="the image is empty"):
+        write_image(tmp_path / "e.exr", np.zeros((2, 2, 0), np.float32), srgb=False)
+    with pytest.raises(ValueError, match="srgb must be True or False, got 'no'"):
+        write_volume(tmp_path / "v.vol", np.zeros((2, 2, 2, 3), np.float32), srgb="no")
+    assert not list(tmp_path.iterdir())

@@ -15,6 +15,7 @@ import numpy as np
 
 from warptex.archive import write_atomically
 from warptex.exemplar import reencoded
+from warptex.settings import check_flag
 
 VOLUME_FORMATS = (".npy", ".exr", ".vol")
 
@@ -28,6 +29,7 @@ def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool) -> None:
     of an exemplar whose ``Exemplar.srgb`` is set: ``.exr`` and ``.vol`` get them decoded.
     Raises ValueError for another suffix and OSError when the file cannot be written."""
     path = Path(path)
+    srgb = check_flag("srgb", srgb)
     volume = _float_array(volume, 4, "volume", "(X, Y, Z, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
     writer = writers.get(path.suffix.lower())
@@ -42,6 +44,7 @@ def write_image(path: str | Path, image: np.ndarray, *, srgb: bool) -> None:
     """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR, which
     gets sRGB-encoded colors (``srgb``, as for :func:`write_volume`) decoded."""
     path = Path(path)
+    srgb = check_flag("srgb", srgb)
     image = _float_array(image, 3, "image", "(H, W, C)")
     writers = {".npy": _write_npy, ".exr": _write_exr}
     writer = writers.get(path.suffix.lower())
@@ -67,6 +70,8 @@ def _float_array(data, ndim: int, name: str, layout: str) -> np.ndarray:
         raise ValueError(f"the {name} must be a {layout} array, got shape {array.shape}")
     if not np.issubdtype(array.dtype, np.floating):
         raise TypeError(f"the {name} must hold float colors, got {array.dtype}")
+    if 0 in array.shape:
+        raise ValueError(f"the {name} is empty: shape {array.shape}")
     return array
 
 
