@@ -439,3 +439,20 @@ def test_more_passes_change_the_texture_and_stay_deterministic(candidates):
                               box)
     tex = SolidTexture(candidates, seed=2, passes=3)
     assert np.array_equal(tex.query(pts + 0.5, filter="nearest"), three.voxels(pts))
+
+
+def test_a_box_larger_than_the_memory_is_refused_before_any_work(candidates, monkeypatch):
+    """As the commands do: a box whose request would not fit is one clear error, where
+    NumPy's MemoryError (or the system's out-of-memory killer) came half-way."""
+    import warptex.machine
+    from warptex.texture import SolidTexture
+
+    syn = Synthesizer(candidates)
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 1 << 30)
+    with pytest.raises(ValueError, match=r"a box of shape \(1024, 1024, 400\) needs about "
+                       r"\d+ GiB, this machine has 1 GiB; synthesize it in parts"):
+        syn.box((0, 0, 0), (1024, 1024, 400))
+    assert syn.box((0, 0, 0), (2, 2, 2)).shape == (2, 2, 2, 3)
+    tex = SolidTexture(candidates, device="cpu")
+    with pytest.raises(ValueError, match=r"a slice of shape \(40000, 40000\) needs about"):
+        tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), (40000, 40000))

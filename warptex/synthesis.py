@@ -32,6 +32,7 @@ from warptex.keysets import (
     unique,
     unpack,
 )
+from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_count, check_settings
 
@@ -336,6 +337,10 @@ class Synthesizer:
         shape = _three_ints("shape", shape)
         if min(shape) < 0:
             raise ValueError(f"shape must be three non-negative ints, got {shape}")
+        need = box_bytes(shape) + 4 * self.candidates.channels * int(np.prod(shape))
+        problem = memory_problem(need)
+        if problem is not None:  # before allocating: too large a box would end in swapping
+            raise ValueError(f"a box of shape {shape} {problem}; synthesize it in parts")
         grid = np.indices(shape).reshape(3, -1).T + np.asarray(origin, np.int64)
         return self.voxels(grid).reshape(*shape, self.candidates.channels)
 

@@ -19,9 +19,10 @@ import warp as wp
 
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
+from warptex.machine import memory_problem
 from warptex.settings import DEFAULT_CACHE_BYTES, DEFAULT_JITTER, DEFAULT_PASSES, FILTERS
 from warptex.store import BrickStore, StoreFileError, settings_differences
-from warptex.synthesis import COORD_LIMIT, Synthesizer
+from warptex.synthesis import COORD_LIMIT, REQUEST_BYTES_PER_VOXEL, Synthesizer
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
@@ -167,6 +168,11 @@ class SolidTexture:
         if len(rows_cols) != 2 or not all(isinstance(n, Integral) and not isinstance(n, bool)
                                           and n > 0 for n in rows_cols):
             raise ValueError(f"shape must be two positive ints (rows, columns), got {shape!r}")
+        # Its points (float64), colors and the lookup's arrays per point, about a request's.
+        per_point = 24 + 4 * self.channels + REQUEST_BYTES_PER_VOXEL
+        problem = memory_problem(rows_cols[0] * rows_cols[1] * per_point)
+        if problem is not None:
+            raise ValueError(f"a slice of shape {tuple(shape)} {problem}; take it in parts")
         points = plane_points(np.asarray(origin), np.asarray(u), np.asarray(v), rows_cols)
         return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
