@@ -166,6 +166,7 @@ class CandidateSet:
         return 0 if self.shared else axis
 
     def nbytes(self) -> int:
+        """Bytes of the arrays a candidate file holds (its header and layout come on top)."""
         return sum(a.nbytes for a in _flatten(self).values())
 
     @cached_property

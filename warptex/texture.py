@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import threading
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from numbers import Integral
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import warp as wp
@@ -32,7 +32,7 @@ POINT_LIMIT = COORD_LIMIT - 2
 FAR_PERIOD = 1 << 22
 
 
-def wrap_far(c, select=np.where, rint=np.rint):
+def wrap_far(c: Any, select: Callable = np.where, rint: Callable = np.rint) -> Any:
     """Texture coordinates ``c`` as a renderer reads them: unchanged strictly within
     +-POINT_LIMIT, else moved by whole periods of FAR_PERIOD voxels to within FAR_PERIOD / 2
     of the origin, so that every finite shading point has a color (the texture repeats only
@@ -114,6 +114,7 @@ class SolidTexture:
 
     @property
     def channels(self) -> int:
+        """Channels of the colors a query gives: the exemplars' (3 for RGB)."""
         return self.store.channels
 
     def query(
