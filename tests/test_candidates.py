@@ -669,7 +669,7 @@ def test_unknown_or_bad_parameters_are_rejected():
            ({"min_dims": 12, "max_dims": 8}, ValueError, r"min_dims \(12\) must not exceed"),
            ({"variance": 2.0}, ValueError, r"variance .* must be within \(0, 1\]"),
            ({"variance": float("nan")}, ValueError, "variance"),
-           ({"variance": "0.9"}, ValueError, "variance")]
+           ({"variance": "0.9"}, TypeError, "variance must be a number")]
     for params, error, message in bad:
         with pytest.raises(error, match=message):
             precompute(ex, cache=False, **params)

@@ -412,7 +412,9 @@ def _resolve_params(params: dict) -> dict:
         raise ValueError(f"min_dims ({p['min_dims']}) must not exceed max_dims "
                          f"({p['max_dims']})")
     variance = p["variance"]
-    if isinstance(variance, bool) or not isinstance(variance, Real) or not 0 < variance <= 1:
+    if isinstance(variance, bool) or not isinstance(variance, Real):
+        raise TypeError(f"variance must be a number, got {variance!r}")
+    if not 0 < variance <= 1:
         raise ValueError(f"variance (the share of PCA variance kept) must be within (0, 1], "
                          f"got {variance!r}")
     p["variance"] = float(variance)

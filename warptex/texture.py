@@ -169,9 +169,11 @@ class SolidTexture:
         if len(rows_cols) != 2 or not all(isinstance(n, Integral) and not isinstance(n, bool)
                                           and n > 0 for n in rows_cols):
             raise ValueError(f"shape must be two positive ints (rows, columns), got {shape!r}")
-        # Its points (float64), colors and the lookup's arrays per point, about a request's.
-        per_point = 24 + 4 * self.channels + REQUEST_BYTES_PER_VOXEL
-        problem = memory_problem(rows_cols[0] * rows_cols[1] * per_point)
+        # Its points (float64, and their grid while made) and colors, and one query batch's
+        # request arrays (queries run BATCH points at a time).
+        count = rows_cols[0] * rows_cols[1]
+        need = count * (40 + 4 * self.channels) + min(count, BATCH) * REQUEST_BYTES_PER_VOXEL
+        problem = memory_problem(need)
         if problem is not None:
             raise ValueError(f"a slice of shape {tuple(shape)} {problem}; take it in parts")
         points = plane_points(np.asarray(origin), np.asarray(u), np.asarray(v), rows_cols)
