@@ -138,10 +138,18 @@ def archive_version(path: str | Path, magic: bytes) -> int | None:
         OSError: the file cannot be read.
     """
     with open(path, "rb") as file:
-        head = file.read(len(magic) + _VERSION_BYTES + _DIGEST_BYTES)
-    if len(head) < len(magic) + _VERSION_BYTES + _DIGEST_BYTES or head[: len(magic)] != magic:
+        return _header_version(file.read(_header_bytes(magic)), magic)
+
+
+def _header_bytes(magic: bytes) -> int:
+    return len(magic) + _VERSION_BYTES + _DIGEST_BYTES
+
+
+def _header_version(data: bytes, magic: bytes) -> int | None:
+    """The version in the header that ``data`` starts with; None if it holds no header."""
+    if len(data) < _header_bytes(magic) or data[: len(magic)] != magic:
         return None
-    return int.from_bytes(head[len(magic) : len(magic) + _VERSION_BYTES], "little")
+    return int.from_bytes(data[len(magic) : len(magic) + _VERSION_BYTES], "little")
 
 
 def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
@@ -153,13 +161,12 @@ def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
         data = path.read_bytes()
     except OSError as e:
         raise error(f"{path}: cannot read {kind} file ({e.strerror})") from None
-    start = len(magic) + _VERSION_BYTES
-    end = start + _DIGEST_BYTES
-    if len(data) < end or data[: len(magic)] != magic:
+    found = _header_version(data, magic)
+    if found is None:
         raise error(f"{path}: not a warptex {kind} file")
-    found = int.from_bytes(data[len(magic) : start], "little")
     if found != version:
         raise error(f"{path}: {kind} file version {found}, expected {version}")
+    start, end = len(magic) + _VERSION_BYTES, _header_bytes(magic)
     payload = data[end:]
     if hashlib.sha256(payload).digest() != data[start:end]:
         raise error(f"{path}: checksum mismatch (truncated or corrupt file)")

@@ -73,9 +73,14 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
         if not np.isfinite(a).all():
             raise ValueError(f"{name} holds NaN or infinite values")
     # Distances are measured in units of the exemplar's spread: a flat one has none.
-    if not exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum() > 0:
+    if not _variance(exemplar) > 0:
         raise ValueError("exemplar is constant: the metrics measure in units of its variance")
     return volume, exemplar
+
+
+def _variance(exemplar: np.ndarray) -> float:
+    """The exemplar's variance summed over channels: the unit of the distances measured."""
+    return float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
 
 
 def neighborhood_energy(
@@ -91,8 +96,7 @@ def neighborhood_energy(
         [patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)]
     )
     dist, _ = tree.query(vol_patches, k=1, workers=-1)
-    var = float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
-    return float(np.mean(dist**2) / (size * size * var))
+    return float(np.mean(dist**2) / (size * size * _variance(exemplar)))
 
 
 def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray) -> float:
@@ -123,8 +127,7 @@ def sliced_wasserstein(
     q = np.linspace(0.0, 1.0, 257)
     pa = np.quantile(a @ dirs, q, axis=0)
     pb = np.quantile(b @ dirs, q, axis=0)
-    std = float(np.sqrt(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum()))
-    return float(np.mean(np.abs(pa - pb)) / std)
+    return float(np.mean(np.abs(pa - pb)) / np.sqrt(_variance(exemplar)))
 
 
 def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,

@@ -230,11 +230,9 @@ class BrickStore:
 
     def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  whole_bricks: bool = True) -> None:
-        cache_bytes = check_count("cache_bytes", cache_bytes)
-        whole_bricks = check_flag("whole_bricks", whole_bricks)
         self.synthesizer = synthesizer
-        self.cache_bytes = int(cache_bytes)
-        self.whole_bricks = bool(whole_bricks)
+        self.cache_bytes = check_count("cache_bytes", cache_bytes)
+        self.whole_bricks = check_flag("whole_bricks", whole_bricks)
         cs = synthesizer.candidates
         sources = [cs.colors[cs.axis_source[k]] for k in range(3)]
         self.channels = cs.channels
