@@ -18,7 +18,8 @@ from warptex.store import (
     voxels_read,
 )
 
-BRICK_BYTES = 512 * 6 + 68  # uint16 triples, the stored-voxel bits and the pool base
+SLOT_BYTES = 68  # a brick's stored-voxel bits and pool base
+BRICK_BYTES = 512 * 6 + SLOT_BYTES  # uint16 triples
 
 
 @pytest.fixture(scope="module")
@@ -367,3 +368,76 @@ def test_partly_filled_bricks_cost_only_their_voxels(candidates, tmp_path: Path)
     kept = loaded.stats()
     assert 0 < kept["payload_bytes"] <= loaded.cache_bytes and kept["bricks_evicted"] > 0
     np.testing.assert_array_equal(sample(loaded, voxels[::-1] + 0.5), expected[::-1])
+
+
+def test_saves_to_one_file_merge_rather_than_replace(candidates, tmp_path: Path):
+    """Two stores of one texture (two renders of other objects) save to one file: it keeps
+    the voxels of both, a brick both filled in part holding the voxels of either, and the
+    later save's bricks count as the more recent. A file of another texture is replaced."""
+    syn = synthesizer(candidates)
+    path = tmp_path / "shared.wtb"
+    first, second = BrickStore(syn, whole_bricks=False), BrickStore(syn, whole_bricks=False)
+    first.prefetch(np.array([[0, 0, 0], [1, 2, 3], [20, 0, 0]]))
+    second.prefetch(np.array([[1, 2, 3], [4, 4, 4], [-9, 0, 0]]))
+    first.save(path)
+    second.save(path)
+    voxels = np.array([[0, 0, 0], [1, 2, 3], [20, 0, 0], [4, 4, 4], [-9, 0, 0]])
+    loaded = BrickStore.load(path, syn, whole_bricks=False)
+    assert (loaded.stats()["voxels"], loaded.stats()["bricks"]) == (5, 3)
+    np.testing.assert_array_equal(sample(loaded, voxels + 0.5), syn.voxels(voxels))
+    assert loaded.stats()["misses"] == 0
+    # The brick at the origin, in both, and the one at -9, the second's alone, are the most
+    # recent: a store of two bricks' room keeps them.
+    two = 2 * SLOT_BYTES + 4 * 6  # their four voxels
+    small = BrickStore.load(path, syn, whole_bricks=False, cache_bytes=two)
+    snap = small.snapshot()
+    assert set(snap.keys[snap.keys >= 0]) == set(brick_keys(voxels[[0, 4]]))
+    # Saving again changes nothing; a store of another seed replaces the file.
+    second.save(path)
+    assert BrickStore.load(path, syn).stats()["voxels"] == 5
+    other = BrickStore(synthesizer(candidates, seed=3), whole_bricks=False)
+    other.prefetch(np.array([[0, 0, 0]]))
+    other.save(path)
+    with pytest.warns(UserWarning, match="another texture"):
+        BrickStore.load(path, syn)
+    assert BrickStore.load(path, synthesizer(candidates, seed=3)).stats()["voxels"] == 1
+
+
+def test_a_merged_save_keeps_what_fits_the_cache(candidates, tmp_path: Path):
+    syn = synthesizer(candidates)
+    path = tmp_path / "s.wtb"
+    old = BrickStore(syn)
+    for b in range(3):
+        sample(old, [brick_center((b, 0, 0))])
+    old.save(path)
+    new = BrickStore(syn, cache_bytes=2 * BRICK_BYTES)
+    sample(new, [brick_center((0, 5, 0))])
+    new.save(path)
+    snap = BrickStore.load(path, syn).snapshot()
+    assert set(snap.keys[snap.keys >= 0]) == set(brick_keys(np.array([[16, 0, 0], [0, 40, 0]])))
+
+
+def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
+    """Saves take turns on the file's folder, so each merge reads the file the previous
+    one wrote (threads here; processes lock the same way)."""
+    import threading
+
+    syn = synthesizer(candidates)
+    path = tmp_path / "s.wtb"
+    stores = []
+    for i in range(4):
+        store = BrickStore(syn, whole_bricks=False)
+        store.prefetch(np.array([[8 * i, 0, 0]]))
+        stores.append(store)
+    barrier = threading.Barrier(len(stores))
+
+    def save(store: BrickStore) -> None:
+        barrier.wait()
+        store.save(path)
+
+    threads = [threading.Thread(target=save, args=(s,)) for s in stores]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert BrickStore.load(path, syn).stats()["voxels"] == len(stores)

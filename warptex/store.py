@@ -21,9 +21,12 @@ change how much is synthesized, never a color.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import itertools
 import json
+import os
 import threading
 import time
 import warnings
@@ -103,6 +106,52 @@ def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     starts = np.cumsum(counts) - counts
     return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
+
+
+def _bricks_union(older: tuple[np.ndarray, np.ndarray, np.ndarray],
+                  newer: tuple[np.ndarray, np.ndarray, np.ndarray],
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bricks of two stores' (keys, triples, stored bits), each listed least recently
+    used first, as one such list: ``newer``'s bricks the more recent, a brick in both
+    holding the voxels of either (their triples are the same, as voxels are
+    position-determined)."""
+    keys = np.concatenate([older[0], newer[0]])
+    triples = np.concatenate([older[1], newer[1]])
+    valid = np.concatenate([older[2], newer[2]])
+    bits = np.unpackbits(valid.view(np.uint8), bitorder="little").reshape(
+        len(keys), _k.BRICK_VOXELS)
+    rows, local = np.nonzero(bits)  # row by row, local order: the order of ``triples``
+    distinct, brick = np.unique(keys, return_inverse=True)
+    latest = np.zeros(len(distinct), np.int64)
+    np.maximum.at(latest, brick, np.arange(len(keys)))
+    by_recency = np.argsort(latest)
+    position = np.empty_like(by_recency)
+    position[by_recency] = np.arange(len(distinct))
+    code, first = np.unique(position[brick[rows]] * _k.BRICK_VOXELS + local, return_index=True)
+    merged = np.zeros(len(distinct) * _k.BRICK_VOXELS, bool)
+    merged[code] = True
+    merged_valid = np.packbits(merged, bitorder="little").view(np.uint32).reshape(
+        len(distinct), _k.VALID_WORDS)
+    return distinct[by_recency], triples[first], merged_valid
+
+
+@contextmanager
+def _taking_turns(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``path``'s folder: every process's saves there take turns,
+    so a merge reads the file that the previous save wrote. Where the folder cannot be
+    locked (a file system without locks), saves go on untaken, as before merging."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        folder = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        yield
+        return
+    try:
+        with contextlib.suppress(OSError):
+            fcntl.flock(folder, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(folder)  # releases the lock
 
 
 class Snapshot(NamedTuple):
@@ -379,17 +428,31 @@ class BrickStore:
     def save(self, path: str | Path) -> None:
         """Write the bricks to a versioned, checksummed file atomically (temporary name,
         then rename), least recently used first; a file of another kind at ``path`` is
-        refused (StoreFileError), not replaced."""
+        refused (StoreFileError), not replaced.
+
+        A file this texture saved before, from this or another process, is merged with, not
+        replaced: its voxels are the same as ours, so both renders' work stays warm. Its
+        bricks count as older than ours, and the most recent that fit ``cache_bytes`` are
+        written. Saves to one file take turns, so none loses the bricks of another.
+        """
         path = Path(path)
         check_store_path(path)
         with self._lock.shared():
             live = self._by_recency()
-            arrays = {"keys": self._keys[live], "triples": self._payload[self._ranges(live)],
-                      "valid": self._valid[live]}
-        write_archive(path, _MAGIC, FORMAT_VERSION,
-                      {"identity": np.array(self.identity()),
-                       "settings": np.array(self._settings_json()),
-                       **arrays})
+            ours = (self._keys[live], self._payload[self._ranges(live)], self._valid[live])
+        with _taking_turns(path):
+            try:
+                saved = self._read(path) if path.exists() else None
+            except StoreFileError:
+                saved = None  # damaged or another texture's: replaced, as load reported
+            keys, triples, valid = ours if saved is None else _bricks_union(saved, ours)
+            counts = np.bitwise_count(valid).sum(axis=1)
+            keep = self._kept(counts)
+            rows = _ranges_of((np.cumsum(counts) - counts)[keep], counts[keep])
+            write_archive(path, _MAGIC, FORMAT_VERSION,
+                          {"identity": np.array(self.identity()),
+                           "settings": np.array(self._settings_json()),
+                           "keys": keys[keep], "triples": triples[rows], "valid": valid[keep]})
 
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,

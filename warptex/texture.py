@@ -53,8 +53,7 @@ def _check_unshared(path: Path, synthesizer: Synthesizer,
                     joining: SolidTexture | None = None) -> None:
     """Raise StoreFileError if a live texture of other settings has ``path`` as its store
     file; else let ``joining``, if given, join them. Textures of the same settings may
-    share one, as their voxels are the same (the last to save replaces the file, so its
-    twin's bricks go unsaved)."""
+    share one, as their voxels are the same (each save merges with the file)."""
     where = path.resolve()
     with _STORE_FILES_LOCK:
         for other in list(_WITH_STORE_FILES):
