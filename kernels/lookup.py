@@ -97,7 +97,7 @@ def touch(index: BrickIndex, slot: int, tick: wp.int64):
 
 
 @wp.func
-def local_index(voxel: wp.vec3i) -> int:
+def brick_local_index(voxel: wp.vec3i) -> int:
     """Position of ``voxel`` in its brick, x slowest."""
     return ((voxel[0] & _LOW_BITS) * _BRICK + (voxel[1] & _LOW_BITS)) * _BRICK + (
         voxel[2] & _LOW_BITS)
@@ -117,7 +117,7 @@ def stored_slot(index: BrickIndex, voxel: wp.vec3i) -> int:
     """Pool slot of the brick holding ``voxel`` if the voxel is stored, else -1."""
     slot = find_slot(index, brick_key(voxel))
     if index.partial != 0:
-        stored = voxel_stored(index, slot, local_index(voxel))
+        stored = voxel_stored(index, slot, brick_local_index(voxel))
         if not stored:
             slot = -1
     return slot
@@ -204,7 +204,7 @@ def sample_nearest(
         wp.atomic_add(miss_count, 0, 1)
         return
     touch(index, slot, tick)
-    p = voxel_triple(index, pool, slot, local_index(voxel))
+    p = voxel_triple(index, pool, slot, brick_local_index(voxel))
     for c in range(channels):
         out[i, c] = triple_channel(p, col0, col1, col2, channels, c)
 
@@ -247,7 +247,7 @@ def sample_trilinear(
                 last_base = index.base[last_slot]
         addresses[corner] = -1
         if last_slot >= 0:
-            local = local_index(voxel)
+            local = brick_local_index(voxel)
             if index.partial == 0:
                 addresses[corner] = last_base + local
             elif voxel_stored(index, last_slot, local):

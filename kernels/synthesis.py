@@ -66,7 +66,7 @@ def block_local(i: int) -> wp.vec3i:
 
 
 @wp.func
-def local_index(p: wp.vec3i) -> int:
+def block_local_index(p: wp.vec3i) -> int:
     """Flat index inside its 4^3 block of the voxel at position ``p`` (x slowest): the low
     two bits of each coordinate, the inverse of ``block_local``."""
     return ((p[0] & 3) << 4) + ((p[1] & 3) << 2) + (p[2] & 3)
@@ -87,7 +87,7 @@ def neighbor_in_block(nbr: wp.array2d(dtype=wp.int32), block: int, local: wp.vec
     slot = nbr[block, b]
     if slot < 0:
         return -1
-    return (slot << 6) + local_index(p)
+    return (slot << 6) + block_local_index(p)
 
 
 @wp.func
@@ -214,7 +214,7 @@ def upsample(
         return
     p = voxel_world(coords, i)
     up = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)  # the parent voxel (section 5.1)
-    src = parent[slot * BLOCK_VOXELS + local_index(up)]
+    src = parent[slot * BLOCK_VOXELS + block_local_index(up)]
     out = wp.vec3i(0, 0, 0)
     for k in range(3):
         u = src[k] // parent_width[k]
@@ -255,7 +255,7 @@ def mark_parents(
     if need[i] != wp.uint8(0):
         p = voxel_world(coords, i)
         parent = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
-        parents[parent_block[i >> 6] * BLOCK_VOXELS + local_index(parent)] = wp.uint8(1)
+        parents[parent_block[i >> 6] * BLOCK_VOXELS + block_local_index(parent)] = wp.uint8(1)
 
 
 @wp.kernel

@@ -994,7 +994,13 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from warptex.compare import REPORT_FILES, compare, table_markdown, write_report
+    from warptex.compare import (
+        MIN_SIZE,
+        REPORT_FILES,
+        compare,
+        table_markdown,
+        write_report,
+    )
 
     # One clear error for a bad image before any work.
     exemplar = Exemplar.load(args.exemplar, max_size=args.exemplar_max_size)
@@ -1003,7 +1009,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_writable_folder(args.output, args.output)
     _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
     _check_synthesis_arguments(passes=args.passes, seed=args.seed)
-    _check_at_least("--size", args.size, 8)
+    _check_at_least("--size", args.size, MIN_SIZE)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):

@@ -17,6 +17,7 @@ MAX_PASSES = 8
 MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
 FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered
 DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
+DEFAULT_COARSE_CACHE_BYTES = 256 << 20  # coarse-level blocks the engine keeps per level
 MIN_EXEMPLAR_SIZE = 16  # pixels a side: a pyramid of at least two levels of 5 x 5 patches
 
 

@@ -108,31 +108,48 @@ def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
 
 
-def _bricks_union(older: tuple[np.ndarray, np.ndarray, np.ndarray],
-                  newer: tuple[np.ndarray, np.ndarray, np.ndarray],
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The bricks of two stores' (keys, triples, stored bits), each listed least recently
-    used first, as one such list: ``newer``'s bricks the more recent, a brick in both
-    holding the voxels of either (their triples are the same, as voxels are
-    position-determined)."""
-    keys = np.concatenate([older[0], newer[0]])
-    triples = np.concatenate([older[1], newer[1]])
-    valid = np.concatenate([older[2], newer[2]])
-    bits = np.unpackbits(valid.view(np.uint8), bitorder="little").reshape(
-        len(keys), _k.BRICK_VOXELS)
-    rows, local = np.nonzero(bits)  # row by row, local order: the order of ``triples``
+class _Bricks(NamedTuple):
+    """Bricks as a store file lists them, least recently used first: their keys, the
+    triples of their stored voxels brick after brick, and their stored-voxel words."""
+
+    keys: np.ndarray
+    triples: np.ndarray
+    valid: np.ndarray
+
+
+def _stored_bits(valid: np.ndarray) -> np.ndarray:
+    """Bricks' stored-voxel words (N, VALID_WORDS) as bits (N, 512), in local order."""
+    return np.unpackbits(valid.view(np.uint8), bitorder="little").reshape(
+        len(valid), _k.BRICK_VOXELS).astype(bool)
+
+
+def _packed(cells: np.ndarray, bricks: int) -> tuple[np.ndarray, np.ndarray]:
+    """For voxels numbered ``brick * 512 + local`` in ``bricks`` bricks, repeats allowed:
+    the index of each distinct voxel's first appearance, in (brick, local) order (the
+    order a brick's voxels take in the pool), and the bricks' stored-voxel words."""
+    cells, first = np.unique(cells, return_index=True)
+    bits = np.zeros(bricks * _k.BRICK_VOXELS, bool)
+    bits[cells] = True
+    valid = np.packbits(bits, bitorder="little").view(np.uint32)
+    return first, valid.reshape(bricks, _k.VALID_WORDS)
+
+
+def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
+    """The bricks of two lists, each least recently used first, as one such list:
+    ``newer``'s bricks the more recent, a brick in both holding the voxels of either
+    (their triples are the same, as voxels are position-determined)."""
+    keys = np.concatenate([older.keys, newer.keys])
+    rows, local = np.nonzero(_stored_bits(np.concatenate([older.valid, newer.valid])))
     distinct, brick = np.unique(keys, return_inverse=True)
     latest = np.zeros(len(distinct), np.int64)
     np.maximum.at(latest, brick, np.arange(len(keys)))
     by_recency = np.argsort(latest)
     position = np.empty_like(by_recency)
     position[by_recency] = np.arange(len(distinct))
-    code, first = np.unique(position[brick[rows]] * _k.BRICK_VOXELS + local, return_index=True)
-    merged = np.zeros(len(distinct) * _k.BRICK_VOXELS, bool)
-    merged[code] = True
-    merged_valid = np.packbits(merged, bitorder="little").view(np.uint32).reshape(
-        len(distinct), _k.VALID_WORDS)
-    return distinct[by_recency], triples[first], merged_valid
+    # ``rows, local`` run brick by brick in local order, as each list's triples do.
+    first, valid = _packed(position[brick[rows]] * _k.BRICK_VOXELS + local, len(distinct))
+    triples = np.concatenate([older.triples, newer.triples])[first]
+    return _Bricks(distinct[by_recency], triples, valid)
 
 
 @contextmanager
@@ -287,7 +304,6 @@ class BrickStore:
         self.channels = cs.channels
         if self.channels > _k.MAX_CHANNELS:
             raise ValueError(f"at most {_k.MAX_CHANNELS} color channels, got {self.channels}")
-        self._widths = np.array([c.shape[1] for c in sources], np.int64)
         compact = max(c.shape[0] * c.shape[1] for c in sources) <= 1 << 16
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
         self._voxel_bytes = 3 * self._dtype.itemsize
@@ -439,20 +455,17 @@ class BrickStore:
         check_store_path(path)
         with self._lock.shared():
             live = self._by_recency()
-            ours = (self._keys[live], self._payload[self._ranges(live)], self._valid[live])
+            ours = _Bricks(self._keys[live], self._payload[self._ranges(live)],
+                           self._valid[live])
         with _taking_turns(path):
             try:
                 saved = self._read(path) if path.exists() else None
             except StoreFileError:
                 saved = None  # damaged or another texture's: replaced, as load reported
-            keys, triples, valid = ours if saved is None else _bricks_union(saved, ours)
-            counts = np.bitwise_count(valid).sum(axis=1)
-            keep = self._kept(counts)
-            rows = _ranges_of((np.cumsum(counts) - counts)[keep], counts[keep])
+            kept = self._recent_that_fit(ours if saved is None else _bricks_union(saved, ours))
             write_archive(path, _MAGIC, FORMAT_VERSION,
                           {"identity": np.array(self.identity()),
-                           "settings": np.array(self._settings_json()),
-                           "keys": keys[keep], "triples": triples[rows], "valid": valid[keep]})
+                           "settings": np.array(self._settings_json()), **kept._asdict()})
 
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,
@@ -469,18 +482,13 @@ class BrickStore:
         check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         try:
-            keys, triples, valid = store._read(Path(path))
+            kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
             warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
             return store
-        counts = np.bitwise_count(valid).sum(axis=1)
-        first = np.cumsum(counts) - counts
-        keep = store._kept(counts)  # the file lists bricks least recently used first
-        stored = np.unpackbits(valid[keep].view(np.uint8), bitorder="little").astype(bool)
-        voxels = brick_voxels(keys[keep])[stored.reshape(-1)]
-        rows = _ranges_of(first[keep], counts[keep])
+        voxels = brick_voxels(kept.keys)[_stored_bits(kept.valid).reshape(-1)]
         with store._lock.exclusive():
-            store._insert(voxels, triples[rows])
+            store._insert(voxels, kept.triples)
         return store
 
     # -- batches ----------------------------------------------------------------------
@@ -533,12 +541,12 @@ class BrickStore:
     def _synthesize(self, voxels: np.ndarray) -> np.ndarray:
         """Triples (N, 3) of ``voxels`` as pixel indices, in one engine request."""
         start = time.perf_counter()
-        rc = self.synthesizer.triples(voxels)
+        triples = self.synthesizer.pixel_triples(voxels)
         seconds = time.perf_counter() - start
         with self._counts:
             self._seconds += seconds
             self._added += len(voxels)
-        return (rc[:, :, 0] * self._widths + rc[:, :, 1]).astype(self._dtype)
+        return triples.astype(self._dtype)
 
     def _launch(self, kernel, points: wp.array, out: wp.array, missed: wp.array,
                 count: wp.array) -> int:
@@ -608,22 +616,18 @@ class BrickStore:
         # Old and new voxels of the touched bricks, ordered by (brick, local) and without
         # repeats (a voxel synthesized twice has the same triple): the repacked ranges.
         old = self._ranges(touched)
-        old_bits = np.unpackbits(self._valid[touched].view(np.uint8), bitorder="little")
-        order = np.concatenate([np.flatnonzero(old_bits),
-                                np.searchsorted(touched, slots) * _k.BRICK_VOXELS
-                                + local_index(voxels, _k.BRICK)])
-        order, first = np.unique(order, return_index=True)
+        first, valid = _packed(np.concatenate([
+            np.flatnonzero(_stored_bits(self._valid[touched])),
+            np.searchsorted(touched, slots) * _k.BRICK_VOXELS + local_index(voxels, _k.BRICK)]),
+            len(touched))
         triples = np.concatenate([self._payload[old], payload.astype(self._dtype)])[first]
-        counts = np.bincount(order // _k.BRICK_VOXELS, minlength=len(touched))
-        start = self._reserve(len(order))  # may compact the pool, never moves slots
+        counts = np.bitwise_count(valid).sum(axis=1)
+        start = self._reserve(len(triples))  # may compact the pool, never moves slots
         self._garbage += len(old)
-        self._payload[start: start + len(order)] = triples
+        self._payload[start: start + len(triples)] = triples
         self._base[touched] = start + np.cumsum(counts) - counts
-        bits = np.zeros(len(touched) * _k.BRICK_VOXELS, bool)
-        bits[order] = True
-        self._valid[touched] = np.packbits(bits, bitorder="little").view(np.uint32).reshape(
-            len(touched), _k.VALID_WORDS)
-        self._upload_pool(start, start + len(order))
+        self._valid[touched] = valid
+        self._upload_pool(start, start + len(triples))
         self._upload_slots()
         stamps = self._index.stamps.numpy()
         stamps[touched] = next(self._tick)
@@ -634,6 +638,13 @@ class BrickStore:
         """The slots of stored bricks, least recently used first (equal stamps by slot)."""
         live = np.flatnonzero(self._keys != _EMPTY)
         return live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
+
+    def _recent_that_fit(self, bricks: _Bricks) -> _Bricks:
+        """The most recently used of ``bricks`` that fit ``cache_bytes``."""
+        counts = np.bitwise_count(bricks.valid).sum(axis=1)
+        keep = self._kept(counts)
+        rows = _ranges_of((np.cumsum(counts) - counts)[keep], counts[keep])
+        return _Bricks(bricks.keys[keep], bricks.triples[rows], bricks.valid[keep])
 
     def _kept(self, counts: np.ndarray) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
@@ -792,7 +803,7 @@ class BrickStore:
             return self._on_device(out, wp.float32)
         return wp.empty(out.shape, dtype=wp.float32, device=self._device)
 
-    def _read(self, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _read(self, path: Path) -> _Bricks:
         z = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
         try:
             identity, keys, triples = str(z["identity"]), z["keys"], z["triples"]
@@ -814,4 +825,4 @@ class BrickStore:
             raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")
         if triples.dtype != self._dtype or triples.shape != (int(np.bitwise_count(valid).sum()), 3):
             raise StoreFileError(f"{path}: voxel triples of unexpected type or shape")
-        return keys.astype(np.int64), triples, valid
+        return _Bricks(keys.astype(np.int64), triples, valid)

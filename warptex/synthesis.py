@@ -34,7 +34,13 @@ from warptex.keysets import (
 )
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
-from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_count, check_settings
+from warptex.settings import (
+    DEFAULT_COARSE_CACHE_BYTES,
+    DEFAULT_JITTER,
+    DEFAULT_PASSES,
+    check_count,
+    check_settings,
+)
 
 # Raised whenever the engine gives any voxel another result from the same inputs, so that
 # brick stores written by an earlier engine are not reused. 2: shifted neighbour triples;
@@ -42,6 +48,7 @@ from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, check_count, check_
 ENGINE_VERSION = 3
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
+_TRIPLE_BYTES = 3 * 4  # a cached voxel's triple of int32 pixel indices
 # Blocks kept free at the ends of the biased 21-bit key fields for the work region around a
 # request (its apron of dependencies, plus one block of neighbour lookups); settings whose
 # apron would not fit are refused, so a key field never over- or underflows.
@@ -179,7 +186,7 @@ def _neighbor_table(keys: np.ndarray) -> np.ndarray:
 def _voxel_rows(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
     """Flat index (block slot * 64 + local) of each of ``voxels`` (N, 3) in the blocks of
     sorted ``keys``, which must hold them."""
-    return lookup(keys, pack(voxels >> 2)) * _BLOCK_VOXELS + (
+    return lookup(keys, pack(voxels // BLOCK)) * _BLOCK_VOXELS + (
         local_index(voxels, BLOCK))
 
 
@@ -230,9 +237,9 @@ class _LevelCache:
         """Keep ``triples`` of the uncached voxels ``flat`` (sorted) of the blocks ``keys``;
         starts over when full."""
         new = distinct_sorted(keys[flat // _BLOCK_VOXELS])
-        if len(new) * _BLOCK_VOXELS * 12 > self.max_bytes:
+        if len(new) * _BLOCK_VOXELS * _TRIPLE_BYTES > self.max_bytes:
             return
-        if (len(self.keys) + len(new)) * _BLOCK_VOXELS * 12 > self.max_bytes:
+        if (len(self.keys) + len(new)) * _BLOCK_VOXELS * _TRIPLE_BYTES > self.max_bytes:
             self.clear()
         fresh = new[lookup(self.keys, new) < 0]
         if len(fresh):
@@ -269,7 +276,7 @@ class Synthesizer:
         passes: int = DEFAULT_PASSES,
         subpasses: int = 1,
         device: str | None = None,
-        coarse_cache_bytes: int = 256 << 20,
+        coarse_cache_bytes: int = DEFAULT_COARSE_CACHE_BYTES,
     ) -> None:
         if not isinstance(candidates, CandidateSet):
             raise TypeError(f"candidates must be a CandidateSet (warptex.precompute makes one), "
@@ -300,7 +307,6 @@ class Synthesizer:
             raise ValueError(f"{channels} feature channels are too many for exact projections "
                              f"with {2 * half + 1}-voxel neighbourhoods (at most "
                              f"{_k.EXACT_ROW_TERMS // (2 * half + 1)})")
-        self._half = half
         self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
         if self._apron + 2 > _KEY_MARGIN:
             raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
@@ -322,14 +328,14 @@ class Synthesizer:
 
         Entry ``[n, k]`` is the (row, column) of the pixel of axis k's exemplar.
         """
-        pix = self._pixels(ijk)
+        pix = self.pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
 
     def voxels(self, ijk: np.ndarray) -> np.ndarray:
         """Colors (N, C) float32 of voxels ``ijk`` (N, 3): the average of three exemplar
         colors (section 5.1)."""
-        return self.colors_of(self._pixels(ijk))
+        return self.colors_of(self.pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
         """Colors of a box of voxels, (D, H, W, C) with axis 0 along x, 1 along y, 2 along z."""
@@ -352,9 +358,10 @@ class Synthesizer:
         out += cols[2][pixels[:, 2]]
         return (out / np.float32(3.0)).astype(np.float32)
 
-    # -- orchestration ----------------------------------------------------------------
-
-    def _pixels(self, ijk: np.ndarray) -> np.ndarray:
+    def pixel_triples(self, ijk: np.ndarray) -> np.ndarray:
+        """Finest-level triples (N, 3) int32 of voxels ``ijk`` (N, 3) ints as flat pixel
+        indices: entry ``[n, k]`` is ``row * width + column`` in axis k's exemplar, what the
+        brick store keeps (section 6.2)."""
         ijk = np.asarray(ijk)
         if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
             raise ValueError(f"voxel coordinates must be an (N, 3) integer array, got "
@@ -367,11 +374,13 @@ class Synthesizer:
         with self._lock:  # the finest level is never cached: just the voxels asked for
             return self._in_parts(ijk)
 
+    # -- orchestration ----------------------------------------------------------------
+
     def _in_parts(self, ijk: np.ndarray) -> np.ndarray:
         """Finest pixel triples of int64 voxels ``ijk``, their blocks synthesized in parts
         of at most ``MAX_WORK_VOXELS`` work voxels. A voxel's triple does not depend on what
         else is requested (section 5.2), so the parts give what one call would."""
-        keys = pack(ijk >> 2)
+        keys = pack(ijk // BLOCK)
         uniq = unique(keys)
         parts = self._parts(uniq)
         part_of_block = np.empty(len(uniq), np.int64)
@@ -542,7 +551,7 @@ class Synthesizer:
         is still in the cache; chunks also bound the halos' memory."""
         dev = self.device
         chunk = _HALO_CHUNK["cpu" if wp.get_device(dev).is_cpu else "cuda"]
-        block = listed >> 6
+        block = listed // _BLOCK_VOXELS
         starts = np.flatnonzero(np.diff(block, prepend=-1))  # listed voxels of each block
         blocks = block[starts]
         halo_of = np.full(nbr.shape[0], -1, np.int32)
