@@ -20,10 +20,10 @@ lint: setup
 
 setup: llvm $(INSTALLED)
 
-# Mitsuba's LLVM variants need libLLVM >= 16 (see warptex/_llvm.py). Install Debian's libllvm19
+# Mitsuba's LLVM variants need libLLVM >= 16 (see warptex/llvm.py). Install Debian's libllvm19
 # when none is present and we may; otherwise warptex falls back to scalar rendering by itself.
 llvm:
-	@if ! $(PYTHON) warptex/_llvm.py >/dev/null && [ "$$(id -u)" = 0 ] \
+	@if ! $(PYTHON) warptex/llvm.py >/dev/null && [ "$$(id -u)" = 0 ] \
 		&& command -v apt-get >/dev/null; then \
 		echo "installing libllvm19 for Mitsuba's LLVM variants"; \
 		(apt-get update -qq && apt-get install -y -qq libllvm19) \

@@ -37,15 +37,48 @@ def strip_distance(
     return total
 
 
+@wp.struct
+class RoleStrips:
+    """The N x 1 strips through every pixel of each role along its first and second pixel
+    coordinate (section 4.1): ``own`` is role 0, ``next`` role 1, ``nnext`` role 2."""
+
+    own_first: wp.array2d(dtype=wp.int32)
+    own_second: wp.array2d(dtype=wp.int32)
+    next_first: wp.array2d(dtype=wp.int32)
+    next_second: wp.array2d(dtype=wp.int32)
+    nnext_first: wp.array2d(dtype=wp.int32)
+    nnext_second: wp.array2d(dtype=wp.int32)
+
+
+@wp.func
+def own_next_error(s: RoleStrips, p: int, q: int) -> int:
+    """Crossbar pair (0, 1) of role-0 pixel ``p`` and role-1 pixel ``q``."""
+    return strip_distance(s.own_second, p, s.next_first, q)
+
+
+@wp.func
+def next_nnext_error(s: RoleStrips, q: int, r: int) -> int:
+    """Crossbar pair (1, 2) of role-1 pixel ``q`` and role-2 pixel ``r``."""
+    return strip_distance(s.next_second, q, s.nnext_first, r)
+
+
+@wp.func
+def closing_error(s: RoleStrips, r: int, p: int) -> int:
+    """Crossbar pair (2, 0) of role-2 pixel ``r`` and role-0 pixel ``p``."""
+    return strip_distance(s.nnext_second, r, s.own_first, p)
+
+
+@wp.func
+def crossbar_error(s: RoleStrips, p: int, q: int, r: int) -> int:
+    """Crossbar error of the triple of pixels (p, q, r) of roles 0, 1, 2 (section 4.1):
+    how much its three slices disagree where they cross."""
+    return own_next_error(s, p, q) + next_nnext_error(s, q, r) + closing_error(s, r, p)
+
+
 @wp.kernel
 def best_crossbar_triples(
     first: int,
-    own_first: wp.array2d(dtype=wp.int32),
-    own_second: wp.array2d(dtype=wp.int32),
-    next_first: wp.array2d(dtype=wp.int32),
-    next_second: wp.array2d(dtype=wp.int32),
-    nnext_first: wp.array2d(dtype=wp.int32),
-    nnext_second: wp.array2d(dtype=wp.int32),
+    strips: RoleStrips,
     near1: wp.array2d(dtype=wp.int32),
     near2: wp.array2d(dtype=wp.int32),
     closing: wp.array2d(dtype=wp.int32),
@@ -57,28 +90,25 @@ def best_crossbar_triples(
 ):
     """Score all S^2 triples of one pixel by crossbar error and keep the best, sorted.
 
-    Section 4.1. ``*_first``/``*_second`` are the strips of each role along its first and
-    second pixel coordinate; ``near1``/``near2`` the S nearest strips found in roles 1
-    and 2. The crossbar pairs are (0, 1), (1, 2) and (2, 0): the second-coordinate strip
-    of a role meets the first-coordinate strip of the next. Pair (0, 1) depends on the
-    role-1 pixel alone and pair (2, 0) on the role-2 pixel alone, so each is computed once
-    (the latter into this pixel's row of scratch ``closing``), and only pair (1, 2) for
-    every triple. Ties are broken by the rank of the pair, so the order is fully
-    reproducible. Pixel ``first + tid``.
+    Section 4.1. ``near1``/``near2`` hold the S nearest strips found in roles 1 and 2.
+    Pair (0, 1) of the crossbar error depends on the role-1 pixel alone and pair (2, 0) on
+    the role-2 pixel alone, so each is computed once (the latter into this pixel's row of
+    scratch ``closing``), and only pair (1, 2) for every triple. Ties are broken by the
+    rank of the pair, so the order is fully reproducible. Pixel ``first + tid``.
     """
     p = first + wp.tid()
     s1 = near1.shape[1]
     s2 = near2.shape[1]
     keep = keys.shape[1]
     for j in range(s2):
-        closing[p, j] = strip_distance(nnext_second, near2[p, j], own_first, p)
+        closing[p, j] = closing_error(strips, near2[p, j], p)
     n = int(0)
     for i in range(s1):
         q = near1[p, i]
-        e01 = strip_distance(own_second, p, next_first, q)
+        e01 = own_next_error(strips, p, q)
         for j in range(s2):
             r = near2[p, j]
-            err = e01 + strip_distance(next_second, q, nnext_first, r) + closing[p, j]
+            err = e01 + next_nnext_error(strips, q, r) + closing[p, j]
             key = wp.int64(err) * wp.int64(s1 * s2) + wp.int64(i * s2 + j)
             pos = int(-1)
             if n < keep:
@@ -103,12 +133,7 @@ def best_crossbar_triples(
 @wp.kernel
 def candidate_crossbar_errors(
     first: int,
-    own_first: wp.array2d(dtype=wp.int32),
-    own_second: wp.array2d(dtype=wp.int32),
-    next_first: wp.array2d(dtype=wp.int32),
-    next_second: wp.array2d(dtype=wp.int32),
-    nnext_first: wp.array2d(dtype=wp.int32),
-    nnext_second: wp.array2d(dtype=wp.int32),
+    strips: RoleStrips,
     cand1: wp.array2d(dtype=wp.int32),
     cand2: wp.array2d(dtype=wp.int32),
     cb: wp.array2d(dtype=wp.int32),
@@ -116,11 +141,7 @@ def candidate_crossbar_errors(
     """Crossbar error of stored candidate k of pixel p (section 4.1), recomputed; one
     thread per candidate slot of pixels ``first...``."""
     p, k = pixel_slot(first, wp.tid(), cb.shape[1])
-    q = cand1[p, k]
-    r = cand2[p, k]
-    cb[p, k] = (strip_distance(own_second, p, next_first, q)
-                + strip_distance(next_second, q, nnext_first, r)
-                + strip_distance(nnext_second, r, own_first, p))
+    cb[p, k] = crossbar_error(strips, p, cand1[p, k], cand2[p, k])
 
 
 @wp.func

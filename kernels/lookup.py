@@ -152,32 +152,36 @@ def voxel_triple(index: BrickIndex, pool: wp.array(dtype=Any), slot: int, local:
     return pooled_triple(pool, voxel_address(index, slot, local))
 
 
+@wp.struct
+class ExemplarColors:
+    """The colors of each axis' exemplar, flattened (``pixel * channels + c``)."""
+
+    x: wp.array(dtype=wp.float32)
+    y: wp.array(dtype=wp.float32)
+    z: wp.array(dtype=wp.float32)
+    channels: int
+
+
 @wp.func
-def triple_sum(
-    p: wp.vec3i,
-    col0: wp.array(dtype=wp.float32),
-    col1: wp.array(dtype=wp.float32),
-    col2: wp.array(dtype=wp.float32),
-    channels: int,
-    c: int,
-) -> wp.float32:
+def triple_sum(p: wp.vec3i, colors: ExemplarColors, c: int) -> wp.float32:
     """Channel ``c`` summed over a triple's three exemplar colors, in the engine's order."""
-    s = col0[p[0] * channels + c] + col1[p[1] * channels + c]
-    return s + col2[p[2] * channels + c]
+    n = colors.channels
+    s = colors.x[p[0] * n + c] + colors.y[p[1] * n + c]
+    return s + colors.z[p[2] * n + c]
 
 
 @wp.func
-def triple_channel(
-    p: wp.vec3i,
-    col0: wp.array(dtype=wp.float32),
-    col1: wp.array(dtype=wp.float32),
-    col2: wp.array(dtype=wp.float32),
-    channels: int,
-    c: int,
-) -> wp.float32:
+def triple_channel(p: wp.vec3i, colors: ExemplarColors, c: int) -> wp.float32:
     """Channel ``c`` of a triple's color: the same float32 sum and division as
     ``Synthesizer.colors_of``, so the color is bit-identical to the engine's."""
-    return triple_sum(p, col0, col1, col2, channels, c) / wp.float32(3.0)
+    return triple_sum(p, colors, c) / wp.float32(3.0)
+
+
+@wp.func
+def flag_miss(i: int, missed: wp.array(dtype=wp.int32), miss_count: wp.array(dtype=wp.int32)):
+    """Mark point ``i`` as missed, for the host to synthesize its voxels and finish it."""
+    missed[i] = 1
+    wp.atomic_add(miss_count, 0, 1)
 
 
 @wp.kernel
@@ -186,10 +190,7 @@ def sample_nearest(
     points: wp.array(dtype=wp.vec3d),
     index: BrickIndex,
     pool: wp.array(dtype=Any),
-    col0: wp.array(dtype=wp.float32),
-    col1: wp.array(dtype=wp.float32),
-    col2: wp.array(dtype=wp.float32),
-    channels: int,
+    colors: ExemplarColors,
     tick: wp.int64,
     out: wp.array2d(dtype=wp.float32),
     missed: wp.array(dtype=wp.int32),
@@ -200,13 +201,12 @@ def sample_nearest(
     voxel = floor_voxel(points[i])
     slot = stored_slot(index, voxel)
     if slot < 0:
-        missed[i] = 1
-        wp.atomic_add(miss_count, 0, 1)
+        flag_miss(i, missed, miss_count)
         return
     touch(index, slot, tick)
     p = voxel_triple(index, pool, slot, brick_local_index(voxel))
-    for c in range(channels):
-        out[i, c] = triple_channel(p, col0, col1, col2, channels, c)
+    for c in range(colors.channels):
+        out[i, c] = triple_channel(p, colors, c)
 
 
 @wp.kernel
@@ -215,10 +215,7 @@ def sample_trilinear(
     points: wp.array(dtype=wp.vec3d),
     index: BrickIndex,
     pool: wp.array(dtype=Any),
-    col0: wp.array(dtype=wp.float32),
-    col1: wp.array(dtype=wp.float32),
-    col2: wp.array(dtype=wp.float32),
-    channels: int,
+    colors: ExemplarColors,
     tick: wp.int64,
     out: wp.array2d(dtype=wp.float32),
     missed: wp.array(dtype=wp.int32),
@@ -253,8 +250,7 @@ def sample_trilinear(
             elif voxel_stored(index, last_slot, local):
                 addresses[corner] = voxel_address(index, last_slot, local)
     if wp.min(addresses) < 0:
-        missed[i] = 1
-        wp.atomic_add(miss_count, 0, 1)
+        flag_miss(i, missed, miss_count)
         return
     acc = wp.vector(dtype=wp.float64, length=MAX_CHANNELS)
     for corner in range(8):
@@ -265,10 +261,10 @@ def sample_trilinear(
         w *= wp.where(dy == 1, t[1], wp.float64(1.0) - t[1])
         w *= wp.where(dz == 1, t[2], wp.float64(1.0) - t[2])
         p = pooled_triple(pool, addresses[corner])
-        for c in range(channels):
-            acc[c] += w * wp.float64(triple_sum(p, col0, col1, col2, channels, c))
+        for c in range(colors.channels):
+            acc[c] += w * wp.float64(triple_sum(p, colors, c))
     # The blend of the sums divided once: the blend of the voxel colors, 21 divisions fewer.
-    for c in range(channels):
+    for c in range(colors.channels):
         out[i, c] = wp.float32(acc[c] / wp.float64(3.0))
 
 
@@ -277,10 +273,7 @@ def voxel_sums(
     slots: wp.array(dtype=wp.int32),
     index: BrickIndex,
     pool: wp.array(dtype=Any),
-    col0: wp.array(dtype=wp.float32),
-    col1: wp.array(dtype=wp.float32),
-    col2: wp.array(dtype=wp.float32),
-    channels: int,
+    colors: ExemplarColors,
     out: wp.array2d(dtype=wp.float32),
 ):
     """Three-color sum of every voxel of the bricks in pool ``slots`` (-1: absent), as the
@@ -290,10 +283,10 @@ def voxel_sums(
     slot = slots[v // BRICK_VOXELS]
     if voxel_stored(index, slot, v % BRICK_VOXELS):
         p = voxel_triple(index, pool, slot, v % BRICK_VOXELS)
-        for c in range(channels):
-            out[v, c] = triple_sum(p, col0, col1, col2, channels, c)
+        for c in range(colors.channels):
+            out[v, c] = triple_sum(p, colors, c)
     else:
-        for c in range(channels):
+        for c in range(colors.channels):
             out[v, c] = wp.nan
 
 

@@ -33,7 +33,7 @@ import drjit as dr
 import mitsuba as mi
 
 import warptex
-from warptex._llvm import MIN_LLVM_MAJOR, configure_drjit
+from warptex.llvm import MIN_LLVM_MAJOR, configure_drjit
 
 # Symbolic renders of one batch before falling back to wavefront mode: each synthesizes
 # what the previous one missed; paths seldom reach new bricks after the second.

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from warptex.bake import bake_uv_texture, export, exported_files, texel_points, vertex_colors
+from warptex.bake import bake_uv_texture, texel_points, vertex_colors
 from warptex.cut import cap_faces, cut
+from warptex.mesh_files import export, exported_files
 from warptex.surface import block_transform, shell, to_voxel_space
 from warptex.texture import SolidTexture, plane_points
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import warptex.candidates as candidates
-from warptex import Exemplar, ExemplarError, parallel
+from warptex import Exemplar, ExemplarError, exact_pca, parallel
 from warptex.archive import write_archive
 from warptex.candidates import (
     FORMAT_VERSION,
@@ -414,7 +414,7 @@ def test_symmetric_eigen_decomposes(eigenvalues):
     basis = np.linalg.qr(rng.normal(size=(len(eigenvalues),) * 2))[0]
     matrix = basis @ np.diag(eigenvalues) @ basis.T
     matrix = (matrix + matrix.T) / 2
-    values, vectors = candidates._symmetric_eigen(matrix)
+    values, vectors = exact_pca.symmetric_eigen(matrix)
     assert np.allclose(np.sort(values), np.sort(eigenvalues), atol=1e-12)
     assert np.allclose(vectors.T @ vectors, np.eye(len(values)), atol=1e-12)
     assert np.allclose(matrix @ vectors, vectors * values, atol=1e-12)
@@ -422,15 +422,15 @@ def test_symmetric_eigen_decomposes(eigenvalues):
 
 @pytest.mark.parametrize("rank", [None, 30, 5])
 def test_leading_eigen_finds_the_principal_axes_of_wide_neighbourhoods(rank):
-    """Beyond _JACOBI_MAX_DIMS (multi-channel exemplars) only the leading axes are found, by
+    """Beyond JACOBI_MAX_DIMS (multi-channel exemplars) only the leading axes are found, by
     orthogonal iteration on exact products; a matrix of low rank leaves vectors unused."""
-    n = candidates._JACOBI_MAX_DIMS + 10
+    n = exact_pca.JACOBI_MAX_DIMS + 10
     rank = n if rank is None else rank
     rng = np.random.default_rng(rank)
     basis = np.linalg.qr(rng.normal(size=(n, n)))[0][:, :rank]
     spectrum = 100.0 * 0.8 ** np.arange(rank)
     matrix = basis @ np.diag(spectrum) @ basis.T
-    values, vectors, total = candidates._principal_axes((matrix + matrix.T) / 2, 12)
+    values, vectors, total = exact_pca.principal_axes((matrix + matrix.T) / 2, 12)
     found = min(12, rank)
     assert np.allclose(values[:found], spectrum[:found], rtol=1e-5, atol=1e-6)
     assert np.allclose(values[found:], 0.0, atol=1e-6 * spectrum[0])  # the rounding's noise
@@ -635,7 +635,7 @@ def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):
     assert sorted(p.resolve().relative_to(root).as_posix()
                   for p in candidates._deciding_sources()) == [
         "kernels/candidates.py", "kernels/common.py", "warptex/candidates.py",
-        "warptex/exemplar.py"]
+        "warptex/exact_pca.py", "warptex/exemplar.py"]
     files = [tmp_path / "a.py", tmp_path / "b.py"]
     for f in files:
         f.write_text("x = 1\n")

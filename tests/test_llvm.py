@@ -9,7 +9,7 @@ import textwrap
 
 import pytest
 
-from warptex import _llvm
+from warptex import llvm
 
 
 @pytest.mark.parametrize(
@@ -25,40 +25,40 @@ from warptex import _llvm
     ],
 )
 def test_major_version_from_file_name(name, major):
-    assert _llvm._major(name) == major
+    assert llvm._major(name) == major
 
 
 def test_find_libllvm_prefers_newest_suitable(tmp_path, monkeypatch):
     for name in ("libLLVM-15.so.1", "libLLVM-17.so.1", "libLLVM.so.19.1", "libLLVM-14.so"):
         (tmp_path / name).write_bytes(b"")
-    monkeypatch.setattr(_llvm, "_SEARCH_DIRS", (str(tmp_path / "missing"), str(tmp_path)))
-    assert _llvm.find_libllvm() == tmp_path / "libLLVM.so.19.1"
+    monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path / "missing"), str(tmp_path)))
+    assert llvm.find_libllvm() == tmp_path / "libLLVM.so.19.1"
 
 
 def test_find_libllvm_ignores_too_old(tmp_path, monkeypatch):
     (tmp_path / "libLLVM-15.so.1").write_bytes(b"")
-    monkeypatch.setattr(_llvm, "_SEARCH_DIRS", (str(tmp_path),))
-    assert _llvm.find_libllvm() is None
+    monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    assert llvm.find_libllvm() is None
 
 
 def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
     (tmp_path / "libLLVM-18.so.1").write_bytes(b"")
-    monkeypatch.setattr(_llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))
     monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
-    assert _llvm.configure_drjit() == tmp_path / "libLLVM-18.so.1"
+    assert llvm.configure_drjit() == tmp_path / "libLLVM-18.so.1"
     assert os.environ["DRJIT_LIBLLVM_PATH"] == str(tmp_path / "libLLVM-18.so.1")
 
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/opt/llvm/lib/libLLVM.so")
-    assert str(_llvm.configure_drjit()) == "/opt/llvm/lib/libLLVM.so"
+    assert str(llvm.configure_drjit()) == "/opt/llvm/lib/libLLVM.so"
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/usr/lib/libLLVM-15.so")
-    assert _llvm.configure_drjit() is None
+    assert llvm.configure_drjit() is None
 
 
 def test_falls_back_to_scalar_with_one_warning(monkeypatch):
     pytest.importorskip("mitsuba")
-    monkeypatch.setattr(_llvm, "configure_drjit", lambda: None)
+    monkeypatch.setattr(llvm, "configure_drjit", lambda: None)
     with pytest.warns(UserWarning, match="falls back to scalar_rgb") as record:
-        assert _llvm.best_mitsuba_variant() == "scalar_rgb"
+        assert llvm.best_mitsuba_variant() == "scalar_rgb"
     assert len(record) == 1
 
 
@@ -91,7 +91,7 @@ _RENDER = textwrap.dedent(
 
 
 def test_llvm_variant_renders_in_subprocess():
-    if _llvm.configure_drjit() is None:
+    if llvm.configure_drjit() is None:
         pytest.skip("no libLLVM >= 16 on this machine; Mitsuba uses scalar_rgb")
     # A subprocess, because an unsuitable libLLVM aborts the whole process.
     result = subprocess.run(

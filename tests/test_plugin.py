@@ -18,7 +18,7 @@ CUDA = "cuda_ad_rgb"
 
 def use(variant: str) -> None:
     if variant == LLVM and variant != warptex.best_mitsuba_variant():
-        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/llvm.py)")
     if variant == CUDA and (CUDA not in mi.variants() or not wp.get_cuda_device_count()):
         pytest.skip("cuda_ad_rgb needs a CUDA device")
     mi.set_variant(variant)

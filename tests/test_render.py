@@ -29,7 +29,7 @@ def synthesizer(granite_32_file, warp_device):
 
 def use(variant: str) -> None:
     if variant == LLVM and variant != warptex.best_mitsuba_variant():
-        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/llvm.py)")
     mi.set_variant(variant)
     mitsuba_plugin.register()
 

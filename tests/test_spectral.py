@@ -24,7 +24,7 @@ CUDA = "cuda_ad_spectral"
 
 def use(variant: str) -> None:
     if variant.startswith("llvm_") and warptex.best_mitsuba_variant() != "llvm_ad_rgb":
-        pytest.skip(f"{variant} needs libLLVM >= 16 (see warptex/_llvm.py)")
+        pytest.skip(f"{variant} needs libLLVM >= 16 (see warptex/llvm.py)")
     if variant.startswith("cuda_") and not wp.get_cuda_device_count():
         pytest.skip(f"{variant} needs a CUDA device")
     mi.set_variant(variant)

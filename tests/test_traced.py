@@ -18,7 +18,7 @@ LLVM = "llvm_ad_rgb"
 @pytest.fixture(autouse=True)
 def llvm_variant():
     if warptex.best_mitsuba_variant() != LLVM:
-        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/_llvm.py)")
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/llvm.py)")
     mi.set_variant(LLVM)
     mitsuba_plugin.register()
 

@@ -12,7 +12,7 @@ import importlib
 from typing import Any
 
 # Before anything can import Mitsuba: Dr.Jit reads DRJIT_LIBLLVM_PATH when its backend starts.
-from warptex._llvm import best_mitsuba_variant, configure_drjit
+from warptex.llvm import best_mitsuba_variant, configure_drjit
 
 configure_drjit()
 

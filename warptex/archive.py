@@ -1,8 +1,8 @@
 """Files written atomically, and versioned, checksummed files of NumPy arrays.
 
 Every single file warptex writes goes through :func:`write_atomically` (a mesh that comes
-with its material and texture files is staged whole by ``warptex.bake.export``, then each
-file renamed into place). The candidate cache and the brick store persist through
+with its material and texture files is staged whole by ``warptex.mesh_files.export``, then
+each file renamed into place). The candidate cache and the brick store persist through
 archives: a header holds a magic string, a format version and the SHA-256 of the payload
 (an uncompressed ``.npz``), so a truncated, corrupt or foreign file is detected and never
 used, and a reader never sees a half-written file (it is written under a temporary name,

@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 from kernels import candidates as _k
 from kernels import common as _common
 from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
-from warptex import parallel
+from warptex import exact_pca, parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.device import init_warp
 from warptex.exemplar import Exemplar, ExemplarError
@@ -44,18 +44,13 @@ FORMAT_VERSION = 4  # 3: nearest neighbours tie-broken by index, whatever SciPy'
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 FILE_MAGIC = b"WARPTEXC"
 CACHE_PREFIX, CACHE_SUFFIX = "candidates-", ".wtc"
-# Jacobi rotations find every eigenvector at a cost of D^3 per sweep: up to 4 channels' 5 x 5
-# neighbourhoods (RGB and a feature channel, or RGBA). Wider ones get only their leading
-# axes, by at most _ITERATIONS rounds of orthogonal iteration (BENCHMARKS.md, "Candidates
-# identical on every CPU").
-_JACOBI_MAX_DIMS = 100
-_ITERATIONS = 300
-_SETTLED = 1e-5  # largest residual of a leading Ritz pair, relative to the top eigenvalue
-_CHECK_EVERY = 5
 # A pixel's crossbar search scores S^2 triples and its coherence test reads its neighbours'
 # lists: even the coarsest level's 64 pixels are worth splitting over the cores.
 _MIN_SPLIT_PIXELS = 64
 _MARK_BYTES = 16 << 20  # scratch bitmaps of the coherence test
+# Pre-computation runs once per exemplar and is cached, so its kernels stay on the host,
+# beside the k-d tree searches whose results they read.
+_DEVICE = "cpu"
 # Peak memory of a pre-computation at the default parameters: a base and so much per pixel
 # of its largest exemplar, more where the axes have exemplars of their own; above every peak
 # measured (BENCHMARKS.md, "Large exemplars"). Larger exemplars than LARGE_PIXELS take
@@ -315,6 +310,7 @@ def cache_dir() -> Path:
 
 
 def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
+    """Where the candidates of ``exemplars`` (x, y, z) and ``params`` are cached."""
     return cache_dir() / cache_file_name([e.digest() for e in exemplars], params)
 
 
@@ -345,9 +341,9 @@ def _code_digest() -> str:
 
 
 def _deciding_sources() -> list[Path] | None:
-    """This module, its kernels and their building blocks, and the exemplar's pyramid;
-    None where a module has no source file."""
-    modules = (sys.modules[__name__], _k, _common, sys.modules[Exemplar.__module__])
+    """This module, its kernels and their building blocks, its PCA and the exemplar's
+    pyramid; None where a module has no source file."""
+    modules = (sys.modules[__name__], _k, _common, exact_pca, sys.modules[Exemplar.__module__])
     files = [getattr(m, "__file__", None) for m in modules]
     return None if None in files else [Path(f) for f in files]
 
@@ -516,7 +512,7 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
     h, w, _ = feat.shape
     vec = 3 * _neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
     most = min(int(p["max_dims"]), vec.shape[1], MAX_DIMS)
-    evals, evecs, total = _principal_axes(_covariance(vec), most)
+    evals, evecs, total = exact_pca.principal_axes(exact_pca.covariance(vec), most)
     frac = np.cumsum(evals) / total if total > 0 else np.ones_like(evals)
     dims = int(np.searchsorted(frac, float(p["variance"])) + 1)
     dims = min(int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"]))), most)
@@ -536,155 +532,6 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
         proj=proj,
         cand2d=_kcoherent(proj, h, w, k2),
     )
-
-
-def _covariance(vec: np.ndarray) -> np.ndarray:
-    """Covariance of integer neighbourhood vectors, the same bits on every machine.
-
-    A BLAS sums in an order of its own CPU kernel's, and a last-bit difference is enough to
-    turn the eigenvectors of nearly equal eigenvalues (isotropic or gray exemplars have many)
-    into another quantized basis, hence other candidates and another texture. Products of
-    features below 2^10 summed over fewer than 2^33 pixels are integers below 2^53, exact in
-    float64 in any order; the centring is done in Python integers.
-    """
-    rows = len(vec)
-    values = vec.astype(np.float64)
-    scatter = (values.T @ values).astype(np.int64).astype(object)
-    sums = vec.sum(axis=0).astype(object)
-    centred = scatter * rows - np.outer(sums, sums)  # rows * (rows - 1) * covariance
-    return centred.astype(np.float64) / float(rows * max(rows - 1, 1))
-
-
-def _principal_axes(cov: np.ndarray, most: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """At least the ``most`` leading variances (descending, clipped at 0) and axes
-    (columns) of a covariance, and the total variance, the same bits on every machine."""
-    if len(cov) > _JACOBI_MAX_DIMS:
-        values, vectors = _leading_eigen(cov, most)
-        values = np.clip(values, 0, None)
-        return values, vectors, max(float(np.cumsum(np.diagonal(cov))[-1]), 0.0)
-    values, vectors = _symmetric_eigen(cov)
-    order = np.argsort(-values, kind="stable")
-    values = np.clip(values[order], 0, None)
-    return values, vectors[:, order], float(np.cumsum(values)[-1])
-
-
-def _leading_eigen(matrix: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``count`` largest eigenvalues (descending) and their eigenvectors of a symmetric
-    positive semi-definite matrix, by orthogonal iteration on twice as many vectors and a
-    Rayleigh-Ritz step (Golub and Van Loan, 8.2.4), with sums that no BLAS can reorder.
-
-    The iterated product runs on integers (the matrix and the vectors scaled and rounded)
-    small enough that their products and sums over ``n`` terms stay below 2^53: exact in
-    float64 in any order, so BLAS may compute it. The rounding perturbs the axes by about
-    2^-21, far below the basis's 127 steps.
-    """
-    n = len(matrix)
-    unit = float(1 << ((53 - n.bit_length()) // 2))
-    scale = unit / max(float(np.abs(matrix).max()), 1e-300)
-    fixed = np.rint(matrix * scale)
-    width = min(n, 2 * count)
-    # Integers: a float generator's logarithms may round otherwise on other machines.
-    start = np.random.default_rng(0).integers(-8, 9, (n, width)).astype(np.float64)
-    basis = _orthonormal(start)
-    for step in range(1, _ITERATIONS + 1):
-        image = fixed @ np.rint(basis * unit)
-        if step % _CHECK_EVERY == 0 or step == _ITERATIONS:
-            # Converged when the leading Ritz pairs are eigenpairs; vectors within a cluster
-            # of nearly equal eigenvalues keep turning long after their span has settled.
-            values, vectors, residual = _ritz(basis, image / (scale * unit), count)
-            if residual <= _SETTLED * max(float(np.abs(values).max()), 1e-300):
-                break
-        basis = _orthonormal(image)
-    return values, vectors
-
-
-def _ritz(basis: np.ndarray, image: np.ndarray,
-          count: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """The ``count`` leading Ritz pairs of a matrix on an orthonormal ``basis`` whose
-    ``image`` under it is given, and their largest residual."""
-    small = _product(basis.T, image)
-    values, axes = _symmetric_eigen((small + small.T) / 2)
-    order = np.argsort(-values, kind="stable")[:count]
-    values, axes = values[order], axes[:, order]
-    vectors = _product(basis, axes)
-    residual = _product(image, axes) - vectors * values
-    return values, vectors, float(np.abs(residual).max())
-
-
-def _product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` with each sum taken in index order (a cumulative sum), where a BLAS would
-    sum in its CPU kernel's order."""
-    out = np.empty((a.shape[0], b.shape[1]))
-    for j in range(b.shape[1]):
-        out[:, j] = np.cumsum(a * b[:, j], axis=1)[:, -1]
-    return out
-
-
-def _orthonormal(columns: np.ndarray) -> np.ndarray:
-    """Modified Gram-Schmidt on the columns, sums in index order; a column left without a
-    direction of its own (a matrix of lower rank) becomes zero."""
-    out = np.zeros_like(columns)
-    for j in range(columns.shape[1]):
-        v = columns[:, j].copy()
-        for i in range(j):
-            v -= _dot(out[:, i], v) * out[:, i]
-        norm = np.sqrt(_dot(v, v))
-        if norm > 1e-12 * max(np.sqrt(_dot(columns[:, j], columns[:, j])), 1e-300):
-            out[:, j] = v / norm
-    return out
-
-
-def _dot(x: np.ndarray, y: np.ndarray) -> float:
-    """``x . y`` summed in index order, as :func:`_product` sums."""
-    return np.cumsum(x * y)[-1]
-
-
-def _symmetric_eigen(matrix: np.ndarray, max_sweeps: int = 60) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues and eigenvectors (columns) of a symmetric matrix by cyclic Jacobi
-    rotations, in elementwise IEEE operations only, so the result is a function of the
-    matrix's bits alone; LAPACK's depends on the BLAS kernels a CPU selects.
-
-    Each round rotates n/2 disjoint index pairs at once (round-robin ordering), which keeps
-    the work in whole-array numpy operations.
-    """
-    n = len(matrix)
-    m = n + n % 2  # an even size: the padding index pairs with each index once per sweep
-    # The matrix above its eigenvectors: a rotation turns the columns of both.
-    stacked = np.zeros((2 * m, m))
-    stacked[:n, :n] = matrix
-    stacked[m:] = np.eye(m)
-    a = stacked[:m]
-    players = np.arange(m)
-    rounds = []
-    for _ in range(m - 1):
-        rounds.append((players[: m // 2], players[m // 2 :][::-1]))
-        players = np.concatenate([players[:1], players[-1:], players[1:-1]])
-    for _ in range(max_sweeps):
-        diag = np.abs(np.diagonal(a)).max()
-        off = np.abs(a - np.diag(np.diagonal(a))).max()
-        if off <= 1e-13 * diag:  # eigenvectors far finer than the basis's 127 steps
-            break
-        for p, q in rounds:
-            _rotate(stacked, m, p, q)
-    return np.diagonal(a)[:n].copy(), stacked[m:m + n, :n].copy()
-
-
-def _rotate(stacked: np.ndarray, m: int, p: np.ndarray, q: np.ndarray) -> None:
-    """One Jacobi rotation per pair (p, q), zeroing a[p, q] of the matrix ``a``, the first
-    ``m`` rows of ``stacked`` (Numerical Recipes, 11.1)."""
-    a = stacked[:m]
-    apq = a[p, q]
-    rotating = apq != 0.0
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        theta = np.where(rotating, (a[q, q] - a[p, p]) / (2.0 * apq), 0.0)
-        t = np.where(theta >= 0, 1.0, -1.0) / (np.abs(theta) + np.sqrt(theta * theta + 1.0))
-    t = np.where(rotating & np.isfinite(theta), t, 0.0)
-    c = 1.0 / np.sqrt(t * t + 1.0)
-    s = t * c
-    x, y = stacked[:, p], stacked[:, q]
-    stacked[:, p], stacked[:, q] = x * c - y * s, x * s + y * c
-    x, y, c, s = a[p], a[q], c[:, None], s[:, None]
-    a[p], a[q] = x * c - y * s, x * s + y * c
 
 
 def _kcoherent(proj: np.ndarray, h: int, w: int, k: int) -> np.ndarray:
@@ -723,19 +570,19 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     near1 = _nearest_strips(strips[1][0], strips[0][1], p)
     near2 = _nearest_strips(strips[2][1], strips[0][0], p)
     keep = min(int(p["keep"]), near1.shape[1] * near2.shape[1])
-    dev = "cpu"
+    dev = _DEVICE
     keys = wp.full((npix, keep), np.iinfo(np.int64).max, dtype=wp.int64, device=dev)
     c1 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     c2 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     cb = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     count = wp.zeros(npix, dtype=wp.int32, device=dev)
     closing = wp.empty(near2.shape, dtype=wp.int32, device=dev)
-    strip_arrays = [wp.array(a.astype(np.int32), device=dev) for pair in strips for a in pair]
     launch_ranges(
         _k.best_crossbar_triples,
         0,
         npix,
-        [*strip_arrays, wp.array(near1, device=dev), wp.array(near2, device=dev), closing],
+        [_role_strips([a for pair in strips for a in pair]), wp.array(near1, device=dev),
+         wp.array(near2, device=dev), closing],
         [keys, c1, c2, cb, count],
         min_items=_MIN_SPLIT_PIXELS,
     )
@@ -750,15 +597,23 @@ def _crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np
     """Crossbar errors (P, K) int32 of stored candidates (section 4.1). They are derived
     data: files keep only the triples, and loading recomputes the errors."""
     init_warp()
-    dev = "cpu"
-    strips = [wp.array(_strips(t.feat, axis, half).astype(np.int32), device=dev)
-              for t in trio for axis in (0, 1)]
+    dev = _DEVICE
+    strips = _role_strips([_strips(t.feat, axis, half) for t in trio for axis in (0, 1)])
     cb = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
     pairs = [wp.array(np.ascontiguousarray(cand[:, :, i]), dtype=wp.int32, device=dev)
              for i in (0, 1)]
-    launch_ranges(_k.candidate_crossbar_errors, 0, cand.shape[0], [*strips, *pairs], [cb],
+    launch_ranges(_k.candidate_crossbar_errors, 0, cand.shape[0], [strips, *pairs], [cb],
                   per_item=cand.shape[1], min_items=_MIN_SPLIT_PIXELS)
     return cb.numpy()
+
+
+def _role_strips(strips: list[np.ndarray]) -> _k.RoleStrips:
+    """The strips of roles 0, 1 and 2 along their first and second coordinates, in that
+    order, as the kernels take them."""
+    out = _k.RoleStrips()
+    (out.own_first, out.own_second, out.next_first, out.next_second, out.nnext_first,
+     out.nnext_second) = (wp.array(a.astype(np.int32), device=_DEVICE) for a in strips)
+    return out
 
 
 def _nearest_strips(database: np.ndarray, queries: np.ndarray, p: dict) -> np.ndarray:
@@ -868,7 +723,7 @@ def _continued(cand: np.ndarray, count: np.ndarray, sizes: list[tuple[int, int]]
     """Flags (len(listed), K) of the valid candidates of the ``listed`` pixels whose
     coordinates continue a candidate of a direct neighbour in both other exemplars
     (section 4.2); ``cand`` (P, K, 2) holds the role-1 and role-2 pixels of each list."""
-    dev = "cpu"
+    dev = _DEVICE
     coords = []
     for role in (1, 2):
         u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])

@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from warptex import __version__
-from warptex._llvm import MIN_LLVM_MAJOR
 from warptex.archive import file_problem, folder_problem, overwritten_input
 from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
+from warptex.llvm import MIN_LLVM_MAJOR
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -743,7 +743,7 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
 def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -> list[Path]:
     """Everything about a bake or cut that can be wrong, checked before the work; returns
     the mesh files to write (a cut's second half gets the suffix _b)."""
-    from warptex.bake import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS, exported_files
+    from warptex.mesh_files import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS, exported_files
     from warptex.synthesis import COORD_LIMIT
 
     _check_at_least("--resolution", args.resolution, 1)
@@ -805,10 +805,11 @@ def _load_mesh(path: Path, uv: str = "none"):
 def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
                      output: Path, srgb: bool | None) -> list[Path]:
     """Bake ``mesh`` as asked by --uv and write it, its colors in each format's encoding
-    (``srgb``: see warptex.bake.export); returns the files written."""
+    (``srgb``: see warptex.mesh_files.export); returns the files written."""
     from tqdm.auto import tqdm
 
-    from warptex.bake import bake_uv_texture, export, vertex_colors
+    from warptex.bake import bake_uv_texture, vertex_colors
+    from warptex.mesh_files import export
 
     if args.uv == "none":
         colors = vertex_colors(tex, mesh, transform, progress=f"colours of {output.name}")

@@ -310,7 +310,9 @@ class BrickStore:
         self._device = synthesizer.device
         uploaded = {j: wp.array(cs.colors[j].reshape(-1), dtype=wp.float32, device=self._device)
                     for j in set(cs.axis_source)}
-        self._colors = [uploaded[j] for j in cs.axis_source]
+        self._colors = _k.ExemplarColors()
+        self._colors.x, self._colors.y, self._colors.z = (uploaded[j] for j in cs.axis_source)
+        self._colors.channels = self.channels
         self._lock = _SharedLock()
         self._counts = threading.Lock()
         self._tick = itertools.count(1)
@@ -408,7 +410,7 @@ class BrickStore:
             slots = slots.astype(np.int32)  # held while the launch views it
             launch(_k.voxel_sums, sums.shape[0],
                    [self._on_device(slots, wp.int32), self._index, self._pool,
-                    *self._colors, self.channels], [sums], device=self._device)
+                    self._colors], [sums], device=self._device)
         return sums.numpy()
 
     def stats(self) -> dict:
@@ -553,8 +555,7 @@ class BrickStore:
         """One lookup launch, split in ranges over CPU threads (Warp runs a CPU launch on
         one thread; points are independent, so ranges give the same result); returns how
         many points missed."""
-        inputs = [points, self._index, self._pool, *self._colors, self.channels,
-                  wp.int64(next(self._tick))]
+        inputs = [points, self._index, self._pool, self._colors, wp.int64(next(self._tick))]
         launch_ranges(kernel, 0, len(points), inputs, [out, missed, count],
                       device=self._device)
         if self._device == "cpu":

@@ -5,7 +5,7 @@ Mitsuba's ``llvm_*`` variants compile through Dr.Jit, which loads libLLVM at run
 work. Dr.Jit reads ``DRJIT_LIBLLVM_PATH`` when its LLVM backend starts, so :func:`configure_drjit`
 must run before Mitsuba is first used: ``import warptex`` does that.
 
-Run as a script (``python warptex/_llvm.py``) it prints the library found and exits 1 when there
+Run as a script (``python warptex/llvm.py``) it prints the library found and exits 1 when there
 is none; the Makefile uses that to decide whether to install ``libllvm19``, before the project's
 dependencies exist, which is why this module imports only the standard library at top level.
 """
