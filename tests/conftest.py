@@ -19,7 +19,7 @@ def warp_device() -> str:
     """Warp initialised once per session, with CPU as the default device."""
     import warp as wp
 
-    from warptex.device import init_warp
+    from warptex.warp_runtime import init_warp
 
     init_warp()
     wp.set_device("cpu")

@@ -273,7 +273,7 @@ def test_an_unwritable_cache_folder(files, tmp_path, capsys, monkeypatch):
 def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatch, value):
     import warp as wp
 
-    from warptex.device import init_warp
+    from warptex.warp_runtime import init_warp
 
     init_warp()
     if value == "cuda" and wp.get_cuda_device_count() > 0:
@@ -409,7 +409,7 @@ def test_kernel_build_note_on_a_gpu_machine(tmp_path, monkeypatch, capsys, warp_
 
     from warptex import cli
 
-    monkeypatch.setattr(importlib.import_module("warptex.device"), "device", lambda: "cuda")
+    monkeypatch.setattr(importlib.import_module("warptex.warp_runtime"), "device", lambda: "cuda")
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     for name, cpu_only in cli._KERNEL_MODULES:
         module = wp.get_module(importlib.import_module(name).__name__)

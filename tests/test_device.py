@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 import os
 import subprocess
 import sys
@@ -11,8 +10,7 @@ import pytest
 import warp as wp
 
 import warptex
-
-device_module = importlib.import_module("warptex.device")  # the package re-binds ``device``
+import warptex.warp_runtime as device_module
 
 
 @pytest.fixture
@@ -126,7 +124,7 @@ def test_warp_starts_without_a_stderr(no_stderr):
 _DOUBLING = '''
 import numpy as np
 import warp as wp
-from warptex.device import init_warp, launch
+from warptex.warp_runtime import init_warp, launch
 
 @wp.kernel
 def double(a: wp.array(dtype=float), out: wp.array(dtype=float)):

@@ -16,8 +16,8 @@ from warptex.llvm import best_mitsuba_variant, configure_drjit
 
 configure_drjit()
 
-from warptex.device import device  # noqa: E402
 from warptex.exemplar import Exemplar, ExemplarError, PyramidLevel  # noqa: E402
+from warptex.warp_runtime import device  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -15,10 +15,10 @@ import warp as wp
 from scipy import ndimage
 
 from kernels import bake as _k
-from warptex.device import device as default_device
-from warptex.device import init_warp, launch
 from warptex.surface import to_voxel_space
 from warptex.texture import SolidTexture, query_slabs
+from warptex.warp_runtime import device as default_device
+from warptex.warp_runtime import init_warp, launch
 
 
 class PointTexture(Protocol):

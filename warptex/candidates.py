@@ -34,10 +34,10 @@ from kernels import common as _common
 from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
-from warptex.device import init_warp
 from warptex.exemplar import Exemplar, ExemplarError
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
+from warptex.warp_runtime import init_warp
 
 FORMAT_VERSION = 4  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
 # 4: the PCA basis the same on every CPU (no LAPACK; BLAS only where its sums are exact)

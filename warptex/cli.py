@@ -402,7 +402,7 @@ def _kernel_cache_line() -> str:
     builds its own, and Warp never deletes old ones."""
     import warp as wp
 
-    from warptex.device import init_warp
+    from warptex.warp_runtime import init_warp
 
     init_warp()
     folder = Path(wp.config.kernel_cache_dir)
@@ -1115,7 +1115,7 @@ _KERNEL_MODULES = (("kernels.candidates", True), ("kernels.synthesis", False))
 def _check_device() -> None:
     """A device asked for through the environment that cannot be had is a user error."""
     if os.environ.get("WARPTEX_DEVICE", "").strip():
-        from warptex.device import device
+        from warptex.warp_runtime import device
 
         try:
             device()
@@ -1132,7 +1132,7 @@ def _note_kernel_build() -> None:
 
     import warp as wp
 
-    from warptex.device import device, init_warp
+    from warptex.warp_runtime import device, init_warp
 
     init_warp()  # which settles Warp's kernel cache folder
     cache = Path(wp.config.kernel_cache_dir)

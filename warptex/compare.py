@@ -207,7 +207,7 @@ def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int,
 
 
 def _engine_device() -> str:
-    from warptex.device import device
+    from warptex.warp_runtime import device
 
     return device()
 

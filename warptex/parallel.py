@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from warptex.device import launch
 from warptex.machine import usable_cores
+from warptex.warp_runtime import launch
 
 THREADS = min(usable_cores(), 8)
 MIN_SPLIT = 4096  # fewer items than this run as one launch: threads would cost more

@@ -40,11 +40,11 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
-from warptex.device import launch
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
 from warptex.synthesis import ENGINE_VERSION, Synthesizer
+from warptex.warp_runtime import launch
 
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
 _MAGIC = b"WTXBRICK"

@@ -12,10 +12,10 @@ import trimesh
 import warp as wp
 
 from kernels import surface as _k
-from warptex.device import device as default_device
-from warptex.device import init_warp
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
+from warptex.warp_runtime import device as default_device
+from warptex.warp_runtime import init_warp
 
 # Voxels a shell may hold: faces count the voxels they share each, which the int32 offsets
 # of the touched voxels must hold too (a few times the shell on fine meshes).

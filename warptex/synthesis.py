@@ -21,8 +21,6 @@ from scipy import ndimage
 from kernels import synthesis as _k
 from kernels.common import KEY_BIAS, KEY_BITS
 from warptex.candidates import CandidateSet
-from warptex.device import device as default_device
-from warptex.device import init_warp
 from warptex.keysets import (
     cell_offsets,
     distinct_sorted,
@@ -41,6 +39,8 @@ from warptex.settings import (
     check_count,
     check_settings,
 )
+from warptex.warp_runtime import device as default_device
+from warptex.warp_runtime import init_warp
 
 # Raised whenever the engine gives any voxel another result from the same inputs, so that
 # brick stores written by an earlier engine are not reused. 2: shifted neighbour triples;

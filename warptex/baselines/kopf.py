@@ -43,9 +43,9 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from kernels import kopf as _k
-from warptex.device import init_warp, launch
 from warptex.exemplar import Exemplar
 from warptex.parallel import THREADS, launch_ranges
+from warptex.warp_runtime import init_warp, launch
 
 LEVELS = 3  # "we use a three-level synthesis pyramid" (section 6)
 R = 0.8  # robust exponent of equation 1
