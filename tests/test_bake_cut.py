@@ -447,3 +447,17 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
         files = export(mesh, tmp_path / f"t{srgb}.obj", image=image, uv=uv, srgb=srgb)
         png = next(f for f in files if f.suffix == ".png")
         np.testing.assert_array_equal(np.asarray(Image.open(png))[..., :3], rgb8(expected))
+
+
+def test_cli_slice_shows_x_across_and_y_down_as_a_volume_sheet(tmp_path, data_dir, warp_device):
+    """The default slice is an image of the plane z = 0.5 with x to the right and y down,
+    as each z-slice of `warptex volume -o out.exr` shows it."""
+    from warptex.cli import main
+    from warptex.volume_files import exr_sheet
+
+    exemplar = str(data_dir / "granite_64.png")
+    assert main(["slice", exemplar, "--shape", "8", "12", "--filter", "nearest",
+                 "-o", str(tmp_path / "s.npy")]) == 0
+    assert main(["volume", exemplar, "--size", "12", "-o", str(tmp_path / "v.npy")]) == 0
+    first_z_slice = exr_sheet(np.load(tmp_path / "v.npy"))[:8, :12]
+    np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), first_z_slice)
