@@ -23,15 +23,23 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from kernels.common import KEY_BIAS, KEY_BITS
 from kernels.lookup import BRICK, BRICK_SHIFT, BRICK_VOXELS
-from warptex.keysets import unique, unpack
-from warptex.store import CORNERS, BrickStore, brick_coords, brick_keys, brick_voxels, corner_voxels
+from warptex.keysets import pack, unique
+from warptex.store import CORNERS, BrickStore, brick_coords, brick_voxels
+from warptex.synthesis import COORD_LIMIT
 
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
 # a dense table; such a texture renders in wavefront mode instead.
 MAX_PAGES = 1 << 25
 LOG_CAPACITY = 1 << 20  # slots of the miss log (8 MiB); bricks that collide take another round
+# A miss log word: three 20-bit brick coordinates, biased (bricks lie within +-2^19 of the
+# origin, voxels within COORD_LIMIT), then 3 bits of brick edges; never 0, an empty slot.
+_LOG_BITS = 20
+_LOG_BIAS = 1 << (_LOG_BITS - 1)
+_LOG_MASK = (1 << _LOG_BITS) - 1
+_LOG_SHIFTS = (3 + 2 * _LOG_BITS, 3 + _LOG_BITS, 3)
+assert COORD_LIMIT >> BRICK_SHIFT < _LOG_BIAS
+_MAX_SUMS = 1 << 31  # the mirror's sums are gathered at 32-bit positions
 
 
 class TracedLookup:
@@ -53,7 +61,7 @@ class TracedLookup:
 
     def refresh(self) -> bool:
         """Mirror the store as it is now; False when its bricks need more than
-        ``max_pages`` table entries."""
+        ``max_pages`` table entries, or its slots more sums than 32-bit indices reach."""
         if self.store.version == self._version:
             return self.usable
         snap = self.store.snapshot()
@@ -62,7 +70,8 @@ class TracedLookup:
         lo = coords.min(0) if len(live) else np.zeros(3, np.int64)
         dims = coords.max(0) - lo + 1 if len(live) else np.ones(3, np.int64)
         self._version = snap.version
-        self.usable = int(np.prod(dims)) <= self.max_pages
+        self.usable = (int(np.prod(dims)) <= self.max_pages
+                       and snap.sums.size < _MAX_SUMS)
         if not self.usable:
             return False
         pages = np.full(int(np.prod(dims)), -1, np.int32)
@@ -118,18 +127,20 @@ class TracedLookup:
         """Every voxel (N, 3) of the bricks the logged lanes read, and a cleared log;
         called once per traced render, which it counts, and whose bricks it marks as
         used. Whole bricks, so a render's misses are filled in few rounds."""
-        packed = self._log_voxels.numpy()
-        packed = packed[packed != 0].astype(np.int64)
+        words = self._log_voxels.numpy()
+        words = words[words != 0]
         self.renders += 1
-        self.renders_with_misses += bool(len(packed))
-        logged = unpack(packed)
+        self.renders_with_misses += bool(len(words))
         self._reset_log()
         if self.usable:
             self.store.mark_used(np.flatnonzero(self._used.numpy()), self._version)
             self._used = dr.zeros(mi.UInt32, dr.width(self._used))
-        if self.filter == "trilinear":
-            logged = corner_voxels(logged)
-        return brick_voxels(unique(brick_keys(logged)))
+        fields = [(words >> np.uint64(shift)) & np.uint64(_LOG_MASK) for shift in _LOG_SHIFTS]
+        bricks = np.stack(fields, axis=1).astype(np.int64) - _LOG_BIAS
+        if self.filter == "trilinear":  # a corner beyond a brick's last voxel is in the next
+            edges = (words[:, None] >> np.arange(3, dtype=np.uint64)[::-1]) & np.uint64(1)
+            bricks = (bricks[:, None, :] + CORNERS[None] * edges[:, None, :].astype(np.int64))
+        return brick_voxels(unique(pack(bricks.reshape(-1, 3))))
 
     def _voxel_sums(self, voxel: list[mi.Int32], active: mi.Bool,
                     mark: mi.Bool) -> tuple[list[mi.Float], mi.Bool]:
@@ -150,19 +161,22 @@ class TracedLookup:
         return sums, found & ~dr.isnan(sums[0])  # NaN: a voxel its brick does not hold
 
     def _log(self, voxel: list[mi.Int32], missed: mi.Bool) -> None:
-        """Record missed voxels, packed in one word each (so racing lanes cannot mix
-        coordinates), at a slot hashed from their brick and from which neighbour bricks
-        their corners reach: lanes that read the same bricks overwrite each other. The
-        hash changes every render, so bricks that collide are logged the next one.
-        (Plain scatters: a counter could not be advanced twice in one traced program.)"""
-        b = [mi.UInt32(v >> BRICK_SHIFT) for v in voxel]
+        """Record the brick of each missed voxel and whether it is its brick's last along
+        each axis (a trilinear corner then reads the next brick), packed in one word (so
+        racing lanes cannot mix coordinates), at a slot hashed from both: lanes that read
+        the same bricks overwrite each other. The hash changes every render, so bricks that
+        collide are logged the next one. (Plain scatters: a counter could not be advanced
+        twice in one traced program.)"""
+        b = [v >> BRICK_SHIFT for v in voxel]
         edge = [mi.UInt32((v & (BRICK - 1)) == BRICK - 1) for v in voxel]
-        at = ((b[0] * 73856093 ^ b[1] * 19349663 ^ b[2] * 83492791
+        at = ((mi.UInt32(b[0]) * 73856093 ^ mi.UInt32(b[1]) * 19349663
+               ^ mi.UInt32(b[2]) * 83492791
                ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) * self._salt
               >> 16) & (LOG_CAPACITY - 1)
-        # Packed as warptex.keysets.pack packs, in Dr.Jit's arrays.
-        x, y, z = (mi.UInt64(v + KEY_BIAS) for v in voxel)
-        dr.scatter(self._log_voxels, (x << 2 * KEY_BITS) | (y << KEY_BITS) | z, at, missed)
+        word = mi.UInt64(edge[0] * 4 + edge[1] * 2 + edge[2])
+        for c, shift in zip(b, _LOG_SHIFTS, strict=True):
+            word |= mi.UInt64(mi.UInt32(c + _LOG_BIAS) & _LOG_MASK) << shift
+        dr.scatter(self._log_voxels, word, at, missed)
 
     def _reset_log(self) -> None:
         self._log_voxels = dr.zeros(mi.UInt64, LOG_CAPACITY)  # 0: empty slot

@@ -57,13 +57,14 @@ def test_traced_colors_are_bit_identical_to_query(texture, filter):
 
 @pytest.mark.parametrize("filter", ["nearest", "trilinear"])
 @pytest.mark.parametrize("side", [1.0, -1.0])
-def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter, side):
+@pytest.mark.parametrize("offset", [0.0, 4_190_000.0])  # near POINT_LIMIT: 2^22 voxels
+def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter, side, offset):
     from mitsuba_plugin.traced import TracedLookup
 
-    texture.query(np.zeros((1, 3)), filter=filter)
+    texture.query(np.full((1, 3), side * offset), filter=filter)  # bricks near the others
     lookup = TracedLookup(texture.store, filter, fallback=(0.25, 0.5, 0.75))
     assert lookup.refresh()
-    far = side * sample_points(np.random.default_rng(4), 500, 40.0, 90.0)
+    far = side * (sample_points(np.random.default_rng(4), 500, 40.0, 90.0) + offset)
     np.testing.assert_array_equal(traced_colors(lookup, far),
                                   np.tile([0.25, 0.5, 0.75], (len(far), 1)).astype(np.float32))
     # Bricks whose log slots collide are logged by a later read (the hash changes).
@@ -97,12 +98,16 @@ def test_evicted_bricks_miss_instead_of_reading_a_reused_slot(texture):
                                   texture.query(a + 16.0, filter="nearest")[:, :3])
 
 
-def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture):
+def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture, monkeypatch):
     from mitsuba_plugin.traced import TracedLookup
 
     texture.query(np.array([[0.0, 0.0, 0.0], [100.0, 100.0, 100.0]]), filter="nearest")
     assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=12**3 - 1).refresh() is False
     assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=13**3).refresh() is True
+    # Nor a store of more slots than 32-bit positions reach in the mirror's sums.
+    slots = len(texture.store.snapshot().keys)
+    monkeypatch.setattr("mitsuba_plugin.traced._MAX_SUMS", slots * 512 * 3)
+    assert TracedLookup(texture.store, "nearest", (0, 0, 0), max_pages=13**3).refresh() is False
 
 
 def lit_plane(path, space: str = "world", filter: str = "trilinear", **props):
