@@ -30,6 +30,7 @@ from warptex.candidates import (
     cached_candidate_path,
     precompute,
 )
+from warptex.code_digest import sources_digest
 
 GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
 
@@ -639,10 +640,10 @@ def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):
     files = [tmp_path / "a.py", tmp_path / "b.py"]
     for f in files:
         f.write_text("x = 1\n")
-    first = candidates._sources_digest(files, "12 127")
+    first = sources_digest(files, "12 127")
     files[1].write_text("x = 2\n")
-    assert candidates._sources_digest(files, "12 127") != first
-    assert candidates._sources_digest(files, "12 127") != candidates._sources_digest(files, "8 127")
+    assert sources_digest(files, "12 127") != first
+    assert sources_digest(files, "12 127") != sources_digest(files, "8 127")
 
 
 def test_unknown_or_bad_parameters_are_rejected():

@@ -397,24 +397,32 @@ def test_saves_to_one_file_merge_rather_than_replace(candidates, tmp_path: Path)
     assert BrickStore.load(path, syn).stats()["voxels"] == 5
     other = BrickStore(synthesizer(candidates, seed=3), whole_bricks=False)
     other.prefetch(np.array([[0, 0, 0]]))
-    other.save(path)
+    with pytest.warns(UserWarning, match=r"replacing brick store file: .*another texture \(seed"):
+        other.save(path)
     with pytest.warns(UserWarning, match="another texture"):
         BrickStore.load(path, syn)
     assert BrickStore.load(path, synthesizer(candidates, seed=3)).stats()["voxels"] == 1
 
 
-def test_a_merged_save_keeps_what_fits_the_cache(candidates, tmp_path: Path):
+def test_a_merged_save_keeps_what_fits_the_cache_or_the_file(candidates, tmp_path: Path):
+    """A store of little room does not shrink a shared file: the most recent bricks that
+    fit the file's size are kept (the oldest goes); a store of more room keeps them all."""
     syn = synthesizer(candidates)
     path = tmp_path / "s.wtb"
     old = BrickStore(syn)
     for b in range(3):
         sample(old, [brick_center((b, 0, 0))])
     old.save(path)
-    new = BrickStore(syn, cache_bytes=2 * BRICK_BYTES)
-    sample(new, [brick_center((0, 5, 0))])
-    new.save(path)
+    small = BrickStore(syn, cache_bytes=BRICK_BYTES)
+    sample(small, [brick_center((0, 5, 0))])
+    small.save(path)
     snap = BrickStore.load(path, syn).snapshot()
-    assert set(snap.keys[snap.keys >= 0]) == set(brick_keys(np.array([[16, 0, 0], [0, 40, 0]])))
+    assert set(snap.keys[snap.keys >= 0]) == set(
+        brick_keys(np.array([[8, 0, 0], [16, 0, 0], [0, 40, 0]])))
+    large = BrickStore(syn)
+    sample(large, [brick_center((0, 6, 0))])
+    large.save(path)
+    assert BrickStore.load(path, syn).stats()["bricks"] == 4
 
 
 def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
@@ -441,3 +449,41 @@ def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
     for t in threads:
         t.join()
     assert BrickStore.load(path, syn).stats()["voxels"] == len(stores)
+
+
+def test_identity_follows_the_engine_code_and_the_jitter_the_engine_takes(candidates, tmp_path,
+                                                                         monkeypatch):
+    """Stores of another engine's code are never reused, even at the same ENGINE_VERSION;
+    jitters that the engine rounds alike (to 1/256) share stores."""
+    same = {BrickStore(synthesizer(candidates, jitter=j)).identity() for j in (1.0, 1.0000001)}
+    assert len(same) == 1
+    assert BrickStore(synthesizer(candidates, jitter=1.01)).identity() not in same
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    path = tmp_path / "s.wtb"
+    store.save(path)
+    monkeypatch.setattr("warptex.store._engine_code", lambda: "another engine")
+    with pytest.warns(UserWarning, match=r"another texture \(engine code\)"):
+        assert BrickStore.load(path, synthesizer(candidates)).stats()["bricks"] == 0
+
+
+def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidates, tmp_path):
+    """A file that passes its checksum but was written by other means: triples beyond the
+    exemplars or repeated bricks would send the lookup kernels out of bounds."""
+    from warptex.archive import read_archive, write_archive
+    from warptex.store import _MAGIC, FORMAT_VERSION
+
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    sample(store, [brick_center((0, 0, 0))])
+    path = tmp_path / "s.wtb"
+    store.save(path)
+    good = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
+    beyond = dict(good, triples=good["triples"].copy())
+    beyond["triples"][5, 2] = 32 * 32  # granite_32 has 1024 pixels
+    repeated = dict(good, keys=np.repeat(good["keys"], 2), valid=np.repeat(good["valid"], 2, 0),
+                    triples=np.concatenate([good["triples"]] * 2))
+    for arrays, problem in ((beyond, "outside the exemplars"), (repeated, "repeated bricks")):
+        write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
+        with pytest.warns(UserWarning, match=problem):
+            assert BrickStore.load(path, syn).stats()["bricks"] == 0

@@ -211,7 +211,8 @@ def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(cand
         elsewhere.save(path)
     assert path.read_bytes() == saved
     del tex, twin
-    elsewhere.save(path)
+    with pytest.warns(UserWarning, match="replacing brick store file: .*another texture"):
+        elsewhere.save(path)
     assert path.read_bytes() != saved
 
 

@@ -34,6 +34,7 @@ from kernels import common as _common
 from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
+from warptex.code_digest import code_digest, module_sources
 from warptex.exemplar import Exemplar, ExemplarError
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
@@ -327,41 +328,15 @@ def cache_file_name(digests: Sequence[str], params: dict) -> str:
 
 @cache
 def _code_digest() -> str:
-    """Digest of the code that decides the candidates: a cache made by other code, even at
-    the same FORMAT_VERSION, is another file and never served (caches are never silently
-    wrong), at the price of a recomputation after each change to these modules."""
-    constants = f"{MAX_DIMS} {PROJ_LIMIT}"
-    sources = _deciding_sources()
-    if sources is not None:
-        try:
-            return _sources_digest(sources, constants)
-        except OSError:  # listed but unreadable (a zip or frozen application)
-            pass
-    return hashlib.sha256(f"{constants} {_package_version()}".encode()).hexdigest()
+    """Digest of the code that decides the candidates (``warptex.code_digest``)."""
+    return code_digest(_deciding_sources(), f"{MAX_DIMS} {PROJ_LIMIT}")
 
 
 def _deciding_sources() -> list[Path] | None:
     """This module, its kernels and their building blocks, its PCA and the exemplar's
     pyramid; None where a module has no source file."""
-    modules = (sys.modules[__name__], _k, _common, exact_pca, sys.modules[Exemplar.__module__])
-    files = [getattr(m, "__file__", None) for m in modules]
-    return None if None in files else [Path(f) for f in files]
-
-
-def _package_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("warptex")
-    except PackageNotFoundError:
-        return "unknown"
-
-
-def _sources_digest(paths: Sequence[Path], constants: str) -> str:
-    digest = hashlib.sha256(constants.encode())
-    for path in paths:
-        digest.update(path.read_bytes())
-    return digest.hexdigest()
+    return module_sources((sys.modules[__name__], _k, _common, exact_pca,
+                           sys.modules[Exemplar.__module__]))
 
 
 def cached_candidate_path(ex: Exemplar) -> Path | None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import hashlib
 import itertools
 import json
@@ -40,10 +41,11 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
+from warptex.code_digest import code_digest, module_sources
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
-from warptex.synthesis import ENGINE_VERSION, Synthesizer
+from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer
 from warptex.warp_runtime import launch
 
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
@@ -53,6 +55,7 @@ _MIN_BRICKS = 64
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
 _LOCAL = cell_offsets(_k.BRICK)
 _T = TypeVar("_T")
+_MAX_BRICK = (COORD_LIMIT >> _k.BRICK_SHIFT) + 1  # farthest brick any voxel lies in
 CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 """Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
 corner c is ((c >> 2) & 1, (c >> 1) & 1, c & 1)."""
@@ -224,6 +227,7 @@ class _SharedLock:
 
 _SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
                   "candidates": "pre-computed candidates", "engine": "engine version",
+                  "engine_code": "engine code",
                   "format": "file format", "brick": "brick size",
                   "levels": "synthesized levels", "passes": "correction passes",
                   "subpasses": "sub-passes"}
@@ -253,15 +257,27 @@ def store_settings(synthesizer: Synthesizer) -> dict:
         "format": FORMAT_VERSION,
         "candidates": s.candidates.content_digest,
         "engine": ENGINE_VERSION,
+        "engine_code": _engine_code(),
         "brick": _k.BRICK,
         "digests": list(s.candidates.digests),
         "params": s.candidates.params,
         "seed": s.seed,
-        "jitter": s.jitter,
+        "jitter": round(s.jitter * 256) / 256,  # as the engine takes it
         "levels": s.finest - s.start,
         "passes": s.passes,
         "subpasses": s.subpasses,
     }
+
+
+@functools.cache
+def _engine_code() -> str:
+    """Digest of the engine's code (``warptex.code_digest``): stores of another engine's
+    voxels are never reused, also where ``ENGINE_VERSION`` was not raised."""
+    from kernels import common
+    from kernels import synthesis as engine_kernels
+    from warptex import synthesis
+
+    return code_digest(module_sources((synthesis, engine_kernels, common)), str(ENGINE_VERSION))
 
 
 def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
@@ -304,7 +320,8 @@ class BrickStore:
         self.channels = cs.channels
         if self.channels > _k.MAX_CHANNELS:
             raise ValueError(f"at most {_k.MAX_CHANNELS} color channels, got {self.channels}")
-        compact = max(c.shape[0] * c.shape[1] for c in sources) <= 1 << 16
+        self._pixels = np.array([c.shape[0] * c.shape[1] for c in sources])
+        compact = self._pixels.max() <= 1 << 16
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
         self._voxel_bytes = 3 * self._dtype.itemsize
         self._device = synthesizer.device
@@ -450,8 +467,10 @@ class BrickStore:
 
         A file this texture saved before, from this or another process, is merged with, not
         replaced: its voxels are the same as ours, so both renders' work stays warm. Its
-        bricks count as older than ours, and the most recent that fit ``cache_bytes`` are
-        written. Saves to one file take turns, so none loses the bricks of another.
+        bricks count as older than ours, and the most recent that fit ``cache_bytes`` or
+        the file's own size, whichever is larger, are written. Saves to one file take
+        turns, so none loses the bricks of another. A damaged file or another texture's is
+        replaced, with a warning.
         """
         path = Path(path)
         check_store_path(path)
@@ -462,9 +481,14 @@ class BrickStore:
         with _taking_turns(path):
             try:
                 saved = self._read(path) if path.exists() else None
-            except StoreFileError:
-                saved = None  # damaged or another texture's: replaced, as load reported
-            kept = self._recent_that_fit(ours if saved is None else _bricks_union(saved, ours))
+            except StoreFileError as e:
+                warnings.warn(f"replacing brick store file: {e}", stacklevel=2)
+                saved = None
+            budget = self.cache_bytes
+            if saved is not None:  # a store of less room does not shrink a shared file
+                budget = max(budget, self._bricks_bytes(saved.valid))
+                ours = _bricks_union(saved, ours)
+            kept = self._recent_that_fit(ours, budget)
             write_archive(path, _MAGIC, FORMAT_VERSION,
                           {"identity": np.array(self.identity()),
                            "settings": np.array(self._settings_json()), **kept._asdict()})
@@ -640,18 +664,24 @@ class BrickStore:
         live = np.flatnonzero(self._keys != _EMPTY)
         return live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
 
-    def _recent_that_fit(self, bricks: _Bricks) -> _Bricks:
-        """The most recently used of ``bricks`` that fit ``cache_bytes``."""
+    def _recent_that_fit(self, bricks: _Bricks, budget: int | None = None) -> _Bricks:
+        """The most recently used of ``bricks`` that fit ``budget`` bytes (``cache_bytes``
+        unless given)."""
         counts = np.bitwise_count(bricks.valid).sum(axis=1)
-        keep = self._kept(counts)
+        keep = self._kept(counts, budget)
         rows = _ranges_of((np.cumsum(counts) - counts)[keep], counts[keep])
         return _Bricks(bricks.keys[keep], bricks.triples[rows], bricks.valid[keep])
 
-    def _kept(self, counts: np.ndarray) -> np.ndarray:
+    def _kept(self, counts: np.ndarray, budget: int | None = None) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
-        first, ``cache_bytes`` keeps: the most recently used that fit."""
+        first, ``budget`` bytes (``cache_bytes`` unless given) keep: the most recently used
+        that fit."""
         cost = counts * self._voxel_bytes + _SLOT_BYTES
-        return np.cumsum(cost[::-1])[::-1] <= self.cache_bytes
+        return np.cumsum(cost[::-1])[::-1] <= (self.cache_bytes if budget is None else budget)
+
+    def _bricks_bytes(self, valid: np.ndarray) -> int:
+        """What bricks of stored-voxel words ``valid`` cost in a store."""
+        return int(np.bitwise_count(valid).sum()) * self._voxel_bytes + len(valid) * _SLOT_BYTES
 
     def _evict(self) -> None:
         """Drop least-recently-used bricks until the stored voxels fit ``cache_bytes``."""
@@ -826,4 +856,12 @@ class BrickStore:
             raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")
         if triples.dtype != self._dtype or triples.shape != (int(np.bitwise_count(valid).sum()), 3):
             raise StoreFileError(f"{path}: voxel triples of unexpected type or shape")
-        return _Bricks(keys.astype(np.int64), triples, valid)
+        # The lookup kernels read exemplar colors at these pixels and bricks at these keys:
+        # a file that passed its checksum but holds others (written by hand) is refused.
+        if len(triples) and (triples.min() < 0 or (triples.max(axis=0) >= self._pixels).any()):
+            raise StoreFileError(f"{path}: voxel triples outside the exemplars")
+        keys = keys.astype(np.int64)
+        if len(keys) and (len(np.unique(keys)) != len(keys)
+                          or np.abs(brick_coords(keys)).max() > _MAX_BRICK):
+            raise StoreFileError(f"{path}: repeated bricks or bricks beyond the texture range")
+        return _Bricks(keys, triples, valid)

@@ -1,0 +1,44 @@
+"""Digests of the code that decides what a cache holds: a cache written by other code, even
+under the same format version, is keyed otherwise and never served (caches are never
+silently wrong), at the price of recomputing it after each change to that code."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from types import ModuleType
+
+
+def module_sources(modules: Iterable[ModuleType]) -> list[Path] | None:
+    """The source files of ``modules``; None where one has none (a frozen application)."""
+    files = [getattr(m, "__file__", None) for m in modules]
+    return None if None in files else [Path(f) for f in files]
+
+
+def code_digest(sources: Sequence[Path] | None, constants: str) -> str:
+    """SHA-256 of the ``sources``' bytes and of ``constants`` (values set outside them);
+    of the constants and warptex's version where the sources cannot be read."""
+    if sources is not None:
+        try:
+            return sources_digest(sources, constants)
+        except OSError:  # listed but unreadable (a zip)
+            pass
+    return hashlib.sha256(f"{constants} {_package_version()}".encode()).hexdigest()
+
+
+def sources_digest(paths: Sequence[Path], constants: str) -> str:
+    """SHA-256 of ``constants`` and the bytes of ``paths``, in order."""
+    digest = hashlib.sha256(constants.encode())
+    for path in paths:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("warptex")
+    except PackageNotFoundError:
+        return "unknown"
