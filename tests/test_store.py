@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -294,6 +295,10 @@ def test_a_file_of_another_kind_is_refused_and_kept(candidates, tmp_path: Path):
     empty.touch()
     with pytest.warns(UserWarning, match="ignoring brick store file"):
         BrickStore.load(empty, synthesizer(candidates))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a place to save to, nothing replaced
+        BrickStore(synthesizer(candidates)).save(empty)
+    assert empty.stat().st_size > 0
 
 
 def test_bricks_read_through_brick_sums_count_as_used(candidates):
@@ -475,7 +480,7 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
 
     syn = synthesizer(candidates)
     store = BrickStore(syn)
-    sample(store, [brick_center((0, 0, 0))])
+    sample(store, [brick_center((0, 0, 0)), brick_center((1, 0, 0))])
     path = tmp_path / "s.wtb"
     store.save(path)
     good = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
@@ -483,7 +488,12 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     beyond["triples"][5, 2] = 32 * 32  # granite_32 has 1024 pixels
     repeated = dict(good, keys=np.repeat(good["keys"], 2), valid=np.repeat(good["valid"], 2, 0),
                     triples=np.concatenate([good["triples"]] * 2))
-    for arrays, problem in ((beyond, "outside the exemplars"), (repeated, "repeated bricks")):
+    float_keys = dict(good, keys=good["keys"].astype(np.float64))
+    for arrays, problem in ((beyond, "outside the exemplars"), (repeated, "repeated bricks"),
+                            (float_keys, "brick keys of unexpected type")):
         write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
         with pytest.warns(UserWarning, match=problem):
             assert BrickStore.load(path, syn).stats()["bricks"] == 0
+    # Bits stored column-major are the same bits.
+    write_archive(path, _MAGIC, FORMAT_VERSION, dict(good, valid=np.asfortranarray(good["valid"])))
+    assert BrickStore.load(path, syn).stats()["bricks"] == 2

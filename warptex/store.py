@@ -275,9 +275,13 @@ def _engine_code() -> str:
     voxels are never reused, also where ``ENGINE_VERSION`` was not raised."""
     from kernels import common
     from kernels import synthesis as engine_kernels
-    from warptex import synthesis
+    from warptex import keysets, synthesis
 
-    return code_digest(module_sources((synthesis, engine_kernels, common)), str(ENGINE_VERSION))
+    modules = (synthesis, engine_kernels, common, keysets)
+    return code_digest(module_sources(modules), str(ENGINE_VERSION))
+
+
+_engine_code()  # now: the code this process runs, even if its files are edited meanwhile
 
 
 def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
@@ -480,7 +484,8 @@ class BrickStore:
                            self._valid[live])
         with _taking_turns(path):
             try:
-                saved = self._read(path) if path.exists() else None
+                # An empty file (made by mktemp) is a place to save to, not a store.
+                saved = self._read(path) if path.exists() and path.stat().st_size else None
             except StoreFileError as e:
                 warnings.warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None
@@ -852,6 +857,9 @@ class BrickStore:
             except (KeyError, ValueError):
                 pass
             raise StoreFileError(f"{path}: written for another texture ({differences})")
+        if keys.dtype != np.int64 or keys.ndim != 1:
+            raise StoreFileError(f"{path}: brick keys of unexpected type or shape")
+        valid = np.ascontiguousarray(valid)  # viewed as bytes
         if valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS):
             raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")
         if triples.dtype != self._dtype or triples.shape != (int(np.bitwise_count(valid).sum()), 3):
@@ -860,7 +868,6 @@ class BrickStore:
         # a file that passed its checksum but holds others (written by hand) is refused.
         if len(triples) and (triples.min() < 0 or (triples.max(axis=0) >= self._pixels).any()):
             raise StoreFileError(f"{path}: voxel triples outside the exemplars")
-        keys = keys.astype(np.int64)
         if len(keys) and (len(np.unique(keys)) != len(keys)
                           or np.abs(brick_coords(keys)).max() > _MAX_BRICK):
             raise StoreFileError(f"{path}: repeated bricks or bricks beyond the texture range")
