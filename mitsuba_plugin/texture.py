@@ -86,6 +86,7 @@ import mitsuba as mi
 import numpy as np
 
 import mitsuba_plugin
+from mitsuba_plugin.properties import choice_property, get_property, property_error, scene_path
 from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
@@ -111,57 +112,8 @@ from warptex.store import StoreFileError
 from warptex.texture import SolidTexture, wrap_far
 
 PLUGIN = "lazy_solid"
-# How a property of each kind is written in a scene, for errors that name the wrong one.
-_KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>',
-          bool: 'a <boolean ...>'}
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
-
-
-class PropertyError(ValueError):
-    """A property of a warptex plugin is missing or invalid."""
-
-
-def property_error(plugin: str, name: str, problem: str) -> PropertyError:
-    """The Mitsuba-style error, to raise, for property ``name`` of ``plugin``."""
-    return PropertyError(f'{plugin}: property "{name}" {problem}')
-
-
-def get_property(props: mi.Properties, name: str, kind: type, default: Any,
-                 plugin: str = PLUGIN) -> Any:
-    """Property ``name`` converted to ``kind`` (int, float, str or bool), or ``default``."""
-    if name not in props:
-        return default
-    value = props[name]
-    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value)
-    if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
-        raise property_error(plugin, name, f"must be {_KINDS[kind]}, got {value!r}")
-    return value
-
-
-def _choice(props: mi.Properties, name: str, options: tuple[str, ...],
-           plugin: str = PLUGIN) -> str:
-    """String property ``name``, one of ``options`` (the first is the default)."""
-    value = get_property(props, name, str, options[0], plugin)
-    if value not in options:
-        allowed = " or ".join(f'"{o}"' for o in options)
-        raise property_error(plugin, name, f'must be {allowed}, got "{value}"')
-    return value
-
-
-def scene_path(name: str, must_exist: bool) -> Path:
-    """Absolute path of a file named in a scene.
-
-    While Mitsuba parses a scene file its file resolver starts with the file's folder,
-    so relative names resolve against the scene; ``mi.load_dict`` resolves against the
-    working directory. A file that does not exist yet is placed in that first folder.
-    """
-    resolver = mi.file_resolver()
-    found = Path(str(resolver.resolve(name)))
-    if found.exists() or must_exist or found.is_absolute() or len(resolver) == 0:
-        return found.absolute()
-    return (Path(str(resolver[0])) / name).absolute()
 
 
 def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
@@ -244,28 +196,28 @@ class LazySolidTexture(mi.Texture):
         check_upsampling()  # before any work: this Mitsuba's spectra may be refused
         named = _exemplar_paths(props)
         self.exemplars = [path for _, path in named]
-        self.max_size = get_property(props, "exemplar_max_size", int, None)
+        self.max_size = get_property(props, "exemplar_max_size", int, None, PLUGIN)
         try:
             check_max_size(self.max_size)
         except SettingError as e:
             raise property_error(PLUGIN, "exemplar_max_size", e.problem) from None
-        self.seed = get_property(props, "seed", int, 0)
-        self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER)
-        self.passes = get_property(props, "passes", int, DEFAULT_PASSES)
+        self.seed = get_property(props, "seed", int, 0, PLUGIN)
+        self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER, PLUGIN)
+        self.passes = get_property(props, "passes", int, DEFAULT_PASSES, PLUGIN)
         try:
             check_settings(self.jitter, self.passes, self.seed)
         except SettingError as e:
             raise property_error(PLUGIN, e.name, e.problem) from None
-        self.scale = get_property(props, "scale", float, _DEFAULT_SCALE)
+        self.scale = get_property(props, "scale", float, _DEFAULT_SCALE, PLUGIN)
         if not (np.isfinite(self.scale) and self.scale > 0):
             raise property_error(PLUGIN, "scale", f"must be a positive number, got {self.scale}")
-        self.space = _choice(props, "space", _SPACES)
-        self.filter = _choice(props, "filter", FILTERS)
-        self.raw = get_property(props, "raw", bool, False)
-        cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES)
+        self.space = choice_property(props, "space", _SPACES, PLUGIN)
+        self.filter = choice_property(props, "filter", FILTERS, PLUGIN)
+        self.raw = get_property(props, "raw", bool, False, PLUGIN)
+        cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES, PLUGIN)
         if cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
-        cache = get_property(props, "cache", str, None)
+        cache = get_property(props, "cache", str, None, PLUGIN)
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
         # A store file yet to be made that never can be would only fail its first save,
         # after a render's work; one that exists is loaded even from a read-only place.

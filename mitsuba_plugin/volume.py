@@ -19,8 +19,8 @@ import math
 
 import mitsuba as mi
 
+from mitsuba_plugin.properties import get_property, property_error
 from mitsuba_plugin.spectrum import spectrum
-from mitsuba_plugin.texture import get_property, property_error
 
 MEDIUM = "lazy_solid_medium"
 

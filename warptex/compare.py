@@ -275,17 +275,21 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     return results
 
 
+def _trio(values: list[float]) -> str:
+    """A per-axis metric as a table cell: "x / y / z"."""
+    return " / ".join(f"{x:.3f}" for x in values)
+
+
 def table_markdown(results: Sequence[MethodResult]) -> str:
+    """The comparison table in Markdown: one row a method, per-axis metrics as x / y / z
+    (the rows of ``table.md``)."""
     lines = [
         "| method | energy x / y / z | SWD x / y / z | histogram x / y / z | repetition | "
         "seconds | peak MiB | device | notes |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        def trio(v: list[float]) -> str:
-            return " / ".join(f"{x:.3f}" for x in v)
-
-        lines.append(f"| {r.method} | {trio(r.energy)} | {trio(r.swd)} | {trio(r.histogram)} | "
+        lines.append(f"| {r.method} | {_trio(r.energy)} | {_trio(r.swd)} | {_trio(r.histogram)} | "
                      f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.1f} | {r.device} | "
                      f"{r.notes} |")
     return "\n".join(lines) + "\n"

@@ -1,0 +1,59 @@
+"""Properties of the warptex Mitsuba plugins: read once at load, each checked, and an
+error that names the plugin and the property at fault (as Mitsuba's own plugins do)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import mitsuba as mi
+
+# How a property of each kind is written in a scene, for errors that name the wrong one.
+_KINDS = {int: 'an <integer ...>', float: 'a <float ...>', str: 'a <string ...>',
+          bool: 'a <boolean ...>'}
+
+
+class PropertyError(ValueError):
+    """A property of a warptex plugin is missing or invalid."""
+
+
+def property_error(plugin: str, name: str, problem: str) -> PropertyError:
+    """The Mitsuba-style error, to raise, for property ``name`` of ``plugin``."""
+    return PropertyError(f'{plugin}: property "{name}" {problem}')
+
+
+def get_property(props: mi.Properties, name: str, kind: type, default: Any,
+                 plugin: str) -> Any:
+    """Property ``name`` converted to ``kind`` (int, float, str or bool), or ``default``."""
+    if name not in props:
+        return default
+    value = props[name]
+    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+        raise property_error(plugin, name, f"must be {_KINDS[kind]}, got {value!r}")
+    return value
+
+
+def choice_property(props: mi.Properties, name: str, options: tuple[str, ...],
+                    plugin: str) -> str:
+    """String property ``name``, one of ``options`` (the first is the default)."""
+    value = get_property(props, name, str, options[0], plugin)
+    if value not in options:
+        allowed = " or ".join(f'"{o}"' for o in options)
+        raise property_error(plugin, name, f'must be {allowed}, got "{value}"')
+    return value
+
+
+def scene_path(name: str, must_exist: bool) -> Path:
+    """Absolute path of a file named in a scene.
+
+    While Mitsuba parses a scene file its file resolver starts with the file's folder,
+    so relative names resolve against the scene; ``mi.load_dict`` resolves against the
+    working directory. A file that does not exist yet is placed in that first folder.
+    """
+    resolver = mi.file_resolver()
+    found = Path(str(resolver.resolve(name)))
+    if found.exists() or must_exist or found.is_absolute() or len(resolver) == 0:
+        return found.absolute()
+    return (Path(str(resolver[0])) / name).absolute()
