@@ -140,19 +140,43 @@ def _packed(cells: np.ndarray, bricks: int) -> tuple[np.ndarray, np.ndarray]:
 def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
     """The bricks of two lists, each least recently used first, as one such list:
     ``newer``'s bricks the more recent, a brick in both holding the voxels of either
-    (their triples are the same, as voxels are position-determined)."""
-    keys = np.concatenate([older.keys, newer.keys])
-    rows, local = np.nonzero(_stored_bits(np.concatenate([older.valid, newer.valid])))
-    distinct, brick = np.unique(keys, return_inverse=True)
-    latest = np.zeros(len(distinct), np.int64)
-    np.maximum.at(latest, brick, np.arange(len(keys)))
-    by_recency = np.argsort(latest)
-    position = np.empty_like(by_recency)
-    position[by_recency] = np.arange(len(distinct))
-    # ``rows, local`` run brick by brick in local order, as each list's triples do.
-    first, valid = _packed(position[brick[rows]] * _k.BRICK_VOXELS + local, len(distinct))
-    triples = np.concatenate([older.triples, newer.triples])[first]
-    return _Bricks(distinct[by_recency], triples, valid)
+    (their triples are the same, as voxels are position-determined). Bricks are copied
+    whole; only those whose older copy holds voxels the newer lacks are merged voxel by
+    voxel."""
+    order = np.argsort(newer.keys)
+    found = lookup(newer.keys[order], older.keys)
+    twin = np.full(len(found), -1, np.int64)  # newer's copy of each older brick, if any
+    twin[found >= 0] = order[found[found >= 0]]
+    alone = twin < 0
+    both = np.flatnonzero(~alone)
+    grown = both[(older.valid[both] & ~newer.valid[twin[both]]).any(axis=1)]
+    if len(grown) == 0 and len(both) == len(older.keys):
+        return newer  # the older list adds nothing: a store saved over the file it loaded
+    old_counts, new_counts = _voxels_per_brick(older.valid), _voxels_per_brick(newer.valid)
+    old_first = np.cumsum(old_counts) - old_counts
+    new_first = np.cumsum(new_counts) - new_counts
+    # The grown bricks' voxels, old then new, each brick after brick in local order.
+    cells = [np.flatnonzero(_stored_bits(part.valid[rows]))
+             for part, rows in ((older, grown), (newer, twin[grown]))]
+    first, grown_valid = _packed(np.concatenate(cells), len(grown))
+    grown_triples = np.concatenate([
+        older.triples[_ranges_of(old_first[grown], old_counts[grown])],
+        newer.triples[_ranges_of(new_first[twin[grown]], new_counts[twin[grown]])]])[first]
+    # Each kept brick's voxels are one range of the triples of older, newer and grown.
+    source = np.concatenate([older.triples, newer.triples, grown_triples])
+    valid = np.concatenate([older.valid[alone], newer.valid])
+    starts = np.concatenate([old_first[alone], len(older.triples) + new_first])
+    at = int(alone.sum()) + twin[grown]
+    valid[at] = grown_valid
+    grown_counts = _voxels_per_brick(grown_valid)
+    starts[at] = len(older.triples) + len(newer.triples) + np.cumsum(grown_counts) - grown_counts
+    triples = source[_ranges_of(starts, _voxels_per_brick(valid))]
+    return _Bricks(np.concatenate([older.keys[alone], newer.keys]), triples, valid)
+
+
+def _voxels_per_brick(valid: np.ndarray) -> np.ndarray:
+    """Stored voxels of each brick of stored-voxel words ``valid`` (N, VALID_WORDS)."""
+    return np.bitwise_count(valid).sum(axis=1).astype(np.int64)
 
 
 @contextmanager
@@ -517,9 +541,8 @@ class BrickStore:
         except StoreFileError as e:
             warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
             return store
-        voxels = brick_voxels(kept.keys)[_stored_bits(kept.valid).reshape(-1)]
         with store._lock.exclusive():
-            store._insert(voxels, kept.triples)
+            store._fill(kept)
         return store
 
     # -- batches ----------------------------------------------------------------------
@@ -664,6 +687,30 @@ class BrickStore:
         self._index.stamps.assign(stamps)
         self._version += 1
 
+    def _fill(self, bricks: _Bricks) -> None:
+        """Fill this empty store with ``bricks``, listed least recently used first. A
+        file's triples lie brick after brick in local order, as the pool keeps them, so
+        they are copied as they are; slots follow the list, so eviction breaks the tie of
+        their equal stamps in its order."""
+        count, voxels = len(bricks.keys), len(bricks.triples)
+        if count == 0:
+            return
+        if count > len(self._keys):
+            self._grow_slots(count)
+        self._keys[:count] = bricks.keys
+        self._valid[:count] = bricks.valid
+        start = self._reserve(voxels)
+        self._payload[start: start + voxels] = bricks.triples
+        counts = np.bitwise_count(bricks.valid).sum(axis=1)
+        self._base[:count] = start + np.cumsum(counts) - counts
+        self._rebuild_table(max(len(self._index.keys), 1 << (2 * count).bit_length()))
+        self._upload_pool(start, start + voxels)
+        self._upload_slots()
+        stamps = self._index.stamps.numpy()
+        stamps[:count] = next(self._tick)
+        self._index.stamps.assign(stamps)
+        self._version += 1
+
     def _by_recency(self) -> np.ndarray:
         """The slots of stored bricks, least recently used first (equal stamps by slot)."""
         live = np.flatnonzero(self._keys != _EMPTY)
@@ -672,8 +719,10 @@ class BrickStore:
     def _recent_that_fit(self, bricks: _Bricks, budget: int | None = None) -> _Bricks:
         """The most recently used of ``bricks`` that fit ``budget`` bytes (``cache_bytes``
         unless given)."""
-        counts = np.bitwise_count(bricks.valid).sum(axis=1)
+        counts = _voxels_per_brick(bricks.valid)
         keep = self._kept(counts, budget)
+        if keep.all():
+            return bricks
         rows = _ranges_of((np.cumsum(counts) - counts)[keep], counts[keep])
         return _Bricks(bricks.keys[keep], bricks.triples[rows], bricks.valid[keep])
 

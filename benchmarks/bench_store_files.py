@@ -1,0 +1,78 @@
+"""Benchmark of brick store files (Dong 2008, section 6.2's stored results; issue 5).
+
+Times saving a store to a new file, saving it again over its own file (a merge that adds
+nothing), saving a second store of other bricks over it (a merge of two files' worth, kept
+to the larger of the store's ``cache_bytes`` and the file's size), and loading the file,
+for stores of whole bricks up to the default ``cache_bytes`` (256 MiB, about 85,000 bricks).
+The stores are filled with valid triples without synthesizing them (``BrickStore._insert``),
+so the figures are the files' costs alone, not synthesis.
+
+    .venv/bin/python benchmarks/bench_store_files.py [--bricks 10000 40000 85000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
+
+import numpy as np  # noqa: E402
+from timing import best_of  # noqa: E402
+
+from warptex.candidates import precompute  # noqa: E402
+from warptex.keysets import pack  # noqa: E402
+from warptex.store import BrickStore, brick_voxels  # noqa: E402
+from warptex.synthesis import Synthesizer  # noqa: E402
+
+
+def filled(synthesizer: Synthesizer, bricks: int, first: int) -> BrickStore:
+    """A store of ``bricks`` whole bricks along a row of brick columns from ``first``."""
+    store = BrickStore(synthesizer)
+    coords = np.stack(np.unravel_index(np.arange(first, first + bricks), (64, 64, 64)), 1) - 32
+    voxels = brick_voxels(pack(coords))
+    pixels = synthesizer.candidates.colors[0].shape[0] * synthesizer.candidates.colors[0].shape[1]
+    triples = np.random.default_rng(first).integers(0, pixels, (len(voxels), 3))
+    store._insert(voxels, triples)
+    return store
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--exemplar", default=str(REPO / "tests" / "data" / "granite_64.png"))
+    parser.add_argument("--bricks", type=int, nargs="+", default=[10_000, 40_000, 85_000])
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    synthesizer = Synthesizer(precompute(args.exemplar), device="cpu")
+    print("| bricks | file MiB | save, new file s | save over itself s | save of other "
+          "bricks over it s | load s |")
+    print("|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as folder:
+        for n in args.bricks:
+            path = Path(folder) / f"s{n}.wtb"
+            store, other = filled(synthesizer, n, 0), filled(synthesizer, n, n)
+
+            def new_file(store=store, path=path) -> None:
+                path.unlink(missing_ok=True)
+                store.save(path)
+
+            fresh = best_of(new_file, args.repeat)
+            again = best_of(lambda store=store, path=path: store.save(path), args.repeat)
+            times = []
+            for _ in range(args.repeat):
+                new_file()
+                start = time.perf_counter()
+                other.save(path)
+                times.append(time.perf_counter() - start)
+            size = path.stat().st_size / 2**20
+            load = best_of(lambda path=path: BrickStore.load(path, synthesizer), args.repeat)
+            print(f"| {n} | {size:.0f} | {fresh:.2f} | {again:.2f} | {min(times):.2f} | "
+                  f"{load:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
