@@ -32,17 +32,17 @@ ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
 
 
-def jitter_sweep(folder: Path) -> None:
+def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int) -> None:
     """Jitter varies the tiled slab (section 5.1): its effect on quality and repetition."""
     from warptex.metrics import repetition_score
 
-    for name in ("granite_64", "bricks_red_64", "rocks_in_sand_64", "dry_mud_64"):
+    for name in names:
         ex = Exemplar.load(folder / f"{name}.png")
         cs = precompute(ex)
         cells = []
-        for jitter in (0.0, 0.25, 0.5, 1.0, 2.0):
+        for jitter in jitters:
             vol = Synthesizer(cs, seed=3, jitter=jitter).box((0, 0, 0), (48, 48, 48))
-            big = Synthesizer(cs, seed=3, jitter=jitter).box((0, 0, 20), (160, 160, 1))
+            big = Synthesizer(cs, seed=3, jitter=jitter).box((0, 0, 20), (edge, edge, 1))
             cells.append(f"jitter {jitter}: energy {worst_axis_energy(vol, ex.colors):.3f}, "
                          f"repetition {repetition_score(big[:, :, 0]):.2f}")
         print(f"{name}: " + "; ".join(cells))
@@ -104,7 +104,16 @@ def main() -> None:
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--jitter-sweep", action="store_true",
-                        help="only print energy and repetition against the jitter strength")
+                        help="only print energy (48^3) and repetition (a slice) against the "
+                        "jitter strength")
+    parser.add_argument("--names", nargs="+", default=["granite_64", "bricks_red_64",
+                                                       "rocks_in_sand_64", "dry_mud_64"],
+                        help="exemplars of the jitter sweep (file names without .png)")
+    parser.add_argument("--jitters", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0],
+                        help="jitter strengths of the jitter sweep")
+    parser.add_argument("--slice", type=int, default=160,
+                        help="edge of the jitter sweep's repetition slice (default 160; "
+                        "warptex compare uses 256)")
     parser.add_argument("--passes-sweep", action="store_true",
                         help="only print energy and time of 64^3 against correction passes")
     parser.add_argument("--memory", action="store_true",
@@ -115,7 +124,7 @@ def main() -> None:
         memory(args.exemplars)
         return
     if args.jitter_sweep:
-        jitter_sweep(args.exemplars)
+        jitter_sweep(args.exemplars, args.names, args.jitters, args.slice)
         return
     if args.passes_sweep:
         passes_sweep(args.exemplars)

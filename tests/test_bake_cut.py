@@ -449,15 +449,29 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
         np.testing.assert_array_equal(np.asarray(Image.open(png))[..., :3], rgb8(expected))
 
 
-def test_cli_slice_shows_x_across_and_y_down_as_a_volume_sheet(tmp_path, data_dir, warp_device):
-    """The default slice is an image of the plane z = 0.5 with x to the right and y down,
-    as each z-slice of `warptex volume -o out.exr` shows it."""
+def test_cli_slice_shows_the_z_exemplar_as_its_photo_is_oriented(tmp_path, data_dir,
+                                                                 warp_device):
+    """The default slice is the plane z = 0.5 with rows along x and columns along y: the
+    z exemplar's own rows and columns (each exemplar spans the next two axes, cyclically),
+    so patches of the photo appear upright in it. The z-slices of `warptex volume -o
+    out.exr` (x across, as image tools show volumes) are its transpose."""
+    from warptex.candidates import precompute
     from warptex.cli import main
+    from warptex.synthesis import Synthesizer
     from warptex.volume_files import exr_sheet
 
-    exemplar = str(data_dir / "granite_64.png")
-    assert main(["slice", exemplar, "--shape", "8", "12", "--filter", "nearest",
+    exemplar = data_dir / "granite_64.png"
+    assert main(["slice", str(exemplar), "--shape", "8", "12", "--filter", "nearest",
                  "-o", str(tmp_path / "s.npy")]) == 0
-    assert main(["volume", exemplar, "--size", "12", "-o", str(tmp_path / "v.npy")]) == 0
-    first_z_slice = exr_sheet(np.load(tmp_path / "v.npy"))[:8, :12]
-    np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), first_z_slice)
+    assert main(["volume", str(exemplar), "--size", "12", "-o", str(tmp_path / "v.npy")]) == 0
+    volume = np.load(tmp_path / "v.npy")
+    np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), volume[:8, :12, 0])
+    np.testing.assert_array_equal(exr_sheet(volume)[:12, :8], volume[:8, :12, 0].swapaxes(0, 1))
+    # Along a row of the slice (y), continued patches step the z exemplar's column.
+    grid = np.stack(np.meshgrid(np.arange(32), np.arange(32), [0], indexing="ij"), -1)
+    pixel = Synthesizer(precompute(exemplar)).triples(grid.reshape(-1, 3))[:, 2].reshape(
+        32, 32, 2)
+    step = pixel[:, 1:] - pixel[:, :-1]
+    along_columns = np.all(step == (0, 1), axis=-1).sum()
+    along_rows = np.all(step == (1, 0), axis=-1).sum()
+    assert along_columns > 4 * along_rows

@@ -632,12 +632,16 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
                         metavar=("X", "Y", "Z"),
                         help="texture point of pixel (0, 0) (default 0.5 0.5 0.5, a voxel centre)")
-    parser.add_argument("--u", type=float, nargs=3, default=(0.0, 1.0, 0.0),
+    parser.add_argument("--u", type=float, nargs=3, default=(1.0, 0.0, 0.0),
                         metavar=("X", "Y", "Z"),
-                        help="step between rows (default the y axis: y grows down the image, "
-                        "as in the z-slices of `warptex volume -o out.exr`)")
-    parser.add_argument("--v", type=float, nargs=3, default=(1.0, 0.0, 0.0),
-                        metavar=("X", "Y", "Z"), help="step between columns (default the x axis)")
+                        help="step between rows (default the x axis, down the z exemplar's "
+                        "rows: the default slice shows the texture as the z exemplar's photo "
+                        "is oriented; `warptex volume -o out.exr` slices are its transpose, "
+                        "x across, as image tools show volumes)")
+    parser.add_argument("--v", type=float, nargs=3, default=(0.0, 1.0, 0.0),
+                        metavar=("X", "Y", "Z"),
+                        help="step between columns (default the y axis, along the z "
+                        "exemplar's columns)")
     parser.add_argument("--shape", type=int, nargs=2, default=(256, 256), metavar=("H", "W"),
                         help="image rows and columns (default 256 256)")
     parser.add_argument("--filter", choices=FILTERS, default=FILTERS[0],
