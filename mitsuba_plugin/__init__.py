@@ -96,6 +96,27 @@ def register() -> None:
     _registered.add(variant)
 
 
+_candidates_bar: bool | None = None  # None: a bar in a terminal only
+
+
+@contextmanager
+def candidates_progress() -> Iterator[None]:
+    """Show the bar of the candidates that ``lazy_solid`` textures pre-compute while scenes
+    load in this block also where stderr is a log (a terminal shows it anyway), as
+    ``warptex render`` does: a new exemplar may take minutes."""
+    global _candidates_bar
+    _candidates_bar = True
+    try:
+        yield
+    finally:
+        _candidates_bar = None
+
+
+def candidates_bar() -> bool | None:
+    """Whether candidates pre-computed now show their bar (``precompute``'s ``progress``)."""
+    return _candidates_bar
+
+
 @contextmanager
 def wavefront() -> Iterator[None]:
     """Dr.Jit's ``SymbolicLoops`` and ``SymbolicCalls`` off for the duration.

@@ -234,7 +234,7 @@ class LazySolidTexture(mi.Texture):
         except ExemplarError as e:
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
-            candidates = precompute(*exemplars, progress=None)  # a bar in a terminal
+            candidates = precompute(*exemplars, progress=mitsuba_plugin.candidates_bar())
         except ValueError as e:  # the exemplars do not go together
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:

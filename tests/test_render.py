@@ -4,6 +4,7 @@ agreement with Mitsuba's own gridvolume texture, and the bundled scene."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import drjit as dr
@@ -174,6 +175,23 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.PNG", "bunny.PNG.json"]
     # Captured, stderr is no terminal: progress comes a line per batch, no carriage returns.
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
+
+
+def test_render_command_shows_the_candidates_a_scene_precomputes(tmp_path, capsys,
+                                                                 monkeypatch):
+    """A scene whose exemplar is new to the candidate cache loads for seconds to minutes:
+    `warptex render` says so and shows the candidates' bar, also in a log."""
+    from warptex.cli import main
+
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
+                 str(tmp_path / "b.png"), "--spp", "1", "--res", "8x8"]) == 0
+    err = capsys.readouterr().err
+    assert "loading bunny_wood.xml (exemplars new to the candidate cache" in err
+    assert re.search(r"candidates: 100%", err)
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
+                 str(tmp_path / "b.png"), "--spp", "1", "--res", "8x8"]) == 0
+    assert "candidates:" not in capsys.readouterr().err  # cached now: nothing to show
 
 
 def _scene_with_cache(tmp_path: Path, cache: str) -> Path:
