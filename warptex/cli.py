@@ -273,9 +273,12 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
 
 def _add_axis_exemplar_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     parser.add_argument("--ey", type=Path, metavar="FILE",
-                        help=f"exemplar of the y axis (default: {first})")
+                        help="exemplar of the y axis: what planes y = const show, its rows "
+                        f"along z and its columns along x (default: {first}, which planes "
+                        "x = const show, rows along y, columns along z)")
     parser.add_argument("--ez", type=Path, metavar="FILE",
-                        help="exemplar of the z axis (default: the y exemplar)")
+                        help="exemplar of the z axis: what planes z = const show, its rows "
+                        "along x and its columns along y (default: the y exemplar)")
 
 
 def _load_axis_exemplars(args: argparse.Namespace, ex: Exemplar) -> list[Exemplar]:
