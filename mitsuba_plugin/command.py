@@ -11,6 +11,8 @@ import re
 import sys
 import time
 import xml.etree.ElementTree as ElementTree
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from warptex.archive import file_problem, overwritten_input, write_atomically
@@ -122,9 +124,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
     start = time.perf_counter()
     try:
-        print(f"loading {scene_path.name} (exemplars new to the candidate cache are "
-              "pre-computed first)", file=sys.stderr, flush=True)
-        with mitsuba_plugin.candidates_progress():
+        with _status(f"loading {scene_path.name} (exemplars new to the candidate cache are "
+                     "pre-computed first)"), mitsuba_plugin.candidates_progress():
             scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
         # Ctrl-C in a plugin that Mitsuba built on this thread comes wrapped, the Python
@@ -190,6 +191,21 @@ def _check_store_file(texture, outputs: list[Path]) -> None:
     if problem is not None:
         raise ValueError(f'lazy_solid: property "cache": the brick store could not be saved to '
                          f"{cache} after rendering: {problem}")
+
+
+@contextmanager
+def _status(text: str) -> Iterator[None]:
+    """``text`` on the terminal's last line while the block runs, then erased: a scene
+    loads for seconds, a bar only where candidates are pre-computed. Not written where
+    stderr is no terminal (logs), which show that bar alone."""
+    shown = sys.stderr.isatty()
+    if shown:
+        print(text, end="", file=sys.stderr, flush=True)
+    try:
+        yield
+    finally:
+        if shown:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
 
 
 def _progress(done: int, total: int) -> None:

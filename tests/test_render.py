@@ -180,14 +180,13 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
 def test_render_command_shows_the_candidates_a_scene_precomputes(tmp_path, capsys,
                                                                  monkeypatch):
     """A scene whose exemplar is new to the candidate cache loads for seconds to minutes:
-    `warptex render` says so and shows the candidates' bar, also in a log."""
+    `warptex render` shows the candidates' bar, also in a log."""
     from warptex.cli import main
 
     monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
     assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
                  str(tmp_path / "b.png"), "--spp", "1", "--res", "8x8"]) == 0
     err = capsys.readouterr().err
-    assert "loading bunny_wood.xml (exemplars new to the candidate cache" in err
     assert re.search(r"candidates: 100%", err)
     assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
                  str(tmp_path / "b.png"), "--spp", "1", "--res", "8x8"]) == 0
