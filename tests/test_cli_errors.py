@@ -23,6 +23,8 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], process=False).export(flat)
     notes = folder / "notes.txt"
     notes.write_text("not bricks")
+    broken_mesh = folder / "broken.ply"
+    broken_mesh.write_text("not a mesh")
     scene = folder / "scene.xml"
     scene.write_text("this is not XML")
     other = folder / "other_y.npy"
@@ -42,7 +44,7 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
             "gray": gray, "no_sensor": no_sensor, "flat": flat,
-            "other_linear": other_linear}
+            "other_linear": other_linear, "broken_mesh": broken_mesh}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -91,7 +93,9 @@ CASES = [
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.obj"],
      "vertex colors (--uv none) must end in .ply or .glb"),
     (["bake", "{exemplar}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
-     "{exemplar}: cannot read mesh"),
+     "{exemplar}: not a mesh format warptex reads (.ply, .obj, .glb, .gltf, .stl, .off)"),
+    (["bake", "{broken_mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
+     "{broken_mesh}: cannot read mesh"),
     (["bake", "{out}/missing.ply", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
      "{out}/missing.ply: mesh file not found"),
     (["bake", "{flat}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],

@@ -63,6 +63,7 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
 
 
 _INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
+_MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # what trimesh reads as a mesh
 
 
 def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
@@ -495,7 +496,8 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     # Results depend on position only, so slabs along x concatenate to the whole box.
     slabs = [
         synth.box((x0, 0, 0), (x1 - x0, size, size))
-        for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab")
+        for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab",
+                           disable=len(edges) <= 2)  # a bar of one step tells nothing
     ]
     volume = np.concatenate(slabs, axis=0)
     with _writing(args.output):
@@ -798,6 +800,9 @@ def _load_mesh(path: Path, uv: str = "none"):
         raise CliError(f"{path}: is a folder, expected a mesh file")
     if not path.is_file():
         raise CliError(f"{path}: mesh file not found")
+    if path.suffix.lower().lstrip(".") not in _MESH_FORMATS:
+        raise CliError(f"{path}: not a mesh format warptex reads "
+                       f"(.{', .'.join(_MESH_FORMATS)})")
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as error:  # trimesh raises many kinds on a bad or unknown file
