@@ -76,6 +76,7 @@ the store, which synthesizes it. Any render works there, ``mi.render`` included.
 
 from __future__ import annotations
 
+import difflib
 import math
 import threading
 from pathlib import Path
@@ -125,8 +126,10 @@ def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[st
         key = f"exemplar_{axis}" if f"exemplar_{axis}" in props else "exemplar"
         name = get_property(props, key, str, None, plugin)
         if name is None:
+            near = difflib.get_close_matches("exemplar", list(props.keys()), n=1)
+            typo = f' ("{near[0]}" is no property of {plugin})' if near else ""
             raise property_error(plugin, "exemplar",
-                                 f'is required (or all of "exemplar_{axis}", ...)')
+                                 f'is required (or all of "exemplar_{axis}", ...){typo}')
         path = scene_path(name, must_exist=True)
         if not path.is_file():
             raise property_error(plugin, key, f'names a file that does not exist: "{name}"')

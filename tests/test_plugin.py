@@ -75,6 +75,13 @@ def test_property_errors_name_the_property(granite_32_file, props, name):
         load(granite_32_file, **props)
 
 
+def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
+    use("scalar_rgb")
+    with pytest.raises(RuntimeError, match=r'property "exemplar" is required .*\("exemplr" is no '
+                                           r"property of lazy_solid\)"):
+        mi.load_dict({"type": "lazy_solid", "exemplr": str(granite_32_file)})
+
+
 def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_file):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be invertible'):
