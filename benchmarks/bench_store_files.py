@@ -1,9 +1,9 @@
 """Benchmark of brick store files (Dong 2008, section 6.2's stored results; issue 5).
 
-Times saving a store to a new file, saving it again over its own file (a merge that adds
-nothing), saving a second store of other bricks over it (a merge of two files' worth, kept
-to the larger of the store's ``cache_bytes`` and the file's size), and loading the file,
-for stores of whole bricks up to the default ``cache_bytes`` (256 MiB, about 85,000 bricks).
+Times saving a store of N whole bricks to a new file, saving it again over its own file (a
+merge that adds nothing), saving a second store of N other bricks over it (a merge of both,
+kept to the larger of the store's ``cache_bytes`` and the file's size), and loading that
+merged file (up to 2N bricks; the default ``cache_bytes``, 256 MiB, holds about 85,000).
 The stores are filled with valid triples without synthesizing them (``BrickStore._insert``),
 so the figures are the files' costs alone, not synthesis.
 
@@ -48,8 +48,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     synthesizer = Synthesizer(precompute(args.exemplar), device="cpu")
-    print("| bricks | file MiB | save, new file s | save over itself s | save of other "
-          "bricks over it s | load s |")
+    print("| bricks N | save, new file s | save over itself s | save of N other bricks over "
+          "it s | merged file MiB | load of the merged file s |")
     print("|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:
         for n in args.bricks:
@@ -70,7 +70,7 @@ def main() -> None:
                 times.append(time.perf_counter() - start)
             size = path.stat().st_size / 2**20
             load = best_of(lambda path=path: BrickStore.load(path, synthesizer), args.repeat)
-            print(f"| {n} | {size:.0f} | {fresh:.2f} | {again:.2f} | {min(times):.2f} | "
+            print(f"| {n} | {fresh:.2f} | {again:.2f} | {min(times):.2f} | {size:.0f} | "
                   f"{load:.2f} |")
 
 

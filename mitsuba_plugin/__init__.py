@@ -105,11 +105,11 @@ def candidates_progress() -> Iterator[None]:
     load in this block also where stderr is a log (a terminal shows it anyway), as
     ``warptex render`` does: a new exemplar may take minutes."""
     global _candidates_bar
-    _candidates_bar = True
+    before, _candidates_bar = _candidates_bar, True
     try:
         yield
     finally:
-        _candidates_bar = None
+        _candidates_bar = before
 
 
 def candidates_bar() -> bool | None:

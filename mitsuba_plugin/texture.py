@@ -115,6 +115,9 @@ from warptex.texture import SolidTexture, wrap_far
 PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
+_PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_max_size",
+               "seed", "jitter", "passes", "scale", "space", "filter", "raw", "cache_bytes",
+               "cache", "to_world")
 
 
 def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
@@ -126,7 +129,8 @@ def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[st
         key = f"exemplar_{axis}" if f"exemplar_{axis}" in props else "exemplar"
         name = get_property(props, key, str, None, plugin)
         if name is None:
-            near = difflib.get_close_matches("exemplar", list(props.keys()), n=1)
+            unread = [k for k in props if k not in _PROPERTIES]
+            near = difflib.get_close_matches("exemplar", unread, n=1)
             typo = f' ("{near[0]}" is no property of {plugin})' if near else ""
             raise property_error(plugin, "exemplar",
                                  f'is required (or all of "exemplar_{axis}", ...){typo}')

@@ -93,7 +93,7 @@ CASES = [
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.obj"],
      "vertex colors (--uv none) must end in .ply or .glb"),
     (["bake", "{exemplar}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
-     "{exemplar}: not a mesh format warptex reads (.ply, .obj, .glb, .gltf, .stl, .off)"),
+     "{exemplar}: not a mesh format warptex reads (.ply, .obj, .glb, .gltf, .stl, .off"),
     (["bake", "{broken_mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
      "{broken_mesh}: cannot read mesh"),
     (["bake", "{out}/missing.ply", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],

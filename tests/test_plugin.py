@@ -80,6 +80,19 @@ def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
     with pytest.raises(RuntimeError, match=r'property "exemplar" is required .*\("exemplr" is no '
                                            r"property of lazy_solid\)"):
         mi.load_dict({"type": "lazy_solid", "exemplr": str(granite_32_file)})
+    with pytest.raises(RuntimeError, match=r'"exemplar" is required \(or all of "exemplar_z", '
+                                           r'\.\.\.\)$'):  # the properties it reads are no typos
+        mi.load_dict({"type": "lazy_solid", "exemplar_x": str(granite_32_file),
+                      "exemplar_y": str(granite_32_file), "exemplar_max_size": 32})
+
+
+def test_candidates_progress_blocks_nest():
+    assert mitsuba_plugin.candidates_bar() is None
+    with mitsuba_plugin.candidates_progress():
+        with mitsuba_plugin.candidates_progress():
+            assert mitsuba_plugin.candidates_bar() is True
+        assert mitsuba_plugin.candidates_bar() is True
+    assert mitsuba_plugin.candidates_bar() is None
 
 
 def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_file):

@@ -63,7 +63,7 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
 
 
 _INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
-_MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # what trimesh reads as a mesh
+_MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # trimesh's common mesh formats
 
 
 def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
@@ -800,11 +800,11 @@ def _load_mesh(path: Path, uv: str = "none"):
         raise CliError(f"{path}: is a folder, expected a mesh file")
     if not path.is_file():
         raise CliError(f"{path}: mesh file not found")
-    if path.suffix.lower().lstrip(".") not in _MESH_FORMATS:
-        raise CliError(f"{path}: not a mesh format warptex reads "
-                       f"(.{', .'.join(_MESH_FORMATS)})")
     try:
         mesh = trimesh.load(path, force="mesh")
+    except NotImplementedError:  # how trimesh refuses a file type it has no reader for
+        raise CliError(f"{path}: not a mesh format warptex reads (.{', .'.join(_MESH_FORMATS)}, "
+                       "and the others trimesh reads)") from None
     except Exception as error:  # trimesh raises many kinds on a bad or unknown file
         raise CliError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from None
     if len(getattr(mesh, "faces", ())) == 0:
