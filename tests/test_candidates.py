@@ -749,3 +749,25 @@ def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
         cand = cs.roles[lv][0].cand
         assert (cand[:, :, 0, None] == near1[:, None, :]).any(axis=2).all(), lv
         assert (cand[:, :, 1, None] == near2[:, None, :]).any(axis=2).all(), lv
+
+
+def test_a_photo_that_does_not_tile_is_warned_of_once_as_its_candidates_are_cached(
+        tmp_path, monkeypatch, warp_device):
+    """Exemplars are tori to synthesis (section 4): a photo whose opposite edges differ
+    shows a seam at its period, which the user hears of when its candidates are computed,
+    not at every later use."""
+    import warnings
+
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    rng = np.random.default_rng(2)
+    ramp = np.linspace(0.0, 1.0, 16)[None, :, None] + 0.05 * rng.random((16, 16, 3))
+    ex = Exemplar(ramp.astype(np.float32), name="ramp")
+    assert ex.seam_contrast()[0] > 10 and ex.seam_contrast()[1] < 2
+    with pytest.warns(UserWarning, match=r"ramp does not tile: its left and right edges differ "
+                                         r"\d+\.\dx .*\(a seam every 16 voxels\); make the photo"):
+        precompute(ex)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        precompute(ex)
+    granite = Exemplar.load(GRANITE)
+    assert max(granite.seam_contrast()) < 1.1 and granite.seam_problem() is None

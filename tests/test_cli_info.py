@@ -32,7 +32,17 @@ def test_info_prints_size_channels_range_pyramid(data_dir, capsys, no_candidates
         assert f"channel {channel}: {low:.4f} .. {high:.4f}" in out
     assert "encoding: sRGB (the Mitsuba plugin decodes it to linear colors unless raw)" in out
     assert "pyramid: 4 levels (8x8, 16x16, 32x32, 64x64)" in out
+    assert "tiles: yes (edges differ 1.0x left-right and 1.1x top-bottom" in out
     assert "candidates: not available" in out
+
+
+def test_info_says_a_photo_that_does_not_tile_shows_its_seam(tmp_path, capsys, no_candidates):
+    """A ramp's left and right edges differ 31 steps of it: a seam every 32 voxels."""
+    ramp = np.repeat(np.arange(32, dtype=np.uint8)[None, :] * 8, 24, axis=0)
+    Image.fromarray(ramp).save(tmp_path / "ramp.png")
+    assert main(["info", str(tmp_path / "ramp.png")]) == 0
+    assert ("tiles: no: its left and right edges differ 31.0x as much as neighbouring pixels "
+            "(a seam every 32 voxels); make the photo tileable first") in capsys.readouterr().out
 
 
 def test_info_says_a_float_image_is_linear(tmp_path, capsys, no_candidates):

@@ -227,6 +227,7 @@ def precompute(
         except CandidateCacheError as e:
             warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     _check_size(exemplars)
+    _warn_of_seams(exemplars)
     result = _compute(exemplars, p, progress)
     if path is not None:
         try:
@@ -284,6 +285,14 @@ def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:
     sources = len({e.digest() for e in exemplars})
     per_pixel = _BYTES_PER_PIXEL + (sources - 1) * _BYTES_PER_PIXEL_PER_SOURCE
     return _BASE_BYTES + pixels * per_pixel
+
+
+def _warn_of_seams(exemplars: list[Exemplar]) -> None:
+    """Warn, once per exemplar as its candidates are cached, of a photo that does not tile."""
+    for e in {e.digest(): e for e in exemplars}.values():
+        problem = e.seam_problem()
+        if problem is not None:
+            warnings.warn(f"{e.path or e.name} does not tile: {problem}", stacklevel=3)
 
 
 def _check_size(exemplars: list[Exemplar]) -> None:

@@ -32,6 +32,9 @@ from scipy import ndimage
 from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size
 
 MAX_CHANNELS = 64
+# Above this, an exemplar's wrap differs so much more than its neighbouring pixels that its
+# seam shows in the texture (all 4 bundled exemplars above it, none of the 7 below).
+SEAM_LIMIT = 2.0
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -213,6 +216,31 @@ class Exemplar:
             features = colors if finer.features is finer.colors else _downsample(finer.features)
             levels.append(PyramidLevel(colors, features))
         return levels[::-1]
+
+    def seam_contrast(self) -> tuple[float, float]:
+        """How much more the colors change across the exemplar's wrap than between
+        neighbouring pixels: from the last column to the first, and from the last row to
+        the first. Near 1 where the photo tiles. Synthesis treats exemplars as tori (§3,
+        §4), so above SEAM_LIMIT the seam shows in the texture every exemplar width or
+        height (BENCHMARKS.md, "Exemplars that do not tile")."""
+        c = self.colors.astype(np.float64)
+        across = (np.abs(c[:, 0] - c[:, -1]).mean(), np.abs(c[0] - c[-1]).mean())
+        inside = (np.abs(np.diff(c, axis=1)).mean(), np.abs(np.diff(c, axis=0)).mean())
+        return tuple(float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
+
+    def seam_problem(self) -> str | None:
+        """Why the exemplar does not tile, in words (:meth:`seam_contrast` above
+        SEAM_LIMIT), and what to do; None where it tiles."""
+        across_columns, across_rows = self.seam_contrast()
+        h, w = self.shape
+        seams = [f"{edges} edges differ {ratio:.1f}x as much as neighbouring pixels (a seam "
+                 f"every {period} voxels)" for edges, ratio, period in
+                 (("left and right", across_columns, w), ("top and bottom", across_rows, h))
+                 if ratio > SEAM_LIMIT]
+        if not seams:
+            return None
+        return (f"its {' and its '.join(seams)}; make the photo tileable first for a texture "
+                "without seams")
 
     def digest(self) -> str:
         """SHA-256 hex digest of the content (shapes, dtype, colors, features), not of the path."""
