@@ -169,11 +169,12 @@ class TracedLookup:
         twice in one traced program.)"""
         b = [v >> BRICK_SHIFT for v in voxel]
         edge = [mi.UInt32((v & (BRICK - 1)) == BRICK - 1) for v in voxel]
+        edges = edge[0] * 4 + edge[1] * 2 + edge[2]
         at = ((mi.UInt32(b[0]) * 73856093 ^ mi.UInt32(b[1]) * 19349663
                ^ mi.UInt32(b[2]) * 83492791
-               ^ (edge[0] * 4 + edge[1] * 2 + edge[2]) * 2654435761) * self._salt
+               ^ edges * 2654435761) * self._salt
               >> 16) & (LOG_CAPACITY - 1)
-        word = mi.UInt64(edge[0] * 4 + edge[1] * 2 + edge[2])
+        word = mi.UInt64(edges)
         for c, shift in zip(b, _LOG_SHIFTS, strict=True):
             word |= mi.UInt64(mi.UInt32(c + _LOG_BIAS) & _LOG_MASK) << shift
         dr.scatter(self._log_voxels, word, at, missed)

@@ -107,7 +107,7 @@ def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
     counts = np.asarray(counts, np.int64)
     if counts.sum() == 0:
         return np.zeros(0, np.int64)
-    starts = np.cumsum(counts) - counts
+    starts = _range_starts(counts)
     return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
 
 
@@ -153,8 +153,7 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
     if len(grown) == 0 and len(both) == len(older.keys):
         return newer  # the older list adds nothing: a store saved over the file it loaded
     old_counts, new_counts = _voxels_per_brick(older.valid), _voxels_per_brick(newer.valid)
-    old_first = np.cumsum(old_counts) - old_counts
-    new_first = np.cumsum(new_counts) - new_counts
+    old_first, new_first = _range_starts(old_counts), _range_starts(new_counts)
     # The grown bricks' voxels, old then new, each brick after brick in local order.
     cells = [np.flatnonzero(_stored_bits(part.valid[rows]))
              for part, rows in ((older, grown), (newer, twin[grown]))]
@@ -168,8 +167,8 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
     starts = np.concatenate([old_first[alone], len(older.triples) + new_first])
     at = int(alone.sum()) + twin[grown]
     valid[at] = grown_valid
-    grown_counts = _voxels_per_brick(grown_valid)
-    starts[at] = len(older.triples) + len(newer.triples) + np.cumsum(grown_counts) - grown_counts
+    starts[at] = (len(older.triples) + len(newer.triples)
+                  + _range_starts(_voxels_per_brick(grown_valid)))
     triples = source[_ranges_of(starts, _voxels_per_brick(valid))]
     return _Bricks(np.concatenate([older.keys[alone], newer.keys]), triples, valid)
 
@@ -177,6 +176,11 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
 def _voxels_per_brick(valid: np.ndarray) -> np.ndarray:
     """Stored voxels of each brick of stored-voxel words ``valid`` (N, VALID_WORDS)."""
     return np.bitwise_count(valid).sum(axis=1).astype(np.int64)
+
+
+def _range_starts(counts: np.ndarray) -> np.ndarray:
+    """Where each of consecutive ranges of ``counts`` items begins: their exclusive sums."""
+    return np.cumsum(counts) - counts
 
 
 @contextmanager
@@ -515,7 +519,7 @@ class BrickStore:
                 saved = None
             budget = self.cache_bytes
             if saved is not None:  # a store of less room does not shrink a shared file
-                budget = max(budget, self._bricks_bytes(saved.valid))
+                budget = max(budget, int(self._brick_costs(_voxels_per_brick(saved.valid)).sum()))
                 ours = _bricks_union(saved, ours)
             kept = self._recent_that_fit(ours, budget)
             write_archive(path, _MAGIC, FORMAT_VERSION,
@@ -674,18 +678,10 @@ class BrickStore:
             np.searchsorted(touched, slots) * _k.BRICK_VOXELS + local_index(voxels, _k.BRICK)]),
             len(touched))
         triples = np.concatenate([self._payload[old], payload.astype(self._dtype)])[first]
-        counts = np.bitwise_count(valid).sum(axis=1)
         start = self._reserve(len(triples))  # may compact the pool, never moves slots
         self._garbage += len(old)
-        self._payload[start: start + len(triples)] = triples
-        self._base[touched] = start + np.cumsum(counts) - counts
         self._valid[touched] = valid
-        self._upload_pool(start, start + len(triples))
-        self._upload_slots()
-        stamps = self._index.stamps.numpy()
-        stamps[touched] = next(self._tick)
-        self._index.stamps.assign(stamps)
-        self._version += 1
+        self._place(touched, start, triples)
 
     def _fill(self, bricks: _Bricks) -> None:
         """Fill this empty store with ``bricks``, listed least recently used first. A
@@ -699,15 +695,19 @@ class BrickStore:
             self._grow_slots(count)
         self._keys[:count] = bricks.keys
         self._valid[:count] = bricks.valid
-        start = self._reserve(voxels)
-        self._payload[start: start + voxels] = bricks.triples
-        counts = np.bitwise_count(bricks.valid).sum(axis=1)
-        self._base[:count] = start + np.cumsum(counts) - counts
         self._rebuild_table(max(len(self._index.keys), 1 << (2 * count).bit_length()))
-        self._upload_pool(start, start + voxels)
+        self._place(np.arange(count), self._reserve(voxels), bricks.triples)
+
+    def _place(self, slots: np.ndarray, start: int, triples: np.ndarray) -> None:
+        """Put ``triples``, the voxels of the bricks in ``slots`` (their bits already set)
+        brick after brick in local order, at pool position ``start``; the bricks count as
+        used now."""
+        self._payload[start: start + len(triples)] = triples
+        self._base[slots] = start + _range_starts(self._voxel_counts(slots))
+        self._upload_pool(start, start + len(triples))
         self._upload_slots()
         stamps = self._index.stamps.numpy()
-        stamps[:count] = next(self._tick)
+        stamps[slots] = next(self._tick)
         self._index.stamps.assign(stamps)
         self._version += 1
 
@@ -723,19 +723,19 @@ class BrickStore:
         keep = self._kept(counts, budget)
         if keep.all():
             return bricks
-        rows = _ranges_of((np.cumsum(counts) - counts)[keep], counts[keep])
+        rows = _ranges_of(_range_starts(counts)[keep], counts[keep])
         return _Bricks(bricks.keys[keep], bricks.triples[rows], bricks.valid[keep])
 
     def _kept(self, counts: np.ndarray, budget: int | None = None) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
         first, ``budget`` bytes (``cache_bytes`` unless given) keep: the most recently used
         that fit."""
-        cost = counts * self._voxel_bytes + _SLOT_BYTES
+        cost = self._brick_costs(counts)
         return np.cumsum(cost[::-1])[::-1] <= (self.cache_bytes if budget is None else budget)
 
-    def _bricks_bytes(self, valid: np.ndarray) -> int:
-        """What bricks of stored-voxel words ``valid`` cost in a store."""
-        return int(np.bitwise_count(valid).sum()) * self._voxel_bytes + len(valid) * _SLOT_BYTES
+    def _brick_costs(self, counts: np.ndarray) -> np.ndarray:
+        """The bytes that bricks holding ``counts`` voxels each take in a store."""
+        return counts * self._voxel_bytes + _SLOT_BYTES
 
     def _evict(self) -> None:
         """Drop least-recently-used bricks until the stored voxels fit ``cache_bytes``."""
@@ -758,7 +758,7 @@ class BrickStore:
 
     def _voxel_counts(self, slots: np.ndarray) -> np.ndarray:
         """Stored voxels of each of ``slots``."""
-        return np.bitwise_count(self._valid[slots]).sum(axis=1)
+        return _voxels_per_brick(self._valid[slots])
 
     def _ranges(self, slots: np.ndarray) -> np.ndarray:
         """Pool positions of the stored voxels of ``slots``, brick after brick."""
@@ -814,7 +814,7 @@ class BrickStore:
         live = np.flatnonzero(self._keys != _EMPTY)
         rows = self._ranges(live)
         counts = self._voxel_counts(live)
-        self._base[live] = np.cumsum(counts) - counts
+        self._base[live] = _range_starts(counts)
         self._payload = np.concatenate([self._payload[rows],
                                         np.zeros((len(rows), 3), self._dtype)])
         self._used, self._garbage = len(rows), 0
