@@ -197,14 +197,13 @@ def _cmd_info(args: argparse.Namespace) -> int:
     levels = exemplar.pyramid()
     sizes = ", ".join(f"{level.shape[1]}x{level.shape[0]}" for level in levels)
     print(f"pyramid: {len(levels)} levels ({sizes})")
-    problem = exemplar.seam_problem()
-    if problem is None:
+    seams = exemplar.seam_problem()
+    if seams is None:
         across_columns, across_rows = exemplar.seam_contrast()
-        problem = (f"yes (edges differ {across_columns:.1f}x left-right and {across_rows:.1f}x "
-                   "top-bottom as much as neighbouring pixels)")
+        print(f"tiles: yes (edges differ {across_columns:.1f}x left-right and "
+              f"{across_rows:.1f}x top-bottom as much as neighbouring pixels)")
     else:
-        problem = f"no: {problem}"
-    print(f"tiles: {problem}")
+        print(f"tiles: no: {seams}")
     print(f"digest: {exemplar.digest()[:16]}")
     print(f"candidates: {_candidate_status(exemplar)}")
     return 0
