@@ -38,6 +38,10 @@ class LevelTables:
     half: int  # N // 2
     nfeat: int
     shift: wp.vec3i  # projections are (basis . features) >> shift
+    # Rows (top and bottom) and columns (left and right) no candidate holds, where a photo
+    # does not tile: its seam is never continued (warptex.candidates._margins).
+    margin_rows: wp.vec3i
+    margin_cols: wp.vec3i
     k2: int  # 2D candidates searched per pixel
     k3: int  # 3D candidates searched per pixel
     feat_off: wp.vec3i
@@ -470,6 +474,22 @@ def shifted_triple(tri: wp.vec3i, d: wp.vec3i, t: LevelTables) -> wp.vec3i:
 
 
 @wp.func
+def inside_margins(t: LevelTables, tri: wp.vec3i) -> bool:
+    """Whether all three pixels of ``tri`` lie outside their exemplars' margins, as every
+    pre-computed candidate does."""
+    inside = True
+    for k in range(3):
+        if t.margin_rows[k] > 0 or t.margin_cols[k] > 0:
+            u = tri[k] // t.width[k]
+            v = tri[k] - u * t.width[k]
+            if u < t.margin_rows[k] or u >= t.height[k] - t.margin_rows[k]:
+                inside = False
+            if v < t.margin_cols[k] or v >= t.width[k] - t.margin_cols[k]:
+                inside = False
+    return inside
+
+
+@wp.func
 def triple_distance(t: LevelTables, qproj: wp.array(dtype=appearance_vector), i: int,
                     tri: wp.vec3i) -> int:
     """Squared distance between a voxel's projected 3-neighbourhood and triple ``tri``'s."""
@@ -535,8 +555,10 @@ def correct(
                 tri = halo_src[centre + da * s[0] + db * s[1]]
                 if tri[0] >= 0:
                     shifted = shifted_triple(tri, plane_offset(k, da, db), t)
-                    dist = triple_distance(t, qproj, i, shifted)
-                    if best_d < 0 or dist < best_d:
-                        best_d = dist
-                        best = shifted
+                    # Continuing a patch across a margin would copy the photo's seam.
+                    if inside_margins(t, shifted):
+                        dist = triple_distance(t, qproj, i, shifted)
+                        if best_d < 0 or dist < best_d:
+                            best_d = dist
+                            best = shifted
     dst[i] = best

@@ -136,7 +136,7 @@ def _assert_same(a: CandidateSet, b: CandidateSet) -> None:
         np.testing.assert_array_equal(ca, cb)
     for la, lb in zip(a.sources, b.sources, strict=True):
         for sa, sb in zip(la, lb, strict=True):
-            assert sa.shift == sb.shift
+            assert sa.shift == sb.shift and sa.margins == sb.margins
             for name in ("feat", "basis", "proj", "cand2d"):
                 np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name))
     for la, lb in zip(a.roles, b.roles, strict=True):
@@ -359,7 +359,7 @@ rng = np.random.default_rng(7)
 gray = np.repeat(rng.integers(0, 256, (16, 16, 1), dtype=np.uint8), 3, axis=2)
 wide = rng.integers(0, 256, (8, 8, 7), dtype=np.uint8)
 params = dict(candidates.DEFAULT_PARAMS)
-levels = [candidates._source_level(feat, params, 2) for feat in (gray, wide)]
+levels = [candidates._source_level(feat, params, 2, (0, 0)) for feat in (gray, wide)]
 cov = np.cov(3 * candidates._neighborhoods(gray, 5), rowvar=False)
 photo = np.random.default_rng(3).random((997, 1503, 3)).astype(np.float32)
 arrays = [array for level in levels for array in (level.basis, level.proj, level.cand2d)]
@@ -670,13 +670,17 @@ def test_unknown_or_bad_parameters_are_rejected():
            ({"min_dims": 12, "max_dims": 8}, ValueError, r"min_dims \(12\) must not exceed"),
            ({"variance": 2.0}, ValueError, r"variance .* must be within \(0, 1\]"),
            ({"variance": float("nan")}, ValueError, "variance"),
-           ({"variance": "0.9"}, TypeError, "variance must be a number")]
+           ({"variance": "0.9"}, TypeError, "variance must be a number"),
+           ({"tileable": "yes"}, ValueError, 'tileable must be "auto", True or False'),
+           ({"tileable": 1}, ValueError, "tileable must be"),
+           ({"tileable": None}, ValueError, "tileable must be")]
     for params, error, message in bad:
         with pytest.raises(error, match=message):
             precompute(ex, cache=False, **params)
     # A NumPy integer is an integer, and keys the cache as the plain one does.
     resolved = candidates._resolve_params({"neighborhood": np.int64(5)})
     assert resolved == candidates.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int
+    assert candidates._resolve_params({"tileable": np.bool_(False)})["tileable"] is False
 
 
 def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -751,23 +755,44 @@ def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
         assert (cand[:, :, 1, None] == near2[:, None, :]).any(axis=2).all(), lv
 
 
-def test_a_photo_that_does_not_tile_is_warned_of_once_as_its_candidates_are_cached(
-        tmp_path, monkeypatch, warp_device):
-    """Exemplars are tori to synthesis (section 4): a photo whose opposite edges differ
-    shows a seam at its period, which the user hears of when its candidates are computed,
-    not at every later use."""
-    import warnings
-
-    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+def _ramp(rows: int, cols: int) -> Exemplar:
+    """A noisy ramp from left to right: its left and right edges form a seam, its top and
+    bottom edges do not."""
     rng = np.random.default_rng(2)
-    ramp = np.linspace(0.0, 1.0, 16)[None, :, None] + 0.05 * rng.random((16, 16, 3))
-    ex = Exemplar(ramp.astype(np.float32), name="ramp")
-    assert ex.seam_contrast()[0] > 10 and ex.seam_contrast()[1] < 2
-    with pytest.warns(UserWarning, match=r"ramp does not tile: its left and right edges differ "
-                                         r"\d+\.\dx .*\(a seam every 16 voxels\); make the photo"):
-        precompute(ex)
+    ramp = np.linspace(0.0, 1.0, cols)[None, :, None] + 0.05 * rng.random((rows, cols, 3))
+    return Exemplar(ramp.astype(np.float32), name="ramp")
+
+
+def test_candidates_keep_away_from_the_edges_of_a_photo_that_does_not_tile(
+        tmp_path, monkeypatch, warp_device):
+    """Exemplars are tori to the paper (section 4), so a photo whose opposite edges differ
+    would show its seam at every period. Its candidates keep N // 2 pixels from those
+    edges instead, at every level with room for N pixels inside (no N x N neighbourhood of
+    a candidate crosses the seam), silently; ``tileable=True`` keeps the paper's tori and
+    ``tileable=False`` keeps away from every edge."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    ramp = _ramp(24, 32)
+    assert ramp.seams() == (False, True) and ramp.seam_contrast()[0] > 10
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        precompute(ex)
+        cs = precompute(ramp)
+    sizes = [(6, 8), (12, 16), (24, 32)]
+    assert [s[0].size for s in cs.sources] == sizes
+    assert [s[0].margins for s in cs.sources] == [(0, 0), (0, 2), (0, 2)]
+    for level in range(cs.num_levels):
+        usable = cs.sources[level][0].usable()
+        assert usable[cs.sources[level][0].cand2d].all()
+        assert usable[cs.roles[level][0].cand].all()
+    _assert_same(cs, CandidateSet.load(candidates.cache_path([ramp] * 3, cs.params)))
+
+    torus = precompute(ramp, cache=False, tileable=True)
+    assert all(s[0].margins == (0, 0) for s in torus.sources)
+    margin = ~cs.sources[-1][0].usable()
+    assert margin[torus.sources[-1][0].cand2d].any()
+    assert torus.content_digest != cs.content_digest
+    never = precompute(ramp, cache=False, tileable=False)
+    assert [s[0].margins for s in never.sources] == [(0, 0), (2, 2), (2, 2)]
+
     granite = Exemplar.load(GRANITE)
     assert max(granite.seam_contrast()) < 1.1 and granite.seam_problem() is None
+    assert granite.seams() == (False, False)

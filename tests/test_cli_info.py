@@ -36,13 +36,15 @@ def test_info_prints_size_channels_range_pyramid(data_dir, capsys, no_candidates
     assert "candidates: not available" in out
 
 
-def test_info_says_a_photo_that_does_not_tile_shows_its_seam(tmp_path, capsys, no_candidates):
-    """A ramp's left and right edges differ 31 steps of it: a seam every 32 voxels."""
+def test_info_says_a_photo_that_does_not_tile_and_what_synthesis_does(tmp_path, capsys,
+                                                                       no_candidates):
+    """A ramp's left and right edges differ 31 steps of it."""
     ramp = np.repeat(np.arange(32, dtype=np.uint8)[None, :] * 8, 24, axis=0)
     Image.fromarray(ramp).save(tmp_path / "ramp.png")
     assert main(["info", str(tmp_path / "ramp.png")]) == 0
-    assert ("tiles: no: its left and right edges differ 31.0x as much as neighbouring pixels "
-            "(a seam every 32 voxels); make the photo tileable first") in capsys.readouterr().out
+    assert ("tiles: no: its left and right edges differ 31.0x as much as neighbouring pixels; "
+            "candidates keep away from those edges, so the texture shows no seam"
+            ) in capsys.readouterr().out
 
 
 def test_info_says_a_float_image_is_linear(tmp_path, capsys, no_candidates):

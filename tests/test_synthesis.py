@@ -409,6 +409,24 @@ def test_shifted_neighbour_triples_continue_exemplar_patches(granite):
     assert in_plane_coherence(triples, [shape[0]] * 3, [shape[1]] * 3) > 0.09
 
 
+def test_a_photo_that_does_not_tile_never_has_its_seam_continued(warp_device):
+    """A ramp's left and right edges differ. As a torus (``tileable=True``, the paper's
+    exemplars) the texture continues patches across that seam into the columns next to
+    it; by default no voxel takes the N // 2 columns at either edge, so no patch crosses
+    the seam: shifted neighbour triples stop at the margins, as candidates do."""
+    rng = np.random.default_rng(4)
+    ramp = np.linspace(0.0, 1.0, 32)[None, :, None] + 0.1 * rng.random((32, 32, 3))
+    ex = Exemplar(ramp.astype(np.float32), name="ramp")
+    grid = np.indices((20, 20, 20)).reshape(3, -1).T - 10
+    columns = {tileable: Synthesizer(precompute(ex, cache=False, tileable=tileable),
+                                     seed=1).triples(grid)[:, :, 1]
+               for tileable in ("auto", True)}
+    half = 2  # of the default 5 x 5 neighbourhoods
+    in_margin = {k: (c < half) | (c >= 32 - half) for k, c in columns.items()}
+    assert in_margin[True].mean() > 0.02
+    assert not in_margin["auto"].any()
+
+
 @pytest.mark.skipif(
     "not __import__('warp').get_cuda_device_count()", reason="no CUDA device: CPU-only machine"
 )

@@ -40,8 +40,9 @@ from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 from warptex.warp_runtime import init_warp
 
-FORMAT_VERSION = 4  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
-# 4: the PCA basis the same on every CPU (no LAPACK; BLAS only where its sums are exact)
+FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
+# 4: the PCA basis the same on every CPU (no LAPACK; BLAS only where its sums are exact);
+# 5: margins that candidates keep from the edges of exemplars that do not tile
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 FILE_MAGIC = b"WARPTEXC"
 CACHE_PREFIX, CACHE_SUFFIX = "candidates-", ".wtc"
@@ -75,6 +76,9 @@ DEFAULT_PARAMS: dict[str, object] = {
     "min_dims": 8,
     "max_dims": 12,
     "coherence_rounds": 16,
+    # "auto": candidates keep away from the edges that form a seam (Exemplar.seams); True:
+    # every exemplar is a torus, as in the paper; False: candidates keep away from all edges.
+    "tileable": "auto",
 }
 
 
@@ -107,10 +111,17 @@ class SourceLevel:
     shift: int  # projections are (basis . 3*feat) >> shift
     proj: np.ndarray  # (h*w, D) int16, projected neighbourhoods of 3*feat
     cand2d: np.ndarray  # (h*w, K2) int32 pixel indices, self first
+    # Rows at the top and bottom, columns at the left and right that no candidate holds: an
+    # N x N neighbourhood centred farther in does not cross a seam of the photo.
+    margins: tuple[int, int] = (0, 0)
 
     @property
     def size(self) -> tuple[int, int]:
         return int(self.feat.shape[0]), int(self.feat.shape[1])
+
+    def usable(self) -> np.ndarray:
+        """(h*w,) bool: the pixels a candidate may hold, those outside the margins."""
+        return _usable(self.size, self.margins)
 
 
 @dataclass
@@ -172,7 +183,8 @@ class CandidateSet:
         parameters (by another warptex version, or a candidate file edited since)."""
         flat = _flatten(self)
         layout = {"axis_source": list(self.axis_source),
-                  "shifts": [[s.shift for s in lvl] for lvl in self.sources]}
+                  "shifts": [[s.shift for s in lvl] for lvl in self.sources],
+                  "margins": [[list(s.margins) for s in lvl] for lvl in self.sources]}
         digest = hashlib.sha256(json.dumps(layout).encode())
         for name in sorted(flat.keys() - {"meta"}):
             array = np.ascontiguousarray(flat[name])
@@ -227,7 +239,6 @@ def precompute(
         except CandidateCacheError as e:
             warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     _check_size(exemplars)
-    _warn_of_seams(exemplars)
     result = _compute(exemplars, p, progress)
     if path is not None:
         try:
@@ -285,14 +296,6 @@ def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:
     sources = len({e.digest() for e in exemplars})
     per_pixel = _BYTES_PER_PIXEL + (sources - 1) * _BYTES_PER_PIXEL_PER_SOURCE
     return _BASE_BYTES + pixels * per_pixel
-
-
-def _warn_of_seams(exemplars: list[Exemplar]) -> None:
-    """Warn, once per exemplar as its candidates are cached, of a photo that does not tile."""
-    for e in {e.digest(): e for e in exemplars}.values():
-        problem = e.seam_problem()
-        if problem is not None:
-            warnings.warn(f"{e.path or e.name} does not tile: {problem}", stacklevel=3)
 
 
 def _check_size(exemplars: list[Exemplar]) -> None:
@@ -398,6 +401,10 @@ def _resolve_params(params: dict) -> dict:
         raise ValueError(f"variance (the share of PCA variance kept) must be within (0, 1], "
                          f"got {variance!r}")
     p["variance"] = float(variance)
+    tileable = p["tileable"]
+    if not (isinstance(tileable, bool | np.bool_) or tileable == "auto"):
+        raise ValueError(f'tileable must be "auto", True or False, got {tileable!r}')
+    p["tileable"] = "auto" if isinstance(tileable, str) else bool(tileable)
     return p
 
 
@@ -408,6 +415,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
     axis_source = tuple(unique.index(d) for d in digests)
     srcs = [exemplars[digests.index(d)] for d in unique]
     pyramids = [s.pyramid() for s in srcs]
+    seam_edges = [_seam_edges(s, p["tileable"]) for s in srcs]
     num_levels = min(len(pyr) for pyr in pyramids)
     # Align pyramids at their finest level when exemplars differ in size.
     pyramids = [pyr[len(pyr) - num_levels :] for pyr in pyramids]
@@ -432,9 +440,10 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
         k2 = int(p["candidates_2d_finest" if level == num_levels - 1 else "candidates_2d"])
         k3 = int(p["candidates_3d"])
         lvl_sources = []
-        for pyr in pyramids:
+        for pyr, seams in zip(pyramids, seam_edges, strict=True):
             feat = _quantize(pyr[level].features, lo, hi)
-            lvl_sources.append(_source_level(feat, p, k2))
+            margins = _margins(feat.shape[:2], seams, int(p["neighborhood"]))
+            lvl_sources.append(_source_level(feat, p, k2, margins))
             bar.update(pixels[level])
         lvl_roles = []
         for role in range(roles_per_level):
@@ -465,6 +474,31 @@ def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
     return lo, np.where(hi > lo, hi, lo + 1.0)
 
 
+def _seam_edges(e: Exemplar, tileable: object) -> tuple[bool, bool]:
+    """Whether candidates keep away from the (top and bottom, left and right) edges of
+    ``e``, under the parameter ``tileable``."""
+    if tileable == "auto":
+        return e.seams()
+    return not tileable, not tileable
+
+
+def _margins(size: tuple[int, int], seams: tuple[bool, bool], n: int) -> tuple[int, int]:
+    """Rows and columns kept from the edges that form a seam: N // 2, so that no N x N
+    neighbourhood of a candidate wraps across them. A level too small to keep N rows or
+    columns inside wraps as the paper's exemplars do; the finer levels correct it."""
+    half = n // 2
+    return tuple(half if seam and side - 2 * half >= n else 0
+                 for side, seam in zip(size, seams, strict=True))
+
+
+def _usable(size: tuple[int, int], margins: tuple[int, int]) -> np.ndarray:
+    """(h*w,) bool: the pixels of an ``size`` exemplar level outside ``margins``."""
+    (h, w), (mu, mv) = size, margins
+    inside = np.zeros((h, w), bool)
+    inside[mu:h - mu, mv:w - mv] = True
+    return inside.reshape(-1)
+
+
 def _trio(sources: list, axis_source: tuple, role: int) -> list:
     """The sources of role ``role``'s triples in order: its own exemplar's (the axis
     ``role``), then those of the next two axes."""
@@ -490,13 +524,16 @@ def _neighborhoods(feat: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate(cols, axis=1).astype(np.int64)
 
 
-def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
-    """Appearance space of one exemplar level: quantized PCA and 2D k-coherent candidates."""
+def _source_level(feat: np.ndarray, p: dict, k2: int, margins: tuple[int, int]) -> SourceLevel:
+    """Appearance space of one exemplar level: quantized PCA and 2D k-coherent candidates,
+    both of the neighbourhoods that keep ``margins`` from the edges."""
     n = int(p["neighborhood"])
     h, w, _ = feat.shape
+    usable = _usable((h, w), margins)
     vec = 3 * _neighborhoods(feat, n)  # voxels carry the sum of three exemplar colors
     most = min(int(p["max_dims"]), vec.shape[1], MAX_DIMS)
-    evals, evecs, total = exact_pca.principal_axes(exact_pca.covariance(vec), most)
+    covariance = exact_pca.covariance(vec if usable.all() else vec[usable])
+    evals, evecs, total = exact_pca.principal_axes(covariance, most)
     frac = np.cumsum(evals) / total if total > 0 else np.ones_like(evals)
     dims = int(np.searchsorted(frac, float(p["variance"])) + 1)
     dims = min(int(np.clip(dims, int(p["min_dims"]), int(p["max_dims"]))), most)
@@ -514,27 +551,36 @@ def _source_level(feat: np.ndarray, p: dict, k2: int) -> SourceLevel:
         basis=basis.astype(np.int32),
         shift=shift,
         proj=proj,
-        cand2d=_kcoherent(proj, h, w, k2),
+        cand2d=_kcoherent(proj, h, w, k2, usable),
+        margins=margins,
     )
 
 
-def _kcoherent(proj: np.ndarray, h: int, w: int, k: int) -> np.ndarray:
+def _kcoherent(proj: np.ndarray, h: int, w: int, k: int, usable: np.ndarray) -> np.ndarray:
     """2D k-coherent candidates: the pixel itself, then the most similar neighbourhoods
-    farther than 2 pixels from it (Tong et al. 2002)."""
+    farther than 2 pixels from it (Tong et al. 2002), all of them ``usable`` pixels; a
+    pixel that is not usable itself leads with the usable one most like it."""
     npix = h * w
-    want = min(npix, 4 * k + 25)
-    idx = nearest_rows(proj, proj, want)
+    idx = _nearest_usable(proj, usable, proj, 4 * k + 25)
     own = np.arange(npix)
     u0, v0 = np.divmod(own, w)
     u1, v1 = np.divmod(idx, w)
     du = np.abs(u1 - u0[:, None])
     dv = np.abs(v1 - v0[:, None])
-    far = (np.minimum(du, h - du) > 2) | (np.minimum(dv, w - dv) > 2)
-    out = np.repeat(own[:, None], k, axis=1).astype(np.int32)
+    lead = np.where(usable, own, idx[:, 0])
+    far = ((np.minimum(du, h - du) > 2) | (np.minimum(dv, w - dv) > 2)) & (idx != lead[:, None])
+    out = np.repeat(lead[:, None], k, axis=1).astype(np.int32)
     for pix in range(npix):
         others = idx[pix][far[pix]][: k - 1]
         out[pix, 1 : 1 + len(others)] = others
     return out
+
+
+def _nearest_usable(database: np.ndarray, usable: np.ndarray, queries: np.ndarray,
+                    k: int) -> np.ndarray:
+    """:func:`nearest_rows` among the ``usable`` rows of ``database``, as indices of it."""
+    pool = np.flatnonzero(usable)
+    return pool[nearest_rows(database[pool], queries, k)].astype(np.int32)
 
 
 def _strips(feat: np.ndarray, axis: int, half: int) -> np.ndarray:
@@ -551,8 +597,8 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     strips = [[_strips(t.feat, axis, half) for axis in (0, 1)] for t in trio]
     # Role 0's second-coordinate strip meets role 1's first-coordinate strip; role 0's
     # first-coordinate strip meets role 2's second-coordinate strip.
-    near1 = _nearest_strips(strips[1][0], strips[0][1], p)
-    near2 = _nearest_strips(strips[2][1], strips[0][0], p)
+    near1 = _nearest_usable(strips[1][0], trio[1].usable(), strips[0][1], int(p["strips"]))
+    near2 = _nearest_usable(strips[2][1], trio[2].usable(), strips[0][0], int(p["strips"]))
     keep = min(int(p["keep"]), near1.shape[1] * near2.shape[1])
     dev = _DEVICE
     keys = wp.full((npix, keep), np.iinfo(np.int64).max, dtype=wp.int64, device=dev)
@@ -598,11 +644,6 @@ def _role_strips(strips: list[np.ndarray]) -> _k.RoleStrips:
     (out.own_first, out.own_second, out.next_first, out.next_second, out.nnext_first,
      out.nnext_second) = (wp.array(a.astype(np.int32), device=_DEVICE) for a in strips)
     return out
-
-
-def _nearest_strips(database: np.ndarray, queries: np.ndarray, p: dict) -> np.ndarray:
-    """The S best-matching strips of ``database`` for each query strip (ANN search)."""
-    return nearest_rows(database, queries, int(p["strips"]))
 
 
 def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
@@ -746,6 +787,7 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
         "num_sources": len(cs.colors),
         "num_roles": len(cs.roles[0]),
         "shifts": [[s.shift for s in lvl] for lvl in cs.sources],
+        "margins": [[list(s.margins) for s in lvl] for lvl in cs.sources],
         "stats": cs.stats,
         "names": list(cs.names),
     }
@@ -791,6 +833,7 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
                     shift=int(meta["shifts"][lv][j]),
                     proj=d[f"L{lv}/S{j}/proj"],
                     cand2d=d[f"L{lv}/S{j}/cand2d"].astype(np.int32),
+                    margins=tuple(int(m) for m in meta["margins"][lv][j]),
                 )
             )
         lvl_roles = []

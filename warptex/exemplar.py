@@ -221,26 +221,32 @@ class Exemplar:
         """How much more the colors change across the exemplar's wrap than between
         neighbouring pixels: from the last column to the first, and from the last row to
         the first. Near 1 where the photo tiles. Synthesis treats exemplars as tori (§3,
-        §4), so above SEAM_LIMIT the seam shows in the texture every exemplar width or
-        height (BENCHMARKS.md, "Exemplars that do not tile")."""
+        §4); above SEAM_LIMIT the seam would show in the texture every exemplar width or
+        height (BENCHMARKS.md, "Exemplars that do not tile"), so :meth:`seams` names those
+        edges, which candidates then keep away from."""
         c = self.colors.astype(np.float64)
         across = (np.abs(c[:, 0] - c[:, -1]).mean(), np.abs(c[0] - c[-1]).mean())
         inside = (np.abs(np.diff(c, axis=1)).mean(), np.abs(np.diff(c, axis=0)).mean())
         return tuple(float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
 
+    def seams(self) -> tuple[bool, bool]:
+        """Whether the (top and bottom, left and right) edges form a seam: their
+        :meth:`seam_contrast` is above SEAM_LIMIT. In pixel coordinate order (rows, then
+        columns), as the candidates' margins are."""
+        across_columns, across_rows = self.seam_contrast()
+        return across_rows > SEAM_LIMIT, across_columns > SEAM_LIMIT
+
     def seam_problem(self) -> str | None:
         """Why the exemplar does not tile, in words (:meth:`seam_contrast` above
-        SEAM_LIMIT), and what to do; None where it tiles."""
+        SEAM_LIMIT); None where it tiles."""
         across_columns, across_rows = self.seam_contrast()
-        h, w = self.shape
-        seams = [f"{edges} edges differ {ratio:.1f}x as much as neighbouring pixels (a seam "
-                 f"every {period} voxels)" for edges, ratio, period in
-                 (("left and right", across_columns, w), ("top and bottom", across_rows, h))
+        seams = [f"{edges} edges differ {ratio:.1f}x as much as neighbouring pixels"
+                 for edges, ratio in (("left and right", across_columns),
+                                      ("top and bottom", across_rows))
                  if ratio > SEAM_LIMIT]
         if not seams:
             return None
-        return (f"its {' and its '.join(seams)}; make the photo tileable first for a texture "
-                "without seams")
+        return f"its {' and its '.join(seams)}"
 
     def digest(self) -> str:
         """SHA-256 hex digest of the content (shapes, dtype, colors, features), not of the path."""

@@ -44,8 +44,9 @@ from warptex.warp_runtime import init_warp
 
 # Raised whenever the engine gives any voxel another result from the same inputs, so that
 # brick stores written by an earlier engine are not reused. 2: shifted neighbour triples;
-# 3: every candidate a set keeps is searched (only sets with non-default counts changed).
-ENGINE_VERSION = 3
+# 3: every candidate a set keeps is searched (only sets with non-default counts changed);
+# 4: shifted triples never cross the margins of exemplars that do not tile.
+ENGINE_VERSION = 4
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _TRIPLE_BYTES = 3 * 4  # a cached voxel's triple of int32 pixel indices
@@ -587,6 +588,8 @@ class Synthesizer:
         t.half = n // 2
         t.nfeat = int(sources[0].feat.shape[2])
         t.shift = wp.vec3i(*[sources[cs.axis_source[k]].shift for k in range(3)])
+        t.margin_rows = wp.vec3i(*[sources[cs.axis_source[k]].margins[0] for k in range(3)])
+        t.margin_cols = wp.vec3i(*[sources[cs.axis_source[k]].margins[1] for k in range(3)])
         # All the 2D candidates the candidate set keeps (its candidates_2d, or _finest), and
         # its 3D candidates, but only the paper's 4 of them at the finest level (section 5.1).
         t.k2 = int(sources[0].cand2d.shape[1])
