@@ -474,19 +474,19 @@ def shifted_triple(tri: wp.vec3i, d: wp.vec3i, t: LevelTables) -> wp.vec3i:
 
 
 @wp.func
-def inside_margins(t: LevelTables, tri: wp.vec3i) -> bool:
+def clear_of_margins(t: LevelTables, tri: wp.vec3i) -> bool:
     """Whether all three pixels of ``tri`` lie outside their exemplars' margins, as every
     pre-computed candidate does."""
-    inside = True
+    clear = True
     for k in range(3):
         if t.margin_rows[k] > 0 or t.margin_cols[k] > 0:
             u = tri[k] // t.width[k]
             v = tri[k] - u * t.width[k]
             if u < t.margin_rows[k] or u >= t.height[k] - t.margin_rows[k]:
-                inside = False
+                clear = False
             if v < t.margin_cols[k] or v >= t.width[k] - t.margin_cols[k]:
-                inside = False
-    return inside
+                clear = False
+    return clear
 
 
 @wp.func
@@ -556,7 +556,7 @@ def correct(
                 if tri[0] >= 0:
                     shifted = shifted_triple(tri, plane_offset(k, da, db), t)
                     # Continuing a patch across a margin would copy the photo's seam.
-                    if inside_margins(t, shifted):
+                    if clear_of_margins(t, shifted):
                         dist = triple_distance(t, qproj, i, shifted)
                         if best_d < 0 or dist < best_d:
                             best_d = dist

@@ -672,8 +672,8 @@ def test_unknown_or_bad_parameters_are_rejected():
            ({"variance": float("nan")}, ValueError, "variance"),
            ({"variance": "0.9"}, TypeError, "variance must be a number"),
            ({"tileable": "yes"}, ValueError, 'tileable must be "auto", True or False'),
-           ({"tileable": 1}, ValueError, "tileable must be"),
-           ({"tileable": None}, ValueError, "tileable must be")]
+           ({"tileable": 1}, TypeError, "tileable must be"),
+           ({"tileable": None}, TypeError, "tileable must be")]
     for params, error, message in bad:
         with pytest.raises(error, match=message):
             precompute(ex, cache=False, **params)

@@ -110,10 +110,10 @@ class SourceLevel:
     basis: np.ndarray  # (D, N*N*F) int32, quantized PCA basis
     shift: int  # projections are (basis . 3*feat) >> shift
     proj: np.ndarray  # (h*w, D) int16, projected neighbourhoods of 3*feat
-    cand2d: np.ndarray  # (h*w, K2) int32 pixel indices, self first
+    cand2d: np.ndarray  # (h*w, K2) int32 pixel indices, self first where usable
     # Rows at the top and bottom, columns at the left and right that no candidate holds: an
     # N x N neighbourhood centred farther in does not cross a seam of the photo.
-    margins: tuple[int, int] = (0, 0)
+    margins: tuple[int, int]
 
     @property
     def size(self) -> tuple[int, int]:
@@ -402,9 +402,11 @@ def _resolve_params(params: dict) -> dict:
                          f"got {variance!r}")
     p["variance"] = float(variance)
     tileable = p["tileable"]
-    if not (isinstance(tileable, bool | np.bool_) or tileable == "auto"):
+    if not isinstance(tileable, bool | np.bool_ | str):
+        raise TypeError(f'tileable must be "auto", True or False, got {tileable!r}')
+    if isinstance(tileable, str) and tileable != "auto":
         raise ValueError(f'tileable must be "auto", True or False, got {tileable!r}')
-    p["tileable"] = "auto" if isinstance(tileable, str) else bool(tileable)
+    p["tileable"] = tileable if isinstance(tileable, str) else bool(tileable)
     return p
 
 
@@ -474,7 +476,7 @@ def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
     return lo, np.where(hi > lo, hi, lo + 1.0)
 
 
-def _seam_edges(e: Exemplar, tileable: object) -> tuple[bool, bool]:
+def _seam_edges(e: Exemplar, tileable: bool | str) -> tuple[bool, bool]:
     """Whether candidates keep away from the (top and bottom, left and right) edges of
     ``e``, under the parameter ``tileable``."""
     if tileable == "auto":
@@ -579,6 +581,8 @@ def _kcoherent(proj: np.ndarray, h: int, w: int, k: int, usable: np.ndarray) -> 
 def _nearest_usable(database: np.ndarray, usable: np.ndarray, queries: np.ndarray,
                     k: int) -> np.ndarray:
     """:func:`nearest_rows` among the ``usable`` rows of ``database``, as indices of it."""
+    if usable.all():
+        return nearest_rows(database, queries, k)
     pool = np.flatnonzero(usable)
     return pool[nearest_rows(database[pool], queries, k)].astype(np.int32)
 
@@ -597,8 +601,8 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int) -> RoleLevel:
     strips = [[_strips(t.feat, axis, half) for axis in (0, 1)] for t in trio]
     # Role 0's second-coordinate strip meets role 1's first-coordinate strip; role 0's
     # first-coordinate strip meets role 2's second-coordinate strip.
-    near1 = _nearest_usable(strips[1][0], trio[1].usable(), strips[0][1], int(p["strips"]))
-    near2 = _nearest_usable(strips[2][1], trio[2].usable(), strips[0][0], int(p["strips"]))
+    near1 = _nearest_strips(strips[1][0], trio[1].usable(), strips[0][1], p)
+    near2 = _nearest_strips(strips[2][1], trio[2].usable(), strips[0][0], p)
     keep = min(int(p["keep"]), near1.shape[1] * near2.shape[1])
     dev = _DEVICE
     keys = wp.full((npix, keep), np.iinfo(np.int64).max, dtype=wp.int64, device=dev)
@@ -644,6 +648,13 @@ def _role_strips(strips: list[np.ndarray]) -> _k.RoleStrips:
     (out.own_first, out.own_second, out.next_first, out.next_second, out.nnext_first,
      out.nnext_second) = (wp.array(a.astype(np.int32), device=_DEVICE) for a in strips)
     return out
+
+
+def _nearest_strips(database: np.ndarray, usable: np.ndarray, queries: np.ndarray,
+                    p: dict) -> np.ndarray:
+    """The S best-matching ``usable`` strips of ``database`` for each query strip (ANN
+    search)."""
+    return _nearest_usable(database, usable, queries, int(p["strips"]))
 
 
 def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
@@ -807,6 +818,14 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
     return out
 
 
+def _stored_margins(margins: object) -> tuple[int, int]:
+    """A source level's margins as a file holds them: two non-negative integers."""
+    if not (isinstance(margins, list) and len(margins) == 2
+            and all(isinstance(m, int) and m >= 0 for m in margins)):
+        raise ValueError(f"margins {margins!r}")
+    return margins[0], margins[1]
+
+
 def _compact_index(a: np.ndarray) -> np.ndarray:
     return a.astype(np.uint16) if a.max(initial=0) < 65536 else a.astype(np.int32)
 
@@ -833,7 +852,7 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
                     shift=int(meta["shifts"][lv][j]),
                     proj=d[f"L{lv}/S{j}/proj"],
                     cand2d=d[f"L{lv}/S{j}/cand2d"].astype(np.int32),
-                    margins=tuple(int(m) for m in meta["margins"][lv][j]),
+                    margins=_stored_margins(meta["margins"][lv][j]),
                 )
             )
         lvl_roles = []

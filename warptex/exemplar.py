@@ -18,6 +18,7 @@ sRGB-encoded values (whatever gamma a PNG declares), float images linear ones.
 from __future__ import annotations
 
 import hashlib
+import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,9 +33,10 @@ from scipy import ndimage
 from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size
 
 MAX_CHANNELS = 64
-# Above this, an exemplar's wrap differs so much more than its neighbouring pixels that its
-# seam shows in the texture (all 4 bundled exemplars above it, none of the 7 below).
+# Above this, an exemplar's wrap differs so much more than its neighbouring pixels that it
+# is a seam, which candidates keep away from (4 bundled exemplars above it, 7 below).
 SEAM_LIMIT = 2.0
+_SUM_CHUNK = 1 << 16  # values summed exactly at once by _mean
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -205,7 +207,9 @@ class Exemplar:
 
         Each coarser level blurs the finer one with wrap-around borders (exemplars tile, §3) and
         keeps every second pixel, so an ``h x w`` level becomes ``ceil(h/2) x ceil(w/2)``. The
-        pyramid stops at the first level whose larger side is at most ``min_size``.
+        pyramid stops at the first level whose larger side is at most ``min_size``. Where a
+        photo does not tile, the pixels that the blur mixes across its edges lie in the
+        candidates' margins, though at the edge of the first usable pixels' neighbourhoods.
         """
         if min_size < 1:
             raise ValueError(f"min_size must be at least 1, not {min_size}")
@@ -220,13 +224,15 @@ class Exemplar:
     def seam_contrast(self) -> tuple[float, float]:
         """How much more the colors change across the exemplar's wrap than between
         neighbouring pixels: from the last column to the first, and from the last row to
-        the first. Near 1 where the photo tiles. Synthesis treats exemplars as tori (§3,
-        §4); above SEAM_LIMIT the seam would show in the texture every exemplar width or
-        height (BENCHMARKS.md, "Exemplars that do not tile"), so :meth:`seams` names those
-        edges, which candidates then keep away from."""
+        the first. Near 1 where the photo tiles. The paper's exemplars are tori (§3, §4);
+        above SEAM_LIMIT :meth:`seams` names the edges that candidates keep away from
+        (BENCHMARKS.md, "Exemplars that do not tile").
+
+        The means do not depend on the order a machine would sum in, so the candidates that
+        follow from them are the same on every CPU, also at the limit."""
         c = self.colors.astype(np.float64)
-        across = (np.abs(c[:, 0] - c[:, -1]).mean(), np.abs(c[0] - c[-1]).mean())
-        inside = (np.abs(np.diff(c, axis=1)).mean(), np.abs(np.diff(c, axis=0)).mean())
+        across = (_mean(np.abs(c[:, 0] - c[:, -1])), _mean(np.abs(c[0] - c[-1])))
+        inside = (_mean(np.abs(np.diff(c, axis=1))), _mean(np.abs(np.diff(c, axis=0))))
         return tuple(float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
 
     def seams(self) -> tuple[bool, bool]:
@@ -357,6 +363,14 @@ def otsu_mask(colors: np.ndarray) -> np.ndarray:
         between = weight_low * weight_high * (mean_low - mean_high) ** 2
     # Bins are half-open [edges[k], edges[k + 1]): everything from the next edge up is "feature".
     return luminance >= edges[np.argmax(np.nan_to_num(between, nan=-1.0)) + 1]
+
+
+def _mean(values: np.ndarray) -> float:
+    """The mean of ``values``, whatever order a machine would sum in: exactly rounded sums
+    (``math.fsum``) of fixed chunks, which keep a large photo's Python floats few."""
+    flat = values.ravel()
+    return math.fsum(math.fsum(flat[i:i + _SUM_CHUNK].tolist())
+                     for i in range(0, flat.size, _SUM_CHUNK)) / flat.size
 
 
 def _size(shape: tuple[int, ...]) -> str:
