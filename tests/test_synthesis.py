@@ -409,16 +409,21 @@ def test_shifted_neighbour_triples_continue_exemplar_patches(granite):
     assert in_plane_coherence(triples, [shape[0]] * 3, [shape[1]] * 3) > 0.09
 
 
-def test_a_photo_that_does_not_tile_never_has_its_seam_continued(warp_device):
+@pytest.fixture(scope="module")
+def ramp(warp_device) -> Exemplar:
+    """A noisy ramp from left to right: its left and right edges form a seam."""
+    rng = np.random.default_rng(4)
+    ramp = np.linspace(0.0, 1.0, 32)[None, :, None] + 0.1 * rng.random((32, 32, 3))
+    return Exemplar(ramp.astype(np.float32), name="ramp")
+
+
+def test_a_photo_that_does_not_tile_never_has_its_seam_continued(ramp):
     """A ramp's left and right edges differ. As a torus (``tileable=True``, the paper's
     exemplars) the texture continues patches across that seam into the columns next to
     it; by default no voxel takes the N // 2 columns at either edge, so no patch crosses
     the seam: shifted neighbour triples stop at the margins, as candidates do."""
-    rng = np.random.default_rng(4)
-    ramp = np.linspace(0.0, 1.0, 32)[None, :, None] + 0.1 * rng.random((32, 32, 3))
-    ex = Exemplar(ramp.astype(np.float32), name="ramp")
     grid = np.indices((20, 20, 20)).reshape(3, -1).T - 10
-    columns = {tileable: Synthesizer(precompute(ex, cache=False, tileable=tileable),
+    columns = {tileable: Synthesizer(precompute(ramp, cache=False, tileable=tileable),
                                      seed=1).triples(grid)[:, :, 1]
                for tileable in ("auto", True)}
     half = 2  # of the default 5 x 5 neighbourhoods
@@ -442,6 +447,18 @@ def test_cpu_and_cuda_agree_bit_for_bit(candidates, subpasses):
     if subpasses == 1:  # over 8192 blocks: the GPU gathers halos in several chunks
         assert np.array_equal(cpu.box((-40, 0, 0), (96, 96, 96)),
                               cuda.box((-40, 0, 0), (96, 96, 96)))
+
+
+@pytest.mark.skipif(
+    "not __import__('warp').get_cuda_device_count()", reason="no CUDA device: CPU-only machine"
+)
+def test_cpu_and_cuda_agree_where_candidates_keep_margins(ramp):
+    """The margins' test in the correction kernel (exemplars that do not tile)."""
+    candidates = precompute(ramp, cache=False)
+    assert candidates.sources[-1][0].margins == (0, 2)
+    pts = _random_voxels(np.random.default_rng(9), 400)
+    cpu, cuda = (Synthesizer(candidates, device=d, seed=2) for d in ("cpu", "cuda"))
+    assert np.array_equal(cpu.triples(pts), cuda.triples(pts))
 
 
 def test_more_passes_change_the_texture_and_stay_deterministic(candidates):
