@@ -48,11 +48,13 @@ def private_cache(module_cache, monkeypatch) -> Path:
 def _level_lines(cs: CandidateSet) -> list[str]:
     """The summary's per-level rows, rebuilt from a candidate set."""
     rows = []
+    kept = any(any(s.margins) for lvl in cs.sources for s in lvl)  # a crop may not tile
     for level, roles in enumerate(cs.roles):
         size = "/".join(f"{s.size[1]}x{s.size[0]}" for s in cs.sources[level])
         mean = np.concatenate([r.count for r in roles]).mean()
         fallback = sum(int(r.fallback.sum()) for r in roles)
-        rows.append((str(level), size, f"{mean:.2f}", str(fallback)))
+        margins = [" / ".join(f"{s.margins[0]}, {s.margins[1]}" for s in cs.sources[level])]
+        rows.append((str(level), size, f"{mean:.2f}", str(fallback), *(margins if kept else [])))
     return [" ".join(row) for row in rows]
 
 
@@ -90,6 +92,22 @@ def test_precompute_summary_file_and_cache(images, tmp_path, private_cache, caps
     assert f"loaded from cache: {cache}" in out
     assert "written:" not in out
     assert _rows(out) == _level_lines(cs)
+
+
+def test_precompute_shows_the_margins_of_a_photo_that_does_not_tile(tmp_path, images, capsys):
+    """A ramp's left and right edges form a seam: its rows say how many columns candidates
+    keep from them (none at the 8 px level, too small for 5 columns inside); a photo that
+    tiles gets no margins column."""
+    rng = np.random.default_rng(5)
+    ramp = np.linspace(0, 200, 32)[None, :, None] + rng.integers(0, 40, (24, 32, 3))
+    Image.fromarray(ramp.astype(np.uint8)).save(tmp_path / "ramp.png")
+    assert main(["precompute", str(tmp_path / "ramp.png")]) == 0
+    out = capsys.readouterr().out
+    assert "margins (rows, columns)" in out
+    assert [row.split(maxsplit=4)[4] for row in _rows(out)] == ["0, 0", "0, 2", "0, 2"]
+    assert main(["precompute", str(images["a"])]) == 0
+    out = capsys.readouterr().out
+    assert "margins" not in out and all(len(row.split()) == 4 for row in _rows(out))
 
 
 def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, private_cache,

@@ -323,13 +323,21 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
     print(f"levels: {cs.num_levels}")
     sizes = ["/".join(f"{s.size[1]}x{s.size[0]}" for s in lvl) for lvl in cs.sources]
     width = max(len("size"), *map(len, sizes))
-    print(f"  level  {'size':<{width}}  candidates/pixel  fallback pixels")
+    # Only photos that do not tile have margins; the column would be zeros for the others.
+    margins = [" / ".join(f"{s.margins[0]}, {s.margins[1]}" for s in lvl) for lvl in cs.sources]
+    kept = any(any(s.margins) for lvl in cs.sources for s in lvl)
+    header = "  margins (rows, columns)" if kept else ""
+    print(f"  level  {'size':<{width}}  candidates/pixel  fallback pixels{header}")
     for level, roles in enumerate(cs.roles):
         mean = np.concatenate([r.count for r in roles]).mean()
         fallback = sum(int(r.fallback.sum()) for r in roles)
-        print(f"  {level:<5}  {sizes[level]:<{width}}  {mean:16.2f}  {fallback:15d}")
+        column = f"  {margins[level]}" if kept else ""
+        print(f"  {level:<5}  {sizes[level]:<{width}}  {mean:16.2f}  {fallback:15d}{column}")
     print("  (fallback pixels: no candidate passed the coherence test of section 4.2, so "
           "they keep their best crossbar match)")
+    if kept:
+        print("  (margins: rows at the top and bottom, columns at the left and right that no "
+              "candidate holds, where the photo does not tile)")
     print(f"time: {elapsed:.2f} s")
     print(f"bytes: {cs.nbytes()} ({cs.nbytes() / 1024:.1f} KiB of arrays; a .wtc file adds "
           "its header and layout)")
