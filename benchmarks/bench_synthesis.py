@@ -6,7 +6,8 @@ of the 64^3 volume next to i.i.d. noise and the exemplar stacked along z. Warp k
 are compiled and candidates pre-computed before anything is timed.
 
     python benchmarks/bench_synthesis.py [--exemplars DIR] [--repeat 3]
-                                         [--jitter-sweep | --passes-sweep | --memory]
+                                         [--jitter-sweep [--shifted-tiles] [--sheet PNG]
+                                          | --passes-sweep | --memory]
 """
 
 from __future__ import annotations
@@ -32,20 +33,39 @@ ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
 
 
-def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int) -> None:
-    """Jitter varies the tiled slab (section 5.1): its effect on quality and repetition."""
+def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int,
+                 shifted: bool, sheet_path: Path | None, seeds: list[int]) -> None:
+    """Jitter varies the tiled slab (section 5.1): its effect on quality and repetition,
+    averaged over ``seeds``; with ``shifted`` also with shifted tiles, and with
+    ``sheet_path`` a picture of each exemplar's slices at the first jitter and seed."""
     from warptex.metrics import repetition_score
+    from warptex.sheets import save_png, sheet
 
+    rows = []
     for name in names:
         ex = Exemplar.load(folder / f"{name}.png")
         cs = precompute(ex)
-        cells = []
-        for jitter in jitters:
-            vol = Synthesizer(cs, seed=3, jitter=jitter).box((0, 0, 0), (48, 48, 48))
-            big = Synthesizer(cs, seed=3, jitter=jitter).box((0, 0, 20), (edge, edge, 1))
-            cells.append(f"jitter {jitter}: energy {worst_axis_energy(vol, ex.colors):.3f}, "
-                         f"repetition {repetition_score(big[:, :, 0]):.2f}")
-        print(f"{name}: " + "; ".join(cells))
+        for tiles in (False, True) if shifted else (False,):
+            cells, slices = [], []
+            for jitter in jitters:
+                energies, scores = [], []
+                for seed in seeds:
+                    syn = Synthesizer(cs, seed=seed, jitter=jitter, shifted_tiles=tiles)
+                    energies.append(worst_axis_energy(syn.box((0, 0, 0), (48, 48, 48)),
+                                                      ex.colors))
+                    big = syn.box((0, 0, 20), (edge, edge, 1))[:, :, 0]
+                    scores.append(repetition_score(big))
+                    slices.append(big)
+                cells.append(f"jitter {jitter}: energy {np.mean(energies):.3f}, "
+                             f"repetition {np.mean(scores):.2f}")
+            label = f"{name}, shifted tiles" if tiles else name
+            print(f"{label}: " + "; ".join(cells))
+            if not tiles:
+                rows.append((name.removesuffix("_64"), [("exemplar", ex.colors)]))
+            rows[-1][1].append(("shifted tiles" if tiles else "tiled slab", slices[0]))
+    if sheet_path is not None:
+        save_png(sheet(rows), sheet_path)
+        print(f"written: {sheet_path}")
 
 
 def passes_sweep(folder: Path) -> None:
@@ -114,6 +134,12 @@ def main() -> None:
     parser.add_argument("--slice", type=int, default=160,
                         help="edge of the jitter sweep's repetition slice (default 160; "
                         "warptex compare uses 256)")
+    parser.add_argument("--shifted-tiles", action="store_true",
+                        help="the jitter sweep also with shifted tiles (--shifted-tiles)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[3],
+                        help="seeds the jitter sweep averages over (default 3)")
+    parser.add_argument("--sheet", type=Path, metavar="PNG",
+                        help="the jitter sweep also writes its slices at the first jitter")
     parser.add_argument("--passes-sweep", action="store_true",
                         help="only print energy and time of 64^3 against correction passes")
     parser.add_argument("--memory", action="store_true",
@@ -124,7 +150,8 @@ def main() -> None:
         memory(args.exemplars)
         return
     if args.jitter_sweep:
-        jitter_sweep(args.exemplars, args.names, args.jitters, args.slice)
+        jitter_sweep(args.exemplars, args.names, args.jitters, args.slice, args.shifted_tiles,
+                     args.sheet, args.seeds)
         return
     if args.passes_sweep:
         passes_sweep(args.exemplars)

@@ -18,6 +18,7 @@ BLOCK = 4
 BLOCK_VOXELS = 64
 MAX_DIMS = 12
 PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
+TILE_SALT = 64  # hashes of tile shifts, apart from the jitter's octaves (salts 0-33)
 # Terms a float32 sum adds exactly in any order: |basis| <= 127 times features <= 3 * 255
 # stay below 2^24 (see project_neighborhoods).
 EXACT_ROW_TERMS = (1 << 24) // (127 * 3 * 255)
@@ -179,6 +180,16 @@ def warp_offset(pos: wp.vec3i, seed: int, jitter: int) -> wp.vec3i:
     return wp.vec3i((s[0] + 128) >> 8, (s[1] + 128) >> 8, (s[2] + 128) >> 8)
 
 
+@wp.func
+def tile_shift(p: wp.vec3i, n: int, t: LevelTables, seed: int) -> wp.vec2i:
+    """A hashed offset of the slab tile holding ``p`` (N voxels along x, one exemplar along
+    y and z), in x exemplar pixels: tiles then no longer repeat every exemplar width."""
+    h = hash_cell(floor_div(p[0], n), floor_div(p[1], t.height[0]), floor_div(p[2], t.width[0]),
+                  seed, TILE_SALT)
+    return wp.vec2i(int(h % wp.uint32(t.height[0])),
+                    int((h >> wp.uint32(16)) % wp.uint32(t.width[0])))
+
+
 @wp.kernel
 def initialize(
     first: int,
@@ -186,15 +197,20 @@ def initialize(
     t: LevelTables,
     seed: int,
     jitter: int,
+    shifted_tiles: int,
     triples: wp.array(dtype=wp.vec3i),
 ):
-    """Tiling of the x exemplar's candidate slab (section 4.3), warped by the jitter."""
+    """Tiling of the x exemplar's candidate slab (section 4.3), warped by the jitter; with
+    ``shifted_tiles`` each tile shows the slab shifted by its own offset."""
     i = first + wp.tid()
     p = voxel_world(coords, i)
     p = p + warp_offset(p, seed, jitter)
     n = 2 * t.half + 1
     depth = wrap(p[0], n) - t.half
-    own = pixel_index(p[1], p[2], t.height[0], t.width[0])
+    shift = wp.vec2i(0, 0)
+    if shifted_tiles != 0:
+        shift = tile_shift(p, n, t, seed)
+    own = pixel_index(p[1] + shift[0], p[2] + shift[1], t.height[0], t.width[0])
     best = t.cand3d_off[0] + own * t.cand3d_stride * 2  # the pixel's first 3D candidate
     q = shift_pixel(t.cand3d[best], 0, depth, t.height[1], t.width[1])
     r = shift_pixel(t.cand3d[best + 1], depth, 0, t.height[2], t.width[2])

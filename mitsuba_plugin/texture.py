@@ -11,6 +11,9 @@ Properties (XML or ``mi.load_dict``):
                                   is this many pixels, at least 16 (default: as they are)
 ``seed``               integer    synthesis seed, 0 to 2147483647 (default 0)
 ``jitter``             float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
+``shifted_tiles``      boolean    shift each tile of the initial tiling by its own offset, so
+                                  structured exemplars show no bands every exemplar width, at
+                                  some cost in likeness (default false)
 ``passes``             integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
                                   closer to the exemplar at about twice the synthesis time, see
                                   ``docs/comparisons``)
@@ -116,8 +119,8 @@ PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
 _PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_max_size",
-               "seed", "jitter", "passes", "scale", "space", "filter", "raw", "cache_bytes",
-               "cache", "to_world")
+               "seed", "jitter", "shifted_tiles", "passes", "scale", "space", "filter", "raw",
+               "cache_bytes", "cache", "to_world")
 
 
 def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
@@ -210,6 +213,7 @@ class LazySolidTexture(mi.Texture):
             raise property_error(PLUGIN, "exemplar_max_size", e.problem) from None
         self.seed = get_property(props, "seed", int, 0, PLUGIN)
         self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER, PLUGIN)
+        self.shifted_tiles = get_property(props, "shifted_tiles", bool, False, PLUGIN)
         self.passes = get_property(props, "passes", int, DEFAULT_PASSES, PLUGIN)
         try:
             check_settings(self.jitter, self.passes, self.seed)
@@ -247,7 +251,7 @@ class LazySolidTexture(mi.Texture):
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                       passes=self.passes, cache_bytes=cache_bytes,
-                                      store=self.cache)
+                                      store=self.cache, shifted_tiles=self.shifted_tiles)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = _exemplar_colors(candidates)
@@ -327,7 +331,8 @@ class LazySolidTexture(mi.Texture):
         names = ", ".join(f'"{p}"' for p in dict.fromkeys(self.exemplars))
         shrunk = "" if self.max_size is None else f", exemplar_max_size={self.max_size}"
         return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={self.seed}, "
-                f"jitter={self.jitter}, passes={self.passes}, scale={self.scale}, "
+                f"jitter={self.jitter}, shifted_tiles={self.shifted_tiles}, "
+                f"passes={self.passes}, scale={self.scale}, "
                 f"space={self.space}, filter={self.filter}, raw={self.raw}, "
                 f"cache={self.cache}]")
 

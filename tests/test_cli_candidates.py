@@ -219,6 +219,23 @@ def test_volume_seed_changes_result(images, expected, tmp_path):
     assert not np.array_equal(np.load(tmp_path / "s.npy"), expected)
 
 
+def test_volume_and_slice_take_shifted_tiles(images, module_cache, tmp_path):
+    """--shifted-tiles reaches the engine in the volume and slice commands."""
+    from warptex.synthesis import Synthesizer
+
+    assert _volume(images, tmp_path / "v.npy", "--shifted-tiles") == 0
+    cs = precompute(images["a"])
+    shifted = Synthesizer(cs, seed=7, jitter=0.5, shifted_tiles=True).box((0, 0, 0), (8, 8, 8))
+    np.testing.assert_array_equal(np.load(tmp_path / "v.npy"), shifted)
+    plain = Synthesizer(cs, seed=7, jitter=0.5).box((0, 0, 0), (8, 8, 8))
+    assert not np.array_equal(shifted, plain)
+    cut = tmp_path / "c.npy"
+    assert main(["slice", str(images["a"]), "--seed", "7", "--jitter", "0.5", "--shifted-tiles",
+                 "--origin", "0.5", "0.5", "3.5", "--u", "1", "0", "0", "--v", "0", "1", "0",
+                 "--shape", "8", "8", "-o", str(cut)]) == 0
+    np.testing.assert_allclose(np.load(cut), shifted[:, :, 3], atol=1e-6)
+
+
 def test_volume_vol_and_exr_are_the_box_written_by_volume_files(images, expected, tmp_path):
     """The command writes the engine's box as warptex.volume_files does (whose layouts
     tests/test_volume_files.py checks), byte for byte: the PNG's colors decoded to linear,

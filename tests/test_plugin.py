@@ -60,6 +60,7 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"passes": 2.5}, "passes"),
     ({"passes": 9}, "passes"),
     ({"raw": 1}, 'raw" must be a <boolean ...>, got 1'),
+    ({"shifted_tiles": "yes"}, "shifted_tiles\" must be a <boolean ...>, got 'yes'"),
     ({"exemplar_max_size": 15}, 'exemplar_max_size" must be at least 16 pixels, got 15'),
     ({"exemplar_max_size": 32.0}, 'exemplar_max_size" must be an <integer ...>, got 32.0'),
     ({"exemplar_max_size": "32"}, "exemplar_max_size\" must be an <integer ...>, got '32'"),
@@ -118,7 +119,7 @@ def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_fil
         load(broken, exemplar_z=str(granite_32_file))
 
 
-def test_passes_reach_the_synthesis(granite_32_file):
+def test_passes_and_shifted_tiles_reach_the_synthesis(granite_32_file):
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar
     from warptex.synthesis import Synthesizer
@@ -131,6 +132,10 @@ def test_passes_reach_the_synthesis(granite_32_file):
     one = Synthesizer(cs, seed=2, passes=1).voxels(ijk)
     np.testing.assert_array_equal(tex.solid.query(ijk + 0.5, filter="nearest"), one)
     assert not np.array_equal(one, Synthesizer(cs, seed=2).voxels(ijk))
+    shifted = load(granite_32_file, shifted_tiles=True, seed=2)
+    assert "shifted_tiles=True" in shifted.to_string()
+    np.testing.assert_array_equal(shifted.solid.query(ijk + 0.5, filter="nearest"),
+                                  Synthesizer(cs, seed=2, shifted_tiles=True).voxels(ijk))
 
 
 def test_exemplar_max_size_shrinks_the_exemplars(granite_32_file):

@@ -233,8 +233,9 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
 def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path,
                                                           monkeypatch):
     ids = {BrickStore(synthesizer(candidates, **kw)).identity() for kw in
-           ({}, {"seed": 1}, {"jitter": 0.5}, {"passes": 1}, {"levels": 1}, {"subpasses": 8})}
-    assert len(ids) == 6
+           ({}, {"seed": 1}, {"jitter": 0.5}, {"passes": 1}, {"levels": 1}, {"subpasses": 8},
+            {"shifted_tiles": True})}
+    assert len(ids) == 7
     # Candidates made with other parameters make another texture from the same exemplars.
     other_params = dataclasses.replace(candidates, params={**candidates.params, "keep": 7})
     assert BrickStore(synthesizer(other_params)).identity() not in ids
@@ -250,6 +251,9 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     both = r"\(correction passes 2 in the file, 3 here, seed 0 in the file, 4 here\)"
     with pytest.warns(UserWarning, match=both):
         BrickStore.load(path, synthesizer(candidates, passes=3, seed=4))
+    with pytest.warns(UserWarning, match=r"another texture \(shifted tiles False in the file, "
+                                         r"True here\)"):
+        BrickStore.load(path, synthesizer(candidates, shifted_tiles=True))
     with pytest.warns(UserWarning, match=r"another texture \(sub-passes 1 in the file, 8 here\)"):
         assert BrickStore.load(path, synthesizer(candidates, subpasses=8)).stats()["bricks"] == 0
     with pytest.warns(UserWarning, match=r"another texture \(candidate parameters\)"):

@@ -182,6 +182,27 @@ def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
     assert not np.array_equal(jittered.voxels(pts), jittered.voxels(pts + period))
 
 
+def test_shifted_tiles_end_the_period_and_stay_deterministic(candidates):
+    """Each tile of the slab shifted by its own hashed offset: without jitter the texture
+    no longer repeats with the slab's period, and a voxel is still the same whatever is
+    requested with it and in whatever order."""
+    syn = Synthesizer(candidates, seed=1, jitter=0.0, shifted_tiles=True)
+    scale = 2 ** (syn.finest - syn.start)
+    n = int(candidates.params["neighborhood"])
+    h, w = candidates.sources[syn.start][0].size
+    pts = _random_voxels(np.random.default_rng(4), 100)
+    for period in ([0, h * scale, 0], [0, 0, w * scale], [n * scale, 0, 0]):
+        repeats = np.all(syn.voxels(pts) == syn.voxels(pts + period), axis=1)
+        assert repeats.mean() < 0.2, period
+    alone = np.concatenate([Synthesizer(candidates, seed=1, jitter=0.0, shifted_tiles=True)
+                            .voxels(p[None]) for p in pts[:4]])
+    shuffled = Synthesizer(candidates, seed=1, jitter=0.0, shifted_tiles=True).voxels(pts[::-1])
+    np.testing.assert_array_equal(alone, syn.voxels(pts[:4]))
+    np.testing.assert_array_equal(shuffled[::-1], syn.voxels(pts))
+    with pytest.raises(ValueError, match="shifted_tiles must be True or False"):
+        Synthesizer(candidates, shifted_tiles=1)
+
+
 def test_jitter_lattice_floors_negative_coordinates(warp_device):
     """The jitter's lattice cells (``bump_sum``) need floor division at negative voxels;
     Warp's integer ``//`` truncated there before NVIDIA/warp#1918, so ``floor_div`` stands in."""

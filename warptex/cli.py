@@ -490,8 +490,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
-    if args.method == "kopf" and (args.passes, args.jitter) != (DEFAULT_PASSES, DEFAULT_JITTER):
-        raise CliError("--passes and --jitter apply to lazy synthesis only, not --method kopf")
+    lazy_only = (args.passes, args.jitter, args.shifted_tiles)
+    if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False):
+        raise CliError("--passes, --jitter and --shifted-tiles apply to lazy synthesis only, not "
+                       "--method kopf")
     if args.method == "kopf":
         _check_kopf_size(args.size)
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
@@ -505,7 +507,8 @@ def _cmd_volume(args: argparse.Namespace) -> int:
                   box_bytes((thickness, args.size, args.size)))  # one slab at a time
     cs = precompute(*exemplars, progress=True)
     try:
-        synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes)
+        synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes,
+                            shifted_tiles=args.shifted_tiles)
     except ValueError as error:
         raise CliError(str(error)) from None
     size = args.size
@@ -595,6 +598,10 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     parser.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
                         help="strength of the random warp that varies the tiling, 0 to 64 "
                         "(default 1)")
+    parser.add_argument("--shifted-tiles", action="store_true",
+                        help="shift each tile of the initial tiling by its own offset: "
+                        "structured exemplars (rust, cells) then show no bands every exemplar "
+                        "width, but follow their photo less closely (BENCHMARKS.md)")
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
                         "closer to the exemplar at about twice the time (the repository's "
@@ -636,6 +643,7 @@ def _solid_texture(args: argparse.Namespace):
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
                             jitter=args.jitter, passes=args.passes, whole_bricks=False,
+                            shifted_tiles=args.shifted_tiles,
                             store=getattr(args, "store", None)), srgb
     except ValueError as error:
         raise CliError(str(error)) from None

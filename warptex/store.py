@@ -258,7 +258,7 @@ _SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
                   "engine_code": "engine code",
                   "format": "file format", "brick": "brick size",
                   "levels": "synthesized levels", "passes": "correction passes",
-                  "subpasses": "sub-passes"}
+                  "subpasses": "sub-passes", "shifted_tiles": "shifted tiles"}
 
 
 def _differences(stored: dict, current: dict, where: str = "in the file") -> str:
@@ -277,7 +277,7 @@ def _differences(stored: dict, current: dict, where: str = "in the file") -> str
 
 def store_settings(synthesizer: Synthesizer) -> dict:
     """Everything a stored voxel depends on: exemplars, candidate parameters and algorithm
-    version, seed, jitter, engine version and parameters; digested by
+    version, seed, jitter, tile shifts, engine version and parameters; digested by
     :meth:`BrickStore.identity` and kept in store files in plain words, so that a file of
     another texture can be told apart by the settings that differ."""
     s = synthesizer
@@ -291,6 +291,7 @@ def store_settings(synthesizer: Synthesizer) -> dict:
         "params": s.candidates.params,
         "seed": s.seed,
         "jitter": round(s.jitter * 256) / 256,  # as the engine takes it
+        "shifted_tiles": s.shifted_tiles,
         "levels": s.finest - s.start,
         "passes": s.passes,
         "subpasses": s.subpasses,

@@ -37,6 +37,7 @@ from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     check_count,
+    check_flag,
     check_settings,
 )
 from warptex.warp_runtime import device as default_device
@@ -264,7 +265,10 @@ class Synthesizer:
     the finest with a warped tiling of the candidate slab and runs ``passes`` correction
     passes of ``subpasses`` interleaved sub-passes per level. The paper's "3 last levels"
     (section 5.2) are ``levels=2``; the default's one level more varies the texture at a
-    larger scale (lower repetition, BENCHMARKS.md).
+    larger scale (lower repetition, BENCHMARKS.md). ``shifted_tiles`` shifts each tile of
+    the slab by its own hashed offset, so that structured exemplars do not repeat every
+    exemplar width, at some cost in their neighbourhood energy (BENCHMARKS.md, "Exemplars
+    that do not tile").
     """
 
     def __init__(
@@ -278,6 +282,7 @@ class Synthesizer:
         subpasses: int = 1,
         device: str | None = None,
         coarse_cache_bytes: int = DEFAULT_COARSE_CACHE_BYTES,
+        shifted_tiles: bool = False,
     ) -> None:
         if not isinstance(candidates, CandidateSet):
             raise TypeError(f"candidates must be a CandidateSet (warptex.precompute makes one), "
@@ -291,6 +296,7 @@ class Synthesizer:
         self.candidates = candidates
         self.seed = int(seed)
         self.jitter = float(jitter)
+        self.shifted_tiles = check_flag("shifted_tiles", shifted_tiles)
         self.passes = int(passes)
         self.subpasses = int(subpasses)
         # "cuda" names whichever GPU is current on the calling thread; resolved once
@@ -454,7 +460,8 @@ class Synthesizer:
         triples = wp.zeros(nvox, dtype=wp.vec3i, device=dev)
         if level == self.start:
             jitter = round(self.jitter * 256)
-            launch_ranges(_k.initialize, 0, nvox, [coords_wp, t, self.seed, jitter], [triples],
+            launch_ranges(_k.initialize, 0, nvox,
+                          [coords_wp, t, self.seed, jitter, int(self.shifted_tiles)], [triples],
                           device=dev)
         else:
             read_blocks = np.flatnonzero(read.numpy().reshape(-1, _BLOCK_VOXELS).any(axis=1))

@@ -93,10 +93,12 @@ class SolidTexture:
         store: str | Path | None = None,
         passes: int = DEFAULT_PASSES,
         whole_bricks: bool = True,
+        shifted_tiles: bool = False,
     ) -> None:
         candidates = (source if isinstance(source, CandidateSet)
                       else precompute(source, progress=None))
-        self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes)
+        self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
+                                       shifted_tiles=shifted_tiles)
         self.path = Path(store) if store is not None else None
         if self.path is not None:
             _check_unshared(self.path, self.synthesizer, joining=self)
