@@ -6,7 +6,8 @@ of the 64^3 volume next to i.i.d. noise and the exemplar stacked along z. Warp k
 are compiled and candidates pre-computed before anything is timed.
 
     python benchmarks/bench_synthesis.py [--exemplars DIR] [--repeat 3]
-                                         [--jitter-sweep [--shifted-tiles] [--sheet PNG]
+                                         [--jitter-sweep [--shifted-tiles] [--seeds S ...]
+                                          [--sheet PNG]
                                           | --passes-sweep | --memory]
 """
 
@@ -135,11 +136,13 @@ def main() -> None:
                         help="edge of the jitter sweep's repetition slice (default 160; "
                         "warptex compare uses 256)")
     parser.add_argument("--shifted-tiles", action="store_true",
-                        help="the jitter sweep also with shifted tiles (--shifted-tiles)")
+                        help="the jitter sweep also with shifted tiles, as warptex's "
+                        "--shifted-tiles")
     parser.add_argument("--seeds", type=int, nargs="+", default=[3],
                         help="seeds the jitter sweep averages over (default 3)")
     parser.add_argument("--sheet", type=Path, metavar="PNG",
-                        help="the jitter sweep also writes its slices at the first jitter")
+                        help="the jitter sweep also writes its slices at the first jitter and "
+                        "seed")
     parser.add_argument("--passes-sweep", action="store_true",
                         help="only print energy and time of 64^3 against correction passes")
     parser.add_argument("--memory", action="store_true",

@@ -473,12 +473,15 @@ def test_cpu_and_cuda_agree_bit_for_bit(candidates, subpasses):
 @pytest.mark.skipif(
     "not __import__('warp').get_cuda_device_count()", reason="no CUDA device: CPU-only machine"
 )
-def test_cpu_and_cuda_agree_where_candidates_keep_margins(ramp):
-    """The margins' test in the correction kernel (exemplars that do not tile)."""
+@pytest.mark.parametrize("shifted_tiles", [False, True])
+def test_cpu_and_cuda_agree_where_candidates_keep_margins(ramp, shifted_tiles):
+    """The margins' test in the correction kernel (exemplars that do not tile), with and
+    without shifted tiles."""
     candidates = precompute(ramp, cache=False)
     assert candidates.sources[-1][0].margins == (0, 2)
     pts = _random_voxels(np.random.default_rng(9), 400)
-    cpu, cuda = (Synthesizer(candidates, device=d, seed=2) for d in ("cpu", "cuda"))
+    cpu, cuda = (Synthesizer(candidates, device=d, seed=2, shifted_tiles=shifted_tiles)
+                 for d in ("cpu", "cuda"))
     assert np.array_equal(cpu.triples(pts), cuda.triples(pts))
 
 

@@ -76,7 +76,8 @@ class SolidTexture:
     it exists and matches this texture, written by :meth:`save`; a store file that a live
     texture of other settings has is refused (StoreFileError). ``cache_bytes`` bounds
     the bricks kept in memory. ``passes`` is the number of correction passes per level
-    (Dong 2008, 5.1): more look better and cost more (see BENCHMARKS.md).
+    (Dong 2008, 5.1): more look better and cost more (see BENCHMARKS.md). ``shifted_tiles``
+    shifts each tile of the initial tiling by its own offset (:class:`Synthesizer`).
     ``whole_bricks=False`` synthesizes only the voxels queries read instead of their whole
     8^3 bricks: faster for thin sets such as mesh surfaces and cuts (see
     :class:`~warptex.store.BrickStore`).
