@@ -99,6 +99,7 @@ class Exemplar:
         self.path: Path | None = None
         self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
         self.colors = _validated_colors(array, name)
+        self._seam_contrast: tuple[float, float] | None = None  # once: colors are read-only
         self.srgb = _integer(array) if srgb is None else bool(srgb)
         if feature_distance is None:
             self.features = self.colors
@@ -230,10 +231,13 @@ class Exemplar:
 
         The means do not depend on the order a machine would sum in, so the candidates that
         follow from them are the same on every CPU, also at the limit."""
-        c = self.colors.astype(np.float64)
-        across = (_mean(np.abs(c[:, 0] - c[:, -1])), _mean(np.abs(c[0] - c[-1])))
-        inside = (_mean(np.abs(np.diff(c, axis=1))), _mean(np.abs(np.diff(c, axis=0))))
-        return tuple(float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
+        if self._seam_contrast is None:
+            c = self.colors.astype(np.float64)
+            across = (_mean(np.abs(c[:, 0] - c[:, -1])), _mean(np.abs(c[0] - c[-1])))
+            inside = (_mean(np.abs(np.diff(c, axis=1))), _mean(np.abs(np.diff(c, axis=0))))
+            columns, rows = (float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
+            self._seam_contrast = columns, rows
+        return self._seam_contrast
 
     def seams(self) -> tuple[bool, bool]:
         """Whether the (top and bottom, left and right) edges form a seam: their
@@ -246,10 +250,11 @@ class Exemplar:
         """Why the exemplar does not tile, in words (:meth:`seam_contrast` above
         SEAM_LIMIT); None where it tiles."""
         across_columns, across_rows = self.seam_contrast()
+        seam_rows, seam_columns = self.seams()
         seams = [f"{edges} edges differ {ratio:.1f}x as much as neighbouring pixels"
-                 for edges, ratio in (("left and right", across_columns),
-                                      ("top and bottom", across_rows))
-                 if ratio > SEAM_LIMIT]
+                 for edges, ratio, seam in (("left and right", across_columns, seam_columns),
+                                            ("top and bottom", across_rows, seam_rows))
+                 if seam]
         if not seams:
             return None
         return f"its {' and its '.join(seams)}"
