@@ -797,3 +797,19 @@ def test_candidates_keep_away_from_the_edges_of_a_photo_that_does_not_tile(
     granite = Exemplar.load(GRANITE)
     assert max(granite.seam_contrast()) < 1.1 and granite.seam_problem() is None
     assert granite.seams() == (False, False)
+
+
+def test_the_pyramid_does_not_blur_across_a_seam():
+    """A coarser level's blur wraps around the edges that tile but reflects at a seam, so
+    no coarse pixel mixes the two ends of a ramp: each level rises from left to right, as
+    the photo does. Wrapped as a torus, the first column takes in the last one's bright
+    values."""
+    ramp = _ramp(24, 32)
+    for level in ramp.pyramid(min_size=2)[:-1]:
+        assert (np.diff(level.colors.mean(axis=(0, 2))) > 0).all()
+    torus = ramp.pyramid(min_size=2, seams=(False, False))[-2].colors.mean(axis=(0, 2))
+    assert torus[0] > torus[1]
+    granite = Exemplar.load(GRANITE)
+    for level, wrapped in zip(granite.pyramid(), granite.pyramid(seams=(False, False)),
+                              strict=True):
+        assert np.array_equal(level.colors, wrapped.colors)

@@ -43,7 +43,8 @@ def test_info_says_a_photo_that_does_not_tile_and_what_synthesis_does(tmp_path, 
     Image.fromarray(ramp).save(tmp_path / "ramp.png")
     assert main(["info", str(tmp_path / "ramp.png")]) == 0
     assert ("tiles: no: its left and right edges differ 31.0x as much as neighbouring pixels; "
-            "candidates keep away from those edges, so corrections never continue the seam"
+            "candidates keep away from those edges and the pyramid does not blur across them, "
+            "so corrections never continue the seam"
             ) in capsys.readouterr().out
 
 

@@ -13,11 +13,13 @@ from PIL import Image
 from scipy import ndimage
 
 from warptex.exemplar import (
+    SEAM_LIMIT,
     Exemplar,
     ExemplarError,
     PyramidLevel,
     feature_distance_from_mask,
     otsu_mask,
+    seams_of,
 )
 from warptex.settings import SettingError
 
@@ -673,16 +675,27 @@ def test_pyramid_sizes(shape, min_size, sizes, rng):
 
 
 def test_pyramid_finest_level_is_the_image_and_coarser_levels_blur_with_wrap():
+    """Blurred as a torus where the edges tile; reflected at the edges that form a seam, which
+    a lone bright corner pixel makes them."""
     image = np.zeros((64, 64, 1), dtype=np.float32)
     image[0, 0] = 1.0
     image[40:48, 20:30] = 0.5
-    levels = Exemplar(image).pyramid()
+    exemplar = Exemplar(image)
+    levels = exemplar.pyramid(seams=(False, False))
     np.testing.assert_array_equal(levels[-1].colors, image)
     expected = ndimage.gaussian_filter(image, sigma=(1, 1, 0), mode="wrap")[::2, ::2]
     np.testing.assert_allclose(levels[-2].colors, expected, rtol=1e-6)
     # The corner pixel bleeds across the border into the last row, as it would on a tiled plane.
     assert levels[-2].colors[-1, 0, 0] > 0.01
     assert levels[-2].colors[0, -1, 0] > 0.01
+
+    assert exemplar.seams() == (True, True)
+    seamed = exemplar.pyramid()
+    expected = ndimage.gaussian_filter(image, sigma=(1, 1, 0), mode="reflect")[::2, ::2]
+    np.testing.assert_allclose(seamed[-2].colors, expected, rtol=1e-6)
+    assert seamed[-2].colors[-1, 0, 0] == seamed[-2].colors[0, -1, 0] == 0.0
+    torus = exemplar.pyramid(seams=(False, True))[-2].colors
+    assert torus[-1, 0, 0] > 0.01 and torus[0, -1, 0] == 0.0
 
 
 def test_pyramid_keeps_feature_channel_at_every_level(rng):
@@ -734,3 +747,17 @@ def test_digest_follows_every_channel_and_the_feature_distance(rng):
 def test_digest_depends_on_shape(rng):
     data = rng.random(size=(32, 32)).astype(np.float32)
     assert Exemplar(data).digest() != Exemplar(data.reshape(16, 64)).digest()
+
+
+def test_a_periodic_pattern_whose_edge_lies_on_the_wrap_tiles():
+    """Stripes 4 pixels wide change across the wrap 4.4x as much as between neighbouring
+    rows on average, as much as at each stripe's edge: a quarter of the row pairs, so the
+    wrap is one of the pattern's own edges, not a seam. A ramp's wrap differs more than
+    any neighbouring columns do."""
+    stripes = np.repeat((np.arange(32) // 4 % 2).astype(np.float32)[:, None], 32, axis=1)
+    ex = Exemplar(stripes)
+    assert ex.seam_contrast()[1] > SEAM_LIMIT
+    assert ex.seams() == seams_of(ex.colors) == (False, False)
+    assert ex.seam_problem() is None
+    ramp = np.repeat(np.linspace(0.0, 1.0, 32, dtype=np.float32)[None, :], 24, axis=0)
+    assert Exemplar(ramp).seams() == seams_of(ramp[:, :, None]) == (False, True)

@@ -24,12 +24,15 @@ def granite(granite_32, warp_device) -> Exemplar:
 
 @pytest.fixture(scope="module")
 def stripes(granite) -> tuple[Exemplar, Exemplar]:
-    """Bands of dark and light granite colours 4 pixels wide: across rows, across columns."""
+    """Bands of dark and light granite colours 4 pixels wide: across rows, across columns.
+    They tile, although a band's edge lies on the wrap."""
     pixels = granite.colors.reshape(-1, 3)
     dark, light = np.percentile(pixels, 10, axis=0), np.percentile(pixels, 90, axis=0)
     band = (np.arange(32) // 4 % 2)[:, None, None]
-    rows = (np.where(band == 0, dark, light) * np.ones((32, 32, 1))).astype(np.float32)
-    return Exemplar(rows, name="rows"), Exemplar(np.ascontiguousarray(rows.transpose(1, 0, 2)))
+    rows = Exemplar((np.where(band == 0, dark, light) * np.ones((32, 32, 1))).astype(np.float32),
+                    name="rows")
+    assert rows.seams() == (False, False)
+    return rows, Exemplar(np.ascontiguousarray(rows.colors.transpose(1, 0, 2)))
 
 
 @functools.cache
@@ -66,7 +69,27 @@ def test_slices_are_oriented_like_the_metrics(granite, axis):
     volume = metrics.extrusion(colors, SIZE, axis=axis).reshape(-1, 3)
     feats = [colors if k == axis else None for k in range(3)]
     solid = wp.array(np.ascontiguousarray(volume), dtype=wp.float32, device="cpu")
-    assert kopf._LevelOptimizer(feats, solid, False).search() < 1e-3
+    assert kopf._LevelOptimizer(feats, [(False, False)] * 3, solid, False).search() < 1e-3
+
+
+def test_windows_do_not_wrap_across_a_seam(granite):
+    """Where an exemplar's edges are seams, no window wraps across them, so a solid of the
+    granite crop's slices rolled halfway round (its edges in the middle) no longer finds
+    every window; as a torus it does."""
+    colors = np.ascontiguousarray(granite.colors[:SIZE, :SIZE])
+    windows, centres = kopf._windows(colors, (False, True))
+    assert len(windows) == len(centres) == SIZE * (SIZE - kopf._k.WINDOW + 1)
+    columns = centres % SIZE
+    assert columns.min() == kopf._k.HALF and columns.max() == SIZE - kopf._k.HALF
+    assert len(kopf._windows(colors, (False, False))[1]) == SIZE * SIZE
+
+    rolled = np.roll(colors, (SIZE // 2, SIZE // 2), axis=(0, 1))
+    volume = metrics.extrusion(rolled, SIZE, axis=2).reshape(-1, 3)
+    solid = wp.array(np.ascontiguousarray(volume), dtype=wp.float32, device="cpu")
+    feats = [None, None, colors]
+    assert kopf._LevelOptimizer(feats, [None, None, (False, False)], solid, False).search() < 1e-3
+    seamed = kopf._LevelOptimizer(feats, [None, None, (True, True)], solid, False).search()
+    assert seamed > 0.1
 
 
 def test_energy_never_rises_within_a_level_without_histogram_matching(granite):

@@ -5,6 +5,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from warptex import metrics
+from warptex.exemplar import Exemplar
 
 
 def _exemplar() -> np.ndarray:
@@ -80,6 +81,26 @@ def test_slices_of_the_exemplar_rolled_toroidally_have_zero_energy():
     ex = rng.random((16, 16, 3)).astype(np.float32)
     vol = metrics.extrusion(np.roll(ex, (5, 7), axis=(0, 1)), 16, axis=2)
     assert metrics.neighborhood_energy(vol, ex, 2) == 0.0
+
+
+def test_exemplar_patches_do_not_wrap_across_a_seam():
+    """A photo whose left and right edges differ (a ramp) is no torus: its patches stop at
+    those edges, so a slice showing the ramp wrapped around costs energy, where the patches
+    of an exemplar that tiles wrap as the paper's do."""
+    rng = np.random.default_rng(6)
+    ramp = (np.linspace(0.0, 1.0, 24)[None, :, None]
+            + 0.05 * rng.random((20, 24, 3))).astype(np.float32)
+    assert metrics.exemplar_patches(ramp, 5).shape == (20 * 20, 75)
+    assert metrics.exemplar_patches(Exemplar(ramp), 5).shape == (20 * 20, 75)
+    tiles = rng.random((20, 24, 3)).astype(np.float32)
+    assert metrics.exemplar_patches(tiles, 5).shape == (20 * 24, 75)
+    # Fewer than 5 unwrapped patches across a side: that side wraps anyway.
+    assert metrics.exemplar_patches(ramp[:, :8], 5).shape == (20 * 8, 75)
+
+    vol = metrics.extrusion(np.roll(ramp, 12, axis=1), 24, axis=2)
+    assert metrics.neighborhood_energy(vol, ramp, 2) > 0.05
+    vol = metrics.extrusion(np.roll(tiles, 12, axis=1), 24, axis=2)
+    assert metrics.neighborhood_energy(vol, tiles, 2) == 0.0
 
 
 def test_energy_and_swd_do_not_depend_on_the_unit_of_the_colors():

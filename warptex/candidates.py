@@ -35,7 +35,7 @@ from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel
 from warptex.archive import ArchiveError, read_archive, write_archive
 from warptex.code_digest import code_digest, module_sources
-from warptex.exemplar import Exemplar, ExemplarError
+from warptex.exemplar import Exemplar, ExemplarError, wrapping_edges
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 from warptex.warp_runtime import init_warp
@@ -416,8 +416,8 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
     unique = list(dict.fromkeys(digests))
     axis_source = tuple(unique.index(d) for d in digests)
     srcs = [exemplars[digests.index(d)] for d in unique]
-    pyramids = [s.pyramid() for s in srcs]
     seam_edges = [_seam_edges(s, p["tileable"]) for s in srcs]
+    pyramids = [s.pyramid(seams=seams) for s, seams in zip(srcs, seam_edges, strict=True)]
     num_levels = min(len(pyr) for pyr in pyramids)
     # Align pyramids at their finest level when exemplars differ in size.
     pyramids = [pyr[len(pyr) - num_levels :] for pyr in pyramids]
@@ -488,9 +488,7 @@ def _margins(size: tuple[int, int], seams: tuple[bool, bool], n: int) -> tuple[i
     """Rows and columns kept from the edges that form a seam: N // 2, so that no N x N
     neighbourhood of a candidate wraps across them. A level too small to keep N rows or
     columns inside wraps as the paper's exemplars do; the finer levels correct it."""
-    half = n // 2
-    return tuple(half if seam and side - 2 * half >= n else 0
-                 for side, seam in zip(size, seams, strict=True))
+    return tuple(0 if wrap else n // 2 for wrap in wrapping_edges(seams, size, n))
 
 
 def _usable(size: tuple[int, int], margins: tuple[int, int]) -> np.ndarray:

@@ -203,8 +203,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
         print(f"tiles: yes (edges differ {across_columns:.1f}x left-right and "
               f"{across_rows:.1f}x top-bottom as much as neighbouring pixels)")
     else:
-        print(f"tiles: no: {seams}; candidates keep away from those edges, so corrections "
-              "never continue the seam")
+        print(f"tiles: no: {seams}; candidates keep away from those edges and the pyramid "
+              "does not blur across them, so corrections never continue the seam")
     print(f"digest: {exemplar.digest()[:16]}")
     print(f"candidates: {_candidate_status(exemplar)}")
     return 0

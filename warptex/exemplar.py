@@ -36,6 +36,10 @@ MAX_CHANNELS = 64
 # Above this, an exemplar's wrap differs so much more than its neighbouring pixels that it
 # is a seam, which candidates keep away from (4 bundled exemplars above it, 7 below).
 SEAM_LIMIT = 2.0
+# ... unless this share of neighbouring pairs of rows (columns) differ as much as the wrap:
+# then the wrap falls on one of the photo's own edges, as a stripe's edge in a periodic
+# pattern may, rather than on a seam.
+SEAM_SHARE = 0.05
 _SUM_CHUNK = 1 << 16  # values summed exactly at once by _mean
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -100,6 +104,7 @@ class Exemplar:
         self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
         self.colors = _validated_colors(array, name)
         self._seam_contrast: tuple[float, float] | None = None  # once: colors are read-only
+        self._seams: tuple[bool, bool] | None = None
         self.srgb = _integer(array) if srgb is None else bool(srgb)
         if feature_distance is None:
             self.features = self.colors
@@ -203,48 +208,41 @@ class Exemplar:
         """Number of color channels ``C`` (feature channels may be one more)."""
         return self.colors.shape[2]
 
-    def pyramid(self, min_size: int = 8) -> list[PyramidLevel]:
+    def pyramid(self, min_size: int = 8,
+                seams: tuple[bool, bool] | None = None) -> list[PyramidLevel]:
         """Gaussian pyramid, coarsest level first and the exemplar itself last.
 
-        Each coarser level blurs the finer one with wrap-around borders (exemplars tile, §3) and
-        keeps every second pixel, so an ``h x w`` level becomes ``ceil(h/2) x ceil(w/2)``. The
-        pyramid stops at the first level whose larger side is at most ``min_size``. Where a
-        photo does not tile, the pixels that the blur mixes across its edges lie in the
-        candidates' margins, though at the edge of the first usable pixels' neighbourhoods.
+        Each coarser level blurs the finer one and keeps every second pixel, so an ``h x w``
+        level becomes ``ceil(h/2) x ceil(w/2)``. The blur wraps around the borders
+        (exemplars tile, §3) except across the edges that form a seam (``seams``, rows then
+        columns, by default :meth:`seams`), where it reflects: no coarse pixel then mixes a
+        photo's opposite edges. The pyramid stops at the first level whose larger side is at
+        most ``min_size``.
         """
         if min_size < 1:
             raise ValueError(f"min_size must be at least 1, not {min_size}")
+        seams = self.seams() if seams is None else seams
         levels = [PyramidLevel(self.colors, self.features)]
         while max(levels[-1].shape) > min_size:
             finer = levels[-1]
-            colors = _downsample(finer.colors)
-            features = colors if finer.features is finer.colors else _downsample(finer.features)
+            colors = _downsample(finer.colors, seams)
+            features = (colors if finer.features is finer.colors
+                        else _downsample(finer.features, seams))
             levels.append(PyramidLevel(colors, features))
         return levels[::-1]
 
     def seam_contrast(self) -> tuple[float, float]:
-        """How much more the colors change across the exemplar's wrap than between
-        neighbouring pixels: from the last column to the first, and from the last row to
-        the first. Near 1 where the photo tiles. The paper's exemplars are tori (§3, §4);
-        above SEAM_LIMIT :meth:`seams` names the edges that candidates keep away from
-        (BENCHMARKS.md, "Exemplars that do not tile").
-
-        The means do not depend on the order a machine would sum in, so the candidates that
-        follow from them are the same on every CPU, also at the limit."""
+        """:func:`seam_contrast_of` the exemplar's colors, computed once."""
         if self._seam_contrast is None:
-            c = self.colors.astype(np.float64)
-            across = (_mean(np.abs(c[:, 0] - c[:, -1])), _mean(np.abs(c[0] - c[-1])))
-            inside = (_mean(np.abs(np.diff(c, axis=1))), _mean(np.abs(np.diff(c, axis=0))))
-            columns, rows = (float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
-            self._seam_contrast = columns, rows
+            self._seam_contrast = seam_contrast_of(self.colors)
         return self._seam_contrast
 
     def seams(self) -> tuple[bool, bool]:
-        """Whether the (top and bottom, left and right) edges form a seam: their
-        :meth:`seam_contrast` is above SEAM_LIMIT. In pixel coordinate order (rows, then
-        columns), as the candidates' margins are."""
-        across_columns, across_rows = self.seam_contrast()
-        return across_rows > SEAM_LIMIT, across_columns > SEAM_LIMIT
+        """:func:`seams_of` the exemplar's colors, computed once. In pixel coordinate order
+        (rows, then columns), as the candidates' margins are."""
+        if self._seams is None:
+            self._seams = _seams(self.colors, self.seam_contrast())
+        return self._seams
 
     def seam_problem(self) -> str | None:
         """Why the exemplar does not tile, in words (:meth:`seam_contrast` above
@@ -274,6 +272,55 @@ class Exemplar:
             f"Exemplar({self.name!r}, {w}x{h}, channels={self.channels}"
             f"{', feature_distance=True' if extra else ''}{', linear' if not self.srgb else ''})"
         )
+
+
+def seam_contrast_of(colors: np.ndarray) -> tuple[float, float]:
+    """How much more an (H, W, C) image's colors change across its wrap than between
+    neighbouring pixels: from the last column to the first, and from the last row to the
+    first. Near 1 where the photo tiles. The paper's exemplars are tori (§3, §4); above
+    SEAM_LIMIT :func:`seams_of` names the edges that candidates keep away from
+    (BENCHMARKS.md, "Exemplars that do not tile").
+
+    The means do not depend on the order a machine would sum in, so the candidates that
+    follow from them are the same on every CPU, also at the limit."""
+    c = np.asarray(colors, dtype=np.float64)
+    across = (_mean(np.abs(c[:, 0] - c[:, -1])), _mean(np.abs(c[0] - c[-1])))
+    inside = (_mean(np.abs(np.diff(c, axis=1))), _mean(np.abs(np.diff(c, axis=0))))
+    columns, rows = (float(a / max(i, 1e-12)) for a, i in zip(across, inside, strict=True))
+    return columns, rows
+
+
+def seams_of(colors: np.ndarray) -> tuple[bool, bool]:
+    """Whether an (H, W, C) image's (top and bottom, left and right) edges form a seam:
+    their :func:`seam_contrast_of` is above SEAM_LIMIT, and fewer than SEAM_SHARE of the
+    image's neighbouring rows (columns) differ on average as much as its last and first."""
+    return _seams(colors, seam_contrast_of(colors))
+
+
+def _seams(colors: np.ndarray, contrast: tuple[float, float]) -> tuple[bool, bool]:
+    across_columns, across_rows = contrast
+    return (across_rows > SEAM_LIMIT and _wrap_stands_out(colors, 0),
+            across_columns > SEAM_LIMIT and _wrap_stands_out(colors, 1))
+
+
+def _wrap_stands_out(colors: np.ndarray, axis: int) -> bool:
+    """Whether fewer than SEAM_SHARE of the pairs of neighbouring rows (``axis`` 0) or
+    columns (1) differ on average as much as the last and the first; summed exactly, so that
+    ties, which periodic patterns make, are ties on every CPU."""
+    c = np.moveaxis(np.asarray(colors, dtype=np.float64), axis, 0)
+    across = _mean(np.abs(c[0] - c[-1]))
+    as_large = sum(_mean(pair) >= across for pair in np.abs(np.diff(c, axis=0)))
+    return as_large < SEAM_SHARE * (len(c) - 1)
+
+
+def wrapping_edges(seams: tuple[bool, bool], shape: tuple[int, int],
+                   size: int) -> tuple[bool, bool]:
+    """Whether ``size`` x ``size`` neighbourhoods of an exemplar (or pyramid level) of
+    ``shape`` wrap around its (top and bottom, left and right) edges: where these tile, as
+    the paper's tori do (§3), and where a seam (:meth:`Exemplar.seams`) would leave fewer
+    than ``size`` unwrapped neighbourhoods across that side."""
+    return tuple(not seam or side - size + 1 < size
+                 for seam, side in zip(seams, shape, strict=True))
 
 
 def srgb_encoded(exemplars: list[Exemplar], raw: str = "raw") -> bool:
@@ -382,8 +429,9 @@ def _size(shape: tuple[int, ...]) -> str:
     return f"{shape[1]}x{shape[0]}"
 
 
-def _downsample(image: np.ndarray) -> np.ndarray:
-    blurred = ndimage.gaussian_filter(image, sigma=(_PYRAMID_SIGMA, _PYRAMID_SIGMA, 0), mode="wrap")
+def _downsample(image: np.ndarray, seams: tuple[bool, bool]) -> np.ndarray:
+    modes = ["reflect" if seam else "wrap" for seam in seams] + ["wrap"]
+    blurred = ndimage.gaussian_filter(image, sigma=(_PYRAMID_SIGMA, _PYRAMID_SIGMA, 0), mode=modes)
     level = np.ascontiguousarray(blurred[::2, ::2])
     level.setflags(write=False)
     return level

@@ -12,6 +12,8 @@ from numbers import Integral
 import numpy as np
 from scipy.spatial import cKDTree
 
+from warptex.exemplar import Exemplar, seams_of, wrapping_edges
+
 
 def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarray]:
     """``count`` evenly spaced slices perpendicular to ``axis``, as (rows, cols, C) images
@@ -30,17 +32,31 @@ def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarra
     return out
 
 
-def patches(image: np.ndarray, size: int, stride: int = 1, wrap: bool = False) -> np.ndarray:
-    """All ``size`` x ``size`` patches of an (H, W, C) image as rows (n, size*size*C)."""
+def patches(image: np.ndarray, size: int, stride: int = 1,
+            wrap: bool | tuple[bool, bool] = False) -> np.ndarray:
+    """All ``size`` x ``size`` patches of an (H, W, C) image as rows (n, size*size*C);
+    ``wrap`` (for rows and columns, or one for both) lets them wrap around the edges."""
+    wrap_rows, wrap_cols = (wrap, wrap) if isinstance(wrap, bool) else wrap
     h, w, c = image.shape
-    if wrap:
-        image = np.pad(image, ((0, size - 1), (0, size - 1), (0, 0)), mode="wrap")
-        h2, w2 = h, w
-    else:
-        h2, w2 = h - size + 1, w - size + 1
+    image = np.pad(image, ((0, size - 1 if wrap_rows else 0), (0, size - 1 if wrap_cols else 0),
+                           (0, 0)), mode="wrap")
+    h2, w2 = (h if wrap_rows else h - size + 1), (w if wrap_cols else w - size + 1)
     win = np.lib.stride_tricks.sliding_window_view(image, (size, size), axis=(0, 1))
     win = win[:h2:stride, :w2:stride]
     return win.transpose(0, 1, 3, 4, 2).reshape(-1, size * size * c).astype(np.float32)
+
+
+def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int) -> np.ndarray:
+    """The exemplar's ``size`` x ``size`` patches, the neighbourhoods a slice is measured
+    against: they wrap around the edges that tile (the paper's tori, Dong 2008 §3) but not
+    across a photo's seam (:func:`warptex.exemplar.seams_of`), where a wrapped patch is no
+    part of the photo (:func:`warptex.exemplar.wrapping_edges`)."""
+    if isinstance(exemplar, Exemplar):
+        colors, seams = exemplar.colors, exemplar.seams()
+    else:
+        colors = np.asarray(exemplar)
+        seams = seams_of(colors)
+    return patches(colors, size, wrap=wrapping_edges(seams, colors.shape[:2], size))
 
 
 def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -84,22 +100,22 @@ def _variance(exemplar: np.ndarray) -> float:
 
 
 def neighborhood_energy(
-    volume: np.ndarray, exemplar: np.ndarray, axis: int, size: int = 5, slices: int = 8
+    volume: np.ndarray, exemplar: np.ndarray | Exemplar, axis: int, size: int = 5, slices: int = 8
 ) -> float:
-    """Mean squared distance from each slice patch to its nearest exemplar patch,
-    normalized by the exemplar's variance and patch size (0 = every patch is in the
-    exemplar; about 2 for patches of unrelated values of the same variance)."""
-    volume, exemplar = _checked(volume, exemplar, axis, size)
-    ex_patches = patches(exemplar, size, wrap=True)
-    tree = cKDTree(ex_patches)
+    """Mean squared distance from each slice patch to its nearest exemplar patch
+    (:func:`exemplar_patches`), normalized by the exemplar's variance and patch size (0 =
+    every patch is in the exemplar; about 2 for patches of unrelated values of the same
+    variance)."""
+    volume, colors = _checked(volume, exemplar, axis, size)
+    tree = cKDTree(exemplar_patches(exemplar, size))
     vol_patches = np.concatenate(
         [patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)]
     )
     dist, _ = tree.query(vol_patches, k=1, workers=-1)
-    return float(np.mean(dist**2) / (size * size * _variance(exemplar)))
+    return float(np.mean(dist**2) / (size * size * _variance(colors)))
 
 
-def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray) -> float:
+def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar) -> float:
     """The largest of the three axes' :func:`neighborhood_energy`: a solid texture is
     judged by its worst cut (the measure Dong 2008, section 6.3, compares)."""
     return max(neighborhood_energy(volume, exemplar, axis) for axis in range(3))
@@ -107,7 +123,7 @@ def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray) -> float:
 
 def sliced_wasserstein(
     volume: np.ndarray,
-    exemplar: np.ndarray,
+    exemplar: np.ndarray | Exemplar,
     axis: int,
     size: int = 5,
     directions: int = 64,
@@ -116,18 +132,18 @@ def sliced_wasserstein(
 ) -> float:
     """Sliced Wasserstein-1 distance between slice patches and exemplar patches,
     averaged over random unit directions and normalized by the exemplar's std."""
-    volume, exemplar = _checked(volume, exemplar, axis, size)
+    volume, colors = _checked(volume, exemplar, axis, size)
     if directions < 1:
         raise ValueError(f"directions must be at least 1, got {directions}")
     a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
-    b = patches(exemplar, size, wrap=True)
+    b = exemplar_patches(exemplar, size)
     rng = np.random.default_rng(seed)
     dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32)
     dirs /= np.linalg.norm(dirs, axis=0, keepdims=True)
     q = np.linspace(0.0, 1.0, 257)
     pa = np.quantile(a @ dirs, q, axis=0)
     pb = np.quantile(b @ dirs, q, axis=0)
-    return float(np.mean(np.abs(pa - pb)) / np.sqrt(_variance(exemplar)))
+    return float(np.mean(np.abs(pa - pb)) / np.sqrt(_variance(colors)))
 
 
 def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,

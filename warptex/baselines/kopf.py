@@ -24,6 +24,10 @@ With ``mean_shift``, a voxel averages only the texels of the dominant cluster (s
 bandwidth, whose bandwidth shrinks over each level's iterations from a plain average towards
 a single colour.
 
+Exemplars are tori, as the paper's are, except that where a photo does not tile
+(:meth:`warptex.Exemplar.seams`) no window wraps across its seam, in the search as in the
+metrics (:func:`warptex.metrics.exemplar_patches`): the seam is not part of the photo.
+
 Axis ``i`` of the volume (axis 0 of the ``(D, H, W, C)`` result is x) is constrained by its
 own exemplar (section 6.2), oriented as in :mod:`warptex.metrics`: slices perpendicular to
 axis ``i`` have volume axes ``i+1`` and ``i+2`` as the exemplar's rows and columns. One axis
@@ -43,7 +47,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from kernels import kopf as _k
-from warptex.exemplar import Exemplar
+from warptex.exemplar import Exemplar, wrapping_edges
 from warptex.parallel import THREADS, launch_ranges
 from warptex.warp_runtime import init_warp, launch
 
@@ -92,6 +96,7 @@ class _Axis:
     """One constrained axis at one level: its exemplar and its search structure."""
 
     features: np.ndarray  # (h, w, F)
+    centres: np.ndarray  # (windows,) int32 exemplar pixel of each window the tree holds
     mean: np.ndarray  # (64 F,) mean window
     basis: np.ndarray  # (64 F, MAX_DIMS) PCA basis, zero past the kept coefficients
     dims: int
@@ -148,6 +153,7 @@ def synthesize(
     # One pyramid (and below, one search structure) per distinct exemplar.
     distinct = {id(e): e for e in axes if e is not None}
     pyramids = {k: e.pyramid(min_size=1)[-LEVELS:] for k, e in distinct.items()}
+    seams = [None if e is None else e.seams() for e in axes]
     rng = np.random.default_rng(seed)
     bar = tqdm(total=sum(counts), desc="kopf", unit="it", disable=not progress)
 
@@ -157,7 +163,7 @@ def synthesize(
         level_feats = {k: np.ascontiguousarray(p[level].features) for k, p in pyramids.items()}
         feats = [None if e is None else level_feats[id(e)] for e in axes]
         solid = _random_solid(feats, n, rng) if solid is None else _upsample(solid, n // 2)
-        optimizer = _LevelOptimizer(feats, solid, histogram_matching)
+        optimizer = _LevelOptimizer(feats, seams, solid, histogram_matching)
         bandwidths = _bandwidths(optimizer.spread, counts[level]) if mean_shift else None
         for it in range(counts[level]):
             start = time.perf_counter()
@@ -211,21 +217,31 @@ def _upsample(coarse: wp.array, n: int) -> wp.array:
     return fine
 
 
-def _windows(features: np.ndarray) -> np.ndarray:
-    """All toroidal 8x8 windows of an exemplar, ``(h*w, 64 F)``, row ``u*w + v`` centred on
-    pixel ``(u, v)`` and ordered ``(a * 8 + b) * F + f`` like the kernels."""
+def _windows(features: np.ndarray, seams: tuple[bool, bool]) -> tuple[np.ndarray, np.ndarray]:
+    """The exemplar's 8x8 windows, ``(windows, 64 F)`` ordered ``(a * 8 + b) * F + f`` like
+    the kernels, and the pixel ``u*w + v`` each is centred on. They wrap around the edges
+    that tile (toroidal), not across a photo's seam (``seams``, rows then columns, from
+    :meth:`Exemplar.seams`), where a wrapped window is no part of the photo
+    (:func:`warptex.exemplar.wrapping_edges`)."""
     h, w, nfeat = features.shape
     shifted = [
         np.roll(features, (_k.HALF - a, _k.HALF - b), axis=(0, 1))
         for a in range(_k.WINDOW)
         for b in range(_k.WINDOW)
     ]
-    return np.stack(shifted, axis=2).reshape(h * w, _k.WINDOW * _k.WINDOW * nfeat)
+    windows = np.stack(shifted, axis=2).reshape(h * w, _k.WINDOW * _k.WINDOW * nfeat)
+    unwrapped = [np.ones(side, bool) if wrap else
+                 (np.arange(side) >= _k.HALF) & (np.arange(side) <= side - _k.WINDOW + _k.HALF)
+                 for wrap, side in zip(wrapping_edges(seams, (h, w), _k.WINDOW), (h, w),
+                                       strict=True)]
+    centres = np.flatnonzero(unwrapped[0][:, None] & unwrapped[1][None, :]).astype(np.int32)
+    return windows[centres], centres
 
 
-def _search_structure(features: np.ndarray) -> _Axis:
+def _search_structure(features: np.ndarray, seams: tuple[bool, bool]) -> _Axis:
     """PCA to 95% of the variance and the ANN tree of an exemplar's windows (section 4.2)."""
-    windows = _windows(features).astype(np.float64)
+    windows, centres = _windows(features, seams)
+    windows = windows.astype(np.float64)
     mean = windows.mean(axis=0)
     centred = windows - mean
     # Eigenvectors of the (64 F)^2 covariance: far cheaper than an SVD of all the windows.
@@ -236,11 +252,12 @@ def _search_structure(features: np.ndarray) -> _Axis:
     basis = np.zeros((windows.shape[1], _k.MAX_DIMS), np.float32)
     basis[:, :dims] = vectors[:, :dims]
     tree = cKDTree(centred @ vectors[:, :dims])
-    return _Axis(features, mean.astype(np.float32), basis, dims, tree)
+    return _Axis(features, centres, mean.astype(np.float32), basis, dims, tree)
 
 
-def _ann_search(tree: cKDTree, query: np.ndarray, current: np.ndarray) -> np.ndarray:
-    """Approximate nearest exemplar windows of projected windows ``query`` (section 4.2).
+def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Approximate nearest exemplar windows of projected windows ``query`` (section 4.2),
+    as the pixels they are centred on.
 
     Only a window closer than the current match can replace it (``keep_better_match``), so
     once every centre has a match the search is bounded by the current match's distance in
@@ -248,9 +265,10 @@ def _ann_search(tree: cKDTree, query: np.ndarray, current: np.ndarray) -> np.nda
     bound the current match is returned. SciPy takes one bound per call, so the queries are
     grouped by bound and each group searched with its largest.
     """
+    tree = ax.tree
     if np.any(current < 0):
-        return tree.query(query, eps=ANN_EPS, workers=THREADS)[1].astype(np.int32)
-    bound = np.linalg.norm(query - tree.data[current], axis=1)
+        return ax.centres[tree.query(query, eps=ANN_EPS, workers=THREADS)[1]]
+    bound = np.linalg.norm(query - tree.data[np.searchsorted(ax.centres, current)], axis=1)
     found = current.copy()
     order = np.argsort(bound)
     for group in np.array_split(order, _BOUND_GROUPS):
@@ -258,19 +276,20 @@ def _ann_search(tree: cKDTree, query: np.ndarray, current: np.ndarray) -> np.nda
             _, idx = tree.query(query[group], eps=ANN_EPS, workers=THREADS,
                                 distance_upper_bound=float(bound[group[-1]]) * (1 + 1e-6))
             hit = idx < tree.n
-            found[group[hit]] = idx[hit]
+            found[group[hit]] = ax.centres[idx[hit]]
     return found
 
 
 class _LevelOptimizer:
     """Search and optimization phases on one level of the pyramid."""
 
-    def __init__(self, feats: list[np.ndarray | None], solid: wp.array, histograms: bool):
+    def __init__(self, feats: list[np.ndarray | None], seams: list[tuple[bool, bool] | None],
+                 solid: wp.array, histograms: bool):
         self.solid = solid
         self.values = solid.numpy()  # a view: CPU Warp arrays share their memory
         self.n = round(solid.shape[0] ** (1 / 3))
-        distinct = {id(f): f for f in feats if f is not None}
-        structures = {k: _search_structure(f) for k, f in distinct.items()}
+        distinct = {id(f): (f, e) for f, e in zip(feats, seams, strict=True) if f is not None}
+        structures = {k: _search_structure(f, e) for k, (f, e) in distinct.items()}
         self.axes = [None if f is None else structures[id(f)] for f in feats]
         self.constrained = wp.vec3i(*[int(a is not None) for a in self.axes])
         self.centres = self.n**3 // (GRID_SPACING * GRID_SPACING)
@@ -304,7 +323,7 @@ class _LevelOptimizer:
             launch_ranges(_k.project_neighborhoods, 0, self.centres,
                           [self.solid, n, axis, mean, basis, self.coeffs], device=_DEVICE)
             lo, hi = self.grid_first[axis], self.grid_first[axis] + self.centres
-            found = _ann_search(ax.tree, self.coeffs.numpy()[:, : ax.dims],
+            found = _ann_search(ax, self.coeffs.numpy()[:, : ax.dims],
                                 self.match.numpy()[lo:hi])
             found = wp.array(found, dtype=wp.int32, device=_DEVICE)
             h, w = ax.features.shape[:2]
