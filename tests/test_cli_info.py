@@ -48,6 +48,19 @@ def test_info_says_a_photo_that_does_not_tile_and_what_synthesis_does(tmp_path, 
             ) in capsys.readouterr().out
 
 
+def test_info_says_why_a_pattern_whose_edge_lies_on_the_wrap_tiles(tmp_path, capsys,
+                                                                   no_candidates):
+    """Stripes change 4.4x as much across the wrap as between neighbouring rows, as much as
+    at every stripe's edge."""
+    stripes = np.repeat((np.arange(32) // 4 % 2).astype(np.uint8)[:, None] * 200, 32, axis=1)
+    Image.fromarray(stripes).save(tmp_path / "stripes.png")
+    assert main(["info", str(tmp_path / "stripes.png")]) == 0
+    assert ("tiles: yes (edges differ 0.0x left-right and 4.4x top-bottom as much as "
+            "neighbouring pixels; where above 2.0x, at least 5% of the neighbouring rows or "
+            "columns differ as much: the wrap is one of the pattern's own edges)"
+            ) in capsys.readouterr().out
+
+
 def test_info_says_a_float_image_is_linear(tmp_path, capsys, no_candidates):
     np.save(tmp_path / "float.npy", np.random.default_rng(0).random((16, 16, 3)))
     assert main(["info", str(tmp_path / "float.npy")]) == 0

@@ -23,7 +23,14 @@ import numpy as np
 
 from warptex import __version__
 from warptex.archive import file_problem, folder_problem, overwritten_input
-from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
+from warptex.exemplar import (
+    SEAM_LIMIT,
+    SEAM_SHARE,
+    Exemplar,
+    ExemplarError,
+    reencoded,
+    srgb_encoded,
+)
 from warptex.llvm import MIN_LLVM_MAJOR
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -200,8 +207,11 @@ def _cmd_info(args: argparse.Namespace) -> int:
     seams = exemplar.seam_problem()
     if seams is None:
         across_columns, across_rows = exemplar.seam_contrast()
+        own = (f"; where above {SEAM_LIMIT:.1f}x, at least {SEAM_SHARE:.0%} of the neighbouring "
+               "rows or columns differ as much: the wrap is one of the pattern's own edges"
+               if max(across_columns, across_rows) > SEAM_LIMIT else "")
         print(f"tiles: yes (edges differ {across_columns:.1f}x left-right and "
-              f"{across_rows:.1f}x top-bottom as much as neighbouring pixels)")
+              f"{across_rows:.1f}x top-bottom as much as neighbouring pixels{own})")
     else:
         print(f"tiles: no: {seams}; candidates keep away from those edges and the pyramid "
               "does not blur across them, so corrections never continue the seam")
