@@ -14,6 +14,10 @@ Properties (XML or ``mi.load_dict``):
 ``shifted_tiles``      boolean    shift each tile of the initial tiling by its own offset, so
                                   structured exemplars show no bands every exemplar width, at
                                   some cost in likeness (default false)
+``tileable``           string     whether synthesis may continue the exemplar across its
+                                  opposite edges: ``auto`` (default) where they differ no
+                                  more than neighbouring pixels do, ``yes`` always (the paper's
+                                  tori), ``no`` never
 ``passes``             integer    correction passes per pyramid level, 0 to 8 (default 2; 3 come
                                   closer to the exemplar at about twice the synthesis time, see
                                   ``docs/comparisons``)
@@ -108,6 +112,7 @@ from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     FILTERS,
+    TILEABLE,
     SettingError,
     check_max_size,
     check_settings,
@@ -119,8 +124,8 @@ PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
 _PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_max_size",
-               "seed", "jitter", "shifted_tiles", "passes", "scale", "space", "filter", "raw",
-               "cache_bytes", "cache", "to_world")
+               "seed", "jitter", "shifted_tiles", "tileable", "passes", "scale", "space",
+               "filter", "raw", "cache_bytes", "cache", "to_world")
 
 
 def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
@@ -214,6 +219,7 @@ class LazySolidTexture(mi.Texture):
         self.seed = get_property(props, "seed", int, 0, PLUGIN)
         self.jitter = get_property(props, "jitter", float, DEFAULT_JITTER, PLUGIN)
         self.shifted_tiles = get_property(props, "shifted_tiles", bool, False, PLUGIN)
+        self.tileable = choice_property(props, "tileable", tuple(TILEABLE), PLUGIN)
         self.passes = get_property(props, "passes", int, DEFAULT_PASSES, PLUGIN)
         try:
             check_settings(self.jitter, self.passes, self.seed)
@@ -245,7 +251,8 @@ class LazySolidTexture(mi.Texture):
         except ExemplarError as e:
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
-            candidates = precompute(*exemplars, progress=mitsuba_plugin.candidates_bar())
+            candidates = precompute(*exemplars, progress=mitsuba_plugin.candidates_bar(),
+                                    tileable=TILEABLE[self.tileable])
         except ValueError as e:  # the exemplars do not go together
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
@@ -332,6 +339,7 @@ class LazySolidTexture(mi.Texture):
         shrunk = "" if self.max_size is None else f", exemplar_max_size={self.max_size}"
         return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={self.seed}, "
                 f"jitter={self.jitter}, shifted_tiles={self.shifted_tiles}, "
+                f"tileable={self.tileable}, "
                 f"passes={self.passes}, scale={self.scale}, "
                 f"space={self.space}, filter={self.filter}, raw={self.raw}, "
                 f"cache={self.cache}]")

@@ -679,9 +679,9 @@ def test_unknown_or_bad_parameters_are_rejected():
         with pytest.raises(error, match=message):
             precompute(ex, cache=False, **params)
     # A NumPy integer is an integer, and keys the cache as the plain one does.
-    resolved = candidates._resolve_params({"neighborhood": np.int64(5)})
+    resolved = candidates.resolved_params({"neighborhood": np.int64(5)})
     assert resolved == candidates.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int
-    assert candidates._resolve_params({"tileable": np.bool_(False)})["tileable"] is False
+    assert candidates.resolved_params({"tileable": np.bool_(False)})["tileable"] is False
 
 
 def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -797,6 +797,25 @@ def test_candidates_keep_away_from_the_edges_of_a_photo_that_does_not_tile(
     granite = Exemplar.load(GRANITE)
     assert max(granite.seam_contrast()) < 1.1 and granite.seam_problem() is None
     assert granite.seams() == (False, False)
+
+
+def test_candidates_blur_their_pyramid_as_tileable_says(tmp_path, monkeypatch, warp_device):
+    """The seams the margins keep away from are those the pyramid reflects at."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    asked = []
+    pyramid = Exemplar.pyramid
+
+    def recorded(self, min_size=8, seams=None):
+        asked.append(seams)
+        return pyramid(self, min_size, seams)
+
+    monkeypatch.setattr(Exemplar, "pyramid", recorded)
+    ramp = _ramp(24, 32)
+    for tileable, seams in (("auto", (False, True)), (True, (False, False)),
+                            (False, (True, True))):
+        asked.clear()
+        precompute(ramp, cache=False, tileable=tileable)
+        assert asked == [seams]
 
 
 def test_the_pyramid_does_not_blur_across_a_seam():

@@ -110,6 +110,44 @@ def test_precompute_shows_the_margins_of_a_photo_that_does_not_tile(tmp_path, im
     assert "margins" not in out and all(len(row.split()) == 4 for row in _rows(out))
 
 
+def test_tileable_overrides_what_the_photo_suggests(tmp_path, images, capsys):
+    """--tileable yes takes the ramp as a torus (no margins), --tileable no keeps candidates
+    from every edge of a photo that tiles; each setting caches its own candidates, which
+    the volume command synthesizes from and info finds."""
+    from warptex.synthesis import Synthesizer
+
+    rng = np.random.default_rng(5)
+    ramp = np.linspace(0, 200, 32)[None, :, None] + rng.integers(0, 40, (24, 32, 3))
+    Image.fromarray(ramp.astype(np.uint8)).save(tmp_path / "ramp.png")
+    assert main(["precompute", str(tmp_path / "ramp.png"), "--tileable", "yes"]) == 0
+    out = capsys.readouterr().out
+    assert "margins" not in out
+    assert main(["precompute", str(images["a"]), "--tileable", "no"]) == 0
+    out = capsys.readouterr().out
+    assert [row.split(maxsplit=4)[4] for row in _rows(out)] == ["0, 0", "2, 2", "2, 2"]
+    never = precompute(images["a"], tileable=False)
+    assert never.cache_status == "loaded"
+    assert never.content_digest != precompute(images["a"]).content_digest
+
+    out_file = tmp_path / "v.npy"
+    assert main(["volume", str(images["a"]), "--tileable", "no", "--size", "8", "--seed", "7",
+                 "-o", str(out_file)]) == 0
+    np.testing.assert_array_equal(np.load(out_file),
+                                  Synthesizer(never, seed=7).box((0, 0, 0), (8, 8, 8)))
+    capsys.readouterr()
+    assert main(["info", str(images["a"]), "--tileable", "no"]) == 0
+    out = capsys.readouterr().out
+    assert "--tileable no: candidates keep away from all four edges" in out
+    cached = cache_path([Exemplar.load(images["a"])] * 3, never.params)
+    assert f"candidates: cached at {cached}" in out
+    with pytest.raises(SystemExit):
+        main(["precompute", str(images["a"]), "--tileable", "maybe"])
+    assert "invalid choice: 'maybe'" in capsys.readouterr().err
+    assert main(["volume", str(images["a"]), "--method", "kopf", "--tileable", "yes",
+                 "--size", "8", "-o", str(tmp_path / "k.npy")]) == 2
+    assert "--tileable apply to lazy synthesis only" in capsys.readouterr().err
+
+
 def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, private_cache,
                                                                   capsys, monkeypatch):
     """A damaged cache file that cannot be replaced (a full disk) is left as it was; the

@@ -89,8 +89,8 @@ def test_info_of_an_exemplar_shrunk_to_max_size(data_dir, capsys, no_candidates)
 def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
     seen = []
 
-    def cached_candidate_path(exemplar):
-        seen.append(exemplar.name)
+    def cached_candidate_path(exemplar, tileable):
+        seen.append((exemplar.name, tileable))
         return Path("/cache/granite.npz")
 
     fake = types.ModuleType("warptex.candidates")
@@ -100,9 +100,9 @@ def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "warptex.candidates", fake)
     assert main(["info", str(data_dir / "granite_64.png")]) == 0
     assert "candidates: cached at /cache/granite.npz" in capsys.readouterr().out
-    assert seen == ["granite_64.png"]
+    assert seen == [("granite_64.png", "auto")]
 
-    fake.cached_candidate_path = lambda exemplar: None
+    fake.cached_candidate_path = lambda exemplar, tileable: None
     assert main(["info", str(data_dir / "granite_64.png")]) == 0
     assert ("candidates: not cached; pre-computing them takes about 3 GiB of memory\n"
             in capsys.readouterr().out)

@@ -77,9 +77,9 @@ def test_windows_do_not_wrap_across_a_seam(granite):
     granite crop's slices rolled halfway round (its edges in the middle) no longer finds
     every window; as a torus it does."""
     colors = np.ascontiguousarray(granite.colors[:SIZE, :SIZE])
-    windows, centres = kopf._windows(colors, (False, True))
-    assert len(windows) == len(centres) == SIZE * (SIZE - kopf._k.WINDOW + 1)
-    columns = centres % SIZE
+    windows, pixels = kopf._windows(colors, (False, True))
+    assert len(windows) == len(pixels) == SIZE * (SIZE - kopf._k.WINDOW + 1)
+    columns = pixels % SIZE
     assert columns.min() == kopf._k.HALF and columns.max() == SIZE - kopf._k.HALF
     assert len(kopf._windows(colors, (False, False))[1]) == SIZE * SIZE
 
@@ -88,8 +88,27 @@ def test_windows_do_not_wrap_across_a_seam(granite):
     solid = wp.array(np.ascontiguousarray(volume), dtype=wp.float32, device="cpu")
     feats = [None, None, colors]
     assert kopf._LevelOptimizer(feats, [None, None, (False, False)], solid, False).search() < 1e-3
-    seamed = kopf._LevelOptimizer(feats, [None, None, (True, True)], solid, False).search()
-    assert seamed > 0.1
+    seamed = kopf._LevelOptimizer(feats, [None, None, (True, True)], solid, False)
+    first = seamed.search()
+    assert first > 0.1
+    # A second search is bounded by the first's matches, found through the tree's rows.
+    assert seamed.search() <= first
+    matches = seamed.match.numpy()[2 * seamed.centres:]
+    assert np.isin(matches, seamed.axes[2].window_pixels).all()
+
+
+def test_each_axis_keeps_its_own_seams(granite):
+    """Per-axis exemplars with other seams search other windows: all of granite's, those
+    of a ramp that do not wrap across its left and right edges."""
+    colors = np.ascontiguousarray(granite.colors[:SIZE, :SIZE])
+    ramp = np.ascontiguousarray(np.repeat(np.linspace(0, 1, SIZE, dtype=np.float32)[None, :,
+                                                                                    None],
+                                          SIZE, axis=0).repeat(3, axis=2))
+    solid = wp.array(np.zeros((SIZE**3, 3), np.float32), dtype=wp.float32, device="cpu")
+    optimizer = kopf._LevelOptimizer([colors, ramp, None], [(False, False), (False, True), None],
+                                     solid, False)
+    assert optimizer.axes[0].tree.n == SIZE * SIZE
+    assert optimizer.axes[1].tree.n == SIZE * (SIZE - kopf._k.WINDOW + 1)
 
 
 def test_energy_never_rises_within_a_level_without_histogram_matching(granite):

@@ -61,6 +61,8 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"passes": 9}, "passes"),
     ({"raw": 1}, 'raw" must be a <boolean ...>, got 1'),
     ({"shifted_tiles": "yes"}, "shifted_tiles\" must be a <boolean ...>, got 'yes'"),
+    ({"tileable": "maybe"}, 'tileable" must be "auto" or "yes" or "no", got "maybe"'),
+    ({"tileable": True}, 'tileable" must be a <string ...>, got True'),
     ({"exemplar_max_size": 15}, 'exemplar_max_size" must be at least 16 pixels, got 15'),
     ({"exemplar_max_size": 32.0}, 'exemplar_max_size" must be an <integer ...>, got 32.0'),
     ({"exemplar_max_size": "32"}, "exemplar_max_size\" must be an <integer ...>, got '32'"),
@@ -119,7 +121,7 @@ def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_fil
         load(broken, exemplar_z=str(granite_32_file))
 
 
-def test_passes_and_shifted_tiles_reach_the_synthesis(granite_32_file):
+def test_passes_shifted_tiles_and_tileable_reach_the_synthesis(granite_32_file):
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar
     from warptex.synthesis import Synthesizer
@@ -136,6 +138,13 @@ def test_passes_and_shifted_tiles_reach_the_synthesis(granite_32_file):
     assert "shifted_tiles=True" in shifted.to_string()
     np.testing.assert_array_equal(shifted.solid.query(ijk + 0.5, filter="nearest"),
                                   Synthesizer(cs, seed=2, shifted_tiles=True).voxels(ijk))
+    never = load(granite_32_file, tileable="no", seed=2)
+    assert "tileable=no" in never.to_string() and "tileable=auto" in shifted.to_string()
+    edges = precompute(Exemplar.load(granite_32_file), tileable=False)
+    np.testing.assert_array_equal(never.solid.query(ijk + 0.5, filter="nearest"),
+                                  Synthesizer(edges, seed=2).voxels(ijk))
+    assert not np.array_equal(Synthesizer(edges, seed=2).voxels(ijk),
+                              Synthesizer(cs, seed=2).voxels(ijk))
 
 
 def test_exemplar_max_size_shrinks_the_exemplars(granite_32_file):

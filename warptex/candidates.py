@@ -76,8 +76,9 @@ DEFAULT_PARAMS: dict[str, object] = {
     "min_dims": 8,
     "max_dims": 12,
     "coherence_rounds": 16,
-    # "auto": candidates keep away from the edges that form a seam (Exemplar.seams); True:
-    # every exemplar is a torus, as in the paper; False: candidates keep away from all edges.
+    # "auto": candidates keep away from the edges that form a seam (Exemplar.seams), and the
+    # pyramid does not blur across them; True: every exemplar is a torus, as in the paper;
+    # False: no edge is continued.
     "tileable": "auto",
 }
 
@@ -229,7 +230,7 @@ def precompute(
                           for axis, e, n in zip("xyz", exemplars, channels, strict=True))
         raise ExemplarError("the exemplars of the three axes must have the same number of "
                             f"feature channels; found {found}")
-    p = _resolve_params(params)
+    p = resolved_params(params)
     path = cache_path(exemplars, p) if cache else None
     if path is not None and path.exists():
         try:
@@ -351,10 +352,11 @@ def _deciding_sources() -> list[Path] | None:
                            sys.modules[Exemplar.__module__]))
 
 
-def cached_candidate_path(ex: Exemplar) -> Path | None:
-    """The cache file of ``ex`` repeated thrice with default parameters, if it is there,
-    whole (checksummed) and of these exemplars and parameters; None for a damaged one."""
-    exemplars, params = [ex, ex, ex], dict(DEFAULT_PARAMS)
+def cached_candidate_path(ex: Exemplar, tileable: bool | str = "auto") -> Path | None:
+    """The cache file of ``ex`` repeated thrice with default parameters but ``tileable``,
+    if it is there, whole (checksummed) and of these exemplars and parameters; None for a
+    damaged one."""
+    exemplars, params = [ex, ex, ex], resolved_params({"tileable": tileable})
     path = cache_path(exemplars, params)
     if not path.exists():
         return None
@@ -375,9 +377,10 @@ def _as_exemplar(e: Exemplar | str | Path) -> Exemplar:
                     f"{type(e).__name__}{hint}")
 
 
-def _resolve_params(params: dict) -> dict:
-    """The parameters with their defaults, each checked against :data:`_PARAM_RANGES` (and
-    made a plain int or float, as cache keys and files hold them)."""
+def resolved_params(params: dict) -> dict:
+    """Candidate parameters ``params`` with the defaults of the others, each checked
+    against :data:`_PARAM_RANGES` (and made a plain int or float, as cache keys and files
+    hold them): what :func:`precompute` keys its cache by."""
     unknown = set(params) - set(DEFAULT_PARAMS)
     if unknown:
         raise TypeError(f"unknown candidate parameter(s): {', '.join(sorted(unknown))}")
@@ -477,8 +480,9 @@ def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _seam_edges(e: Exemplar, tileable: bool | str) -> tuple[bool, bool]:
-    """Whether candidates keep away from the (top and bottom, left and right) edges of
-    ``e``, under the parameter ``tileable``."""
+    """Whether the (top and bottom, left and right) edges of ``e`` are taken as seams under
+    the parameter ``tileable``: candidates keep away from them and the pyramid does not blur
+    across them."""
     if tileable == "auto":
         return e.seams()
     return not tileable, not tileable

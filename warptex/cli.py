@@ -37,6 +37,7 @@ from warptex.settings import (
     DEFAULT_PASSES,
     FILTERS,
     MIN_EXEMPLAR_SIZE,
+    TILEABLE,
     SettingError,
     check_max_size,
     check_settings,
@@ -137,6 +138,15 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
         help="add a feature-distance channel from an automatic luminance threshold",
     )
     _add_max_size_argument(parser)
+    parser.add_argument(
+        "--tileable",
+        choices=tuple(TILEABLE),
+        default="auto",
+        help="whether synthesis may continue the exemplar across its opposite edges: 'auto' "
+        "(default) where they differ no more than neighbouring pixels do ('warptex info' "
+        "says), 'yes' always (the paper's tori, for a tiling photo taken for a seam), 'no' "
+        "never (candidates keep away from every edge)",
+    )
 
 
 _SCALE_ADVICE = (" (several with --ey/--ez). A voxel is a pixel of the shrunk image, so features "
@@ -162,6 +172,11 @@ def _check_max_size(args: argparse.Namespace) -> None:
         check_max_size(args.exemplar_max_size)
     except SettingError as error:
         raise CliError(f"--exemplar-max-size {error.problem}") from None
+
+
+def _candidate_params(args: argparse.Namespace) -> dict:
+    """The candidate parameters the command's options set (others keep their defaults)."""
+    return {"tileable": TILEABLE[args.tileable]}
 
 
 def _load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
@@ -215,12 +230,16 @@ def _cmd_info(args: argparse.Namespace) -> int:
     else:
         print(f"tiles: no: {seams}; candidates keep away from those edges and the pyramid "
               "does not blur across them, so corrections never continue the seam")
+    if args.tileable != "auto":
+        print(f"--tileable {args.tileable}: " + (
+            "synthesis continues the exemplar across its edges all the same"
+            if TILEABLE[args.tileable] else "candidates keep away from all four edges"))
     print(f"digest: {exemplar.digest()[:16]}")
-    print(f"candidates: {_candidate_status(exemplar)}")
+    print(f"candidates: {_candidate_status(exemplar, TILEABLE[args.tileable])}")
     return 0
 
 
-def _candidate_status(exemplar: Exemplar) -> str:
+def _candidate_status(exemplar: Exemplar, tileable: bool | str) -> str:
     """Where the candidates are cached, or what pre-computing them will cost here."""
     try:
         from warptex.candidates import LARGE_PIXELS, cached_candidate_path, precompute_bytes
@@ -230,7 +249,7 @@ def _candidate_status(exemplar: Exemplar) -> str:
         return "not available"
     from warptex.machine import byte_size, memory_problem
 
-    cached = cached_candidate_path(exemplar)
+    cached = cached_candidate_path(exemplar, tileable)
     if cached is not None:
         return f"cached at {cached}"
     need = precompute_bytes([exemplar])
@@ -262,16 +281,17 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_precompute(args: argparse.Namespace) -> int:
-    from warptex.candidates import DEFAULT_PARAMS, cache_path, precompute
+    from warptex.candidates import cache_path, precompute, resolved_params
 
     if args.output is not None:
         _check_output(args.output, (".wtc",), "a candidate file")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
-    cache = None if args.no_cache else cache_path(exemplars, dict(DEFAULT_PARAMS))
+    params = _candidate_params(args)
+    cache = None if args.no_cache else cache_path(exemplars, resolved_params(params))
     if cache is not None:
         _check_cache_folder(cache.parent)
     start = time.perf_counter()
-    cs = precompute(*exemplars, cache=not args.no_cache, progress=True)
+    cs = precompute(*exemplars, cache=not args.no_cache, progress=True, **params)
     elapsed = time.perf_counter() - start
     if args.output is not None:
         with _writing(args.output):
@@ -500,10 +520,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
-    lazy_only = (args.passes, args.jitter, args.shifted_tiles)
-    if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False):
-        raise CliError("--passes, --jitter and --shifted-tiles apply to lazy synthesis only, not "
-                       "--method kopf")
+    lazy_only = (args.passes, args.jitter, args.shifted_tiles, args.tileable)
+    if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False, "auto"):
+        raise CliError("--passes, --jitter, --shifted-tiles and --tileable apply to lazy "
+                       "synthesis only, not --method kopf")
     if args.method == "kopf":
         _check_kopf_size(args.size)
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
@@ -515,7 +535,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     thickness = max(b - a for a, b in itertools.pairwise(edges))
     _check_memory(args.size, exemplars[0].features.shape[2],
                   box_bytes((thickness, args.size, args.size)))  # one slab at a time
-    cs = precompute(*exemplars, progress=True)
+    cs = precompute(*exemplars, progress=True, **_candidate_params(args))
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes,
                             shifted_tiles=args.shifted_tiles)
@@ -651,7 +671,8 @@ def _solid_texture(args: argparse.Namespace):
     srgb = _colors_srgb(args, exemplars)
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
-        return SolidTexture(precompute(*exemplars, progress=True), seed=args.seed,
+        return SolidTexture(precompute(*exemplars, progress=True, **_candidate_params(args)),
+                            seed=args.seed,
                             jitter=args.jitter, passes=args.passes, whole_bricks=False,
                             shifted_tiles=args.shifted_tiles,
                             store=getattr(args, "store", None)), srgb

@@ -38,7 +38,9 @@ MAX_CHANNELS = 64
 SEAM_LIMIT = 2.0
 # ... unless this share of neighbouring pairs of rows (columns) differ as much as the wrap:
 # then the wrap falls on one of the photo's own edges, as a stripe's edge in a periodic
-# pattern may, rather than on a seam.
+# pattern may, rather than on a seam. A pattern of sharp edges over 40 pixels apart has too
+# few of them and is still taken for a seam, which costs little (candidates keep 2 pixels
+# from the edges); `tileable=True` (`--tileable yes`) says otherwise.
 SEAM_SHARE = 0.05
 _SUM_CHUNK = 1 << 16  # values summed exactly at once by _mean
 
@@ -245,8 +247,7 @@ class Exemplar:
         return self._seams
 
     def seam_problem(self) -> str | None:
-        """Why the exemplar does not tile, in words (:meth:`seam_contrast` above
-        SEAM_LIMIT); None where it tiles."""
+        """Why the exemplar does not tile (:meth:`seams`), in words; None where it tiles."""
         across_columns, across_rows = self.seam_contrast()
         seam_rows, seam_columns = self.seams()
         seams = [f"{edges} edges differ {ratio:.1f}x as much as neighbouring pixels"
@@ -319,8 +320,8 @@ def wrapping_edges(seams: tuple[bool, bool], shape: tuple[int, int],
     ``shape`` wrap around its (top and bottom, left and right) edges: where these tile, as
     the paper's tori do (§3), and where a seam (:meth:`Exemplar.seams`) would leave fewer
     than ``size`` unwrapped neighbourhoods across that side."""
-    return tuple(not seam or side - size + 1 < size
-                 for seam, side in zip(seams, shape, strict=True))
+    (rows, columns), (height, width) = seams, shape
+    return not rows or height - size + 1 < size, not columns or width - size + 1 < size
 
 
 def srgb_encoded(exemplars: list[Exemplar], raw: str = "raw") -> bool:
@@ -430,6 +431,7 @@ def _size(shape: tuple[int, ...]) -> str:
 
 
 def _downsample(image: np.ndarray, seams: tuple[bool, bool]) -> np.ndarray:
+    # The channel axis needs a mode too, though with sigma 0 it is never blurred.
     modes = ["reflect" if seam else "wrap" for seam in seams] + ["wrap"]
     blurred = ndimage.gaussian_filter(image, sigma=(_PYRAMID_SIGMA, _PYRAMID_SIGMA, 0), mode=modes)
     level = np.ascontiguousarray(blurred[::2, ::2])

@@ -36,7 +36,7 @@ def patches(image: np.ndarray, size: int, stride: int = 1,
             wrap: bool | tuple[bool, bool] = False) -> np.ndarray:
     """All ``size`` x ``size`` patches of an (H, W, C) image as rows (n, size*size*C);
     ``wrap`` (for rows and columns, or one for both) lets them wrap around the edges."""
-    wrap_rows, wrap_cols = (wrap, wrap) if isinstance(wrap, bool) else wrap
+    wrap_rows, wrap_cols = (wrap, wrap) if np.ndim(wrap) == 0 else wrap
     h, w, c = image.shape
     image = np.pad(image, ((0, size - 1 if wrap_rows else 0), (0, size - 1 if wrap_cols else 0),
                            (0, 0)), mode="wrap")
@@ -51,11 +51,9 @@ def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int) -> np.ndarray:
     against: they wrap around the edges that tile (the paper's tori, Dong 2008 §3) but not
     across a photo's seam (:func:`warptex.exemplar.seams_of`), where a wrapped patch is no
     part of the photo (:func:`warptex.exemplar.wrapping_edges`)."""
-    if isinstance(exemplar, Exemplar):
-        colors, seams = exemplar.colors, exemplar.seams()
-    else:
-        colors = np.asarray(exemplar)
-        seams = seams_of(colors)
+    colors = np.asarray(getattr(exemplar, "colors", exemplar))
+    # An Exemplar has decided its seams once; an array (or a pyramid level) is measured here.
+    seams = exemplar.seams() if isinstance(exemplar, Exemplar) else seams_of(colors)
     return patches(colors, size, wrap=wrapping_edges(seams, colors.shape[:2], size))
 
 

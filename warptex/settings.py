@@ -19,6 +19,10 @@ FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default wh
 DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
 DEFAULT_COARSE_CACHE_BYTES = 256 << 20  # coarse-level blocks the engine keeps per level
 MIN_EXEMPLAR_SIZE = 16  # pixels a side: a pyramid of at least two levels of 5 x 5 patches
+# Whether synthesis may continue an exemplar across its opposite edges, as commands and scenes
+# write it (the first is the default), and the candidates' ``tileable`` parameter each means:
+# decided from the photo (Exemplar.seams), the paper's tori, or no edge continued.
+TILEABLE = {"auto": "auto", "yes": True, "no": False}
 
 
 class SettingError(ValueError):

@@ -96,7 +96,7 @@ class _Axis:
     """One constrained axis at one level: its exemplar and its search structure."""
 
     features: np.ndarray  # (h, w, F)
-    centres: np.ndarray  # (windows,) int32 exemplar pixel of each window the tree holds
+    window_pixels: np.ndarray  # (windows,) int32 exemplar pixel each tree window is centred on
     mean: np.ndarray  # (64 F,) mean window
     basis: np.ndarray  # (64 F, MAX_DIMS) PCA basis, zero past the kept coefficients
     dims: int
@@ -230,17 +230,23 @@ def _windows(features: np.ndarray, seams: tuple[bool, bool]) -> tuple[np.ndarray
         for b in range(_k.WINDOW)
     ]
     windows = np.stack(shifted, axis=2).reshape(h * w, _k.WINDOW * _k.WINDOW * nfeat)
-    unwrapped = [np.ones(side, bool) if wrap else
-                 (np.arange(side) >= _k.HALF) & (np.arange(side) <= side - _k.WINDOW + _k.HALF)
-                 for wrap, side in zip(wrapping_edges(seams, (h, w), _k.WINDOW), (h, w),
-                                       strict=True)]
-    centres = np.flatnonzero(unwrapped[0][:, None] & unwrapped[1][None, :]).astype(np.int32)
-    return windows[centres], centres
+    wrap_rows, wrap_cols = wrapping_edges(seams, (h, w), _k.WINDOW)
+    inside = _window_centres(h, wrap_rows)[:, None] & _window_centres(w, wrap_cols)[None, :]
+    pixels = np.flatnonzero(inside).astype(np.int32)
+    return windows[pixels], pixels
+
+
+def _window_centres(side: int, wrap: bool) -> np.ndarray:
+    """(side,) bool: the rows (columns) a window may be centred on, all where it may wrap,
+    else those whose window, offsets -HALF .. WINDOW - HALF - 1, stays inside."""
+    centre = np.arange(side)
+    return ((centre >= _k.HALF) & (centre <= side - _k.WINDOW + _k.HALF)) | wrap
 
 
 def _search_structure(features: np.ndarray, seams: tuple[bool, bool]) -> _Axis:
-    """PCA to 95% of the variance and the ANN tree of an exemplar's windows (section 4.2)."""
-    windows, centres = _windows(features, seams)
+    """PCA to 95% of the variance and the ANN tree of an exemplar's windows (section 4.2),
+    those that do not wrap across a seam (:func:`_windows`)."""
+    windows, pixels = _windows(features, seams)
     windows = windows.astype(np.float64)
     mean = windows.mean(axis=0)
     centred = windows - mean
@@ -252,7 +258,7 @@ def _search_structure(features: np.ndarray, seams: tuple[bool, bool]) -> _Axis:
     basis = np.zeros((windows.shape[1], _k.MAX_DIMS), np.float32)
     basis[:, :dims] = vectors[:, :dims]
     tree = cKDTree(centred @ vectors[:, :dims])
-    return _Axis(features, centres, mean.astype(np.float32), basis, dims, tree)
+    return _Axis(features, pixels, mean.astype(np.float32), basis, dims, tree)
 
 
 def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray:
@@ -267,8 +273,9 @@ def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray
     """
     tree = ax.tree
     if np.any(current < 0):
-        return ax.centres[tree.query(query, eps=ANN_EPS, workers=THREADS)[1]]
-    bound = np.linalg.norm(query - tree.data[np.searchsorted(ax.centres, current)], axis=1)
+        return ax.window_pixels[tree.query(query, eps=ANN_EPS, workers=THREADS)[1]]
+    rows = np.searchsorted(ax.window_pixels, current)
+    bound = np.linalg.norm(query - tree.data[rows], axis=1)
     found = current.copy()
     order = np.argsort(bound)
     for group in np.array_split(order, _BOUND_GROUPS):
@@ -276,7 +283,7 @@ def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray
             _, idx = tree.query(query[group], eps=ANN_EPS, workers=THREADS,
                                 distance_upper_bound=float(bound[group[-1]]) * (1 + 1e-6))
             hit = idx < tree.n
-            found[group[hit]] = ax.centres[idx[hit]]
+            found[group[hit]] = ax.window_pixels[idx[hit]]
     return found
 
 
@@ -288,8 +295,8 @@ class _LevelOptimizer:
         self.solid = solid
         self.values = solid.numpy()  # a view: CPU Warp arrays share their memory
         self.n = round(solid.shape[0] ** (1 / 3))
-        distinct = {id(f): (f, e) for f, e in zip(feats, seams, strict=True) if f is not None}
-        structures = {k: _search_structure(f, e) for k, (f, e) in distinct.items()}
+        distinct = {id(f): (f, s) for f, s in zip(feats, seams, strict=True) if f is not None}
+        structures = {k: _search_structure(f, s) for k, (f, s) in distinct.items()}
         self.axes = [None if f is None else structures[id(f)] for f in feats]
         self.constrained = wp.vec3i(*[int(a is not None) for a in self.axes])
         self.centres = self.n**3 // (GRID_SPACING * GRID_SPACING)
