@@ -480,8 +480,8 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         "volume", help="synthesize a cube of solid texture (Dong 2008, section 5)",
         description="Synthesize the cube of voxels [0, SIZE)^3 of the exemplar's solid texture "
         "and write it to a file. Lazy synthesis gives the same voxels as every other command "
-        "with the same seed, jitter, passes and --shifted-tiles; --method kopf runs the Kopf "
-        "2007 baseline instead.",
+        "with the same seed, jitter, passes, --shifted-tiles and --tileable; --method kopf "
+        "runs the Kopf 2007 baseline instead.",
     )
     _add_exemplar_arguments(parser)
     _add_texture_arguments(parser, "EXEMPLAR")
