@@ -51,14 +51,23 @@ def test_info_says_a_photo_that_does_not_tile_and_what_synthesis_does(tmp_path, 
 def test_info_says_why_a_pattern_whose_edge_lies_on_the_wrap_tiles(tmp_path, capsys,
                                                                    no_candidates):
     """Stripes change 4.4x as much across the wrap as between neighbouring rows, as much as
-    at every stripe's edge."""
+    at every stripe's edge: said where the photo tiles and beside a seam."""
     stripes = np.repeat((np.arange(32) // 4 % 2).astype(np.uint8)[:, None] * 200, 32, axis=1)
     Image.fromarray(stripes).save(tmp_path / "stripes.png")
     assert main(["info", str(tmp_path / "stripes.png")]) == 0
     assert ("tiles: yes (edges differ 0.0x left-right and 4.4x top-bottom as much as "
-            "neighbouring pixels; where above 2.0x, at least 5% of the neighbouring rows or "
-            "columns differ as much: the wrap is one of the pattern's own edges)"
+            "neighbouring pixels; its top and bottom edges differ 4.4x, but at least 5% of its "
+            "neighbouring rows differ as much: the wrap is one of the pattern's own edges)"
             ) in capsys.readouterr().out
+    # Beside a seam: a ramp from left to right, striped from top to bottom.
+    ramp = np.linspace(0, 120, 32)[None, :] + stripes * 0.5
+    Image.fromarray(ramp.astype(np.uint8)).save(tmp_path / "both.png")
+    assert main(["info", str(tmp_path / "both.png")]) == 0
+    line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("tiles:"))
+    assert line.startswith("tiles: no: its left and right edges differ")
+    assert line.endswith("never continue the seam; its top and bottom edges differ 4.4x, but "
+                         "at least 5% of its neighbouring rows differ as much: the wrap is one "
+                         "of the pattern's own edges")
 
 
 def test_info_says_a_float_image_is_linear(tmp_path, capsys, no_candidates):

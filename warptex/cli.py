@@ -220,16 +220,14 @@ def _cmd_info(args: argparse.Namespace) -> int:
     sizes = ", ".join(f"{level.shape[1]}x{level.shape[0]}" for level in levels)
     print(f"pyramid: {len(levels)} levels ({sizes})")
     seams = exemplar.seam_problem()
+    own = _own_edges(exemplar)
     if seams is None:
         across_columns, across_rows = exemplar.seam_contrast()
-        own = (f"; where above {SEAM_LIMIT:.1f}x, at least {SEAM_SHARE:.0%} of the neighbouring "
-               "rows or columns differ as much: the wrap is one of the pattern's own edges"
-               if max(across_columns, across_rows) > SEAM_LIMIT else "")
         print(f"tiles: yes (edges differ {across_columns:.1f}x left-right and "
               f"{across_rows:.1f}x top-bottom as much as neighbouring pixels{own})")
     else:
         print(f"tiles: no: {seams}; candidates keep away from those edges and the pyramid "
-              "does not blur across them, so corrections never continue the seam")
+              f"does not blur across them, so corrections never continue the seam{own}")
     if args.tileable != "auto":
         print(f"--tileable {args.tileable}: " + (
             "synthesis continues the exemplar across its edges all the same"
@@ -237,6 +235,19 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"digest: {exemplar.digest()[:16]}")
     print(f"candidates: {_candidate_status(exemplar, TILEABLE[args.tileable])}")
     return 0
+
+
+def _own_edges(exemplar: Exemplar) -> str:
+    """Why edges whose contrast is above SEAM_LIMIT form no seam (Exemplar.seams), as
+    clauses; empty where there are none."""
+    across_columns, across_rows = exemplar.seam_contrast()
+    seam_rows, seam_columns = exemplar.seams()
+    edges = (("left and right", "columns", across_columns, seam_columns),
+             ("top and bottom", "rows", across_rows, seam_rows))
+    return "".join(f"; its {name} edges differ {ratio:.1f}x, but at least {SEAM_SHARE:.0%} of "
+                   f"its neighbouring {pairs} differ as much: the wrap is one of the "
+                   "pattern's own edges"
+                   for name, pairs, ratio, seam in edges if ratio > SEAM_LIMIT and not seam)
 
 
 def _candidate_status(exemplar: Exemplar, tileable: bool | str) -> str:
