@@ -47,7 +47,7 @@ def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int
         ex = Exemplar.load(folder / f"{name}.png")
         cs = precompute(ex)
         for tiles in (False, True) if shifted else (False,):
-            cells, slices = [], []
+            cells, shown = [], None
             for jitter in jitters:
                 energies, scores = [], []
                 for seed in seeds:
@@ -56,14 +56,14 @@ def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int
                                                       ex.colors))
                     big = syn.box((0, 0, 20), (edge, edge, 1))[:, :, 0]
                     scores.append(repetition_score(big))
-                    slices.append(big)
+                    shown = big if shown is None else shown  # the sheet's: first jitter, seed
                 cells.append(f"jitter {jitter}: energy {np.mean(energies):.3f}, "
                              f"repetition {np.mean(scores):.2f}")
             label = f"{name}, shifted tiles" if tiles else name
             print(f"{label}: " + "; ".join(cells))
             if not tiles:
                 rows.append((name.removesuffix("_64"), [("exemplar", ex.colors)]))
-            rows[-1][1].append(("shifted tiles" if tiles else "tiled slab", slices[0]))
+            rows[-1][1].append(("shifted tiles" if tiles else "tiled slab", shown))
     if sheet_path is not None:
         save_png(sheet(rows), sheet_path)
         print(f"written: {sheet_path}")

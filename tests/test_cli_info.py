@@ -36,34 +36,34 @@ def test_info_prints_size_channels_range_pyramid(data_dir, capsys, no_candidates
     assert "candidates: not available" in out
 
 
+def _tiles_line(folder: Path, pixels: np.ndarray, capsys) -> str:
+    """The ``tiles:`` line ``warptex info`` prints for an 8-bit image of ``pixels``."""
+    Image.fromarray(pixels.astype(np.uint8)).save(folder / "image.png")
+    assert main(["info", str(folder / "image.png")]) == 0
+    return next(t for t in capsys.readouterr().out.splitlines() if t.startswith("tiles:"))
+
+
 def test_info_says_a_photo_that_does_not_tile_and_what_synthesis_does(tmp_path, capsys,
                                                                        no_candidates):
     """A ramp's left and right edges differ 31 steps of it."""
-    ramp = np.repeat(np.arange(32, dtype=np.uint8)[None, :] * 8, 24, axis=0)
-    Image.fromarray(ramp).save(tmp_path / "ramp.png")
-    assert main(["info", str(tmp_path / "ramp.png")]) == 0
-    assert ("tiles: no: its left and right edges differ 31.0x as much as neighbouring pixels; "
-            "candidates keep away from those edges and the pyramid does not blur across them, "
-            "so corrections never continue the seam"
-            ) in capsys.readouterr().out
+    ramp = np.repeat(np.arange(32)[None, :] * 8, 24, axis=0)
+    assert _tiles_line(tmp_path, ramp, capsys) == (
+        "tiles: no: its left and right edges differ 31.0x as much as neighbouring pixels; "
+        "candidates keep away from those edges and the pyramid does not blur across them, "
+        "so corrections never continue the seam")
 
 
 def test_info_says_why_a_pattern_whose_edge_lies_on_the_wrap_tiles(tmp_path, capsys,
                                                                    no_candidates):
     """Stripes change 4.4x as much across the wrap as between neighbouring rows, as much as
     at every stripe's edge: said where the photo tiles and beside a seam."""
-    stripes = np.repeat((np.arange(32) // 4 % 2).astype(np.uint8)[:, None] * 200, 32, axis=1)
-    Image.fromarray(stripes).save(tmp_path / "stripes.png")
-    assert main(["info", str(tmp_path / "stripes.png")]) == 0
-    assert ("tiles: yes (edges differ 0.0x left-right and 4.4x top-bottom as much as "
-            "neighbouring pixels; its top and bottom edges differ 4.4x, but at least 5% of its "
-            "neighbouring rows differ as much: the wrap is one of the pattern's own edges)"
-            ) in capsys.readouterr().out
+    stripes = np.repeat((np.arange(32) // 4 % 2)[:, None] * 200, 32, axis=1)
+    assert _tiles_line(tmp_path, stripes, capsys) == (
+        "tiles: yes (edges differ 0.0x left-right and 4.4x top-bottom as much as "
+        "neighbouring pixels; its top and bottom edges differ 4.4x, but at least 5% of its "
+        "neighbouring rows differ as much: the wrap is one of the pattern's own edges)")
     # Beside a seam: a ramp from left to right, striped from top to bottom.
-    ramp = np.linspace(0, 120, 32)[None, :] + stripes * 0.5
-    Image.fromarray(ramp.astype(np.uint8)).save(tmp_path / "both.png")
-    assert main(["info", str(tmp_path / "both.png")]) == 0
-    line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("tiles:"))
+    line = _tiles_line(tmp_path, np.linspace(0, 120, 32)[None, :] + stripes * 0.5, capsys)
     assert line.startswith("tiles: no: its left and right edges differ")
     assert line.endswith("never continue the seam; its top and bottom edges differ 4.4x, but "
                          "at least 5% of its neighbouring rows differ as much: the wrap is one "

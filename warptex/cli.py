@@ -23,14 +23,7 @@ import numpy as np
 
 from warptex import __version__
 from warptex.archive import file_problem, folder_problem, overwritten_input
-from warptex.exemplar import (
-    SEAM_LIMIT,
-    SEAM_SHARE,
-    Exemplar,
-    ExemplarError,
-    reencoded,
-    srgb_encoded,
-)
+from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
 from warptex.llvm import MIN_LLVM_MAJOR
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -220,7 +213,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     sizes = ", ".join(f"{level.shape[1]}x{level.shape[0]}" for level in levels)
     print(f"pyramid: {len(levels)} levels ({sizes})")
     seams = exemplar.seam_problem()
-    own = _own_edges(exemplar)
+    own = exemplar.own_edges()
     if seams is None:
         across_columns, across_rows = exemplar.seam_contrast()
         print(f"tiles: yes (edges differ {across_columns:.1f}x left-right and "
@@ -228,26 +221,14 @@ def _cmd_info(args: argparse.Namespace) -> int:
     else:
         print(f"tiles: no: {seams}; candidates keep away from those edges and the pyramid "
               f"does not blur across them, so corrections never continue the seam{own}")
-    if args.tileable != "auto":
+    tileable = TILEABLE[args.tileable]
+    if tileable != "auto":
         print(f"--tileable {args.tileable}: " + (
             "synthesis continues the exemplar across its edges all the same"
-            if TILEABLE[args.tileable] else "candidates keep away from all four edges"))
+            if tileable else "candidates keep away from all four edges"))
     print(f"digest: {exemplar.digest()[:16]}")
-    print(f"candidates: {_candidate_status(exemplar, TILEABLE[args.tileable])}")
+    print(f"candidates: {_candidate_status(exemplar, tileable)}")
     return 0
-
-
-def _own_edges(exemplar: Exemplar) -> str:
-    """Why edges whose contrast is above SEAM_LIMIT form no seam (Exemplar.seams), as
-    clauses; empty where there are none."""
-    across_columns, across_rows = exemplar.seam_contrast()
-    seam_rows, seam_columns = exemplar.seams()
-    edges = (("left and right", "columns", across_columns, seam_columns),
-             ("top and bottom", "rows", across_rows, seam_rows))
-    return "".join(f"; its {name} edges differ {ratio:.1f}x, but at least {SEAM_SHARE:.0%} of "
-                   f"its neighbouring {pairs} differ as much: the wrap is one of the "
-                   "pattern's own edges"
-                   for name, pairs, ratio, seam in edges if ratio > SEAM_LIMIT and not seam)
 
 
 def _candidate_status(exemplar: Exemplar, tileable: bool | str) -> str:
@@ -683,9 +664,8 @@ def _solid_texture(args: argparse.Namespace):
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True, **_candidate_params(args)),
-                            seed=args.seed,
-                            jitter=args.jitter, passes=args.passes, whole_bricks=False,
-                            shifted_tiles=args.shifted_tiles,
+                            seed=args.seed, jitter=args.jitter, passes=args.passes,
+                            whole_bricks=False, shifted_tiles=args.shifted_tiles,
                             store=getattr(args, "store", None)), srgb
     except ValueError as error:
         raise CliError(str(error)) from None

@@ -248,15 +248,28 @@ class Exemplar:
 
     def seam_problem(self) -> str | None:
         """Why the exemplar does not tile (:meth:`seams`), in words; None where it tiles."""
-        across_columns, across_rows = self.seam_contrast()
-        seam_rows, seam_columns = self.seams()
-        seams = [f"{edges} edges differ {ratio:.1f}x as much as neighbouring pixels"
-                 for edges, ratio, seam in (("left and right", across_columns, seam_columns),
-                                            ("top and bottom", across_rows, seam_rows))
-                 if seam]
+        seams = [f"{name} edges differ {ratio:.1f}x as much as neighbouring pixels"
+                 for name, _, ratio, seam in self._edges() if seam]
         if not seams:
             return None
         return f"its {' and its '.join(seams)}"
+
+    def own_edges(self) -> str:
+        """Why edges whose :meth:`seam_contrast` is above SEAM_LIMIT form no seam, as
+        clauses each starting "; "; empty where there are none."""
+        return "".join(f"; its {name} edges differ {ratio:.1f}x, but at least "
+                       f"{SEAM_SHARE:.0%} of its neighbouring {pairs} differ as much: the wrap "
+                       "is one of the pattern's own edges"
+                       for name, pairs, ratio, seam in self._edges()
+                       if ratio > SEAM_LIMIT and not seam)
+
+    def _edges(self) -> tuple[tuple[str, str, float, bool], ...]:
+        """Per pair of opposite edges: its name, the neighbouring pairs compared with it,
+        its :meth:`seam_contrast` and whether it is a seam."""
+        across_columns, across_rows = self.seam_contrast()
+        seam_rows, seam_columns = self.seams()
+        return (("left and right", "columns", across_columns, seam_columns),
+                ("top and bottom", "rows", across_rows, seam_rows))
 
     def digest(self) -> str:
         """SHA-256 hex digest of the content (shapes, dtype, colors, features), not of the path."""
