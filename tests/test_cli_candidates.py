@@ -143,9 +143,6 @@ def test_tileable_overrides_what_the_photo_suggests(tmp_path, images, capsys):
     with pytest.raises(SystemExit):
         main(["precompute", str(images["a"]), "--tileable", "maybe"])
     assert "invalid choice: 'maybe'" in capsys.readouterr().err
-    assert main(["volume", str(images["a"]), "--method", "kopf", "--tileable", "yes",
-                 "--size", "8", "-o", str(tmp_path / "k.npy")]) == 2
-    assert "--tileable apply to lazy synthesis only" in capsys.readouterr().err
 
 
 def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, private_cache,

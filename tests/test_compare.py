@@ -93,16 +93,18 @@ def test_compare_shrinks_the_exemplar_to_max_size(tmp_path, data_dir, warp_devic
 
 
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
-    from warptex.compare import _cube_texture, _tiled, compare
+    from warptex.compare import _cube_texture, _Settings, _tiled, compare
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
     ex = Exemplar.load(path)
     volume = np.zeros((8, 8, 8, 3), np.float32)
-    assert _cube_texture("lazy", ex, volume, 0, 1, None)["passes"] == 1
-    assert "exemplar_max_size" not in _cube_texture("lazy", ex, volume, 0, 1, None)
-    assert _cube_texture("lazy", ex, volume, 0, 1, 24)["exemplar_max_size"] == 24
-    one, two = (_tiled(ex, 8, 0, passes) for passes in (1, 2))
+    one_pass = _Settings(0, 1, "auto")
+    assert _cube_texture("lazy", ex, volume, one_pass, None)["passes"] == 1
+    assert "exemplar_max_size" not in _cube_texture("lazy", ex, volume, one_pass, None)
+    assert _cube_texture("lazy", ex, volume, one_pass, 24)["exemplar_max_size"] == 24
+    assert _cube_texture("lazy", ex, volume, _Settings(0, 1, False), None)["tileable"] == "no"
+    one, two = (_tiled(ex, 8, _Settings(0, passes, "auto")) for passes in (1, 2))
     assert not np.array_equal(one, two)
     with pytest.raises(ValueError, match="passes must be within"):
         compare(path, 16, ["lazy"], passes=9, progress=False)
@@ -111,14 +113,14 @@ def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_
 def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
     """The grid textures of the other methods are decoded from sRGB as the plugin decodes
     the lazy cube's, so cubes compare in one color space; a float exemplar is left as is."""
-    from warptex.compare import _cube_texture
+    from warptex.compare import _cube_texture, _Settings
     from warptex.exemplar import Exemplar
 
     ex = Exemplar.load(data_dir / "granite_64.png")
     volume = np.random.default_rng(0).random((4, 5, 6, 3)).astype(np.float32)
     for srgb, expected in ((True, srgb_decoded(volume)), (False, volume)):
         ex.srgb = srgb
-        grid = _cube_texture("tiled", ex, volume, 0, 2, None)["volume"]["data"]
+        grid = _cube_texture("tiled", ex, volume, _Settings(0, 2, "auto"), None)["volume"]["data"]
         np.testing.assert_allclose(np.array(grid), expected.transpose(2, 1, 0, 3), rtol=1e-5)
 
 
@@ -136,6 +138,60 @@ def test_compare_runs_both_kopf_variants(tmp_path, data_dir, warp_device):
         assert clustered["histogram"][axis] < 0.7 * plain["histogram"][axis]
         assert clustered["swd"][axis] < 0.7 * plain["swd"][axis]
         assert clustered["energy"][axis] > plain["energy"][axis]
+
+
+@pytest.fixture
+def ramp_file(tmp_path, data_dir):
+    """Granite over a ramp from its left edge to its right: a photo whose left and right
+    edges form a seam."""
+    from PIL import Image
+
+    granite = np.asarray(Image.open(data_dir / "granite_64.png"), dtype=np.float64)
+    ramp = 0.5 * granite + np.linspace(0, 127, 64)[None, :, None]
+    Image.fromarray(ramp.astype(np.uint8)).save(tmp_path / "ramp.png")
+    return tmp_path / "ramp.png"
+
+
+def test_compare_follows_the_setting_tileable(tmp_path, ramp_file, warp_device):
+    """--tileable reaches the lazy engine's candidates, Kopf's search and the measures, and
+    the report says which it was."""
+    from warptex import metrics
+    from warptex.baselines.kopf import synthesize
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    out = tmp_path / "cmp"
+    assert main(["compare", str(ramp_file), "--size", "16", "--methods", "lazy,kopf",
+                 "--tileable", "yes", "-o", str(out)]) == 0
+    table = json.loads((out / "table.json").read_text())
+    assert table["run"]["tileable"] == "yes"
+    assert "16^3, seed 0, tileable yes; " in (out / "table.md").read_text()
+    rows = {r["method"]: r for r in table["methods"]}
+    ex = Exemplar.load(ramp_file)
+    assert ex.seams() == (False, True)
+    volumes = {"lazy": Synthesizer(precompute(ex, tileable=True)).box((0, 0, 0), (16, 16, 16)),
+               "kopf": synthesize(ex, size=16, progress=False, tileable=True)}
+    for method, volume in volumes.items():
+        torus = [metrics.neighborhood_energy(volume, ex, a, tileable=True) for a in range(3)]
+        assert rows[method]["energy"] == pytest.approx(torus, rel=1e-6), method
+        # The wrapped patches join the exemplar's distribution of patches.
+        torus = [metrics.sliced_wasserstein(volume, ex, a, tileable=True) for a in range(3)]
+        assert rows[method]["swd"] == pytest.approx(torus, rel=1e-6), method
+        assert torus != [metrics.sliced_wasserstein(volume, ex, a) for a in range(3)]
+    auto = synthesize(ex, size=16, progress=False)
+    assert not np.array_equal(auto, volumes["kopf"])
+
+
+def test_volume_command_runs_kopf_with_the_setting_tileable(tmp_path, ramp_file, warp_device):
+    from warptex.baselines.kopf import synthesize
+    from warptex.exemplar import Exemplar
+
+    out = tmp_path / "k.npy"
+    assert main(["volume", str(ramp_file), "--method", "kopf", "--size", "8", "--tileable",
+                 "no", "-o", str(out)]) == 0
+    expected = synthesize(Exemplar.load(ramp_file), size=8, progress=False, tileable=False)
+    np.testing.assert_array_equal(np.load(out), expected)
 
 
 def test_volume_command_runs_kopf(tmp_path, data_dir, warp_device):
@@ -161,7 +217,8 @@ def measure(data_dir, monkeypatch):
     monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     path = str(data_dir / "granite_64.png")
-    return lambda method, size=16: compare._measure(method, path, size, 0, 2, None)
+    return lambda method, size=16, tileable="auto": compare._measure(
+        method, path, size, compare._Settings(0, 2, tileable), None)
 
 
 def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
@@ -170,13 +227,14 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
 
     row = measure("extrude")
     ex = Exemplar.load(data_dir / "granite_64.png")
-    volume = compare._extrude(ex, 16, 0, 2)
+    settings = compare._Settings(0, 2, "auto")
+    volume = compare._extrude(ex, 16, settings)
     for key, metric in (("energy", metrics.neighborhood_energy),
                         ("swd", metrics.sliced_wasserstein),
                         ("histogram", metrics.histogram_distance)):
         assert row[key] == [metric(volume, ex.colors, axis) for axis in range(3)], key
     assert len(set(row["energy"])) == 3  # three different values: an axis swap would show
-    large = compare._extrude_large(ex, volume, 0, 2)
+    large = compare._extrude_large(ex, volume, settings)
     assert large.shape[:2] == (compare.LARGE, compare.LARGE)
     assert row["repetition"] == metrics.repetition_score(large)
 
@@ -187,10 +245,10 @@ def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
 
     from warptex import compare, metrics
 
-    def slow_first(ex, size, seed, passes):
+    def slow_first(ex, size, settings):
         if size == 8:
             time.sleep(1.0)
-        return metrics.iid_noise(ex.colors, (size, size, size), seed)
+        return metrics.iid_noise(ex.colors, (size, size, size), settings.seed)
 
     monkeypatch.setitem(compare._RUN, "noise", (slow_first, compare._noise_large))
     assert measure("noise")["seconds"] < 0.5

@@ -763,3 +763,18 @@ def test_a_periodic_pattern_whose_edge_lies_on_the_wrap_tiles():
     # tileable=True (--tileable yes) overrides.
     wide = np.repeat((np.arange(64) // 16 % 2).astype(np.float32)[:, None], 64, axis=1)
     assert seams_of(wide[:, :, None]) == (True, False)
+
+
+def test_the_setting_tileable_decides_the_seams_where_it_is_not_auto():
+    """tileable=True takes any exemplar for the paper's torus, False for a seam at every
+    edge; "auto" is the photo's own decision; other values are refused."""
+    ramp = np.repeat(np.linspace(0.0, 1.0, 32, dtype=np.float32)[None, :], 24, axis=0)
+    ex = Exemplar(ramp)
+    assert ex.seams("auto") == ex.seams() == (False, True)
+    assert ex.seams(True) == seams_of(ex.colors, True) == (False, False)
+    assert ex.seams(np.bool_(False)) == seams_of(ex.colors, False) == (True, True)
+    assert ex.seams() == (False, True)  # an override is not remembered as the decision
+    with pytest.raises(ValueError, match='tileable must be "auto", True or False'):
+        ex.seams("yes")
+    with pytest.raises(TypeError, match="tileable must be"):
+        seams_of(ex.colors, 1)

@@ -111,6 +111,25 @@ def test_each_axis_keeps_its_own_seams(granite):
     assert optimizer.axes[1].tree.n == SIZE * (SIZE - kopf._k.WINDOW + 1)
 
 
+@pytest.mark.parametrize(("tileable", "seams"), [("auto", (False, True)), (True, (False, False)),
+                                               (False, (True, True))])
+def test_the_setting_tileable_decides_the_windows_searched(monkeypatch, granite, tileable,
+                                                           seams):
+    """Every level's search and pyramid take the seams that ``tileable`` decides: the ramp's
+    own (left and right), none, or all four edges."""
+    ramp = Exemplar((np.linspace(0, 1, 32, dtype=np.float32)[None, :, None]
+                     + 0.1 * granite.colors).astype(np.float32))
+    assert ramp.seams() == (False, True)
+    searched, blurred = [], []
+    windows, pyramid = kopf._windows, Exemplar.pyramid
+    monkeypatch.setattr(kopf, "_windows", lambda f, s: searched.append(s) or windows(f, s))
+    monkeypatch.setattr(Exemplar, "pyramid",
+                        lambda self, min_size, seams: blurred.append(seams)
+                        or pyramid(self, min_size, seams))
+    kopf.synthesize(ramp, size=8, iterations=1, progress=False, tileable=tileable)
+    assert blurred == [seams] and searched == [seams] * kopf.LEVELS
+
+
 def test_energy_never_rises_within_a_level_without_histogram_matching(granite):
     # IRLS is a majorize-minimize step of equation 1 and the search keeps the better of the
     # ANN result and the current match, so neither phase can raise the energy.
@@ -201,6 +220,7 @@ def test_same_seed_same_volume(granite):
         ({"size": 12}, "multiple of 8"),
         ({"iterations": (1, 1)}, "3 positive counts"),
         ({"exemplars": (None, None, "g")}, "at least two"),
+        ({"tileable": "yes"}, "tileable must be"),
     ],
 )
 def test_bad_arguments(granite, kwargs, message):

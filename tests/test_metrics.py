@@ -103,6 +103,26 @@ def test_exemplar_patches_do_not_wrap_across_a_seam():
     assert metrics.neighborhood_energy(vol, tiles, 2) == 0.0
 
 
+def test_the_setting_tileable_decides_which_exemplar_patches_wrap():
+    """tileable=True measures against the torus even where the photo has a seam, so the
+    ramp wrapped around is then in the exemplar; False lets no patch wrap."""
+    rng = np.random.default_rng(6)
+    ramp = (np.linspace(0.0, 1.0, 24)[None, :, None]
+            + 0.05 * rng.random((20, 24, 3))).astype(np.float32)
+    tiles = rng.random((20, 24, 3)).astype(np.float32)
+    for exemplar in (ramp, Exemplar(ramp)):
+        assert metrics.exemplar_patches(exemplar, 5, tileable=True).shape == (20 * 24, 75)
+    assert metrics.exemplar_patches(Exemplar(tiles), 5, tileable=False).shape == (16 * 20, 75)
+    vol = metrics.extrusion(np.roll(ramp, 12, axis=1), 24, axis=2)
+    assert metrics.neighborhood_energy(vol, ramp, 2, tileable=True) == 0.0
+    assert metrics.worst_axis_energy(vol, ramp, tileable=True) == max(
+        metrics.neighborhood_energy(vol, ramp, a, tileable=True) for a in range(3))
+    assert metrics.sliced_wasserstein(vol, ramp, 2, tileable=True) < metrics.sliced_wasserstein(
+        vol, ramp, 2)
+    with pytest.raises(ValueError, match="tileable must be"):
+        metrics.neighborhood_energy(vol, ramp, 2, tileable="yes")
+
+
 def test_energy_and_swd_do_not_depend_on_the_unit_of_the_colors():
     rng = np.random.default_rng(2)
     ex = rng.random((16, 16, 3)).astype(np.float32)

@@ -38,6 +38,7 @@ from warptex.code_digest import code_digest, module_sources
 from warptex.exemplar import Exemplar, ExemplarError, wrapping_edges
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
+from warptex.settings import check_tileable
 from warptex.warp_runtime import init_warp
 
 FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
@@ -404,12 +405,7 @@ def resolved_params(params: dict) -> dict:
         raise ValueError(f"variance (the share of PCA variance kept) must be within (0, 1], "
                          f"got {variance!r}")
     p["variance"] = float(variance)
-    tileable = p["tileable"]
-    if not isinstance(tileable, bool | np.bool_ | str):
-        raise TypeError(f'tileable must be "auto", True or False, got {tileable!r}')
-    if isinstance(tileable, str) and tileable != "auto":
-        raise ValueError(f'tileable must be "auto", True or False, got {tileable!r}')
-    p["tileable"] = tileable if isinstance(tileable, str) else bool(tileable)
+    p["tileable"] = check_tileable(p["tileable"])
     return p
 
 
@@ -419,7 +415,8 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
     unique = list(dict.fromkeys(digests))
     axis_source = tuple(unique.index(d) for d in digests)
     srcs = [exemplars[digests.index(d)] for d in unique]
-    seam_edges = [_seam_edges(s, p["tileable"]) for s in srcs]
+    # Candidates keep away from the seams and the pyramid does not blur across them.
+    seam_edges = [s.seams(p["tileable"]) for s in srcs]
     pyramids = [s.pyramid(seams=seams) for s, seams in zip(srcs, seam_edges, strict=True)]
     num_levels = min(len(pyr) for pyr in pyramids)
     # Align pyramids at their finest level when exemplars differ in size.
@@ -477,15 +474,6 @@ def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
     lo = stacked.min(axis=0).astype(np.float64)
     hi = stacked.max(axis=0).astype(np.float64)
     return lo, np.where(hi > lo, hi, lo + 1.0)
-
-
-def _seam_edges(e: Exemplar, tileable: bool | str) -> tuple[bool, bool]:
-    """Whether the (top and bottom, left and right) edges of ``e`` are taken as seams under
-    the parameter ``tileable``: candidates keep away from them and the pyramid does not blur
-    across them."""
-    if tileable == "auto":
-        return e.seams()
-    return not tileable, not tileable
 
 
 def _margins(size: tuple[int, int], seams: tuple[bool, bool], n: int) -> tuple[int, int]:

@@ -131,6 +131,10 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
         help="add a feature-distance channel from an automatic luminance threshold",
     )
     _add_max_size_argument(parser)
+    _add_tileable_argument(parser)
+
+
+def _add_tileable_argument(parser: argparse.ArgumentParser, advice: str = "") -> None:
     parser.add_argument(
         "--tileable",
         choices=tuple(TILEABLE),
@@ -138,7 +142,7 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
         help="whether synthesis may continue the exemplar across its opposite edges: 'auto' "
         "(default) where they differ no more than neighbouring pixels do ('warptex info' "
         "says), 'yes' always (the paper's tori, for a tiling photo taken for a seam), 'no' "
-        "never (candidates keep away from every edge)",
+        f"never (candidates keep away from every edge){advice}",
     )
 
 
@@ -512,10 +516,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     if args.mean_shift and args.method != "kopf":
         raise CliError("--mean-shift applies to --method kopf only")
-    lazy_only = (args.passes, args.jitter, args.shifted_tiles, args.tileable)
-    if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False, "auto"):
-        raise CliError("--passes, --jitter, --shifted-tiles and --tileable apply to lazy "
-                       "synthesis only, not --method kopf")
+    lazy_only = (args.passes, args.jitter, args.shifted_tiles)
+    if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False):
+        raise CliError("--passes, --jitter and --shifted-tiles apply to lazy synthesis only, "
+                       "not --method kopf")
     if args.method == "kopf":
         _check_kopf_size(args.size)
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
@@ -553,7 +557,7 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar], srgb: bool
 
     try:
         volume = synthesize(None, exemplars=exemplars, size=args.size, seed=args.seed,
-                            mean_shift=args.mean_shift)
+                            mean_shift=args.mean_shift, tileable=TILEABLE[args.tileable])
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
@@ -1050,6 +1054,8 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
     _add_max_size_argument(parser, advice="; every method reads the shrunk image")
+    _add_tileable_argument(parser, advice="; for lazy, tiled and Kopf, and for the measures, "
+                           "whose exemplar neighbourhoods wrap only where synthesis may")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
                         help="output folder")
 
@@ -1077,12 +1083,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         _check_kopf_size(args.size)
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes,
-                          max_size=args.exemplar_max_size)
+                          max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable])
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
         files = write_report(results, args.exemplar, args.output, size=args.size,
-                             seed=args.seed, max_size=args.exemplar_max_size)
+                             seed=args.seed, max_size=args.exemplar_max_size,
+                             tileable=TILEABLE[args.tileable])
     print(table_markdown(results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0

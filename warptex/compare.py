@@ -27,7 +27,7 @@ from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
 from warptex.machine import PeakMemory, map_large_blocks
-from warptex.settings import DEFAULT_PASSES, check_settings
+from warptex.settings import DEFAULT_PASSES, check_settings, check_tileable, tileable_word
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
@@ -53,58 +53,66 @@ class MethodResult:
     render: np.ndarray | None = field(default=None, repr=False)
 
 
-# Every method takes the seed and the lazy engine's correction passes; those that do not
-# synthesize lazily ignore the passes.
-def _synthesizer(ex: Exemplar, seed: int, passes: int):
+@dataclass(frozen=True)
+class _Settings:
+    """What every method is given: the seed, the lazy engine's correction passes (ignored by
+    the methods that do not synthesize lazily) and the setting ``tileable``, which decides
+    the exemplar's seams for the methods and the measures alike."""
+
+    seed: int
+    passes: int
+    tileable: bool | str
+
+
+def _synthesizer(ex: Exemplar, s: _Settings):
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    return Synthesizer(precompute(ex), seed=seed, passes=passes)
+    return Synthesizer(precompute(ex, tileable=s.tileable), seed=s.seed, passes=s.passes)
 
 
-def _lazy(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
-    return _synthesizer(ex, seed, passes).box((0, 0, 0), (size, size, size))
+def _lazy(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
+    return _synthesizer(ex, s).box((0, 0, 0), (size, size, size))
 
 
-def _lazy_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
-    synth = _synthesizer(ex, seed, passes)
-    return synth.box((0, 0, volume.shape[2] // 2), (LARGE, LARGE, 1))[:, :, 0]
+def _lazy_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
+    return _synthesizer(ex, s).box((0, 0, volume.shape[2] // 2), (LARGE, LARGE, 1))[:, :, 0]
 
 
-def _kopf(ex: Exemplar, size: int, seed: int, passes: int,
-          mean_shift: bool = False) -> np.ndarray:
+def _kopf(ex: Exemplar, size: int, s: _Settings, mean_shift: bool = False) -> np.ndarray:
     from warptex.baselines.kopf import synthesize
 
-    return synthesize(ex, size=size, seed=seed, progress=False, mean_shift=mean_shift)
+    return synthesize(ex, size=size, seed=s.seed, progress=False, mean_shift=mean_shift,
+                      tileable=s.tileable)
 
 
-def _tiled(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
+def _tiled(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
     # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
     # difference to `lazy` is the repetition alone.
     period = min(size, 64)
-    block = _lazy(ex, period, seed, passes)
+    block = _lazy(ex, period, s)
     reps = -(-size // period)
     return np.tile(block, (reps, reps, reps, 1))[:size, :size, :size]
 
 
-def _extrude(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
+def _extrude(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
     return metrics.extrusion(_tile_slice(ex.colors, size), size, axis=2)
 
 
-def _noise(ex: Exemplar, size: int, seed: int, passes: int) -> np.ndarray:
-    return metrics.iid_noise(ex.colors, (size, size, size), seed)
+def _noise(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
+    return metrics.iid_noise(ex.colors, (size, size, size), s.seed)
 
 
-def _periodic_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
+def _periodic_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
     """A periodic volume's z-slice repeated over the large slice."""
     return _tile_slice(volume[:, :, volume.shape[2] // 2])
 
 
-def _noise_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
-    return metrics.iid_noise(ex.colors, (LARGE, LARGE, 1), seed + 1)[:, :, 0]
+def _noise_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
+    return metrics.iid_noise(ex.colors, (LARGE, LARGE, 1), s.seed + 1)[:, :, 0]
 
 
-def _extrude_large(ex: Exemplar, volume: np.ndarray, seed: int, passes: int) -> np.ndarray:
+def _extrude_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
     return _tile_slice(ex.colors)
 
 
@@ -162,46 +170,49 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
     return linear_to_srgb(image)
 
 
-def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, seed: int,
-                  passes: int, max_size: int | None) -> dict:
+def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, s: _Settings,
+                  max_size: int | None) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
     own grid texture of their volume (both trilinear, one voxel = 1/size of the cube),
     decoded from sRGB as the plugin decodes the lazy one's."""
     size = volume.shape[0]
     if method == "lazy":
         shrink = {} if max_size is None else {"exemplar_max_size": max_size}
-        return {"type": "lazy_solid", "exemplar": str(exemplar.path),
-                "seed": seed, "passes": passes, "scale": float(size)} | shrink
+        return {"type": "lazy_solid", "exemplar": str(exemplar.path), "seed": s.seed,
+                "passes": s.passes, "tileable": tileable_word(s.tileable),
+                "scale": float(size)} | shrink
     colors = reencoded(volume[..., :3], srgb=exemplar.srgb, to_srgb=False)
     data = _mitsuba().TensorXf(np.ascontiguousarray(colors.transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
 
 
-def _measure(method: str, exemplar_path: str, size: int, seed: int, passes: int,
+def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
              max_size: int | None) -> dict:
     """Run one method in this (fresh) process: volume, scores, time and peak memory."""
     ex = Exemplar.load(exemplar_path, max_size=max_size)
     make_volume, make_large = _RUN[method]
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
-    make_volume(ex, 8, seed, passes)
+    make_volume(ex, 8, s)
     with PeakMemory() as memory:
         start = time.perf_counter()
-        volume = make_volume(ex, size, seed, passes)
+        volume = make_volume(ex, size, s)
         seconds = time.perf_counter() - start
-    large = make_large(ex, volume, seed, passes)
+    large = make_large(ex, volume, s)
     # The Exemplar itself, so that the metrics take its seams as decided once.
     return {
         "method": method,
-        "energy": [metrics.neighborhood_energy(volume, ex, a) for a in range(3)],
-        "swd": [metrics.sliced_wasserstein(volume, ex, a) for a in range(3)],
+        "energy": [metrics.neighborhood_energy(volume, ex, a, tileable=s.tileable)
+                   for a in range(3)],
+        "swd": [metrics.sliced_wasserstein(volume, ex, a, tileable=s.tileable)
+                for a in range(3)],
         "histogram": [metrics.histogram_distance(volume, ex, a) for a in range(3)],
         "repetition": metrics.repetition_score(large),
         "seconds": seconds,
         "peak_mib": memory.growth / 2**20,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
-        "render": render_cube(_cube_texture(method, ex, volume, seed, passes, max_size)),
-        "notes": f"correction passes per level: {passes}" if method in _LAZY else "",
+        "render": render_cube(_cube_texture(method, ex, volume, s, max_size)),
+        "notes": f"correction passes per level: {s.passes}" if method in _LAZY else "",
         "device": _engine_device() if method in _LAZY else "cpu",
     }
 
@@ -242,10 +253,12 @@ def run_line(run: dict) -> str:
 
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
             seed: int = 0, progress: bool = True, passes: int = DEFAULT_PASSES,
-            max_size: int | None = None) -> list[MethodResult]:
+            max_size: int | None = None, tileable: bool | str = "auto") -> list[MethodResult]:
     """Score every method on one exemplar, each in a fresh process; ``passes`` are the
     lazy engine's correction passes per level (``lazy`` and ``tiled``), ``max_size`` how
-    far the exemplar is shrunk when loaded (``Exemplar.load``)."""
+    far the exemplar is shrunk when loaded (``Exemplar.load``), ``tileable`` whether the
+    exemplar's opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
+    synthesize and in the measures alike."""
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -256,7 +269,8 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     repeated = sorted({m for m in methods if list(methods).count(m) > 1})
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
-    check_settings(passes=passes)
+    check_settings(passes=passes, seed=seed)
+    settings = _Settings(seed, passes, check_tileable(tileable))
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
                          f"of slices every 2 voxels), got {size}")
@@ -269,8 +283,8 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
                                  initializer=map_large_blocks) as pool:
-            out = pool.submit(_measure, method, str(exemplar_path), size, seed,
-                              passes, max_size).result()
+            out = pool.submit(_measure, method, str(exemplar_path), size, settings,
+                              max_size).result()
         results.append(MethodResult(**out))
     return results
 
@@ -297,11 +311,12 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
                  out_dir: str | Path, *, size: int, seed: int,
-                 max_size: int | None = None) -> list[Path]:
+                 max_size: int | None = None, tileable: bool | str = "auto") -> list[Path]:
     """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) into
     ``out_dir`` atomically, with the :func:`run_summary` of the ``size^3``, ``seed``
     comparison run here on the exemplar as loaded with ``max_size`` (its size, as
-    ``exemplar_size`` [width, height] in the JSON's ``run``)."""
+    ``exemplar_size`` [width, height] in the JSON's ``run``) under the setting ``tileable``
+    (the word, as ``tileable`` there)."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
@@ -319,9 +334,11 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
     save_png(sheet(rows), sheet_file)
-    run = run_summary(size, seed) | {"exemplar_size": list(ex.shape[::-1])}
+    word = tileable_word(tileable)
+    run = run_summary(size, seed) | {"exemplar_size": list(ex.shape[::-1]), "tileable": word}
     shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
-    markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}; "
+    told = "" if word == "auto" else f", tileable {word}"
+    markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{told}; "
                 f"{run_line(run)}\n\n" + table_markdown(results))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}

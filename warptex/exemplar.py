@@ -30,7 +30,7 @@ import png
 from PIL import Image, ImageOps, UnidentifiedImageError
 from scipy import ndimage
 
-from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size
+from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size, check_tileable
 
 MAX_CHANNELS = 64
 # Above this, an exemplar's wrap differs so much more than its neighbouring pixels that it
@@ -239,9 +239,13 @@ class Exemplar:
             self._seam_contrast = seam_contrast_of(self.colors)
         return self._seam_contrast
 
-    def seams(self) -> tuple[bool, bool]:
-        """:func:`seams_of` the exemplar's colors, computed once. In pixel coordinate order
-        (rows, then columns), as the candidates' margins are."""
+    def seams(self, tileable: bool | str = "auto") -> tuple[bool, bool]:
+        """Whether the (top and bottom, left and right) edges form a seam, in pixel
+        coordinate order as the candidates' margins are. ``tileable`` is the setting of that
+        name: ``"auto"`` decides from the photo (:func:`seams_of` its colors, computed once),
+        True takes it for the paper's torus (no seam), False for a seam at every edge."""
+        if check_tileable(tileable) != "auto":
+            return seams_of(self.colors, tileable)
         if self._seams is None:
             self._seams = _seams(self.colors, self.seam_contrast())
         return self._seams
@@ -304,10 +308,13 @@ def seam_contrast_of(colors: np.ndarray) -> tuple[float, float]:
     return columns, rows
 
 
-def seams_of(colors: np.ndarray) -> tuple[bool, bool]:
+def seams_of(colors: np.ndarray, tileable: bool | str = "auto") -> tuple[bool, bool]:
     """Whether an (H, W, C) image's (top and bottom, left and right) edges form a seam:
     their :func:`seam_contrast_of` is above SEAM_LIMIT, and fewer than SEAM_SHARE of the
-    image's neighbouring rows (columns) differ on average as much as its last and first."""
+    image's neighbouring rows (columns) differ on average as much as its last and first.
+    Unless the setting ``tileable`` says: True none (the paper's torus), False all."""
+    if check_tileable(tileable) != "auto":
+        return not tileable, not tileable
     return _seams(colors, seam_contrast_of(colors))
 
 

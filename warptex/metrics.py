@@ -46,14 +46,17 @@ def patches(image: np.ndarray, size: int, stride: int = 1,
     return win.transpose(0, 1, 3, 4, 2).reshape(-1, size * size * c).astype(np.float32)
 
 
-def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int) -> np.ndarray:
+def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int,
+                     tileable: bool | str = "auto") -> np.ndarray:
     """The exemplar's ``size`` x ``size`` patches, the neighbourhoods a slice is measured
     against: they wrap around the edges that tile (the paper's tori, Dong 2008 §3) but not
-    across a photo's seam (:func:`warptex.exemplar.seams_of`), where a wrapped patch is no
-    part of the photo (:func:`warptex.exemplar.wrapping_edges`)."""
+    across a photo's seam (:func:`warptex.exemplar.seams_of`, or as the setting ``tileable``
+    says), where a wrapped patch is no part of the photo
+    (:func:`warptex.exemplar.wrapping_edges`)."""
     colors = np.asarray(getattr(exemplar, "colors", exemplar))
     # An Exemplar has decided its seams once; an array (or a pyramid level) is measured here.
-    seams = exemplar.seams() if isinstance(exemplar, Exemplar) else seams_of(colors)
+    seams = (exemplar.seams(tileable) if isinstance(exemplar, Exemplar)
+             else seams_of(colors, tileable))
     return patches(colors, size, wrap=wrapping_edges(seams, colors.shape[:2], size))
 
 
@@ -98,14 +101,15 @@ def _variance(exemplar: np.ndarray) -> float:
 
 
 def neighborhood_energy(
-    volume: np.ndarray, exemplar: np.ndarray | Exemplar, axis: int, size: int = 5, slices: int = 8
+    volume: np.ndarray, exemplar: np.ndarray | Exemplar, axis: int, size: int = 5,
+    slices: int = 8, tileable: bool | str = "auto",
 ) -> float:
     """Mean squared distance from each slice patch to its nearest exemplar patch
-    (:func:`exemplar_patches`), normalized by the exemplar's variance and patch size (0 =
-    every patch is in the exemplar; about 2 for patches of unrelated values of the same
-    variance)."""
+    (:func:`exemplar_patches` under the setting ``tileable``), normalized by the exemplar's
+    variance and patch size (0 = every patch is in the exemplar; about 2 for patches of
+    unrelated values of the same variance)."""
     volume, colors = _checked(volume, exemplar, axis, size)
-    tree = cKDTree(exemplar_patches(exemplar, size))
+    tree = cKDTree(exemplar_patches(exemplar, size, tileable))
     vol_patches = np.concatenate(
         [patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)]
     )
@@ -113,10 +117,12 @@ def neighborhood_energy(
     return float(np.mean(dist**2) / (size * size * _variance(colors)))
 
 
-def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar) -> float:
+def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar,
+                      tileable: bool | str = "auto") -> float:
     """The largest of the three axes' :func:`neighborhood_energy`: a solid texture is
     judged by its worst cut (the measure Dong 2008, section 6.3, compares)."""
-    return max(neighborhood_energy(volume, exemplar, axis) for axis in range(3))
+    return max(neighborhood_energy(volume, exemplar, axis, tileable=tileable)
+               for axis in range(3))
 
 
 def sliced_wasserstein(
@@ -127,14 +133,16 @@ def sliced_wasserstein(
     directions: int = 64,
     slices: int = 8,
     seed: int = 0,
+    tileable: bool | str = "auto",
 ) -> float:
-    """Sliced Wasserstein-1 distance between slice patches and exemplar patches,
-    averaged over random unit directions and normalized by the exemplar's std."""
+    """Sliced Wasserstein-1 distance between slice patches and exemplar patches
+    (:func:`exemplar_patches` under the setting ``tileable``), averaged over random unit
+    directions and normalized by the exemplar's std."""
     volume, colors = _checked(volume, exemplar, axis, size)
     if directions < 1:
         raise ValueError(f"directions must be at least 1, got {directions}")
     a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
-    b = exemplar_patches(exemplar, size)
+    b = exemplar_patches(exemplar, size, tileable)
     rng = np.random.default_rng(seed)
     dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32)
     dirs /= np.linalg.norm(dirs, axis=0, keepdims=True)

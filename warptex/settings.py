@@ -68,6 +68,22 @@ def check_flag(name: str, value: object) -> bool:
     return bool(value)
 
 
+def check_tileable(value: object) -> bool | str:
+    """``value`` as the ``tileable`` parameter (``"auto"``, True or False), after a TypeError
+    or ValueError unless it is one of them."""
+    if not isinstance(value, bool | np.bool_ | str):
+        raise TypeError(f'tileable must be "auto", True or False, got {value!r}')
+    if isinstance(value, str) and value != "auto":
+        raise ValueError(f'tileable must be "auto", True or False, got {value!r}')
+    return value if isinstance(value, str) else bool(value)
+
+
+def tileable_word(value: bool | str) -> str:
+    """The word commands and scenes write for the ``tileable`` parameter ``value``."""
+    value = check_tileable(value)
+    return next(word for word, meaning in TILEABLE.items() if meaning == value)
+
+
 def check_max_size(max_size: int | None) -> None:
     """Raise SettingError unless ``max_size``, the larger side an exemplar is shrunk to when
     loaded (``Exemplar.load``), is None or an integer of at least MIN_EXEMPLAR_SIZE."""

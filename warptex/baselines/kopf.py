@@ -25,8 +25,9 @@ bandwidth, whose bandwidth shrinks over each level's iterations from a plain ave
 a single colour.
 
 Exemplars are tori, as the paper's are, except that where a photo does not tile
-(:meth:`warptex.Exemplar.seams`) no window wraps across its seam, in the search as in the
-metrics (:func:`warptex.metrics.exemplar_patches`): the seam is not part of the photo.
+(:meth:`warptex.Exemplar.seams`, or as the setting ``tileable`` says) no window wraps across
+its seam, in the search as in the metrics (:func:`warptex.metrics.exemplar_patches`): the
+seam is not part of the photo.
 
 Axis ``i`` of the volume (axis 0 of the ``(D, H, W, C)`` result is x) is constrained by its
 own exemplar (section 6.2), oriented as in :mod:`warptex.metrics`: slices perpendicular to
@@ -121,6 +122,7 @@ def synthesize(
     exemplars: Sequence[Exemplar | None] | None = None,
     histogram_matching: bool = True,
     mean_shift: bool = False,
+    tileable: bool | str = "auto",
     on_iteration: Callable[[Iteration], None] | None = None,
 ) -> np.ndarray:
     """Synthesize a periodic ``size^3`` solid texture (Kopf et al. 2007).
@@ -138,6 +140,9 @@ def synthesize(
         histogram_matching: re-weight by histograms (section 5).
         mean_shift: average only the dominant cluster of each voxel's texels (section 4.1),
             which keeps edges sharp where plain averaging blurs them.
+        tileable: the setting of that name (:meth:`warptex.Exemplar.seams`): ``"auto"``
+            leaves out the windows that wrap across a photo's seam, True takes every
+            exemplar for the paper's torus, False lets no window wrap.
         on_iteration: called after every iteration with its :class:`Iteration`.
 
     Returns:
@@ -149,11 +154,12 @@ def synthesize(
     counts = [int(iterations)] * LEVELS if np.isscalar(iterations) else [int(t) for t in iterations]
     if len(counts) != LEVELS or min(counts) < 1:
         raise ValueError(f"iterations must be {LEVELS} positive counts, got {iterations!r}")
-    init_warp()
     # One pyramid (and below, one search structure) per distinct exemplar.
     distinct = {id(e): e for e in axes if e is not None}
-    pyramids = {k: e.pyramid(min_size=1)[-LEVELS:] for k, e in distinct.items()}
-    seams = [None if e is None else e.seams() for e in axes]
+    seams = {k: e.seams(tileable) for k, e in distinct.items()}
+    axis_seams = [None if e is None else seams[id(e)] for e in axes]
+    init_warp()
+    pyramids = {k: e.pyramid(min_size=1, seams=seams[k])[-LEVELS:] for k, e in distinct.items()}
     rng = np.random.default_rng(seed)
     bar = tqdm(total=sum(counts), desc="kopf", unit="it", disable=not progress)
 
@@ -163,7 +169,7 @@ def synthesize(
         level_feats = {k: np.ascontiguousarray(p[level].features) for k, p in pyramids.items()}
         feats = [None if e is None else level_feats[id(e)] for e in axes]
         solid = _random_solid(feats, n, rng) if solid is None else _upsample(solid, n // 2)
-        optimizer = _LevelOptimizer(feats, seams, solid, histogram_matching)
+        optimizer = _LevelOptimizer(feats, axis_seams, solid, histogram_matching)
         bandwidths = _bandwidths(optimizer.spread, counts[level]) if mean_shift else None
         for it in range(counts[level]):
             start = time.perf_counter()
