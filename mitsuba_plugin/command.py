@@ -109,6 +109,11 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     if clash is not None:
         raise ValueError(f"{clash[0]}: would overwrite {clash[1]}, which the scene reads; "
                          "choose another output name")
+    for written in (output, statistics):  # both, before the minutes a render may take
+        problem = file_problem(written)
+        if problem is not None:
+            beside = "" if written == output else f" (the statistics written with {output})"
+            raise ValueError(f"{written}{beside}: {problem}")
     import mitsuba as mi
 
     import mitsuba_plugin
@@ -224,7 +229,7 @@ def _save_and_report(texture) -> dict:
 
 
 def _print_report(report: dict) -> None:
-    print(f"wrote {report['image']} ({report['size'][0]}x{report['size'][1]}, "
+    print(f"written: {report['image']} ({report['size'][0]}x{report['size'][1]}, "
           f"{report['spp']} spp, {report['variant']}): load {report['load_seconds']:.1f} s, "
           f"render {report['render_seconds']:.1f} s")
     for entry in report["textures"]:

@@ -102,7 +102,6 @@ from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import (
     Exemplar,
-    ExemplarError,
     srgb_decoded,
     srgb_encoded,
     srgb_to_linear,
@@ -117,7 +116,7 @@ from warptex.settings import (
     check_max_size,
     check_settings,
 )
-from warptex.store import StoreFileError
+from warptex.store import StoreFileError, check_lookup_channels
 from warptex.texture import SolidTexture, wrap_far
 
 PLUGIN = "lazy_solid"
@@ -248,7 +247,8 @@ class LazySolidTexture(mi.Texture):
         exemplars = _load_exemplars(named, self.max_size)
         try:
             self._decode_srgb = not self.raw and srgb_encoded(exemplars)
-        except ExemplarError as e:
+            check_lookup_channels(exemplars[0].channels)  # before pre-computing
+        except ValueError as e:  # ExemplarError included
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
             candidates = precompute(*exemplars, progress=mitsuba_plugin.candidates_bar(),

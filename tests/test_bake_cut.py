@@ -209,6 +209,17 @@ def test_export_formats(texture, sphere, tmp_path):
     assert not list(tmp_path.glob(".t.ply*"))
 
 
+def test_an_obj_arrives_with_its_texture_or_not_at_all(tmp_path):
+    """Where the .obj's texture cannot be written (a folder of its name), none of its files
+    is: the error names the texture, and no temporary is left."""
+    mesh, uv = _square()
+    (tmp_path / "t.png").mkdir()
+    with pytest.raises(IsADirectoryError) as error:
+        export(mesh, tmp_path / "t.obj", image=np.full((8, 8, 3), 0.5, np.float32), uv=uv)
+    assert error.value.filename == str(tmp_path / "t.png")
+    assert [p.name for p in tmp_path.iterdir()] == ["t.png"]
+
+
 def glb_vertex_colors(path: Path) -> np.ndarray:
     """RGB vertex colors (COLOR_0) of a one-mesh .glb: trimesh keeps them beside a material
     as a vertex attribute of the scene's geometry (force="mesh" would drop them)."""

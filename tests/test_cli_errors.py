@@ -41,10 +41,12 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     no_sensor.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
     gray = folder / "gray.npy"
     np.save(gray, _rotated(granite_32_file)[..., :1])
+    five = folder / "five.npy"  # more channels than points are looked up in
+    np.save(five, np.random.default_rng(0).random((32, 32, 5)).astype(np.float32))
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
             "gray": gray, "no_sensor": no_sensor, "flat": flat,
-            "other_linear": other_linear, "broken_mesh": broken_mesh}
+            "other_linear": other_linear, "broken_mesh": broken_mesh, "five": five}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -95,7 +97,7 @@ CASES = [
     (["bake", "{exemplar}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
      "{exemplar}: not a mesh format warptex reads (.ply, .obj, .glb, .gltf, .stl, .off"),
     (["bake", "{broken_mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
-     "{broken_mesh}: cannot read mesh"),
+     "{broken_mesh}: cannot read the mesh: damaged"),
     (["bake", "{out}/missing.ply", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
      "{out}/missing.ply: mesh file not found"),
     (["bake", "{flat}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
@@ -168,6 +170,12 @@ CASES = [
     (["render", "{scene}", "-o", "{out}/r.png"], "cannot load the scene"),
     (["render", "{bad_property}", "-o", "{out}/r.png"],
      'load the scene: line 1, col 46: lazy_solid: property "filter" must be "trilinear"'),
+    (["slice", "{five}", "-o", "{out}/s.npy"],
+     "{five}: 5 color channels; points are looked up in at most 4 (gray, RGB or RGBA)"),
+    (["bake", "{mesh}", "--exemplar", "{five}", "-o", "{out}/b.ply"],
+     "{five}: 5 color channels"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "64", "-o", "{out}/b.ply"],
+     "--texture-size applies to a UV texture (--uv auto or mesh)"),
     (["render", "{including}", "-o", "{out}/r.png"],
      '{including}: cannot load the scene: {bad_property} (line 1, col 46): lazy_solid: '
      'property "filter"'),
@@ -249,6 +257,55 @@ def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, ca
     assert not [p for p in out.rglob(".*")]  # no temporary left
 
 
+@pytest.mark.parametrize("command", ["volume", "slice", "precompute", "render", "bake"])
+def test_an_output_name_ending_in_a_slash_is_refused(files, tmp_path, capsys, command):
+    """-o out.npy/ names a folder: refused, not written as the file out.npy."""
+    given = f"{tmp_path / 'out.npy'}/"
+    inputs = {"render": [str(files["scene"])],
+              "bake": [str(files["mesh"]), "--exemplar", str(files["exemplar"])]}
+    with pytest.raises(SystemExit) as exit_code:
+        main([command, *inputs.get(command, [str(files["exemplar"])]), "-o", given])
+    assert exit_code.value.code == 2
+    assert f"{given}: ends in a slash, the name of a folder" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_an_obj_is_refused_before_any_work_where_its_texture_cannot_be_written(files,
+                                                                               tmp_path,
+                                                                               capsys):
+    out = tmp_path / "out"
+    (out / "t.png").mkdir(parents=True)
+    assert main(["bake", str(files["mesh"]), "--exemplar", str(files["exemplar"]),
+                 "--resolution", "8", "--uv", "auto", "-o", str(out / "t.obj")]) == 2
+    err = capsys.readouterr().err
+    assert (f"warptex: error: {out / 't.png'} (written with {out / 't.obj'}): is a folder, "
+            "expected a file name") in err
+    assert "surface shell" not in err  # no work done
+    assert [p.name for p in out.iterdir()] == ["t.png"]
+
+
+def test_render_refuses_statistics_it_could_not_write_before_rendering(files, tmp_path,
+                                                                       capsys):
+    out = tmp_path / "out"
+    (out / "r.png.json").mkdir(parents=True)
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "--spp", "1", "--res",
+                 "8x8", "-o", str(out / "r.png")]) == 2
+    err = capsys.readouterr().err
+    assert (f"warptex: error: {out / 'r.png.json'} (the statistics written with "
+            f"{out / 'r.png'}): is a folder, expected a file name") in err
+    assert "rendering" not in err
+    assert [p.name for p in out.iterdir()] == ["r.png.json"]
+
+
+def test_python_m_warptex_is_the_command():
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "warptex", "--version"], capture_output=True,
+                         text=True, check=False)
+    assert run.returncode == 0 and run.stdout.startswith("warptex ")
+
+
 def test_cut_checks_both_halves_before_writing_either(files, tmp_path, capsys):
     out = tmp_path / "out"
     (out / "c_b.ply").mkdir(parents=True)
@@ -268,7 +325,9 @@ def test_an_unwritable_cache_folder(files, tmp_path, capsys, monkeypatch):
     assert "WARPTEX_CACHE" in err
     out = tmp_path / "v.npy"
     assert main(["volume", str(files["exemplar"]), "--size", "8", "-o", str(out)]) == 0
-    assert "warptex: warning: candidates not cached: cannot write" in capsys.readouterr().err
+    assert (f"warptex: warning: candidates not cached: {files['notes']}: cannot write, "
+            f"{files['notes'].absolute()} is a file, not a folder; WARPTEX_CACHE sets"
+            in capsys.readouterr().err)
     assert np.load(out).shape == (8, 8, 8, 3)
     assert files["notes"].read_text() == "not bricks"
 

@@ -121,6 +121,19 @@ def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_fil
         load(broken, exemplar_z=str(granite_32_file))
 
 
+def test_an_exemplar_of_more_channels_than_lookups_take_is_refused_before_precomputing(
+        tmp_path, monkeypatch):
+    from warptex import candidates
+
+    use("scalar_rgb")
+    five = tmp_path / "five.npy"
+    np.save(five, np.random.default_rng(0).random((32, 32, 5)).astype(np.float32))
+    monkeypatch.setattr(candidates, "_compute", lambda *args: pytest.fail("pre-computed"))
+    with pytest.raises(RuntimeError, match=r'property "exemplar" cannot be used: 5 color '
+                                           r"channels; points are looked up in at most 4"):
+        load(five)
+
+
 def test_passes_shifted_tiles_and_tileable_reach_the_synthesis(granite_32_file):
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar

@@ -245,7 +245,8 @@ def test_render_command_refuses_a_store_it_could_not_save_before_rendering(
     scene = _scene_with_cache(tmp_path, str(cache))
     if case == "read-only":  # root writes anywhere: the folder's answer is stood in for
         monkeypatch.setattr(mitsuba_plugin.command, "file_problem",
-                            lambda path: f"cannot write in {path.parent} (Read-only file system)")
+                            lambda path: f"cannot write in {path.parent} (Read-only file system)"
+                            if path == cache else None)
     rendered = []
     monkeypatch.setattr(mitsuba_plugin, "render", lambda *a, **k: rendered.append(a))
     assert main(["render", str(scene), "-o", str(out), "--spp", "1", "--res", "16x16"]) == 2

@@ -33,7 +33,7 @@ from kernels import candidates as _k
 from kernels import common as _common
 from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel
-from warptex.archive import ArchiveError, read_archive, write_archive
+from warptex.archive import ArchiveError, folder_problem, read_archive, write_archive
 from warptex.code_digest import code_digest, module_sources
 from warptex.exemplar import Exemplar, ExemplarError, wrapping_edges
 from warptex.machine import memory_problem
@@ -248,8 +248,12 @@ def precompute(
             result.cache_status = "written"
         except OSError as e:
             result.cache_status = "not written"
-            warnings.warn(f"candidates not cached: cannot write {path} ({e.strerror or e}); "
-                          "WARPTEX_CACHE sets the cache folder", stacklevel=2)
+            # Why the folder takes no file (a file in its place, say) says more than errno.
+            problem = folder_problem(path.parent)
+            why = (f"{path.parent}: {problem}" if problem is not None
+                   else f"cannot write {path} ({e.strerror or e})")
+            warnings.warn(f"candidates not cached: {why}; WARPTEX_CACHE sets the cache folder",
+                          stacklevel=2)
     return result
 
 

@@ -86,6 +86,15 @@ def _check_writable_folder(folder: Path, target: Path) -> None:
         raise CliError(f"{target}: {problem}")
 
 
+def _file_name(text: str) -> Path:
+    """An output file argument as a Path, refused where it ends in a slash: Path would drop
+    the slash and write a file under the name of the folder asked for."""
+    if text.endswith(("/", os.sep)):
+        raise argparse.ArgumentTypeError(f"{text}: ends in a slash, the name of a folder; "
+                                         "give a file name")
+    return Path(text)
+
+
 def _count(n: int, noun: str) -> str:
     """``n`` and ``noun``, plural unless one: "1 channel", "3 channels"."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
@@ -101,9 +110,11 @@ def _check_finite(name: str, values: Sequence[float]) -> None:
         raise CliError(f"{name} must be finite numbers, got {' '.join(map(str, values))}")
 
 
+_EXEMPLAR_HELP = "exemplar image (PNG, JPEG, OpenEXR or .npy)"
+
+
 def _add_exemplar_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", type=Path, metavar="EXEMPLAR",
-                        help="exemplar image (PNG, JPEG, OpenEXR or .npy)")
+    parser.add_argument("path", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     _add_loading_arguments(parser)
 
 
@@ -269,7 +280,7 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_exemplar_arguments(parser)
     _add_axis_exemplar_arguments(parser, "EXEMPLAR")
     parser.add_argument(
-        "-o", "--output", type=Path, metavar="FILE",
+        "-o", "--output", type=_file_name, metavar="FILE",
         help="also write the candidates to FILE (.wtc), to share them with another machine "
         "(warptex.CandidateSet.load reads it)",
     )
@@ -469,6 +480,7 @@ _TEXEL_BYTES = 3 * 8 + 4 + 1 + 3 * 4 * 4 + 2 * 8
 # while the shell is made, and its stored triple with its share of a partial brick.
 _SHELL_VOXEL_BYTES = 64
 _MAX_TEXTURE_SIZE = math.isqrt(2**31 - 1)  # texels are numbered by 32-bit integers
+_TEXTURE_SIZE = 1024
 
 
 def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -496,7 +508,7 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "-o",
         "--output",
-        type=Path,
+        type=_file_name,
         required=True,
         metavar="FILE",
         help="out.npy (x, y, z, channel), out.exr (z-slices side by side) or out.vol (Mitsuba 3)",
@@ -606,13 +618,15 @@ def _check_fits(need: int, what: str, advice: str) -> None:
 
 
 @contextlib.contextmanager
-def _writing(path: Path) -> Iterator[None]:
+def _writing(path: Path, *written_with: Path) -> Iterator[None]:
     """A failed write of the output ``path`` (a full disk, a lost mount) as one error that
-    names it; the writers are atomic, so the file is left as it was."""
+    names it, or the file ``written_with`` it that failed; the writers are atomic, so the
+    files are left as they were."""
     try:
         yield
     except OSError as error:
-        raise CliError(f"{path}: cannot write ({error.strerror or error})") from None
+        where = next((p for p in written_with if str(p) == error.filename), path)
+        raise CliError(f"{where}: cannot write ({error.strerror or error})") from None
 
 
 def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
@@ -661,9 +675,15 @@ def _solid_texture(args: argparse.Namespace):
     """The texture of the command's exemplars, and whether its colors are sRGB-encoded (None
     where they are written as they are: see _colors_srgb)."""
     from warptex.candidates import precompute
+    from warptex.store import check_lookup_channels
     from warptex.texture import SolidTexture
 
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
+    try:  # before pre-computing: the channels are the same on every axis, or it says which
+        check_lookup_channels(exemplars[0].channels)
+    except ValueError as error:
+        raise CliError(f"{args.exemplar}: {error}; `warptex volume` synthesizes any "
+                       "number") from None
     srgb = _colors_srgb(args, exemplars)
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
@@ -682,7 +702,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Evaluate any plane through the solid texture (Dong 2008, 6.4). Pixel "
         "(r, c) shows the texture at ORIGIN + r*U + c*V, in voxels of the finest level.",
     )
-    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help="exemplar image")
+    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     _add_loading_arguments(parser)
     parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
                         metavar=("X", "Y", "Z"),
@@ -703,7 +723,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="blend the 8 voxels around each point (default) or take the "
                         "voxel containing it")
     _add_texture_arguments(parser, "EXEMPLAR")
-    parser.add_argument("-o", "--output", type=Path, required=True,
+    parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
                         help="output image: .png (8-bit), .exr or .npy (float)")
     _add_raw_argument(parser, ".png (sRGB) and .exr (linear) images")
 
@@ -778,8 +798,10 @@ def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Se
 
 def _add_mesh_arguments(parser: argparse.ArgumentParser,
                         uv_sources: Sequence[str] = ("auto", "mesh", "none")) -> None:
-    parser.add_argument("mesh", type=Path, help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
-    parser.add_argument("--exemplar", type=Path, required=True, help="exemplar image")
+    parser.add_argument("mesh", type=Path, metavar="MESH",
+                        help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
+    parser.add_argument("--exemplar", type=Path, required=True, metavar="EXEMPLAR",
+                        help=_EXEMPLAR_HELP)
     _add_loading_arguments(parser)
     parser.add_argument("--resolution", type=int, default=1024,
                         help="the mesh's bounding box fills a block of RESOLUTION^3 voxels "
@@ -790,9 +812,10 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
                         + ", ".join(ways[w] for w in uv_sources if w in ways)
                         + ", or vertex colors only (none, default); xatlas is slow on large "
                         "meshes (93 s for the 69k-face bunny on 2 cores)")
-    parser.add_argument("--texture-size", type=int, default=1024,
-                        help="edge of the UV texture in pixels (default 1024)")
-    parser.add_argument("--store", type=Path, metavar="FILE",
+    parser.add_argument("--texture-size", type=int,
+                        help=f"with --uv: edge of the UV texture in pixels (default "
+                        f"{_TEXTURE_SIZE})")
+    parser.add_argument("--store", type=_file_name, metavar="FILE",
                         help="brick store file: voxels synthesized by an earlier run with the "
                         "same texture are read from it, and all are written back at the end "
                         "(also usable as the lazy_solid plugin's cache)")
@@ -810,6 +833,11 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     _check_at_least("--resolution", args.resolution, 1)
     if args.resolution > COORD_LIMIT // 2:
         raise CliError(f"--resolution must be at most {COORD_LIMIT // 2}, got {args.resolution}")
+    if args.uv == "none" and args.texture_size is not None:
+        raise CliError("--texture-size applies to a UV texture (--uv auto or mesh), not to "
+                       "vertex colors")
+    if args.texture_size is None:
+        args.texture_size = _TEXTURE_SIZE
     _check_at_least("--texture-size", args.texture_size, 1)
     if args.uv != "none":
         size = args.texture_size
@@ -828,7 +856,12 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
         outputs.append(args.output.with_stem(args.output.stem + "_b"))
         _check_output(outputs[1], formats, what)
     for output in outputs:
-        _check_inputs_kept(args, exported_files(output, uv_texture=args.uv != "none"))
+        files = exported_files(output, uv_texture=args.uv != "none")
+        _check_inputs_kept(args, files)
+        for side in files[1:]:  # the material library and texture of an .obj
+            problem = file_problem(side)
+            if problem is not None:
+                raise CliError(f"{side} (written with {output}): {problem}")
     if args.store is not None:
         from warptex.store import StoreFileError, check_store_path
 
@@ -856,7 +889,8 @@ def _load_mesh(path: Path, uv: str = "none"):
         raise CliError(f"{path}: not a mesh format warptex reads (.{', .'.join(_MESH_FORMATS)}, "
                        "and the others trimesh reads)") from None
     except Exception as error:  # trimesh raises many kinds on a bad or unknown file
-        raise CliError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from None
+        raise CliError(f"{path}: cannot read the mesh: damaged, or not what its name says "
+                       f"(trimesh: {error or type(error).__name__})") from None
     if len(getattr(mesh, "faces", ())) == 0:
         raise CliError(f"{path}: no triangles found")
     if not mesh.area > 0:
@@ -873,7 +907,7 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
     from tqdm.auto import tqdm
 
     from warptex.bake import bake_uv_texture, vertex_colors
-    from warptex.mesh_files import export
+    from warptex.mesh_files import export, exported_files
 
     if args.uv == "none":
         colors = vertex_colors(tex, mesh, transform, progress=f"colours of {output.name}")
@@ -891,7 +925,7 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
         image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
         bar.update()
         bar.set_postfix_str("writing")
-        with _writing(output):
+        with _writing(output, *exported_files(output, uv_texture=True)):
             files = export(mesh, output, image=image, uv=uv, srgb=srgb)
         bar.update()
     return files
@@ -936,7 +970,7 @@ def _add_bake_parser(subparsers: argparse._SubParsersAction) -> None:
         "write vertex colors (.ply/.glb) or a UV texture (.glb with embedded PNG, .obj+.mtl).",
     )
     _add_mesh_arguments(parser)
-    parser.add_argument("-o", "--output", type=Path, required=True,
+    parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
                         help="output mesh: .ply or .glb (vertex colors), .glb or .obj (UV)")
 
 
@@ -1000,9 +1034,10 @@ def _add_cut_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="a point of the plane in mesh coordinates (default: box centre)")
     parser.add_argument("--normal", type=float, nargs=3, default=(1.0, 0.0, 0.0),
                         metavar=("X", "Y", "Z"), help="plane normal (default x)")
-    parser.add_argument("-o", "--output", type=Path, required=True,
-                        help="output for the first half, e.g. cut.ply; the second half gets "
-                        "the suffix _b (cut_b.ply)")
+    parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
+                        help="output mesh for the first half: .ply or .glb (vertex colors), "
+                        ".glb or .obj (--uv auto), e.g. cut.ply; the second half gets the "
+                        "suffix _b (cut_b.ply)")
 
 
 def _cmd_cut(args: argparse.Namespace) -> int:
@@ -1043,9 +1078,10 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "a repetition score over a 256-voxel slice, time and peak memory. "
         f"Methods: {', '.join(METHODS)}.",
     )
-    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help="exemplar image")
+    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     parser.add_argument("--size", type=int, default=64,
-                        help="edge of each method's volume in voxels (default 64)")
+                        help="edge of each method's volume in voxels, at least 8 and, with "
+                        "Kopf's methods, a multiple of 8 (default 64)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated methods (default: all)")
     parser.add_argument("--seed", type=int, default=0,
@@ -1106,8 +1142,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
         "themselves: shrink a large photograph there, with <integer name=\"exemplar_max_size\" "
         "value=\"256\"/> in its lazy_solid.",
     )
-    parser.add_argument("scene", type=Path, help="Mitsuba 3 scene file (.xml)")
-    parser.add_argument("-o", "--output", type=Path, required=True,
+    parser.add_argument("scene", type=Path, metavar="SCENE", help="Mitsuba 3 scene file (.xml)")
+    parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
                         help="image to write: .exr (linear) or .png (sRGB)")
     parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     parser.add_argument("--res", metavar="WxH",

@@ -4,6 +4,7 @@ baked results of ``warptex.bake``)."""
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -97,9 +98,12 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
         if suffix == ".obj":
             options["mtl_name"] = f"{path.stem}.mtl"
         out.export(staged, **options)
-        written = []
-        for f in sorted(Path(tmp).iterdir()):
-            target = path.parent / f.name
+        staged_files = sorted(Path(tmp).iterdir())
+        targets = [path.parent / f.name for f in staged_files]
+        # Refused before any is replaced: an .obj must not arrive without its texture.
+        for target in targets:
+            if target.is_dir():
+                raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))
+        for f, target in zip(staged_files, targets, strict=True):
             os.replace(f, target)
-            written.append(target)
-    return written
+    return targets

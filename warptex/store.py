@@ -275,6 +275,14 @@ def _differences(stored: dict, current: dict, where: str = "in the file") -> str
     return ", ".join(out) or "equal settings with another identity digest"
 
 
+def check_lookup_channels(channels: int) -> None:
+    """Raise ValueError unless the voxels of exemplars of ``channels`` color channels can be
+    stored and looked up: the lookup kernels filter at most four."""
+    if channels > _k.MAX_CHANNELS:
+        raise ValueError(f"{channels} color channels; points are looked up in at most "
+                         f"{_k.MAX_CHANNELS} (gray, RGB or RGBA)")
+
+
 def store_settings(synthesizer: Synthesizer) -> dict:
     """Everything a stored voxel depends on: exemplars, candidate parameters and algorithm
     version, seed, jitter, tile shifts, engine version and parameters; digested by
@@ -351,8 +359,7 @@ class BrickStore:
         cs = synthesizer.candidates
         sources = [cs.colors[cs.axis_source[k]] for k in range(3)]
         self.channels = cs.channels
-        if self.channels > _k.MAX_CHANNELS:
-            raise ValueError(f"at most {_k.MAX_CHANNELS} color channels, got {self.channels}")
+        check_lookup_channels(self.channels)
         self._pixels = np.array([c.shape[0] * c.shape[1] for c in sources])
         compact = self._pixels.max() <= 1 << 16
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
