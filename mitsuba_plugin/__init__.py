@@ -13,6 +13,7 @@ shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
     mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
     image = mitsuba_plugin.render(mi.load_file("scenes/bunny_wood.xml"), spp=16)
+    mitsuba_plugin.save_caches()  # the brick stores of textures with a ``cache`` file
 
 Under the JIT variants a symbolic render traces every live BSDF, so while a
 ``lazy_solid`` texture is alive in the process, render through ``render()``, in
@@ -28,6 +29,7 @@ import threading
 import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -255,3 +257,10 @@ def _render_traced(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf | None:
 def textures() -> list:
     """The ``lazy_solid`` textures alive in this process (e.g. of a loaded scene)."""
     return list(live_textures)
+
+
+def save_caches() -> list[Path]:
+    """Write the brick store of every live ``lazy_solid`` texture that has a ``cache`` file,
+    as ``warptex render`` does after rendering, so that the next process starts from the
+    voxels synthesized here; returns the files written."""
+    return [path for texture in textures() if (path := texture.save()) is not None]

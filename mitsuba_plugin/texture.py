@@ -230,7 +230,8 @@ class LazySolidTexture(mi.Texture):
         self.space = choice_property(props, "space", _SPACES, PLUGIN)
         self.filter = choice_property(props, "filter", FILTERS, PLUGIN)
         self.raw = get_property(props, "raw", bool, False, PLUGIN)
-        cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES, PLUGIN)
+        self.cache_bytes = cache_bytes = get_property(props, "cache_bytes", int,
+                                                      DEFAULT_CACHE_BYTES, PLUGIN)
         if cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
         cache = get_property(props, "cache", str, None, PLUGIN)
@@ -335,14 +336,22 @@ class LazySolidTexture(mi.Texture):
         self._update_transform()
 
     def to_string(self) -> str:
-        names = ", ".join(f'"{p}"' for p in dict.fromkeys(self.exemplars))
+        # Every property that sets what a point shows: `warptex render` records the string.
+        if len(set(self.exemplars)) == 1:
+            names = f'"{self.exemplars[0]}"'
+        else:
+            names = ", ".join(f'{axis}="{p}"' for axis, p in zip("xyz", self.exemplars,
+                                                                  strict=True))
         shrunk = "" if self.max_size is None else f", exemplar_max_size={self.max_size}"
+        matrix = _affine_matrix(self.to_world)
+        placed = ("" if np.array_equal(matrix, np.eye(4))
+                  else f", to_world={np.round(matrix, 6).tolist()}")
         return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={self.seed}, "
                 f"jitter={self.jitter}, shifted_tiles={self.shifted_tiles}, "
                 f"tileable={self.tileable}, "
-                f"passes={self.passes}, scale={self.scale}, "
+                f"passes={self.passes}, scale={self.scale}{placed}, "
                 f"space={self.space}, filter={self.filter}, raw={self.raw}, "
-                f"cache={self.cache}]")
+                f"cache={self.cache}, cache_bytes={self.cache_bytes}]")
 
     # -- queries ----------------------------------------------------------------------
 

@@ -43,6 +43,18 @@ def test_sources_of_the_wrong_kind_are_named(candidates, warp_device):
         with pytest.raises(ValueError, match="must be three ints"):
             synth.box(origin, shape)
     assert synth.box(np.array([1, 2, 3]), (1, 1, 2)).shape == (1, 1, 2, 3)
+    with pytest.raises(ValueError, match="device must be a Warp device such as 'cpu'"):
+        Synthesizer(candidates, device="foo")
+
+
+def test_texture_arguments_of_the_wrong_kind_are_named(candidates, warp_device):
+    from warptex.texture import SolidTexture
+
+    with pytest.raises(TypeError, match="store must be a file name"):
+        SolidTexture(candidates, store=123)
+    tex = SolidTexture(candidates)
+    with pytest.raises(ValueError, match="fill must be one finite value or 3 of them, got 'red'"):
+        tex.query(np.array([[np.nan, 0.0, 0.0]]), fill="red")
 
 
 def test_slice_arguments_are_checked(candidates, warp_device):

@@ -678,6 +678,10 @@ def test_unknown_or_bad_parameters_are_rejected():
     for params, error, message in bad:
         with pytest.raises(error, match=message):
             precompute(ex, cache=False, **params)
+    with pytest.raises(ValueError, match="cache must be True or False, got 'no'"):
+        precompute(ex, cache="no")
+    with pytest.raises(ValueError, match="progress must be True or False"):
+        precompute(ex, cache=False, progress="x")
     # A NumPy integer is an integer, and keys the cache as the plain one does.
     resolved = candidates.resolved_params({"neighborhood": np.int64(5)})
     assert resolved == candidates.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int

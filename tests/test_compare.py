@@ -110,6 +110,24 @@ def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_
         compare(path, 16, ["lazy"], passes=9, progress=False)
 
 
+def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_dir,
+                                                                         monkeypatch):
+    """The worker's SettingError reaches the caller whole, not as a broken process pool."""
+    import pickle
+
+    from warptex import compare
+    from warptex.settings import SettingError
+
+    error = pickle.loads(pickle.dumps(SettingError("max_size", "must be at least 16")))
+    assert (error.name, error.problem, str(error)) == ("max_size", "must be at least 16",
+                                                      "max_size must be at least 16")
+    with pytest.raises(SettingError, match="max_size must be at least 16 pixels, got 8"):
+        compare.compare(data_dir / "granite_64.png", 16, ["noise"], max_size=8, progress=False)
+    monkeypatch.setattr(compare, "check_max_size", lambda max_size: None)  # the worker's own
+    with pytest.raises(SettingError, match="max_size must be at least 16 pixels, got 8"):
+        compare.compare(data_dir / "granite_64.png", 16, ["noise"], max_size=8, progress=False)
+
+
 def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
     """The grid textures of the other methods are decoded from sRGB as the plugin decodes
     the lazy cube's, so cubes compare in one color space; a float exemplar is left as is."""

@@ -778,3 +778,20 @@ def test_the_setting_tileable_decides_the_seams_where_it_is_not_auto():
         ex.seams("yes")
     with pytest.raises(TypeError, match="tileable must be"):
         seams_of(ex.colors, 1)
+
+
+def test_arguments_without_a_meaning_are_refused_naming_them(tmp_path, data_dir):
+    """srgb is a flag ("no" would count as true), a path is a file name, and an Exemplar
+    takes an array: a file name points to Exemplar.load."""
+    colors = np.random.default_rng(0).random((16, 16, 3)).astype(np.float32)
+    with pytest.raises(SettingError, match="srgb must be True or False, got 'no'"):
+        Exemplar(colors, srgb="no")
+    with pytest.raises(SettingError, match="srgb must be True or False"):
+        Exemplar.load(data_dir / "granite_64.png", srgb="false")
+    assert Exemplar(colors, srgb=np.bool_(True)).srgb is True
+    with pytest.raises(TypeError, match="path must be a file name"):
+        Exemplar.load(5)
+    with pytest.raises(ExemplarError, match=r"Exemplar\.load reads the file x\.png"):
+        Exemplar("x.png")
+    with pytest.raises(SettingError, match="min_size must be an integer"):
+        Exemplar(colors).pyramid(min_size="a")

@@ -218,9 +218,13 @@ def test_same_seed_same_volume(granite):
     ("kwargs", "message"),
     [
         ({"size": 12}, "multiple of 8"),
-        ({"iterations": (1, 1)}, "3 positive counts"),
+        ({"iterations": (1, 1)}, "a positive integer or 3 of them"),
+        ({"iterations": 1.7}, "a positive integer or 3 of them"),
+        ({"iterations": (1, 0, 1)}, "a positive integer or 3 of them"),
         ({"exemplars": (None, None, "g")}, "at least two"),
         ({"tileable": "yes"}, "tileable must be"),
+        ({"seed": -1}, r"seed must be within \[0, 2147483647\]"),
+        ({"seed": 1.5}, "seed must be an integer"),
     ],
 )
 def test_bad_arguments(granite, kwargs, message):
@@ -230,3 +234,16 @@ def test_bad_arguments(granite, kwargs, message):
         args["exemplars"] = tuple(granite if e == "g" else e for e in kwargs["exemplars"])
     with pytest.raises(ValueError, match=message):
         kopf.synthesize(progress=False, **args)
+
+
+def test_sizes_and_exemplars_of_another_type(granite, granite_32_file):
+    """A size must be an integer (8.0 failed deep inside); an exemplar may be its file."""
+    for size in (8.0, "8", True):
+        with pytest.raises(TypeError, match="size must be an integer"):
+            kopf.synthesize(granite, size=size, progress=False)
+    with pytest.raises(TypeError, match=r"an exemplar must be a warptex\.Exemplar or an image"):
+        kopf.synthesize(np.zeros((16, 16, 3)), size=8, progress=False)
+    from_file = kopf.synthesize(str(granite_32_file), size=8, iterations=1, progress=False)
+    np.testing.assert_array_equal(
+        from_file, kopf.synthesize(Exemplar.load(granite_32_file), size=8, iterations=1,
+                                   progress=False))

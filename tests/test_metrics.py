@@ -166,7 +166,15 @@ def test_inputs_without_a_meaning_are_one_clear_error():
         (metrics.sliced_wasserstein, (nan_vol, ex, 0), {}, "volume holds NaN"),
         (metrics.histogram_distance, (nan_vol, ex, 0), {}, "volume holds NaN"),
         (metrics.sliced_wasserstein, (vol, ex, 0), {"directions": 0}, "directions must be"),
-        (metrics.neighborhood_energy, (vol, ex, 0), {"slices": 0}, "count of slices"),
+        (metrics.neighborhood_energy, (vol, ex, 0), {"slices": 0}, "slices must be at least 1"),
+        (metrics.neighborhood_energy, (vol, ex, 0), {"slices": 2.5}, "slices must be an integer"),
+        (metrics.sliced_wasserstein, (vol, ex, 0), {"directions": 2.0}, "directions must be an"),
+        (metrics.sliced_wasserstein, (vol, ex, 0), {"seed": "a"}, "seed must be an integer"),
+        (metrics.histogram_distance, (vol, ex, 0), {"bins": 0}, "bins must be at least 1"),
+        (metrics.axis_slices, (vol, 5), {}, "axis must be 0, 1 or 2"),
+        (metrics.axis_slices, (vol, 0), {"count": 0}, "count .of slices. must be at least 1"),
+        (metrics.extrusion, (ex, 4), {"axis": 3}, "axis must be 0, 1 or 2"),
+        (metrics.repetition_score, (rng.random((64, 64)),), {"exclude": 2.5}, "exclude must be an"),
         (metrics.neighborhood_energy, (vol, ex, 0), {"size": 0}, "size .* positive integer"),
         (metrics.neighborhood_energy, (vol, ex, 1.0), {}, "axis must be 0, 1 or 2"),
         (metrics.neighborhood_energy, (vol[:0], ex, 0), {}, "too few or too small"),
@@ -176,6 +184,9 @@ def test_inputs_without_a_meaning_are_one_clear_error():
     for metric, args, kwargs, message in cases:
         with pytest.raises(ValueError, match=message):
             metric(*args, **kwargs)
+    with pytest.raises(TypeError, match=r"Exemplar\.load reads a file"):
+        metrics.neighborhood_energy(vol, "granite_64.png", 0)
     from warptex.exemplar import Exemplar
 
     assert metrics.iid_noise(Exemplar(ex), (2, 2, 2)).shape == (2, 2, 2, 3)
+    assert np.array_equal(metrics.extrusion(Exemplar(ex), 2), metrics.extrusion(ex, 2))

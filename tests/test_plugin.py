@@ -160,6 +160,26 @@ def test_passes_shifted_tiles_and_tileable_reach_the_synthesis(granite_32_file):
                               Synthesizer(cs, seed=2).voxels(ijk))
 
 
+def test_to_string_tells_textures_of_other_settings_apart(granite_32_file, tmp_path):
+    """`warptex render` records the string: textures that show other colors differ in it,
+    per-axis exemplars by axis, placed blocks by their transform."""
+    from PIL import Image
+
+    use("scalar_rgb")
+    other = tmp_path / "turned.png"
+    Image.open(granite_32_file).transpose(Image.Transpose.ROTATE_90).save(other)
+    on_y = load(granite_32_file, exemplar_y=str(other)).to_string()
+    on_z = load(granite_32_file, exemplar_z=str(other)).to_string()
+    assert on_y != on_z
+    assert f'x="{granite_32_file}", y="{granite_32_file}", z="{other}"' in on_z
+    plain = load(granite_32_file).to_string()
+    assert f'exemplars=["{granite_32_file}"]' in plain and "to_world" not in plain
+    assert f"cache_bytes={256 << 20}]" in plain
+    moved = load(granite_32_file, to_world=mi.ScalarTransform4f().translate([1, 2, 3]))
+    assert "to_world=[[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 2.0]," in moved.to_string()
+    assert "cache_bytes=1024]" in load(granite_32_file, cache_bytes=1024).to_string()
+
+
 def test_exemplar_max_size_shrinks_the_exemplars(granite_32_file):
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar
@@ -223,6 +243,25 @@ def test_a_cache_of_another_live_texture_of_other_settings_is_refused(granite_32
         load(granite_32_file, cache=cache, seed=3)
     assert load(granite_32_file, cache=cache) is not None
     assert first is not None
+
+
+def test_save_caches_writes_the_stores_of_textures_with_a_cache(granite_32_file, tmp_path):
+    """What a script calls after rendering, as `warptex render` does: the next process
+    starts from the voxels synthesized here."""
+    use("scalar_rgb")
+    cache = tmp_path / "granite.wtb"
+    tex = load(granite_32_file, cache=str(cache), seed=5)
+    without = load(granite_32_file, seed=5)
+    points = np.array([[1.5, 2.5, 3.5], [20.0, 7.25, 9.5]])
+    colors = eval_at(tex, points)
+    assert cache in mitsuba_plugin.save_caches()  # with those of any other live texture
+    del tex
+    again = load(granite_32_file, cache=str(cache), seed=5)
+    stored = again.solid.store.stats()["voxels"]
+    assert stored > 0
+    np.testing.assert_array_equal(eval_at(again, points), colors)
+    assert again.solid.store.stats()["voxels"] == stored  # nothing synthesized anew
+    np.testing.assert_array_equal(eval_at(without, points), colors)
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM, CUDA])

@@ -35,10 +35,10 @@ from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel
 from warptex.archive import ArchiveError, folder_problem, read_archive, write_archive
 from warptex.code_digest import code_digest, module_sources
-from warptex.exemplar import Exemplar, ExemplarError, wrapping_edges
+from warptex.exemplar import Exemplar, ExemplarError, as_exemplar, wrapping_edges
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
-from warptex.settings import check_tileable
+from warptex.settings import check_flag, check_tileable
 from warptex.warp_runtime import init_warp
 
 FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
@@ -223,8 +223,11 @@ def precompute(
     cannot be written is reported once and left out. ``progress`` shows a bar on stderr; None shows
     it when stderr is a terminal.
     """
+    check_flag("cache", cache)
+    if progress is not None:
+        check_flag("progress", progress)
     ey = ex if ey is None else ey
-    exemplars = [_as_exemplar(e) for e in (ex, ey, ey if ez is None else ez)]
+    exemplars = [as_exemplar(e) for e in (ex, ey, ey if ez is None else ez)]
     channels = [e.features.shape[2] for e in exemplars]
     if len(set(channels)) != 1:
         found = ", ".join(f"{axis} {e.path or e.name} {n}"
@@ -370,16 +373,6 @@ def cached_candidate_path(ex: Exemplar, tileable: bool | str = "auto") -> Path |
     except CandidateCacheError:
         return None
     return path
-
-
-def _as_exemplar(e: Exemplar | str | Path) -> Exemplar:
-    if isinstance(e, Exemplar):
-        return e
-    if isinstance(e, str | os.PathLike):
-        return Exemplar.load(e)
-    hint = " (an array becomes one as warptex.Exemplar(array))" if isinstance(e, np.ndarray) else ""
-    raise TypeError(f"an exemplar must be a warptex.Exemplar or an image path, got "
-                    f"{type(e).__name__}{hint}")
 
 
 def resolved_params(params: dict) -> dict:

@@ -27,7 +27,13 @@ from warptex import metrics
 from warptex.archive import write_atomically
 from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
 from warptex.machine import PeakMemory, map_large_blocks
-from warptex.settings import DEFAULT_PASSES, check_settings, check_tileable, tileable_word
+from warptex.settings import (
+    DEFAULT_PASSES,
+    check_max_size,
+    check_settings,
+    check_tileable,
+    tileable_word,
+)
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
@@ -254,7 +260,8 @@ def run_line(run: dict) -> str:
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
             seed: int = 0, progress: bool = True, passes: int = DEFAULT_PASSES,
             max_size: int | None = None, tileable: bool | str = "auto") -> list[MethodResult]:
-    """Score every method on one exemplar, each in a fresh process; ``passes`` are the
+    """Score every method on one exemplar, each in a fresh process (started by ``spawn``: a
+    script calling this needs an ``if __name__ == "__main__":`` guard); ``passes`` are the
     lazy engine's correction passes per level (``lazy`` and ``tiled``), ``max_size`` how
     far the exemplar is shrunk when loaded (``Exemplar.load``), ``tileable`` whether the
     exemplar's opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
@@ -270,6 +277,7 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_settings(passes=passes, seed=seed)
+    check_max_size(max_size)
     settings = _Settings(seed, passes, check_tileable(tileable))
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,7 +31,13 @@ import png
 from PIL import Image, ImageOps, UnidentifiedImageError
 from scipy import ndimage
 
-from warptex.settings import MIN_EXEMPLAR_SIZE, check_max_size, check_tileable
+from warptex.settings import (
+    MIN_EXEMPLAR_SIZE,
+    check_count,
+    check_flag,
+    check_max_size,
+    check_tileable,
+)
 
 MAX_CHANNELS = 64
 # Above this, an exemplar's wrap differs so much more than its neighbouring pixels that it
@@ -105,6 +112,8 @@ class Exemplar:
         self.path: Path | None = None
         self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
         self.colors = _validated_colors(array, name)
+        if srgb is not None:
+            check_flag("srgb", srgb)
         self._seam_contrast: tuple[float, float] | None = None  # once: colors are read-only
         self._seams: tuple[bool, bool] | None = None
         self.srgb = _integer(array) if srgb is None else bool(srgb)
@@ -161,6 +170,10 @@ class Exemplar:
         if feature_mask is not None and feature_distance == "auto":
             raise ValueError("give either feature_mask or feature_distance='auto', not both")
         check_max_size(max_size)
+        if srgb is not None:
+            check_flag("srgb", srgb)
+        if not isinstance(path, str | os.PathLike):
+            raise TypeError(f"path must be a file name (str or Path), got {path!r}")
 
         path = Path(path)
         array, has_alpha, stored_srgb = _read(path)
@@ -221,8 +234,7 @@ class Exemplar:
         photo's opposite edges. The pyramid stops at the first level whose larger side is at
         most ``min_size``.
         """
-        if min_size < 1:
-            raise ValueError(f"min_size must be at least 1, not {min_size}")
+        check_count("min_size", min_size, low=1)
         seams = self.seams() if seams is None else seams
         levels = [PyramidLevel(self.colors, self.features)]
         while max(levels[-1].shape) > min_size:
@@ -290,6 +302,19 @@ class Exemplar:
             f"Exemplar({self.name!r}, {w}x{h}, channels={self.channels}"
             f"{', feature_distance=True' if extra else ''}{', linear' if not self.srgb else ''})"
         )
+
+
+def as_exemplar(source: Exemplar | str | os.PathLike) -> Exemplar:
+    """``source`` if it is an Exemplar, else the image file it names, loaded; a TypeError
+    for anything else."""
+    if isinstance(source, Exemplar):
+        return source
+    if isinstance(source, str | os.PathLike):
+        return Exemplar.load(source)
+    hint = (" (an array becomes one as warptex.Exemplar(array))"
+            if isinstance(source, np.ndarray) else "")
+    raise TypeError(f"an exemplar must be a warptex.Exemplar or an image path, got "
+                    f"{type(source).__name__}{hint}")
 
 
 def seam_contrast_of(colors: np.ndarray) -> tuple[float, float]:
@@ -513,6 +538,9 @@ def _validated_colors(array: object, name: str) -> np.ndarray:
         data = np.asarray(array)
     except (TypeError, ValueError) as error:
         raise ExemplarError(f"{name}: not an image array ({error})") from None
+    if data.ndim == 0 and isinstance(array, str | Path):
+        raise ExemplarError(f"{name}: an Exemplar takes an image array; Exemplar.load reads "
+                            f"the file {array}")
     if data.ndim == 2:
         data = data[..., None]
     if data.ndim != 3:

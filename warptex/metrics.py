@@ -7,19 +7,21 @@ perpendicular to axis k is read with the same orientation as the exemplar of axi
 
 from __future__ import annotations
 
+import os
 from numbers import Integral
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from warptex.exemplar import Exemplar, seams_of, wrapping_edges
+from warptex.settings import check_count
 
 
 def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarray]:
     """``count`` evenly spaced slices perpendicular to ``axis``, as (rows, cols, C) images
     oriented like the exemplar of that axis."""
-    if count < 1:
-        raise ValueError(f"the count of slices must be at least 1, got {count}")
+    _check_axis(axis)
+    check_count("count (of slices)", count, low=1)
     depth = volume.shape[axis]
     picks = np.unique(np.linspace(0, depth - 1, min(count, depth)).astype(int))
     order = [(axis + 1) % 3, (axis + 2) % 3]
@@ -64,6 +66,9 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     """``volume`` (D, H, W, C) and ``exemplar`` (H, W, C, or a warptex.Exemplar) as float
     arrays of the same channels, whose slices across ``axis`` hold ``size`` x ``size``
     patches; else a ValueError or TypeError saying which argument is wrong."""
+    if isinstance(exemplar, str | os.PathLike):
+        raise TypeError(f"exemplar must be an (H, W, C) image array or a warptex.Exemplar "
+                        f"(Exemplar.load reads a file), got {exemplar!r}")
     exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
     volume = np.asarray(volume)
     if volume.ndim != 4:
@@ -77,8 +82,7 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     if volume.shape[3] != exemplar.shape[2]:
         raise ValueError(f"volume has {volume.shape[3]} channels, exemplar "
                          f"{exemplar.shape[2]}")
-    if isinstance(axis, bool) or not isinstance(axis, Integral) or axis not in (0, 1, 2):
-        raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+    _check_axis(axis)
     if isinstance(size, bool) or not isinstance(size, Integral) or size < 1:
         raise ValueError(f"size (of the patches) must be a positive integer, got {size!r}")
     across = [volume.shape[a] for a in range(3) if a != axis]
@@ -95,6 +99,11 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     return volume, exemplar
 
 
+def _check_axis(axis: object) -> None:
+    if isinstance(axis, bool) or not isinstance(axis, Integral) or axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+
+
 def _variance(exemplar: np.ndarray) -> float:
     """The exemplar's variance summed over channels: the unit of the distances measured."""
     return float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
@@ -109,6 +118,7 @@ def neighborhood_energy(
     variance and patch size (0 = every patch is in the exemplar; about 2 for patches of
     unrelated values of the same variance)."""
     volume, colors = _checked(volume, exemplar, axis, size)
+    check_count("slices", slices, low=1)
     tree = cKDTree(exemplar_patches(exemplar, size, tileable))
     vol_patches = np.concatenate(
         [patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)]
@@ -139,8 +149,9 @@ def sliced_wasserstein(
     (:func:`exemplar_patches` under the setting ``tileable``), averaged over random unit
     directions and normalized by the exemplar's std."""
     volume, colors = _checked(volume, exemplar, axis, size)
-    if directions < 1:
-        raise ValueError(f"directions must be at least 1, got {directions}")
+    check_count("directions", directions, low=1)
+    check_count("slices", slices, low=1)
+    check_count("seed", seed)
     a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
     b = exemplar_patches(exemplar, size, tileable)
     rng = np.random.default_rng(seed)
@@ -157,6 +168,7 @@ def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
     """Mean over channels of the L1 distance between normalized ``bins``-bin histograms of
     the slices perpendicular to ``axis`` and of the exemplar (0 = same, 2 = disjoint)."""
     volume, exemplar = _checked(volume, exemplar, axis)
+    check_count("bins", bins, low=1)
     slices = axis_slices(volume, axis)
     values = np.concatenate([s.reshape(-1, s.shape[2]) for s in slices])
     ref = exemplar.reshape(-1, exemplar.shape[2])
@@ -181,8 +193,7 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
     if not np.isfinite(image).all():
         raise ValueError("image holds NaN or infinite values")
-    if exclude < 0:
-        raise ValueError(f"exclude must not be negative (shift 0 matches itself), got {exclude}")
+    check_count("exclude", exclude)  # shift 0 always matches itself
     if max(image.shape[:2]) // 4 <= exclude:
         raise ValueError(f"a {image.shape[0]} x {image.shape[1]} image is too small for the "
                          f"repetition score: shifts past {exclude} pixels up to a quarter of "
@@ -216,6 +227,8 @@ def iid_noise(exemplar: np.ndarray, shape: tuple[int, int, int], seed: int = 0) 
 
 def extrusion(exemplar: np.ndarray, depth: int, axis: int = 2) -> np.ndarray:
     """The exemplar stacked along ``axis``: perfect on that axis' slices, streaks elsewhere."""
+    exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
+    _check_axis(axis)
     order = [(axis + 1) % 3, (axis + 2) % 3]
     vol = np.repeat(exemplar[None], depth, axis=0)  # (depth, rows, cols, C)
     dest = [axis, *order]

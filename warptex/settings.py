@@ -33,6 +33,11 @@ class SettingError(ValueError):
         self.name = name
         self.problem = problem
 
+    def __reduce__(self) -> tuple:
+        # As a worker process raises it (warptex.compare): by default it would be rebuilt
+        # from the message alone, and the parent's pool would break instead.
+        return type(self), (self.name, self.problem)
+
 
 def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
                    seed: int = 0) -> None:

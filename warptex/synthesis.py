@@ -301,7 +301,11 @@ class Synthesizer:
         self.subpasses = int(subpasses)
         # "cuda" names whichever GPU is current on the calling thread; resolved once
         # ("cuda:0"), every array and launch of this engine stays on one GPU.
-        self.device = str(wp.get_device(device or default_device()))
+        try:
+            self.device = str(wp.get_device(device or default_device()))
+        except (ValueError, RuntimeError) as error:  # Warp's words name no argument
+            raise ValueError(f"device must be a Warp device such as 'cpu' or 'cuda:0', got "
+                             f"{device!r} ({error})") from None
         self.finest = candidates.num_levels - 1
         self.start = max(0, self.finest - int(levels))
         half = int(candidates.params["neighborhood"]) // 2

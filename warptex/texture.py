@@ -7,6 +7,7 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 
 from __future__ import annotations
 
+import os
 import threading
 import weakref
 from collections.abc import Callable, Sequence
@@ -80,7 +81,8 @@ class SolidTexture:
     shifts each tile of the initial tiling by its own offset (:class:`Synthesizer`).
     ``whole_bricks=False`` synthesizes only the voxels queries read instead of their whole
     8^3 bricks: faster for thin sets such as mesh surfaces and cuts (see
-    :class:`~warptex.store.BrickStore`).
+    :class:`~warptex.store.BrickStore`). ``device`` is the Warp device that synthesizes
+    (default: a GPU when there is one, see :func:`warptex.device`).
     """
 
     def __init__(
@@ -100,6 +102,8 @@ class SolidTexture:
                       else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
                                        shifted_tiles=shifted_tiles)
+        if store is not None and not isinstance(store, str | os.PathLike):
+            raise TypeError(f"store must be a file name (str or Path), got {store!r}")
         self.path = Path(store) if store is not None else None
         if self.path is not None:
             _check_unshared(self.path, self.synthesizer, joining=self)
@@ -197,7 +201,10 @@ class SolidTexture:
         self.store.sample(np.ascontiguousarray(points, np.float64), filter, out)
 
     def _fill_color(self, fill: float | Sequence[float]) -> np.ndarray:
-        color = np.asarray(fill, np.float32)
+        try:
+            color = np.asarray(fill, np.float32)
+        except (TypeError, ValueError):
+            color = np.full(1, np.nan, np.float32)  # refused below, in words of its own
         if color.shape not in ((), (self.channels,)) or not np.isfinite(color).all():
             raise ValueError(f"fill must be one finite value or {self.channels} of them, "
                              f"got {fill!r}")

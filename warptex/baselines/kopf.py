@@ -41,6 +41,8 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
+from numbers import Integral
+from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -48,8 +50,9 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from kernels import kopf as _k
-from warptex.exemplar import Exemplar, wrapping_edges
+from warptex.exemplar import Exemplar, as_exemplar, wrapping_edges
 from warptex.parallel import THREADS, launch_ranges
+from warptex.settings import check_settings
 from warptex.warp_runtime import init_warp, launch
 
 LEVELS = 3  # "we use a three-level synthesis pyramid" (section 6)
@@ -106,6 +109,8 @@ class _Axis:
 
 def check_size(size: int) -> None:
     """Raise ValueError unless ``size`` halves evenly through the pyramid's levels."""
+    if isinstance(size, bool) or not isinstance(size, Integral):
+        raise TypeError(f"size must be an integer, got {size!r}")
     if size < 1 or size % (1 << LEVELS) != 0:
         raise ValueError(f"size must be a positive multiple of {1 << LEVELS} for Kopf's method "
                          f"(its {LEVELS} levels halve it, the coarsest onto an even grid), "
@@ -113,13 +118,13 @@ def check_size(size: int) -> None:
 
 
 def synthesize(
-    exemplar: Exemplar | None,
+    exemplar: Exemplar | str | Path | None,
     size: int = 64,
     iterations: int | Sequence[int] = (6, 4, 3),
     seed: int = 0,
     progress: bool = True,
     *,
-    exemplars: Sequence[Exemplar | None] | None = None,
+    exemplars: Sequence[Exemplar | str | Path | None] | None = None,
     histogram_matching: bool = True,
     mean_shift: bool = False,
     tileable: bool | str = "auto",
@@ -128,7 +133,8 @@ def synthesize(
     """Synthesize a periodic ``size^3`` solid texture (Kopf et al. 2007).
 
     Args:
-        exemplar: the exemplar of all three axes; ``None`` when ``exemplars`` is given.
+        exemplar: the exemplar of all three axes (or its image file); ``None`` when
+            ``exemplars`` is given.
         size: edge of the cubic volume in voxels, a multiple of 8 (the coarsest of the three
             levels must have even size for the m = 2 grid).
         iterations: search + optimization iterations per level, coarsest first, or one count
@@ -149,11 +155,15 @@ def synthesize(
         ``(size, size, size, C)`` float32 colors; a feature-distance channel, if the exemplars
         have one, is synthesized along but not returned.
     """
-    axes = _axis_exemplars(exemplar, exemplars)
     check_size(size)
-    counts = [int(iterations)] * LEVELS if np.isscalar(iterations) else [int(t) for t in iterations]
-    if len(counts) != LEVELS or min(counts) < 1:
-        raise ValueError(f"iterations must be {LEVELS} positive counts, got {iterations!r}")
+    check_settings(seed=seed)
+    counts = [iterations] * LEVELS if np.ndim(iterations) == 0 else list(iterations)
+    if len(counts) != LEVELS or not all(isinstance(t, Integral) and not isinstance(t, bool)
+                                        and t >= 1 for t in counts):
+        raise ValueError(f"iterations must be a positive integer or {LEVELS} of them, one per "
+                         f"level, got {iterations!r}")
+    counts = [int(t) for t in counts]
+    axes = _axis_exemplars(exemplar, exemplars)
     # One pyramid (and below, one search structure) per distinct exemplar.
     distinct = {id(e): e for e in axes if e is not None}
     seams = {k: e.seams(tileable) for k, e in distinct.items()}
@@ -192,6 +202,8 @@ def _axis_exemplars(
     axes = [exemplar] * 3 if exemplars is None else list(exemplars)
     if len(axes) != 3:
         raise ValueError(f"exemplars must have three entries (x, y, z), got {len(axes)}")
+    loaded = {id(e): as_exemplar(e) for e in axes if e is not None}  # a file read once
+    axes = [None if e is None else loaded[id(e)] for e in axes]
     given = [e for e in axes if e is not None]
     if len(given) < 2:
         raise ValueError("at least two axes must be constrained by an exemplar")
