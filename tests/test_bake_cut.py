@@ -209,15 +209,31 @@ def test_export_formats(texture, sphere, tmp_path):
     assert not list(tmp_path.glob(".t.ply*"))
 
 
-def test_an_obj_arrives_with_its_texture_or_not_at_all(tmp_path):
+def test_an_obj_never_arrives_before_its_texture(tmp_path, monkeypatch):
     """Where the .obj's texture cannot be written (a folder of its name), none of its files
-    is: the error names the texture, and no temporary is left."""
+    is: the error names the texture, and no temporary is left. A texture whose write fails
+    later leaves no .obj that would show another texture."""
+    import os
+
     mesh, uv = _square()
+    image = np.full((8, 8, 3), 0.5, np.float32)
     (tmp_path / "t.png").mkdir()
     with pytest.raises(IsADirectoryError) as error:
-        export(mesh, tmp_path / "t.obj", image=np.full((8, 8, 3), 0.5, np.float32), uv=uv)
+        export(mesh, tmp_path / "t.obj", image=image, uv=uv)
     assert error.value.filename == str(tmp_path / "t.png")
     assert [p.name for p in tmp_path.iterdir()] == ["t.png"]
+
+    replace = os.replace
+
+    def disk_full(src, dst):
+        if Path(dst).suffix == ".png":
+            raise OSError(28, "No space left on device", str(dst))
+        replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        export(mesh, tmp_path / "u.obj", image=image, uv=uv)
+    assert not (tmp_path / "u.obj").exists()
 
 
 def glb_vertex_colors(path: Path) -> np.ndarray:

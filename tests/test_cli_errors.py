@@ -258,15 +258,16 @@ def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, ca
 
 
 @pytest.mark.parametrize("command", ["volume", "slice", "precompute", "render", "bake"])
-def test_an_output_name_ending_in_a_slash_is_refused(files, tmp_path, capsys, command):
+@pytest.mark.parametrize("ending", ["/", "/.", "/.."])
+def test_an_output_name_of_a_folder_is_refused(files, tmp_path, capsys, command, ending):
     """-o out.npy/ names a folder: refused, not written as the file out.npy."""
-    given = f"{tmp_path / 'out.npy'}/"
+    given = f"{tmp_path / 'out.npy'}{ending}"
     inputs = {"render": [str(files["scene"])],
               "bake": [str(files["mesh"]), "--exemplar", str(files["exemplar"])]}
     with pytest.raises(SystemExit) as exit_code:
         main([command, *inputs.get(command, [str(files["exemplar"])]), "-o", given])
     assert exit_code.value.code == 2
-    assert f"{given}: ends in a slash, the name of a folder" in capsys.readouterr().err
+    assert f"'{given}' names a folder, not a file" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 
 

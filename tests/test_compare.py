@@ -208,8 +208,10 @@ def test_volume_command_runs_kopf_with_the_setting_tileable(tmp_path, ramp_file,
     out = tmp_path / "k.npy"
     assert main(["volume", str(ramp_file), "--method", "kopf", "--size", "8", "--tileable",
                  "no", "-o", str(out)]) == 0
-    expected = synthesize(Exemplar.load(ramp_file), size=8, progress=False, tileable=False)
+    ramp = Exemplar.load(ramp_file)
+    expected = synthesize(ramp, size=8, progress=False, tileable=False)
     np.testing.assert_array_equal(np.load(out), expected)
+    assert not np.array_equal(expected, synthesize(ramp, size=8, progress=False))
 
 
 def test_volume_command_runs_kopf(tmp_path, data_dir, warp_device):

@@ -117,6 +117,8 @@ def test_the_setting_tileable_decides_which_exemplar_patches_wrap():
     assert metrics.neighborhood_energy(vol, ramp, 2, tileable=True) == 0.0
     assert metrics.worst_axis_energy(vol, ramp, tileable=True) == max(
         metrics.neighborhood_energy(vol, ramp, a, tileable=True) for a in range(3))
+    assert metrics.worst_axis_energy(vol, ramp, tileable=False) > metrics.worst_axis_energy(
+        vol, ramp, tileable=True)
     assert metrics.sliced_wasserstein(vol, ramp, 2, tileable=True) < metrics.sliced_wasserstein(
         vol, ramp, 2)
     with pytest.raises(ValueError, match="tileable must be"):

@@ -89,9 +89,9 @@ def _check_writable_folder(folder: Path, target: Path) -> None:
 def _file_name(text: str) -> Path:
     """An output file argument as a Path, refused where it ends in a slash: Path would drop
     the slash and write a file under the name of the folder asked for."""
-    if text.endswith(("/", os.sep)):
-        raise argparse.ArgumentTypeError(f"{text}: ends in a slash, the name of a folder; "
-                                         "give a file name")
+    if os.path.basename(text) in ("", ".", ".."):  # out.npy/, out.npy/. or nothing
+        raise argparse.ArgumentTypeError(f"{text!r} names a folder, not a file; give a file "
+                                         "name")
     return Path(text)
 
 
@@ -625,7 +625,9 @@ def _writing(path: Path, *written_with: Path) -> Iterator[None]:
     try:
         yield
     except OSError as error:
-        where = next((p for p in written_with if str(p) == error.filename), path)
+        # A failed rename names its target second (os.replace's filename2).
+        failed = {error.filename, error.filename2}
+        where = next((p for p in written_with if str(p) in failed), path)
         raise CliError(f"{where}: cannot write ({error.strerror or error})") from None
 
 
@@ -836,11 +838,9 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if args.uv == "none" and args.texture_size is not None:
         raise CliError("--texture-size applies to a UV texture (--uv auto or mesh), not to "
                        "vertex colors")
-    if args.texture_size is None:
-        args.texture_size = _TEXTURE_SIZE
-    _check_at_least("--texture-size", args.texture_size, 1)
+    _check_at_least("--texture-size", _texture_size(args), 1)
     if args.uv != "none":
-        size = args.texture_size
+        size = _texture_size(args)
         if size > _MAX_TEXTURE_SIZE:
             raise CliError(f"--texture-size must be at most {_MAX_TEXTURE_SIZE}, got {size}")
         _check_fits(size * size * _TEXEL_BYTES, f"--texture-size {size}: a {size}^2 UV texture",
@@ -874,6 +874,10 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
         except StoreFileError as error:
             raise CliError(str(error)) from None
     return outputs
+
+
+def _texture_size(args: argparse.Namespace) -> int:
+    return _TEXTURE_SIZE if args.texture_size is None else args.texture_size
 
 
 def _load_mesh(path: Path, uv: str = "none"):
@@ -921,8 +925,9 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
             mesh = mesh.unwrap()
         bar.update()
         uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut does not offer it
-        bar.set_postfix_str(f"baking {args.texture_size}^2 texels")
-        image, _ = bake_uv_texture(tex, mesh, uv, transform, size=args.texture_size)
+        size = _texture_size(args)
+        bar.set_postfix_str(f"baking {size}^2 texels")
+        image, _ = bake_uv_texture(tex, mesh, uv, transform, size=size)
         bar.update()
         bar.set_postfix_str("writing")
         with _writing(output, *exported_files(output, uv_texture=True)):

@@ -160,6 +160,8 @@ class Exemplar:
             ExemplarError: missing or unreadable file, not an image, fewer than 16x16 pixels
                 (after shrinking), NaN/Inf values, zero or more than 64 channels, or an
                 unusable feature mask.
+            TypeError: ``path`` is no file name.
+            SettingError: ``max_size`` or ``srgb`` out of range or of the wrong type.
         """
         if alpha not in ("drop", "keep"):
             raise ValueError(f"alpha must be 'drop' or 'keep', not {alpha!r}")
@@ -538,7 +540,7 @@ def _validated_colors(array: object, name: str) -> np.ndarray:
         data = np.asarray(array)
     except (TypeError, ValueError) as error:
         raise ExemplarError(f"{name}: not an image array ({error})") from None
-    if data.ndim == 0 and isinstance(array, str | Path):
+    if data.ndim == 0 and isinstance(array, str | os.PathLike):
         raise ExemplarError(f"{name}: an Exemplar takes an image array; Exemplar.load reads "
                             f"the file {array}")
     if data.ndim == 2:

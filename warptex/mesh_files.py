@@ -55,9 +55,9 @@ def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None,
            srgb: bool | None = None) -> list[Path]:
-    """Write a textured mesh atomically: PLY/GLB with vertex ``colors``, or GLB (embedded
-    PNG) / OBJ (+ MTL + PNG, :func:`exported_files`) with a UV ``image``. Returns the files
-    written.
+    """Write a textured mesh, each file atomically: PLY/GLB with vertex ``colors``, or GLB
+    (embedded PNG) / OBJ (+ MTL + PNG, :func:`exported_files`, written before the OBJ)
+    with a UV ``image``. Returns the files written.
 
     ``srgb``: whether the colors are sRGB-encoded (``Exemplar.srgb``), so that each file
     holds what its readers assume: PNG textures and PLY vertex colors sRGB-encoded, glTF
@@ -98,9 +98,10 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
         if suffix == ".obj":
             options["mtl_name"] = f"{path.stem}.mtl"
         out.export(staged, **options)
-        staged_files = sorted(Path(tmp).iterdir())
+        # The mesh file last: an .obj never arrives before its material and texture, and a
+        # folder in the place of any of them is refused before one is replaced.
+        staged_files = sorted(Path(tmp).iterdir(), key=lambda f: (f.name == path.name, f.name))
         targets = [path.parent / f.name for f in staged_files]
-        # Refused before any is replaced: an .obj must not arrive without its texture.
         for target in targets:
             if target.is_dir():
                 raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))

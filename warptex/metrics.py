@@ -55,7 +55,7 @@ def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int,
     across a photo's seam (:func:`warptex.exemplar.seams_of`, or as the setting ``tileable``
     says), where a wrapped patch is no part of the photo
     (:func:`warptex.exemplar.wrapping_edges`)."""
-    colors = np.asarray(getattr(exemplar, "colors", exemplar))
+    colors = _colors(exemplar)
     # An Exemplar has decided its seams once; an array (or a pyramid level) is measured here.
     seams = (exemplar.seams(tileable) if isinstance(exemplar, Exemplar)
              else seams_of(colors, tileable))
@@ -66,10 +66,7 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     """``volume`` (D, H, W, C) and ``exemplar`` (H, W, C, or a warptex.Exemplar) as float
     arrays of the same channels, whose slices across ``axis`` hold ``size`` x ``size``
     patches; else a ValueError or TypeError saying which argument is wrong."""
-    if isinstance(exemplar, str | os.PathLike):
-        raise TypeError(f"exemplar must be an (H, W, C) image array or a warptex.Exemplar "
-                        f"(Exemplar.load reads a file), got {exemplar!r}")
-    exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
+    exemplar = _colors(exemplar)
     volume = np.asarray(volume)
     if volume.ndim != 4:
         raise ValueError(f"volume must be a (D, H, W, C) array, got shape {volume.shape}")
@@ -97,6 +94,15 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     if not _variance(exemplar) > 0:
         raise ValueError("exemplar is constant: the metrics measure in units of its variance")
     return volume, exemplar
+
+
+def _colors(exemplar: np.ndarray | Exemplar) -> np.ndarray:
+    """The colors of an exemplar given as an array or an Exemplar; a file name is refused
+    rather than taken for a 0-d array."""
+    if isinstance(exemplar, str | os.PathLike):
+        raise TypeError(f"exemplar must be an (H, W, C) image array or a warptex.Exemplar "
+                        f"(Exemplar.load reads a file), got {exemplar!r}")
+    return np.asarray(getattr(exemplar, "colors", exemplar))
 
 
 def _check_axis(axis: object) -> None:
@@ -217,17 +223,18 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
 # comparisons can check the metrics against them.
 
 
-def iid_noise(exemplar: np.ndarray, shape: tuple[int, int, int], seed: int = 0) -> np.ndarray:
+def iid_noise(exemplar: np.ndarray | Exemplar, shape: tuple[int, int, int],
+              seed: int = 0) -> np.ndarray:
     """A volume of independent exemplar pixels: right histogram, no structure."""
-    exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
+    exemplar = _colors(exemplar)
     flat = exemplar.reshape(-1, exemplar.shape[2])
     idx = np.random.default_rng(seed).integers(0, len(flat), size=int(np.prod(shape)))
     return flat[idx].reshape(*shape, exemplar.shape[2])
 
 
-def extrusion(exemplar: np.ndarray, depth: int, axis: int = 2) -> np.ndarray:
+def extrusion(exemplar: np.ndarray | Exemplar, depth: int, axis: int = 2) -> np.ndarray:
     """The exemplar stacked along ``axis``: perfect on that axis' slices, streaks elsewhere."""
-    exemplar = np.asarray(getattr(exemplar, "colors", exemplar))
+    exemplar = _colors(exemplar)
     _check_axis(axis)
     order = [(axis + 1) % 3, (axis + 2) % 3]
     vol = np.repeat(exemplar[None], depth, axis=0)  # (depth, rows, cols, C)

@@ -98,12 +98,12 @@ class SolidTexture:
         whole_bricks: bool = True,
         shifted_tiles: bool = False,
     ) -> None:
+        if store is not None and not isinstance(store, str | os.PathLike):  # before the work
+            raise TypeError(f"store must be a file name (str or Path), got {store!r}")
         candidates = (source if isinstance(source, CandidateSet)
                       else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
                                        shifted_tiles=shifted_tiles)
-        if store is not None and not isinstance(store, str | os.PathLike):
-            raise TypeError(f"store must be a file name (str or Path), got {store!r}")
         self.path = Path(store) if store is not None else None
         if self.path is not None:
             _check_unshared(self.path, self.synthesizer, joining=self)

@@ -195,14 +195,18 @@ def synthesize(
 
 
 def _axis_exemplars(
-    exemplar: Exemplar | None, exemplars: Sequence[Exemplar | None] | None
+    exemplar: Exemplar | str | Path | None,
+    exemplars: Sequence[Exemplar | str | Path | None] | None,
 ) -> list[Exemplar | None]:
     if (exemplar is None) == (exemplars is None):
         raise ValueError("give either exemplar or exemplars (one per axis), not both or neither")
     axes = [exemplar] * 3 if exemplars is None else list(exemplars)
     if len(axes) != 3:
         raise ValueError(f"exemplars must have three entries (x, y, z), got {len(axes)}")
-    loaded = {id(e): as_exemplar(e) for e in axes if e is not None}  # a file read once
+    loaded: dict[int, Exemplar] = {}
+    for e in axes:  # a file named on several axes is read once
+        if e is not None and id(e) not in loaded:
+            loaded[id(e)] = as_exemplar(e)
     axes = [None if e is None else loaded[id(e)] for e in axes]
     given = [e for e in axes if e is not None]
     if len(given) < 2:
