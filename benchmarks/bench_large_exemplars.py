@@ -27,7 +27,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
-PHOTO = REPO.parent / "shared" / "data" / "exemplars" / "dry_mud_256.png"
+EXEMPLARS = REPO.parent / "shared" / "data" / "exemplars"
+PHOTO = EXEMPLARS / "dry_mud_256.png"
 
 
 def _peak_bytes() -> int:
@@ -57,10 +58,21 @@ def one(photos: list[Path], side: int) -> dict:
             "estimate": candidates.precompute_bytes(exemplars)}
 
 
+def _photo(text: str) -> Path:
+    """A photo's path as given, else its name in the shared exemplar folder."""
+    path = Path(text)
+    if not path.exists() and (EXEMPLARS / path).exists():
+        return EXEMPLARS / path
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such file here or in {EXEMPLARS}")
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
-    parser.add_argument("--photos", nargs="+", type=Path, default=[PHOTO],
-                        help="one photo for all three axes, or three, one per axis")
+    parser.add_argument("--photos", nargs="+", type=_photo, default=[PHOTO],
+                        help="one photo for all three axes, or three, one per axis: paths, or "
+                        f"names of files in {EXEMPLARS}")
     parser.add_argument("--sides", nargs="+", type=int, default=[128, 256, 512])
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # the child's side
     args = parser.parse_args()
@@ -79,8 +91,10 @@ def main() -> None:
     for side in args.sides:
         child = subprocess.run(
             [sys.executable, __file__, "--photos", *map(str, args.photos), "--one", str(side)],
-            check=True, capture_output=True, text=True,
+            check=False, capture_output=True, text=True,
         )
+        if child.returncode != 0:  # its own error, which capturing would hide
+            sys.exit(f"side {side}: the measuring process failed:\n{child.stderr}")
         r = json.loads(child.stdout.strip().splitlines()[-1])
         print(f"| {side} | {side * side:,} | {r['seconds']:.1f} | {r['peak'] / mib:.0f} "
               f"| {r['growth'] / mib:.0f} | {r['growth'] / side**2 / 1000:.1f} "
