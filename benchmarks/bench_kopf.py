@@ -43,8 +43,10 @@ def timed_kopf(ex: Exemplar, size: int, mean_shift: bool
 
 
 def per_level(history: list[kopf.Iteration]) -> str:
-    return ", ".join(
-        f"L{lv} {np.mean([h.seconds for h in history if h.level == lv]):.2f}"
+    """Mean seconds of an iteration at each level, coarse to fine, as BENCHMARKS.md's
+    tables write them."""
+    return " / ".join(
+        f"{np.mean([h.seconds for h in history if h.level == lv]):.2f}"
         for lv in range(kopf.LEVELS)
     )
 
