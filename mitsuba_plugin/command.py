@@ -139,9 +139,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             raise KeyboardInterrupt from None
         if params and "unused parameters" in str(e):
             raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
-                             "which this scene does not declare: add <default name=\"width\" "
-                             "value=\"256\"/> and <integer name=\"width\" value=\"$width\"/> "
-                             "in its film, the same for height") from None
+                             "which this scene does not declare or does not use: add <default "
+                             "name=\"width\" value=\"256\"/> and <integer name=\"width\" "
+                             "value=\"$width\"/> in its film, the same for height") from None
         problem = scene_error(str(e), scene_path)
         raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()
@@ -194,8 +194,9 @@ def _check_store_file(texture, outputs: list[Path]) -> None:
                              "writes: choose another output name")
     problem = file_problem(cache)
     if problem is not None:
-        raise ValueError(f'lazy_solid: property "cache": the brick store could not be saved to '
-                         f"{cache} after rendering: {problem}")
+        raise ValueError(f'lazy_solid: property "cache": the brick store would be saved to '
+                         f"{cache} after rendering, which cannot be: {problem} (copy a store "
+                         "that is only to be read to a place that can be written)")
 
 
 @contextmanager

@@ -46,14 +46,17 @@ def choice_property(props: mi.Properties, name: str, options: tuple[str, ...],
 
 
 def scene_path(name: str, must_exist: bool) -> Path:
-    """Absolute path of a file named in a scene.
+    """Absolute path of a file named in a scene (``~`` is the home folder).
 
     While Mitsuba parses a scene file its file resolver starts with the file's folder,
     so relative names resolve against the scene; ``mi.load_dict`` resolves against the
-    working directory. A file that does not exist yet is placed in that first folder.
+    working directory. A file to read (``must_exist``) is looked up in the resolver's
+    other folders too, as Mitsuba looks up its own bitmaps; a file to write always goes
+    in that first folder, so that it is never another scene's file found elsewhere.
     """
+    path = Path(name).expanduser()
     resolver = mi.file_resolver()
-    found = Path(str(resolver.resolve(name)))
-    if found.exists() or must_exist or found.is_absolute() or len(resolver) == 0:
-        return found.absolute()
-    return (Path(str(resolver[0])) / name).absolute()
+    if must_exist:
+        return Path(str(resolver.resolve(str(path)))).absolute()
+    first = Path(str(resolver[0])) if len(resolver) and not path.is_absolute() else Path()
+    return (first / path).absolute()

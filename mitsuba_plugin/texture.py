@@ -42,7 +42,9 @@ texture sticks to it when it moves: the frame of the ``instance`` the hit belong
 the ``to_world`` parameter of the shape when it has one (``sphere``, ``rectangle``, ...).
 Meshes bake their ``to_world`` into their vertices at load time, so a plain mesh has no frame
 to recover and object space equals world space for it; move meshes with ``instance`` to keep
-their texture.
+their texture. So do shapes that Mitsuba's loader merges into one mesh (``optimize=True``, its
+default, merges rectangles and meshes that share a BSDF): give each moving shape its own BSDF,
+or an ``instance``.
 
 Colors: as Mitsuba's ``bitmap`` does, the plugin gives renders linear colors, so the
 sRGB-encoded values of 8- and 16-bit exemplars (``Exemplar.srgb``) are decoded unless
@@ -85,7 +87,9 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import threading
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -101,6 +105,7 @@ from mitsuba_plugin.traced import TracedLookup
 from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import (
+    AlphaDropped,
     Exemplar,
     srgb_decoded,
     srgb_encoded,
@@ -156,10 +161,23 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
     for key, path in named:
         if path not in loaded:
             try:
-                loaded[path] = Exemplar.load(path, max_size=max_size)
+                with warnings.catch_warnings(record=True) as said:
+                    warnings.simplefilter("always")
+                    loaded[path] = Exemplar.load(path, max_size=max_size)
             except (ValueError, OSError) as e:
                 raise property_error(plugin, key, f"cannot be used: {e}") from e
+            for warning in said:
+                _rewarn(warning, plugin, path)
     return [loaded[path] for _, path in named]
+
+
+def _rewarn(warning: warnings.WarningMessage, plugin: str, path: Path) -> None:
+    """A warning of Exemplar.load as a scene's author reads it: the plugin has no alpha
+    property to keep the channel with, as the API and the command line have."""
+    message = str(warning.message)
+    if issubclass(warning.category, AlphaDropped):
+        message = f"{path}: alpha channel dropped ({plugin} gives colors only)"
+    warnings.warn(f"{plugin}: {message}", warning.category, stacklevel=3)
 
 
 def _exemplar_names(named: list[tuple[str, Path]]) -> str:
@@ -235,6 +253,8 @@ class LazySolidTexture(mi.Texture):
         if cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
         cache = get_property(props, "cache", str, None, PLUGIN)
+        if cache is not None and os.path.basename(cache) in ("", ".", ".."):
+            raise property_error(PLUGIN, "cache", f'names a folder, not a file: "{cache}"')
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
         # A store file yet to be made that never can be would only fail its first save,
         # after a render's work; one that exists is loaded even from a read-only place.

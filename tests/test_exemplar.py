@@ -14,6 +14,7 @@ from scipy import ndimage
 
 from warptex.exemplar import (
     SEAM_LIMIT,
+    AlphaDropped,
     Exemplar,
     ExemplarError,
     PyramidLevel,
@@ -113,7 +114,7 @@ def test_png_palette_expands_to_rgb(tmp_path, rng):
 def test_png_rgba_alpha_dropped_with_warning(tmp_path, rng):
     rgba = rng.integers(0, 256, size=(16, 20, 4), dtype=np.uint8)
     Image.fromarray(rgba, mode="RGBA").save(tmp_path / "rgba.png")
-    with pytest.warns(UserWarning, match=r"rgba\.png: alpha channel dropped"):
+    with pytest.warns(AlphaDropped, match=r"rgba\.png: alpha channel dropped"):
         exemplar = Exemplar.load(tmp_path / "rgba.png")
     assert exemplar.channels == 3
     np.testing.assert_array_equal(exemplar.colors, rgba[..., :3] / np.float32(255))

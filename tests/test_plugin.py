@@ -3,6 +3,8 @@ space, Mitsuba's vectorization check."""
 
 from __future__ import annotations
 
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -243,6 +245,54 @@ def test_a_cache_of_another_live_texture_of_other_settings_is_refused(granite_32
         load(granite_32_file, cache=cache, seed=3)
     assert load(granite_32_file, cache=cache) is not None
     assert first is not None
+
+
+def test_a_relative_cache_is_always_beside_the_scene(granite_32_file, tmp_path, monkeypatch):
+    """A store file to write is never another scene's that the working folder happens to
+    hold; ``~`` is the home folder; a folder's name is refused, whether it exists or not."""
+    use("scalar_rgb")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "c.wtb").write_text("another scene's store")
+    monkeypatch.chdir(tmp_path / "other")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+
+    def loaded(cache: str):
+        scene = tmp_path / "sub" / "scene.xml"
+        scene.write_text(
+            '<scene version="3.0.0"><shape type="rectangle"><bsdf type="diffuse">'
+            '<texture type="lazy_solid" name="reflectance">'
+            f'<string name="exemplar" value="{granite_32_file}"/>'
+            f'<string name="cache" value="{cache}"/></texture></bsdf></shape></scene>')
+        before = set(map(id, mitsuba_plugin.textures()))
+        loaded.scene = mi.load_file(str(scene))  # kept alive with its texture
+        (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+        return texture.cache
+
+    assert loaded("c.wtb") == tmp_path / "sub" / "c.wtb"
+    assert (tmp_path / "other" / "c.wtb").read_text() == "another scene's store"
+    assert loaded("~/stores/c.wtb") == tmp_path / "home" / "stores" / "c.wtb"
+    for folder in ("stores/", "."):
+        with pytest.raises(RuntimeError, match=f'property "cache" names a folder, not a file: '
+                                               f'"{re.escape(folder)}"'):
+            loaded(folder)
+    with pytest.raises(RuntimeError, match=r'property "cache".*is a folder, expected a brick'):
+        loaded(str(tmp_path / "other"))
+
+
+def test_a_dropped_alpha_channel_is_said_in_the_plugin_s_words(granite_32_file, tmp_path):
+    """The plugin has no alpha property: its warning does not send the author to one."""
+    from PIL import Image
+
+    from warptex.exemplar import AlphaDropped
+
+    use("scalar_rgb")
+    rgba = tmp_path / "rgba.png"
+    Image.open(granite_32_file).convert("RGBA").save(rgba)
+    with pytest.warns(AlphaDropped) as said:
+        load(rgba)
+    (message,) = [str(w.message) for w in said if issubclass(w.category, AlphaDropped)]
+    assert message == f"lazy_solid: {rgba}: alpha channel dropped (lazy_solid gives colors only)"
 
 
 def test_save_caches_writes_the_stores_of_textures_with_a_cache(granite_32_file, tmp_path):

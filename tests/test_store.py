@@ -289,10 +289,11 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
 def test_a_file_of_another_kind_is_refused_and_kept(candidates, tmp_path: Path):
     notes = tmp_path / "notes.txt"
     notes.write_text("not bricks")
-    for path in (notes, tmp_path):
-        with pytest.raises(StoreFileError, match="not a warptex brick store file"):
+    for path, words in ((notes, "not a warptex brick store file"),
+                        (tmp_path, "is a folder, expected a brick store file")):
+        with pytest.raises(StoreFileError, match=words):
             BrickStore.load(path, synthesizer(candidates))
-        with pytest.raises(StoreFileError, match="not a warptex brick store file"):
+        with pytest.raises(StoreFileError, match=words):
             BrickStore(synthesizer(candidates)).save(path)
     assert notes.read_text() == "not bricks"
     empty = tmp_path / "made_by_mktemp"

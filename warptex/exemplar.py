@@ -61,6 +61,10 @@ _SHRINK_BAND = 256  # columns shrunk at once
 _PYRAMID_SIGMA = 1.0
 
 
+class AlphaDropped(UserWarning):
+    """An exemplar's alpha channel was dropped on loading (``alpha="drop"``)."""
+
+
 class ExemplarError(ValueError):
     """An exemplar could not be used; the message names the file (or ``array``) and the problem."""
 
@@ -182,7 +186,7 @@ class Exemplar:
         if has_alpha and alpha == "drop":
             warnings.warn(
                 f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in the CLI)",
-                stacklevel=2,
+                AlphaDropped, stacklevel=2,
             )
             array = array[..., :-1]
         read_shape = array.shape

@@ -335,6 +335,8 @@ def check_store_path(path: str | Path) -> None:
         foreign = is_foreign(path, _MAGIC)
     except OSError as e:
         raise StoreFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    if foreign and Path(path).is_dir():
+        raise StoreFileError(f"{path}: is a folder, expected a brick store file")
     if foreign:
         raise StoreFileError(f"{path}: exists and is not a warptex brick store file; "
                              "it would be overwritten, choose another store path")
