@@ -153,6 +153,16 @@ def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[st
     return named
 
 
+def _check_known(props: mi.Properties) -> None:
+    """Refuse a property the plugin does not read, with the one it may be a typo of: Mitsuba
+    would refuse it too, after the exemplars' work, and name no likely one."""
+    for key in props:
+        if key not in _PROPERTIES:
+            near = difflib.get_close_matches(key, _PROPERTIES, n=1)
+            hint = f'; did you mean "{near[0]}"?' if near else ""
+            raise property_error(PLUGIN, key, f"is no property of {PLUGIN}{hint}")
+
+
 def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
                     plugin: str = PLUGIN) -> list[Exemplar]:
     """The exemplar images, each read once and shrunk to ``max_size``; one that cannot be
@@ -227,6 +237,7 @@ class LazySolidTexture(mi.Texture):
         super().__init__(props)
         check_upsampling()  # before any work: this Mitsuba's spectra may be refused
         named = _exemplar_paths(props)
+        _check_known(props)
         self.exemplars = [path for _, path in named]
         self.max_size = get_property(props, "exemplar_max_size", int, None, PLUGIN)
         try:

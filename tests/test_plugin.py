@@ -91,6 +91,15 @@ def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
                       "exemplar_y": str(granite_32_file), "exemplar_max_size": 32})
 
 
+def test_a_property_the_plugin_does_not_read_is_named_with_its_likely_one(granite_32_file):
+    use("scalar_rgb")
+    with pytest.raises(RuntimeError, match='lazy_solid: property "sede" is no property of '
+                                           'lazy_solid; did you mean "seed"'):
+        load(granite_32_file, sede=3)
+    with pytest.raises(RuntimeError, match='property "colour" is no property of lazy_solid'):
+        load(granite_32_file, colour=3)
+
+
 def test_candidates_progress_blocks_nest():
     assert mitsuba_plugin.candidates_bar() is None
     with mitsuba_plugin.candidates_progress():
