@@ -91,9 +91,10 @@ def scene_files(scene_path: Path) -> list[Path]:
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                  resolution: tuple[int, int] | None = None,
-                 variant: str | None = None) -> dict:
+                 variant: str | None = None, save_stores: bool = True) -> dict:
     """Render ``scene_path`` to ``output`` (.exr or .png) with progress on stderr, save
-    brick stores that have a ``cache`` file, and write their statistics as JSON beside
+    brick stores that have a ``cache`` file unless ``save_stores`` is False (stores that
+    are only to be read, such as a shared one), and write their statistics as JSON beside
     the image (``<output>.json``). Returns that report.
 
     ``resolution`` sets the scene's ``$width``/``$height`` parameters, which the scenes
@@ -148,7 +149,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
         for texture in mitsuba_plugin.textures():
-            _check_store_file(texture, [output, statistics])
+            _check_store_file(texture, [output, statistics], save_stores)
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     # Read before rendering: each batch sets the sampler to its share of the samples.
@@ -169,7 +170,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             "spp": total,
             "load_seconds": round(loaded - start, 3),
             "render_seconds": round(rendered - loaded, 3),
-            "textures": [_save_and_report(t) for t in mitsuba_plugin.textures()],
+            "textures": [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures()],
         }
         text = json.dumps(report, indent=2) + "\n"
         write_atomically(statistics, lambda tmp: tmp.write_text(text))
@@ -180,10 +181,10 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     return report
 
 
-def _check_store_file(texture, outputs: list[Path]) -> None:
+def _check_store_file(texture, outputs: list[Path], saved: bool) -> None:
     """Refuse, before rendering, a ``cache`` file that the render's end could not save: one
-    this command writes as its image or statistics, or one in a place that cannot be
-    written (the plugin accepts an existing store there, to read)."""
+    this command writes as its image or statistics, or, where it is ``saved``, one in a
+    place that cannot be written (the plugin accepts an existing store there, to read)."""
     cache = texture.cache
     if cache is None:
         return
@@ -192,11 +193,11 @@ def _check_store_file(texture, outputs: list[Path]) -> None:
                 cache.exists() and output.exists() and cache.samefile(output)):
             raise ValueError(f'lazy_solid: property "cache" names {output}, which this render '
                              "writes: choose another output name")
-    problem = file_problem(cache)
+    problem = file_problem(cache) if saved else None
     if problem is not None:
         raise ValueError(f'lazy_solid: property "cache": the brick store would be saved to '
-                         f"{cache} after rendering, which cannot be: {problem} (copy a store "
-                         "that is only to be read to a place that can be written)")
+                         f"{cache} after rendering, which cannot be: {problem} (render with "
+                         "--read-only-stores to only read it)")
 
 
 @contextmanager
@@ -222,8 +223,8 @@ def _progress(done: int, total: int) -> None:
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 
 
-def _save_and_report(texture) -> dict:
-    saved = texture.save()
+def _save_and_report(texture, save: bool) -> dict:
+    saved = texture.save() if save else None
     return {"texture": texture.to_string(), "store": texture.solid.store.stats(),
             "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
             "saved_to": None if saved is None else str(saved)}

@@ -231,6 +231,29 @@ def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path):
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
 
 
+def test_render_command_reads_a_store_it_may_not_write(tmp_path, monkeypatch):
+    """--read-only-stores: a store in a place that cannot be written (a shared one) is read
+    and left as it was, where without it the render is refused."""
+    import mitsuba_plugin.command
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    argv = ["render", str(scene), "--spp", "1", "--res", "16x16"]
+    assert main([*argv, "-o", str(tmp_path / "first.exr")]) == 0
+    mitsuba_plugin.live_textures.clear()  # as a new process would start
+    store = scene.parent / "bricks" / "bunny.wtb"
+    before = store.read_bytes()
+    monkeypatch.setattr(mitsuba_plugin.command, "file_problem",
+                        lambda path: f"cannot write in {path.parent} (Read-only file system)"
+                        if path == store else None)
+    assert main([*argv, "-o", str(tmp_path / "refused.exr")]) == 2
+    mitsuba_plugin.live_textures.clear()
+    assert main([*argv, "--read-only-stores", "-o", str(tmp_path / "read.exr")]) == 0
+    (report,) = json.loads((tmp_path / "read.exr.json").read_text())["textures"]
+    assert report["saved_to"] is None and report["store"]["voxels_added"] == 0
+    assert store.read_bytes() == before
+
+
 @pytest.mark.parametrize("case", ["the output", "its statistics", "read-only"])
 def test_render_command_refuses_a_store_it_could_not_save_before_rendering(
         tmp_path, capsys, monkeypatch, case):

@@ -1161,6 +1161,10 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         "scalar_spectral for spectral rendering, llvm_ad_mono for "
                         f"monochrome (default: llvm_ad_rgb where libLLVM >= {MIN_LLVM_MAJOR} "
                         "is found, else scalar_rgb)")
+    parser.add_argument("--read-only-stores", action="store_true",
+                        help="read the brick stores the scene names (lazy_solid's cache) "
+                        "without writing them back: a shared store, or one in a place that "
+                        "cannot be written")
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -1174,7 +1178,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
         render_scene(args.scene, args.output, spp=args.spp, resolution=resolution,
-                     variant=args.variant)
+                     variant=args.variant, save_stores=not args.read_only_stores)
     except ValueError as e:
         raise CliError(str(e)) from e
     return 0
