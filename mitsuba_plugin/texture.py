@@ -87,7 +87,6 @@ from __future__ import annotations
 
 import difflib
 import math
-import os
 import threading
 import warnings
 from pathlib import Path
@@ -120,6 +119,7 @@ from warptex.settings import (
     SettingError,
     check_max_size,
     check_settings,
+    names_folder,
 )
 from warptex.store import StoreFileError, check_lookup_channels
 from warptex.texture import SolidTexture, wrap_far
@@ -264,7 +264,7 @@ class LazySolidTexture(mi.Texture):
         if cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
         cache = get_property(props, "cache", str, None, PLUGIN)
-        if cache is not None and os.path.basename(cache) in ("", ".", ".."):
+        if cache is not None and names_folder(cache):
             raise property_error(PLUGIN, "cache", f'names a folder, not a file: "{cache}"')
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
         # A store file yet to be made that never can be would only fail its first save,

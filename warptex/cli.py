@@ -34,6 +34,7 @@ from warptex.settings import (
     SettingError,
     check_max_size,
     check_settings,
+    names_folder,
 )
 from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
 
@@ -89,7 +90,7 @@ def _check_writable_folder(folder: Path, target: Path) -> None:
 def _file_name(text: str) -> Path:
     """An output file argument as a Path, refused where it ends in a slash: Path would drop
     the slash and write a file under the name of the folder asked for."""
-    if os.path.basename(text) in ("", ".", ".."):  # out.npy/, out.npy/. or nothing
+    if names_folder(text):
         raise argparse.ArgumentTypeError(f"{text!r} names a folder, not a file; give a file "
                                          "name")
     return Path(text)
@@ -838,9 +839,9 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if args.uv == "none" and args.texture_size is not None:
         raise CliError("--texture-size applies to a UV texture (--uv auto or mesh), not to "
                        "vertex colors")
-    _check_at_least("--texture-size", _texture_size(args), 1)
+    size = _texture_size(args)
+    _check_at_least("--texture-size", size, 1)
     if args.uv != "none":
-        size = _texture_size(args)
         if size > _MAX_TEXTURE_SIZE:
             raise CliError(f"--texture-size must be at most {_MAX_TEXTURE_SIZE}, got {size}")
         _check_fits(size * size * _TEXEL_BYTES, f"--texture-size {size}: a {size}^2 UV texture",

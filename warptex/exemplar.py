@@ -34,6 +34,7 @@ from scipy import ndimage
 from warptex.settings import (
     MIN_EXEMPLAR_SIZE,
     check_count,
+    check_file_name,
     check_flag,
     check_max_size,
     check_tileable,
@@ -116,11 +117,9 @@ class Exemplar:
         self.path: Path | None = None
         self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
         self.colors = _validated_colors(array, name)
-        if srgb is not None:
-            check_flag("srgb", srgb)
         self._seam_contrast: tuple[float, float] | None = None  # once: colors are read-only
         self._seams: tuple[bool, bool] | None = None
-        self.srgb = _integer(array) if srgb is None else bool(srgb)
+        self.srgb = _integer(array) if srgb is None else check_flag("srgb", srgb)
         if feature_distance is None:
             self.features = self.colors
         else:
@@ -178,10 +177,7 @@ class Exemplar:
         check_max_size(max_size)
         if srgb is not None:
             check_flag("srgb", srgb)
-        if not isinstance(path, str | os.PathLike):
-            raise TypeError(f"path must be a file name (str or Path), got {path!r}")
-
-        path = Path(path)
+        path = check_file_name("path", path)
         array, has_alpha, stored_srgb = _read(path)
         if has_alpha and alpha == "drop":
             warnings.warn(

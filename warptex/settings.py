@@ -4,7 +4,9 @@ commands and plugins can offer and check them before loading any kernels."""
 
 from __future__ import annotations
 
+import os
 from numbers import Integral, Real
+from pathlib import Path
 
 import numpy as np
 
@@ -81,6 +83,20 @@ def check_tileable(value: object) -> bool | str:
     if isinstance(value, str) and value != "auto":
         raise ValueError(f'tileable must be "auto", True or False, got {value!r}')
     return value if isinstance(value, str) else bool(value)
+
+
+def check_file_name(name: str, value: object) -> Path:
+    """``value`` as a Path, after a TypeError naming ``name`` unless it is a file name (str
+    or path-like): pathlib's own error names no argument."""
+    if not isinstance(value, str | os.PathLike):
+        raise TypeError(f"{name} must be a file name (str or Path), got {value!r}")
+    return Path(value)
+
+
+def names_folder(text: str) -> bool:
+    """Whether a file name, as given, names a folder: it ends in a slash, ``.`` or ``..``,
+    which Path would drop or keep as a name to write a file under."""
+    return os.path.basename(text) in ("", ".", "..")
 
 
 def tileable_word(value: bool | str) -> str:

@@ -7,7 +7,6 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 
 from __future__ import annotations
 
-import os
 import threading
 import weakref
 from collections.abc import Callable, Sequence
@@ -21,7 +20,13 @@ import warp as wp
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
 from warptex.machine import memory_problem
-from warptex.settings import DEFAULT_CACHE_BYTES, DEFAULT_JITTER, DEFAULT_PASSES, FILTERS
+from warptex.settings import (
+    DEFAULT_CACHE_BYTES,
+    DEFAULT_JITTER,
+    DEFAULT_PASSES,
+    FILTERS,
+    check_file_name,
+)
 from warptex.store import BrickStore, StoreFileError, settings_differences
 from warptex.synthesis import COORD_LIMIT, REQUEST_BYTES_PER_VOXEL, Synthesizer
 
@@ -98,13 +103,11 @@ class SolidTexture:
         whole_bricks: bool = True,
         shifted_tiles: bool = False,
     ) -> None:
-        if store is not None and not isinstance(store, str | os.PathLike):  # before the work
-            raise TypeError(f"store must be a file name (str or Path), got {store!r}")
+        self.path = None if store is None else check_file_name("store", store)  # before the work
         candidates = (source if isinstance(source, CandidateSet)
                       else precompute(source, progress=None))
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
                                        shifted_tiles=shifted_tiles)
-        self.path = Path(store) if store is not None else None
         if self.path is not None:
             _check_unshared(self.path, self.synthesizer, joining=self)
         try:
