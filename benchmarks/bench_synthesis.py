@@ -8,7 +8,8 @@ are compiled and candidates pre-computed before anything is timed.
     python benchmarks/bench_synthesis.py [--exemplars DIR] [--repeat 3]
                                          [--jitter-sweep [--shifted-tiles] [--seeds S ...]
                                           [--sheet PNG]
-                                          | --passes-sweep | --memory]
+                                          | --passes-sweep
+                                          | --memory [--boxes DxHxW ...] [--part-voxels N]]
 """
 
 from __future__ import annotations
@@ -104,20 +105,35 @@ _BOX_IN_A_PROCESS = textwrap.dedent("""
 """)
 
 
-def memory(folder: Path) -> None:
+MEMORY_BOXES = ((64, 256, 256), (128, 256, 256), (256, 256, 256))
+
+
+def memory(folder: Path, boxes: list[tuple[int, int, int]], part_cap: int) -> None:
     """Requests beyond one engine call are synthesized in parts (MAX_WORK_VOXELS): the peak
     memory and time of boxes in parts and in one call, each in a fresh process."""
     exemplar = str(folder / "granite_64.png")
     print("| box | finest work voxels per call | peak memory growth MiB | seconds |")
     print("|---|---|---|---|")
-    for shape in ((64, 256, 256), (128, 256, 256), (256, 256, 256)):
-        for cap in (MAX_WORK_VOXELS, 1 << 40):
+    for shape in boxes:
+        for cap in (part_cap, 1 << 40):
             run = subprocess.run([sys.executable, "-c", _BOX_IN_A_PROCESS, exemplar, str(cap),
-                                  *map(str, shape)], capture_output=True, text=True, check=True)
+                                  *map(str, shape)], capture_output=True, text=True)
+            if run.returncode:
+                sys.exit(f"the box {shape} failed in its process:\n{run.stderr}")
             r = json.loads(run.stdout.strip().splitlines()[-1])
-            label = f"at most {cap}" if cap == MAX_WORK_VOXELS else "one call"
+            label = f"at most {cap}" if cap == part_cap else "one call"
             print(f"| {' x '.join(map(str, shape))} | {label} | {r['mib']:.0f} | "
                   f"{r['seconds']:.1f} |")
+
+
+def _box(text: str) -> tuple[int, int, int]:
+    try:
+        box = tuple(int(a) for a in text.lower().split("x"))
+    except ValueError:
+        box = ()
+    if len(box) != 3 or min(box) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected DxHxW, three positive integers")
+    return box
 
 
 def main() -> None:
@@ -148,9 +164,15 @@ def main() -> None:
     parser.add_argument("--memory", action="store_true",
                         help="only print the peak memory and time of large boxes, in parts "
                         "and in one engine call")
+    parser.add_argument("--boxes", type=_box, nargs="+", default=list(MEMORY_BOXES),
+                        metavar="DxHxW", help="the boxes of --memory (default "
+                        + " ".join("x".join(map(str, b)) for b in MEMORY_BOXES) + ")")
+    parser.add_argument("--part-voxels", type=int, default=MAX_WORK_VOXELS, metavar="N",
+                        help="--memory's cap of finest work voxels per engine call (default "
+                        f"warptex's, {MAX_WORK_VOXELS}; a small one splits small boxes)")
     args = parser.parse_args()
     if args.memory:
-        memory(args.exemplars)
+        memory(args.exemplars, args.boxes, args.part_voxels)
         return
     if args.jitter_sweep:
         jitter_sweep(args.exemplars, args.names, args.jitters, args.slice, args.shifted_tiles,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 import warp as wp
@@ -181,3 +182,61 @@ def test_an_unloadable_kernel_build_is_a_clear_error(tmp_path, monkeypatch, warp
           pytest.raises(RuntimeError, match=refusal)):
         device_module.launch(lookup.insert_keys, 1, [], [])
     assert len(calls) == 2
+
+
+def _kernel_cache(folder, loaded: list[str]) -> dict[str, object]:
+    """A kernel cache holding this warptex's builds ``loaded``, a build of other code of one
+    of its modules, a build left unfinished two hours ago, one in progress, and builds of
+    another program's modules."""
+    for name in loaded:
+        (folder / name).mkdir()
+    other = folder / "wp_kernels.synthesis_0000000"
+    other.mkdir()
+    (other / "wp_kernels.synthesis_0000000.o").write_bytes(b"x" * 100)
+    dead = folder / "wp_kernels.lookup_1234567_p1_t2"
+    dead.mkdir()
+    two_hours_ago = time.time() - 7200
+    os.utime(dead, (two_hours_ago, two_hours_ago))
+    building = folder / "wp_kernels.lookup_1234567_p3_t4"
+    building.mkdir()
+    foreign = [folder / "wp_other.kernels_0000000", folder / "wp_kernelsx.synthesis_0000000"]
+    for f in foreign:
+        f.mkdir()
+    return {"other": other, "dead": dead, "building": building, "foreign": foreign}
+
+
+def test_stale_kernel_builds_are_other_code_and_dead_builds(granite_32, tmp_path, monkeypatch):
+    """Every build this process loaded is kept; a build of other code of warptex's kernel
+    modules and one left unfinished an hour ago are stale; nothing else is touched."""
+    from warptex.candidates import precompute
+    from warptex.synthesis import Synthesizer
+
+    Synthesizer(precompute(granite_32), seed=0).box((0, 0, 0), (4, 4, 4))
+    loaded = [f"wp_{name}_{e.module_hash.hex()[:7]}" for name in device_module.kernel_modules()
+              for e in wp.get_module(name).execs.values()]
+    assert any(name.startswith("wp_kernels.synthesis_") for name in loaded)
+    assert not {f.name for f in device_module.stale_kernel_builds()} & set(loaded)
+
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    made = _kernel_cache(tmp_path, loaded)
+    assert device_module.stale_kernel_builds() == [made["dead"], made["other"]]
+    assert device_module.delete_kernel_builds([made["dead"], made["other"]]) == (2, 100)
+    kept = {tmp_path / name for name in loaded} | {made["building"], *made["foreign"]}
+    assert set(tmp_path.iterdir()) == kept
+    assert device_module.stale_kernel_builds() == []
+
+
+def test_cache_command_lists_and_prunes_stale_kernel_builds(tmp_path, monkeypatch, capsys):
+    from warptex.cli import main
+
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "candidates"))
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    made = _kernel_cache(tmp_path, [])
+    assert main(["cache"]) == 0
+    out = capsys.readouterr().out
+    assert "of which 2 kernel builds of other warptex versions or left unfinished" in out
+    assert made["other"].is_dir() and made["dead"].is_dir()  # listing deletes nothing
+    assert main(["cache", "--prune"]) == 0
+    assert "deleted: 2 kernel builds" in capsys.readouterr().out
+    assert not made["other"].exists() and not made["dead"].exists()
+    assert made["building"].is_dir() and all(f.is_dir() for f in made["foreign"])

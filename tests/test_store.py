@@ -15,6 +15,7 @@ from warptex.store import (
     StoreFileError,
     brick_keys,
     brick_voxels,
+    store_settings,
     unique_voxels,
     voxels_read,
 )
@@ -254,6 +255,16 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     with pytest.warns(UserWarning, match=r"another texture \(shifted tiles False in the file, "
                                          r"True here\)"):
         BrickStore.load(path, synthesizer(candidates, shifted_tiles=True))
+    with monkeypatch.context() as m:  # as files written before tile shifts were kept
+        older = store_settings
+        m.setattr("warptex.store.store_settings",
+                  lambda s: {k: v for k, v in older(s).items() if k != "shifted_tiles"})
+        older_store = BrickStore(synthesizer(candidates))
+        sample(older_store, [brick_center((0, 0, 0))])
+        older_store.save(tmp_path / "older.wtb")
+    with pytest.warns(UserWarning, match=r"another texture \(shifted tiles \(not recorded in "
+                                         r"the file\)\)"):
+        BrickStore.load(tmp_path / "older.wtb", synthesizer(candidates))
     with pytest.warns(UserWarning, match=r"another texture \(sub-passes 1 in the file, 8 here\)"):
         assert BrickStore.load(path, synthesizer(candidates, subpasses=8)).stats()["bricks"] == 0
     with pytest.warns(UserWarning, match=r"another texture \(candidate parameters\)"):

@@ -391,16 +391,18 @@ def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
         "again when needed. 'unfinished': left by a write that died over an hour ago. "
         "'being written': a write of another run, perhaps still going. 'unreadable': not "
         "readable here (another user's file, a folder), left alone. Files stay until "
-        "deleted here. Also says where Warp's kernel cache is and how large.",
+        "deleted here. Also says where Warp's kernel cache is, how large, and how much of it "
+        "holds builds of other warptex versions.",
         epilog="Deleted candidates are computed again when next needed (a few seconds for a "
         "64 px exemplar, minutes for 256 px).",
     )
     what = parser.add_mutually_exclusive_group()
     what.add_argument("--prune", action="store_true",
-                      help="delete the 'other version', 'damaged' and 'unfinished' files")
+                      help="delete the 'other version', 'damaged' and 'unfinished' files, "
+                      "and Warp's builds of other versions of warptex's kernels")
     what.add_argument("--clear", action="store_true",
                       help="delete every candidate file but those 'being written' or "
-                      "'unreadable'")
+                      "'unreadable', and what --prune deletes of Warp's kernel cache")
 
 
 def _cmd_cache(args: argparse.Namespace) -> int:
@@ -438,7 +440,7 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     elif never:
         print(f"warptex cache --prune deletes the {len(never)} that no run of this warptex "
               f"reads ({_mib_tenths(sum(f.size for f in never))})")
-    print(_kernel_cache_line())
+    print("\n".join(_kernel_cache_lines(delete=args.prune or args.clear)))
     return 0
 
 
@@ -455,22 +457,32 @@ def _mib_tenths(n: int) -> str:
     return f"{n / 2**20:.1f} MiB"
 
 
-def _kernel_cache_line() -> str:
-    """Where Warp keeps the built kernels, and how much they take: every warptex version
-    builds its own, and Warp never deletes old ones."""
+def _kernel_cache_lines(delete: bool) -> list[str]:
+    """Where Warp keeps the built kernels and how much they take, and the builds of
+    warptex's kernels that no run of this version loads (every version builds its own, and
+    Warp never deletes old ones), deleted when ``delete``."""
     import warp as wp
 
-    from warptex.warp_runtime import init_warp
+    from warptex import warp_runtime
 
-    init_warp()
+    try:
+        stale = warp_runtime.stale_kernel_builds()
+    except OSError as error:
+        raise CliError(f"{error.filename}: cannot list Warp's kernel cache "
+                       f"({error.strerror or error}); WARP_CACHE_PATH sets its folder") from None
+    deleted = warp_runtime.delete_kernel_builds(stale) if delete else None
     folder = Path(wp.config.kernel_cache_dir)
-    size = 0
-    for parent, _, names in os.walk(folder):  # unreadable folders are skipped
-        for name in names:
-            with contextlib.suppress(OSError):  # removed by a build meanwhile
-                size += os.stat(os.path.join(parent, name), follow_symlinks=False).st_size
-    return (f"Warp's kernel cache: {folder} (WARP_CACHE_PATH sets it), {_mib_tenths(size)}; "
-            "built again when missing, so it may be emptied between runs")
+    lines = [f"Warp's kernel cache: {folder} (WARP_CACHE_PATH sets it), "
+             f"{_mib_tenths(warp_runtime.folder_bytes(folder))}; built again when missing, so "
+             "it may be emptied between runs"]
+    if deleted is not None:
+        lines.append(f"deleted: {deleted[0]} kernel builds of other warptex versions or left "
+                     f"unfinished, {_mib_tenths(deleted[1])}")
+    elif stale:
+        size = sum(warp_runtime.folder_bytes(f) for f in stale)
+        lines.append(f"  of which {len(stale)} kernel builds of other warptex versions or left "
+                     f"unfinished, {_mib_tenths(size)}: warptex cache --prune deletes them")
+    return lines
 
 
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
@@ -1241,29 +1253,13 @@ def _note_kernel_build() -> None:
     cache, once (README, "first use"), and until then no bar moves. The candidate and
     synthesis modules are what nearly every command builds; each is looked up under the
     name Warp gives its current code, so a new version of either is noticed too."""
-    import importlib
+    from warptex.warp_runtime import build_folder, device
 
-    import warp as wp
-
-    from warptex.warp_runtime import device, init_warp
-
-    init_warp()  # which settles Warp's kernel cache folder
-    cache = Path(wp.config.kernel_cache_dir)
     on_cpu = device() == "cpu"
-
-    def built(name: str, cpu_only: bool) -> bool | None:
-        importlib.import_module(name)  # Warp names a build by the code of its kernels
-        block_dim = 1 if on_cpu or cpu_only else None
-        try:
-            identifier = wp.get_module(name).get_module_identifier(block_dim=block_dim)
-        except (AttributeError, TypeError):  # a Warp that names its builds otherwise
-            return None
-        return (cache / identifier).is_dir()
-
-    found = [built(name, cpu_only) for name, cpu_only in _KERNEL_MODULES]
-    if None not in found and not all(found):
-        print(f"warptex: Warp is building the kernels into {cache} (once for this version, "
-              "about half a minute)", file=sys.stderr)
+    folders = [build_folder(name, on_cpu or cpu_only) for name, cpu_only in _KERNEL_MODULES]
+    if None not in folders and not all(f.is_dir() for f in folders):
+        print(f"warptex: Warp is building the kernels into {folders[0].parent} (once for this "
+              "version, about half a minute)", file=sys.stderr)
 
 
 # A negative number in any notation; argparse takes only plain ones ("-5", "-0.5") for values

@@ -269,7 +269,9 @@ def _differences(stored: dict, current: dict, where: str = "in the file") -> str
         there, here = stored.get(name), current.get(name)
         if there != here:
             words = _SETTING_NAMES.get(name, name)
-            if isinstance(here, int | float) and isinstance(there, int | float):
+            if name not in stored:  # a file written before this setting was kept
+                words += f" (not recorded {where})"
+            elif isinstance(here, int | float) and isinstance(there, int | float):
                 words += f" {there} {where}, {here} here"
             out.append(words)
     return ", ".join(out) or "equal settings with another identity digest"

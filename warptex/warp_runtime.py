@@ -3,14 +3,18 @@ launches that survive a damaged kernel cache."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import importlib
 import json
 import os
+import pkgutil
 import re
 import shutil
 import sys
 import tempfile
 import threading
+import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -140,20 +144,103 @@ def _unloadable(error: Exception) -> bool:
 
 def _drop_builds(module: Any) -> list[str]:
     """Delete every cached build of a Warp module (its folders are named after the module
-    and a hash), renamed first so that no other process loads a half-deleted one."""
+    and a hash)."""
     cache = Path(wp.config.kernel_cache_dir)
-    prefix = f"wp_{module.name}_"
     dropped = []
-    for folder in cache.glob(f"{prefix}*"):
-        # Not another module whose name continues this one's, nor a build in progress
-        # (Warp builds in a folder named after the process and thread, then renames it).
-        if not re.fullmatch("[0-9a-f]{7}", folder.name[len(prefix):]):
-            continue
-        doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
-        try:
-            folder.rename(doomed)
-        except OSError:
-            continue
-        shutil.rmtree(doomed, ignore_errors=True)
-        dropped.append(str(folder))
+    for folder in cache.glob(f"wp_{module.name}_*"):
+        # Not another module whose name continues this one's, nor a build in progress.
+        build = _BUILD_FOLDER.fullmatch(folder.name)
+        ours = build and build["module"] == module.name and not build["building"]
+        if ours and _delete_build(folder):
+            dropped.append(str(folder))
     return dropped
+
+
+# A build's folder: the module's name and the first digits of its code's hash; Warp builds
+# in one named after the process and thread as well, then renames it to this.
+_BUILD_FOLDER = re.compile(r"wp_(?P<module>[\w.]+)_[0-9a-f]{7}(?P<building>_p\d+_t\d+)?")
+# A build folder in progress this long ago was left by a process that died.
+_UNFINISHED_SECONDS = 3600
+
+
+def _delete_build(folder: Path) -> bool:
+    """Delete a build folder, renamed first so that no other process loads it half-deleted;
+    False when it was gone or cannot be renamed."""
+    doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
+    try:
+        folder.rename(doomed)
+    except OSError:
+        return False
+    shutil.rmtree(doomed, ignore_errors=True)
+    return True
+
+
+def kernel_modules() -> list[str]:
+    """The names of warptex's Warp kernel modules (``kernels.*``)."""
+    import kernels
+
+    return [f"kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
+
+
+def build_folder(module_name: str, cpu: bool) -> Path | None:
+    """The folder of Warp's kernel cache that holds a kernel module's build of its current
+    code, for CPU launches (block_dim 1) or CUDA launches (Warp's default); None for a Warp
+    that names its builds otherwise."""
+    init_warp()  # which settles the cache folder
+    importlib.import_module(module_name)  # Warp names a build by the code of its kernels
+    try:
+        name = wp.get_module(module_name).get_module_identifier(block_dim=1 if cpu else None)
+    except (AttributeError, TypeError):
+        return None
+    return Path(wp.config.kernel_cache_dir) / name
+
+
+def stale_kernel_builds() -> list[Path]:
+    """Folders of Warp's kernel cache that no run of this warptex loads: builds of its
+    kernel modules' other code (other warptex versions; Warp never deletes them) and builds
+    left unfinished over an hour ago. Empty for a Warp that names its builds otherwise.
+
+    Raises:
+        OSError: the cache folder exists but cannot be listed.
+    """
+    modules = kernel_modules()
+    current = {build_folder(m, cpu) for m in modules for cpu in (True, False)}
+    if None in current:
+        return []
+    cache = Path(wp.config.kernel_cache_dir)
+    if not cache.is_dir():
+        return []
+    stale = []
+    for folder in sorted(cache.iterdir()):
+        build = _BUILD_FOLDER.fullmatch(folder.name)
+        if not build or build["module"] not in modules or folder in current:
+            continue
+        if build["building"]:
+            try:
+                age = time.time() - folder.stat().st_mtime
+            except OSError:  # renamed into place meanwhile
+                continue
+            if age < _UNFINISHED_SECONDS:
+                continue
+        stale.append(folder)
+    return stale
+
+
+def delete_kernel_builds(folders: Sequence[Path]) -> tuple[int, int]:
+    """Delete build folders of Warp's kernel cache; the number deleted and their bytes."""
+    count = freed = 0
+    for folder in folders:
+        size = folder_bytes(folder)
+        if _delete_build(folder):
+            count, freed = count + 1, freed + size
+    return count, freed
+
+
+def folder_bytes(folder: Path) -> int:
+    """The bytes of the files under ``folder``; unreadable folders count nothing."""
+    size = 0
+    for parent, _, names in os.walk(folder):
+        for name in names:
+            with contextlib.suppress(OSError):  # removed by a build meanwhile
+                size += os.stat(os.path.join(parent, name), follow_symlinks=False).st_size
+    return size
