@@ -286,3 +286,25 @@ def test_table_cells_sit_under_their_headers():
     assert cells["SWD x / y / z"] == "4.000 / 5.000 / 6.000"
     assert cells["histogram x / y / z"] == "7.000 / 8.000 / 9.000"
     assert cells["repetition"] == "0.500" and cells["seconds"] == "1.25"
+
+
+def test_stopping_a_comparison_ends_the_running_worker_at_once():
+    """Ctrl-C or SIGTERM while a method runs in its worker process ends that process,
+    instead of leaving the pool waiting for the method to finish."""
+    import multiprocessing
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    from warptex.compare import _stop_workers
+
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    pool.submit(time.sleep, 600)
+    workers = list(pool._processes.values())
+    try:
+        _stop_workers(pool)
+        for worker in workers:
+            worker.join(120)
+        assert workers and not any(w.is_alive() for w in workers)
+    finally:
+        for worker in workers:
+            worker.kill()

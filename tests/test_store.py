@@ -425,6 +425,35 @@ def test_saves_to_one_file_merge_rather_than_replace(candidates, tmp_path: Path)
     assert BrickStore.load(path, synthesizer(candidates, seed=3)).stats()["voxels"] == 1
 
 
+def test_a_store_that_stored_nothing_since_leaves_its_file_as_it_is(candidates,
+                                                                      tmp_path: Path):
+    """Saving to the file a store was loaded from, or last saved to, rewrites it only when
+    the store stored voxels since or another save replaced the file meanwhile."""
+    syn = synthesizer(candidates)
+    path = tmp_path / "shared.wtb"
+    first = BrickStore(syn)
+    sample(first, [brick_center((0, 0, 0))])
+    assert first.save(path)
+
+    def state() -> tuple:
+        st = path.stat()
+        return st.st_ino, st.st_mtime_ns, path.read_bytes()
+
+    as_saved = state()
+    assert not first.save(path) and state() == as_saved
+    reader = BrickStore.load(path, syn)
+    sample(reader, [brick_center((0, 0, 0))])  # a hit: nothing synthesized
+    assert reader.stats()["voxels_added"] == 0
+    assert not reader.save(path) and state() == as_saved
+    assert reader.save(tmp_path / "elsewhere.wtb")  # another file is written
+
+    sample(reader, [brick_center((1, 0, 0))])  # stored since: the file is rewritten
+    assert reader.save(path) and state() != as_saved
+    # The first stored nothing since its save, but another save replaced the file: merged.
+    assert first.save(path)
+    assert BrickStore.load(path, syn).stats()["bricks"] == 2
+
+
 def test_a_merged_save_keeps_what_fits_the_cache_or_the_file(candidates, tmp_path: Path):
     """A store of little room does not shrink a shared file: the most recent bricks that
     fit the file's size are kept (the oldest goes); a store of more room keeps them all."""

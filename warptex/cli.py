@@ -12,7 +12,9 @@ import itertools
 import math
 import os
 import re
+import signal
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -1287,13 +1289,34 @@ def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = N
     return out
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, as a scheduler stops a job: raised where Ctrl-C's KeyboardInterrupt would be,
+    so that the same clean-up runs (temporary files deleted, worker processes stopped)."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
+@contextlib.contextmanager
+def _terminated_like_interrupted() -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():  # signals go to the main one
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = _parser()
     args = parser.parse_args(_negative_values(argv, parser))
     _, command = _SUBCOMMANDS[args.command]
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _terminated_like_interrupted():
         warnings.showwarning = _show_warning
         try:
             if "exemplar_max_size" in args:  # before any work, a mesh's loading included
@@ -1310,6 +1333,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:  # outputs are renamed into place whole, so none is partial
-            print("\nwarptex: interrupted", file=sys.stderr)
-            return 130
+        except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
+            terminated = isinstance(stop, _Terminated)
+            print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)
+            return 143 if terminated else 130  # as for a command that the signal ends

@@ -13,6 +13,7 @@ import functools
 import json
 import multiprocessing
 import platform
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -21,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+from tqdm import std
 from tqdm.auto import tqdm
 
 from warptex import metrics
@@ -290,11 +292,33 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     ctx = multiprocessing.get_context("spawn")
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
-                                 initializer=map_large_blocks) as pool:
-            out = pool.submit(_measure, method, str(exemplar_path), size, settings,
-                              max_size).result()
+                                 initializer=_start_worker) as pool:
+            job = pool.submit(_measure, method, str(exemplar_path), size, settings, max_size)
+            try:
+                out = job.result()
+            except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
+                _stop_workers(pool)
+                raise
         results.append(MethodResult(**out))
     return results
+
+
+def _start_worker() -> None:
+    """A method's process: large blocks mapped afresh, for its peak memory; progress bars
+    locked between threads only, for tqdm's default lock between processes is a semaphore
+    that a worker stopped by :func:`_stop_workers` leaves to a warning at exit."""
+    map_large_blocks()
+    std.tqdm.set_lock(threading.RLock())  # every kind of bar's
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate a pool's workers now (``terminate_workers`` from Python 3.14 on)."""
+    if hasattr(pool, "terminate_workers"):
+        pool.terminate_workers()
+        return
+    for process in list((pool._processes or {}).values()):
+        process.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _trio(values: list[float]) -> str:

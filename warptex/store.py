@@ -183,6 +183,16 @@ def _range_starts(counts: np.ndarray) -> np.ndarray:
     return np.cumsum(counts) - counts
 
 
+def _file_state(path: Path) -> tuple | None:
+    """What tells a file apart from one renamed to its name since (as every save does):
+    its device, inode, size and modification time; None when there is none."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
 @contextmanager
 def _taking_turns(path: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``path``'s folder: every process's saves there take turns,
@@ -392,6 +402,8 @@ class BrickStore:
         self._rebuild_table(_MIN_BRICKS * 2)
         self._hits = self._misses = self._added = self._evicted = 0
         self._version = 0
+        # The store file last read whole or written (_file_state) and the version then.
+        self._synced: tuple | None = None
         self._seconds = 0.0
 
     # -- public API -------------------------------------------------------------------
@@ -504,7 +516,7 @@ class BrickStore:
                 "synthesis_seconds": self._seconds,
             }
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path) -> bool:
         """Write the bricks to a versioned, checksummed file atomically (temporary name,
         then rename), least recently used first; a file of another kind at ``path`` is
         refused (StoreFileError), not replaced.
@@ -515,14 +527,24 @@ class BrickStore:
         the file's own size, whichever is larger, are written. Saves to one file take
         turns, so none loses the bricks of another. A damaged file or another texture's is
         replaced, with a warning.
+
+        The file is left as it is, and False returned, when it is the one this store was
+        loaded from or last saved to, unchanged since, and no voxel was stored since: it
+        holds every brick of ours then, and a shared file is not rewritten by every render
+        that only reads it (so such a render does not make its bricks the file's most
+        recently used). Else True.
         """
         path = Path(path)
         check_store_path(path)
         with self._lock.shared():
+            version = self._version
             live = self._by_recency()
             ours = _Bricks(self._keys[live], self._payload[self._ranges(live)],
                            self._valid[live])
         with _taking_turns(path):
+            state = _file_state(path)
+            if state is not None and self._synced == (state, version):
+                return False
             try:
                 # An empty file (made by mktemp) is a place to save to, not a store.
                 saved = self._read(path) if path.exists() and path.stat().st_size else None
@@ -537,6 +559,8 @@ class BrickStore:
             write_archive(path, _MAGIC, FORMAT_VERSION,
                           {"identity": np.array(self.identity()),
                            "settings": np.array(self._settings_json()), **kept._asdict()})
+            self._synced = (_file_state(path), version)
+        return True
 
     @classmethod
     def load(cls, path: str | Path, synthesizer: Synthesizer, *,
@@ -552,6 +576,7 @@ class BrickStore:
         """
         check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
+        state = _file_state(Path(path))  # before reading: a file replaced meanwhile differs
         try:
             kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
@@ -559,6 +584,7 @@ class BrickStore:
             return store
         with store._lock.exclusive():
             store._fill(kept)
+            store._synced = (state, store._version)  # the file holds every brick loaded
         return store
 
     # -- batches ----------------------------------------------------------------------
