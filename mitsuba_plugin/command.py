@@ -13,11 +13,15 @@ import time
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
 from contextlib import contextmanager
+from datetime import UTC, datetime
 from pathlib import Path
 
 from warptex.archive import file_problem, overwritten_input, write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
+# Of the report beside the image (<output>.json); 2: format, date, versions, and each
+# texture's properties as a mapping beside its string.
+REPORT_FORMAT = 2
 _BATCHES = 8  # renders of one image at most: each is a step of the progress line
 
 
@@ -163,8 +167,11 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image,
                                                                    write_async=False))
         report = {
+            "format": REPORT_FORMAT,
             "scene": str(scene_path),
             "image": str(output),
+            "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "versions": _versions(),
             "variant": variant,
             "size": list(image.shape[1::-1]),
             "spp": total,
@@ -223,9 +230,21 @@ def _progress(done: int, total: int) -> None:
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 
 
+def _versions() -> dict[str, str]:
+    import drjit as dr
+    import mitsuba as mi
+    import warp as wp
+
+    from warptex import __version__
+
+    return {"warptex": __version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "warp": wp.__version__}
+
+
 def _save_and_report(texture, save: bool) -> dict:
     saved = texture.save() if save else None
-    return {"texture": texture.to_string(), "store": texture.solid.store.stats(),
+    return {"texture": texture.to_string(), "properties": texture.properties(),
+            "store": texture.solid.store.stats(),
             "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
             "saved_to": None if saved is None else str(saved)}
 

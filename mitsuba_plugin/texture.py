@@ -366,23 +366,33 @@ class LazySolidTexture(mi.Texture):
     def parameters_changed(self, keys: list[str] | None = None) -> None:
         self._update_transform()
 
+    def properties(self) -> dict:
+        """Every property that sets what a point shows, as read from the scene (the
+        exemplars per axis, x, y, z; ``to_world`` as a 4x4 matrix): what `warptex render`
+        records of each texture."""
+        return {"exemplars": [str(p) for p in self.exemplars],
+                "exemplar_max_size": self.max_size, "seed": self.seed, "jitter": self.jitter,
+                "shifted_tiles": self.shifted_tiles, "tileable": self.tileable,
+                "passes": self.passes, "scale": self.scale,
+                "to_world": np.round(_affine_matrix(self.to_world), 6).tolist(),
+                "space": self.space, "filter": self.filter, "raw": self.raw,
+                "cache": None if self.cache is None else str(self.cache),
+                "cache_bytes": self.cache_bytes}
+
     def to_string(self) -> str:
-        # Every property that sets what a point shows: `warptex render` records the string.
-        if len(set(self.exemplars)) == 1:
-            names = f'"{self.exemplars[0]}"'
+        p = self.properties()
+        if len(set(p["exemplars"])) == 1:
+            names = f'"{p["exemplars"][0]}"'
         else:
-            names = ", ".join(f'{axis}="{p}"' for axis, p in zip("xyz", self.exemplars,
+            names = ", ".join(f'{axis}="{e}"' for axis, e in zip("xyz", p["exemplars"],
                                                                   strict=True))
-        shrunk = "" if self.max_size is None else f", exemplar_max_size={self.max_size}"
-        matrix = _affine_matrix(self.to_world)
-        placed = ("" if np.array_equal(matrix, np.eye(4))
-                  else f", to_world={np.round(matrix, 6).tolist()}")
-        return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={self.seed}, "
-                f"jitter={self.jitter}, shifted_tiles={self.shifted_tiles}, "
-                f"tileable={self.tileable}, "
-                f"passes={self.passes}, scale={self.scale}{placed}, "
-                f"space={self.space}, filter={self.filter}, raw={self.raw}, "
-                f"cache={self.cache}, cache_bytes={self.cache_bytes}]")
+        shrunk = "" if p["exemplar_max_size"] is None else f", exemplar_max_size={self.max_size}"
+        placed = "" if np.array_equal(p["to_world"], np.eye(4)) else f", to_world={p['to_world']}"
+        return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={p['seed']}, "
+                f"jitter={p['jitter']}, shifted_tiles={p['shifted_tiles']}, "
+                f"tileable={p['tileable']}, passes={p['passes']}, scale={p['scale']}{placed}, "
+                f"space={p['space']}, filter={p['filter']}, raw={p['raw']}, "
+                f"cache={p['cache']}, cache_bytes={p['cache_bytes']}]")
 
     # -- queries ----------------------------------------------------------------------
 

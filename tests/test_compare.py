@@ -1,6 +1,7 @@
 """`warptex compare` (issue 7): every file, and rankings that follow from the methods."""
 
 import json
+from datetime import datetime
 
 import numpy as np
 import pytest
@@ -42,9 +43,16 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     assert rows["tiled"]["repetition"] > 0.9 > rows["lazy"]["repetition"]
     assert "| lazy |" in (out / "table.md").read_text()
     # The figures say where they were measured: volume, machine, versions, date, device.
-    run = json.loads((out / "table.json").read_text())["run"]
-    assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1
-    assert run["cpu"] and run["warp"] and run["date"].endswith("UTC")
+    table = json.loads((out / "table.json").read_text())
+    run = table["run"]
+    assert table["format"] == 2 and table["axes"] == ["x", "y", "z"]
+    assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1 and run["passes"] == 2
+    assert run["cpu"] and run["warp"]
+    assert datetime.strptime(run["date"], "%Y-%m-%dT%H:%M:%SZ")  # ISO 8601, UTC
+    from warptex.exemplar import Exemplar
+
+    exemplar = Exemplar.load(data_dir / "granite_64.png")
+    assert run["exemplar_digest"] == exemplar.digest() and run["exemplar_max_size"] is None
     assert f"16^3, seed 0; {run['cpu']}" in (out / "table.md").read_text()
     assert rows["lazy"]["device"] in ("cpu", "cuda") and rows["noise"]["device"] == "cpu"
     assert main(["compare", str(data_dir / "granite_64.png"), "--methods", "bogus",
@@ -71,6 +79,8 @@ def test_compare_runs_lazy_synthesis_with_the_passes_asked_for(tmp_path, data_di
     assert row["energy"] == pytest.approx(expected, rel=1e-6)
     assert row["notes"] == "correction passes per level: 1"
     assert "correction passes per level: 1 |" in (out / "table.md").read_text()
+    assert json.loads((out / "table.json").read_text())["run"]["passes"] == 1
+    assert "16^3, seed 3, 1 correction passes; " in (out / "table.md").read_text()
 
 
 def test_compare_shrinks_the_exemplar_to_max_size(tmp_path, data_dir, warp_device):
@@ -88,7 +98,8 @@ def test_compare_shrinks_the_exemplar_to_max_size(tmp_path, data_dir, warp_devic
     box = Synthesizer(precompute(ex)).box((0, 0, 0), (16, 16, 16))
     expected = [metrics.neighborhood_energy(box, ex.colors, a) for a in range(3)]
     assert table["methods"][0]["energy"] == pytest.approx(expected, rel=1e-6)
-    assert table["run"]["exemplar_size"] == [32, 32]
+    assert table["run"]["exemplar_size"] == [32, 32] and table["run"]["exemplar_max_size"] == 32
+    assert table["run"]["exemplar_digest"] == ex.digest()
     assert (out / "table.md").read_text().startswith("# granite_64.png, shrunk to 32x32\n")
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+from datetime import datetime
 from pathlib import Path
 
 import drjit as dr
@@ -171,7 +172,17 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
                  "--spp", "1", "--res", "16x16"]) == 0
     assert list(mi.Bitmap(str(out)).size()) == [16, 16]
-    assert json.loads((tmp_path / "bunny.PNG.json").read_text())["spp"] == 1
+    report = json.loads((tmp_path / "bunny.PNG.json").read_text())
+    assert report["spp"] == 1 and report["format"] == 2
+    assert datetime.strptime(report["date"], "%Y-%m-%dT%H:%M:%SZ")  # ISO 8601, UTC
+    assert report["versions"]["mitsuba"] == mi.__version__
+    assert set(report["versions"]) == {"warptex", "mitsuba", "drjit", "warp"}
+    (texture,) = report["textures"]
+    props = texture["properties"]  # the scene's lazy_solid, as a mapping
+    assert [Path(e).name for e in props["exemplars"]] == ["wood_rosewood_64.png"] * 3
+    assert f"seed={props['seed']}," in texture["texture"]
+    assert f"passes={props['passes']}," in texture["texture"]
+    assert len(props["to_world"]) == 4 and props["space"] in ("world", "object")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.PNG", "bunny.PNG.json"]
     # Captured, stderr is no terminal: progress comes a line per batch, no carriage returns.
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err

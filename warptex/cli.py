@@ -1145,7 +1145,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     with _writing(args.output):
         files = write_report(results, args.exemplar, args.output, size=args.size,
                              seed=args.seed, max_size=args.exemplar_max_size,
-                             tileable=TILEABLE[args.tileable])
+                             tileable=TILEABLE[args.tileable], passes=args.passes)
     print(table_markdown(results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0

@@ -38,6 +38,7 @@ from warptex.settings import (
 )
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
+TABLE_FORMAT = 2  # of table.json; 2: format, axes, passes, exemplar max size and digest
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 LARGE = 256  # edge of the slice the repetition score looks at
@@ -249,7 +250,7 @@ def run_summary(size: int, seed: int) -> dict:
     gpu = wp.get_device("cuda").name if _engine_device() == "cuda" else None
     return {"size": size, "seed": seed, "cpu": cpu, "cores": usable_cores(), "gpu": gpu,
             "warptex": __version__, "warp": wp.__version__,
-            "date": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")}
+            "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")}
 
 
 def run_line(run: dict) -> str:
@@ -343,12 +344,14 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
                  out_dir: str | Path, *, size: int, seed: int,
-                 max_size: int | None = None, tileable: bool | str = "auto") -> list[Path]:
+                 max_size: int | None = None, tileable: bool | str = "auto",
+                 passes: int = DEFAULT_PASSES) -> list[Path]:
     """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) into
     ``out_dir`` atomically, with the :func:`run_summary` of the ``size^3``, ``seed``
-    comparison run here on the exemplar as loaded with ``max_size`` (its size, as
-    ``exemplar_size`` [width, height] in the JSON's ``run``) under the setting ``tileable``
-    (the word, as ``tileable`` there)."""
+    comparison run here with the lazy engine's ``passes`` on the exemplar as loaded with
+    ``max_size`` (its size, as ``exemplar_size`` [width, height] in the JSON's ``run``, and
+    its content digest) under the setting ``tileable`` (the word, as ``tileable`` there).
+    The JSON's per-axis lists are in the order of its ``axes``."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
@@ -367,16 +370,19 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
         rows.append((r.method, images))
     save_png(sheet(rows), sheet_file)
     word = tileable_word(tileable)
-    run = run_summary(size, seed) | {"exemplar_size": list(ex.shape[::-1]), "tileable": word}
+    run = run_summary(size, seed) | {
+        "passes": passes, "exemplar_max_size": max_size, "exemplar_size": list(ex.shape[::-1]),
+        "exemplar_digest": ex.digest(), "tileable": word}
     shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
     told = "" if word == "auto" else f", tileable {word}"
-    markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{told}; "
+    more = "" if passes == DEFAULT_PASSES else f", {passes} correction passes"
+    markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{more}{told}; "
                 f"{run_line(run)}\n\n" + table_markdown(results))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
-    table = json.dumps({"exemplar": Path(exemplar_path).name, "run": run,
-                        "methods": payload}, indent=2)
+    table = json.dumps({"format": TABLE_FORMAT, "exemplar": Path(exemplar_path).name,
+                        "axes": list("xyz"), "run": run, "methods": payload}, indent=2)
     write_atomically(json_file, lambda tmp: tmp.write_text(table))
     return files
 
