@@ -78,6 +78,9 @@ def test_precompute_summary_file_and_cache(images, tmp_path, private_cache, caps
     assert _rows(out) == _level_lines(cs)
     assert [row.split()[1] for row in _rows(out)] == ["8x8", "16x16", "32x32"]
     assert re.search(r"^time: \d+\.\d\d s$", out, re.M)
+    # Captured, stderr is no terminal: the bar is a few lines, not carriage returns.
+    assert "\r" not in captured.err
+    assert re.search(r"^candidates: +0%.*\n(.*\n)*candidates: 100%.*\n", captured.err)
     assert f"bytes: {cs.nbytes()} (" in out
     assert f"written: {cache} (cache)" in out
     assert f"written: {out_file}" in out
@@ -344,3 +347,21 @@ def test_volume_bad_arguments(images, tmp_path, capsys):
     assert f"{tmp_path / 'file' / 'v.npy'}: cannot write" in capsys.readouterr().err
     assert _volume(images, tmp_path / "new" / "v.npy") == 0  # missing folders are made
     assert (tmp_path / "new" / "v.npy").exists()
+
+
+def test_progress_bars_in_a_log_are_lines_at_most_every_few_seconds(monkeypatch):
+    """A bar's first redraw, then one every ``_LOG_SECONDS`` at most, and its last, each a
+    line; other text passes as it is."""
+    written: list[str] = []
+
+    class Log:
+        def write(self, text: str) -> None:
+            written.append(text)
+
+    clock = iter([0.0, 1.0, 2.0, 11.0, 12.0, 13.0, 14.0])
+    monkeypatch.setattr(cli.time, "monotonic", lambda: next(clock))
+    log = cli._LogLines(Log())
+    for text in ("\rbar: 0%", "\rbar: 10%", "\rbar: 20%  ", "\rbar: 90%", "\rbar: 100%",
+                 "", "\n", "warning\n", "\r", "\rnext: 0%"):
+        log.write(text)
+    assert "".join(written) == "bar: 0%\nbar: 90%\nbar: 100%\nwarning\nnext: 0%\n"

@@ -19,7 +19,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
@@ -1289,6 +1289,61 @@ def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = N
     return out
 
 
+class _LogLines:
+    """stderr where it is no terminal (a log): a progress bar's redraws ("\\r" and the bar)
+    become lines of their own instead of one line of carriage returns: its first, then at
+    most one every ``_LOG_SECONDS``, and its last."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+        self._bar = False  # a bar is being drawn
+        self._pending: str | None = None  # its last redraw, not yet written
+        self._written = 0.0  # when a redraw was last written
+
+    def write(self, text: str) -> int:
+        if not text:  # tqdm writes nothing at times, which must not end a bar
+            return 0
+        if text.startswith("\r"):
+            line = text[1:].rstrip(" ")
+            now = time.monotonic()
+            if not line:  # a bar cleared, as one that is not to be left: it has ended
+                self._pending, self._bar = None, False
+                return len(text)
+            if not self._bar or now - self._written >= _LOG_SECONDS:
+                self._stream.write(line + "\n")
+                self._pending, self._written = None, now
+            else:
+                self._pending = line
+            self._bar = True
+            return len(text)
+        if self._pending is not None:
+            self._stream.write(self._pending + "\n")
+            self._pending = None
+        if not (self._bar and text == "\n"):  # not the newline that ends a finished bar
+            self._stream.write(text)
+        self._bar = False
+        return len(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+_LOG_SECONDS = 10.0
+
+
+@contextlib.contextmanager
+def _bars_as_log_lines() -> Iterator[None]:
+    stream = sys.stderr
+    if stream is None or stream.isatty():
+        yield
+        return
+    sys.stderr = _LogLines(stream)
+    try:
+        yield
+    finally:
+        sys.stderr = stream
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, as a scheduler stops a job: raised where Ctrl-C's KeyboardInterrupt would be,
     so that the same clean-up runs (temporary files deleted, worker processes stopped)."""
@@ -1316,7 +1371,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(_negative_values(argv, parser))
     _, command = _SUBCOMMANDS[args.command]
-    with warnings.catch_warnings(), _terminated_like_interrupted():
+    with warnings.catch_warnings(), _terminated_like_interrupted(), _bars_as_log_lines():
         warnings.showwarning = _show_warning
         try:
             if "exemplar_max_size" in args:  # before any work, a mesh's loading included
