@@ -19,10 +19,12 @@ from pathlib import Path
 from warptex.archive import file_problem, overwritten_input, write_atomically
 
 IMAGE_SUFFIXES = (".exr", ".png")
-# Of the report beside the image (<output>.json); 2: format, date, versions, and each
-# texture's properties as a mapping beside its string.
+# Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
+# scene parameters, and each texture's properties as a mapping beside its string.
 REPORT_FORMAT = 2
 _BATCHES = 8  # renders of one image at most: each is a step of the progress line
+# Batches take the seeds seed * batches + i, which Mitsuba keeps as 32-bit integers.
+MAX_SEED = 2**32 // _BATCHES - 1
 
 
 def _samples_per_batch(total: int) -> int:
@@ -95,20 +97,29 @@ def scene_files(scene_path: Path) -> list[Path]:
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                  resolution: tuple[int, int] | None = None,
-                 variant: str | None = None, save_stores: bool = True) -> dict:
+                 variant: str | None = None, save_stores: bool = True,
+                 parameters: dict[str, str] | None = None, seed: int = 0) -> dict:
     """Render ``scene_path`` to ``output`` (.exr or .png) with progress on stderr, save
     brick stores that have a ``cache`` file unless ``save_stores`` is False (stores that
     are only to be read, such as a shared one), and write their statistics as JSON beside
     the image (``<output>.json``). Returns that report.
 
     ``resolution`` sets the scene's ``$width``/``$height`` parameters, which the scenes
-    in ``scenes/`` declare. ``variant`` is the Mitsuba variant to render in (default:
-    :func:`mitsuba_plugin.set_best_variant`'s).
+    in ``scenes/`` declare, and ``parameters`` any others, by name (Mitsuba's ``-D``).
+    ``variant`` is the Mitsuba variant to render in (default:
+    :func:`mitsuba_plugin.set_best_variant`'s). ``seed`` seeds the samples (renders of
+    other seeds can be averaged).
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
         raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
     if spp is not None and spp < 1:
         raise ValueError(f"--spp must be positive, got {spp}")
+    if not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"--sampler-seed must be 0 to {MAX_SEED}, got {seed}")
+    parameters = dict(parameters or {})
+    if resolution is not None and {"width", "height"} & set(parameters):
+        raise ValueError("--res sets the parameters width and height: give them with -D or "
+                         "--res, not both")
     statistics = output.with_name(output.name + ".json")
     clash = overwritten_input([output, statistics], [scene_path, *scene_files(scene_path)])
     if clash is not None:
@@ -131,7 +142,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     except ValueError as e:
         raise ValueError(f"--variant {variant}: {e}") from None
     mitsuba_plugin.register()
-    params = {} if resolution is None else {"width": resolution[0], "height": resolution[1]}
+    params = parameters | ({} if resolution is None
+                           else {"width": resolution[0], "height": resolution[1]})
     start = time.perf_counter()
     try:
         with _status(f"loading {scene_path.name} (exemplars new to the candidate cache are "
@@ -142,11 +154,15 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         # exception's own line last; one on a loading thread arrives when loading ends.
         if re.search(r"^KeyboardInterrupt\b", str(e), re.MULTILINE):
             raise KeyboardInterrupt from None
-        if params and "unused parameters" in str(e):
+        unused = set(re.findall(r"^\s*- \$(\w+)=", str(e), re.MULTILINE))
+        if resolution is not None and unused & {"width", "height"}:
             raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
                              "which this scene does not declare or does not use: add <default "
                              "name=\"width\" value=\"256\"/> and <integer name=\"width\" "
                              "value=\"$width\"/> in its film, the same for height") from None
+        if unused:
+            raise ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
+                             f"{', '.join(sorted(unused))}") from None
         problem = scene_error(str(e), scene_path)
         raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()
@@ -159,7 +175,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or sensor.sampler().sample_count()
     check_render_size(*sensor.film().crop_size(), _samples_per_batch(total))
-    image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
+    image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total), seed=seed,
                                   progress=_progress)
     rendered = time.perf_counter()
     try:
@@ -175,6 +191,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             "variant": variant,
             "size": list(image.shape[1::-1]),
             "spp": total,
+            "sampler_seed": seed,
+            "parameters": params,
             "load_seconds": round(loaded - start, 3),
             "render_seconds": round(rendered - loaded, 3),
             "textures": [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures()],

@@ -188,6 +188,24 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
 
 
+def test_render_command_takes_scene_parameters_and_a_sampler_seed(tmp_path):
+    """-D sets the scene's parameters (here its film's size), --sampler-seed the samples'
+    seed (another image of the same scene); the report records both."""
+    from warptex.cli import main
+
+    scene = str(REPO / "scenes" / "bunny_wood.xml")
+    images = {}
+    for seed in (0, 5):
+        out = tmp_path / f"seed{seed}.exr"
+        assert main(["render", scene, "-D", "width=12", "-D", "height=8", "--spp", "2",
+                     "--sampler-seed", str(seed), "-o", str(out)]) == 0
+        images[seed] = np.array(mi.Bitmap(str(out)))
+        report = json.loads(out.with_name(out.name + ".json").read_text())
+        assert report["size"] == [12, 8] and report["sampler_seed"] == seed
+        assert report["parameters"] == {"width": "12", "height": "8"}
+    assert np.abs(images[0] - images[5]).max() > 1e-3  # other samples, not rounding
+
+
 def test_render_command_shows_the_candidates_a_scene_precomputes(tmp_path, capsys,
                                                                  monkeypatch):
     """A scene whose exemplar is new to the candidate cache loads for seconds to minutes:

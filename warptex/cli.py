@@ -1180,6 +1180,21 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="read the brick stores the scene names (lazy_solid's cache) "
                         "without writing them back: a shared store, or one in a place that "
                         "cannot be written")
+    parser.add_argument("-D", dest="parameters", action="append", default=[],
+                        type=_scene_parameter, metavar="NAME=VALUE",
+                        help="set a parameter the scene declares (<default name=\"NAME\" "
+                        "value=\"...\"/>, used as $NAME), as Mitsuba's -D; repeatable")
+    parser.add_argument("--sampler-seed", type=int, default=0, metavar="N",
+                        help="seed of the render's samples, not of the texture (lazy_solid's "
+                        "seed); renders of other seeds can be averaged (default 0)")
+
+
+def _scene_parameter(text: str) -> tuple[str, str]:
+    name, equals, value = text.partition("=")
+    if not equals or not re.fullmatch(r"[A-Za-z_]\w*", name):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=VALUE, NAME a parameter "
+                                         "of the scene")
+    return name, value
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -1193,7 +1208,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
         render_scene(args.scene, args.output, spp=args.spp, resolution=resolution,
-                     variant=args.variant, save_stores=not args.read_only_stores)
+                     variant=args.variant, save_stores=not args.read_only_stores,
+                     parameters=dict(args.parameters), seed=args.sampler_seed)
     except ValueError as e:
         raise CliError(str(e)) from e
     return 0
