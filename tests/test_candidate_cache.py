@@ -3,9 +3,11 @@ run of this warptex reads, and never one that it reads."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import time
+from datetime import datetime
 from pathlib import Path
 
 import pytest
@@ -139,6 +141,24 @@ def test_prune_deletes_what_no_run_reads_and_keeps_the_rest(folder, computed, im
     again = precompute(Exemplar.load(image))
     assert again.cache_status == "loaded"
     assert again.names == (image.name,) * 3
+
+
+def test_cache_json_lists_the_same_files_and_what_was_deleted(folder, computed, capsys):
+    current, _ = computed
+    assert main(["cache", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["candidate_cache"] == str(folder) and report["deleted"] is None
+    statuses = {Path(f["file"]).name: f["status"] for f in report["files"]}
+    assert statuses == {f.path.name: f.status for f in cc.cache_files(folder)}
+    (entry,) = [f for f in report["files"] if Path(f["file"]).name == current.name]
+    assert entry["status"] == cc.IN_USE and entry["bytes"] == current.stat().st_size
+    assert [Path(n).name for n in entry["exemplars"]] == ["granite_16.png"] * 3
+    assert datetime.strptime(entry["written"], "%Y-%m-%dT%H:%M:%SZ")
+    assert report["kernel_cache"]["deleted"] is None and report["kernel_cache"]["folder"]
+    assert main(["cache", "--prune", "--json"]) == 0
+    pruned = json.loads(capsys.readouterr().out)
+    assert pruned["deleted"]["files"] == 5 and pruned["kernel_cache"]["deleted"] is not None
+    assert len(cc.cache_files(folder)) == 2
 
 
 def test_clear_deletes_every_candidate_file_but_writes_in_progress(folder, image, capsys):

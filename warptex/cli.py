@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import itertools
+import json
 import math
 import os
 import re
@@ -405,6 +406,8 @@ def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
     what.add_argument("--clear", action="store_true",
                       help="delete every candidate file but those 'being written' or "
                       "'unreadable', and what --prune deletes of Warp's kernel cache")
+    parser.add_argument("--json", action="store_true",
+                        help="print the listing (and what was deleted) as one JSON object")
 
 
 def _cmd_cache(args: argparse.Namespace) -> int:
@@ -416,6 +419,20 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     except OSError as error:
         raise CliError(f"{error.filename or folder}: cannot list the candidate cache "
                        f"({error.strerror or error}); WARPTEX_CACHE sets its folder") from None
+    never = [f for f in files if f.status in cc.NEVER_READ]
+    kept = (cc.BEING_WRITTEN, cc.UNREADABLE)
+    doomed = [f for f in files if f.status not in kept] if args.clear else never
+    deleted = None
+    if args.prune or args.clear:
+        try:
+            deleted = cc.remove(doomed)
+        except OSError as error:
+            raise CliError(f"{error.filename}: cannot delete ({error.strerror or error})"
+                           ) from None
+    kernels = _kernel_cache(delete=args.prune or args.clear)
+    if args.json:
+        print(json.dumps(_cache_report(folder, files, deleted, kernels), indent=2))
+        return 0
     print(f"candidate cache: {folder} (WARPTEX_CACHE sets it)")
     if files:
         print(f"  {'written':<16}  {'size':>9}  {'status':<13}  {'file':<55}  exemplars")
@@ -429,21 +446,38 @@ def _cmd_cache(args: argparse.Namespace) -> int:
         counts = ", ".join(f"{n} {status}" for status in cc.STATUSES
                            if (n := sum(f.status == status for f in files)))
         print(f"{len(files)} files, {_mib_tenths(sum(f.size for f in files))}: {counts}")
-    never = [f for f in files if f.status in cc.NEVER_READ]
-    kept = (cc.BEING_WRITTEN, cc.UNREADABLE)
-    doomed = [f for f in files if f.status not in kept] if args.clear else never
-    if args.prune or args.clear:
-        try:
-            count, freed = cc.remove(doomed)
-        except OSError as error:
-            raise CliError(f"{error.filename}: cannot delete ({error.strerror or error})"
-                           ) from None
-        print(f"deleted: {count} files, {_mib_tenths(freed)}")
+    if deleted is not None:
+        print(f"deleted: {deleted[0]} files, {_mib_tenths(deleted[1])}")
     elif never:
         print(f"warptex cache --prune deletes the {len(never)} that no run of this warptex "
               f"reads ({_mib_tenths(sum(f.size for f in never))})")
-    print("\n".join(_kernel_cache_lines(delete=args.prune or args.clear)))
+    print(f"Warp's kernel cache: {kernels['folder']} (WARP_CACHE_PATH sets it), "
+          f"{_mib_tenths(kernels['bytes'])}; built again when missing, so it may be emptied "
+          "between runs")
+    stale = kernels["other_builds"]
+    if kernels["deleted"] is not None:
+        print(f"deleted: {kernels['deleted']['builds']} kernel builds of other warptex versions "
+              f"or left unfinished, {_mib_tenths(kernels['deleted']['bytes'])}")
+    elif stale:
+        print(f"  of which {len(stale)} kernel builds of other warptex versions or left "
+              f"unfinished, {_mib_tenths(kernels['other_bytes'])}: warptex cache --prune "
+              "deletes them")
     return 0
+
+
+def _cache_report(folder: Path, files: list, deleted: tuple[int, int] | None,
+                  kernels: dict) -> dict:
+    """``warptex cache --json``: the listing as data, times in ISO 8601 (UTC)."""
+    from datetime import UTC, datetime
+
+    return {
+        "candidate_cache": str(folder),
+        "files": [{"file": str(f.path), "written": datetime.fromtimestamp(f.modified, UTC)
+                   .strftime("%Y-%m-%dT%H:%M:%SZ"), "bytes": f.size, "status": f.status,
+                   "exemplars": list(f.names)} for f in files],
+        "deleted": None if deleted is None else {"files": deleted[0], "bytes": deleted[1]},
+        "kernel_cache": kernels,
+    }
 
 
 def _exemplar_names(names: tuple[str, ...]) -> str:
@@ -459,7 +493,7 @@ def _mib_tenths(n: int) -> str:
     return f"{n / 2**20:.1f} MiB"
 
 
-def _kernel_cache_lines(delete: bool) -> list[str]:
+def _kernel_cache(delete: bool) -> dict:
     """Where Warp keeps the built kernels and how much they take, and the builds of
     warptex's kernels that no run of this version loads (every version builds its own, and
     Warp never deletes old ones), deleted when ``delete``."""
@@ -472,19 +506,12 @@ def _kernel_cache_lines(delete: bool) -> list[str]:
     except OSError as error:
         raise CliError(f"{error.filename}: cannot list Warp's kernel cache "
                        f"({error.strerror or error}); WARP_CACHE_PATH sets its folder") from None
+    other = sum(warp_runtime.folder_bytes(f) for f in stale)
     deleted = warp_runtime.delete_kernel_builds(stale) if delete else None
     folder = Path(wp.config.kernel_cache_dir)
-    lines = [f"Warp's kernel cache: {folder} (WARP_CACHE_PATH sets it), "
-             f"{_mib_tenths(warp_runtime.folder_bytes(folder))}; built again when missing, so "
-             "it may be emptied between runs"]
-    if deleted is not None:
-        lines.append(f"deleted: {deleted[0]} kernel builds of other warptex versions or left "
-                     f"unfinished, {_mib_tenths(deleted[1])}")
-    elif stale:
-        size = sum(warp_runtime.folder_bytes(f) for f in stale)
-        lines.append(f"  of which {len(stale)} kernel builds of other warptex versions or left "
-                     f"unfinished, {_mib_tenths(size)}: warptex cache --prune deletes them")
-    return lines
+    return {"folder": str(folder), "bytes": warp_runtime.folder_bytes(folder),
+            "other_builds": [str(f) for f in stale], "other_bytes": other,
+            "deleted": None if deleted is None else {"builds": deleted[0], "bytes": deleted[1]}}
 
 
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
