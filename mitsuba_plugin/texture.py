@@ -386,7 +386,8 @@ class LazySolidTexture(mi.Texture):
         else:
             names = ", ".join(f'{axis}="{e}"' for axis, e in zip("xyz", p["exemplars"],
                                                                   strict=True))
-        shrunk = "" if p["exemplar_max_size"] is None else f", exemplar_max_size={self.max_size}"
+        shrunk = ("" if p["exemplar_max_size"] is None
+                  else f", exemplar_max_size={p['exemplar_max_size']}")
         placed = "" if np.array_equal(p["to_world"], np.eye(4)) else f", to_world={p['to_world']}"
         return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={p['seed']}, "
                 f"jitter={p['jitter']}, shifted_tiles={p['shifted_tiles']}, "
