@@ -402,7 +402,7 @@ class BrickStore:
         self._rebuild_table(_MIN_BRICKS * 2)
         self._hits = self._misses = self._added = self._evicted = 0
         self._version = 0
-        # The store file last read whole or written (_file_state) and the version then.
+        # The store file last loaded from or written (_file_state) and the version then.
         self._synced: tuple | None = None
         self._seconds = 0.0
 
