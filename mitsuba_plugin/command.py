@@ -27,6 +27,11 @@ _BATCHES = 8  # renders of one image at most: each is a step of the progress lin
 MAX_SEED = 2**32 // _BATCHES - 1
 
 
+class OutputError(Exception):
+    """A file the render writes at its end (image, statistics, a brick store) that could not
+    be written, though the scene was fine: a full disk, a lost mount."""
+
+
 def _samples_per_batch(total: int) -> int:
     """The most samples per pixel one of the batches of a ``total``-sample render holds."""
     return -(-total // min(_BATCHES, total))
@@ -109,6 +114,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     ``variant`` is the Mitsuba variant to render in (default:
     :func:`mitsuba_plugin.set_best_variant`'s). ``seed`` seeds the samples (renders of
     other seeds can be averaged).
+
+    Raises ValueError for bad input, found before rendering, and :class:`OutputError` where
+    a file cannot be written after it (the files are then left as they were).
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
         raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
@@ -201,7 +209,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         write_atomically(statistics, lambda tmp: tmp.write_text(text))
     except OSError as error:  # a full disk, a lost mount: named, the files left as they were
         where = error.filename or output  # write_atomically names the file it was asked for
-        raise ValueError(f"{where}: cannot write ({error.strerror or error})") from None
+        raise OutputError(f"{where}: cannot write ({error.strerror or error})") from None
     _print_report(report)
     return report
 

@@ -49,6 +49,16 @@ if TYPE_CHECKING:
 class CliError(Exception):
     """A user error a command reports as ``warptex: error: ...`` with exit code 2."""
 
+    exit_code = 2
+
+
+class _WorkFailed(CliError):
+    """A file that could not be written or deleted once the work was under way (a full
+    disk, a lost mount): the input was fine and a rerun may succeed, so the exit code is 1,
+    which a script can tell apart from the 2 of input refused before any work."""
+
+    exit_code = 1
+
 
 def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = "the file") -> str:
     """The lower-case suffix of an output file, after checking, before any work is done,
@@ -427,7 +437,7 @@ def _cmd_cache(args: argparse.Namespace) -> int:
         try:
             deleted = cc.remove(doomed)
         except OSError as error:
-            raise CliError(f"{error.filename}: cannot delete ({error.strerror or error})"
+            raise _WorkFailed(f"{error.filename}: cannot delete ({error.strerror or error})"
                            ) from None
     kernels = _kernel_cache(delete=args.prune or args.clear)
     if args.json:
@@ -670,7 +680,7 @@ def _writing(path: Path, *written_with: Path) -> Iterator[None]:
         # A failed rename names its target second (os.replace's filename2).
         failed = {error.filename, error.filename2}
         where = next((p for p in written_with if str(p) in failed), path)
-        raise CliError(f"{where}: cannot write ({error.strerror or error})") from None
+        raise _WorkFailed(f"{where}: cannot write ({error.strerror or error})") from None
 
 
 def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
@@ -1225,7 +1235,12 @@ def _scene_parameter(text: str) -> tuple[str, str]:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from mitsuba_plugin.command import IMAGE_SUFFIXES, parse_resolution, render_scene
+    from mitsuba_plugin.command import (
+        IMAGE_SUFFIXES,
+        OutputError,
+        parse_resolution,
+        render_scene,
+    )
 
     if args.scene.is_dir():
         raise CliError(f"{args.scene}: is a folder, expected a scene file")
@@ -1239,6 +1254,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
                      parameters=dict(args.parameters), seed=args.sampler_seed)
     except ValueError as e:
         raise CliError(str(e)) from e
+    except OutputError as e:
+        raise _WorkFailed(str(e)) from None
     return 0
 
 
@@ -1263,7 +1280,9 @@ def _parser() -> argparse.ArgumentParser:
         prog="warptex", description="Lazy solid texture synthesis from 2D exemplars.",
         epilog="environment: WARPTEX_DEVICE=cpu|cuda picks the device (default: a GPU when "
         "there is one); WARPTEX_CACHE is the folder of the candidate cache (default "
-        "~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel cache (built on first use).",
+        "~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel cache (built on first use). "
+        "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
+        "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated.",
     )
     parser.add_argument("--version", action="version", version=f"warptex {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -1430,7 +1449,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 141  # as for a command that SIGPIPE ends
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
-            return 2
+            return error.exit_code if isinstance(error, CliError) else 2
         except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
             terminated = isinstance(stop, _Terminated)
             print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)
