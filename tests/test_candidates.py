@@ -479,10 +479,12 @@ def test_second_call_loads_the_cache(monkeypatch, private_cache, warp_device):
 
     monkeypatch.setattr(candidates, "_compute", no_compute)
     _assert_same(first, precompute(ex))
-    # The key holds the content, not the name, and the parameters.
+    # The key holds the content, not the name, and every parameter: candidates of other
+    # parameters are computed, never served from the defaults' file.
     _assert_same(first, precompute(Exemplar(ex.colors.copy(), name="other")))
-    with pytest.raises(AssertionError, match="recomputed"):
-        precompute(ex, candidates_3d=8)
+    for name, value in OTHER_PARAMS.items():
+        with pytest.raises(AssertionError, match="recomputed"):
+            precompute(ex, **{name: value})
 
 
 def test_exemplars_beyond_the_memory_are_refused_before_any_work(monkeypatch, warp_device):
@@ -611,14 +613,24 @@ def test_load_rejects_bad_magic_version_checksum_and_data(tmp_path, granite):
         CandidateSet.load(tmp_path / "missing.wtc")
 
 
+# A valid value other than the default for every candidate parameter.
+OTHER_PARAMS = {"neighborhood": 3, "strips": 33, "keep": 50, "candidates_3d": 8,
+                "candidates_2d": 3, "candidates_2d_finest": 1, "variance": 0.9, "min_dims": 6,
+                "max_dims": 10, "coherence_rounds": 8, "tileable": True}
+
+
 def test_cache_file_name_depends_on_content_parameters_and_code(warp_device, monkeypatch):
     a = _crop(slice(0, 16), slice(0, 16))
     b = _crop(slice(0, 16), slice(16, 32))
-    params = dict(candidates.DEFAULT_PARAMS)
+    params = candidates.resolved_params({})
     assert cache_path([a, a, a], params) == cache_path([a, a, a], dict(params))
     assert cache_path([a, a, a], params) != cache_path([b, b, b], params)
     assert cache_path([a, b, a], params) != cache_path([a, a, b], params)
-    assert cache_path([a, a, a], params) != cache_path([a, a, a], {**params, "strips": 33})
+    assert set(OTHER_PARAMS) == set(candidates.DEFAULT_PARAMS)
+    for name, value in OTHER_PARAMS.items():  # files of two parameter sets never collide
+        other = candidates.resolved_params({name: value})
+        assert other != params
+        assert cache_path([a, a, a], params) != cache_path([a, a, a], other), name
     before = cache_path([a, a, a], params)
     uncached_code_digest = candidates._code_digest.__wrapped__
     monkeypatch.setattr(candidates, "_code_digest", lambda: "other code")

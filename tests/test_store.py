@@ -145,6 +145,36 @@ def test_least_recently_used_brick_is_evicted(candidates):
     check_table(store, store._keys[live], live)
 
 
+def test_bricks_kept_through_slot_renumbering_read_their_own_voxels(candidates):
+    """A batch of many bricks evicted down to a few renumbers the slots that remain (the
+    table shrinks); each kept brick still reads its own voxels, without a miss."""
+    syn = synthesizer(candidates)
+    store = BrickStore(syn, cache_bytes=10 * BRICK_BYTES)
+    store.prefetch(np.array([[8 * i, 0, 0] for i in range(300)]))
+    assert store.stats()["bricks"] == 10 and len(store._keys) < 300
+    kept = np.array([[8 * i + 3, 2, 5] for i in range(290, 300)])
+    np.testing.assert_array_equal(sample(store, kept + 0.5), syn.voxels(kept))
+    assert store.stats()["misses"] == 0
+
+
+@pytest.mark.parametrize("whole_bricks", [True, False])
+def test_exemplars_over_65536_pixels_store_int32_triples_that_decode_alike(
+        candidates, tmp_path: Path, monkeypatch, whole_bricks):
+    """The wide voxel format (exemplars over 65536 pixels, whose pixel indices do not fit
+    16 bits) decodes like the engine, also after a save and load; the limit is lowered
+    here, as such an exemplar takes half a minute to pre-compute."""
+    monkeypatch.setattr("warptex.store._COMPACT_PIXELS", 0)
+    syn = synthesizer(candidates)
+    store = BrickStore(syn, whole_bricks=whole_bricks)
+    assert store.stats()["bytes_per_voxel"] == 12
+    voxels = np.random.default_rng(4).integers(-20, 20, (60, 3))
+    np.testing.assert_array_equal(sample(store, voxels + 0.5), syn.voxels(voxels))
+    store.save(tmp_path / "wide.wtb")
+    loaded = BrickStore.load(tmp_path / "wide.wtb", syn, whole_bricks=whole_bricks)
+    np.testing.assert_array_equal(sample(loaded, voxels + 0.5), syn.voxels(voxels))
+    assert loaded.stats()["misses"] == 0
+
+
 @pytest.mark.parametrize("kernel", ["sample_nearest", "sample_trilinear"])
 def test_cpu_lookups_count_misses_by_their_flags(candidates, kernel):
     """Warp's CPU atomics are plain reads and writes, so the shared counter of a launch
@@ -191,7 +221,7 @@ def test_save_load_keeps_the_most_recent_bricks_that_fit(candidates, tmp_path: P
     assert not list(tmp_path.glob(".*.tmp*"))
     small = BrickStore.load(path, syn, cache_bytes=2 * BRICK_BYTES)
     assert small.stats()["bricks"] == 2
-    sample(small, centers[1:])
+    np.testing.assert_array_equal(sample(small, centers[1:]), sample(store, centers[1:]))
     assert small.stats()["misses"] == 0
     full = BrickStore.load(path, syn)
     np.testing.assert_array_equal(sample(full, centers), sample(store, centers))
@@ -508,6 +538,15 @@ def test_identity_follows_the_engine_code_and_the_jitter_the_engine_takes(candid
     same = {BrickStore(synthesizer(candidates, jitter=j)).identity() for j in (1.0, 1.0000001)}
     assert len(same) == 1
     assert BrickStore(synthesizer(candidates, jitter=1.01)).identity() not in same
+    # Jitters about the engine's steps of 1/256: one identity, one texture.
+    voxels = np.random.default_rng(0).integers(-20, 20, (100, 3))
+    by_identity: dict[str, np.ndarray] = {}
+    for j in (0.999, 1.0, 1.0000001, 1.001, 129.4 / 256, 129.6 / 256, 129.5 / 256):
+        syn = synthesizer(candidates, jitter=j)
+        got = syn.voxels(voxels)
+        np.testing.assert_array_equal(by_identity.setdefault(BrickStore(syn).identity(), got),
+                                      got, err_msg=f"jitter {j}")
+    assert len(by_identity) > 1
     store = BrickStore(synthesizer(candidates))
     sample(store, [brick_center((0, 0, 0))])
     path = tmp_path / "s.wtb"
@@ -515,6 +554,28 @@ def test_identity_follows_the_engine_code_and_the_jitter_the_engine_takes(candid
     monkeypatch.setattr("warptex.store._engine_code", lambda: "another engine")
     with pytest.warns(UserWarning, match=r"another texture \(engine code\)"):
         assert BrickStore.load(path, synthesizer(candidates)).stats()["bricks"] == 0
+
+
+def test_engine_code_digest_reads_every_module_the_engine_runs(monkeypatch):
+    """The kernel modules the engine imports, and its own, are all digested: a change to
+    any of them (a building block in kernels/common.py, say) retires the stores it wrote."""
+    import ast
+
+    import warptex.store
+
+    read = []
+    real = warptex.store.module_sources
+    monkeypatch.setattr(warptex.store, "module_sources",
+                        lambda modules: real(read.extend(modules) or read))
+    warptex.store._engine_code.__wrapped__()
+    digested = {m.__name__ for m in read}
+    assert {"warptex.synthesis", "kernels.synthesis", "warptex.keysets"} <= digested
+    for module in read:
+        tree = ast.parse(Path(module.__file__).read_text())
+        imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)} | {
+            a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        kernels = {m for m in imported if m and m.split(".")[0] == "kernels"} - {"kernels"}
+        assert kernels <= digested, f"{module.__name__} imports {kernels - digested}"
 
 
 def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidates, tmp_path):

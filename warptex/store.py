@@ -52,6 +52,8 @@ FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are 
 _MAGIC = b"WTXBRICK"
 _EMPTY = int(_k.EMPTY)  # the key of a free slot, as the hash table marks free entries
 _MIN_BRICKS = 64
+# Exemplars of up to this many pixels each: pixel indices fit uint16, 6 bytes a voxel.
+_COMPACT_PIXELS = 1 << 16
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
 _LOCAL = cell_offsets(_k.BRICK)
 _T = TypeVar("_T")
@@ -375,7 +377,7 @@ class BrickStore:
         self.channels = cs.channels
         check_lookup_channels(self.channels)
         self._pixels = np.array([c.shape[0] * c.shape[1] for c in sources])
-        compact = self._pixels.max() <= 1 << 16
+        compact = self._pixels.max() <= _COMPACT_PIXELS
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
         self._voxel_bytes = 3 * self._dtype.itemsize
         self._device = synthesizer.device
