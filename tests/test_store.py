@@ -162,13 +162,17 @@ def test_exemplars_over_65536_pixels_store_int32_triples_that_decode_alike(
         candidates, tmp_path: Path, monkeypatch, whole_bricks):
     """The wide voxel format (exemplars over 65536 pixels, whose pixel indices do not fit
     16 bits) decodes like the engine, also after a save and load; the limit is lowered
-    here, as such an exemplar takes half a minute to pre-compute."""
-    monkeypatch.setattr("warptex.store._COMPACT_PIXELS", 0)
+    here, as such an exemplar takes half a minute to pre-compute. The color sums that the
+    plugin's traced and scalar lookups mirror are those of the compact format."""
     syn = synthesizer(candidates)
+    voxels = np.random.default_rng(4).integers(-20, 20, (60, 3))
+    compact = BrickStore(syn, whole_bricks=whole_bricks)
+    sample(compact, voxels + 0.5)
+    monkeypatch.setattr("warptex.store._COMPACT_PIXELS", 0)
     store = BrickStore(syn, whole_bricks=whole_bricks)
     assert store.stats()["bytes_per_voxel"] == 12
-    voxels = np.random.default_rng(4).integers(-20, 20, (60, 3))
     np.testing.assert_array_equal(sample(store, voxels + 0.5), syn.voxels(voxels))
+    np.testing.assert_array_equal(store.snapshot().sums, compact.snapshot().sums)
     store.save(tmp_path / "wide.wtb")
     loaded = BrickStore.load(tmp_path / "wide.wtb", syn, whole_bricks=whole_bricks)
     np.testing.assert_array_equal(sample(loaded, voxels + 0.5), syn.voxels(voxels))
