@@ -158,6 +158,10 @@ def test_passes_shifted_tiles_and_tileable_reach_the_synthesis(granite_32_file):
     one = Synthesizer(cs, seed=2, passes=1).voxels(ijk)
     np.testing.assert_array_equal(tex.solid.query(ijk + 0.5, filter="nearest"), one)
     assert not np.array_equal(one, Synthesizer(cs, seed=2).voxels(ijk))
+    jittered = load(granite_32_file, jitter=8.0, seed=2)
+    strong = Synthesizer(cs, seed=2, jitter=8.0).voxels(ijk)
+    np.testing.assert_array_equal(jittered.solid.query(ijk + 0.5, filter="nearest"), strong)
+    assert not np.array_equal(strong, Synthesizer(cs, seed=2).voxels(ijk))
     shifted = load(granite_32_file, shifted_tiles=True, seed=2)
     assert "shifted_tiles=True" in shifted.to_string()
     np.testing.assert_array_equal(shifted.solid.query(ijk + 0.5, filter="nearest"),
@@ -441,11 +445,16 @@ def test_points_beyond_the_range_wrap_and_non_finite_ones_are_black(granite_32_f
     # Exact in float32, whose steps are halves between 2^22 and 2^23.
     near = np.array([[3.5, -7.5, 12.0], [-100.5, 40.5, 0.5]], np.float32)
     shift = np.array([[FAR_PERIOD, 0, 0], [0, -FAR_PERIOD, FAR_PERIOD]], np.float32)
+    # 1.75 periods out: wrapped by the nearest whole number of periods (2), not 1.
+    beyond = np.array([[-0.25 * FAR_PERIOD + 3.5, 0.5, 0.5]], np.float32)
+    two_periods = np.array([[2 * FAR_PERIOD, 0, 0]], np.float32)
     odd = np.array([[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]], np.float32)
-    colors = eval_at(tex, np.concatenate([near, near + shift, odd]))
+    colors = eval_at(tex, np.concatenate([near, near + shift, beyond,
+                                          beyond + two_periods, odd]))
     assert (colors[:2] > 0).all()
     np.testing.assert_array_equal(colors[2:4], colors[:2])
-    np.testing.assert_array_equal(colors[4:], 0.0)
+    np.testing.assert_array_equal(colors[5], colors[4])
+    np.testing.assert_array_equal(colors[6:], 0.0)
 
 
 def test_traverse_updates_to_world(granite_32_file):

@@ -42,7 +42,7 @@ def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(offset, warp_de
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_a_triangle_barely_entering_a_voxel_touches_it(axis, warp_device):
-    corners = np.roll([[0.5, 0.5, 0.5], [1.005, 0.5, 0.5], [0.5, 0.9, 0.5]], axis, axis=1)
+    corners = np.roll([[0.5, 0.5, 0.5], [1.0005, 0.5, 0.5], [0.5, 0.9, 0.5]], axis, axis=1)
     tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]], process=False)
     expected = {tuple(np.roll([0, 0, 0], axis)), tuple(np.roll([1, 0, 0], axis))}
     assert set(map(tuple, shell(tri, transform=np.eye(4)).tolist())) == expected

@@ -2,6 +2,7 @@
 three sides differ, with 1 to 4 channels."""
 
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -91,3 +92,32 @@ def test_empty_volumes_and_images_and_a_non_bool_srgb_are_refused(tmp_path):
     with pytest.raises(ValueError, match="srgb must be True or False, got 'no'"):
         write_volume(tmp_path / "v.vol", np.zeros((2, 2, 2, 3), np.float32), srgb="no")
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(("write", "name", "writer"), [
+    (write_volume, "v.npy", "_write_npy"), (write_volume, "v.exr", "_write_exr"),
+    (write_volume, "v.vol", "_write_vol"), (write_image, "i.npy", "_write_npy"),
+    (write_image, "i.exr", "_write_exr")])
+def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, monkeypatch, write, name,
+                                                        writer):
+    """A full disk in the middle of a write: the file of the same name keeps its old
+    content, no temporary file is left, and the error names the file asked for."""
+    import errno
+
+    import warptex.volume_files
+
+    data = _volume(3) if write is write_volume else _volume(3)[0]
+    path = tmp_path / name
+    write(path, data, srgb=False)
+    before = path.read_bytes()
+
+    def disk_full(target, *args):
+        Path(target).write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, "No space left on device", str(target))
+
+    monkeypatch.setattr(warptex.volume_files, writer, disk_full)
+    with pytest.raises(OSError, match="No space") as failed:
+        write(path, data + 1, srgb=False)
+    assert failed.value.filename == str(path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == [name]
