@@ -54,13 +54,17 @@ def test_eval_is_the_store_to_the_bit_cold_and_warm(granite_32_file, filter):
 
 
 @pytest.mark.parametrize("filter", ["trilinear", "nearest"])
+@pytest.mark.parametrize("max_bytes", [1, 1 << 20])  # starts over at every brick, or keeps all
 def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_file,
-                                                                    warp_device, filter):
+                                                                    warp_device, filter,
+                                                                    max_bytes):
+    """A miss forgets every brick the point reads, so once the store has filled them the
+    next lookup finds the point, however many bricks the copies keep."""
     from warptex.texture import SolidTexture
 
     tex = SolidTexture(granite_32_file, whole_bricks=False, device=warp_device)
     tex.query(np.array([[3.5, 3.5, 3.5]]), filter="nearest")  # one voxel of its brick
-    lookup = ScalarLookup(tex.store, filter, max_bytes=1)  # starts over at every brick
+    lookup = ScalarLookup(tex.store, filter, max_bytes=max_bytes)
     points = sample_points(np.random.default_rng(6), 200, -12.0, 12.0)
     got = []
     for p in points:
@@ -69,6 +73,7 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
             lookup.forget(tuple(p))
             tex.query(p[None], filter=filter)
             color = lookup.color(tuple(p))
+            assert color is not None, p
         got.append(color)
     assert lookup.color(tuple(points[0])) is not None  # stored by now
     assert ScalarLookup(tex.store, filter, 1 << 20).color((40.0, 40.0, 40.0)) is None
