@@ -569,8 +569,12 @@ def test_engine_code_digest_reads_every_module_the_engine_runs(monkeypatch):
 
     read = []
     real = warptex.store.module_sources
-    monkeypatch.setattr(warptex.store, "module_sources",
-                        lambda modules: real(read.extend(modules) or read))
+
+    def recorded(modules):
+        read.extend(modules)
+        return real(read)
+
+    monkeypatch.setattr(warptex.store, "module_sources", recorded)
     warptex.store._engine_code.__wrapped__()
     digested = {m.__name__ for m in read}
     assert {"warptex.synthesis", "kernels.synthesis", "warptex.keysets"} <= digested
