@@ -17,6 +17,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from warptex.archive import file_problem, overwritten_input, write_atomically
+from warptex.store import saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
@@ -107,7 +108,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     """Render ``scene_path`` to ``output`` (.exr or .png) with progress on stderr, save
     brick stores that have a ``cache`` file unless ``save_stores`` is False (stores that
     are only to be read, such as a shared one), and write their statistics as JSON beside
-    the image (``<output>.json``). Returns that report.
+    the image (``<output>.json``). Returns that report. A render stopped by Ctrl-C or
+    SIGTERM saves the stores too, before the KeyboardInterrupt goes on.
 
     ``resolution`` sets the scene's ``$width``/``$height`` parameters, which the scenes
     in ``scenes/`` declare, and ``parameters`` any others, by name (Mitsuba's ``-D``).
@@ -183,8 +185,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or sensor.sampler().sample_count()
     check_render_size(*sensor.film().crop_size(), _samples_per_batch(total))
-    image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total), seed=seed,
-                                  progress=_progress)
+    with saved_when_stopped(mitsuba_plugin.save_caches if save_stores else list):
+        image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
+                                      seed=seed, progress=_progress)
     rendered = time.perf_counter()
     try:
         # Synchronously: the default asynchronous write would race the rename.

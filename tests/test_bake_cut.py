@@ -349,6 +349,40 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys,
                  "-o", str(tmp_path / "x.ply")]) == 2
 
 
+@pytest.mark.parametrize("command", ["bake", "cut"])
+def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_device,
+                                               capsys, monkeypatch, command):
+    """Ctrl-C while the mesh's colours are made: the --store file keeps what was
+    synthesized, no mesh is written, and the next run synthesizes less."""
+    import warptex.cli
+    from warptex.cli import main
+
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    store = tmp_path / "s.wtb"
+    argv = [command, str(mesh_path), "--exemplar", str(data_dir / "granite_64.png"),
+            "--resolution", "24", "--store", str(store), "-o", str(tmp_path / "m.ply")]
+    assert main([*argv[:-4], "-o", str(tmp_path / "cold.ply")]) == 0
+    cold = int(re.search(r"voxels synthesized: (\d+) \(", capsys.readouterr().out).group(1))
+    export = warptex.cli._textured_export
+    exported = []
+
+    def stopped_on_the_last(tex, mesh, *args):
+        if command == "bake" or exported:
+            raise KeyboardInterrupt
+        exported.append(export(tex, mesh, *args))
+        return exported[-1]
+
+    with monkeypatch.context() as patch:
+        patch.setattr(warptex.cli, "_textured_export", stopped_on_the_last)
+        assert main(argv) == 130
+    assert f"brick store saved to {store} before stopping" in capsys.readouterr().err
+    assert store.exists() and not (tmp_path / "m_b.ply").exists()
+    assert main(argv) == 0
+    warm = int(re.search(r"voxels synthesized: (\d+) \(", capsys.readouterr().out).group(1))
+    assert warm < cold
+
+
 def _square(z=0.0):
     """The unit square in z = ``z`` as two triangles, its UVs its (x, y)."""
     v = np.array([[0, 0, z], [1, 0, z], [1, 1, z], [0, 1, z]], float)

@@ -260,6 +260,42 @@ def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path):
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("stop", ["Ctrl-C", "SIGTERM", "read-only"])
+def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, capsys,
+                                                                      monkeypatch, stop):
+    """Ctrl-C or SIGTERM after a render's first batch: the voxels synthesized so far are
+    saved before the command stops, so a render of those samples synthesizes nothing;
+    with --read-only-stores the file is not written."""
+    import mitsuba_plugin.command
+    from warptex.cli import _Terminated, main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    store = scene.parent / "bricks" / "bunny.wtb"
+    argv = ["render", str(scene), "--res", "16x16"]
+    signal = _Terminated if stop == "SIGTERM" else KeyboardInterrupt
+
+    def progress(done: int, total: int) -> None:
+        if done == 1:
+            raise signal
+
+    with monkeypatch.context() as patch:
+        patch.setattr(mitsuba_plugin.command, "_progress", progress)
+        extra = ["--read-only-stores"] if stop == "read-only" else []
+        code = main([*argv, "--spp", "2", *extra, "-o", str(tmp_path / "stopped.exr")])
+    assert code == (143 if stop == "SIGTERM" else 130)
+    assert not (tmp_path / "stopped.exr").exists()
+    err = capsys.readouterr().err
+    if stop == "read-only":
+        assert not store.exists() and "brick store" not in err
+        return
+    assert f"brick store saved to {store} before stopping" in err
+    mitsuba_plugin.live_textures.clear()  # as a new process would start
+    # The first of two batches is the render of one sample with the sampler's seed 0.
+    assert main([*argv, "--spp", "1", "-o", str(tmp_path / "next.exr")]) == 0
+    (report,) = json.loads((tmp_path / "next.exr.json").read_text())["textures"]
+    assert report["store"]["voxels"] > 0 and report["store"]["voxels_added"] == 0
+
+
 def test_render_command_reads_a_store_it_may_not_write(tmp_path, monkeypatch):
     """--read-only-stores: a store in a place that cannot be written (a shared one) is read
     and left as it was, where without it the render is refused."""

@@ -206,6 +206,89 @@ def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeyp
         sample(store, [brick_center((0, 0, 0)), brick_center((3, 0, 0))])
 
 
+def _cut_short(store: BrickStore, monkeypatch, step: str, after: bool) -> None:
+    """Stop the store's next call of ``step`` with Ctrl-C's KeyboardInterrupt, before the
+    step or right ``after`` it."""
+    original = getattr(store, step)
+
+    def stopped(*args, **kwargs):
+        if after:
+            original(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(store, step, stopped)
+
+
+@pytest.mark.parametrize(("step", "after"), [
+    ("_index_bricks", True), ("_reserve", True), ("_upload_pool", True),
+    ("_upload_slots", False), ("_evict", False)])
+def test_a_change_cut_short_drops_the_bricks_rather_than_read_or_save_them_torn(
+        candidates, tmp_path: Path, monkeypatch, step, after):
+    """Ctrl-C or SIGTERM anywhere in an insertion may leave the bricks half changed (keys
+    entered, bits set, voxels not yet placed or uploaded): the store then holds no brick,
+    so every later lookup and the file it saves give the engine's colors."""
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    before = np.array([[8 * i + 1, 2, 3] for i in range(4)])
+    sample(store, before + 0.5)
+    version = store.version
+    new = np.array([[8 * i + 1, 2, 3] for i in range(4, 7)])
+    with monkeypatch.context() as patch:
+        _cut_short(store, patch, step, after)
+        with pytest.raises(KeyboardInterrupt):
+            sample(store, new + 0.5)
+    assert store.stats()["bricks"] == 0 and store.version != version
+    both = np.concatenate([before, new])
+    np.testing.assert_array_equal(sample(store, both + 0.5), syn.voxels(both))
+    store.save(tmp_path / "s.wtb")
+    loaded = BrickStore.load(tmp_path / "s.wtb", syn)
+    np.testing.assert_array_equal(sample(loaded, both + 0.5), syn.voxels(both))
+    assert loaded.stats()["misses"] == 0
+
+
+def test_a_store_whose_emptying_was_cut_short_too_is_emptied_when_next_used(
+        candidates, tmp_path: Path, monkeypatch):
+    """A second Ctrl-C during the emptying that follows a change cut short leaves the store
+    torn; its next lookup or save empties it first."""
+    syn = synthesizer(candidates)
+    voxels = np.array([[8 * i + 5, 0, 7] for i in range(3)])
+    for use in ("sample", "save"):
+        store = BrickStore(syn)
+        sample(store, voxels[:1] + 0.5)
+        with monkeypatch.context() as patch:
+            _cut_short(store, patch, "_upload_slots", after=False)
+            _cut_short(store, patch, "_empty", after=False)
+            with pytest.raises(KeyboardInterrupt):
+                sample(store, voxels + 0.5)
+        if use == "save":
+            store.save(tmp_path / "s.wtb")
+            store = BrickStore.load(tmp_path / "s.wtb", syn)
+            assert store.stats()["bricks"] == 0
+        np.testing.assert_array_equal(sample(store, voxels + 0.5), syn.voxels(voxels))
+
+
+def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
+    """saved_when_stopped: Ctrl-C or SIGTERM in the block saves, says where, and stops as
+    asked; a save that fails says why and stops all the same; no stop, no save."""
+    from warptex.store import saved_when_stopped
+
+    saves = []
+    with saved_when_stopped(lambda: saves.append(1) or [tmp_path / "a.wtb"]):
+        pass
+    assert saves == []
+    with pytest.raises(KeyboardInterrupt), saved_when_stopped(lambda: [tmp_path / "a.wtb"]):
+        raise KeyboardInterrupt
+    assert f"brick store saved to {tmp_path / 'a.wtb'} before stopping" in capsys.readouterr().err
+
+    def full_disk():
+        raise OSError(28, "No space left on device", str(tmp_path / "a.wtb"))
+
+    with pytest.raises(KeyboardInterrupt), saved_when_stopped(full_disk):
+        raise KeyboardInterrupt
+    assert (f"brick store not saved: {tmp_path / 'a.wtb'}: cannot write (No space left on "
+            "device)") in capsys.readouterr().err
+
+
 def test_zero_cache_still_answers(candidates):
     syn = synthesizer(candidates)
     store = BrickStore(syn, cache_bytes=0)

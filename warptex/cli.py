@@ -871,8 +871,9 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
                         f"{_TEXTURE_SIZE})")
     parser.add_argument("--store", type=_file_name, metavar="FILE",
                         help="brick store file: voxels synthesized by an earlier run with the "
-                        "same texture are read from it, and all are written back at the end "
-                        "(also usable as the lazy_solid plugin's cache)")
+                        "same texture are read from it, and all are written back at the end, "
+                        "or when Ctrl-C or SIGTERM stops the run (also usable as the "
+                        "lazy_solid plugin's cache)")
     _add_texture_arguments(parser, "--exemplar")
     _add_raw_argument(parser, "PNG textures and PLY vertex colors (sRGB) and glTF vertex "
                       "colors (linear)")
@@ -988,6 +989,15 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
     return files
 
 
+def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
+    """A `bake` or `cut` stopped by Ctrl-C or SIGTERM saves its ``--store`` first."""
+    if args.store is None:
+        return contextlib.nullcontext()
+    from warptex.store import saved_when_stopped
+
+    return saved_when_stopped(lambda: [tex.save()])
+
+
 def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:
     """What `bake` and `cut` end with: the store's report, the store saved if asked, and
     the files written."""
@@ -1073,8 +1083,9 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     _check_shell(mesh, transform, args.resolution)
     tex, srgb = _solid_texture(args)
     start = time.perf_counter()
-    count = _synthesize_shell(tex, mesh, args.resolution, transform)
-    files = _textured_export(tex, mesh, transform, args, args.output, srgb)
+    with _store_saved_when_stopped(tex, args):
+        count = _synthesize_shell(tex, mesh, args.resolution, transform)
+        files = _textured_export(tex, mesh, transform, args, args.output, srgb)
     print(f"surface shell: {count} voxels")
     return _finish_mesh_command(tex, args, files, start)
 
@@ -1117,8 +1128,9 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
     files = []
-    for half, output in zip(halves, outputs, strict=True):
-        files += _textured_export(tex, half, transform, args, output, srgb)
+    with _store_saved_when_stopped(tex, args):
+        for half, output in zip(halves, outputs, strict=True):
+            files += _textured_export(tex, half, transform, args, output, srgb)
     return _finish_mesh_command(tex, args, files, start)
 
 
@@ -1282,7 +1294,8 @@ def _parser() -> argparse.ArgumentParser:
         "there is one); WARPTEX_CACHE is the folder of the candidate cache (default "
         "~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel cache (built on first use). "
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
-        "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated.",
+        "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
+        "(render, bake and cut save their brick stores first).",
     )
     parser.add_argument("--version", action="version", version=f"warptex {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -28,10 +28,11 @@ import hashlib
 import itertools
 import json
 import os
+import sys
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple, TypeVar
@@ -356,6 +357,31 @@ def check_store_path(path: str | Path) -> None:
                              "it would be overwritten, choose another store path")
 
 
+@contextmanager
+def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
+    """Ctrl-C or SIGTERM (a KeyboardInterrupt) in the block first writes brick stores to
+    their files with ``save``, then stops as asked: the voxels synthesized so far are kept,
+    so the next run starts from them (section 6.2's synthesize-once, across runs). A store
+    whose change was cut short keeps none of that change (:class:`BrickStore`). What was
+    saved, or why nothing was, is said on stderr."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        print(file=sys.stderr)  # below the progress line that the stop cut short
+        try:
+            saved = list(save())
+        except StoreFileError as error:
+            print(f"warptex: brick store not saved: {error}", file=sys.stderr)
+        except OSError as error:  # a full disk: the file is left as it was
+            print(f"warptex: brick store not saved: {error.filename}: cannot write "
+                  f"({error.strerror or error})", file=sys.stderr)
+        else:
+            for path in saved:
+                print(f"warptex: brick store saved to {path} before stopping: the next run "
+                      "starts from its voxels", file=sys.stderr)
+        raise
+
+
 class BrickStore:
     """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch.
 
@@ -389,19 +415,10 @@ class BrickStore:
         self._lock = _SharedLock()
         self._counts = threading.Lock()
         self._tick = itertools.count(1)
-        self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each slot
-        self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)  # stored-voxel bits per slot
-        self._base = np.zeros(0, np.int64)  # pool position of each slot's first voxel
-        self._payload = np.zeros((0, 3), self._dtype)  # the pool; the device's views it on the
-        # CPU and copies it on CUDA
-        self._used = 0  # pool voxels handed out, live or left behind by repacked bricks
-        self._garbage = 0  # of those, voxels of repacked or evicted bricks
         self._index = _k.BrickIndex()
-        self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
-        self._pool_source: np.ndarray | None = None  # the host array the device pool shows
-        self._upload_slots()
-        self._upload_pool(0, 0)
-        self._rebuild_table(_MIN_BRICKS * 2)
+        self._empty()
+        # Set while the bricks change: still set afterwards where the change was cut short.
+        self._torn = False
         self._hits = self._misses = self._added = self._evicted = 0
         self._version = 0
         # The store file last loaded from or written (_file_state) and the version then.
@@ -429,7 +446,7 @@ class BrickStore:
         res = self._results(out)
         missed = wp.zeros(n, dtype=wp.int32, device=self._device)
         count = wp.zeros(1, dtype=wp.int32, device=self._device)
-        with self._lock.shared():
+        with self._reading():
             misses = self._launch(kernel, pts, res, missed, count)
         with self._counts:
             self._hits += n - misses
@@ -463,7 +480,7 @@ class BrickStore:
 
     def snapshot(self) -> Snapshot:
         """The stored bricks and their voxels' color sums (see :class:`Snapshot`)."""
-        with self._lock.shared():
+        with self._reading():
             slots = np.arange(len(self._keys))
             return Snapshot(self._version, self._keys.copy(), self._voxel_sums(slots))
 
@@ -471,7 +488,7 @@ class BrickStore:
         """Color sums (len(keys) * 512, C) of the voxels of bricks ``keys``, in the layout
         and with the NaNs of :class:`Snapshot`'s; all NaN for a brick not stored. The
         stored ones count as just used, for least-recently-used eviction."""
-        with self._lock.shared():
+        with self._reading():
             slots = self._slots_of(np.asarray(keys, np.int64))
             sums, version = self._voxel_sums(slots), self._version
         self.mark_used(slots[slots >= 0], version)
@@ -496,7 +513,7 @@ class BrickStore:
         ``bytes`` is what the stored voxels take: ``payload_bytes`` (their triples and
         their bricks' bits and pool bases) plus ``index_bytes`` (hash table, brick keys
         and stamps); ``allocated_bytes`` is all the store holds, free room included."""
-        with self._lock.shared(), self._counts:
+        with self._reading(), self._counts:
             bricks = int((self._keys != _EMPTY).sum())
             voxels = int(np.bitwise_count(self._valid).sum())
             payload = voxels * self._voxel_bytes + bricks * _SLOT_BYTES
@@ -538,7 +555,7 @@ class BrickStore:
         """
         path = Path(path)
         check_store_path(path)
-        with self._lock.shared():
+        with self._reading():
             version = self._version
             live = self._by_recency()
             ours = _Bricks(self._keys[live], self._payload[self._ranges(live)],
@@ -584,10 +601,47 @@ class BrickStore:
         except StoreFileError as e:
             warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
             return store
-        with store._lock.exclusive():
+        with store._changing():
             store._fill(kept)
             store._synced = (state, store._version)  # the file holds every brick loaded
         return store
+
+    # -- locking ----------------------------------------------------------------------
+
+    @contextmanager
+    def _changing(self) -> Iterator[None]:
+        """The exclusive lock, for changing the bricks. A change cut short (Ctrl-C, SIGTERM,
+        an error) may leave them half made, so the store then drops every brick instead:
+        their voxels can only be synthesized again, never read wrong or saved torn."""
+        with self._lock.exclusive():
+            if self._torn:  # a change cut short, and the emptying after it too
+                self._empty_again()
+            self._torn = True  # first: whatever is cut short after this, the flag shows it
+            try:
+                yield
+            except BaseException:
+                self._empty_again()
+                raise
+            self._torn = False
+
+    def _empty_again(self) -> None:
+        """Drop every brick, after a change of them was cut short."""
+        self._empty()
+        self._version += 1  # readers' copies (traced, scalar) see the bricks gone
+        self._torn = False
+
+    @contextmanager
+    def _reading(self) -> Iterator[None]:
+        """The shared lock, for reading the bricks; a store left torn (its emptying after a
+        change cut short was cut short too) is emptied first."""
+        if self._torn:
+            with self._changing():
+                pass
+        with self._lock.shared():
+            if self._torn:  # torn again meanwhile, by another thread's change
+                raise RuntimeError("brick store: a change of its bricks was cut short; "
+                                   "query again")
+            yield
 
     # -- batches ----------------------------------------------------------------------
 
@@ -601,7 +655,7 @@ class BrickStore:
         """
         made: list[tuple[np.ndarray, np.ndarray]] = []
         while True:
-            with self._lock.exclusive():
+            with self._changing():
                 # Everything this batch synthesized goes back in, so each round leaves
                 # fewer voxels to make and the loop ends whatever other threads evict.
                 for v, payload in made:
@@ -776,6 +830,21 @@ class BrickStore:
     def _brick_costs(self, counts: np.ndarray) -> np.ndarray:
         """The bytes that bricks holding ``counts`` voxels each take in a store."""
         return counts * self._voxel_bytes + _SLOT_BYTES
+
+    def _empty(self) -> None:
+        """Hold no brick (pool, slots and table as a new store's)."""
+        self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each slot
+        self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)  # stored-voxel bits per slot
+        self._base = np.zeros(0, np.int64)  # pool position of each slot's first voxel
+        self._payload = np.zeros((0, 3), self._dtype)  # the pool; the device's views it on the
+        # CPU and copies it on CUDA
+        self._used = 0  # pool voxels handed out, live or left behind by repacked bricks
+        self._garbage = 0  # of those, voxels of repacked or evicted bricks
+        self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)
+        self._pool_source: np.ndarray | None = None  # the host array the device pool shows
+        self._upload_slots()
+        self._upload_pool(0, 0)
+        self._rebuild_table(_MIN_BRICKS * 2)
 
     def _evict(self) -> None:
         """Drop least-recently-used bricks until the stored voxels fit ``cache_bytes``."""
