@@ -69,22 +69,23 @@ class TracedLookup:
         coords = brick_coords(snap.keys[live])
         lo = coords.min(0) if len(live) else np.zeros(3, np.int64)
         dims = coords.max(0) - lo + 1 if len(live) else np.ones(3, np.int64)
-        self._version = snap.version
-        self.usable = (int(np.prod(dims)) <= self.max_pages
-                       and snap.sums.size < _MAX_SUMS)
-        if not self.usable:
-            return False
-        pages = np.full(int(np.prod(dims)), -1, np.int32)
-        rel = coords - lo
-        pages[(rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]] = live
-        self._pages = mi.Int32(pages)
-        self._used = dr.zeros(mi.UInt32, max(len(snap.keys), 1))
-        self._sums = mi.Float(snap.sums.reshape(-1) if snap.sums.size else np.zeros(1, np.float32))
-        self._channels = snap.sums.shape[1]
-        # Opaque, so a refreshed table reuses the compiled kernels.
-        self._lo = [dr.opaque(mi.Int32, int(v)) for v in lo]
-        self._dims = [dr.opaque(mi.Int32, int(v)) for v in dims]
-        return True
+        usable = int(np.prod(dims)) <= self.max_pages and snap.sums.size < _MAX_SUMS
+        if usable:
+            pages = np.full(int(np.prod(dims)), -1, np.int32)
+            rel = coords - lo
+            pages[(rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]] = live
+            self._pages = mi.Int32(pages)
+            self._used = dr.zeros(mi.UInt32, max(len(snap.keys), 1))
+            self._sums = mi.Float(snap.sums.reshape(-1) if snap.sums.size
+                                  else np.zeros(1, np.float32))
+            self._channels = snap.sums.shape[1]
+            # Opaque, so a refreshed table reuses the compiled kernels.
+            self._lo = [dr.opaque(mi.Int32, int(v)) for v in lo]
+            self._dims = [dr.opaque(mi.Int32, int(v)) for v in dims]
+        # Last: a refresh stopped before here (Ctrl-C) is done again by the next, so no
+        # table is used with another version's sums.
+        self._version, self.usable = snap.version, usable
+        return usable
 
     def colors(self, p: tuple[mi.Float64, mi.Float64, mi.Float64],
                active: mi.Bool) -> mi.Color3f:

@@ -267,6 +267,27 @@ def test_a_store_whose_emptying_was_cut_short_too_is_emptied_when_next_used(
         np.testing.assert_array_equal(sample(store, voxels + 0.5), syn.voxels(voxels))
 
 
+def test_a_mutation_stopped_while_waiting_does_not_hold_back_lookups(monkeypatch):
+    """Ctrl-C while a change waits for lookups to end: later lookups and changes go on
+    (before, the waiting change went on counting and held back every lookup for ever)."""
+    from warptex.store import _SharedLock
+
+    def stopped(predicate):
+        raise KeyboardInterrupt
+
+    lock = _SharedLock()
+    with lock.shared():
+        with monkeypatch.context() as patch:
+            patch.setattr(lock._cond, "wait_for", stopped)
+            with pytest.raises(KeyboardInterrupt), lock.exclusive():
+                pass
+        assert lock._waiting == 0  # else the next shared() would wait for ever
+    with lock.shared(), lock.shared():
+        pass
+    with lock.exclusive():
+        pass
+
+
 def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
     """saved_when_stopped: Ctrl-C or SIGTERM in the block saves, says where, and stops as
     asked; a save that fails says why and stops all the same; no stop, no save."""

@@ -114,6 +114,35 @@ def test_a_full_coarse_cache_starts_over_without_changing_results(candidates):
     assert any(b < a for a, b in pairwise(held))  # the cache filled up and started over
 
 
+class _StoppedAtTheCacheBits:
+    """numpy, but Ctrl-C where the coarse cache joins its blocks' bits (uint64)."""
+
+    def __getattr__(self, name: str):
+        return getattr(np, name)
+
+    @staticmethod
+    def concatenate(arrays, *args, **kwargs):
+        if arrays[0].dtype == np.uint64:
+            raise KeyboardInterrupt
+        return np.concatenate(arrays, *args, **kwargs)
+
+
+def test_a_request_stopped_while_caching_leaves_no_wrong_coarse_voxel(candidates, monkeypatch):
+    """Ctrl-C while a request enters coarse blocks in the cache: later requests still get
+    what an engine without a cache gives (the cache changes in one step or not at all)."""
+    rng = np.random.default_rng(6)
+    first, second = _random_voxels(rng, 150), _random_voxels(rng, 150, -60, 20)
+    engine = Synthesizer(candidates, seed=4)
+    engine.voxels(first)
+    with monkeypatch.context() as patch:
+        patch.setattr(synthesis, "np", _StoppedAtTheCacheBits())
+        with pytest.raises(KeyboardInterrupt):
+            engine.voxels(second)
+    both = np.concatenate([first, second])
+    cold = Synthesizer(candidates, seed=4, coarse_cache_bytes=0)
+    assert np.array_equal(engine.voxels(both), cold.voxels(both))
+
+
 def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates):
     rng = np.random.default_rng(8)
     requests = [_random_voxels(rng, 100, -80, 80) for _ in range(12)]

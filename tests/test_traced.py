@@ -98,6 +98,35 @@ def test_evicted_bricks_miss_instead_of_reading_a_reused_slot(texture):
                                   texture.query(a + 16.0, filter="nearest")[:, :3])
 
 
+def test_a_refresh_stopped_half_way_is_done_again_when_next_asked(texture, monkeypatch):
+    """Ctrl-C while the lookup mirrors a changed store (its brick table made, the colour
+    sums not yet): the next refresh mirrors it again, so no table meets the wrong sums."""
+    import drjit
+
+    from mitsuba_plugin import traced
+    from mitsuba_plugin.traced import TracedLookup
+
+    class Stopped:
+        def __getattr__(self, name: str):
+            return getattr(drjit, name)
+
+        @staticmethod
+        def zeros(*args, **kwargs):
+            raise KeyboardInterrupt
+
+    points = sample_points(np.random.default_rng(9), 400, -20.0, 20.0)
+    texture.query(points[:40], filter="nearest")
+    lookup = TracedLookup(texture.store, "nearest", (0.25, 0.5, 0.75))
+    assert lookup.refresh()
+    expected = texture.query(points, filter="nearest")[:, :3]  # more bricks: a new version
+    with monkeypatch.context() as patch:
+        patch.setattr(traced, "dr", Stopped())
+        with pytest.raises(KeyboardInterrupt):
+            lookup.refresh()
+    assert lookup.refresh()
+    np.testing.assert_array_equal(traced_colors(lookup, points), expected)
+
+
 def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture, monkeypatch):
     from mitsuba_plugin.traced import TracedLookup
 

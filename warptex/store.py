@@ -255,8 +255,11 @@ class _SharedLock:
     def exclusive(self) -> Iterator[None]:
         with self._cond:
             self._waiting += 1
-            self._cond.wait_for(lambda: not self._writing and not self._readers)
-            self._waiting -= 1
+            try:
+                self._cond.wait_for(lambda: not self._writing and not self._readers)
+            finally:  # a wait stopped (Ctrl-C) must not hold back lookups for ever
+                self._waiting -= 1
+                self._cond.notify_all()
             self._writing = True
         try:
             yield

@@ -215,9 +215,9 @@ class _LevelCache:
         self.clear()
 
     def clear(self) -> None:
-        self.keys = np.zeros(0, np.int64)
-        self.triples = np.zeros((0, 3), np.int32)
-        self.valid = np.zeros(0, np.uint64)  # bit l: voxel l of the block is cached
+        # bit l of valid: voxel l of the block is cached
+        self.keys, self.triples, self.valid = (np.zeros(0, np.int64), np.zeros((0, 3), np.int32),
+                                               np.zeros(0, np.uint64))
 
     def find(self, keys: np.ndarray, flat: np.ndarray) -> np.ndarray:
         """Row in ``triples`` of each voxel ``flat`` (block * 64 + local) of the blocks
@@ -249,11 +249,14 @@ class _LevelCache:
             order = np.argsort(keys_all, kind="stable")
             blocks = np.concatenate([self.triples.reshape(-1, _BLOCK_VOXELS, 3),
                                      np.zeros((len(fresh), _BLOCK_VOXELS, 3), np.int32)])
-            self.keys = keys_all[order]
-            self.triples = blocks[order].reshape(-1, 3)
-            self.valid = np.concatenate([self.valid, np.zeros(len(fresh), np.uint64)])[order]
+            valid = np.concatenate([self.valid, np.zeros(len(fresh), np.uint64)])
+            # One assignment, which Python does not stop half way (Ctrl-C is raised at
+            # calls and loops): the three never disagree, whatever stops the request.
+            self.keys, self.triples, self.valid = (keys_all[order],
+                                                   blocks[order].reshape(-1, 3), valid[order])
         slot, local = self._slots(keys, flat)
         self.triples[slot * _BLOCK_VOXELS + local] = triples
+        # The bits last: a stop before them leaves voxels uncached, never cached wrong.
         np.bitwise_or.at(self.valid, slot, np.uint64(1) << local.astype(np.uint64))
 
 
