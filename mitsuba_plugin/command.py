@@ -118,7 +118,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     other seeds can be averaged).
 
     Raises ValueError for bad input, found before rendering, and :class:`OutputError` where
-    a file cannot be written after it (the files are then left as they were).
+    a file cannot be written after it (the files are then left as they were, except that a
+    brick store that cannot be written keeps neither the image nor its statistics from
+    being written: it is entered there as ``not_saved``).
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
         raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
@@ -188,33 +190,45 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     with saved_when_stopped(mitsuba_plugin.save_caches if save_stores else list):
         image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
                                       seed=seed, progress=_progress)
-    rendered = time.perf_counter()
+        rendered = time.perf_counter()
+        # Before the image: a stop while the stores are written (the longest of the writes)
+        # leaves the image and its statistics as they were, never one beside the other's.
+        textures = [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures()]
+    report = {
+        "format": REPORT_FORMAT,
+        "scene": str(scene_path),
+        "image": str(output),
+        "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "versions": _versions(),
+        "variant": variant,
+        "size": list(image.shape[1::-1]),
+        "spp": total,
+        "sampler_seed": seed,
+        "parameters": params,
+        "load_seconds": round(loaded - start, 3),
+        "render_seconds": round(rendered - loaded, 3),
+        "textures": textures,
+    }
+    text = json.dumps(report, indent=2) + "\n"
     try:
         # Synchronously: the default asynchronous write would race the rename.
         write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image,
                                                                    write_async=False))
-        report = {
-            "format": REPORT_FORMAT,
-            "scene": str(scene_path),
-            "image": str(output),
-            "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "versions": _versions(),
-            "variant": variant,
-            "size": list(image.shape[1::-1]),
-            "spp": total,
-            "sampler_seed": seed,
-            "parameters": params,
-            "load_seconds": round(loaded - start, 3),
-            "render_seconds": round(rendered - loaded, 3),
-            "textures": [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures()],
-        }
-        text = json.dumps(report, indent=2) + "\n"
         write_atomically(statistics, lambda tmp: tmp.write_text(text))
-    except OSError as error:  # a full disk, a lost mount: named, the files left as they were
-        where = error.filename or output  # write_atomically names the file it was asked for
-        raise OutputError(f"{where}: cannot write ({error.strerror or error})") from None
+    except OSError as error:
+        raise _cannot_write(error, output) from None
     _print_report(report)
+    failed = [t["not_saved"] for t in textures if "not_saved" in t]
+    if failed:  # the image is kept: a store is a cache, which the next render rebuilds
+        raise OutputError("; ".join(failed))
     return report
+
+
+def _cannot_write(error: OSError, output: Path) -> OutputError:
+    """A write that failed after the render (a full disk, a lost mount), named; the files
+    are left as they were."""
+    where = error.filename or output  # write_atomically names the file it was asked for
+    return OutputError(f"{where}: cannot write ({error.strerror or error})")
 
 
 def _check_store_file(texture, outputs: list[Path], saved: bool) -> None:
@@ -271,11 +285,18 @@ def _versions() -> dict[str, str]:
 
 
 def _save_and_report(texture, save: bool) -> dict:
-    saved = texture.save() if save else None
-    return {"texture": texture.to_string(), "properties": texture.properties(),
-            "store": texture.solid.store.stats(),
-            "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
-            "saved_to": None if saved is None else str(saved)}
+    """The texture's entry of the report, its store saved first if ``save``; a store that
+    cannot be written (a full disk) is entered as ``not_saved``, why, and left as it was."""
+    saved, failed = None, None
+    try:
+        saved = texture.save() if save else None
+    except OSError as error:
+        failed = str(_cannot_write(error, texture.cache))
+    entry = {"texture": texture.to_string(), "properties": texture.properties(),
+             "store": texture.solid.store.stats(),
+             "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
+             "saved_to": None if saved is None else str(saved)}
+    return entry if failed is None else entry | {"not_saved": failed}
 
 
 def _print_report(report: dict) -> None:

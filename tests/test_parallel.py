@@ -33,6 +33,46 @@ def test_split_generic_launch_equals_one_launch(warp_device):
         assert np.array_equal(out.numpy(), expected.astype(np.float32))
 
 
+@wp.kernel
+def _busy(first: int, out: wp.array(dtype=wp.float32)):
+    i = first + wp.tid()
+    x = wp.float32(0.0)
+    for k in range(2000):
+        x = x + wp.sin(float(i + k))
+    out[i] = x
+
+
+def test_a_stopped_split_launch_ends_its_ranges_before_going_on(monkeypatch, warp_device):
+    """Ctrl-C while the calling thread waits for the other ranges: the KeyboardInterrupt goes
+    on only once no range runs, as the caller may then free the arrays they use."""
+    import concurrent.futures
+
+    import warptex.parallel as parallel
+
+    monkeypatch.setattr(parallel, "THREADS", 2)
+    jobs = []
+    pool = parallel._pool()
+    submit = pool.submit
+
+    def recorded(*args, **kwargs):
+        jobs.append(submit(*args, **kwargs))
+        return jobs[-1]
+
+    result = concurrent.futures.Future.result
+
+    def stopped(self, timeout=None):
+        concurrent.futures.Future.result = result
+        raise KeyboardInterrupt
+
+    out = wp.zeros(64 * MIN_SPLIT, dtype=wp.float32, device="cpu")
+    launch_ranges(_busy, 0, MIN_SPLIT, [], [out])  # builds the module first
+    monkeypatch.setattr(pool, "submit", recorded)
+    monkeypatch.setattr(concurrent.futures.Future, "result", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        launch_ranges(_busy, 0, out.shape[0], [], [out])
+    assert jobs and all(job.done() for job in jobs)
+
+
 _BUILD_ONCE = """
 import numpy as np
 import warp as wp

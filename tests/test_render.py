@@ -296,6 +296,62 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
     assert report["store"]["voxels"] > 0 and report["store"]["voxels_added"] == 0
 
 
+def test_a_render_stopped_while_saving_its_store_leaves_image_and_statistics_as_they_were(
+        tmp_path, capsys, monkeypatch):
+    """The stores are written before the image: Ctrl-C during that longest write leaves the
+    last render's image beside its own statistics, not a new image beside old figures."""
+    import warptex.store
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    out = tmp_path / "img.exr"
+    argv = ["render", str(scene), "--res", "16x16", "-o", str(out)]
+    assert main([*argv, "--spp", "2"]) == 0
+    before = out.read_bytes(), (tmp_path / "img.exr.json").read_bytes()
+    mitsuba_plugin.live_textures.clear()
+
+    def stopped(self, path):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(warptex.store.BrickStore, "save", stopped)
+    assert main([*argv, "--spp", "1"]) == 130
+    assert (out.read_bytes(), (tmp_path / "img.exr.json").read_bytes()) == before
+
+
+def test_a_store_that_cannot_be_written_does_not_cost_the_image(tmp_path, capsys, monkeypatch):
+    """A full disk when the brick store is saved: the image and its statistics are written
+    all the same, the statistics say why the store was not, and the command ends with 1,
+    naming the store, which is left as it was."""
+    import errno
+    import os
+
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    store = scene.parent / "bricks" / "bunny.wtb"
+    argv = ["render", str(scene), "--spp", "1"]
+    assert main([*argv, "--res", "8x8", "-o", str(tmp_path / "small.exr")]) == 0
+    mitsuba_plugin.live_textures.clear()
+    before = store.read_bytes()
+    replace = os.replace
+
+    def disk_full(src, dst, *args, **kwargs):
+        if Path(dst) == store:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+        return replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", disk_full)
+    capsys.readouterr()
+    out = tmp_path / "img.exr"
+    assert main([*argv, "--res", "16x16", "-o", str(out)]) == 1
+    message = f"{store}: cannot write (No space left on device)"
+    assert capsys.readouterr().err.endswith(f"warptex: error: {message}\n")
+    (entry,) = json.loads((tmp_path / "img.exr.json").read_text())["textures"]
+    assert entry["not_saved"] == message and entry["saved_to"] is None
+    assert rgb(mi.Bitmap(str(out))).shape == (16, 16, 3)
+    assert store.read_bytes() == before
+
+
 def test_render_command_reads_a_store_it_may_not_write(tmp_path, monkeypatch):
     """--read-only-stores: a store in a place that cannot be written (a shared one) is read
     and left as it was, where without it the render is refused."""

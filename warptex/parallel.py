@@ -7,8 +7,9 @@ threads. Items of such kernels are independent, so the result equals one launch.
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from itertools import pairwise
 from typing import Any
 
@@ -65,5 +66,16 @@ def launch_ranges(
                        device=device)
         for lo, hi in pairwise(bounds)
     ]
-    for job in jobs:
-        job.result()
+    try:
+        for job in jobs:
+            job.result()
+    except BaseException:
+        # Ctrl-C, or one range's error, while the other ranges run: they read and write
+        # arrays that the caller may free or change as the exception goes on (a brick store
+        # empties itself), so they are waited for; a launch's range ends soon.
+        for job in jobs:
+            job.cancel()
+        while not all(job.done() for job in jobs):
+            with contextlib.suppress(KeyboardInterrupt):
+                wait(jobs)
+        raise
