@@ -475,7 +475,7 @@ class BrickStore:
         """Count pool ``slots`` of the snapshot of ``version`` as just used, for
         readers outside Warp; ignored if bricks were inserted or evicted since."""
         with self._lock.exclusive():
-            if version != self._version or len(slots) == 0:
+            if version != self._version or len(slots) == 0 or self._torn:
                 return
             stamps = self._index.stamps.numpy()
             stamps[slots] = next(self._tick)
