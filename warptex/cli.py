@@ -1086,8 +1086,8 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     with _store_saved_when_stopped(tex, args):
         count = _synthesize_shell(tex, mesh, args.resolution, transform)
         files = _textured_export(tex, mesh, transform, args, args.output, srgb)
-    print(f"surface shell: {count} voxels")
-    return _finish_mesh_command(tex, args, files, start)
+        print(f"surface shell: {count} voxels")
+        return _finish_mesh_command(tex, args, files, start)
 
 
 def _add_cut_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -1131,7 +1131,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     with _store_saved_when_stopped(tex, args):
         for half, output in zip(halves, outputs, strict=True):
             files += _textured_export(tex, half, transform, args, output, srgb)
-    return _finish_mesh_command(tex, args, files, start)
+        return _finish_mesh_command(tex, args, files, start)
 
 
 def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
