@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 
-from warptex.archive import file_problem, overwritten_input, write_atomically
+from warptex.archive import file_problem, overwritten_input, write_atomically, write_failure
 from warptex.store import saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
@@ -227,8 +227,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 def _cannot_write(error: OSError, output: Path) -> OutputError:
     """A write that failed after the render (a full disk, a lost mount), named; the files
     are left as they were."""
-    where = error.filename or output  # write_atomically names the file it was asked for
-    return OutputError(f"{where}: cannot write ({error.strerror or error})")
+    # write_atomically names the file it was asked for
+    return OutputError(write_failure(error.filename or output, error))
 
 
 def _check_store_file(texture, outputs: list[Path], saved: bool) -> None:

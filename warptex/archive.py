@@ -72,6 +72,12 @@ def file_problem(path: str | Path) -> str | None:
     return folder_problem(Path(path).parent)
 
 
+def write_failure(where: str | Path, error: OSError) -> str:
+    """How a write that failed once the work was under way (a full disk, a lost mount) is
+    reported: the file ``where`` it failed, and why."""
+    return f"{where}: cannot write ({error.strerror or error})"
+
+
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     """Let ``write`` fill a temporary file beside ``path``, then rename it to ``path``:
     readers never see a partial file, and a failed write leaves nothing behind. The

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from warptex import __version__
-from warptex.archive import file_problem, folder_problem, overwritten_input
+from warptex.archive import file_problem, folder_problem, overwritten_input, write_failure
 from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
 from warptex.llvm import MIN_LLVM_MAJOR
 from warptex.settings import (
@@ -680,7 +680,7 @@ def _writing(path: Path, *written_with: Path) -> Iterator[None]:
         # A failed rename names its target second (os.replace's filename2).
         failed = {error.filename, error.filename2}
         where = next((p for p in written_with if str(p) in failed), path)
-        raise _WorkFailed(f"{where}: cannot write ({error.strerror or error})") from None
+        raise _WorkFailed(write_failure(where, error)) from None
 
 
 def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:

@@ -41,7 +41,13 @@ import numpy as np
 import warp as wp
 
 from kernels import lookup as _k
-from warptex.archive import ArchiveError, is_foreign, read_archive, write_archive
+from warptex.archive import (
+    ArchiveError,
+    is_foreign,
+    read_archive,
+    write_archive,
+    write_failure,
+)
 from warptex.code_digest import code_digest, module_sources
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
@@ -376,8 +382,8 @@ def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
         except StoreFileError as error:
             print(f"warptex: brick store not saved: {error}", file=sys.stderr)
         except OSError as error:  # a full disk: the file is left as it was
-            print(f"warptex: brick store not saved: {error.filename}: cannot write "
-                  f"({error.strerror or error})", file=sys.stderr)
+            print(f"warptex: brick store not saved: {write_failure(error.filename, error)}",
+                  file=sys.stderr)
         else:
             for path in saved:
                 print(f"warptex: brick store saved to {path} before stopping: the next run "
