@@ -213,3 +213,20 @@ def test_names_are_kept_in_candidate_files(computed, image, tmp_path):
     assert loaded.names == ("same pixels.png",) * 3
     assert loaded.content_digest == CandidateSet.load(current).content_digest
     assert loaded.digests == (ex.digest(),) * 3
+
+
+def test_a_file_of_a_newer_format_is_listed_as_another_version(tmp_path, monkeypatch,
+                                                               warp_device):
+    """Written by a later warptex (format version + 1): another version's file, whole,
+    not a damaged one."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    ex = Exemplar(Exemplar.load(GRANITE).colors[:16, :16], name="crop")
+    precompute(ex)
+    (path,) = tmp_path.glob("candidates-*.wtc")
+    data = path.read_bytes()
+    at = len(candidates.FILE_MAGIC)
+    newer = data[:at] + (candidates.FORMAT_VERSION + 1).to_bytes(4, "little") + data[at + 4:]
+    (tmp_path / f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc").write_bytes(newer)
+    statuses = {f.path.name: f.status for f in cc.cache_files(tmp_path)}
+    assert statuses[f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc"] == cc.OTHER_VERSION
+    assert statuses[path.name] == cc.IN_USE

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import warnings
@@ -848,3 +849,65 @@ def test_the_pyramid_does_not_blur_across_a_seam():
     for level, wrapped in zip(granite.pyramid(), granite.pyramid(seams=(False, False)),
                               strict=True):
         assert np.array_equal(level.colors, wrapped.colors)
+
+
+def test_pyramids_of_exemplars_of_different_sizes_align_at_the_finest_level(warp_device):
+    """A 32x32 exemplar has three levels, a 16x16 one two: the 32x32 one's coarsest is
+    left out, and the finest level is each exemplar itself."""
+    big, small = _crop(slice(0, 32), slice(0, 32)), _crop(slice(32, 48), slice(32, 48))
+    cs = precompute(big, small, small, cache=False)
+    assert cs.num_levels == 2
+    assert [[s.size for s in lvl] for lvl in cs.sources] == [[(16, 16), (8, 8)],
+                                                           [(32, 32), (16, 16)]]
+    np.testing.assert_array_equal(cs.colors[0], big.colors)
+    np.testing.assert_array_equal(cs.colors[1], small.colors)
+
+
+def test_the_finest_level_keeps_its_own_number_of_2d_candidates(warp_device):
+    cs = precompute(_crop(slice(0, 32), slice(0, 32)), cache=False, candidates_2d=3,
+                    candidates_2d_finest=1)
+    assert [lvl[0].cand2d.shape[1] for lvl in cs.sources] == [3, 3, 1]
+
+
+def test_a_z_exemplar_left_out_is_the_y_exemplar(warp_device):
+    a, b = _crop(slice(0, 16), slice(0, 16)), _crop(slice(16, 32), slice(16, 32))
+    assert precompute(a, b, cache=False).axis_source == (0, 1, 1)
+    assert precompute(a, cache=False).axis_source == (0, 0, 0)
+
+
+def test_a_cache_file_of_other_parameters_is_reported_and_replaced(warp_device):
+    """Copied onto the name of other parameters' candidates, a whole file of the same
+    exemplar is not served under them."""
+    ex = _crop(slice(0, 16), slice(0, 16))
+    precompute(ex)
+    params = candidates.resolved_params({"neighborhood": 3})
+    wanted = cache_path([ex] * 3, params)
+    wanted.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(cache_path([ex] * 3, candidates.resolved_params({})), wanted)
+    with pytest.warns(UserWarning, match="candidates of other exemplars or parameters"):
+        cs = precompute(ex, neighborhood=3)
+    assert cs.params["neighborhood"] == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert precompute(ex, neighborhood=3).params["neighborhood"] == 3
+
+
+def test_margins_keep_candidates_off_each_seamed_edge_on_both_sides(warp_device):
+    """A ramp's left and right edges form a seam, its top and bottom do not: no candidate
+    lies in the 2 columns at either side, and every row may hold one (margins (0, 2),
+    told apart: rows and columns, near and far side)."""
+    rng = np.random.default_rng(2)
+    ramp = Exemplar((np.linspace(0.0, 1.0, 32)[None, :, None]
+                     + 0.05 * rng.random((24, 32, 3))).astype(np.float32), name="ramp")
+    cs = precompute(ramp, cache=False)
+    for lvl, roles in zip(cs.sources[1:], cs.roles[1:], strict=True):
+        src = lvl[0]
+        h, w = src.size
+        assert src.margins == (0, 2)
+        expected = np.zeros((h, w), bool)
+        expected[:, 2:w - 2] = True
+        np.testing.assert_array_equal(src.usable(), expected.reshape(-1))
+        for held in (src.cand2d, roles[0].cand):
+            rows, cols = np.divmod(held, w)
+            assert cols.min() == 2 and cols.max() == w - 3
+            assert rows.min() == 0 and rows.max() == h - 1

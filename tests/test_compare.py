@@ -5,7 +5,9 @@ from datetime import datetime
 
 import numpy as np
 import pytest
+from PIL import Image
 
+from warptex import compare
 from warptex.cli import main
 from warptex.metrics import histogram_distance, repetition_score
 
@@ -303,19 +305,77 @@ def test_stopping_a_comparison_ends_the_running_worker_at_once():
     """Ctrl-C or SIGTERM while a method runs in its worker process ends that process,
     instead of leaving the pool waiting for the method to finish."""
     import multiprocessing
+    import os
     import time
     from concurrent.futures import ProcessPoolExecutor
 
     from warptex.compare import _stop_workers
+
+    def ended(worker) -> bool:
+        worker.join(120)
+        if worker.exitcode is not None:
+            return True
+        # The pool's own thread may have reaped it first: then is_alive() stays True on
+        # Python 3.11, and only the process table tells.
+        try:
+            os.kill(worker.pid, 0)
+        except ProcessLookupError:
+            return True
+        return False
 
     pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
     pool.submit(time.sleep, 600)
     workers = list(pool._processes.values())
     try:
         _stop_workers(pool)
-        for worker in workers:
-            worker.join(120)
-        assert workers and not any(w.is_alive() for w in workers)
+        assert workers and all(ended(w) for w in workers)
     finally:
         for worker in workers:
             worker.kill()
+
+
+def test_report_gives_the_size_of_a_shrunk_exemplar_as_width_by_height(tmp_path, data_dir):
+    """A 48-column, 32-row crop shrunk to a larger side of 24: 24x16, [24, 16] in the JSON."""
+    path = tmp_path / "wide.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 48, 32)).save(path)
+    slices = [np.zeros((4, 4, 3), np.float32)] * 3
+    results = [compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0, 0.0,
+                                    slices=slices)]
+    compare.write_report(results, path, tmp_path / "out", size=8, seed=0, max_size=24)
+    run = json.loads((tmp_path / "out" / "table.json").read_text())["run"]
+    assert run["exemplar_size"] == [24, 16]
+    assert (tmp_path / "out" / "table.md").read_text().startswith("# wide.png, shrunk to 24x16\n")
+
+
+def test_large_slices_are_256_pixels_whatever_the_tile():
+    """A tile whose side does not divide 256 is repeated past it and cut."""
+    tile = np.random.default_rng(0).random((24, 40, 3))
+    large = compare._tile_slice(tile)
+    assert large.shape == (compare.LARGE, compare.LARGE, 3)
+    np.testing.assert_array_equal(large[24:48, 40:80], tile)
+
+
+def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
+    """Each method's process is replaced by a call here; the rows keep the order asked."""
+    class InlinePool:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, method, *args):
+            class Done:
+                def result(self):
+                    return {"method": method, "energy": [0.0] * 3, "swd": [0.0] * 3,
+                            "histogram": [0.0] * 3, "repetition": 0.0, "seconds": 0.0,
+                            "peak_mib": 0.0}
+            return Done()
+
+    monkeypatch.setattr(compare, "ProcessPoolExecutor", InlinePool)
+    methods = ["noise", "extrude", "tiled", "lazy"]
+    results = compare.compare(data_dir / "granite_64.png", 16, methods, progress=False)
+    assert [r.method for r in results] == methods

@@ -14,12 +14,14 @@ from scipy import ndimage
 
 from warptex.exemplar import (
     SEAM_LIMIT,
+    SEAM_SHARE,
     AlphaDropped,
     Exemplar,
     ExemplarError,
     PyramidLevel,
     feature_distance_from_mask,
     otsu_mask,
+    seam_contrast_of,
     seams_of,
 )
 from warptex.settings import SettingError
@@ -796,3 +798,35 @@ def test_arguments_without_a_meaning_are_refused_naming_them(tmp_path, data_dir)
         Exemplar("x.png")
     with pytest.raises(SettingError, match="min_size must be an integer"):
         Exemplar(colors).pyramid(min_size="a")
+
+
+def test_otsu_mask_weighs_the_channels_as_rec_709():
+    """A red square on a blue ground: red is the brighter (0.2126 against 0.0722), so the
+    square is the feature; channels read in the wrong order would invert it."""
+    image = np.zeros((16, 16, 3), np.float32)
+    image[..., 2] = 1.0
+    image[4:10, 5:12] = (1.0, 0.0, 0.0)
+    expected = np.zeros((16, 16), bool)
+    expected[4:10, 5:12] = True
+    np.testing.assert_array_equal(otsu_mask(image), expected)
+
+
+def test_seam_contrast_compares_each_wrap_with_its_own_direction():
+    """A ramp along the columns with rows alternating by 0.75: the left and right edges
+    differ W - 1 times as much as neighbouring columns, the top and bottom exactly as
+    much as neighbouring rows; only the former is a seam."""
+    h, w = 16, 21
+    image = (np.linspace(0.0, 1.0, w)[None, :] + 0.75 * (np.arange(h) % 2)[:, None])
+    columns, rows = seam_contrast_of(image[..., None])
+    assert columns == pytest.approx(w - 1) and rows == pytest.approx(1.0)
+    assert Exemplar(image.astype(np.float32)).seams() == (False, True)
+
+
+def test_a_wrap_matched_by_exactly_seam_share_of_the_pairs_is_no_seam():
+    """21 rows, 0 above row 10 and 1 from it: one of the 20 pairs of neighbouring rows
+    (5%, SEAM_SHARE) differs as much as the wrap, so the wrap is one of the image's own
+    edges, although it differs 20x as much as neighbouring rows on average."""
+    step = np.repeat((np.arange(21) >= 10).astype(np.float32)[:, None], 16, axis=1)
+    assert SEAM_SHARE * 20 == 1
+    assert seam_contrast_of(step[..., None])[1] == pytest.approx(20.0)
+    assert seams_of(step[..., None]) == (False, False)

@@ -247,3 +247,128 @@ def test_sizes_and_exemplars_of_another_type(granite, granite_32_file):
     np.testing.assert_array_equal(
         from_file, kopf.synthesize(Exemplar.load(granite_32_file), size=8, iterations=1,
                                    progress=False))
+
+
+def _window(volume: np.ndarray, axis: int, p: tuple[int, int, int]) -> np.ndarray:
+    """The 8x8 window s_v,i of voxel p in the slice across `axis` (rows along axis + 1,
+    columns along axis + 2, offsets -4..3), toroidally."""
+    n = volume.shape[0]
+    out = np.empty((8, 8, volume.shape[3]), volume.dtype)
+    for a in range(8):
+        for b in range(8):
+            q = list(p)
+            q[(axis + 1) % 3] += a - 4
+            q[(axis + 2) % 3] += b - 4
+            out[a, b] = volume[q[0] % n, q[1] % n, q[2] % n]
+    return out
+
+
+def test_search_energy_and_weights_are_those_of_equations_1_and_2(granite_32, warp_device):
+    """For each grid centre of each constrained axis: energy |s - e|^0.8 and IRLS weight
+    max(|s - e|, 1e-3)^(0.8 - 2), |s - e| the L2 distance of the voxel's window to the
+    matched exemplar window, recomputed here."""
+    n = 8
+    colors = np.ascontiguousarray(granite_32.colors[:16, :16])
+    volume = np.random.default_rng(4).random((n, n, n, 3)).astype(np.float32)
+    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
+    feats = [colors, None, colors]
+    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
+    opt.search()
+    h = n // 2
+    match, weight, energy = opt.match.numpy(), opt.weight.numpy(), opt.energy.numpy()
+    for axis in (0, 2):
+        for c in range(0, opt.centres, 7):
+            p = [0, 0, 0]
+            p[axis] = c // (h * h)
+            p[(axis + 1) % 3], p[(axis + 2) % 3] = 2 * (c // h % h), 2 * (c % h)
+            g = axis * opt.centres + c
+            u, v = divmod(int(match[g]), 16)
+            rows = (np.arange(u - 4, u + 4) % 16)[:, None]
+            cols = (np.arange(v - 4, v + 4) % 16)[None, :]
+            dist = np.linalg.norm((_window(volume, axis, tuple(p)) - colors[rows, cols])
+                                  .astype(np.float64))
+            assert energy[g] == pytest.approx(dist ** kopf.R, rel=1e-4)
+            assert weight[g] == pytest.approx(max(dist, kopf.MIN_DISTANCE) ** (kopf.R - 2),
+                                              rel=1e-4)
+
+
+def test_upsampling_is_periodic_trilinear_interpolation(warp_device):
+    """Fine voxel i lies at coarse coordinate i / 2 - 1 / 4 along each axis (cell centres
+    of a grid twice as fine), interpolated linearly between its two coarse neighbours,
+    wrapping around."""
+    n = 4
+    coarse = np.random.default_rng(5).random((n, n, n, 2)).astype(np.float32)
+    along = np.zeros((2 * n, n))
+    for i in range(2 * n):
+        x = i / 2 - 0.25
+        lo = int(np.floor(x))
+        along[i, lo % n] += 1 - (x - lo)
+        along[i, (lo + 1) % n] += x - lo
+    expected = np.einsum("ia,jb,kc,abcf->ijkf", along, along, along, coarse)
+    fine = kopf._upsample(wp.array(coarse.reshape(-1, 2), dtype=wp.float32, device="cpu"), n)
+    np.testing.assert_allclose(fine.numpy().reshape(2 * n, 2 * n, 2 * n, 2), expected,
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_bounded_search_finds_every_window_closer_than_the_current_match(granite_32,
+                                                                         monkeypatch):
+    """With an exact search (eps 0), the search bounded by the current matches returns,
+    for each query, its nearest window where that is closer than its current match, and
+    the current match otherwise: no query's bound may be that of another."""
+    monkeypatch.setattr(kopf, "ANN_EPS", 0.0)
+    ax = kopf._search_structure(np.ascontiguousarray(granite_32.colors), (False, False))
+    rng = np.random.default_rng(6)
+    query = ax.tree.data[rng.integers(0, ax.tree.n, 300)] + rng.normal(
+        0.0, 0.3, (300, ax.dims))
+    current = ax.window_pixels[rng.integers(0, ax.tree.n, 300)]
+    nearest_dist, nearest = ax.tree.query(query)
+    current_dist = np.linalg.norm(query - ax.tree.data[np.searchsorted(ax.window_pixels,
+                                                                       current)], axis=1)
+    expected = np.where(nearest_dist < current_dist, ax.window_pixels[nearest], current)
+    assert (expected != current).sum() > 100
+    np.testing.assert_array_equal(kopf._ann_search(ax, query, current), expected)
+
+
+def test_histograms_follow_the_solid_through_an_optimization_phase(granite_32, warp_device):
+    """The solid's histogram counts are kept current as voxels change (section 5): after
+    an optimization phase they are those of the solid, counted afresh."""
+    n = 8
+    colors = np.ascontiguousarray(granite_32.colors[:16, :16])
+    volume = np.random.default_rng(7).random((n ** 3, 3)).astype(np.float32)
+    solid = wp.array(volume, dtype=wp.float32, device="cpu")
+    opt = kopf._LevelOptimizer([colors, colors, colors], [(False, False)] * 3, solid, True)
+    before = opt.histograms.counts.copy()
+    opt.search()
+    opt.optimize(np.random.default_rng(1).permutation(n ** 3).astype(np.int32))
+    assert not np.array_equal(opt.histograms.counts, before)
+    np.testing.assert_array_equal(opt.histograms.counts, opt.histograms._counts(opt.values))
+
+
+def test_the_voxel_order_follows_the_seed(granite_32, monkeypatch, warp_device):
+    """Voxels are visited in a random order drawn from the seed (section 5): the same
+    seed, the same orders; another seed, others."""
+    orders = []
+    optimize = kopf._LevelOptimizer.optimize
+
+    def recorded(self, order, bandwidth=0.0):
+        orders.append(order.copy())
+        return optimize(self, order, bandwidth)
+
+    monkeypatch.setattr(kopf._LevelOptimizer, "optimize", recorded)
+
+    def run(seed):
+        orders.clear()
+        kopf.synthesize(granite_32, size=8, iterations=1, seed=seed, progress=False)
+        return list(orders)
+
+    first, again, other = run(1), run(1), run(2)
+    assert len(first) == kopf.LEVELS
+    assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
+    assert not any(np.array_equal(a, b) for a, b in zip(first, other, strict=True))
+
+
+def test_mean_shift_bandwidth_shrinks_geometrically_over_a_level():
+    """From the spread of the texels to a quarter of it, geometrically (section 4.1)."""
+    np.testing.assert_allclose(kopf._bandwidths(2.0, 4),
+                               2.0 * 0.25 ** (np.arange(4) / 3), rtol=1e-12)
+    np.testing.assert_allclose(kopf._bandwidths(2.0, 1), [0.5])

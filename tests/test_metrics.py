@@ -5,7 +5,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from warptex import metrics
-from warptex.exemplar import Exemplar
+from warptex.exemplar import Exemplar, wrapping_edges
 
 
 def _exemplar() -> np.ndarray:
@@ -192,3 +192,82 @@ def test_inputs_without_a_meaning_are_one_clear_error():
 
     assert metrics.iid_noise(Exemplar(ex), (2, 2, 2)).shape == (2, 2, 2, 3)
     assert np.array_equal(metrics.extrusion(Exemplar(ex), 2), metrics.extrusion(ex, 2))
+
+
+def _swd_by_hand(vol, ex, axis, size, directions, seed):
+    """Sliced Wasserstein-1 written out: slice patches every 2 voxels, the exemplar's
+    toroidal patches, projected on unit directions drawn as N(0, 1) columns."""
+    h, w, c = ex.shape
+    ex_patches = np.array([ex[(np.arange(i, i + size) % h)[:, None],
+                              (np.arange(j, j + size) % w)[None, :]].ravel()
+                           for i in range(h) for j in range(w)], np.float64)
+    picks = np.unique(np.linspace(0, vol.shape[axis] - 1, min(8, vol.shape[axis])).astype(int))
+    slice_patches = []
+    for i in picks:
+        s = vol[i] if axis == 0 else (vol[:, i].transpose(1, 0, 2) if axis == 1 else vol[:, :, i])
+        for r in range(0, s.shape[0] - size + 1, 2):
+            for q in range(0, s.shape[1] - size + 1, 2):
+                slice_patches.append(s[r:r + size, q:q + size].ravel())
+    slice_patches = np.array(slice_patches, np.float64)
+    dirs = np.random.default_rng(seed).normal(size=(size * size * c, directions))
+    dirs /= np.linalg.norm(dirs, axis=0)
+    q = np.linspace(0.0, 1.0, 257)
+    pa = np.quantile(slice_patches @ dirs, q, axis=0)
+    pb = np.quantile(ex_patches @ dirs, q, axis=0)
+    var = ex.reshape(-1, c).astype(np.float64).var(axis=0).sum()
+    return np.mean(np.abs(pa - pb)) / np.sqrt(var)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_sliced_wasserstein_equals_a_reference_on_unit_directions(seed):
+    """Directions are unit vectors (unnormalized Gaussian columns scale the distance by
+    about sqrt(size^2 C)) drawn from the seed given."""
+    rng = np.random.default_rng(8)
+    ex = rng.random((8, 8, 3)).astype(np.float32)
+    vol = rng.random((7, 9, 11, 3)).astype(np.float32)
+    got = metrics.sliced_wasserstein(vol, ex, 1, size=3, directions=16, seed=seed,
+                                     tileable=True)
+    assert got == pytest.approx(_swd_by_hand(vol, ex, 1, 3, 16, seed), rel=1e-4)
+    other = metrics.sliced_wasserstein(vol, ex, 1, size=3, directions=16, seed=seed + 1,
+                                       tileable=True)
+    assert other != got
+
+
+def test_iid_noise_follows_its_seed():
+    ex = np.random.default_rng(9).random((16, 16, 3)).astype(np.float32)
+    a, b = metrics.iid_noise(ex, (4, 4, 4), seed=1), metrics.iid_noise(ex, (4, 4, 4), seed=1)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, metrics.iid_noise(ex, (4, 4, 4), seed=2))
+    # Every voxel is an exemplar pixel.
+    pixels = {tuple(p) for p in ex.reshape(-1, 3)}
+    assert all(tuple(v) in pixels for v in a.reshape(-1, 3))
+
+
+def test_repetition_score_sees_a_pattern_repeated_along_one_axis_only():
+    """Noise rows repeated every 32 columns: the shift (0, 32) matches exactly, although
+    it moves along one axis only."""
+    rng = np.random.default_rng(10)
+    image = np.tile(rng.random((256, 32, 3)), (1, 8, 1))
+    assert metrics.repetition_score(image) > 0.99
+    assert metrics.repetition_score(image.transpose(1, 0, 2)) > 0.99
+
+
+def test_repetition_score_counts_shifts_up_to_a_quarter_only():
+    """A 64-pixel image made of a 32-pixel tile repeats at half its side, where circular
+    correlation pairs a shift with itself: not counted, as documented; at 128 pixels the
+    same tile repeats within a quarter and is seen."""
+    tile = np.random.default_rng(11).random((32, 32, 3))
+    assert metrics.repetition_score(np.tile(tile, (2, 2, 1))) < 0.5
+    assert metrics.repetition_score(np.tile(tile, (4, 4, 1))) > 0.99
+
+
+def test_wrapping_edges_wrap_a_seam_only_where_fewer_than_size_windows_fit():
+    """Across a seam, a side of 2 size - 1 pixels still holds `size` unwrapped windows, one
+    pixel less does not."""
+    assert wrapping_edges((True, True), (9, 8), 5) == (False, True)
+    assert wrapping_edges((True, False), (9, 9), 5) == (False, True)
+    assert wrapping_edges((False, False), (40, 40), 5) == (True, True)
+    rng = np.random.default_rng(6)
+    ramp = (np.linspace(0.0, 1.0, 9)[None, :, None]
+            + 0.05 * rng.random((20, 9, 3))).astype(np.float32)
+    assert metrics.exemplar_patches(ramp, 5, tileable=False).shape == (16 * 5, 75)

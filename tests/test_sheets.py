@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from warptex.sheets import to_rgb8, volume_row
+from warptex.sheets import sheet, to_rgb8, volume_row
 
 
 def test_to_rgb8_rounds_clips_and_spreads_gray():
@@ -27,3 +27,16 @@ def test_volume_row_slices_each_axis_at_its_label():
         assert sorted(image.shape[:2]) == sorted(s for a, s in enumerate(vol.shape[:3])
                                                  if a != axis)
     assert volume_row(vol, depth=1)[2][0] == "z = 1"
+
+
+def test_sheet_fits_each_image_in_its_cell_and_enlarges_it_sharply():
+    """A 4-row, 8-column checker in a 32-pixel cell: 4x larger, 32 wide and 16 high, each
+    pixel a sharp 4x4 block, the rest of the cell white."""
+    image = np.zeros((4, 8, 3), np.float32)
+    image[(np.arange(4)[:, None] + np.arange(8)[None, :]) % 2 == 1] = 1.0
+    out = sheet([("r", [("a", image)])], cell=32)
+    x, y = 8 * 1 + 4, 4 + 14  # after the row label; below the image label
+    expected = np.kron((image * 255).astype(np.uint8), np.ones((4, 4, 1), np.uint8))
+    np.testing.assert_array_equal(out[y:y + 16, x:x + 32], expected)
+    assert (out[y + 16:y + 32, x:x + 32] == 255).all()
+    assert out.shape == (4 + 14 + 32 + 4, x + 32 + 2 * 4, 3)
