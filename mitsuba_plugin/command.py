@@ -13,10 +13,15 @@ import time
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
 from contextlib import contextmanager
-from datetime import UTC, datetime
 from pathlib import Path
 
-from warptex.archive import file_problem, overwritten_input, write_atomically, write_failure
+from warptex.archive import (
+    file_problem,
+    iso_date,
+    overwritten_input,
+    write_atomically,
+    write_failure,
+)
 from warptex.store import saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
@@ -198,7 +203,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "format": REPORT_FORMAT,
         "scene": str(scene_path),
         "image": str(output),
-        "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "date": iso_date(),
         "versions": _versions(),
         "variant": variant,
         "size": list(image.shape[1::-1]),

@@ -18,6 +18,7 @@ import os
 import tempfile
 import threading
 from collections.abc import Callable, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,13 @@ def file_problem(path: str | Path) -> str | None:
     except OSError as error:
         return f"cannot look up ({error.strerror or error})"
     return folder_problem(Path(path).parent)
+
+
+def iso_date(seconds: float | None = None) -> str:
+    """The date that reports and listings write: ISO 8601 in UTC, to the second, of
+    ``seconds`` since the epoch (a file's modification time), else of now."""
+    when = datetime.now(UTC) if seconds is None else datetime.fromtimestamp(seconds, UTC)
+    return when.strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def write_failure(where: str | Path, error: OSError) -> str:

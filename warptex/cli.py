@@ -25,7 +25,13 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 
 from warptex import __version__
-from warptex.archive import file_problem, folder_problem, overwritten_input, write_failure
+from warptex.archive import (
+    file_problem,
+    folder_problem,
+    iso_date,
+    overwritten_input,
+    write_failure,
+)
 from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
 from warptex.llvm import MIN_LLVM_MAJOR
 from warptex.settings import (
@@ -478,12 +484,10 @@ def _cmd_cache(args: argparse.Namespace) -> int:
 def _cache_report(folder: Path, files: list, deleted: tuple[int, int] | None,
                   kernels: dict) -> dict:
     """``warptex cache --json``: the listing as data, times in ISO 8601 (UTC)."""
-    from datetime import UTC, datetime
-
     return {
         "candidate_cache": str(folder),
-        "files": [{"file": str(f.path), "written": datetime.fromtimestamp(f.modified, UTC)
-                   .strftime("%Y-%m-%dT%H:%M:%SZ"), "bytes": f.size, "status": f.status,
+        "files": [{"file": str(f.path), "written": iso_date(f.modified), "bytes": f.size,
+                   "status": f.status,
                    "exemplars": list(f.names)} for f in files],
         "deleted": None if deleted is None else {"files": deleted[0], "bytes": deleted[1]},
         "kernel_cache": kernels,

@@ -18,7 +18,6 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +25,7 @@ from tqdm import std
 from tqdm.auto import tqdm
 
 from warptex import metrics
-from warptex.archive import write_atomically
+from warptex.archive import iso_date, write_atomically
 from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
 from warptex.machine import PeakMemory, map_large_blocks
 from warptex.settings import (
@@ -250,7 +249,7 @@ def run_summary(size: int, seed: int) -> dict:
     gpu = wp.get_device("cuda").name if _engine_device() == "cuda" else None
     return {"size": size, "seed": seed, "cpu": cpu, "cores": usable_cores(), "gpu": gpu,
             "warptex": __version__, "warp": wp.__version__,
-            "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")}
+            "date": iso_date()}
 
 
 def run_line(run: dict) -> str:
