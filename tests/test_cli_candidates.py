@@ -65,7 +65,9 @@ def _rows(out: str) -> list[str]:
 # -- precompute ---------------------------------------------------------------------------
 
 
-def test_precompute_summary_file_and_cache(images, tmp_path, private_cache, capsys):
+def test_precompute_summary_file_and_cache(images, tmp_path, monkeypatch, capsys):
+    # A cache of its own: the file's shared one may already hold a.png's candidates.
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
     out_file = tmp_path / "a.wtc"
     assert main(["precompute", str(images["a"]), "-o", str(out_file)]) == 0
     captured = capsys.readouterr()

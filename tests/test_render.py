@@ -446,11 +446,11 @@ def test_medium_scatters_with_the_texture_at_each_point(granite_32_file, srgb_de
     """sigma_s = albedo(p) * sigma_t * scale, the albedo being the nested texture's colour
     at the medium point, channel for channel."""
     use(LLVM)
-    before = set(map(id, mitsuba_plugin.textures()))
+    before = set(mitsuba_plugin.textures())  # the objects: a freed one's id may be reused
     medium = mi.load_dict({"type": "lazy_solid_medium", "sigma_t": 3.0, "scale": 2.0,
                            "albedo": {"type": "lazy_solid", "exemplar": str(granite_32_file),
                                       "scale": 8.0}})
-    (texture,) = [t for t in mitsuba_plugin.textures() if id(t) not in before]
+    (texture,) = [t for t in mitsuba_plugin.textures() if t not in before]
     points = np.random.default_rng(0).uniform(-1, 1, (5, 3)).astype(np.float32)
     mei = dr.zeros(mi.MediumInteraction3f, len(points))
     mei.p = mi.Point3f(*points.T)
