@@ -221,7 +221,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                                                                    write_async=False))
         write_atomically(statistics, lambda tmp: tmp.write_text(text))
     except OSError as error:
-        raise _cannot_write(error, output) from None
+        raise OutputError(_write_failure(error, output)) from None
     _print_report(report)
     failed = [t["not_saved"] for t in textures if "not_saved" in t]
     if failed:  # the image is kept: a store is a cache, which the next render rebuilds
@@ -229,11 +229,10 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     return report
 
 
-def _cannot_write(error: OSError, output: Path) -> OutputError:
-    """A write that failed after the render (a full disk, a lost mount), named; the files
-    are left as they were."""
-    # write_atomically names the file it was asked for
-    return OutputError(write_failure(error.filename or output, error))
+def _write_failure(error: OSError, path: Path) -> str:
+    """A write of ``path`` that failed after the render (a full disk, a lost mount), named
+    after the file write_atomically was asked for."""
+    return write_failure(error.filename or path, error)
 
 
 def _check_store_file(texture, outputs: list[Path], saved: bool) -> None:
@@ -296,7 +295,7 @@ def _save_and_report(texture, save: bool) -> dict:
     try:
         saved = texture.save() if save else None
     except OSError as error:
-        failed = str(_cannot_write(error, texture.cache))
+        failed = _write_failure(error, texture.cache)
     entry = {"texture": texture.to_string(), "properties": texture.properties(),
              "store": texture.solid.store.stats(),
              "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),

@@ -487,8 +487,7 @@ def _cache_report(folder: Path, files: list, deleted: tuple[int, int] | None,
     return {
         "candidate_cache": str(folder),
         "files": [{"file": str(f.path), "written": iso_date(f.modified), "bytes": f.size,
-                   "status": f.status,
-                   "exemplars": list(f.names)} for f in files],
+                   "status": f.status, "exemplars": list(f.names)} for f in files],
         "deleted": None if deleted is None else {"files": deleted[0], "bytes": deleted[1]},
         "kernel_cache": kernels,
     }
