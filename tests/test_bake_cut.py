@@ -352,8 +352,9 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys,
 @pytest.mark.parametrize("command", ["bake", "cut"])
 def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_device,
                                                capsys, monkeypatch, command):
-    """Ctrl-C while the mesh's colours are made: the --store file keeps what was
-    synthesized, no mesh is written, and the next run synthesizes less."""
+    """Ctrl-C while the mesh's colours are made (a cut's second half): the --store file
+    keeps what was synthesized, no mesh is written, not even a cut's first half, and the
+    next run synthesizes less."""
     import warptex.cli
     from warptex.cli import main
 
@@ -364,20 +365,21 @@ def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_
             "--resolution", "24", "--store", str(store), "-o", str(tmp_path / "m.ply")]
     assert main([*argv[:-4], "-o", str(tmp_path / "cold.ply")]) == 0
     cold = int(re.search(r"voxels synthesized: (\d+) \(", capsys.readouterr().out).group(1))
-    export = warptex.cli._textured_export
-    exported = []
+    baked = warptex.cli._baked
+    made = []
 
     def stopped_on_the_last(tex, mesh, *args):
-        if command == "bake" or exported:
+        if command == "bake" or made:
             raise KeyboardInterrupt
-        exported.append(export(tex, mesh, *args))
-        return exported[-1]
+        made.append(baked(tex, mesh, *args))
+        return made[-1]
 
+    before = set(tmp_path.iterdir())
     with monkeypatch.context() as patch:
-        patch.setattr(warptex.cli, "_textured_export", stopped_on_the_last)
+        patch.setattr(warptex.cli, "_baked", stopped_on_the_last)
         assert main(argv) == 130
     assert f"brick store saved to {store} before stopping" in capsys.readouterr().err
-    assert store.exists() and not (tmp_path / "m_b.ply").exists()
+    assert set(tmp_path.iterdir()) == before | {store}
     assert main(argv) == 0
     warm = int(re.search(r"voxels synthesized: (\d+) \(", capsys.readouterr().out).group(1))
     assert warm < cold

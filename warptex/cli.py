@@ -960,21 +960,18 @@ def _load_mesh(path: Path, uv: str = "none"):
     return mesh
 
 
-def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
-                     output: Path, srgb: bool | None) -> list[Path]:
-    """Bake ``mesh`` as asked by --uv and write it, its colors in each format's encoding
-    (``srgb``: see warptex.mesh_files.export); returns the files written."""
+def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str) -> dict:
+    """Bake ``mesh`` as asked by --uv: the keyword arguments of
+    warptex.mesh_files.export, nothing written yet."""
     from tqdm.auto import tqdm
 
     from warptex.bake import bake_uv_texture, vertex_colors
-    from warptex.mesh_files import export, exported_files
 
     if args.uv == "none":
-        colors = vertex_colors(tex, mesh, transform, progress=f"colours of {output.name}")
-        with _writing(output):
-            return export(mesh, output, colors=colors, srgb=srgb)
+        return {"mesh": mesh,
+                "colors": vertex_colors(tex, mesh, transform, progress=f"colours of {name}")}
     # Unwrapping is one long call: the bar names the step it is in and times it.
-    with tqdm(total=3, desc=f"UV texture {output.name}",
+    with tqdm(total=2, desc=f"UV texture {name}",
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
         if args.uv == "auto":
             bar.set_postfix_str("unwrapping (xatlas)")
@@ -985,11 +982,16 @@ def _textured_export(tex, mesh, transform: np.ndarray, args: argparse.Namespace,
         bar.set_postfix_str(f"baking {size}^2 texels")
         image, _ = bake_uv_texture(tex, mesh, uv, transform, size=size)
         bar.update()
-        bar.set_postfix_str("writing")
-        with _writing(output, *exported_files(output, uv_texture=True)):
-            files = export(mesh, output, image=image, uv=uv, srgb=srgb)
-        bar.update()
-    return files
+    return {"mesh": mesh, "image": image, "uv": uv}
+
+
+def _export_baked(baked: dict, output: Path, srgb: bool | None) -> list[Path]:
+    """Write what :func:`_baked` made, its colors in each format's encoding (``srgb``: see
+    warptex.mesh_files.export); returns the files written."""
+    from warptex.mesh_files import export, exported_files
+
+    with _writing(output, *exported_files(output, uv_texture="image" in baked)):
+        return export(path=output, srgb=srgb, **baked)
 
 
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
@@ -1088,7 +1090,8 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     with _store_saved_when_stopped(tex, args):
         count = _synthesize_shell(tex, mesh, args.resolution, transform)
-        files = _textured_export(tex, mesh, transform, args, args.output, srgb)
+        files = _export_baked(_baked(tex, mesh, transform, args, args.output.name),
+                              args.output, srgb)
         print(f"surface shell: {count} voxels")
         return _finish_mesh_command(tex, args, files, start)
 
@@ -1130,10 +1133,12 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     tex, srgb = _solid_texture(args)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
-    files = []
     with _store_saved_when_stopped(tex, args):
-        for half, output in zip(halves, outputs, strict=True):
-            files += _textured_export(tex, half, transform, args, output, srgb)
+        # Both halves baked before either is written: a cut stopped half way writes neither.
+        baked = [_baked(tex, half, transform, args, output.name)
+                 for half, output in zip(halves, outputs, strict=True)]
+        files = [f for b, output in zip(baked, outputs, strict=True)
+                 for f in _export_baked(b, output, srgb)]
         return _finish_mesh_command(tex, args, files, start)
 
 
