@@ -284,8 +284,14 @@ def test_a_mutation_stopped_while_waiting_does_not_hold_back_lookups(monkeypatch
         assert lock._waiting == 0  # else the next shared() would wait for ever
     with lock.shared(), lock.shared():
         pass
+    # A change that got the lock wakes the waiting lookups once, as it ends, not as it starts
+    # too (they would only find it writing and wait again).
+    notify_all = lock._cond.notify_all
+    woken = []
+    monkeypatch.setattr(lock._cond, "notify_all", lambda: woken.append(1) or notify_all())
     with lock.exclusive():
-        pass
+        assert woken == []
+    assert woken == [1]
 
 
 def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):

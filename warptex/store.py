@@ -261,11 +261,13 @@ class _SharedLock:
     def exclusive(self) -> Iterator[None]:
         with self._cond:
             self._waiting += 1
+            acquired = False
             try:
-                self._cond.wait_for(lambda: not self._writing and not self._readers)
-            finally:  # a wait stopped (Ctrl-C) must not hold back lookups for ever
+                acquired = self._cond.wait_for(lambda: not self._writing and not self._readers)
+            finally:
                 self._waiting -= 1
-                self._cond.notify_all()
+                if not acquired:  # a wait stopped (Ctrl-C) must not hold back lookups for ever
+                    self._cond.notify_all()
             self._writing = True
         try:
             yield
