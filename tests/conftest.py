@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -122,3 +123,20 @@ def plane_scene():
     """A builder of the scene of a textured plane, ``plane_scene(texture, emissive, x=0,
     size=8, spp=4)`` (see ``_plane_scene``)."""
     return _plane_scene
+
+
+@pytest.fixture
+def disk_full_at(monkeypatch):
+    """``disk_full_at(path)``: from then on, renaming a finished file to ``path`` fails as on
+    a full disk (every output is written under another name, then renamed)."""
+    replace = os.replace
+
+    def fill(path: Path) -> None:
+        def replace_unless_full(src, dst, *args, **kwargs):
+            if Path(dst) == path:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+            return replace(src, dst, *args, **kwargs)
+
+        monkeypatch.setattr(os, "replace", replace_unless_full)
+
+    return fill

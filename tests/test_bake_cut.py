@@ -209,12 +209,10 @@ def test_export_formats(texture, sphere, tmp_path):
     assert not list(tmp_path.glob(".t.ply*"))
 
 
-def test_an_obj_never_arrives_before_its_texture(tmp_path, monkeypatch):
+def test_an_obj_never_arrives_before_its_texture(tmp_path, disk_full_at):
     """Where the .obj's texture cannot be written (a folder of its name), none of its files
     is: the error names the texture, and no temporary is left. A texture whose write fails
     later leaves no .obj that would show another texture."""
-    import os
-
     mesh, uv = _square()
     image = np.full((8, 8, 3), 0.5, np.float32)
     (tmp_path / "t.png").mkdir()
@@ -223,14 +221,7 @@ def test_an_obj_never_arrives_before_its_texture(tmp_path, monkeypatch):
     assert error.value.filename == str(tmp_path / "t.png")
     assert [p.name for p in tmp_path.iterdir()] == ["t.png"]
 
-    replace = os.replace
-
-    def disk_full(src, dst):
-        if Path(dst).suffix == ".png":
-            raise OSError(28, "No space left on device", str(dst))
-        replace(src, dst)
-
-    monkeypatch.setattr(os, "replace", disk_full)
+    disk_full_at(tmp_path / "u.png")
     with pytest.raises(OSError, match="No space"):
         export(mesh, tmp_path / "u.obj", image=image, uv=uv)
     assert not (tmp_path / "u.obj").exists()

@@ -231,12 +231,9 @@ WRITE_FAILURES = [
 @pytest.mark.parametrize(("argv", "failing"), WRITE_FAILURES,
                          ids=[f"{c[0][0]}: {c[1]}" for c in WRITE_FAILURES])
 def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, capsys,
-                                                             monkeypatch, argv, failing):
+                                                             disk_full_at, argv, failing):
     """A full disk at the end of the work: the file is named, the old one kept, and no
     temporary is left behind (every output is written under another name, then renamed)."""
-    import errno
-    import os
-
     out = tmp_path / "out"
     target = out / failing
     target.parent.mkdir(parents=True)
@@ -250,14 +247,7 @@ def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, ca
     else:
         target.write_bytes(b"old")
     before = target.read_bytes()
-    replace = os.replace
-
-    def disk_full(src, dst, *args, **kwargs):
-        if Path(dst) == target:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
-        return replace(src, dst, *args, **kwargs)
-
-    monkeypatch.setattr(os, "replace", disk_full)
+    disk_full_at(target)
     capsys.readouterr()
     assert main(argv) == 1  # not 2, which says the input was refused
     err = capsys.readouterr().err

@@ -318,13 +318,10 @@ def test_a_render_stopped_while_saving_its_store_leaves_image_and_statistics_as_
     assert (out.read_bytes(), (tmp_path / "img.exr.json").read_bytes()) == before
 
 
-def test_a_store_that_cannot_be_written_does_not_cost_the_image(tmp_path, capsys, monkeypatch):
+def test_a_store_that_cannot_be_written_does_not_cost_the_image(tmp_path, capsys, disk_full_at):
     """A full disk when the brick store is saved: the image and its statistics are written
     all the same, the statistics say why the store was not, and the command ends with 1,
     naming the store, which is left as it was."""
-    import errno
-    import os
-
     from warptex.cli import main
 
     scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
@@ -333,14 +330,7 @@ def test_a_store_that_cannot_be_written_does_not_cost_the_image(tmp_path, capsys
     assert main([*argv, "--res", "8x8", "-o", str(tmp_path / "small.exr")]) == 0
     mitsuba_plugin.live_textures.clear()
     before = store.read_bytes()
-    replace = os.replace
-
-    def disk_full(src, dst, *args, **kwargs):
-        if Path(dst) == store:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
-        return replace(src, dst, *args, **kwargs)
-
-    monkeypatch.setattr(os, "replace", disk_full)
+    disk_full_at(store)
     capsys.readouterr()
     out = tmp_path / "img.exr"
     assert main([*argv, "--res", "16x16", "-o", str(out)]) == 1
