@@ -22,6 +22,7 @@ from warptex.archive import (
     write_atomically,
     write_failure,
 )
+from warptex.machine import software_versions
 from warptex.store import saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
@@ -204,7 +205,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "scene": str(scene_path),
         "image": str(output),
         "date": iso_date(),
-        "versions": _versions(),
+        "versions": software_versions(),
         "variant": variant,
         "size": list(image.shape[1::-1]),
         "spp": total,
@@ -275,17 +276,6 @@ def _progress(done: int, total: int) -> None:
         return
     end = "\n" if done == total else ""
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
-
-
-def _versions() -> dict[str, str]:
-    import drjit as dr
-    import mitsuba as mi
-    import warp as wp
-
-    from warptex import __version__
-
-    return {"warptex": __version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
-            "warp": wp.__version__}
 
 
 def _save_and_report(texture, save: bool) -> dict:

@@ -350,8 +350,9 @@ def test_byte_identical_files_in_one_and_across_two_processes(tmp_path, warp_dev
 # A gray noise exemplar: its neighbourhood covariance has many nearly equal eigenvalues,
 # whose eigenvectors a last-bit difference turns. The script prints digests of what the
 # candidates' PCA makes of it and of a 7-channel one (orthogonal iteration, not Jacobi),
-# of LAPACK's eigenvectors, and of a shrunk photo and its Otsu mask, each computed under
-# the BLAS kernels that OPENBLAS_CORETYPE selects.
+# of LAPACK's eigenvectors, of a shrunk photo and its Otsu mask, and of a sliced Wasserstein
+# distance (warptex.metrics), each computed under the BLAS kernels that OPENBLAS_CORETYPE
+# selects.
 _BLAS_SUBPROCESS = """
 import hashlib
 import numpy as np
@@ -366,6 +367,9 @@ cov = np.cov(3 * candidates._neighborhoods(gray, 5), rowvar=False)
 photo = np.random.default_rng(3).random((997, 1503, 3)).astype(np.float32)
 arrays = [array for level in levels for array in (level.basis, level.proj, level.cand2d)]
 arrays += [exemplar._shrunk(photo, 64, "photo"), exemplar.otsu_mask(photo)]
+from warptex import metrics
+ex = rng.random((16, 16, 3)).astype(np.float32)
+arrays += [np.float64(metrics.sliced_wasserstein(metrics.iid_noise(ex, (8, 16, 16)), ex, 0))]
 arrays += [np.linalg.eigh(cov)[1]]
 for array in arrays:
     print(hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest())
@@ -402,7 +406,8 @@ def test_same_candidates_whatever_blas_kernels_the_cpu_selects():
     for core, run in runs.items():
         assert run[9:11] == first[9:11], f"a shrunk exemplar or its Otsu mask differ under {core}"
         assert run[:9] == first[:9], f"the candidates' PCA differs under {core}"
-    if len({run[11] for run in runs.values()}) == 1:
+        assert run[11] == first[11], f"the sliced Wasserstein distance differs under {core}"
+    if len({run[12] for run in runs.values()}) == 1:
         pytest.skip(f"LAPACK gives the same eigenvectors under {', '.join(cores)} here, so "
                     "the kernels were not shown to differ")
 

@@ -30,14 +30,17 @@ def test_histogram_distance_is_zero_for_the_exemplar_itself():
 def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, warp_device):
     out = tmp_path / "cmp"
     code = main(["compare", str(data_dir / "granite_64.png"), "--size", "16",
-                 "--methods", "lazy,tiled,extrude,noise", "-o", str(out)])
+                 "--methods", "lazy,tiled,extrude,noise,flat", "-o", str(out)])
     assert code == 0
     assert {p.name for p in out.iterdir()} == {"sheet.png", "table.md", "table.json"}
     rows = {r["method"]: r for r in json.loads((out / "table.json").read_text())["methods"]}
-    assert set(rows) == {"lazy", "tiled", "extrude", "noise"}
-    # Noise has no structure: the worst neighbourhood energy on every axis.
+    assert set(rows) == {"lazy", "tiled", "extrude", "noise", "flat"}
+    # Noise has no structure: the worst neighbourhood energy on every axis. A flat volume,
+    # no texture either, scores far better: what the energy rewards.
     for axis in range(3):
         assert rows["noise"]["energy"][axis] == max(r["energy"][axis] for r in rows.values())
+        assert rows["flat"]["energy"][axis] < rows["noise"]["energy"][axis] / 2
+    assert rows["flat"]["repetition"] == 0.0
     # Extrusion is perfect along z and bad across it; lazy synthesis is even on all three.
     extrude = rows["extrude"]["energy"]
     assert extrude[2] == 0.0 and min(extrude[:2]) > max(rows["lazy"]["energy"])
@@ -47,9 +50,22 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     # The figures say where they were measured: volume, machine, versions, date, device.
     table = json.loads((out / "table.json").read_text())
     run = table["run"]
-    assert table["format"] == 2 and table["axes"] == ["x", "y", "z"]
+    assert table["format"] == 3 and table["axes"] == ["x", "y", "z"]
     assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1 and run["passes"] == 2
-    assert run["cpu"] and run["warp"]
+    assert run["cpu"] and run["warp"] and 1 <= run["threads"] <= run["cores"]
+    assert {"numpy", "scipy", "python", "mitsuba", "drjit", "warptex_code"} <= set(
+        run["versions"])
+    # How the numbers were taken: the methods' settings, the measures', timing and memory.
+    assert run["settings"]["lazy"] == {"passes": 2, "jitter": 1.0, "levels": 3,
+                                       "subpasses": 1, "shifted_tiles": False}
+    assert "kopf" not in run["settings"]
+    assert run["measures"]["repetition_slice"] == 256 and run["measures"]["patch"] == 5
+    assert "fresh process" in run["timing"] and "resident host memory" in run["memory"]
+    # The lazy engine's candidates are computed and timed apart; the others have none.
+    for method, row in rows.items():
+        assert ((row["precompute_seconds"] or 0) > 0) == (method in ("lazy", "tiled"))
+        assert row["device_peak_mib"] is None or row["device"] == "cuda"
+    assert "Lower is better in every score" in (out / "table.md").read_text()
     assert datetime.strptime(run["date"], "%Y-%m-%dT%H:%M:%SZ")  # ISO 8601, UTC
     from warptex.exemplar import Exemplar
 
@@ -350,9 +366,33 @@ def test_report_gives_the_size_of_a_shrunk_exemplar_as_width_by_height(tmp_path,
 def test_large_slices_are_256_pixels_whatever_the_tile():
     """A tile whose side does not divide 256 is repeated past it and cut."""
     tile = np.random.default_rng(0).random((24, 40, 3))
-    large = compare._tile_slice(tile)
+    large = compare._tile_slice(tile, compare.LARGE)
     assert large.shape == (compare.LARGE, compare.LARGE, 3)
     np.testing.assert_array_equal(large[24:48, 40:80], tile)
+
+
+@pytest.mark.parametrize(("size", "exemplar", "edge"),
+                         [(64, (64, 64), 256), (72, (64, 64), 256), (160, (64, 64), 320),
+                          (16, (128, 96), 256), (16, (256, 256), 512)])
+def test_large_slices_hold_every_period_twice(size, exemplar, edge):
+    """The slice is at least 256 voxels and twice the volume (Kopf's period) and the
+    exemplar (extrusion's), for the repetition score sees periods up to half of it."""
+    assert compare.large_edge(size, exemplar) == edge
+
+
+def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block():
+    """At 72^3 the tiled volume is its 64^3 block repeated and cut: its large slice repeats
+    that block (score 1), not the 72-voxel cut with a seam in it (it scored 0.19)."""
+    from warptex import metrics
+
+    rng = np.random.default_rng(3)
+    block = rng.random((64, 64, 64, 3)).astype(np.float32)
+    volume = np.tile(block, (2, 2, 2, 1))[:72, :72, :72]
+    ex = type("Ex", (), {"shape": (64, 64)})()
+    large = compare._tiled_large(ex, volume, None)
+    assert large.shape[:2] == (256, 256)
+    np.testing.assert_array_equal(large[64:128, 128:192], block[:, :, 36])
+    assert metrics.repetition_score(large) == pytest.approx(1.0)
 
 
 def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):

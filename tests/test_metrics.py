@@ -252,13 +252,37 @@ def test_repetition_score_sees_a_pattern_repeated_along_one_axis_only():
     assert metrics.repetition_score(image.transpose(1, 0, 2)) > 0.99
 
 
-def test_repetition_score_counts_shifts_up_to_a_quarter_only():
-    """A 64-pixel image made of a 32-pixel tile repeats at half its side, where circular
-    correlation pairs a shift with itself: not counted, as documented; at 128 pixels the
-    same tile repeats within a quarter and is seen."""
-    tile = np.random.default_rng(11).random((32, 32, 3))
-    assert metrics.repetition_score(np.tile(tile, (2, 2, 1))) < 0.5
-    assert metrics.repetition_score(np.tile(tile, (4, 4, 1))) > 0.99
+@pytest.mark.parametrize("period", [32, 64, 65, 72, 100, 128])
+def test_repetition_score_sees_every_period_up_to_half_the_slice(period):
+    """Noise tiles of any period up to half the 256-pixel slice, whole or cut at its edge,
+    repeat exactly: 1. Before, only shifts up to a quarter counted, so periods of 65 to
+    128 scored as low as 0.2 (a Kopf volume of 72^3, a 128 px exemplar stacked)."""
+    tile = np.random.default_rng(period).random((period, period, 3))
+    reps = -(-256 // period)
+    image = np.tile(tile, (reps, reps, 1))[:256, :256]
+    assert metrics.repetition_score(image) == pytest.approx(1.0, abs=1e-9)
+    # Past half the slice a period is not seen: each shift's overlap holds no repeat.
+    longer = np.tile(np.random.default_rng(0).random((160, 160, 3)), (2, 2, 1))[:256, :256]
+    assert metrics.repetition_score(longer) < 0.2
+
+
+def test_repetition_score_equals_a_brute_force_reference():
+    """Every shift's correlation over the overlap (no wrap-around), normalized by the
+    energies of both parts, its maximum past ``exclude`` and up to half each side."""
+    rng = np.random.default_rng(12)
+    image = gaussian_filter(rng.standard_normal((20, 26, 2)), (1.5, 1.5, 0))
+    x = image - image.mean(axis=(0, 1))
+    h, w = x.shape[:2]
+    best = 0.0
+    for dy in range(-(h // 2), h // 2 + 1):
+        for dx in range(-(w // 2), w // 2 + 1):
+            if max(abs(dy), abs(dx)) <= 2:
+                continue
+            a = x[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)]
+            b = x[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
+            best = max(best, float((a * b).sum() / np.sqrt((a**2).sum() * (b**2).sum())))
+    assert metrics.repetition_score(image, exclude=2) == pytest.approx(best, rel=1e-9)
+    assert 0.3 < best < 1.0
 
 
 def test_wrapping_edges_wrap_a_seam_only_where_fewer_than_size_windows_fit():
@@ -271,3 +295,15 @@ def test_wrapping_edges_wrap_a_seam_only_where_fewer_than_size_windows_fit():
     ramp = (np.linspace(0.0, 1.0, 9)[None, :, None]
             + 0.05 * rng.random((20, 9, 3))).astype(np.float32)
     assert metrics.exemplar_patches(ramp, 5, tileable=False).shape == (16 * 5, 75)
+
+
+def test_patches_larger_than_the_exemplar_are_refused():
+    """A 20 x 20 patch of a 16 px exemplar wraps around it more than once: it gave an
+    energy of 5, which meant nothing; now the exemplar is named too small."""
+    rng = np.random.default_rng(13)
+    ex = rng.random((16, 16, 3)).astype(np.float32)
+    vol = metrics.iid_noise(ex, (24, 24, 24))
+    for metric in (metrics.neighborhood_energy, metrics.sliced_wasserstein):
+        with pytest.raises(ValueError, match="exemplar is 16 x 16: too small for 20 x 20"):
+            metric(vol, ex, 0, size=20)
+        assert metric(vol, ex, 0, size=16) > 0

@@ -176,7 +176,8 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert report["spp"] == 1 and report["format"] == 2
     assert datetime.strptime(report["date"], "%Y-%m-%dT%H:%M:%SZ")  # ISO 8601, UTC
     assert report["versions"]["mitsuba"] == mi.__version__
-    assert set(report["versions"]) == {"warptex", "mitsuba", "drjit", "warp"}
+    assert set(report["versions"]) == {"warptex", "warptex_code", "mitsuba", "drjit", "warp",
+                                       "numpy", "scipy", "python", "os"}
     (texture,) = report["textures"]
     props = texture["properties"]  # the scene's lazy_solid, as a mapping
     assert [Path(e).name for e in props["exemplars"]] == ["wood_rosewood_64.png"] * 3

@@ -1152,7 +1152,11 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "slices along x, y and z, and a rendered cube: lazy through the lazy_solid plugin, "
         "the others through Mitsuba's grid volume), DIR/table.md and DIR/table.json: "
         "neighbourhood energy, sliced Wasserstein distance and histogram distance per axis, "
-        "a repetition score over a 256-voxel slice, time and peak memory. "
+        "a repetition score over a slice of at least 256 voxels (twice the longest period "
+        "a method may repeat at), time (the lazy engine's pre-computation apart) and peak "
+        "memory. Lower is better in every score; read them together, as each alone rewards "
+        "something that is no texture (the reference methods extrude, noise and flat show "
+        "what; warptex.metrics says more). Scores of other --size do not compare. "
         f"Methods: {', '.join(METHODS)}.",
     )
     parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)

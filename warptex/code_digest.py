@@ -42,3 +42,16 @@ def _package_version() -> str:
         return version("warptex")
     except PackageNotFoundError:
         return "unknown"
+
+
+def installed_code_digest() -> str:
+    """SHA-256 of every Python source of warptex, its kernels and its Mitsuba plugin, as they
+    are installed: what a report names beside the version, which stays the same from one
+    commit to the next."""
+    import kernels
+    import mitsuba_plugin
+    import warptex
+
+    roots = [Path(m.__file__).parent for m in (warptex, kernels, mitsuba_plugin)]
+    files = [f for root in roots for f in sorted(root.rglob("*.py"))]
+    return code_digest(files, "")

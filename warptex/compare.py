@@ -3,8 +3,15 @@ Kopf 2007). Each method runs in a fresh process so its time and peak memory are 
 
 Methods: ``lazy`` (this project), ``kopf`` (Kopf et al. 2007 global optimization, plain
 weighted averages), ``kopf-meanshift`` (the same with its mean-shift clustering, section 4.1),
-``tiled`` (a periodic volume repeated, the usual practice of Dong 2008 Fig. 11), ``extrude``
-(the exemplar stacked along z) and ``noise`` (i.i.d. exemplar pixels).
+``tiled`` (a periodic volume repeated, the usual practice of Dong 2008 Fig. 11), and three
+references that are no solid texture: ``extrude`` (the exemplar stacked along z), ``noise``
+(i.i.d. exemplar pixels) and ``flat`` (the exemplar's mean color everywhere, which shows what
+the neighbourhood energy rewards, ``warptex.metrics``).
+
+Timing: one run per method, wall-clock, in a fresh process, its Warp kernels compiled by a
+small run first. Kopf's seconds include its PCA and search structures; the lazy engine's
+pre-computation of candidates (Dong 2008, section 4) is computed afresh, not read from the
+cache, and timed apart (``precompute_seconds``), as the paper reports both.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,11 +44,24 @@ from warptex.settings import (
 )
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
-TABLE_FORMAT = 2  # of table.json; 2: format, axes, passes, exemplar max size and digest
-METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise")
+# Of table.json; 2: format, axes, passes, exemplar max size and digest; 3: pre-computation
+# seconds, device memory, the settings of the methods and measures, more versions.
+TABLE_FORMAT = 3
+METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
-LARGE = 256  # edge of the slice the repetition score looks at
+_KOPF = ("kopf", "kopf-meanshift")
+LARGE = 256  # least edge of the slice the repetition score looks at
+TILE = 64  # edge of the periodic block of `tiled`
 MIN_SIZE = 8
+# What table.json says of how the numbers were taken.
+TIMING = ("wall-clock seconds of one run per method in a fresh process, Warp kernels "
+          "compiled first; Kopf's include its PCA and search structures; the lazy engine's "
+          "pre-computation of candidates, computed afresh, is timed apart (precompute_seconds)")
+MEMORY = ("peak_mib: rise of the process's resident host memory during the timed run; "
+          "device_peak_mib: high-water mark of Warp's CUDA memory pool in the method's "
+          "process (pre-computation included), null on the CPU")
+MEASURES = {"patch": 5, "patch_stride": 2, "slices": 8, "swd_directions": 64, "swd_seed": 0,
+            "histogram_bins": 16, "repetition_exclude": 8}
 
 
 @dataclass
@@ -57,6 +77,8 @@ class MethodResult:
     peak_mib: float
     notes: str = ""
     device: str = "cpu"  # where the method computed: the lazy engine's device, else the CPU
+    precompute_seconds: float | None = None  # the lazy engine's candidates, timed apart
+    device_peak_mib: float | None = None  # Warp's CUDA memory pool, where the engine ran
     slices: list[np.ndarray] = field(default_factory=list, repr=False)
     render: np.ndarray | None = field(default=None, repr=False)
 
@@ -65,18 +87,34 @@ class MethodResult:
 class _Settings:
     """What every method is given: the seed, the lazy engine's correction passes (ignored by
     the methods that do not synthesize lazily) and the setting ``tileable``, which decides
-    the exemplar's seams for the methods and the measures alike."""
+    the exemplar's seams for the methods and the measures alike; in a lazy method's process,
+    the candidates it pre-computed."""
 
     seed: int
     passes: int
     tileable: bool | str
+    candidates: object = field(default=None, compare=False, repr=False)
+
+
+def large_edge(size: int, exemplar_shape: Sequence[int]) -> int:
+    """Edge of the slice whose repetition score a comparison reports: at least
+    :data:`LARGE`, and twice the longest period a method may repeat at (the volume, the
+    exemplar), which :func:`warptex.metrics.repetition_score` sees up to half the slice."""
+    return max(LARGE, 2 * size, 2 * max(exemplar_shape[:2]))
+
+
+def _edge(ex: Exemplar, volume: np.ndarray) -> int:
+    return large_edge(volume.shape[0], ex.shape)
 
 
 def _synthesizer(ex: Exemplar, s: _Settings):
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    return Synthesizer(precompute(ex, tileable=s.tileable), seed=s.seed, passes=s.passes)
+    candidates = s.candidates
+    if candidates is None:
+        candidates = precompute(ex, tileable=s.tileable)
+    return Synthesizer(candidates, seed=s.seed, passes=s.passes)
 
 
 def _lazy(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
@@ -84,7 +122,8 @@ def _lazy(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
 
 
 def _lazy_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
-    return _synthesizer(ex, s).box((0, 0, volume.shape[2] // 2), (LARGE, LARGE, 1))[:, :, 0]
+    edge = _edge(ex, volume)
+    return _synthesizer(ex, s).box((0, 0, volume.shape[2] // 2), (edge, edge, 1))[:, :, 0]
 
 
 def _kopf(ex: Exemplar, size: int, s: _Settings, mean_shift: bool = False) -> np.ndarray:
@@ -97,10 +136,17 @@ def _kopf(ex: Exemplar, size: int, s: _Settings, mean_shift: bool = False) -> np
 def _tiled(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
     # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
     # difference to `lazy` is the repetition alone.
-    period = min(size, 64)
+    period = min(size, TILE)
     block = _lazy(ex, period, s)
     reps = -(-size // period)
     return np.tile(block, (reps, reps, reps, 1))[:size, :size, :size]
+
+
+def _tiled_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
+    """The periodic block's z-slice repeated over the large slice: the tiled volume's own
+    period, not that of a volume cut to a size the block does not divide."""
+    period = min(volume.shape[0], TILE)
+    return _tile_slice(volume[:period, :period, volume.shape[2] // 2], _edge(ex, volume))
 
 
 def _extrude(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
@@ -111,17 +157,23 @@ def _noise(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
     return metrics.iid_noise(ex.colors, (size, size, size), s.seed)
 
 
+def _flat(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
+    mean = ex.colors.reshape(-1, ex.colors.shape[2]).mean(axis=0)
+    return np.tile(mean.astype(ex.colors.dtype), (size, size, size, 1))
+
+
 def _periodic_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
     """A periodic volume's z-slice repeated over the large slice."""
-    return _tile_slice(volume[:, :, volume.shape[2] // 2])
+    return _tile_slice(volume[:, :, volume.shape[2] // 2], _edge(ex, volume))
 
 
 def _noise_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
-    return metrics.iid_noise(ex.colors, (LARGE, LARGE, 1), s.seed + 1)[:, :, 0]
+    edge = _edge(ex, volume)
+    return metrics.iid_noise(ex.colors, (edge, edge, 1), s.seed + 1)[:, :, 0]
 
 
 def _extrude_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
-    return _tile_slice(ex.colors)
+    return _tile_slice(ex.colors, _edge(ex, volume))
 
 
 # Per method: the timed volume, and the 256-voxel slice its repetition score looks at.
@@ -129,13 +181,14 @@ _RUN: dict[str, tuple[Callable[..., np.ndarray], Callable[..., np.ndarray]]] = {
     "lazy": (_lazy, _lazy_large),
     "kopf": (_kopf, _periodic_large),
     "kopf-meanshift": (functools.partial(_kopf, mean_shift=True), _periodic_large),
-    "tiled": (_tiled, _periodic_large),
+    "tiled": (_tiled, _tiled_large),
     "extrude": (_extrude, _extrude_large),
     "noise": (_noise, _noise_large),
+    "flat": (_flat, _periodic_large),
 }
 
 
-def _tile_slice(image: np.ndarray, edge: int = LARGE) -> np.ndarray:
+def _tile_slice(image: np.ndarray, edge: int) -> np.ndarray:
     reps = (-(-edge // image.shape[0]), -(-edge // image.shape[1]), 1)
     return np.tile(image, reps)[:edge, :edge]
 
@@ -195,17 +248,47 @@ def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, s: _Setti
                                          "filter_type": "trilinear"}}
 
 
+def _precomputed(ex: Exemplar, s: _Settings) -> tuple[_Settings, float]:
+    """The settings with the candidates of ``ex`` computed afresh, and the seconds that
+    took, its kernels compiled first on a small exemplar of as many channels."""
+    from warptex.candidates import precompute
+
+    warm = np.random.default_rng(0).random((16, 16, ex.colors.shape[2]), dtype=np.float32)
+    precompute(Exemplar(warm), cache=False)
+    start = time.perf_counter()
+    candidates = precompute(ex, tileable=s.tileable, cache=False)
+    return replace(s, candidates=candidates), time.perf_counter() - start
+
+
+def _device_peak_mib(device: str) -> float | None:
+    """High-water mark of Warp's memory pool on ``device`` in this process, in MiB; None on
+    the CPU or where the device has no memory pool."""
+    if not device.startswith("cuda"):
+        return None
+    import warp as wp
+
+    try:
+        return wp.get_mempool_used_mem_high(device) / 2**20
+    except (ValueError, RuntimeError):
+        return None
+
+
 def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
              max_size: int | None) -> dict:
     """Run one method in this (fresh) process: volume, scores, time and peak memory."""
     ex = Exemplar.load(exemplar_path, max_size=max_size)
     make_volume, make_large = _RUN[method]
+    precompute_seconds = None
+    if method in _LAZY:
+        s, precompute_seconds = _precomputed(ex, s)
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(ex, 8, s)
     with PeakMemory() as memory:
         start = time.perf_counter()
         volume = make_volume(ex, size, s)
         seconds = time.perf_counter() - start
+    device = _engine_device() if method in _LAZY else "cpu"
+    device_peak = _device_peak_mib(device)
     large = make_large(ex, volume, s)
     # The Exemplar itself, so that the metrics take its seams as decided once.
     return {
@@ -221,7 +304,9 @@ def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
         "render": render_cube(_cube_texture(method, ex, volume, s, max_size)),
         "notes": f"correction passes per level: {s.passes}" if method in _LAZY else "",
-        "device": _engine_device() if method in _LAZY else "cpu",
+        "device": device,
+        "precompute_seconds": precompute_seconds,
+        "device_peak_mib": device_peak,
     }
 
 
@@ -233,11 +318,12 @@ def _engine_device() -> str:
 
 def run_summary(size: int, seed: int) -> dict:
     """What a comparison's seconds and memory depend on: the volume, the machine that ran
-    it (CPU model, cores, GPU), the versions and the date."""
+    it (CPU model, cores, the threads a CPU launch is split over, GPU), the versions and the
+    date."""
     import warp as wp
 
-    from warptex import __version__
-    from warptex.machine import usable_cores
+    from warptex.machine import software_versions, usable_cores
+    from warptex.parallel import THREADS
 
     cpu = platform.processor() or platform.machine()
     try:
@@ -247,9 +333,10 @@ def run_summary(size: int, seed: int) -> dict:
     except (OSError, StopIteration):
         pass
     gpu = wp.get_device("cuda").name if _engine_device() == "cuda" else None
-    return {"size": size, "seed": seed, "cpu": cpu, "cores": usable_cores(), "gpu": gpu,
-            "warptex": __version__, "warp": wp.__version__,
-            "date": iso_date()}
+    versions = software_versions()
+    return {"size": size, "seed": seed, "cpu": cpu, "cores": usable_cores(),
+            "threads": THREADS, "gpu": gpu, "warptex": versions.pop("warptex"),
+            "warp": versions.pop("warp"), "versions": versions, "date": iso_date()}
 
 
 def run_line(run: dict) -> str:
@@ -326,19 +413,62 @@ def _trio(values: list[float]) -> str:
     return " / ".join(f"{x:.3f}" for x in values)
 
 
+def _cell(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
 def table_markdown(results: Sequence[MethodResult]) -> str:
     """The comparison table in Markdown: one row a method, per-axis metrics as x / y / z
-    (the rows of ``table.md``)."""
+    (the rows of ``table.md``); a column of device memory where a method ran on a GPU."""
+    gpu = any(r.device_peak_mib is not None for r in results)
     lines = [
         "| method | energy x / y / z | SWD x / y / z | histogram x / y / z | repetition | "
-        "seconds | peak MiB | device | notes |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "seconds | pre-computation s | peak MiB | " + ("GPU MiB | " if gpu else "")
+        + "device | notes |",
+        "|---|---|---|---|---|---|---|---|" + ("---|" if gpu else "") + "---|---|",
     ]
     for r in results:
         lines.append(f"| {r.method} | {_trio(r.energy)} | {_trio(r.swd)} | {_trio(r.histogram)} | "
-                     f"{r.repetition:.3f} | {r.seconds:.2f} | {r.peak_mib:.1f} | {r.device} | "
-                     f"{r.notes} |")
+                     f"{r.repetition:.3f} | {r.seconds:.2f} | {_cell(r.precompute_seconds, 2)} | "
+                     f"{r.peak_mib:.1f} | "
+                     + (f"{_cell(r.device_peak_mib, 1)} | " if gpu else "")
+                     + f"{r.device} | {r.notes} |")
     return "\n".join(lines) + "\n"
+
+
+def _legend(edge: int) -> str:
+    """What ``table.md``'s columns measure, below the table."""
+    return (
+        "\nLower is better in every score. energy: mean squared distance of slice patches to "
+        "their nearest exemplar patch, in units of the exemplar's variance (it rewards blur: "
+        "see `flat`); SWD: sliced Wasserstein distance of the patches, which mostly sees "
+        "colors (see `noise`); histogram: L1 distance of the color histograms, 0 to 2; "
+        f"repetition: highest autocorrelation of a {edge}-voxel slice at shifts past 8 "
+        "voxels, 0 to 1 (warptex.metrics). Scores of volumes of other sizes do not compare. "
+        "seconds: one wall-clock run in a fresh process, kernels compiled first; "
+        "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
+        "host memory during the run.\n")
+
+
+def _method_settings(methods: Sequence[str], passes: int) -> dict:
+    """The settings the lazy engine and Kopf ran with, as their functions' defaults give
+    them, for the methods among ``methods``."""
+    import inspect
+
+    from warptex.baselines import kopf
+    from warptex.synthesis import Synthesizer
+
+    out = {}
+    if any(m in _LAZY for m in methods):
+        defaults = inspect.signature(Synthesizer).parameters
+        out["lazy"] = {"passes": passes} | {
+            name: defaults[name].default
+            for name in ("jitter", "levels", "subpasses", "shifted_tiles")}
+    if any(m in _KOPF for m in methods):
+        defaults = inspect.signature(kopf.synthesize).parameters
+        out["kopf"] = {name: defaults[name].default
+                       for name in ("iterations", "histogram_matching")}
+    return out
 
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
@@ -369,14 +499,18 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
         rows.append((r.method, images))
     save_png(sheet(rows), sheet_file)
     word = tileable_word(tileable)
+    edge = large_edge(size, ex.shape)
     run = run_summary(size, seed) | {
         "passes": passes, "exemplar_max_size": max_size, "exemplar_size": list(ex.shape[::-1]),
-        "exemplar_digest": ex.digest(), "tileable": word}
+        "exemplar_digest": ex.digest(), "tileable": word,
+        "settings": _method_settings([r.method for r in results], passes),
+        "measures": MEASURES | {"repetition_slice": edge},
+        "timing": TIMING, "memory": MEMORY}
     shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
     told = "" if word == "auto" else f", tileable {word}"
     more = "" if passes == DEFAULT_PASSES else f", {passes} correction passes"
     markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{more}{told}; "
-                f"{run_line(run)}\n\n" + table_markdown(results))
+                f"{run_line(run)}\n\n" + table_markdown(results) + _legend(edge))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]

@@ -139,3 +139,24 @@ class PeakMemory:
         import resource
 
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss << 10  # KiB on Linux
+
+
+def software_versions() -> dict[str, str]:
+    """The versions a report of numbers names: warptex (and the digest of its code, for the
+    version stays the same between commits), Warp, Mitsuba, Dr.Jit, NumPy, SciPy, Python
+    and the operating system."""
+    import platform
+
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+    import scipy
+    import warp as wp
+
+    from warptex import __version__
+    from warptex.code_digest import installed_code_digest
+
+    return {"warptex": __version__, "warptex_code": installed_code_digest()[:16],
+            "warp": wp.__version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "numpy": np.__version__, "scipy": scipy.__version__,
+            "python": platform.python_version(), "os": platform.platform()}

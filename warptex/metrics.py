@@ -1,8 +1,23 @@
-"""Quality metrics of solid textures against their exemplar (Dong 2008, section 6.3).
+"""Quality measures of solid textures against their exemplar: warptex's own, for the
+comparisons that Dong 2008 (section 6.3, Fig. 8) and Kopf 2007 (section 6) make by eye.
 
-The metrics look at axis-aligned slices, the way a viewer judges a cut: a slice
+The measures look at axis-aligned slices, the way a viewer judges a cut: a slice
 perpendicular to axis k is read with the same orientation as the exemplar of axis k
-(volume axes k+1, k+2 as its rows and columns; see ``warptex.candidates``).
+(volume axes k+1, k+2 as its rows and columns; see ``warptex.candidates``). They read colors
+as stored (an sRGB exemplar's volume sRGB-encoded, as ``.npy`` files and ``SolidTexture``
+give them, not linear ones); patch measures take every second 5 x 5 patch of 8 evenly
+spaced slices, and histograms those slices' voxels, so a small volume is sampled thinly
+and its scores do not compare with those of a larger one.
+
+Read them together; each alone rewards something that is no texture:
+
+- :func:`neighborhood_energy` (close to Kopf 2007's equation 1, with Euclidean distances,
+  exact nearest neighbours and a normalization) rewards blur: a volume of the exemplar's
+  mean color scores lower than lazy synthesis and Kopf on most exemplars (BENCHMARKS.md,
+  "What the measures reward"), and Kopf's optimization minimizes a close relative of it.
+- :func:`sliced_wasserstein` compares patch distributions along random directions, which
+  mostly see single-pixel colors: i.i.d. exemplar pixels score well on it.
+- :func:`histogram_distance` sees colors only; :func:`repetition_score` sees only repetition.
 """
 
 from __future__ import annotations
@@ -64,8 +79,9 @@ def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int,
 
 def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """``volume`` (D, H, W, C) and ``exemplar`` (H, W, C, or a warptex.Exemplar) as float
-    arrays of the same channels, whose slices across ``axis`` hold ``size`` x ``size``
-    patches; else a ValueError or TypeError saying which argument is wrong."""
+    arrays of the same channels, whose slices across ``axis`` and the exemplar itself hold
+    ``size`` x ``size`` patches; else a ValueError or TypeError saying which argument is
+    wrong."""
     exemplar = _colors(exemplar)
     volume = np.asarray(volume)
     if volume.ndim != 4:
@@ -87,6 +103,9 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
         raise ValueError(f"slices across axis {axis} are {across[0]} x {across[1]}, "
                          f"{volume.shape[axis]} of them: too few or too small for {size} x "
                          f"{size} patches")
+    if min(exemplar.shape[:2]) < size:  # its patches would wrap around it more than once
+        raise ValueError(f"exemplar is {exemplar.shape[1]} x {exemplar.shape[0]}: too small "
+                         f"for {size} x {size} patches")
     for name, a in (("volume", volume), ("exemplar", exemplar)):
         if not np.isfinite(a).all():
             raise ValueError(f"{name} holds NaN or infinite values")
@@ -120,9 +139,11 @@ def neighborhood_energy(
     slices: int = 8, tileable: bool | str = "auto",
 ) -> float:
     """Mean squared distance from each slice patch to its nearest exemplar patch
-    (:func:`exemplar_patches` under the setting ``tileable``), normalized by the exemplar's
-    variance and patch size (0 = every patch is in the exemplar; about 2 for patches of
-    unrelated values of the same variance)."""
+    (:func:`exemplar_patches` under the setting ``tileable``), divided by the patch's values
+    and the exemplar's variance summed over channels: 0 when every patch is in the
+    exemplar; i.i.d. exemplar pixels score about 0.7, Gaussian noise of the exemplar's mean
+    and variance about 1 (a nearest neighbour is nearer than a random patch). Lower is
+    better, but blur scores low too (see the module's notes)."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("slices", slices, low=1)
     tree = cKDTree(exemplar_patches(exemplar, size, tileable))
@@ -136,7 +157,7 @@ def neighborhood_energy(
 def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar,
                       tileable: bool | str = "auto") -> float:
     """The largest of the three axes' :func:`neighborhood_energy`: a solid texture is
-    judged by its worst cut (the measure Dong 2008, section 6.3, compares)."""
+    judged by its worst cut."""
     return max(neighborhood_energy(volume, exemplar, axis, tileable=tileable)
                for axis in range(3))
 
@@ -152,8 +173,12 @@ def sliced_wasserstein(
     tileable: bool | str = "auto",
 ) -> float:
     """Sliced Wasserstein-1 distance between slice patches and exemplar patches
-    (:func:`exemplar_patches` under the setting ``tileable``), averaged over random unit
-    directions and normalized by the exemplar's std."""
+    (:func:`exemplar_patches` under the setting ``tileable``), averaged over ``directions``
+    random unit directions (drawn from ``seed``) and divided by the square root of the
+    exemplar's variance summed over channels. Random directions through the patches' many
+    dimensions mostly measure the distribution of single colors, so i.i.d. exemplar pixels
+    score well; read it beside :func:`neighborhood_energy`. The projections are summed in
+    float64 in a fixed order, without BLAS, so that no CPU's kernels change its digits."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("directions", directions, low=1)
     check_count("slices", slices, low=1)
@@ -161,18 +186,29 @@ def sliced_wasserstein(
     a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
     b = exemplar_patches(exemplar, size, tileable)
     rng = np.random.default_rng(seed)
-    dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32)
-    dirs /= np.linalg.norm(dirs, axis=0, keepdims=True)
+    dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32).astype(np.float64)
+    dirs /= np.sqrt((dirs**2).sum(axis=0, keepdims=True))
     q = np.linspace(0.0, 1.0, 257)
-    pa = np.quantile(a @ dirs, q, axis=0)
-    pb = np.quantile(b @ dirs, q, axis=0)
+    pa = np.quantile(_projected(a, dirs), q, axis=0)
+    pb = np.quantile(_projected(b, dirs), q, axis=0)
     return float(np.mean(np.abs(pa - pb)) / np.sqrt(_variance(colors)))
+
+
+def _projected(rows: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """``rows @ directions`` in float64, summed one dimension after the other: a BLAS
+    product sums in an order that depends on the CPU's kernels."""
+    out = np.zeros((len(rows), directions.shape[1]))
+    for d in range(rows.shape[1]):
+        out += rows[:, d, None].astype(np.float64) * directions[d]
+    return out
 
 
 def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
                        bins: int = 16) -> float:
     """Mean over channels of the L1 distance between normalized ``bins``-bin histograms of
-    the slices perpendicular to ``axis`` and of the exemplar (0 = same, 2 = disjoint)."""
+    8 slices perpendicular to ``axis`` and of the exemplar, over the exemplar's range of
+    each channel (0 = same; values beyond the range count in the end bins, so only a
+    volume whose colors all lie in bins the exemplar leaves empty scores the maximum, 2)."""
     volume, exemplar = _checked(volume, exemplar, axis)
     check_count("bins", bins, low=1)
     slices = axis_slices(volume, axis)
@@ -190,33 +226,50 @@ def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
 
 def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     """Highest normalized autocorrelation of a large slice at shifts farther than
-    ``exclude`` pixels: near 1 for a tiled texture, low when nothing repeats. ``image`` is
-    (H, W) or (H, W, C); shifts up to a quarter of it count, so it must be at least
-    ``4 * (exclude + 1)`` pixels along one side."""
-    image = np.asarray(image)
+    ``exclude`` pixels: 1 for a pattern repeated at a shift of up to half the slice along
+    each axis, low when nothing repeats. ``image`` is (H, W) or (H, W, C), at least
+    ``2 * (exclude + 1)`` pixels along one side; a period longer than half the slice goes
+    unseen, so the slice must be at least twice the longest period to be found.
+
+    Each shift's correlation is taken over the pixels the image and its shifted copy share
+    (no wrap-around), normalized by their energies, so it is at most 1 and exactly 1 where
+    the overlap repeats."""
+    image = np.asarray(image, dtype=np.float64)
     image = image[:, :, None] if image.ndim == 2 else image
     if image.ndim != 3:
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
     if not np.isfinite(image).all():
         raise ValueError("image holds NaN or infinite values")
     check_count("exclude", exclude)  # shift 0 always matches itself
-    if max(image.shape[:2]) // 4 <= exclude:
-        raise ValueError(f"a {image.shape[0]} x {image.shape[1]} image is too small for the "
-                         f"repetition score: shifts past {exclude} pixels up to a quarter of "
-                         f"it need more than {4 * (exclude + 1) - 1} pixels along a side")
+    h, w = image.shape[:2]
+    if max(h, w) // 2 <= exclude:
+        raise ValueError(f"a {h} x {w} image is too small for the repetition score: shifts "
+                         f"past {exclude} pixels up to half of it need more than "
+                         f"{2 * (exclude + 1) - 1} pixels along a side")
     x = image - image.mean(axis=(0, 1))
-    spectrum = np.fft.rfft2(x, axes=(0, 1))
-    corr = np.fft.irfft2(np.abs(spectrum) ** 2, s=x.shape[:2], axes=(0, 1)).sum(axis=2)
-    if corr[0, 0] <= 0:
-        return 0.0
-    corr /= corr[0, 0]
-    h, w = corr.shape
-    dy = np.minimum(np.arange(h), h - np.arange(h))[:, None]
-    dx = np.minimum(np.arange(w), w - np.arange(w))[None, :]
-    # Circular correlation pairs a shift with its complement, and near half the slice the
-    # overlap of a pattern with itself wraps around: only shifts up to a quarter count.
-    valid = (np.maximum(dy, dx) > exclude) & (dy <= h // 4) & (dx <= w // 4)
-    return float(corr[valid].max())
+    # Zero-padded to twice the size, the FFT's correlation is the linear one: shift (dy, dx)
+    # sums x(p) x(p + d) over the overlap only.
+    spectrum = np.fft.rfft2(x, s=(2 * h, 2 * w), axes=(0, 1))
+    corr = np.fft.irfft2(np.abs(spectrum) ** 2, s=(2 * h, 2 * w), axes=(0, 1)).sum(axis=2)
+    # Shifts (dy, dx) with 0 <= dy <= h/2, |dx| <= w/2: (-dy, -dx) gives the same overlap.
+    dy = np.arange(h // 2 + 1)[:, None]
+    dx = np.arange(-(w // 2), w // 2 + 1)[None, :]
+    shared = corr[dy, dx % (2 * w)]
+    # Energy of the overlap in the image and in its shifted copy, from a summed-area table.
+    table = np.zeros((h + 1, w + 1))
+    table[1:, 1:] = (x**2).sum(axis=2).cumsum(0).cumsum(1)
+
+    def energy(y0, y1, x0, x1):
+        return table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
+
+    left, right = np.maximum(-dx, 0), np.maximum(dx, 0)
+    first = energy(0, h - dy, left, w - right)
+    second = energy(dy, h, right, w - left)
+    norm = np.sqrt(first * second)
+    counted = np.maximum(dy, np.abs(dx)) > exclude
+    with np.errstate(divide="ignore", invalid="ignore"):
+        score = np.where(counted & (norm > 0), shared / norm, 0.0)
+    return float(min(score.max(), 1.0))
 
 
 # Reference volumes: where each metric should find a solid texture worst, so that tests and
