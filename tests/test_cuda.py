@@ -43,3 +43,17 @@ def test_surface_shell_and_texel_points_agree(warp_device):
     on_cuda = texel_points(mesh, uv, transform, (64, 64), device="cuda")
     for a, b in zip(on_cpu, on_cuda, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_compare_reads_the_device_memory_the_engine_held(warp_device):
+    """`compare` reports the high-water mark of Warp's CUDA memory pool for a lazy method on
+    a GPU: at least what the process allocated there; nothing for the CPU."""
+    import warp as wp
+
+    from warptex import compare
+
+    held = wp.zeros(64 << 20, dtype=wp.uint8, device="cuda:0")
+    peak = compare._device_peak_mib("cuda:0")
+    assert peak is None or peak >= 64  # None: a device without a memory pool
+    assert compare._device_peak_mib("cpu") is None
+    del held
