@@ -38,6 +38,9 @@ def main() -> None:
         "(slices along x, y, z and a rendered cube per method) and a table. Regenerate with",
         "`python docs/make_comparisons.py`. Worst-axis neighbourhood energy (lower is better,",
         "but it rewards blur: `flat`, the exemplar's mean color everywhere, is no texture),",
+        "the worst-axis bidirectional energy (the neighbourhood energy plus completeness,",
+        "each exemplar patch's distance to the nearest slice patch, which blur does not win;",
+        "`warptex.metrics`),",
         "time (one run in a fresh process; the lazy engine's pre-computation of candidates,",
         "computed afresh, apart) and the repetition score over a 256-voxel slice; `kopf`",
         "averages plainly, `kopf-ms` is Kopf with mean-shift clustering (`kopf-meanshift` in",
@@ -46,9 +49,11 @@ def main() -> None:
         "",
         "| exemplar | lazy energy | kopf energy | lazy / kopf | kopf-ms energy | lazy / kopf-ms "
         f"| lazy-{MORE_PASSES} energy | lazy-{MORE_PASSES} / kopf | flat energy "
+        "| lazy bidirectional | kopf bidirectional | lazy / kopf | flat bidirectional "
         "| lazy s | lazy pre-computation s | kopf s | kopf-ms s | kopf / lazy time "
         f"| kopf-ms / lazy time | lazy-{MORE_PASSES} s | lazy repetition | tiled repetition |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "---|",
     ]
     for path in sorted(args.exemplars.glob("*_64.png")):
         name = path.stem.removesuffix("_64")
@@ -59,10 +64,14 @@ def main() -> None:
         lazy, kopf, ms, flat = (max(r[m].energy) for m in ("lazy", "kopf", "kopf-meanshift",
                                                            "flat"))
         seconds = {m: r[m].seconds for m in ("lazy", "kopf", "kopf-meanshift")}
+        both = {m: max(e + c for e, c in zip(r[m].energy, r[m].completeness, strict=True))
+                for m in ("lazy", "kopf", "flat")}
         lines.append(
             f"| [{name}]({name}/sheet.png) | {lazy:.3f} | {kopf:.3f} | {lazy / kopf:.2f} | "
             f"{ms:.3f} | {lazy / ms:.2f} | {max(more.energy):.3f} | "
-            f"{max(more.energy) / kopf:.2f} | {flat:.3f} | {seconds['lazy']:.2f} | "
+            f"{max(more.energy) / kopf:.2f} | {flat:.3f} | {both['lazy']:.3f} | "
+            f"{both['kopf']:.3f} | {both['lazy'] / both['kopf']:.2f} | {both['flat']:.3f} | "
+            f"{seconds['lazy']:.2f} | "
             f"{r['lazy'].precompute_seconds:.2f} | {seconds['kopf']:.1f} | "
             f"{seconds['kopf-meanshift']:.1f} | {seconds['kopf'] / seconds['lazy']:.0f} | "
             f"{seconds['kopf-meanshift'] / seconds['lazy']:.0f} | {more.seconds:.2f} | "

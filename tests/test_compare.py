@@ -40,6 +40,8 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     for axis in range(3):
         assert rows["noise"]["energy"][axis] == max(r["energy"][axis] for r in rows.values())
         assert rows["flat"]["energy"][axis] < rows["noise"]["energy"][axis] / 2
+        # Completeness looks the other way: the flat volume lacks every textured patch.
+        assert rows["flat"]["completeness"][axis] > rows["lazy"]["completeness"][axis] + 0.2
     assert rows["flat"]["repetition"] == 0.0
     # Extrusion is perfect along z and bad across it; lazy synthesis is even on all three.
     extrude = rows["extrude"]["energy"]
@@ -306,15 +308,21 @@ def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
 def test_table_cells_sit_under_their_headers():
     from warptex.compare import MethodResult, table_markdown
 
-    r = MethodResult("m", energy=[1, 2, 3], swd=[4, 5, 6], histogram=[7, 8, 9],
-                     repetition=0.5, seconds=1.25, peak_mib=2.0)
-    header, _, line = table_markdown([r]).splitlines()
-    cells = dict(zip([c.strip() for c in header.split("|")],
-                     [c.strip() for c in line.split("|")], strict=True))
-    assert cells["energy x / y / z"] == "1.000 / 2.000 / 3.000"
-    assert cells["SWD x / y / z"] == "4.000 / 5.000 / 6.000"
-    assert cells["histogram x / y / z"] == "7.000 / 8.000 / 9.000"
-    assert cells["repetition"] == "0.500" and cells["seconds"] == "1.25"
+    r = MethodResult("m", energy=[1, 2, 3], completeness=[1.5, 2.5, 3.5], swd=[4, 5, 6],
+                     histogram=[7, 8, 9], repetition=0.5, seconds=1.25, peak_mib=2.0,
+                     precompute_seconds=0.75)
+    for gpu in (None, 12.0):
+        r.device_peak_mib = gpu
+        header, _, line = table_markdown([r]).splitlines()
+        cells = dict(zip([c.strip() for c in header.split("|")],
+                         [c.strip() for c in line.split("|")], strict=True))
+        assert cells["energy x / y / z"] == "1.000 / 2.000 / 3.000"
+        assert cells["completeness x / y / z"] == "1.500 / 2.500 / 3.500"
+        assert cells["SWD x / y / z"] == "4.000 / 5.000 / 6.000"
+        assert cells["histogram x / y / z"] == "7.000 / 8.000 / 9.000"
+        assert cells["repetition"] == "0.500" and cells["seconds"] == "1.25"
+        assert cells["pre-computation s"] == "0.75" and cells["peak MiB"] == "2.0"
+        assert cells.get("GPU MiB") == (None if gpu is None else "12.0")
 
 
 def test_stopping_a_comparison_ends_the_running_worker_at_once():
@@ -355,7 +363,8 @@ def test_report_gives_the_size_of_a_shrunk_exemplar_as_width_by_height(tmp_path,
     path = tmp_path / "wide.png"
     Image.open(data_dir / "granite_64.png").crop((0, 0, 48, 32)).save(path)
     slices = [np.zeros((4, 4, 3), np.float32)] * 3
-    results = [compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0, 0.0,
+    results = [compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3,
+                                    0.0, 0.0, 0.0,
                                     slices=slices)]
     compare.write_report(results, path, tmp_path / "out", size=8, seed=0, max_size=24)
     run = json.loads((tmp_path / "out" / "table.json").read_text())["run"]
@@ -410,7 +419,8 @@ def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
         def submit(self, fn, method, *args):
             class Done:
                 def result(self):
-                    return {"method": method, "energy": [0.0] * 3, "swd": [0.0] * 3,
+                    return {"method": method, "energy": [0.0] * 3, "completeness": [0.0] * 3,
+                            "swd": [0.0] * 3,
                             "histogram": [0.0] * 3, "repetition": 0.0, "seconds": 0.0,
                             "peak_mib": 0.0}
             return Done()

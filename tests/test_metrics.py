@@ -307,3 +307,29 @@ def test_patches_larger_than_the_exemplar_are_refused():
         with pytest.raises(ValueError, match="exemplar is 16 x 16: too small for 20 x 20"):
             metric(vol, ex, 0, size=20)
         assert metric(vol, ex, 0, size=16) > 0
+
+
+def test_completeness_finds_every_exemplar_patch_and_misses_them_in_a_flat_volume():
+    """The exemplar stacked along z holds each of its patches in every z-slice: 0; a volume
+    of the exemplar's mean color is 1 (each wrapped patch's squared deviation from the mean,
+    summed, is the variance); a reference that searches every pair agrees."""
+    rng = np.random.default_rng(14)
+    ex = gaussian_filter(rng.random((12, 12, 3)), (1, 1, 0), mode="wrap").astype(np.float32)
+    stacked = metrics.extrusion(ex, 6, axis=2)
+    assert metrics.completeness_energy(stacked, ex, 2, tileable=False) == 0.0
+    flat = np.broadcast_to(ex.reshape(-1, 3).mean(0), (8, 8, 8, 3)).astype(np.float32)
+    assert metrics.completeness_energy(flat, ex, 0, tileable=True) == pytest.approx(1.0,
+                                                                                  rel=1e-5)
+    vol = metrics.iid_noise(ex, (9, 10, 11), seed=3)
+    mine = metrics.patches(ex, 3, wrap=True).astype(np.float64)
+    theirs = np.concatenate([metrics.patches(s, 3) for s in metrics.axis_slices(vol, 1)])
+    nearest = ((mine[:, None, :] - theirs[None].astype(np.float64)) ** 2).sum(-1).min(1)
+    expected = nearest.mean() / (9 * ex.reshape(-1, 3).var(0).sum())
+    got = metrics.completeness_energy(vol, ex, 1, size=3, tileable=True)
+    assert got == pytest.approx(expected, rel=1e-5)
+    # Coherence looks the other way: it differs, and both add up in the worst-axis sum.
+    assert got != metrics.neighborhood_energy(vol, ex, 1, size=3, tileable=True)
+    both = metrics.bidirectional_energy(vol, ex, tileable=True)
+    assert both == pytest.approx(max(
+        metrics.neighborhood_energy(vol, ex, a, tileable=True)
+        + metrics.completeness_energy(vol, ex, a, tileable=True) for a in range(3)))

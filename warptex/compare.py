@@ -70,6 +70,7 @@ class MethodResult:
 
     method: str
     energy: list[float]
+    completeness: list[float]
     swd: list[float]
     histogram: list[float]
     repetition: float
@@ -295,6 +296,8 @@ def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
         "method": method,
         "energy": [metrics.neighborhood_energy(volume, ex, a, tileable=s.tileable)
                    for a in range(3)],
+        "completeness": [metrics.completeness_energy(volume, ex, a, tileable=s.tileable)
+                         for a in range(3)],
         "swd": [metrics.sliced_wasserstein(volume, ex, a, tileable=s.tileable)
                 for a in range(3)],
         "histogram": [metrics.histogram_distance(volume, ex, a) for a in range(3)],
@@ -422,13 +425,15 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
     (the rows of ``table.md``); a column of device memory where a method ran on a GPU."""
     gpu = any(r.device_peak_mib is not None for r in results)
     lines = [
-        "| method | energy x / y / z | SWD x / y / z | histogram x / y / z | repetition | "
+        "| method | energy x / y / z | completeness x / y / z | SWD x / y / z | "
+        "histogram x / y / z | repetition | "
         "seconds | pre-computation s | peak MiB | " + ("GPU MiB | " if gpu else "")
         + "device | notes |",
-        "|---|---|---|---|---|---|---|---|" + ("---|" if gpu else "") + "---|---|",
+        "|---|---|---|---|---|---|---|---|---|" + ("---|" if gpu else "") + "---|---|",
     ]
     for r in results:
-        lines.append(f"| {r.method} | {_trio(r.energy)} | {_trio(r.swd)} | {_trio(r.histogram)} | "
+        lines.append(f"| {r.method} | {_trio(r.energy)} | {_trio(r.completeness)} | "
+                     f"{_trio(r.swd)} | {_trio(r.histogram)} | "
                      f"{r.repetition:.3f} | {r.seconds:.2f} | {_cell(r.precompute_seconds, 2)} | "
                      f"{r.peak_mib:.1f} | "
                      + (f"{_cell(r.device_peak_mib, 1)} | " if gpu else "")
@@ -441,7 +446,9 @@ def _legend(edge: int) -> str:
     return (
         "\nLower is better in every score. energy: mean squared distance of slice patches to "
         "their nearest exemplar patch, in units of the exemplar's variance (it rewards blur: "
-        "see `flat`); SWD: sliced Wasserstein distance of the patches, which mostly sees "
+        "see `flat`); completeness: the same from each exemplar patch to its nearest slice "
+        "patch (blur and flat volumes lack the sharp ones); SWD: sliced Wasserstein "
+        "distance of the patches, which mostly sees "
         "colors (see `noise`); histogram: L1 distance of the color histograms, 0 to 2; "
         f"repetition: highest autocorrelation of a {edge}-voxel slice at shifts past 8 "
         "voxels, 0 to 1 (warptex.metrics). Scores of volumes of other sizes do not compare. "

@@ -16,6 +16,10 @@ Read them together; each alone rewards something that is no texture:
   mean color scores lower than lazy synthesis on 8 of the 11 bundled exemplars and lower
   than Kopf on 6 (BENCHMARKS.md, "What the measures reward"), and Kopf's optimization
   minimizes a close relative of it.
+- :func:`completeness_energy` is the other direction, each exemplar patch to its nearest
+  slice patch (Simakov et al. 2008's bidirectional similarity): blur and flat volumes
+  score badly on it, as they hold nothing like the exemplar's sharp patches. The sum of the
+  two (:func:`bidirectional_energy`) ranks ``flat``, ``noise`` and ``extrude`` worst.
 - :func:`sliced_wasserstein` compares patch distributions along random directions, which
   mostly see single-pixel colors: i.i.d. exemplar pixels score well on it.
 - :func:`histogram_distance` sees colors only; :func:`repetition_score` sees only repetition.
@@ -155,11 +159,39 @@ def neighborhood_energy(
     return float(np.mean(dist**2) / (size * size * _variance(colors)))
 
 
+def completeness_energy(
+    volume: np.ndarray, exemplar: np.ndarray | Exemplar, axis: int, size: int = 5,
+    slices: int = 8, tileable: bool | str = "auto",
+) -> float:
+    """Mean squared distance from each exemplar patch (:func:`exemplar_patches` under the
+    setting ``tileable``) to its nearest patch of the slices across ``axis`` (every patch of
+    ``slices`` slices), in the units of :func:`neighborhood_energy`: 0 when the slices hold
+    every exemplar patch, 1 for a volume of the exemplar's mean color. It is the
+    completeness term of Simakov et al. 2008 ("Summarizing visual data using bidirectional
+    similarity"), where :func:`neighborhood_energy` is the coherence term; lower is
+    better."""
+    volume, colors = _checked(volume, exemplar, axis, size)
+    check_count("slices", slices, low=1)
+    tree = cKDTree(np.concatenate([patches(s, size) for s in axis_slices(volume, axis, slices)]))
+    dist, _ = tree.query(exemplar_patches(exemplar, size, tileable), k=1, workers=-1)
+    return float(np.mean(dist**2) / (size * size * _variance(colors)))
+
+
 def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar,
                       tileable: bool | str = "auto") -> float:
     """The largest of the three axes' :func:`neighborhood_energy`: a solid texture is
     judged by its worst cut."""
     return max(neighborhood_energy(volume, exemplar, axis, tileable=tileable)
+               for axis in range(3))
+
+
+def bidirectional_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar,
+                         tileable: bool | str = "auto") -> float:
+    """The largest of the three axes' :func:`neighborhood_energy` plus
+    :func:`completeness_energy`: a worst-axis measure that blur does not win (Simakov et
+    al. 2008's bidirectional similarity)."""
+    return max(neighborhood_energy(volume, exemplar, axis, tileable=tileable)
+               + completeness_energy(volume, exemplar, axis, tileable=tileable)
                for axis in range(3))
 
 
