@@ -305,6 +305,39 @@ def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
     assert measure("noise")["seconds"] < 0.5
 
 
+def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypatch, capsys,
+                                                              tmp_path):
+    """--repeats 3: three timed runs (each a whole volume), their median as the seconds, all
+    three in table.json; repeats below 1 are refused."""
+    import types
+
+    from warptex import compare
+
+    clock = iter([0.0, 1.0, 10.0, 13.0, 20.0, 22.0])
+    monkeypatch.setattr(compare, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
+    monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
+    monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
+    sizes = []
+    noise, noise_large = compare._RUN["noise"]
+    monkeypatch.setitem(compare._RUN, "noise", (lambda ex, size, s: sizes.append(size)
+                                                or noise(ex, size, s), noise_large))
+    row = compare._measure("noise", str(data_dir / "granite_64.png"), 16,
+                           compare._Settings(0, 2, "auto"), None, repeats=3)
+    assert sizes == [8, 16, 16, 16]  # the warm-up, then three timed volumes
+    assert row["seconds_runs"] == [1.0, 3.0, 2.0] and row["seconds"] == 2.0
+    result = compare.MethodResult(**row)
+    compare.write_report([result], data_dir / "granite_64.png", tmp_path, size=16, seed=0)
+    table = json.loads((tmp_path / "table.json").read_text())
+    assert table["run"]["repeats"] == 3
+    assert table["methods"][0]["seconds_runs"] == [1.0, 3.0, 2.0]
+    assert "the median of 3 wall-clock runs" in (tmp_path / "table.md").read_text()
+    with pytest.raises(ValueError, match="repeats must be"):
+        compare.compare(data_dir / "granite_64.png", 16, ["noise"], repeats=0)
+    assert main(["compare", str(data_dir / "granite_64.png"), "--repeats", "0",
+                 "-o", str(tmp_path / "c")]) == 2
+    assert "--repeats must be at least 1, got 0" in capsys.readouterr().err
+
+
 def test_table_cells_sit_under_their_headers():
     from warptex.compare import MethodResult, table_markdown
 

@@ -1172,6 +1172,9 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
+    parser.add_argument("--repeats", type=int, default=1, metavar="N",
+                        help="time each method N times and report the median, every run "
+                        "kept in table.json (default 1)")
     _add_max_size_argument(parser, advice="; every method reads the shrunk image")
     _add_tileable_argument(parser, advice="; for lazy, tiled and Kopf, and for the measures, "
                            "whose exemplar neighbourhoods wrap only where synthesis may")
@@ -1196,13 +1199,15 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
     _check_synthesis_arguments(passes=args.passes, seed=args.seed)
     _check_at_least("--size", args.size, MIN_SIZE)
+    _check_at_least("--repeats", args.repeats, 1)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):
         _check_kopf_size(args.size)
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes,
-                          max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable])
+                          max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable],
+                          repeats=args.repeats)
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):

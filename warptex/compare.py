@@ -8,10 +8,11 @@ references that are no solid texture: ``extrude`` (the exemplar stacked along z)
 (i.i.d. exemplar pixels) and ``flat`` (the exemplar's mean color everywhere, which shows what
 the neighbourhood energy rewards, ``warptex.metrics``).
 
-Timing: one run per method, wall-clock, in a fresh process, its Warp kernels compiled by a
-small run first. Kopf's seconds include its PCA and search structures; the lazy engine's
-pre-computation of candidates (Dong 2008, section 4) is computed afresh, not read from the
-cache, and timed apart (``precompute_seconds``), as the paper reports both.
+Timing: the median of ``repeats`` wall-clock runs per method (one by default), in a fresh
+process, its Warp kernels compiled by a small run first. Kopf's seconds include its PCA and
+search structures; the lazy engine's pre-computation of candidates (Dong 2008, section 4) is
+computed afresh, not read from the cache, and timed apart (``precompute_seconds``), as the
+paper reports both.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
 from warptex.machine import PeakMemory, map_large_blocks
 from warptex.settings import (
     DEFAULT_PASSES,
+    check_count,
     check_max_size,
     check_settings,
     check_tileable,
@@ -54,10 +56,11 @@ LARGE = 256  # least edge of the slice the repetition score looks at
 TILE = 64  # edge of the periodic block of `tiled`
 MIN_SIZE = 8
 # What table.json says of how the numbers were taken.
-TIMING = ("wall-clock seconds of one run per method in a fresh process, Warp kernels "
-          "compiled first; Kopf's include its PCA and search structures; the lazy engine's "
+TIMING = ("seconds: the median of the wall-clock runs per method in seconds_runs (as many "
+          "as run.repeats), in a fresh process, Warp kernels compiled first; Kopf's include "
+          "its PCA and search structures; the lazy engine's "
           "pre-computation of candidates, computed afresh, is timed apart (precompute_seconds)")
-MEMORY = ("peak_mib: rise of the process's resident host memory during the timed run; "
+MEMORY = ("peak_mib: rise of the process's resident host memory during the timed runs; "
           "device_peak_mib: high-water mark of Warp's CUDA memory pool in the method's "
           "process (pre-computation included), null on the CPU")
 MEASURES = {"patch": 5, "patch_stride": 2, "slices": 8, "swd_directions": 64, "swd_seed": 0,
@@ -74,9 +77,10 @@ class MethodResult:
     swd: list[float]
     histogram: list[float]
     repetition: float
-    seconds: float
+    seconds: float  # the median of seconds_runs
     peak_mib: float
     notes: str = ""
+    seconds_runs: list[float] = field(default_factory=list)
     device: str = "cpu"  # where the method computed: the lazy engine's device, else the CPU
     precompute_seconds: float | None = None  # the lazy engine's candidates, timed apart
     device_peak_mib: float | None = None  # Warp's CUDA memory pool, where the engine ran
@@ -275,8 +279,9 @@ def _device_peak_mib(device: str) -> float | None:
 
 
 def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
-             max_size: int | None) -> dict:
-    """Run one method in this (fresh) process: volume, scores, time and peak memory."""
+             max_size: int | None, repeats: int = 1) -> dict:
+    """Run one method in this (fresh) process: volume, scores, time (of ``repeats`` runs)
+    and peak memory."""
     ex = Exemplar.load(exemplar_path, max_size=max_size)
     make_volume, make_large = _RUN[method]
     precompute_seconds = None
@@ -284,10 +289,12 @@ def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
         s, precompute_seconds = _precomputed(ex, s)
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(ex, 8, s)
+    runs = []
     with PeakMemory() as memory:
-        start = time.perf_counter()
-        volume = make_volume(ex, size, s)
-        seconds = time.perf_counter() - start
+        for _ in range(repeats):
+            start = time.perf_counter()
+            volume = make_volume(ex, size, s)
+            runs.append(time.perf_counter() - start)
     device = _engine_device() if method in _LAZY else "cpu"
     device_peak = _device_peak_mib(device)
     large = make_large(ex, volume, s)
@@ -302,7 +309,8 @@ def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
                 for a in range(3)],
         "histogram": [metrics.histogram_distance(volume, ex, a) for a in range(3)],
         "repetition": metrics.repetition_score(large),
-        "seconds": seconds,
+        "seconds": float(np.median(runs)),
+        "seconds_runs": runs,
         "peak_mib": memory.growth / 2**20,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
         "render": render_cube(_cube_texture(method, ex, volume, s, max_size)),
@@ -351,13 +359,15 @@ def run_line(run: dict) -> str:
 
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
             seed: int = 0, progress: bool = True, passes: int = DEFAULT_PASSES,
-            max_size: int | None = None, tileable: bool | str = "auto") -> list[MethodResult]:
+            max_size: int | None = None, tileable: bool | str = "auto",
+            repeats: int = 1) -> list[MethodResult]:
     """Score every method on one exemplar, each in a fresh process (started by ``spawn``: a
     script calling this needs an ``if __name__ == "__main__":`` guard); ``passes`` are the
     lazy engine's correction passes per level (``lazy`` and ``tiled``), ``max_size`` how
     far the exemplar is shrunk when loaded (``Exemplar.load``), ``tileable`` whether the
     exemplar's opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
-    synthesize and in the measures alike."""
+    synthesize and in the measures alike; ``repeats`` how many timed runs each method's
+    seconds are the median of."""
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -370,6 +380,7 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_settings(passes=passes, seed=seed)
     check_max_size(max_size)
+    check_count("repeats", repeats, low=1)
     settings = _Settings(seed, passes, check_tileable(tileable))
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
@@ -383,7 +394,8 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
                                  initializer=_start_worker) as pool:
-            job = pool.submit(_measure, method, str(exemplar_path), size, settings, max_size)
+            job = pool.submit(_measure, method, str(exemplar_path), size, settings, max_size,
+                              repeats)
             try:
                 out = job.result()
             except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
@@ -441,8 +453,9 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _legend(edge: int) -> str:
+def _legend(edge: int, repeats: int) -> str:
     """What ``table.md``'s columns measure, below the table."""
+    runs = "one wall-clock run" if repeats == 1 else f"the median of {repeats} wall-clock runs"
     return (
         "\nLower is better in every score. energy: mean squared distance of slice patches to "
         "their nearest exemplar patch, in units of the exemplar's variance (it rewards blur: "
@@ -452,7 +465,7 @@ def _legend(edge: int) -> str:
         "colors (see `noise`); histogram: L1 distance of the color histograms, 0 to 2; "
         f"repetition: highest autocorrelation of a {edge}-voxel slice at shifts past 8 "
         "voxels, 0 to 1 (warptex.metrics). Scores of volumes of other sizes do not compare. "
-        "seconds: one wall-clock run in a fresh process, kernels compiled first; "
+        f"seconds: {runs} in a fresh process, kernels compiled first; "
         "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
         "host memory during the run.\n")
 
@@ -507,17 +520,18 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
     save_png(sheet(rows), sheet_file)
     word = tileable_word(tileable)
     edge = large_edge(size, ex.shape)
+    repeats = max((len(r.seconds_runs) for r in results), default=1)
     run = run_summary(size, seed) | {
         "passes": passes, "exemplar_max_size": max_size, "exemplar_size": list(ex.shape[::-1]),
         "exemplar_digest": ex.digest(), "tileable": word,
         "settings": _method_settings([r.method for r in results], passes),
         "measures": MEASURES | {"repetition_slice": edge},
-        "timing": TIMING, "memory": MEMORY}
+        "repeats": repeats, "timing": TIMING, "memory": MEMORY}
     shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
     told = "" if word == "auto" else f", tileable {word}"
     more = "" if passes == DEFAULT_PASSES else f", {passes} correction passes"
     markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{more}{told}; "
-                f"{run_line(run)}\n\n" + table_markdown(results) + _legend(edge))
+                f"{run_line(run)}\n\n" + table_markdown(results) + _legend(edge, repeats))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
