@@ -63,8 +63,6 @@ TIMING = ("seconds: the median of the wall-clock runs per method in seconds_runs
 MEMORY = ("peak_mib: rise of the process's resident host memory during the timed runs; "
           "device_peak_mib: high-water mark of Warp's CUDA memory pool in the method's "
           "process (pre-computation included), null on the CPU")
-MEASURES = {"patch": 5, "patch_stride": 2, "slices": 8, "swd_directions": 64, "swd_seed": 0,
-            "histogram_bins": 16, "repetition_exclude": 8}
 
 
 @dataclass
@@ -453,9 +451,10 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _legend(edge: int, repeats: int) -> str:
-    """What ``table.md``'s columns measure, below the table."""
+def _legend(measures: dict, repeats: int) -> str:
+    """What ``table.md``'s columns measure (:func:`_measure_settings`), below the table."""
     runs = "one wall-clock run" if repeats == 1 else f"the median of {repeats} wall-clock runs"
+    edge, exclude = measures["repetition_slice"], measures["repetition_exclude"]
     return (
         "\nLower is better in every score. energy: mean squared distance of slice patches to "
         "their nearest exemplar patch, in units of the exemplar's variance (it rewards blur: "
@@ -463,32 +462,47 @@ def _legend(edge: int, repeats: int) -> str:
         "patch (blur and flat volumes lack the sharp ones); SWD: sliced Wasserstein "
         "distance of the patches, which mostly sees "
         "colors (see `noise`); histogram: L1 distance of the color histograms, 0 to 2; "
-        f"repetition: highest autocorrelation of a {edge}-voxel slice at shifts past 8 "
-        "voxels, 0 to 1 (warptex.metrics). Scores of volumes of other sizes do not compare. "
+        f"repetition: highest autocorrelation of a {edge}-voxel slice at shifts past "
+        f"{exclude} voxels, 0 to 1 (warptex.metrics). Scores of volumes of other sizes do not "
+        "compare. "
         f"seconds: {runs} in a fresh process, kernels compiled first; "
         "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
         "host memory during the run.\n")
 
 
-def _method_settings(methods: Sequence[str], passes: int) -> dict:
-    """The settings the lazy engine and Kopf ran with, as their functions' defaults give
-    them, for the methods among ``methods``."""
+def _defaults(function: Callable, *names: str) -> dict:
+    """The default values of ``function``'s parameters ``names``: what a comparison that
+    leaves them alone ran with."""
     import inspect
 
+    parameters = inspect.signature(function).parameters
+    return {name: parameters[name].default for name in names}
+
+
+def _method_settings(methods: Sequence[str], passes: int) -> dict:
+    """The settings the lazy engine and Kopf ran with, for the methods among ``methods``."""
     from warptex.baselines import kopf
     from warptex.synthesis import Synthesizer
 
     out = {}
     if any(m in _LAZY for m in methods):
-        defaults = inspect.signature(Synthesizer).parameters
-        out["lazy"] = {"passes": passes} | {
-            name: defaults[name].default
-            for name in ("jitter", "levels", "subpasses", "shifted_tiles")}
+        out["lazy"] = {"passes": passes} | _defaults(
+            Synthesizer, "jitter", "levels", "subpasses", "shifted_tiles")
     if any(m in _KOPF for m in methods):
-        defaults = inspect.signature(kopf.synthesize).parameters
-        out["kopf"] = {name: defaults[name].default
-                       for name in ("iterations", "histogram_matching")}
+        out["kopf"] = _defaults(kopf.synthesize, "iterations", "histogram_matching")
     return out
+
+
+def _measure_settings(edge: int) -> dict:
+    """The parameters the measures ran with, ``edge`` the repetition slice's."""
+    energy = _defaults(metrics.neighborhood_energy, "size", "slices")
+    swd = _defaults(metrics.sliced_wasserstein, "directions", "seed")
+    return {"patch": energy["size"], "patch_stride": metrics.PATCH_STRIDE,
+            "slices": energy["slices"], "swd_directions": swd["directions"],
+            "swd_seed": swd["seed"],
+            "histogram_bins": _defaults(metrics.histogram_distance, "bins")["bins"],
+            "repetition_exclude": _defaults(metrics.repetition_score, "exclude")["exclude"],
+            "repetition_slice": edge}
 
 
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
@@ -519,19 +533,19 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
         rows.append((r.method, images))
     save_png(sheet(rows), sheet_file)
     word = tileable_word(tileable)
-    edge = large_edge(size, ex.shape)
+    measures = _measure_settings(large_edge(size, ex.shape))
     repeats = max((len(r.seconds_runs) for r in results), default=1)
     run = run_summary(size, seed) | {
         "passes": passes, "exemplar_max_size": max_size, "exemplar_size": list(ex.shape[::-1]),
         "exemplar_digest": ex.digest(), "tileable": word,
         "settings": _method_settings([r.method for r in results], passes),
-        "measures": MEASURES | {"repetition_slice": edge},
+        "measures": measures,
         "repeats": repeats, "timing": TIMING, "memory": MEMORY}
     shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
     told = "" if word == "auto" else f", tileable {word}"
     more = "" if passes == DEFAULT_PASSES else f", {passes} correction passes"
     markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{more}{told}; "
-                f"{run_line(run)}\n\n" + table_markdown(results) + _legend(edge, repeats))
+                f"{run_line(run)}\n\n" + table_markdown(results) + _legend(measures, repeats))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]

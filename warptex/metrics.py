@@ -36,6 +36,8 @@ from scipy.spatial import cKDTree
 from warptex.exemplar import Exemplar, seams_of, wrapping_edges
 from warptex.settings import check_count
 
+PATCH_STRIDE = 2  # slice patches the one-way measures read: every second one, each way
+
 
 def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarray]:
     """``count`` evenly spaced slices perpendicular to ``axis``, as (rows, cols, C) images
@@ -153,7 +155,7 @@ def neighborhood_energy(
     check_count("slices", slices, low=1)
     tree = cKDTree(exemplar_patches(exemplar, size, tileable))
     vol_patches = np.concatenate(
-        [patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)]
+        [patches(s, size, stride=PATCH_STRIDE) for s in axis_slices(volume, axis, slices)]
     )
     dist, _ = tree.query(vol_patches, k=1, workers=-1)
     return float(np.mean(dist**2) / (size * size * _variance(colors)))
@@ -216,7 +218,8 @@ def sliced_wasserstein(
     check_count("directions", directions, low=1)
     check_count("slices", slices, low=1)
     check_count("seed", seed)
-    a = np.concatenate([patches(s, size, stride=2) for s in axis_slices(volume, axis, slices)])
+    a = np.concatenate([patches(s, size, stride=PATCH_STRIDE)
+                        for s in axis_slices(volume, axis, slices)])
     b = exemplar_patches(exemplar, size, tileable)
     rng = np.random.default_rng(seed)
     dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32).astype(np.float64)
