@@ -5,9 +5,10 @@ The measures look at axis-aligned slices, the way a viewer judges a cut: a slice
 perpendicular to axis k is read with the same orientation as the exemplar of axis k
 (volume axes k+1, k+2 as its rows and columns; see ``warptex.candidates``). They read colors
 as stored (an sRGB exemplar's volume sRGB-encoded, as ``.npy`` files and ``SolidTexture``
-give them, not linear ones); patch measures take every second 5 x 5 patch of 8 evenly
-spaced slices, and histograms those slices' voxels, so a small volume is sampled thinly
-and its scores do not compare with those of a larger one.
+give them, not linear ones). The neighbourhood energy and the sliced Wasserstein distance
+take every second 5 x 5 patch of 8 evenly spaced slices, completeness every patch of them,
+and histograms those slices' voxels, so a small volume is sampled thinly and its scores do
+not compare with those of a larger one.
 
 Read them together; each alone rewards something that is no texture:
 
@@ -146,7 +147,7 @@ def neighborhood_energy(
     slices: int = 8, tileable: bool | str = "auto",
 ) -> float:
     """Mean squared distance from each slice patch to its nearest exemplar patch
-    (:func:`exemplar_patches` under the setting ``tileable``), divided by the patch's values
+    (:func:`exemplar_patches` under the setting ``tileable``), divided by the patch's pixels
     and the exemplar's variance summed over channels: 0 when every patch is in the
     exemplar; i.i.d. exemplar pixels score about 0.7, Gaussian noise of the exemplar's mean
     and variance about 1 (a nearest neighbour is nearer than a random patch). Lower is
