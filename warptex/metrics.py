@@ -154,12 +154,20 @@ def neighborhood_energy(
     better, but blur scores low too (see the module's notes)."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("slices", slices, low=1)
-    tree = cKDTree(exemplar_patches(exemplar, size, tileable))
     vol_patches = np.concatenate(
         [patches(s, size, stride=PATCH_STRIDE) for s in axis_slices(volume, axis, slices)]
     )
-    dist, _ = tree.query(vol_patches, k=1, workers=-1)
-    return float(np.mean(dist**2) / (size * size * _variance(colors)))
+    nearest = _nearest_squared(exemplar_patches(exemplar, size, tileable), vol_patches)
+    return float(np.mean(nearest) / (size * size * _variance(colors)))
+
+
+def _nearest_squared(reference: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Squared distance from each query row to its nearest reference row, exactly. The
+    tree's shape decides only how fast: sliding-midpoint splits and larger leaves search
+    these 75-dimensional patches about 3x faster than SciPy's default (BENCHMARKS.md)."""
+    tree = cKDTree(reference, leafsize=64, balanced_tree=False)
+    dist, _ = tree.query(queries, k=1, workers=-1)
+    return dist**2
 
 
 def completeness_energy(
@@ -175,9 +183,9 @@ def completeness_energy(
     better."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("slices", slices, low=1)
-    tree = cKDTree(np.concatenate([patches(s, size) for s in axis_slices(volume, axis, slices)]))
-    dist, _ = tree.query(exemplar_patches(exemplar, size, tileable), k=1, workers=-1)
-    return float(np.mean(dist**2) / (size * size * _variance(colors)))
+    slice_patches = np.concatenate([patches(s, size) for s in axis_slices(volume, axis, slices)])
+    nearest = _nearest_squared(slice_patches, exemplar_patches(exemplar, size, tileable))
+    return float(np.mean(nearest) / (size * size * _variance(colors)))
 
 
 def worst_axis_energy(volume: np.ndarray, exemplar: np.ndarray | Exemplar,
