@@ -383,7 +383,7 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
                          f"of slices every 2 voxels), got {size}")
-    if any(m.startswith("kopf") for m in methods):
+    if any(m in _KOPF for m in methods):
         from warptex.baselines.kopf import check_size
 
         check_size(size)
