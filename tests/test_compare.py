@@ -52,7 +52,7 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     # The figures say where they were measured: volume, machine, versions, date, device.
     table = json.loads((out / "table.json").read_text())
     run = table["run"]
-    assert table["format"] == 3 and table["axes"] == ["x", "y", "z"]
+    assert table["format"] == 4 and table["axes"] == ["x", "y", "z"]
     assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1 and run["passes"] == 2
     assert run["cpu"] and run["warp"] and 1 <= run["threads"] <= run["cores"]
     assert {"numpy", "scipy", "python", "mitsuba", "drjit", "warptex_code"} <= set(
@@ -73,6 +73,8 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
 
     exemplar = Exemplar.load(data_dir / "granite_64.png")
     assert run["exemplar_digest"] == exemplar.digest() and run["exemplar_max_size"] is None
+    assert run["axis_exemplars"] == [{"file": "granite_64.png", "size": [64, 64],
+                                      "digest": exemplar.digest()}] * 3
     assert f"16^3, seed 0; {run['cpu']}" in (out / "table.md").read_text()
     assert rows["lazy"]["device"] in ("cpu", "cuda") and rows["noise"]["device"] == "cpu"
     assert main(["compare", str(data_dir / "granite_64.png"), "--methods", "bogus",
@@ -123,19 +125,76 @@ def test_compare_shrinks_the_exemplar_to_max_size(tmp_path, data_dir, warp_devic
     assert (out / "table.md").read_text().startswith("# granite_64.png, shrunk to 32x32\n")
 
 
+@pytest.fixture
+def swapped_file(tmp_path, data_dir):
+    """Granite turned a quarter and its red and blue swapped: another exemplar of the same
+    size and channels, far from granite's patches and colors."""
+    from PIL import Image
+
+    granite = np.asarray(Image.open(data_dir / "granite_64.png"))
+    Image.fromarray(np.ascontiguousarray(np.rot90(granite)[..., ::-1])).save(
+        tmp_path / "swapped.png")
+    return tmp_path / "swapped.png"
+
+
+def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir, swapped_file,
+                                                             warp_device):
+    """--ez gives the z axis an exemplar of its own: lazy synthesis and Kopf read it, the z
+    slices are measured against it, extrusion stacks it, and the table names each axis'
+    file; --jitter and --shifted-tiles reach the lazy engine, whose volume is the one any
+    other command gets with the same settings."""
+    from warptex import metrics
+    from warptex.baselines.kopf import synthesize
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    granite_file = data_dir / "granite_64.png"
+    out = tmp_path / "cmp"
+    assert main(["compare", str(granite_file), "--ez", str(swapped_file), "--size", "16",
+                 "--methods", "lazy,kopf,extrude,flat", "--jitter", "0.5", "--shifted-tiles",
+                 "-o", str(out)]) == 0
+    rows = {r["method"]: r for r in json.loads((out / "table.json").read_text())["methods"]}
+    granite, swapped = Exemplar.load(granite_file), Exemplar.load(swapped_file)
+    axes = (granite, granite, swapped)
+    candidates = precompute(*axes)
+    lazy = Synthesizer(candidates, seed=0, jitter=0.5, passes=2,
+                       shifted_tiles=True).box((0, 0, 0), (16, 16, 16))
+    assert rows["lazy"]["energy"] == [metrics.neighborhood_energy(lazy, e, a)
+                                      for a, e in enumerate(axes)]
+    kopf = synthesize(None, size=16, seed=0, progress=False, exemplars=axes)
+    assert rows["kopf"]["energy"] == [metrics.neighborhood_energy(kopf, e, a)
+                                      for a, e in enumerate(axes)]
+    assert rows["extrude"]["energy"][2] == 0.0 and rows["extrude"]["energy"][0] > 0.2
+    pixels = np.concatenate([granite.colors, swapped.colors]).reshape(-1, 3)
+    flat = np.broadcast_to(pixels.mean(axis=0), (16, 16, 16, 3)).astype(np.float32)
+    assert rows["flat"]["histogram"] == [metrics.histogram_distance(flat, e, a)
+                                         for a, e in enumerate(axes)]
+    table = json.loads((out / "table.json").read_text())
+    assert [e["file"] for e in table["run"]["axis_exemplars"]] == [
+        "granite_64.png", "granite_64.png", "swapped.png"]
+    assert table["run"]["axis_exemplars"][2]["digest"] == swapped.digest()
+    assert table["run"]["settings"]["lazy"]["jitter"] == 0.5
+    assert table["run"]["settings"]["lazy"]["shifted_tiles"] is True
+    markdown = (out / "table.md").read_text()
+    assert markdown.startswith("# x: granite_64.png; y: granite_64.png; z: swapped.png\n")
+    assert "16^3, seed 0, jitter 0.5, shifted tiles;" in markdown
+
+
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
     from warptex.compare import _cube_texture, _Settings, _tiled, compare
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
     ex = Exemplar.load(path)
+    axes = (ex, ex, ex)
     volume = np.zeros((8, 8, 8, 3), np.float32)
     one_pass = _Settings(0, 1, "auto")
-    assert _cube_texture("lazy", ex, volume, one_pass, None)["passes"] == 1
-    assert "exemplar_max_size" not in _cube_texture("lazy", ex, volume, one_pass, None)
-    assert _cube_texture("lazy", ex, volume, one_pass, 24)["exemplar_max_size"] == 24
-    assert _cube_texture("lazy", ex, volume, _Settings(0, 1, False), None)["tileable"] == "no"
-    one, two = (_tiled(ex, 8, _Settings(0, passes, "auto")) for passes in (1, 2))
+    assert _cube_texture("lazy", axes, volume, one_pass, None)["passes"] == 1
+    assert "exemplar_max_size" not in _cube_texture("lazy", axes, volume, one_pass, None)
+    assert _cube_texture("lazy", axes, volume, one_pass, 24)["exemplar_max_size"] == 24
+    assert _cube_texture("lazy", axes, volume, _Settings(0, 1, False), None)["tileable"] == "no"
+    one, two = (_tiled(axes, 8, _Settings(0, passes, "auto")) for passes in (1, 2))
     assert not np.array_equal(one, two)
     with pytest.raises(ValueError, match="passes must be within"):
         compare(path, 16, ["lazy"], passes=9, progress=False)
@@ -169,7 +228,8 @@ def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_dec
     volume = np.random.default_rng(0).random((4, 5, 6, 3)).astype(np.float32)
     for srgb, expected in ((True, srgb_decoded(volume)), (False, volume)):
         ex.srgb = srgb
-        grid = _cube_texture("tiled", ex, volume, _Settings(0, 2, "auto"), None)["volume"]["data"]
+        grid = _cube_texture("tiled", (ex, ex, ex), volume, _Settings(0, 2, "auto"),
+                             None)["volume"]["data"]
         np.testing.assert_allclose(np.array(grid), expected.transpose(2, 1, 0, 3), rtol=1e-5)
 
 
@@ -269,7 +329,7 @@ def measure(data_dir, monkeypatch):
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     path = str(data_dir / "granite_64.png")
     return lambda method, size=16, tileable="auto": compare._measure(
-        method, path, size, compare._Settings(0, 2, tileable), None)
+        method, (path, None, None), size, compare._Settings(0, 2, tileable), None)
 
 
 def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
@@ -279,13 +339,14 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
     row = measure("extrude")
     ex = Exemplar.load(data_dir / "granite_64.png")
     settings = compare._Settings(0, 2, "auto")
-    volume = compare._extrude(ex, 16, settings)
+    axes = (ex, ex, ex)
+    volume = compare._extrude(axes, 16, settings)
     for key, metric in (("energy", metrics.neighborhood_energy),
                         ("swd", metrics.sliced_wasserstein),
                         ("histogram", metrics.histogram_distance)):
         assert row[key] == [metric(volume, ex.colors, axis) for axis in range(3)], key
     assert len(set(row["energy"])) == 3  # three different values: an axis swap would show
-    large = compare._extrude_large(ex, volume, settings)
+    large = compare._extrude_large(axes, volume, settings)
     assert large.shape[:2] == (compare.LARGE, compare.LARGE)
     assert row["repetition"] == metrics.repetition_score(large)
 
@@ -296,10 +357,10 @@ def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
 
     from warptex import compare, metrics
 
-    def slow_first(ex, size, settings):
+    def slow_first(axes, size, settings):
         if size == 8:
             time.sleep(1.0)
-        return metrics.iid_noise(ex.colors, (size, size, size), settings.seed)
+        return metrics.iid_noise(axes[0].colors, (size, size, size), settings.seed)
 
     monkeypatch.setitem(compare._RUN, "noise", (slow_first, compare._noise_large))
     assert measure("noise")["seconds"] < 0.5
@@ -319,9 +380,9 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     sizes = []
     noise, noise_large = compare._RUN["noise"]
-    monkeypatch.setitem(compare._RUN, "noise", (lambda ex, size, s: sizes.append(size)
-                                                or noise(ex, size, s), noise_large))
-    row = compare._measure("noise", str(data_dir / "granite_64.png"), 16,
+    monkeypatch.setitem(compare._RUN, "noise", (lambda axes, size, s: sizes.append(size)
+                                                or noise(axes, size, s), noise_large))
+    row = compare._measure("noise", (str(data_dir / "granite_64.png"), None, None), 16,
                            compare._Settings(0, 2, "auto"), None, repeats=3)
     assert sizes == [8, 16, 16, 16]  # the warm-up, then three timed volumes
     assert row["seconds_runs"] == [1.0, 3.0, 2.0] and row["seconds"] == 2.0
@@ -431,7 +492,7 @@ def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block
     block = rng.random((64, 64, 64, 3)).astype(np.float32)
     volume = np.tile(block, (2, 2, 2, 1))[:72, :72, :72]
     ex = type("Ex", (), {"shape": (64, 64)})()
-    large = compare._tiled_large(ex, volume, None)
+    large = compare._tiled_large((ex, ex, ex), volume, None)
     assert large.shape[:2] == (256, 256)
     np.testing.assert_array_equal(large[64:128, 128:192], block[:, :, 36])
     assert metrics.repetition_score(large) == pytest.approx(1.0)
@@ -462,3 +523,27 @@ def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
     methods = ["noise", "extrude", "tiled", "lazy"]
     results = compare.compare(data_dir / "granite_64.png", 16, methods, progress=False)
     assert [r.method for r in results] == methods
+
+
+def test_compare_refuses_exemplars_that_one_volume_cannot_mix(tmp_path, data_dir, capsys):
+    """Axes whose exemplars differ in channels or in color encoding are refused at once,
+    naming the files, and nothing is written."""
+    from PIL import Image
+
+    granite = data_dir / "granite_64.png"
+    Image.open(granite).convert("L").save(tmp_path / "gray.png")
+    np.save(tmp_path / "linear.npy",
+            np.asarray(Image.open(granite), np.float32) / 255.0)
+    out = tmp_path / "cmp"
+    assert main(["compare", str(granite), "--ez", str(tmp_path / "gray.png"),
+                 "--methods", "noise", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "same number of channels" in err and "gray.png 1" in err and "granite_64.png 3" in err
+    assert main(["compare", str(granite), "--ey", str(tmp_path / "linear.npy"),
+                 "--methods", "noise", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "encoded differently" in err and "linear.npy linear" in err
+    assert "--raw" not in err and "(raw)" not in err  # compare keeps no values as stored
+    assert not out.exists()
+    with pytest.raises(ValueError, match="encoded differently"):
+        compare.compare(granite, 16, ["noise"], ey=tmp_path / "linear.npy", progress=False)

@@ -692,17 +692,22 @@ def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     _add_axis_exemplar_arguments(parser, first)
     parser.add_argument("--seed", type=int, default=0,
                         help="texture variation, 0 to 2147483647 (default 0)")
-    parser.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
-                        help="strength of the random warp that varies the tiling, 0 to 64 "
-                        "(default 1)")
-    parser.add_argument("--shifted-tiles", action="store_true",
-                        help="shift each tile of the initial tiling by its own offset: "
-                        "structured exemplars (rust, cells) then show no bands every exemplar "
-                        "width, but follow their photo less closely (BENCHMARKS.md)")
+    _add_tiling_arguments(parser)
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
                         "closer to the exemplar at about twice the time (the repository's "
                         "docs/comparisons)")
+
+
+def _add_tiling_arguments(parser: argparse.ArgumentParser, advice: str = "") -> None:
+    """How lazy synthesis varies the tiling it starts from (Dong 2008, section 5.1)."""
+    parser.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
+                        help="strength of the random warp that varies the tiling, 0 to 64 "
+                        f"(default 1){advice}")
+    parser.add_argument("--shifted-tiles", action="store_true",
+                        help="shift each tile of the initial tiling by its own offset: "
+                        "structured exemplars (rust, cells) then show no bands every exemplar "
+                        f"width, but follow their photo less closely (BENCHMARKS.md){advice}")
 
 
 def _add_raw_argument(parser: argparse.ArgumentParser, formats: str) -> None:
@@ -1158,10 +1163,12 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "a method may repeat at), time (the lazy engine's pre-computation apart) and peak "
         "memory. Lower is better in every score; read them together, as each alone rewards "
         "something that is no texture (the reference methods extrude, noise and flat show "
-        "what; warptex.metrics says more). Scores of other --size do not compare. "
+        "what; warptex.metrics says more). Scores of other --size do not compare. With "
+        "--ey/--ez each axis has its own exemplar, its slices measured against it. "
         f"Methods: {', '.join(METHODS)}.",
     )
     parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
+    _add_axis_exemplar_arguments(parser, "EXEMPLAR")
     parser.add_argument("--size", type=int, default=64,
                         help="edge of each method's volume in voxels, at least 8 and, with "
                         "Kopf's methods, a multiple of 8 (default 64)")
@@ -1172,10 +1179,11 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
                         help="correction passes per pyramid level of lazy synthesis, 0 to 8, "
                         "for the lazy and tiled methods (default 2)")
+    _add_tiling_arguments(parser, advice="; for the lazy and tiled methods")
     parser.add_argument("--repeats", type=int, default=1, metavar="N",
                         help="time each method N times and report the median, every run "
                         "kept in table.json (default 1)")
-    _add_max_size_argument(parser, advice="; every method reads the shrunk image")
+    _add_max_size_argument(parser, advice="; every method reads the shrunk images")
     _add_tileable_argument(parser, advice="; for lazy, tiled and Kopf, and for the measures, "
                            "whose exemplar neighbourhoods wrap only where synthesis may")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
@@ -1186,34 +1194,37 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import (
         MIN_SIZE,
         REPORT_FILES,
+        axis_exemplars,
         compare,
         table_markdown,
         write_report,
     )
 
     # One clear error for a bad image before any work.
-    exemplar = Exemplar.load(args.exemplar, max_size=args.exemplar_max_size)
+    exemplar = axis_exemplars(args.exemplar, args.ey, args.ez, args.exemplar_max_size)[0]
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
     _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
-    _check_synthesis_arguments(passes=args.passes, seed=args.seed)
+    _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     _check_at_least("--size", args.size, MIN_SIZE)
     _check_at_least("--repeats", args.repeats, 1)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):
         _check_kopf_size(args.size)
+    lazy = {"ey": args.ey, "ez": args.ez, "jitter": args.jitter,
+            "shifted_tiles": args.shifted_tiles}
     try:
         results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes,
                           max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable],
-                          repeats=args.repeats)
+                          repeats=args.repeats, **lazy)
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
         files = write_report(results, args.exemplar, args.output, size=args.size,
                              seed=args.seed, max_size=args.exemplar_max_size,
-                             tileable=TILEABLE[args.tileable], passes=args.passes)
+                             tileable=TILEABLE[args.tileable], passes=args.passes, **lazy)
     print(table_markdown(results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0

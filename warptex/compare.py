@@ -4,9 +4,13 @@ Kopf 2007). Each method runs in a fresh process so its time and peak memory are 
 Methods: ``lazy`` (this project), ``kopf`` (Kopf et al. 2007 global optimization, plain
 weighted averages), ``kopf-meanshift`` (the same with its mean-shift clustering, section 4.1),
 ``tiled`` (a periodic volume repeated, the usual practice of Dong 2008 Fig. 11), and three
-references that are no solid texture: ``extrude`` (the exemplar stacked along z), ``noise``
-(i.i.d. exemplar pixels) and ``flat`` (the exemplar's mean color everywhere, which shows what
-the neighbourhood energy rewards, ``warptex.metrics``).
+references that are no solid texture: ``extrude`` (the z axis' exemplar stacked along z),
+``noise`` (i.i.d. exemplar pixels) and ``flat`` (the exemplars' mean color everywhere, which
+shows what the neighbourhood energy rewards, ``warptex.metrics``).
+
+Each axis may have an exemplar of its own (Kopf 2007, section 6.2; Dong 2008, section 4), as
+wood shows rings across its grain and streaks along it: the methods that synthesize read all
+three, and the slices across an axis are measured against that axis' exemplar.
 
 Timing: the median of ``repeats`` wall-clock runs per method (one by default), in a fresh
 process, its Warp kernels compiled by a small run first. Kopf's seconds include its PCA and
@@ -34,11 +38,13 @@ from tqdm.auto import tqdm
 
 from warptex import metrics
 from warptex.archive import iso_date, write_atomically
-from warptex.exemplar import Exemplar, linear_to_srgb, reencoded
+from warptex.exemplar import Exemplar, ExemplarError, linear_to_srgb, reencoded, srgb_encoded
 from warptex.machine import PeakMemory, map_large_blocks
 from warptex.settings import (
+    DEFAULT_JITTER,
     DEFAULT_PASSES,
     check_count,
+    check_flag,
     check_max_size,
     check_settings,
     check_tileable,
@@ -47,8 +53,9 @@ from warptex.settings import (
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
 # Of table.json; 2: format, axes, passes, exemplar max size and digest; 3: pre-computation
-# seconds, device memory, the settings of the methods and measures, more versions.
-TABLE_FORMAT = 3
+# seconds, device memory, the settings of the methods and measures, more versions; 4: the
+# exemplar of each axis, the lazy engine's jitter and shifted tiles as run.
+TABLE_FORMAT = 4
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 _KOPF = ("kopf", "kopf-meanshift")
@@ -88,15 +95,57 @@ class MethodResult:
 
 @dataclass(frozen=True)
 class _Settings:
-    """What every method is given: the seed, the lazy engine's correction passes (ignored by
-    the methods that do not synthesize lazily) and the setting ``tileable``, which decides
-    the exemplar's seams for the methods and the measures alike; in a lazy method's process,
-    the candidates it pre-computed."""
+    """What every method is given: the seed, the lazy engine's correction passes, jitter and
+    shifted tiles (ignored by the methods that do not synthesize lazily) and the setting
+    ``tileable``, which decides the exemplars' seams for the methods and the measures alike;
+    in a lazy method's process, the candidates it pre-computed."""
 
     seed: int
     passes: int
     tileable: bool | str
+    jitter: float = DEFAULT_JITTER
+    shifted_tiles: bool = False
     candidates: object = field(default=None, compare=False, repr=False)
+
+
+# The exemplars of the x, y and z axes; one Exemplar three times where all are the same.
+Axes = tuple[Exemplar, Exemplar, Exemplar]
+
+
+def axis_exemplars(exemplar: str | Path, ey: str | Path | None = None,
+                   ez: str | Path | None = None, max_size: int | None = None) -> Axes:
+    """The exemplars of the x, y and z axes, loaded with ``max_size`` as
+    ``warptex volume`` reads them: ``ey`` defaults to ``exemplar``, ``ez`` to ``ey``, and an
+    image given twice is one Exemplar. An ExemplarError (a ValueError) names the files
+    whose channels or color encodings differ, which one volume cannot mix."""
+    paths = [Path(exemplar)]
+    paths.append(paths[0] if ey is None else Path(ey))
+    paths.append(paths[1] if ez is None else Path(ez))
+    loaded: dict[Path, Exemplar] = {}
+    for path in paths:
+        if path.resolve() not in loaded:
+            loaded[path.resolve()] = Exemplar.load(path, max_size=max_size)
+    axes = tuple(loaded[path.resolve()] for path in paths)
+    if len({e.features.shape[2] for e in axes}) != 1:
+        found = ", ".join(f"{e.name} {e.features.shape[2]}" for e in _distinct(axes))
+        raise ExemplarError(f"the exemplars of the three axes must have the same number of "
+                            f"channels; found {found}")
+    srgb_encoded(list(axes), raw=None)
+    return axes
+
+
+def _distinct(axes: Axes) -> list[Exemplar]:
+    """The different exemplars among the three axes', in axis order."""
+    return list({id(e): e for e in axes}.values())
+
+
+def _pixels(axes: Axes) -> np.ndarray:
+    """The pixels of all the axes' exemplars, as an (N, 1, C) image (one exemplar: itself),
+    where the references that ignore neighbourhoods draw their colors from."""
+    distinct = _distinct(axes)
+    if len(distinct) == 1:
+        return distinct[0].colors
+    return np.concatenate([e.colors.reshape(-1, 1, e.colors.shape[2]) for e in distinct])
 
 
 def large_edge(size: int, exemplar_shape: Sequence[int]) -> int:
@@ -106,77 +155,81 @@ def large_edge(size: int, exemplar_shape: Sequence[int]) -> int:
     return max(LARGE, 2 * size, 2 * max(exemplar_shape[:2]))
 
 
-def _edge(ex: Exemplar, volume: np.ndarray) -> int:
-    return large_edge(volume.shape[0], ex.shape)
+def _edge(axes: Axes, size: int) -> int:
+    """:func:`large_edge` of a ``size``^3 volume of these exemplars: the longest one's."""
+    longest = max(max(e.shape) for e in axes)
+    return large_edge(size, (longest, longest))
 
 
-def _synthesizer(ex: Exemplar, s: _Settings):
+def _synthesizer(axes: Axes, s: _Settings):
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
     candidates = s.candidates
     if candidates is None:
-        candidates = precompute(ex, tileable=s.tileable)
-    return Synthesizer(candidates, seed=s.seed, passes=s.passes)
+        candidates = precompute(*axes, tileable=s.tileable)
+    return Synthesizer(candidates, seed=s.seed, jitter=s.jitter, passes=s.passes,
+                       shifted_tiles=s.shifted_tiles)
 
 
-def _lazy(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
-    return _synthesizer(ex, s).box((0, 0, 0), (size, size, size))
+def _lazy(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+    return _synthesizer(axes, s).box((0, 0, 0), (size, size, size))
 
 
-def _lazy_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
-    edge = _edge(ex, volume)
-    return _synthesizer(ex, s).box((0, 0, volume.shape[2] // 2), (edge, edge, 1))[:, :, 0]
+def _lazy_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+    edge = _edge(axes, volume.shape[0])
+    return _synthesizer(axes, s).box((0, 0, volume.shape[2] // 2), (edge, edge, 1))[:, :, 0]
 
 
-def _kopf(ex: Exemplar, size: int, s: _Settings, mean_shift: bool = False) -> np.ndarray:
+def _kopf(axes: Axes, size: int, s: _Settings, mean_shift: bool = False) -> np.ndarray:
     from warptex.baselines.kopf import synthesize
 
-    return synthesize(ex, size=size, seed=s.seed, progress=False, mean_shift=mean_shift,
-                      tileable=s.tileable)
+    return synthesize(None, size=size, seed=s.seed, progress=False, exemplars=axes,
+                      mean_shift=mean_shift, tileable=s.tileable)
 
 
-def _tiled(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
+def _tiled(axes: Axes, size: int, s: _Settings) -> np.ndarray:
     # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
     # difference to `lazy` is the repetition alone.
     period = min(size, TILE)
-    block = _lazy(ex, period, s)
+    block = _lazy(axes, period, s)
     reps = -(-size // period)
     return np.tile(block, (reps, reps, reps, 1))[:size, :size, :size]
 
 
-def _tiled_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _tiled_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
     """The periodic block's z-slice repeated over the large slice: the tiled volume's own
     period, not that of a volume cut to a size the block does not divide."""
     period = min(volume.shape[0], TILE)
-    return _tile_slice(volume[:period, :period, volume.shape[2] // 2], _edge(ex, volume))
+    return _tile_slice(volume[:period, :period, volume.shape[2] // 2], _edge(axes, volume.shape[0]))
 
 
-def _extrude(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
-    return metrics.extrusion(_tile_slice(ex.colors, size), size, axis=2)
+def _extrude(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+    return metrics.extrusion(_tile_slice(axes[2].colors, size), size, axis=2)
 
 
-def _noise(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
-    return metrics.iid_noise(ex.colors, (size, size, size), s.seed)
+def _noise(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+    return metrics.iid_noise(_pixels(axes), (size, size, size), s.seed)
 
 
-def _flat(ex: Exemplar, size: int, s: _Settings) -> np.ndarray:
-    mean = ex.colors.reshape(-1, ex.colors.shape[2]).mean(axis=0)
-    return np.tile(mean.astype(ex.colors.dtype), (size, size, size, 1))
+def _flat(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+    pixels = _pixels(axes)
+    mean = pixels.reshape(-1, pixels.shape[2]).mean(axis=0)
+    return np.tile(mean.astype(pixels.dtype), (size, size, size, 1))
 
 
-def _periodic_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _periodic_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
     """A periodic volume's z-slice repeated over the large slice."""
-    return _tile_slice(volume[:, :, volume.shape[2] // 2], _edge(ex, volume))
+    return _tile_slice(volume[:, :, volume.shape[2] // 2], _edge(axes, volume.shape[0]))
 
 
-def _noise_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
-    edge = _edge(ex, volume)
-    return metrics.iid_noise(ex.colors, (edge, edge, 1), s.seed + 1)[:, :, 0]
+def _noise_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+    edge = _edge(axes, volume.shape[0])
+    return metrics.iid_noise(_pixels(axes), (edge, edge, 1), s.seed + 1)[:, :, 0]
 
 
-def _extrude_large(ex: Exemplar, volume: np.ndarray, s: _Settings) -> np.ndarray:
-    return _tile_slice(ex.colors, _edge(ex, volume))
+def _extrude_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+    return _tile_slice(axes[2].colors, _edge(axes, volume.shape[0]))
 
 
 # Per method: the timed volume, and the 256-voxel slice its repetition score looks at.
@@ -234,7 +287,7 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
     return linear_to_srgb(image)
 
 
-def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, s: _Settings,
+def _cube_texture(method: str, axes: Axes, volume: np.ndarray, s: _Settings,
                   max_size: int | None) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
     own grid texture of their volume (both trilinear, one voxel = 1/size of the cube),
@@ -242,24 +295,26 @@ def _cube_texture(method: str, exemplar: Exemplar, volume: np.ndarray, s: _Setti
     size = volume.shape[0]
     if method == "lazy":
         shrink = {} if max_size is None else {"exemplar_max_size": max_size}
-        return {"type": "lazy_solid", "exemplar": str(exemplar.path), "seed": s.seed,
-                "passes": s.passes, "tileable": tileable_word(s.tileable),
-                "scale": float(size)} | shrink
-    colors = reencoded(volume[..., :3], srgb=exemplar.srgb, to_srgb=False)
+        exemplars = ({"exemplar": str(axes[0].path)} if len(_distinct(axes)) == 1 else
+                     {f"exemplar_{a}": str(e.path) for a, e in zip("xyz", axes, strict=True)})
+        return {"type": "lazy_solid", **exemplars, "seed": s.seed, "jitter": s.jitter,
+                "shifted_tiles": s.shifted_tiles, "passes": s.passes,
+                "tileable": tileable_word(s.tileable), "scale": float(size)} | shrink
+    colors = reencoded(volume[..., :3], srgb=axes[0].srgb, to_srgb=False)
     data = _mitsuba().TensorXf(np.ascontiguousarray(colors.transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
 
 
-def _precomputed(ex: Exemplar, s: _Settings) -> tuple[_Settings, float]:
-    """The settings with the candidates of ``ex`` computed afresh, and the seconds that
+def _precomputed(axes: Axes, s: _Settings) -> tuple[_Settings, float]:
+    """The settings with the candidates of ``axes`` computed afresh, and the seconds that
     took, its kernels compiled first on a small exemplar of as many channels."""
     from warptex.candidates import precompute
 
-    warm = np.random.default_rng(0).random((16, 16, ex.colors.shape[2]), dtype=np.float32)
+    warm = np.random.default_rng(0).random((16, 16, axes[0].colors.shape[2]), dtype=np.float32)
     precompute(Exemplar(warm), cache=False)
     start = time.perf_counter()
-    candidates = precompute(ex, tileable=s.tileable, cache=False)
+    candidates = precompute(*axes, tileable=s.tileable, cache=False)
     return replace(s, candidates=candidates), time.perf_counter() - start
 
 
@@ -276,42 +331,42 @@ def _device_peak_mib(device: str) -> float | None:
         return None
 
 
-def _measure(method: str, exemplar_path: str, size: int, s: _Settings,
+def _measure(method: str, paths: Sequence[str | None], size: int, s: _Settings,
              max_size: int | None, repeats: int = 1) -> dict:
-    """Run one method in this (fresh) process: volume, scores, time (of ``repeats`` runs)
-    and peak memory."""
-    ex = Exemplar.load(exemplar_path, max_size=max_size)
+    """Run one method in this (fresh) process on the exemplars of :func:`axis_exemplars`
+    ``(*paths, max_size)``: volume, scores, time (of ``repeats`` runs) and peak memory."""
+    axes = axis_exemplars(*paths, max_size=max_size)
     make_volume, make_large = _RUN[method]
     precompute_seconds = None
     if method in _LAZY:
-        s, precompute_seconds = _precomputed(ex, s)
+        s, precompute_seconds = _precomputed(axes, s)
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
-    make_volume(ex, 8, s)
+    make_volume(axes, 8, s)
     runs = []
     with PeakMemory() as memory:
         for _ in range(repeats):
             start = time.perf_counter()
-            volume = make_volume(ex, size, s)
+            volume = make_volume(axes, size, s)
             runs.append(time.perf_counter() - start)
     device = _engine_device() if method in _LAZY else "cpu"
     device_peak = _device_peak_mib(device)
-    large = make_large(ex, volume, s)
-    # The Exemplar itself, so that the metrics take its seams as decided once.
+    large = make_large(axes, volume, s)
+    # Each axis' slices against its own Exemplar, whose seams are decided once.
     return {
         "method": method,
-        "energy": [metrics.neighborhood_energy(volume, ex, a, tileable=s.tileable)
+        "energy": [metrics.neighborhood_energy(volume, axes[a], a, tileable=s.tileable)
                    for a in range(3)],
-        "completeness": [metrics.completeness_energy(volume, ex, a, tileable=s.tileable)
+        "completeness": [metrics.completeness_energy(volume, axes[a], a, tileable=s.tileable)
                          for a in range(3)],
-        "swd": [metrics.sliced_wasserstein(volume, ex, a, tileable=s.tileable)
+        "swd": [metrics.sliced_wasserstein(volume, axes[a], a, tileable=s.tileable)
                 for a in range(3)],
-        "histogram": [metrics.histogram_distance(volume, ex, a) for a in range(3)],
+        "histogram": [metrics.histogram_distance(volume, axes[a], a) for a in range(3)],
         "repetition": metrics.repetition_score(large),
         "seconds": float(np.median(runs)),
         "seconds_runs": runs,
         "peak_mib": memory.growth / 2**20,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
-        "render": render_cube(_cube_texture(method, ex, volume, s, max_size)),
+        "render": render_cube(_cube_texture(method, axes, volume, s, max_size)),
         "notes": f"correction passes per level: {s.passes}" if method in _LAZY else "",
         "device": device,
         "precompute_seconds": precompute_seconds,
@@ -358,14 +413,17 @@ def run_line(run: dict) -> str:
 def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
             seed: int = 0, progress: bool = True, passes: int = DEFAULT_PASSES,
             max_size: int | None = None, tileable: bool | str = "auto",
-            repeats: int = 1) -> list[MethodResult]:
-    """Score every method on one exemplar, each in a fresh process (started by ``spawn``: a
-    script calling this needs an ``if __name__ == "__main__":`` guard); ``passes`` are the
-    lazy engine's correction passes per level (``lazy`` and ``tiled``), ``max_size`` how
-    far the exemplar is shrunk when loaded (``Exemplar.load``), ``tileable`` whether the
-    exemplar's opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
-    synthesize and in the measures alike; ``repeats`` how many timed runs each method's
-    seconds are the median of."""
+            repeats: int = 1, *, ey: str | Path | None = None, ez: str | Path | None = None,
+            jitter: float = DEFAULT_JITTER, shifted_tiles: bool = False) -> list[MethodResult]:
+    """Score every method on one exemplar, or on one per axis (``ey``, ``ez`` as
+    :func:`axis_exemplars` reads them), each method in a fresh process (started by
+    ``spawn``: a script calling this needs an ``if __name__ == "__main__":`` guard).
+    ``passes``, ``jitter`` and ``shifted_tiles`` are the lazy engine's (``lazy`` and
+    ``tiled``; :class:`warptex.synthesis.Synthesizer`), ``max_size`` how far the exemplars
+    are shrunk when loaded (``Exemplar.load``), ``tileable`` whether their opposite edges
+    are continued (:meth:`Exemplar.seams`), by the methods that synthesize and in the
+    measures alike; ``repeats`` how many timed runs each method's seconds are the median
+    of."""
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -376,10 +434,13 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     repeated = sorted({m for m in methods if list(methods).count(m) > 1})
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
-    check_settings(passes=passes, seed=seed)
+    check_settings(jitter=jitter, passes=passes, seed=seed)
     check_max_size(max_size)
     check_count("repeats", repeats, low=1)
-    settings = _Settings(seed, passes, check_tileable(tileable))
+    settings = _Settings(seed, passes, check_tileable(tileable), float(jitter),
+                         check_flag("shifted_tiles", shifted_tiles))
+    paths = tuple(None if p is None else str(p) for p in (exemplar_path, ey, ez))
+    axis_exemplars(*paths, max_size=max_size)  # a bad image is refused before any process
     if size < MIN_SIZE:
         raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
                          f"of slices every 2 voxels), got {size}")
@@ -392,8 +453,7 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
                                  initializer=_start_worker) as pool:
-            job = pool.submit(_measure, method, str(exemplar_path), size, settings, max_size,
-                              repeats)
+            job = pool.submit(_measure, method, paths, size, settings, max_size, repeats)
             try:
                 out = job.result()
             except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
@@ -470,6 +530,19 @@ def _legend(measures: dict, repeats: int) -> str:
         "host memory during the run.\n")
 
 
+def _title(paths: Sequence[Path], axes: Axes) -> str:
+    """The exemplars as ``table.md``'s heading names them: the file, or each axis' file,
+    with the size it was shrunk to where it was."""
+
+    def named(path: Path, e: Exemplar) -> str:
+        shrunk = "" if e.file_shape == e.shape else f", shrunk to {e.shape[1]}x{e.shape[0]}"
+        return f"{path.name}{shrunk}"
+
+    if len(_distinct(axes)) == 1:
+        return named(paths[0], axes[0])
+    return "; ".join(f"{a}: {named(p, e)}" for a, p, e in zip("xyz", paths, axes, strict=True))
+
+
 def _defaults(function: Callable, *names: str) -> dict:
     """The default values of ``function``'s parameters ``names``: what a comparison that
     leaves them alone ran with."""
@@ -479,15 +552,16 @@ def _defaults(function: Callable, *names: str) -> dict:
     return {name: parameters[name].default for name in names}
 
 
-def _method_settings(methods: Sequence[str], passes: int) -> dict:
+def _method_settings(methods: Sequence[str], s: _Settings) -> dict:
     """The settings the lazy engine and Kopf ran with, for the methods among ``methods``."""
     from warptex.baselines import kopf
     from warptex.synthesis import Synthesizer
 
     out = {}
     if any(m in _LAZY for m in methods):
-        out["lazy"] = {"passes": passes} | _defaults(
-            Synthesizer, "jitter", "levels", "subpasses", "shifted_tiles")
+        out["lazy"] = {"passes": s.passes, "jitter": s.jitter,
+                       "shifted_tiles": s.shifted_tiles} | _defaults(
+            Synthesizer, "levels", "subpasses")
     if any(m in _KOPF for m in methods):
         out["kopf"] = _defaults(kopf.synthesize, "iterations", "histogram_matching")
     return out
@@ -508,24 +582,34 @@ def _measure_settings(edge: int) -> dict:
 def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
                  out_dir: str | Path, *, size: int, seed: int,
                  max_size: int | None = None, tileable: bool | str = "auto",
-                 passes: int = DEFAULT_PASSES) -> list[Path]:
+                 passes: int = DEFAULT_PASSES, ey: str | Path | None = None,
+                 ez: str | Path | None = None, jitter: float = DEFAULT_JITTER,
+                 shifted_tiles: bool = False) -> list[Path]:
     """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) into
     ``out_dir`` atomically, with the :func:`run_summary` of the ``size^3``, ``seed``
-    comparison run here with the lazy engine's ``passes`` on the exemplar as loaded with
-    ``max_size`` (its size, as ``exemplar_size`` [width, height] in the JSON's ``run``, and
-    its content digest) under the setting ``tileable`` (the word, as ``tileable`` there).
-    The JSON's per-axis lists are in the order of its ``axes``."""
+    comparison run here with the lazy engine's ``passes``, ``jitter`` and ``shifted_tiles``
+    on the exemplars of :func:`axis_exemplars` ``(exemplar_path, ey, ez, max_size)`` under
+    the setting ``tileable`` (the word, as ``tileable`` in the JSON's ``run``). The ``run``
+    gives each axis' exemplar (``axis_exemplars``: file name, [width, height] as loaded,
+    content digest), and the x axis' also as ``exemplar_size`` and ``exemplar_digest``. The
+    JSON's per-axis lists are in the order of its ``axes``."""
     from warptex.sheets import save_png, sheet
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
-    ex = Exemplar.load(exemplar_path, max_size=max_size)
+    paths = [Path(exemplar_path)]
+    paths.append(paths[0] if ey is None else Path(ey))
+    paths.append(paths[1] if ez is None else Path(ez))
+    axes = axis_exemplars(*paths, max_size=max_size)
+    ex = axes[0]
 
     def shown(image: np.ndarray) -> np.ndarray:  # as an 8-bit picture shows colors: sRGB
         return reencoded(image, srgb=ex.srgb, to_srgb=True)
 
-    rows = [("exemplar", [("exemplar", shown(ex.colors))])]
+    one = len(_distinct(axes)) == 1
+    rows = [("exemplar", [("exemplar", shown(ex.colors))] if one else
+             [(f"{a} exemplar", shown(e.colors)) for a, e in zip("xyz", axes, strict=True)])]
     for r in results:
         images = [(f"{name} slice", shown(s)) for name, s in zip("xyz", r.slices, strict=True)]
         if r.render is not None:
@@ -533,18 +617,24 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
         rows.append((r.method, images))
     save_png(sheet(rows), sheet_file)
     word = tileable_word(tileable)
-    measures = _measure_settings(large_edge(size, ex.shape))
+    measures = _measure_settings(_edge(axes, size))
     repeats = max((len(r.seconds_runs) for r in results), default=1)
+    settings = _Settings(seed, passes, tileable, jitter, shifted_tiles)
     run = run_summary(size, seed) | {
         "passes": passes, "exemplar_max_size": max_size, "exemplar_size": list(ex.shape[::-1]),
-        "exemplar_digest": ex.digest(), "tileable": word,
-        "settings": _method_settings([r.method for r in results], passes),
+        "exemplar_digest": ex.digest(),
+        "axis_exemplars": [{"file": p.name, "size": list(e.shape[::-1]), "digest": e.digest()}
+                           for p, e in zip(paths, axes, strict=True)],
+        "tileable": word,
+        "settings": _method_settings([r.method for r in results], settings),
         "measures": measures,
         "repeats": repeats, "timing": TIMING, "memory": MEMORY}
-    shrunk = "" if ex.file_shape == ex.shape else f", shrunk to {ex.shape[1]}x{ex.shape[0]}"
     told = "" if word == "auto" else f", tileable {word}"
-    more = "" if passes == DEFAULT_PASSES else f", {passes} correction passes"
-    markdown = (f"# {Path(exemplar_path).name}{shrunk}\n\n{size}^3, seed {seed}{more}{told}; "
+    more = "".join((
+        "" if passes == DEFAULT_PASSES else f", {passes} correction passes",
+        "" if jitter == DEFAULT_JITTER else f", jitter {jitter:g}",
+        ", shifted tiles" if shifted_tiles else ""))
+    markdown = (f"# {_title(paths, axes)}\n\n{size}^3, seed {seed}{more}{told}; "
                 f"{run_line(run)}\n\n" + table_markdown(results) + _legend(measures, repeats))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}

@@ -371,16 +371,18 @@ def wrapping_edges(seams: tuple[bool, bool], shape: tuple[int, int],
     return not rows or height - size + 1 < size, not columns or width - size + 1 < size
 
 
-def srgb_encoded(exemplars: list[Exemplar], raw: str = "raw") -> bool:
+def srgb_encoded(exemplars: list[Exemplar], raw: str | None = "raw") -> bool:
     """Whether the exemplars of the three axes hold sRGB-encoded colors (``srgb``); an
     ExemplarError naming them where some do and others are linear, as a voxel's color
-    averages colors of all three; ``raw`` names the setting that keeps values as stored."""
+    averages colors of all three; ``raw`` names the setting that keeps values as stored,
+    None where there is none."""
     if len({e.srgb for e in exemplars}) == 1:
         return exemplars[0].srgb
     kinds = ", ".join(dict.fromkeys(
         f"{e.name} {'sRGB-encoded' if e.srgb else 'linear'}" for e in exemplars))
+    keep = "" if raw is None else f", or keep the values as stored ({raw})"
     raise ExemplarError(f"the exemplars' colors are encoded differently ({kinds}): convert "
-                        f"one image, or keep the values as stored ({raw})")
+                        f"one image{keep}")
 
 
 def srgb_to_linear(values: Any) -> np.ndarray:
