@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from warptex.archive import write_atomically
-from warptex.compare import METHODS, compare, run_line, run_summary, write_report
+from warptex.compare import METHODS, Setup, compare, run_line, run_summary, write_report
 
 HERE = Path(__file__).resolve().parent
 MORE_PASSES = 3  # the quality setting the index reports beside the default
@@ -57,10 +57,11 @@ def main() -> None:
     ]
     for path in sorted(args.exemplars.glob("*_64.png")):
         name = path.stem.removesuffix("_64")
-        results = compare(path, args.size, METHODS, progress=False)
-        write_report(results, path, out / name, size=args.size, seed=0)
-        r = {m.method: m for m in results}
-        (more,) = compare(path, args.size, ["lazy"], passes=MORE_PASSES, progress=False)
+        comparison = compare(Setup(path, args.size), METHODS, progress=False)
+        write_report(comparison, out / name)
+        r = {m.method: m for m in comparison.results}
+        (more,) = compare(Setup(path, args.size, passes=MORE_PASSES), ["lazy"],
+                          progress=False).results
         lazy, kopf, ms, flat = (max(r[m].energy) for m in ("lazy", "kopf", "kopf-meanshift",
                                                            "flat"))
         seconds = {m: r[m].seconds for m in ("lazy", "kopf", "kopf-meanshift")}

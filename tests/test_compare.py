@@ -2,6 +2,7 @@
 
 import json
 from datetime import datetime
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -182,22 +183,23 @@ def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir,
 
 
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
-    from warptex.compare import _cube_texture, _Settings, _tiled, compare
+    from warptex.compare import Setup, _cube_texture, _tiled
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
     ex = Exemplar.load(path)
     axes = (ex, ex, ex)
     volume = np.zeros((8, 8, 8, 3), np.float32)
-    one_pass = _Settings(0, 1, "auto")
-    assert _cube_texture("lazy", axes, volume, one_pass, None)["passes"] == 1
-    assert "exemplar_max_size" not in _cube_texture("lazy", axes, volume, one_pass, None)
-    assert _cube_texture("lazy", axes, volume, one_pass, 24)["exemplar_max_size"] == 24
-    assert _cube_texture("lazy", axes, volume, _Settings(0, 1, False), None)["tileable"] == "no"
-    one, two = (_tiled(axes, 8, _Settings(0, passes, "auto")) for passes in (1, 2))
+    one_pass = Setup(path, passes=1)
+    assert _cube_texture("lazy", axes, volume, one_pass)["passes"] == 1
+    assert "exemplar_max_size" not in _cube_texture("lazy", axes, volume, one_pass)
+    shrunk = Setup(path, passes=1, max_size=24)
+    assert _cube_texture("lazy", axes, volume, shrunk)["exemplar_max_size"] == 24
+    assert _cube_texture("lazy", axes, volume, Setup(path, tileable=False))["tileable"] == "no"
+    one, two = (_tiled(axes, 8, Setup(path, passes=passes)) for passes in (1, 2))
     assert not np.array_equal(one, two)
     with pytest.raises(ValueError, match="passes must be within"):
-        compare(path, 16, ["lazy"], passes=9, progress=False)
+        Setup(path, 16, passes=9)
 
 
 def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_dir,
@@ -212,24 +214,26 @@ def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_di
     assert (error.name, error.problem, str(error)) == ("max_size", "must be at least 16",
                                                       "max_size must be at least 16")
     with pytest.raises(SettingError, match="max_size must be at least 16 pixels, got 8"):
-        compare.compare(data_dir / "granite_64.png", 16, ["noise"], max_size=8, progress=False)
-    monkeypatch.setattr(compare, "check_max_size", lambda max_size: None)  # the worker's own
+        compare.Setup(data_dir / "granite_64.png", 16, max_size=8)
+    # Past the parent's checks, the worker's own refusal.
+    monkeypatch.setattr(compare, "check_max_size", lambda max_size: None)
+    monkeypatch.setattr(compare, "axis_exemplars", lambda setup: None)
     with pytest.raises(SettingError, match="max_size must be at least 16 pixels, got 8"):
-        compare.compare(data_dir / "granite_64.png", 16, ["noise"], max_size=8, progress=False)
+        compare.compare(compare.Setup(data_dir / "granite_64.png", 16, max_size=8), ["noise"],
+                        progress=False)
 
 
 def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
     """The grid textures of the other methods are decoded from sRGB as the plugin decodes
     the lazy cube's, so cubes compare in one color space; a float exemplar is left as is."""
-    from warptex.compare import _cube_texture, _Settings
+    from warptex.compare import Setup, _cube_texture
     from warptex.exemplar import Exemplar
 
     ex = Exemplar.load(data_dir / "granite_64.png")
     volume = np.random.default_rng(0).random((4, 5, 6, 3)).astype(np.float32)
     for srgb, expected in ((True, srgb_decoded(volume)), (False, volume)):
         ex.srgb = srgb
-        grid = _cube_texture("tiled", (ex, ex, ex), volume, _Settings(0, 2, "auto"),
-                             None)["volume"]["data"]
+        grid = _cube_texture("tiled", (ex, ex, ex), volume, Setup(ex.path))["volume"]["data"]
         np.testing.assert_allclose(np.array(grid), expected.transpose(2, 1, 0, 3), rtol=1e-5)
 
 
@@ -329,7 +333,7 @@ def measure(data_dir, monkeypatch):
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     path = str(data_dir / "granite_64.png")
     return lambda method, size=16, tileable="auto": compare._measure(
-        method, (path, None, None), size, compare._Settings(0, 2, tileable), None)
+        method, compare.Setup(path, size, tileable=tileable))
 
 
 def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
@@ -338,7 +342,7 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
 
     row = measure("extrude")
     ex = Exemplar.load(data_dir / "granite_64.png")
-    settings = compare._Settings(0, 2, "auto")
+    settings = compare.Setup(ex.path, 16)
     axes = (ex, ex, ex)
     volume = compare._extrude(axes, 16, settings)
     for key, metric in (("energy", metrics.neighborhood_energy),
@@ -382,18 +386,18 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     noise, noise_large = compare._RUN["noise"]
     monkeypatch.setitem(compare._RUN, "noise", (lambda axes, size, s: sizes.append(size)
                                                 or noise(axes, size, s), noise_large))
-    row = compare._measure("noise", (str(data_dir / "granite_64.png"), None, None), 16,
-                           compare._Settings(0, 2, "auto"), None, repeats=3)
+    setup = compare.Setup(data_dir / "granite_64.png", 16)
+    row = compare._measure("noise", setup, repeats=3)
     assert sizes == [8, 16, 16, 16]  # the warm-up, then three timed volumes
     assert row["seconds_runs"] == [1.0, 3.0, 2.0] and row["seconds"] == 2.0
     result = compare.MethodResult(**row)
-    compare.write_report([result], data_dir / "granite_64.png", tmp_path, size=16, seed=0)
+    compare.write_report(compare.Comparison(setup, [result]), tmp_path)
     table = json.loads((tmp_path / "table.json").read_text())
     assert table["run"]["repeats"] == 3
     assert table["methods"][0]["seconds_runs"] == [1.0, 3.0, 2.0]
     assert "the median of 3 wall-clock runs" in (tmp_path / "table.md").read_text()
     with pytest.raises(ValueError, match="repeats must be"):
-        compare.compare(data_dir / "granite_64.png", 16, ["noise"], repeats=0)
+        compare.compare(setup, ["noise"], repeats=0)
     assert main(["compare", str(data_dir / "granite_64.png"), "--repeats", "0",
                  "-o", str(tmp_path / "c")]) == 2
     assert "--repeats must be at least 1, got 0" in capsys.readouterr().err
@@ -460,7 +464,8 @@ def test_report_gives_the_size_of_a_shrunk_exemplar_as_width_by_height(tmp_path,
     results = [compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3,
                                     0.0, 0.0, 0.0,
                                     slices=slices)]
-    compare.write_report(results, path, tmp_path / "out", size=8, seed=0, max_size=24)
+    compare.write_report(compare.Comparison(compare.Setup(path, 8, max_size=24), results),
+                         tmp_path / "out")
     run = json.loads((tmp_path / "out" / "table.json").read_text())["run"]
     assert run["exemplar_size"] == [24, 16]
     assert (tmp_path / "out" / "table.md").read_text().startswith("# wide.png, shrunk to 24x16\n")
@@ -521,7 +526,8 @@ def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
 
     monkeypatch.setattr(compare, "ProcessPoolExecutor", InlinePool)
     methods = ["noise", "extrude", "tiled", "lazy"]
-    results = compare.compare(data_dir / "granite_64.png", 16, methods, progress=False)
+    results = compare.compare(compare.Setup(data_dir / "granite_64.png", 16), methods,
+                              progress=False).results
     assert [r.method for r in results] == methods
 
 
@@ -538,7 +544,8 @@ def test_compare_refuses_exemplars_that_one_volume_cannot_mix(tmp_path, data_dir
     assert main(["compare", str(granite), "--ez", str(tmp_path / "gray.png"),
                  "--methods", "noise", "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "same number of channels" in err and "gray.png 1" in err and "granite_64.png 3" in err
+    assert "same number of feature channels" in err
+    assert "z " + str(tmp_path / "gray.png") + " 1" in err and "granite_64.png 3" in err
     assert main(["compare", str(granite), "--ey", str(tmp_path / "linear.npy"),
                  "--methods", "noise", "-o", str(out)]) == 2
     err = capsys.readouterr().err
@@ -546,4 +553,59 @@ def test_compare_refuses_exemplars_that_one_volume_cannot_mix(tmp_path, data_dir
     assert "--raw" not in err and "(raw)" not in err  # compare keeps no values as stored
     assert not out.exists()
     with pytest.raises(ValueError, match="encoded differently"):
-        compare.compare(granite, 16, ["noise"], ey=tmp_path / "linear.npy", progress=False)
+        compare.compare(compare.Setup(granite, 16, ey=tmp_path / "linear.npy"), ["noise"],
+                        progress=False)
+
+
+def test_an_image_given_under_two_names_is_one_exemplar(tmp_path, data_dir, warp_device):
+    """--ey naming a copy of the x axis' image changes no score: one exemplar, as the
+    candidates' cache has it; the table still names the file each axis was given."""
+    import shutil
+
+    granite = data_dir / "granite_64.png"
+    shutil.copy(granite, tmp_path / "copy.png")
+    rows = {}
+    for name, extra in (("one", []), ("two", ["--ey", str(tmp_path / "copy.png")])):
+        out = tmp_path / name
+        assert main(["compare", str(granite), *extra, "--size", "16", "--methods",
+                     "noise,flat", "-o", str(out)]) == 0
+        rows[name] = json.loads((out / "table.json").read_text())
+    assert rows["one"]["methods"][0]["energy"] == rows["two"]["methods"][0]["energy"]
+    assert [e["file"] for e in rows["two"]["run"]["axis_exemplars"]] == [
+        "granite_64.png", "copy.png", "copy.png"]
+    assert (tmp_path / "two" / "table.md").read_text().startswith("# granite_64.png\n")
+
+
+def test_the_lazy_cube_renders_the_exemplars_and_settings_measured(data_dir, swapped_file):
+    """The lazy cube's lazy_solid texture names each axis' file where they differ, and
+    carries the engine's settings, so it shows the volume the table measures."""
+    from warptex.compare import Setup, _cube_texture
+    from warptex.exemplar import Exemplar
+
+    granite = data_dir / "granite_64.png"
+    setup = Setup(granite, 16, seed=3, passes=1, jitter=0.5, shifted_tiles=True, ez=swapped_file)
+    ex, other = Exemplar.load(granite), Exemplar.load(swapped_file)
+    texture = _cube_texture("lazy", (ex, ex, other), np.zeros((16, 16, 16, 3)), setup)
+    assert {k: texture[k] for k in ("exemplar_x", "exemplar_y", "exemplar_z")} == {
+        "exemplar_x": str(granite), "exemplar_y": str(granite), "exemplar_z": str(swapped_file)}
+    assert "exemplar" not in texture
+    assert (texture["seed"], texture["passes"], texture["jitter"], texture["shifted_tiles"],
+            texture["scale"]) == (3, 1, 0.5, True, 16.0)
+
+
+def test_a_setup_is_checked_as_made(data_dir):
+    from warptex.compare import MIN_SIZE, Setup
+    from warptex.settings import SettingError
+
+    granite = data_dir / "granite_64.png"
+    assert Setup(str(granite), jitter=1).jitter == 1.0 and Setup(granite).paths() == (
+        granite, granite, granite)
+    assert Setup(granite, ey="y.png").paths() == (granite, Path("y.png"), Path("y.png"))
+    for bad, message in (({"size": MIN_SIZE - 1}, "size must be at least 8"),
+                         ({"jitter": 65}, "jitter must be within"),
+                         ({"shifted_tiles": "yes"}, "shifted_tiles must be True or False"),
+                         ({"tileable": "maybe"}, "tileable must be")):
+        with pytest.raises((SettingError, ValueError), match=message):
+            Setup(granite, **bad)
+    with pytest.raises(TypeError, match="exemplar must be a file name"):
+        Setup(None)

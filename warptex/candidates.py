@@ -35,7 +35,14 @@ from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel
 from warptex.archive import ArchiveError, folder_problem, read_archive, write_archive
 from warptex.code_digest import code_digest, module_sources
-from warptex.exemplar import Exemplar, ExemplarError, as_exemplar, wrapping_edges
+from warptex.exemplar import (
+    Exemplar,
+    ExemplarError,
+    as_exemplar,
+    axis_triple,
+    check_same_channels,
+    wrapping_edges,
+)
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 from warptex.settings import check_flag, check_tileable
@@ -226,14 +233,8 @@ def precompute(
     check_flag("cache", cache)
     if progress is not None:
         check_flag("progress", progress)
-    ey = ex if ey is None else ey
-    exemplars = [as_exemplar(e) for e in (ex, ey, ey if ez is None else ez)]
-    channels = [e.features.shape[2] for e in exemplars]
-    if len(set(channels)) != 1:
-        found = ", ".join(f"{axis} {e.path or e.name} {n}"
-                          for axis, e, n in zip("xyz", exemplars, channels, strict=True))
-        raise ExemplarError("the exemplars of the three axes must have the same number of "
-                            f"feature channels; found {found}")
+    exemplars = [as_exemplar(e) for e in axis_triple(ex, ey, ez)]
+    check_same_channels(exemplars)
     p = resolved_params(params)
     path = cache_path(exemplars, p) if cache else None
     if path is not None and path.exists():

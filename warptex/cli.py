@@ -32,7 +32,13 @@ from warptex.archive import (
     overwritten_input,
     write_failure,
 )
-from warptex.exemplar import Exemplar, ExemplarError, reencoded, srgb_encoded
+from warptex.exemplar import (
+    Exemplar,
+    ExemplarError,
+    axis_triple,
+    reencoded,
+    srgb_encoded,
+)
 from warptex.llvm import MIN_LLVM_MAJOR
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -352,9 +358,8 @@ def _load_axis_exemplars(args: argparse.Namespace, ex: Exemplar) -> list[Exempla
     command's loading options (a feature mask marks one image only)."""
     if args.feature_mask is not None and (args.ey or args.ez):
         raise CliError("--feature-mask marks one image; use --feature-distance with --ey/--ez")
-    ey = ex if args.ey is None else _load_exemplar(args, args.ey)
-    ez = ey if args.ez is None else _load_exemplar(args, args.ez)
-    return [ex, ey, ez]
+    ey, ez = (None if path is None else _load_exemplar(args, path) for path in (args.ey, args.ez))
+    return list(axis_triple(ex, ey, ez))
 
 
 def _check_cache_folder(folder: Path) -> None:
@@ -1152,7 +1157,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser(
         "compare",
-        help="compare solid texture methods on one exemplar: picture sheet and score table",
+        help="compare solid texture methods on an exemplar: picture sheet and score table",
         description="Run each method in a fresh process and write DIR/sheet.png (per method: "
         "slices along x, y and z, and a rendered cube: lazy through the lazy_solid plugin, "
         "the others through Mitsuba's grid volume), DIR/table.md and DIR/table.json: "
@@ -1194,38 +1199,36 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import (
         MIN_SIZE,
         REPORT_FILES,
+        Setup,
         axis_exemplars,
         compare,
         table_markdown,
         write_report,
     )
 
+    _check_synthesis_arguments(args.jitter, args.passes, args.seed)
+    _check_at_least("--size", args.size, MIN_SIZE)
+    _check_at_least("--repeats", args.repeats, 1)
+    setup = Setup(args.exemplar, args.size, args.seed, args.passes, args.jitter,
+                  args.shifted_tiles, args.exemplar_max_size, TILEABLE[args.tileable],
+                  args.ey, args.ez)
     # One clear error for a bad image before any work.
-    exemplar = axis_exemplars(args.exemplar, args.ey, args.ez, args.exemplar_max_size)[0]
+    exemplar = axis_exemplars(setup)[0]
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
     _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
-    _check_synthesis_arguments(args.jitter, args.passes, args.seed)
-    _check_at_least("--size", args.size, MIN_SIZE)
-    _check_at_least("--repeats", args.repeats, 1)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):
         _check_kopf_size(args.size)
-    lazy = {"ey": args.ey, "ez": args.ez, "jitter": args.jitter,
-            "shifted_tiles": args.shifted_tiles}
     try:
-        results = compare(args.exemplar, args.size, methods, args.seed, passes=args.passes,
-                          max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable],
-                          repeats=args.repeats, **lazy)
+        comparison = compare(setup, methods, repeats=args.repeats)
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
-        files = write_report(results, args.exemplar, args.output, size=args.size,
-                             seed=args.seed, max_size=args.exemplar_max_size,
-                             tileable=TILEABLE[args.tileable], passes=args.passes, **lazy)
-    print(table_markdown(results))
+        files = write_report(comparison, args.output)
+    print(table_markdown(comparison.results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0
 

@@ -1,5 +1,7 @@
-"""Side-by-side comparisons of solid texture methods on one exemplar (Dong 2008, 6.3-6.4;
-Kopf 2007). Each method runs in a fresh process so its time and peak memory are its own.
+"""Side-by-side comparisons of solid texture methods on one exemplar, or one per axis
+(Dong 2008, 6.3-6.4; Kopf 2007). Each method runs in a fresh process so its time and peak
+memory are its own; :class:`Setup` holds what they all run with, :func:`compare` runs them
+and :func:`write_report` writes the sheet and tables.
 
 Methods: ``lazy`` (this project), ``kopf`` (Kopf et al. 2007 global optimization, plain
 weighted averages), ``kopf-meanshift`` (the same with its mean-shift clustering, section 4.1),
@@ -38,12 +40,20 @@ from tqdm.auto import tqdm
 
 from warptex import metrics
 from warptex.archive import iso_date, write_atomically
-from warptex.exemplar import Exemplar, ExemplarError, linear_to_srgb, reencoded, srgb_encoded
+from warptex.exemplar import (
+    Exemplar,
+    axis_triple,
+    check_same_channels,
+    linear_to_srgb,
+    reencoded,
+    srgb_encoded,
+)
 from warptex.machine import PeakMemory, map_large_blocks
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     check_count,
+    check_file_name,
     check_flag,
     check_max_size,
     check_settings,
@@ -61,7 +71,7 @@ _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 _KOPF = ("kopf", "kopf-meanshift")
 LARGE = 256  # least edge of the slice the repetition score looks at
 TILE = 64  # edge of the periodic block of `tiled`
-MIN_SIZE = 8
+MIN_SIZE = 8  # the measures read 5 x 5 patches of slices every 2 voxels
 # What table.json says of how the numbers were taken.
 TIMING = ("seconds: the median of the wall-clock runs per method in seconds_runs (as many "
           "as run.repeats), in a fresh process, Warp kernels compiled first; Kopf's include "
@@ -94,42 +104,71 @@ class MethodResult:
 
 
 @dataclass(frozen=True)
-class _Settings:
-    """What every method is given: the seed, the lazy engine's correction passes, jitter and
-    shifted tiles (ignored by the methods that do not synthesize lazily) and the setting
-    ``tileable``, which decides the exemplars' seams for the methods and the measures alike;
-    in a lazy method's process, the candidates it pre-computed."""
+class Setup:
+    """What every method of a comparison runs and is measured with, checked as made: the
+    exemplar file of the x axis and, where given, of y and z (:meth:`paths`); the volume's
+    edge; the seed of every randomized method; the lazy engine's correction passes, jitter
+    and shifted tiles (``lazy`` and ``tiled``; :class:`warptex.synthesis.Synthesizer`); the
+    larger side the exemplars are shrunk to when loaded (``Exemplar.load``); and whether
+    their opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
+    synthesize and in the measures alike. In a lazy method's process, ``candidates`` holds
+    the candidates it pre-computed."""
 
-    seed: int
-    passes: int
-    tileable: bool | str
+    exemplar: Path
+    size: int = 64
+    seed: int = 0
+    passes: int = DEFAULT_PASSES
     jitter: float = DEFAULT_JITTER
     shifted_tiles: bool = False
+    max_size: int | None = None
+    tileable: bool | str = "auto"
+    ey: Path | None = None
+    ez: Path | None = None
     candidates: object = field(default=None, compare=False, repr=False)
 
+    def __post_init__(self) -> None:
+        check_settings(jitter=self.jitter, passes=self.passes, seed=self.seed)
+        check_max_size(self.max_size)
+        checked = {"tileable": check_tileable(self.tileable), "jitter": float(self.jitter),
+                   "shifted_tiles": check_flag("shifted_tiles", self.shifted_tiles)}
+        for name in ("exemplar", "ey", "ez"):
+            value = getattr(self, name)
+            checked[name] = None if value is None and name != "exemplar" else check_file_name(
+                name, value)
+        for name, value in checked.items():
+            object.__setattr__(self, name, value)
+        check_count("size", self.size, low=MIN_SIZE)
 
-# The exemplars of the x, y and z axes; one Exemplar three times where all are the same.
+    def paths(self) -> tuple[Path, Path, Path]:
+        """The exemplar files of the x, y and z axes (:func:`warptex.exemplar.axis_triple`)."""
+        return axis_triple(self.exemplar, self.ey, self.ez)
+
+
+@dataclass
+class Comparison:
+    """What :func:`compare` returns and :func:`write_report` writes: the :class:`Setup` and
+    one result per method, in the order asked."""
+
+    setup: Setup
+    results: list[MethodResult]
+
+
+# The exemplars of the x, y and z axes; one Exemplar where axes show the same image.
 Axes = tuple[Exemplar, Exemplar, Exemplar]
 
 
-def axis_exemplars(exemplar: str | Path, ey: str | Path | None = None,
-                   ez: str | Path | None = None, max_size: int | None = None) -> Axes:
-    """The exemplars of the x, y and z axes, loaded with ``max_size`` as
-    ``warptex volume`` reads them: ``ey`` defaults to ``exemplar``, ``ez`` to ``ey``, and an
-    image given twice is one Exemplar. An ExemplarError (a ValueError) names the files
-    whose channels or color encodings differ, which one volume cannot mix."""
-    paths = [Path(exemplar)]
-    paths.append(paths[0] if ey is None else Path(ey))
-    paths.append(paths[1] if ez is None else Path(ez))
-    loaded: dict[Path, Exemplar] = {}
-    for path in paths:
-        if path.resolve() not in loaded:
-            loaded[path.resolve()] = Exemplar.load(path, max_size=max_size)
-    axes = tuple(loaded[path.resolve()] for path in paths)
-    if len({e.features.shape[2] for e in axes}) != 1:
-        found = ", ".join(f"{e.name} {e.features.shape[2]}" for e in _distinct(axes))
-        raise ExemplarError(f"the exemplars of the three axes must have the same number of "
-                            f"channels; found {found}")
+def axis_exemplars(setup: Setup) -> Axes:
+    """The exemplars of the setup's three axes, each file read once with its ``max_size``;
+    an image given under two names is one Exemplar, as for the candidates' cache. An
+    ExemplarError (a ValueError) names the files whose channels or color encodings differ,
+    which one volume cannot mix."""
+    paths = setup.paths()
+    files = {path: Exemplar.load(path, max_size=setup.max_size) for path in dict.fromkeys(paths)}
+    # The digest is of the values alone: the same values read as sRGB and as linear differ.
+    by_content: dict[tuple[str, bool], Exemplar] = {}
+    axes = tuple(by_content.setdefault((files[path].digest(), files[path].srgb), files[path])
+                 for path in paths)
+    check_same_channels(axes)
     srgb_encoded(list(axes), raw=None)
     return axes
 
@@ -140,28 +179,28 @@ def _distinct(axes: Axes) -> list[Exemplar]:
 
 
 def _pixels(axes: Axes) -> np.ndarray:
-    """The pixels of all the axes' exemplars, as an (N, 1, C) image (one exemplar: itself),
-    where the references that ignore neighbourhoods draw their colors from."""
+    """The pixels of the axes' different exemplars, as an (N, 1, C) image (one exemplar:
+    itself), where the references that ignore neighbourhoods draw their colors from. Each
+    pixel counts once, so a larger exemplar weighs more, as it would in a volume that
+    matched every exemplar's histogram."""
     distinct = _distinct(axes)
     if len(distinct) == 1:
         return distinct[0].colors
     return np.concatenate([e.colors.reshape(-1, 1, e.colors.shape[2]) for e in distinct])
 
 
-def large_edge(size: int, exemplar_shape: Sequence[int]) -> int:
+def large_edge(size: int, *exemplar_shapes: Sequence[int]) -> int:
     """Edge of the slice whose repetition score a comparison reports: at least
-    :data:`LARGE`, and twice the longest period a method may repeat at (the volume, the
+    :data:`LARGE`, and twice the longest period a method may repeat at (the volume, an
     exemplar), which :func:`warptex.metrics.repetition_score` sees up to half the slice."""
-    return max(LARGE, 2 * size, 2 * max(exemplar_shape[:2]))
+    return max(LARGE, 2 * size, *(2 * max(shape[:2]) for shape in exemplar_shapes))
 
 
 def _edge(axes: Axes, size: int) -> int:
-    """:func:`large_edge` of a ``size``^3 volume of these exemplars: the longest one's."""
-    longest = max(max(e.shape) for e in axes)
-    return large_edge(size, (longest, longest))
+    return large_edge(size, *(e.shape for e in axes))
 
 
-def _synthesizer(axes: Axes, s: _Settings):
+def _synthesizer(axes: Axes, s: Setup):
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
@@ -172,23 +211,23 @@ def _synthesizer(axes: Axes, s: _Settings):
                        shifted_tiles=s.shifted_tiles)
 
 
-def _lazy(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+def _lazy(axes: Axes, size: int, s: Setup) -> np.ndarray:
     return _synthesizer(axes, s).box((0, 0, 0), (size, size, size))
 
 
-def _lazy_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _lazy_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
     edge = _edge(axes, volume.shape[0])
     return _synthesizer(axes, s).box((0, 0, volume.shape[2] // 2), (edge, edge, 1))[:, :, 0]
 
 
-def _kopf(axes: Axes, size: int, s: _Settings, mean_shift: bool = False) -> np.ndarray:
+def _kopf(axes: Axes, size: int, s: Setup, mean_shift: bool = False) -> np.ndarray:
     from warptex.baselines.kopf import synthesize
 
     return synthesize(None, size=size, seed=s.seed, progress=False, exemplars=axes,
                       mean_shift=mean_shift, tileable=s.tileable)
 
 
-def _tiled(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+def _tiled(axes: Axes, size: int, s: Setup) -> np.ndarray:
     # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
     # difference to `lazy` is the repetition alone.
     period = min(size, TILE)
@@ -197,38 +236,38 @@ def _tiled(axes: Axes, size: int, s: _Settings) -> np.ndarray:
     return np.tile(block, (reps, reps, reps, 1))[:size, :size, :size]
 
 
-def _tiled_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _tiled_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
     """The periodic block's z-slice repeated over the large slice: the tiled volume's own
     period, not that of a volume cut to a size the block does not divide."""
     period = min(volume.shape[0], TILE)
     return _tile_slice(volume[:period, :period, volume.shape[2] // 2], _edge(axes, volume.shape[0]))
 
 
-def _extrude(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+def _extrude(axes: Axes, size: int, s: Setup) -> np.ndarray:
     return metrics.extrusion(_tile_slice(axes[2].colors, size), size, axis=2)
 
 
-def _noise(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+def _noise(axes: Axes, size: int, s: Setup) -> np.ndarray:
     return metrics.iid_noise(_pixels(axes), (size, size, size), s.seed)
 
 
-def _flat(axes: Axes, size: int, s: _Settings) -> np.ndarray:
+def _flat(axes: Axes, size: int, s: Setup) -> np.ndarray:
     pixels = _pixels(axes)
     mean = pixels.reshape(-1, pixels.shape[2]).mean(axis=0)
     return np.tile(mean.astype(pixels.dtype), (size, size, size, 1))
 
 
-def _periodic_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _periodic_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
     """A periodic volume's z-slice repeated over the large slice."""
     return _tile_slice(volume[:, :, volume.shape[2] // 2], _edge(axes, volume.shape[0]))
 
 
-def _noise_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _noise_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
     edge = _edge(axes, volume.shape[0])
     return metrics.iid_noise(_pixels(axes), (edge, edge, 1), s.seed + 1)[:, :, 0]
 
 
-def _extrude_large(axes: Axes, volume: np.ndarray, s: _Settings) -> np.ndarray:
+def _extrude_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
     return _tile_slice(axes[2].colors, _edge(axes, volume.shape[0]))
 
 
@@ -287,14 +326,13 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
     return linear_to_srgb(image)
 
 
-def _cube_texture(method: str, axes: Axes, volume: np.ndarray, s: _Settings,
-                  max_size: int | None) -> dict:
+def _cube_texture(method: str, axes: Axes, volume: np.ndarray, s: Setup) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
     own grid texture of their volume (both trilinear, one voxel = 1/size of the cube),
     decoded from sRGB as the plugin decodes the lazy one's."""
     size = volume.shape[0]
     if method == "lazy":
-        shrink = {} if max_size is None else {"exemplar_max_size": max_size}
+        shrink = {} if s.max_size is None else {"exemplar_max_size": s.max_size}
         exemplars = ({"exemplar": str(axes[0].path)} if len(_distinct(axes)) == 1 else
                      {f"exemplar_{a}": str(e.path) for a, e in zip("xyz", axes, strict=True)})
         return {"type": "lazy_solid", **exemplars, "seed": s.seed, "jitter": s.jitter,
@@ -306,9 +344,9 @@ def _cube_texture(method: str, axes: Axes, volume: np.ndarray, s: _Settings,
                                          "filter_type": "trilinear"}}
 
 
-def _precomputed(axes: Axes, s: _Settings) -> tuple[_Settings, float]:
-    """The settings with the candidates of ``axes`` computed afresh, and the seconds that
-    took, its kernels compiled first on a small exemplar of as many channels."""
+def _precomputed(axes: Axes, s: Setup) -> tuple[Setup, float]:
+    """The setup with the candidates of ``axes`` computed afresh, and the seconds that took,
+    its kernels compiled first on a small exemplar of as many channels."""
     from warptex.candidates import precompute
 
     warm = np.random.default_rng(0).random((16, 16, axes[0].colors.shape[2]), dtype=np.float32)
@@ -331,11 +369,11 @@ def _device_peak_mib(device: str) -> float | None:
         return None
 
 
-def _measure(method: str, paths: Sequence[str | None], size: int, s: _Settings,
-             max_size: int | None, repeats: int = 1) -> dict:
-    """Run one method in this (fresh) process on the exemplars of :func:`axis_exemplars`
-    ``(*paths, max_size)``: volume, scores, time (of ``repeats`` runs) and peak memory."""
-    axes = axis_exemplars(*paths, max_size=max_size)
+def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
+    """Run one method in this (fresh) process: volume, scores, time (of ``repeats`` runs)
+    and peak memory."""
+    axes = axis_exemplars(s)
+    size = s.size
     make_volume, make_large = _RUN[method]
     precompute_seconds = None
     if method in _LAZY:
@@ -366,7 +404,7 @@ def _measure(method: str, paths: Sequence[str | None], size: int, s: _Settings,
         "seconds_runs": runs,
         "peak_mib": memory.growth / 2**20,
         "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
-        "render": render_cube(_cube_texture(method, axes, volume, s, max_size)),
+        "render": render_cube(_cube_texture(method, axes, volume, s)),
         "notes": f"correction passes per level: {s.passes}" if method in _LAZY else "",
         "device": device,
         "precompute_seconds": precompute_seconds,
@@ -410,20 +448,14 @@ def run_line(run: dict) -> str:
             f"Warp {run['warp']}; {run['date']}")
 
 
-def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = METHODS,
-            seed: int = 0, progress: bool = True, passes: int = DEFAULT_PASSES,
-            max_size: int | None = None, tileable: bool | str = "auto",
-            repeats: int = 1, *, ey: str | Path | None = None, ez: str | Path | None = None,
-            jitter: float = DEFAULT_JITTER, shifted_tiles: bool = False) -> list[MethodResult]:
-    """Score every method on one exemplar, or on one per axis (``ey``, ``ez`` as
-    :func:`axis_exemplars` reads them), each method in a fresh process (started by
-    ``spawn``: a script calling this needs an ``if __name__ == "__main__":`` guard).
-    ``passes``, ``jitter`` and ``shifted_tiles`` are the lazy engine's (``lazy`` and
-    ``tiled``; :class:`warptex.synthesis.Synthesizer`), ``max_size`` how far the exemplars
-    are shrunk when loaded (``Exemplar.load``), ``tileable`` whether their opposite edges
-    are continued (:meth:`Exemplar.seams`), by the methods that synthesize and in the
-    measures alike; ``repeats`` how many timed runs each method's seconds are the median
-    of."""
+def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = True,
+            repeats: int = 1) -> Comparison:
+    """Score every method of ``methods`` on the exemplars of ``setup``, each in a fresh
+    process (started by ``spawn``: a script calling this needs an ``if __name__ ==
+    "__main__":`` guard), with the median of ``repeats`` timed runs as its seconds. A bad
+    exemplar is refused before any method runs."""
+    if not isinstance(setup, Setup):
+        raise TypeError(f"setup must be a warptex.compare.Setup, got {setup!r}")
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -434,33 +466,25 @@ def compare(exemplar_path: str | Path, size: int = 64, methods: Sequence[str] = 
     repeated = sorted({m for m in methods if list(methods).count(m) > 1})
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
-    check_settings(jitter=jitter, passes=passes, seed=seed)
-    check_max_size(max_size)
     check_count("repeats", repeats, low=1)
-    settings = _Settings(seed, passes, check_tileable(tileable), float(jitter),
-                         check_flag("shifted_tiles", shifted_tiles))
-    paths = tuple(None if p is None else str(p) for p in (exemplar_path, ey, ez))
-    axis_exemplars(*paths, max_size=max_size)  # a bad image is refused before any process
-    if size < MIN_SIZE:
-        raise ValueError(f"size must be at least {MIN_SIZE} (the metrics read 5 x 5 patches "
-                         f"of slices every 2 voxels), got {size}")
+    axis_exemplars(setup)
     if any(m in _KOPF for m in methods):
         from warptex.baselines.kopf import check_size
 
-        check_size(size)
+        check_size(setup.size)
     results = []
     ctx = multiprocessing.get_context("spawn")
     for method in tqdm(methods, desc="methods", disable=not progress):
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
                                  initializer=_start_worker) as pool:
-            job = pool.submit(_measure, method, paths, size, settings, max_size, repeats)
+            job = pool.submit(_measure, method, setup, repeats)
             try:
                 out = job.result()
             except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
                 _stop_workers(pool)
                 raise
         results.append(MethodResult(**out))
-    return results
+    return Comparison(setup, results)
 
 
 def _start_worker() -> None:
@@ -517,7 +541,7 @@ def _legend(measures: dict, repeats: int) -> str:
     edge, exclude = measures["repetition_slice"], measures["repetition_exclude"]
     return (
         "\nLower is better in every score. energy: mean squared distance of slice patches to "
-        "their nearest exemplar patch, in units of the exemplar's variance (it rewards blur: "
+        "their nearest patch of that axis' exemplar, in units of its variance (it rewards blur: "
         "see `flat`); completeness: the same from each exemplar patch to its nearest slice "
         "patch (blur and flat volumes lack the sharp ones); SWD: sliced Wasserstein "
         "distance of the patches, which mostly sees "
@@ -552,7 +576,7 @@ def _defaults(function: Callable, *names: str) -> dict:
     return {name: parameters[name].default for name in names}
 
 
-def _method_settings(methods: Sequence[str], s: _Settings) -> dict:
+def _method_settings(methods: Sequence[str], s: Setup) -> dict:
     """The settings the lazy engine and Kopf ran with, for the methods among ``methods``."""
     from warptex.baselines import kopf
     from warptex.synthesis import Synthesizer
@@ -579,29 +603,21 @@ def _measure_settings(edge: int) -> dict:
             "repetition_slice": edge}
 
 
-def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
-                 out_dir: str | Path, *, size: int, seed: int,
-                 max_size: int | None = None, tileable: bool | str = "auto",
-                 passes: int = DEFAULT_PASSES, ey: str | Path | None = None,
-                 ez: str | Path | None = None, jitter: float = DEFAULT_JITTER,
-                 shifted_tiles: bool = False) -> list[Path]:
-    """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) into
-    ``out_dir`` atomically, with the :func:`run_summary` of the ``size^3``, ``seed``
-    comparison run here with the lazy engine's ``passes``, ``jitter`` and ``shifted_tiles``
-    on the exemplars of :func:`axis_exemplars` ``(exemplar_path, ey, ez, max_size)`` under
-    the setting ``tileable`` (the word, as ``tileable`` in the JSON's ``run``). The ``run``
-    gives each axis' exemplar (``axis_exemplars``: file name, [width, height] as loaded,
-    content digest), and the x axis' also as ``exemplar_size`` and ``exemplar_digest``. The
-    JSON's per-axis lists are in the order of its ``axes``."""
+def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
+    """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) of a
+    :func:`compare` into ``out_dir`` atomically, with the :func:`run_summary` of this
+    machine and its :class:`Setup`: ``tileable`` as its word, and each axis' exemplar
+    (``axis_exemplars``: file name, [width, height] as loaded, content digest), the x axis'
+    also as ``exemplar`` (the file), ``exemplar_size`` and ``exemplar_digest``. The JSON's
+    per-axis lists are in the order of its ``axes``."""
     from warptex.sheets import save_png, sheet
 
+    setup, results = comparison.setup, comparison.results
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
-    paths = [Path(exemplar_path)]
-    paths.append(paths[0] if ey is None else Path(ey))
-    paths.append(paths[1] if ez is None else Path(ez))
-    axes = axis_exemplars(*paths, max_size=max_size)
+    paths = setup.paths()
+    axes = axis_exemplars(setup)
     ex = axes[0]
 
     def shown(image: np.ndarray) -> np.ndarray:  # as an 8-bit picture shows colors: sRGB
@@ -616,30 +632,30 @@ def write_report(results: Sequence[MethodResult], exemplar_path: str | Path,
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
     save_png(sheet(rows), sheet_file)
-    word = tileable_word(tileable)
-    measures = _measure_settings(_edge(axes, size))
+    word = tileable_word(setup.tileable)
+    measures = _measure_settings(_edge(axes, setup.size))
     repeats = max((len(r.seconds_runs) for r in results), default=1)
-    settings = _Settings(seed, passes, tileable, jitter, shifted_tiles)
-    run = run_summary(size, seed) | {
-        "passes": passes, "exemplar_max_size": max_size, "exemplar_size": list(ex.shape[::-1]),
+    run = run_summary(setup.size, setup.seed) | {
+        "passes": setup.passes, "exemplar_max_size": setup.max_size,
+        "exemplar_size": list(ex.shape[::-1]),
         "exemplar_digest": ex.digest(),
         "axis_exemplars": [{"file": p.name, "size": list(e.shape[::-1]), "digest": e.digest()}
                            for p, e in zip(paths, axes, strict=True)],
         "tileable": word,
-        "settings": _method_settings([r.method for r in results], settings),
+        "settings": _method_settings([r.method for r in results], setup),
         "measures": measures,
         "repeats": repeats, "timing": TIMING, "memory": MEMORY}
     told = "" if word == "auto" else f", tileable {word}"
     more = "".join((
-        "" if passes == DEFAULT_PASSES else f", {passes} correction passes",
-        "" if jitter == DEFAULT_JITTER else f", jitter {jitter:g}",
-        ", shifted tiles" if shifted_tiles else ""))
-    markdown = (f"# {_title(paths, axes)}\n\n{size}^3, seed {seed}{more}{told}; "
+        "" if setup.passes == DEFAULT_PASSES else f", {setup.passes} correction passes",
+        "" if setup.jitter == DEFAULT_JITTER else f", jitter {setup.jitter:g}",
+        ", shifted tiles" if setup.shifted_tiles else ""))
+    markdown = (f"# {_title(paths, axes)}\n\n{setup.size}^3, seed {setup.seed}{more}{told}; "
                 f"{run_line(run)}\n\n" + table_markdown(results) + _legend(measures, repeats))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
-    table = json.dumps({"format": TABLE_FORMAT, "exemplar": Path(exemplar_path).name,
+    table = json.dumps({"format": TABLE_FORMAT, "exemplar": paths[0].name,
                         "axes": list("xyz"), "run": run, "methods": payload}, indent=2)
     write_atomically(json_file, lambda tmp: tmp.write_text(table))
     return files

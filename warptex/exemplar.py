@@ -21,7 +21,7 @@ import hashlib
 import math
 import os
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -369,6 +369,25 @@ def wrapping_edges(seams: tuple[bool, bool], shape: tuple[int, int],
     than ``size`` unwrapped neighbourhoods across that side."""
     (rows, columns), (height, width) = seams, shape
     return not rows or height - size + 1 < size, not columns or width - size + 1 < size
+
+
+def axis_triple(x: Any, y: Any = None, z: Any = None) -> tuple[Any, Any, Any]:
+    """The exemplars (or their files) of the x, y and z axes from those given, as every
+    command and plugin reads them: y's defaults to x's, z's to y's (Dong 2008, section 4,
+    takes one exemplar per axis, as Kopf 2007, section 6.2, does)."""
+    y = x if y is None else y
+    return x, y, y if z is None else z
+
+
+def check_same_channels(exemplars: Sequence[Exemplar]) -> None:
+    """An ExemplarError naming each axis' image unless the exemplars of the three axes have
+    as many feature channels: a voxel's triple reads a pixel of each."""
+    channels = [e.features.shape[2] for e in exemplars]
+    if len(set(channels)) != 1:
+        found = ", ".join(f"{axis} {e.path or e.name} {n}"
+                          for axis, e, n in zip("xyz", exemplars, channels, strict=True))
+        raise ExemplarError("the exemplars of the three axes must have the same number of "
+                            f"feature channels; found {found}")
 
 
 def srgb_encoded(exemplars: list[Exemplar], raw: str | None = "raw") -> bool:
