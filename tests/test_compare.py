@@ -202,8 +202,7 @@ def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_
         Setup(path, 16, passes=9)
 
 
-def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_dir,
-                                                                         monkeypatch):
+def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_dir):
     """The worker's SettingError reaches the caller whole, not as a broken process pool."""
     import pickle
 
@@ -216,11 +215,10 @@ def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_di
     with pytest.raises(SettingError, match="max_size must be at least 16 pixels, got 8"):
         compare.Setup(data_dir / "granite_64.png", 16, max_size=8)
     # Past the parent's checks, the worker's own refusal.
-    monkeypatch.setattr(compare, "check_max_size", lambda max_size: None)
-    monkeypatch.setattr(compare, "axis_exemplars", lambda setup: None)
-    with pytest.raises(SettingError, match="max_size must be at least 16 pixels, got 8"):
-        compare.compare(compare.Setup(data_dir / "granite_64.png", 16, max_size=8), ["noise"],
-                        progress=False)
+    setup = compare.Setup(data_dir / "granite_64.png", 16)
+    object.__setattr__(setup, "passes", 99)
+    with pytest.raises(SettingError, match="passes must be within"):
+        compare.compare(setup, ["tiled"], progress=False)
 
 
 def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
@@ -609,3 +607,33 @@ def test_a_setup_is_checked_as_made(data_dir):
             Setup(granite, **bad)
     with pytest.raises(TypeError, match="exemplar must be a file name"):
         Setup(None)
+
+
+def test_an_exemplar_s_alpha_is_dropped_with_one_warning_that_fits_compare(tmp_path, data_dir,
+                                                                         capfd):
+    """The warning comes once, from the command, not again from each method's process, and
+    names no --alpha option, which compare does not have."""
+    rgba = np.dstack([np.asarray(Image.open(data_dir / "granite_64.png")),
+                      np.full((64, 64), 255, np.uint8)])
+    Image.fromarray(rgba).save(tmp_path / "rgba.png")
+    assert main(["compare", str(tmp_path / "rgba.png"), "--size", "16", "--methods",
+                 "noise,flat", "-o", str(tmp_path / "cmp")]) == 0
+    err = capfd.readouterr().err
+    assert err.count("alpha channel dropped") == 1
+    assert "compare measures colors only" in err and "--alpha" not in err
+
+
+def test_every_method_sees_the_exemplars_as_first_read(tmp_path, data_dir):
+    """The images travel with the Setup: a file changed after the comparison has read it
+    changes no method's volume."""
+    from PIL import Image
+
+    path = tmp_path / "granite.png"
+    Image.open(data_dir / "granite_64.png").save(path)
+    setup = compare.Setup(path, 16)
+    ex = setup.exemplars()[0]
+    Image.fromarray(np.zeros((64, 64, 3), np.uint8) + 200).save(path)
+    (row,) = compare.compare(setup, ["flat"], progress=False).results
+    mean = ex.colors.reshape(-1, 3).mean(axis=0)
+    flat = np.broadcast_to(mean, (16, 16, 16, 3)).astype(np.float32)
+    assert row.histogram == [histogram_distance(flat, ex, a) for a in range(3)]

@@ -1200,7 +1200,6 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         MIN_SIZE,
         REPORT_FILES,
         Setup,
-        axis_exemplars,
         compare,
         table_markdown,
         write_report,
@@ -1213,7 +1212,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
                   args.shifted_tiles, args.exemplar_max_size, TILEABLE[args.tileable],
                   args.ey, args.ez)
     # One clear error for a bad image before any work.
-    exemplar = axis_exemplars(setup)[0]
+    exemplar = setup.exemplars()[0]
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)

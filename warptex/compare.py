@@ -29,6 +29,7 @@ import multiprocessing
 import platform
 import threading
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
@@ -41,6 +42,7 @@ from tqdm.auto import tqdm
 from warptex import metrics
 from warptex.archive import iso_date, write_atomically
 from warptex.exemplar import (
+    AlphaDropped,
     Exemplar,
     axis_triple,
     check_same_channels,
@@ -103,6 +105,10 @@ class MethodResult:
     render: np.ndarray | None = field(default=None, repr=False)
 
 
+# The exemplars of the x, y and z axes; one Exemplar where axes show the same image.
+Axes = tuple[Exemplar, Exemplar, Exemplar]
+
+
 @dataclass(frozen=True)
 class Setup:
     """What every method of a comparison runs and is measured with, checked as made: the
@@ -112,7 +118,11 @@ class Setup:
     larger side the exemplars are shrunk to when loaded (``Exemplar.load``); and whether
     their opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
     synthesize and in the measures alike. In a lazy method's process, ``candidates`` holds
-    the candidates it pre-computed."""
+    the candidates it pre-computed.
+
+    Its files are read once, by :meth:`exemplars`, and the images travel with it to each
+    method's process: every method sees the same exemplars, even where a file changes while
+    a comparison runs."""
 
     exemplar: Path
     size: int = 64
@@ -125,6 +135,7 @@ class Setup:
     ey: Path | None = None
     ez: Path | None = None
     candidates: object = field(default=None, compare=False, repr=False)
+    _axes: Axes | None = field(default=None, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         check_settings(jitter=self.jitter, passes=self.passes, seed=self.seed)
@@ -143,6 +154,12 @@ class Setup:
         """The exemplar files of the x, y and z axes (:func:`warptex.exemplar.axis_triple`)."""
         return axis_triple(self.exemplar, self.ey, self.ez)
 
+    def exemplars(self) -> Axes:
+        """The exemplars of the three axes (:func:`_read_axes`), read on the first call."""
+        if self._axes is None:
+            object.__setattr__(self, "_axes", _read_axes(self))
+        return self._axes
+
 
 @dataclass
 class Comparison:
@@ -153,17 +170,21 @@ class Comparison:
     results: list[MethodResult]
 
 
-# The exemplars of the x, y and z axes; one Exemplar where axes show the same image.
-Axes = tuple[Exemplar, Exemplar, Exemplar]
-
-
-def axis_exemplars(setup: Setup) -> Axes:
+def _read_axes(setup: Setup) -> Axes:
     """The exemplars of the setup's three axes, each file read once with its ``max_size``;
     an image given under two names is one Exemplar, as for the candidates' cache. An
     ExemplarError (a ValueError) names the files whose channels or color encodings differ,
     which one volume cannot mix."""
     paths = setup.paths()
-    files = {path: Exemplar.load(path, max_size=setup.max_size) for path in dict.fromkeys(paths)}
+    files = {}
+    for path in dict.fromkeys(paths):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            files[path] = Exemplar.load(path, max_size=setup.max_size)
+        for warning in said:  # the loader's advice names an option compare does not have
+            text = (f"{path}: alpha channel dropped (compare measures colors only)"
+                    if issubclass(warning.category, AlphaDropped) else str(warning.message))
+            warnings.warn(text, warning.category, stacklevel=2)
     # The digest is of the values alone: the same values read as sRGB and as linear differ.
     by_content: dict[tuple[str, bool], Exemplar] = {}
     axes = tuple(by_content.setdefault((files[path].digest(), files[path].srgb), files[path])
@@ -372,7 +393,7 @@ def _device_peak_mib(device: str) -> float | None:
 def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
     """Run one method in this (fresh) process: volume, scores, time (of ``repeats`` runs)
     and peak memory."""
-    axes = axis_exemplars(s)
+    axes = s.exemplars()
     size = s.size
     make_volume, make_large = _RUN[method]
     precompute_seconds = None
@@ -467,7 +488,7 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_count("repeats", repeats, low=1)
-    axis_exemplars(setup)
+    setup.exemplars()
     if any(m in _KOPF for m in methods):
         from warptex.baselines.kopf import check_size
 
@@ -617,7 +638,7 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
     paths = setup.paths()
-    axes = axis_exemplars(setup)
+    axes = setup.exemplars()
     ex = axes[0]
 
     def shown(image: np.ndarray) -> np.ndarray:  # as an 8-bit picture shows colors: sRGB
