@@ -637,3 +637,10 @@ def test_every_method_sees_the_exemplars_as_first_read(tmp_path, data_dir):
     mean = ex.colors.reshape(-1, 3).mean(axis=0)
     flat = np.broadcast_to(mean, (16, 16, 16, 3)).astype(np.float32)
     assert row.histogram == [histogram_distance(flat, ex, a) for a in range(3)]
+
+
+def test_the_progress_bar_names_the_method_running(data_dir, capfd):
+    compare.compare(compare.Setup(data_dir / "granite_64.png", 16), ["noise", "flat"])
+    bar = capfd.readouterr().err
+    assert "methods" in bar and "0/2 [" in bar
+    assert bar.index("noise") < bar.index("1/2") < bar.index("flat")

@@ -495,7 +495,9 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
         check_size(setup.size)
     results = []
     ctx = multiprocessing.get_context("spawn")
-    for method in tqdm(methods, desc="methods", disable=not progress):
+    bar = tqdm(methods, desc="methods", disable=not progress)
+    for method in bar:
+        bar.set_postfix_str(method)  # one method can take minutes: the bar says which
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
                                  initializer=_start_worker) as pool:
             job = pool.submit(_measure, method, setup, repeats)
