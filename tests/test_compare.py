@@ -348,6 +348,10 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
                         ("histogram", metrics.histogram_distance)):
         assert row[key] == [metric(volume, ex.colors, axis) for axis in range(3)], key
     assert len(set(row["energy"])) == 3  # three different values: an axis swap would show
+    # The sheet's slices are the middle ones, oriented like each axis' exemplar.
+    for a in range(3):
+        np.testing.assert_array_equal(row["slices"][a], metrics.axis_slice(volume, a, 8))
+    assert not np.array_equal(row["slices"][0], metrics.axis_slice(volume, 0, 0))
     large = compare._extrude_large(axes, volume, settings)
     assert large.shape[:2] == (compare.LARGE, compare.LARGE)
     assert row["repetition"] == metrics.repetition_score(large)

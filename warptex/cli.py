@@ -1159,8 +1159,9 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "compare",
         help="compare solid texture methods on an exemplar: picture sheet and score table",
         description="Run each method in a fresh process and write DIR/sheet.png (per method: "
-        "slices along x, y and z, and a rendered cube: lazy through the lazy_solid plugin, "
-        "the others through Mitsuba's grid volume), DIR/table.md and DIR/table.json: "
+        "the middle slices across x, y and z, and a rendered cube: lazy through the "
+        "lazy_solid plugin, the others through Mitsuba's grid volume), DIR/table.md and "
+        "DIR/table.json: "
         "neighbourhood energy and its converse, completeness (each exemplar patch's distance "
         "to the nearest slice patch), sliced Wasserstein distance and histogram distance per "
         "axis, "

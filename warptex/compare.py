@@ -101,6 +101,8 @@ class MethodResult:
     device: str = "cpu"  # where the method computed: the lazy engine's device, else the CPU
     precompute_seconds: float | None = None  # the lazy engine's candidates, timed apart
     device_peak_mib: float | None = None  # Warp's CUDA memory pool, where the engine ran
+    # The middle slices across x, y and z, as the sheet shows them; the repetition score's
+    # large slice is taken at the middle z too.
     slices: list[np.ndarray] = field(default_factory=list, repr=False)
     render: np.ndarray | None = field(default=None, repr=False)
 
@@ -424,7 +426,7 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
         "seconds": float(np.median(runs)),
         "seconds_runs": runs,
         "peak_mib": memory.growth / 2**20,
-        "slices": [metrics.axis_slices(volume, a, 1)[0] for a in range(3)],
+        "slices": [metrics.axis_slice(volume, a, size // 2) for a in range(3)],
         "render": render_cube(_cube_texture(method, axes, volume, s)),
         "notes": f"correction passes per level: {s.passes}" if method in _LAZY else "",
         "device": device,
@@ -650,7 +652,8 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     rows = [("exemplar", [("exemplar", shown(ex.colors))] if one else
              [(f"{a} exemplar", shown(e.colors)) for a, e in zip("xyz", axes, strict=True)])]
     for r in results:
-        images = [(f"{name} slice", shown(s)) for name, s in zip("xyz", r.slices, strict=True)]
+        images = [(f"{name} = {setup.size // 2}", shown(s))
+                  for name, s in zip("xyz", r.slices, strict=True)]
         if r.render is not None:
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))

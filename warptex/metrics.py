@@ -47,14 +47,18 @@ def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarra
     check_count("count (of slices)", count, low=1)
     depth = volume.shape[axis]
     picks = np.unique(np.linspace(0, depth - 1, min(count, depth)).astype(int))
+    return [axis_slice(volume, axis, int(i)) for i in picks]
+
+
+def axis_slice(volume: np.ndarray, axis: int, index: int) -> np.ndarray:
+    """The slice ``index`` perpendicular to ``axis`` as an (rows, cols, C) image oriented
+    like the exemplar of that axis (volume axes axis+1, axis+2 as rows and columns)."""
+    _check_axis(axis)
+    s = np.take(volume, index, axis=axis)
+    # np.take drops `axis`; remaining axes are the other two in increasing order.
+    remaining = [a for a in range(3) if a != axis]
     order = [(axis + 1) % 3, (axis + 2) % 3]
-    out = []
-    for i in picks:
-        s = np.take(volume, i, axis=axis)
-        # np.take drops `axis`; remaining axes are the other two in increasing order.
-        remaining = [a for a in range(3) if a != axis]
-        out.append(np.transpose(s, [remaining.index(order[0]), remaining.index(order[1]), 2]))
-    return out
+    return np.transpose(s, [remaining.index(order[0]), remaining.index(order[1]), 2])
 
 
 def patches(image: np.ndarray, size: int, stride: int = 1,
