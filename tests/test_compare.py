@@ -1,6 +1,7 @@
 """`warptex compare` (issue 7): every file, and rankings that follow from the methods."""
 
 import json
+import re
 from datetime import datetime
 from pathlib import Path
 
@@ -183,20 +184,23 @@ def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir,
 
 
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
-    from warptex.compare import Setup, _cube_texture, _tiled
+    from warptex.compare import Setup, _cube_texture, _Job, _tiled
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
     ex = Exemplar.load(path)
-    axes = (ex, ex, ex)
+
+    def job(setup):
+        return _Job(setup, (ex, ex, ex))
+
     volume = np.zeros((8, 8, 8, 3), np.float32)
-    one_pass = Setup(path, passes=1)
-    assert _cube_texture("lazy", axes, volume, one_pass)["passes"] == 1
-    assert "exemplar_max_size" not in _cube_texture("lazy", axes, volume, one_pass)
-    shrunk = Setup(path, passes=1, max_size=24)
-    assert _cube_texture("lazy", axes, volume, shrunk)["exemplar_max_size"] == 24
-    assert _cube_texture("lazy", axes, volume, Setup(path, tileable=False))["tileable"] == "no"
-    one, two = (_tiled(axes, 8, Setup(path, passes=passes)) for passes in (1, 2))
+    one_pass = job(Setup(path, passes=1))
+    assert _cube_texture("lazy", one_pass, volume)["passes"] == 1
+    assert "exemplar_max_size" not in _cube_texture("lazy", one_pass, volume)
+    shrunk = job(Setup(path, passes=1, max_size=24))
+    assert _cube_texture("lazy", shrunk, volume)["exemplar_max_size"] == 24
+    assert _cube_texture("lazy", job(Setup(path, tileable=False)), volume)["tileable"] == "no"
+    one, two = (_tiled(job(Setup(path, passes=passes)), 8) for passes in (1, 2))
     assert not np.array_equal(one, two)
     with pytest.raises(ValueError, match="passes must be within"):
         Setup(path, 16, passes=9)
@@ -224,14 +228,15 @@ def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_di
 def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
     """The grid textures of the other methods are decoded from sRGB as the plugin decodes
     the lazy cube's, so cubes compare in one color space; a float exemplar is left as is."""
-    from warptex.compare import Setup, _cube_texture
+    from warptex.compare import Setup, _cube_texture, _Job
     from warptex.exemplar import Exemplar
 
     ex = Exemplar.load(data_dir / "granite_64.png")
     volume = np.random.default_rng(0).random((4, 5, 6, 3)).astype(np.float32)
     for srgb, expected in ((True, srgb_decoded(volume)), (False, volume)):
         ex.srgb = srgb
-        grid = _cube_texture("tiled", (ex, ex, ex), volume, Setup(ex.path))["volume"]["data"]
+        job = _Job(Setup(ex.path), (ex, ex, ex))
+        grid = _cube_texture("tiled", job, volume)["volume"]["data"]
         np.testing.assert_allclose(np.array(grid), expected.transpose(2, 1, 0, 3), rtol=1e-5)
 
 
@@ -340,9 +345,8 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
 
     row = measure("extrude")
     ex = Exemplar.load(data_dir / "granite_64.png")
-    settings = compare.Setup(ex.path, 16)
-    axes = (ex, ex, ex)
-    volume = compare._extrude(axes, 16, settings)
+    job = compare._Job(compare.Setup(ex.path, 16), (ex, ex, ex))
+    volume = compare._extrude(job, 16)
     for key, metric in (("energy", metrics.neighborhood_energy),
                         ("swd", metrics.sliced_wasserstein),
                         ("histogram", metrics.histogram_distance)):
@@ -352,7 +356,7 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
     for a in range(3):
         np.testing.assert_array_equal(row["slices"][a], metrics.axis_slice(volume, a, 8))
     assert not np.array_equal(row["slices"][0], metrics.axis_slice(volume, 0, 0))
-    large = compare._extrude_large(axes, volume, settings)
+    large = compare._extrude_large(job, volume)
     assert large.shape[:2] == (compare.LARGE, compare.LARGE)
     assert row["repetition"] == metrics.repetition_score(large)
 
@@ -363,10 +367,10 @@ def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
 
     from warptex import compare, metrics
 
-    def slow_first(axes, size, settings):
+    def slow_first(job, size):
         if size == 8:
             time.sleep(1.0)
-        return metrics.iid_noise(axes[0].colors, (size, size, size), settings.seed)
+        return metrics.iid_noise(job.axes[0].colors, (size, size, size), job.setup.seed)
 
     monkeypatch.setitem(compare._RUN, "noise", (slow_first, compare._noise_large))
     assert measure("noise")["seconds"] < 0.5
@@ -386,8 +390,8 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     sizes = []
     noise, noise_large = compare._RUN["noise"]
-    monkeypatch.setitem(compare._RUN, "noise", (lambda axes, size, s: sizes.append(size)
-                                                or noise(axes, size, s), noise_large))
+    monkeypatch.setitem(compare._RUN, "noise", (lambda job, size: sizes.append(size)
+                                                or noise(job, size), noise_large))
     setup = compare.Setup(data_dir / "granite_64.png", 16)
     row = compare._measure("noise", setup, repeats=3)
     assert sizes == [8, 16, 16, 16]  # the warm-up, then three timed volumes
@@ -499,7 +503,7 @@ def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block
     block = rng.random((64, 64, 64, 3)).astype(np.float32)
     volume = np.tile(block, (2, 2, 2, 1))[:72, :72, :72]
     ex = type("Ex", (), {"shape": (64, 64)})()
-    large = compare._tiled_large((ex, ex, ex), volume, None)
+    large = compare._tiled_large(compare._Job(None, (ex, ex, ex)), volume)
     assert large.shape[:2] == (256, 256)
     np.testing.assert_array_equal(large[64:128, 128:192], block[:, :, 36])
     assert metrics.repetition_score(large) == pytest.approx(1.0)
@@ -581,13 +585,12 @@ def test_an_image_given_under_two_names_is_one_exemplar(tmp_path, data_dir, warp
 def test_the_lazy_cube_renders_the_exemplars_and_settings_measured(data_dir, swapped_file):
     """The lazy cube's lazy_solid texture names each axis' file where they differ, and
     carries the engine's settings, so it shows the volume the table measures."""
-    from warptex.compare import Setup, _cube_texture
-    from warptex.exemplar import Exemplar
+    from warptex.compare import Setup, _cube_texture, _Job
 
     granite = data_dir / "granite_64.png"
     setup = Setup(granite, 16, seed=3, passes=1, jitter=0.5, shifted_tiles=True, ez=swapped_file)
-    ex, other = Exemplar.load(granite), Exemplar.load(swapped_file)
-    texture = _cube_texture("lazy", (ex, ex, other), np.zeros((16, 16, 16, 3)), setup)
+    job = _Job(setup, setup.exemplars())
+    texture = _cube_texture("lazy", job, np.zeros((16, 16, 16, 3)))
     assert {k: texture[k] for k in ("exemplar_x", "exemplar_y", "exemplar_z")} == {
         "exemplar_x": str(granite), "exemplar_y": str(granite), "exemplar_z": str(swapped_file)}
     assert "exemplar" not in texture
@@ -648,3 +651,50 @@ def test_the_progress_bar_names_the_method_running(data_dir, capfd):
     bar = capfd.readouterr().err
     assert "methods" in bar and "0/2 [" in bar
     assert bar.index("noise") < bar.index("1/2") < bar.index("flat")
+
+
+def test_a_setup_holds_plain_values_that_table_json_can_write(tmp_path, data_dir):
+    """NumPy integers are taken as the Python ints they are; settings after the size are
+    keywords; a Comparison of something else is refused before anything is written."""
+    granite = data_dir / "granite_64.png"
+    setup = compare.Setup(granite, np.int64(16), seed=np.int64(1), passes=np.int64(2),
+                          max_size=np.int64(32))
+    assert [type(v) for v in (setup.size, setup.seed, setup.passes, setup.max_size)] == [int] * 4
+    row = compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0,
+                               0.0, slices=[np.zeros((16, 16, 3), np.float32)] * 3)
+    compare.write_report(compare.Comparison(setup, [row]), tmp_path / "out")
+    run = json.loads((tmp_path / "out" / "table.json").read_text())["run"]
+    assert (run["size"], run["seed"], run["exemplar_max_size"]) == (16, 1, 32)
+    with pytest.raises(TypeError):
+        compare.Setup(granite, 16, 0)
+    with pytest.raises(TypeError, match=r"must be a warptex\.compare\.Comparison"):
+        compare.write_report(compare.Comparison(str(granite), [row]), tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+
+
+def test_a_mixed_axis_error_names_the_file_given_for_that_axis(tmp_path, data_dir):
+    """An image given twice is merged only after the checks, so they name what was given."""
+    import shutil
+
+    granite = data_dir / "granite_64.png"
+    shutil.copy(granite, tmp_path / "copy.png")
+    Image.open(granite).convert("L").save(tmp_path / "gray.png")
+    setup = compare.Setup(granite, ey=tmp_path / "copy.png", ez=tmp_path / "gray.png")
+    with pytest.raises(ValueError, match=re.escape(f"y {tmp_path / 'copy.png'} 3")):
+        setup.exemplars()
+
+
+def test_a_file_changed_before_the_lazy_cube_reads_it_again_is_refused(tmp_path, data_dir):
+    """The lazy cube's plugin reads the exemplar files again: one that no longer holds the
+    image the scores were taken of is refused, naming it."""
+    from warptex.compare import _check_unchanged
+    from warptex.exemplar import ExemplarError
+
+    path = tmp_path / "granite.png"
+    Image.open(data_dir / "granite_64.png").save(path)
+    setup = compare.Setup(path, 16)
+    setup.exemplars()
+    _check_unchanged(setup)
+    Image.open(data_dir / "granite_64.png").rotate(90).save(path)
+    with pytest.raises(ExemplarError, match=re.escape(f"{path}: changed while the comparison")):
+        _check_unchanged(setup)

@@ -830,3 +830,13 @@ def test_a_wrap_matched_by_exactly_seam_share_of_the_pairs_is_no_seam():
     assert SEAM_SHARE * 20 == 1
     assert seam_contrast_of(step[..., None])[1] == pytest.approx(20.0)
     assert seams_of(step[..., None]) == (False, False)
+
+
+def test_an_unpickled_exemplar_keeps_its_arrays_read_only(data_dir):
+    """compare sends exemplars to its worker processes: they arrive as they were read."""
+    import pickle
+
+    ex = Exemplar.load(data_dir / "granite_64.png")
+    again = pickle.loads(pickle.dumps(ex))
+    assert not again.colors.flags.writeable and not again.features.flags.writeable
+    assert again.features is again.colors and again.digest() == ex.digest()

@@ -1209,9 +1209,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     _check_at_least("--size", args.size, MIN_SIZE)
     _check_at_least("--repeats", args.repeats, 1)
-    setup = Setup(args.exemplar, args.size, args.seed, args.passes, args.jitter,
-                  args.shifted_tiles, args.exemplar_max_size, TILEABLE[args.tileable],
-                  args.ey, args.ez)
+    setup = Setup(args.exemplar, args.size, seed=args.seed, passes=args.passes,
+                  jitter=args.jitter, shifted_tiles=args.shifted_tiles,
+                  max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable],
+                  ey=args.ey, ez=args.ez)
     # One clear error for a bad image before any work.
     exemplar = setup.exemplars()[0]
     if args.output.exists() and not args.output.is_dir():

@@ -32,7 +32,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import KW_ONLY, asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ from warptex.archive import iso_date, write_atomically
 from warptex.exemplar import (
     AlphaDropped,
     Exemplar,
+    ExemplarError,
     axis_triple,
     check_same_channels,
     linear_to_srgb,
@@ -113,21 +114,22 @@ Axes = tuple[Exemplar, Exemplar, Exemplar]
 
 @dataclass(frozen=True)
 class Setup:
-    """What every method of a comparison runs and is measured with, checked as made: the
-    exemplar file of the x axis and, where given, of y and z (:meth:`paths`); the volume's
-    edge; the seed of every randomized method; the lazy engine's correction passes, jitter
-    and shifted tiles (``lazy`` and ``tiled``; :class:`warptex.synthesis.Synthesizer`); the
-    larger side the exemplars are shrunk to when loaded (``Exemplar.load``); and whether
-    their opposite edges are continued (:meth:`Exemplar.seams`), by the methods that
-    synthesize and in the measures alike. In a lazy method's process, ``candidates`` holds
-    the candidates it pre-computed.
+    """What every method of a comparison runs and is measured with: the exemplar file of the
+    x axis and, where given, of y and z (:meth:`paths`); the volume's edge; the seed of every
+    randomized method; the lazy engine's correction passes, jitter and shifted tiles
+    (``lazy`` and ``tiled``; :class:`warptex.synthesis.Synthesizer`); the larger side the
+    exemplars are shrunk to when loaded (``Exemplar.load``); and whether their opposite
+    edges are continued (:meth:`Exemplar.seams`), by the methods that synthesize and in the
+    measures alike. The settings are checked as it is made (a SettingError, TypeError or
+    ValueError naming the field), the files when :meth:`exemplars` first reads them.
 
-    Its files are read once, by :meth:`exemplars`, and the images travel with it to each
-    method's process: every method sees the same exemplars, even where a file changes while
-    a comparison runs."""
+    The images read travel with it to each method's process, so every method sees the same
+    exemplars; a file changed meanwhile is refused (the lazy cube's plugin reads it again).
+    A Setup made anew (``dataclasses.replace`` too) reads the files afresh."""
 
     exemplar: Path
     size: int = 64
+    _: KW_ONLY
     seed: int = 0
     passes: int = DEFAULT_PASSES
     jitter: float = DEFAULT_JITTER
@@ -136,28 +138,34 @@ class Setup:
     tileable: bool | str = "auto"
     ey: Path | None = None
     ez: Path | None = None
-    candidates: object = field(default=None, compare=False, repr=False)
     _axes: Axes | None = field(default=None, init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         check_settings(jitter=self.jitter, passes=self.passes, seed=self.seed)
         check_max_size(self.max_size)
-        checked = {"tileable": check_tileable(self.tileable), "jitter": float(self.jitter),
-                   "shifted_tiles": check_flag("shifted_tiles", self.shifted_tiles)}
-        for name in ("exemplar", "ey", "ez"):
+        # Plain Python values, as table.json writes them (a NumPy integer would not be).
+        checked = {"size": check_count("size", self.size, low=MIN_SIZE),
+                   "seed": int(self.seed), "passes": int(self.passes),
+                   "jitter": float(self.jitter),
+                   "max_size": None if self.max_size is None else int(self.max_size),
+                   "tileable": check_tileable(self.tileable),
+                   "shifted_tiles": check_flag("shifted_tiles", self.shifted_tiles),
+                   "exemplar": check_file_name("exemplar", self.exemplar)}
+        for name in ("ey", "ez"):
             value = getattr(self, name)
-            checked[name] = None if value is None and name != "exemplar" else check_file_name(
-                name, value)
+            checked[name] = None if value is None else check_file_name(name, value)
         for name, value in checked.items():
             object.__setattr__(self, name, value)
-        check_count("size", self.size, low=MIN_SIZE)
 
     def paths(self) -> tuple[Path, Path, Path]:
         """The exemplar files of the x, y and z axes (:func:`warptex.exemplar.axis_triple`)."""
         return axis_triple(self.exemplar, self.ey, self.ez)
 
     def exemplars(self) -> Axes:
-        """The exemplars of the three axes (:func:`_read_axes`), read on the first call."""
+        """The exemplars of the x, y and z axes, read on the first call, each file once with
+        ``max_size``; an image given under two names is one Exemplar. An ExemplarError (a
+        ValueError) names the files whose channels or color encodings differ, which one
+        volume cannot mix."""
         if self._axes is None:
             object.__setattr__(self, "_axes", _read_axes(self))
         return self._axes
@@ -173,10 +181,7 @@ class Comparison:
 
 
 def _read_axes(setup: Setup) -> Axes:
-    """The exemplars of the setup's three axes, each file read once with its ``max_size``;
-    an image given under two names is one Exemplar, as for the candidates' cache. An
-    ExemplarError (a ValueError) names the files whose channels or color encodings differ,
-    which one volume cannot mix."""
+    """:meth:`Setup.exemplars`, read."""
     paths = setup.paths()
     files = {}
     for path in dict.fromkeys(paths):
@@ -186,14 +191,13 @@ def _read_axes(setup: Setup) -> Axes:
         for warning in said:  # the loader's advice names an option compare does not have
             text = (f"{path}: alpha channel dropped (compare measures colors only)"
                     if issubclass(warning.category, AlphaDropped) else str(warning.message))
-            warnings.warn(text, warning.category, stacklevel=2)
+            warnings.warn(text, warning.category, stacklevel=3)  # the caller of exemplars()
+    read = [files[path] for path in paths]
+    check_same_channels(read)  # before merging, so that errors name the files given
+    srgb_encoded(read, raw=None)
     # The digest is of the values alone: the same values read as sRGB and as linear differ.
     by_content: dict[tuple[str, bool], Exemplar] = {}
-    axes = tuple(by_content.setdefault((files[path].digest(), files[path].srgb), files[path])
-                 for path in paths)
-    check_same_channels(axes)
-    srgb_encoded(list(axes), raw=None)
-    return axes
+    return tuple(by_content.setdefault((e.digest(), e.srgb), e) for e in read)
 
 
 def _distinct(axes: Axes) -> list[Exemplar]:
@@ -223,75 +227,88 @@ def _edge(axes: Axes, size: int) -> int:
     return large_edge(size, *(e.shape for e in axes))
 
 
-def _synthesizer(axes: Axes, s: Setup):
+@dataclass(frozen=True)
+class _Job:
+    """What each method's functions are given in its process: the setup, its exemplars and,
+    for the lazy engine's methods, the candidates pre-computed there (None: computed, or
+    read from the cache, when first needed)."""
+
+    setup: Setup
+    axes: Axes
+    candidates: object = None
+
+
+def _synthesizer(job: _Job):
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
-    candidates = s.candidates
+    s = job.setup
+    candidates = job.candidates
     if candidates is None:
-        candidates = precompute(*axes, tileable=s.tileable)
+        candidates = precompute(*job.axes, tileable=s.tileable)
     return Synthesizer(candidates, seed=s.seed, jitter=s.jitter, passes=s.passes,
                        shifted_tiles=s.shifted_tiles)
 
 
-def _lazy(axes: Axes, size: int, s: Setup) -> np.ndarray:
-    return _synthesizer(axes, s).box((0, 0, 0), (size, size, size))
+def _lazy(job: _Job, size: int) -> np.ndarray:
+    return _synthesizer(job).box((0, 0, 0), (size, size, size))
 
 
-def _lazy_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
-    edge = _edge(axes, volume.shape[0])
-    return _synthesizer(axes, s).box((0, 0, volume.shape[2] // 2), (edge, edge, 1))[:, :, 0]
+def _lazy_large(job: _Job, volume: np.ndarray) -> np.ndarray:
+    edge = _edge(job.axes, volume.shape[0])
+    return _synthesizer(job).box((0, 0, volume.shape[2] // 2), (edge, edge, 1))[:, :, 0]
 
 
-def _kopf(axes: Axes, size: int, s: Setup, mean_shift: bool = False) -> np.ndarray:
+def _kopf(job: _Job, size: int, mean_shift: bool = False) -> np.ndarray:
     from warptex.baselines.kopf import synthesize
 
-    return synthesize(None, size=size, seed=s.seed, progress=False, exemplars=axes,
-                      mean_shift=mean_shift, tileable=s.tileable)
+    return synthesize(None, size=size, seed=job.setup.seed, progress=False,
+                      exemplars=job.axes, mean_shift=mean_shift, tileable=job.setup.tileable)
 
 
-def _tiled(axes: Axes, size: int, s: Setup) -> np.ndarray:
+def _tiled(job: _Job, size: int) -> np.ndarray:
     # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
     # difference to `lazy` is the repetition alone.
     period = min(size, TILE)
-    block = _lazy(axes, period, s)
+    block = _lazy(job, period)
     reps = -(-size // period)
     return np.tile(block, (reps, reps, reps, 1))[:size, :size, :size]
 
 
-def _tiled_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
+def _tiled_large(job: _Job, volume: np.ndarray) -> np.ndarray:
     """The periodic block's z-slice repeated over the large slice: the tiled volume's own
     period, not that of a volume cut to a size the block does not divide."""
     period = min(volume.shape[0], TILE)
-    return _tile_slice(volume[:period, :period, volume.shape[2] // 2], _edge(axes, volume.shape[0]))
+    return _tile_slice(volume[:period, :period, volume.shape[2] // 2],
+                       _edge(job.axes, volume.shape[0]))
 
 
-def _extrude(axes: Axes, size: int, s: Setup) -> np.ndarray:
-    return metrics.extrusion(_tile_slice(axes[2].colors, size), size, axis=2)
+def _extrude(job: _Job, size: int) -> np.ndarray:
+    return metrics.extrusion(_tile_slice(job.axes[2].colors, size), size, axis=2)
 
 
-def _noise(axes: Axes, size: int, s: Setup) -> np.ndarray:
-    return metrics.iid_noise(_pixels(axes), (size, size, size), s.seed)
+def _noise(job: _Job, size: int) -> np.ndarray:
+    return metrics.iid_noise(_pixels(job.axes), (size, size, size), job.setup.seed)
 
 
-def _flat(axes: Axes, size: int, s: Setup) -> np.ndarray:
-    pixels = _pixels(axes)
+def _flat(job: _Job, size: int) -> np.ndarray:
+    pixels = _pixels(job.axes)
     mean = pixels.reshape(-1, pixels.shape[2]).mean(axis=0)
     return np.tile(mean.astype(pixels.dtype), (size, size, size, 1))
 
 
-def _periodic_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
+def _periodic_large(job: _Job, volume: np.ndarray) -> np.ndarray:
     """A periodic volume's z-slice repeated over the large slice."""
-    return _tile_slice(volume[:, :, volume.shape[2] // 2], _edge(axes, volume.shape[0]))
+    return _tile_slice(volume[:, :, volume.shape[2] // 2], _edge(job.axes, volume.shape[0]))
 
 
-def _noise_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
-    edge = _edge(axes, volume.shape[0])
-    return metrics.iid_noise(_pixels(axes), (edge, edge, 1), s.seed + 1)[:, :, 0]
+def _noise_large(job: _Job, volume: np.ndarray) -> np.ndarray:
+    edge = _edge(job.axes, volume.shape[0])
+    return metrics.iid_noise(_pixels(job.axes), (edge, edge, 1), job.setup.seed + 1)[:, :, 0]
 
 
-def _extrude_large(axes: Axes, volume: np.ndarray, s: Setup) -> np.ndarray:
-    return _tile_slice(axes[2].colors, _edge(axes, volume.shape[0]))
+def _extrude_large(job: _Job, volume: np.ndarray) -> np.ndarray:
+    return _tile_slice(job.axes[2].colors, _edge(job.axes, volume.shape[0]))
 
 
 # Per method: the timed volume, and the 256-voxel slice its repetition score looks at.
@@ -349,15 +366,18 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
     return linear_to_srgb(image)
 
 
-def _cube_texture(method: str, axes: Axes, volume: np.ndarray, s: Setup) -> dict:
-    """``lazy`` renders through the ``lazy_solid`` plugin; the others through Mitsuba's
-    own grid texture of their volume (both trilinear, one voxel = 1/size of the cube),
-    decoded from sRGB as the plugin decodes the lazy one's."""
+def _cube_texture(method: str, job: _Job, volume: np.ndarray) -> dict:
+    """``lazy`` renders through the ``lazy_solid`` plugin, which reads the exemplar files
+    again (:func:`_check_unchanged` then makes sure they are those measured); the others
+    through Mitsuba's own grid texture of their volume (both trilinear, one voxel = 1/size
+    of the cube), decoded from sRGB as the plugin decodes the lazy one's."""
+    s, axes = job.setup, job.axes
     size = volume.shape[0]
     if method == "lazy":
         shrink = {} if s.max_size is None else {"exemplar_max_size": s.max_size}
-        exemplars = ({"exemplar": str(axes[0].path)} if len(_distinct(axes)) == 1 else
-                     {f"exemplar_{a}": str(e.path) for a, e in zip("xyz", axes, strict=True)})
+        paths = s.paths()
+        exemplars = ({"exemplar": str(paths[0])} if len(_distinct(axes)) == 1 else
+                     {f"exemplar_{a}": str(p) for a, p in zip("xyz", paths, strict=True)})
         return {"type": "lazy_solid", **exemplars, "seed": s.seed, "jitter": s.jitter,
                 "shifted_tiles": s.shifted_tiles, "passes": s.passes,
                 "tileable": tileable_word(s.tileable), "scale": float(size)} | shrink
@@ -367,16 +387,29 @@ def _cube_texture(method: str, axes: Axes, volume: np.ndarray, s: Setup) -> dict
                                          "filter_type": "trilinear"}}
 
 
-def _precomputed(axes: Axes, s: Setup) -> tuple[Setup, float]:
-    """The setup with the candidates of ``axes`` computed afresh, and the seconds that took,
-    its kernels compiled first on a small exemplar of as many channels."""
+def _check_unchanged(setup: Setup) -> None:
+    """An ExemplarError naming the file unless each exemplar file still holds the image
+    ``setup`` read: the lazy cube's plugin reads the files again, and would otherwise show
+    an image the scores never saw."""
+    for path, e in dict(zip(setup.paths(), setup.exemplars(), strict=True)).items():
+        with warnings.catch_warnings():  # said when first read
+            warnings.simplefilter("ignore")
+            now = Exemplar.load(path, max_size=setup.max_size)
+        if now.digest() != e.digest():
+            raise ExemplarError(f"{path}: changed while the comparison ran; run it again")
+
+
+def _precomputed(job: _Job) -> tuple[_Job, float]:
+    """The job with the candidates of its exemplars computed afresh, and the seconds that
+    took, its kernels compiled first on a small exemplar of as many channels."""
     from warptex.candidates import precompute
 
-    warm = np.random.default_rng(0).random((16, 16, axes[0].colors.shape[2]), dtype=np.float32)
+    channels = job.axes[0].colors.shape[2]
+    warm = np.random.default_rng(0).random((16, 16, channels), dtype=np.float32)
     precompute(Exemplar(warm), cache=False)
     start = time.perf_counter()
-    candidates = precompute(*axes, tileable=s.tileable, cache=False)
-    return replace(s, candidates=candidates), time.perf_counter() - start
+    candidates = precompute(*job.axes, tileable=job.setup.tileable, cache=False)
+    return replace(job, candidates=candidates), time.perf_counter() - start
 
 
 def _device_peak_mib(device: str) -> float | None:
@@ -392,26 +425,34 @@ def _device_peak_mib(device: str) -> float | None:
         return None
 
 
+def _middle(size: int) -> int:
+    """The index of the slices a sheet shows across each axis of a ``size``^3 volume."""
+    return size // 2
+
+
 def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
     """Run one method in this (fresh) process: volume, scores, time (of ``repeats`` runs)
     and peak memory."""
-    axes = s.exemplars()
-    size = s.size
+    job = _Job(s, s.exemplars())
+    axes, size = job.axes, s.size
     make_volume, make_large = _RUN[method]
     precompute_seconds = None
     if method in _LAZY:
-        s, precompute_seconds = _precomputed(axes, s)
+        job, precompute_seconds = _precomputed(job)
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
-    make_volume(axes, 8, s)
+    make_volume(job, 8)
     runs = []
     with PeakMemory() as memory:
         for _ in range(repeats):
             start = time.perf_counter()
-            volume = make_volume(axes, size, s)
+            volume = make_volume(job, size)
             runs.append(time.perf_counter() - start)
     device = _engine_device() if method in _LAZY else "cpu"
     device_peak = _device_peak_mib(device)
-    large = make_large(axes, volume, s)
+    large = make_large(job, volume)
+    render = render_cube(_cube_texture(method, job, volume))
+    if method == "lazy":
+        _check_unchanged(s)
     # Each axis' slices against its own Exemplar, whose seams are decided once.
     return {
         "method": method,
@@ -426,8 +467,8 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
         "seconds": float(np.median(runs)),
         "seconds_runs": runs,
         "peak_mib": memory.growth / 2**20,
-        "slices": [metrics.axis_slice(volume, a, size // 2) for a in range(3)],
-        "render": render_cube(_cube_texture(method, axes, volume, s)),
+        "slices": [metrics.axis_slice(volume, a, _middle(size)) for a in range(3)],
+        "render": render,
         "notes": f"correction passes per level: {s.passes}" if method in _LAZY else "",
         "device": device,
         "precompute_seconds": precompute_seconds,
@@ -637,6 +678,9 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     per-axis lists are in the order of its ``axes``."""
     from warptex.sheets import save_png, sheet
 
+    if not isinstance(comparison, Comparison) or not isinstance(comparison.setup, Setup):
+        raise TypeError(f"comparison must be a warptex.compare.Comparison (what compare "
+                        f"returns) of a Setup, got {comparison!r}")
     setup, results = comparison.setup, comparison.results
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -652,7 +696,7 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     rows = [("exemplar", [("exemplar", shown(ex.colors))] if one else
              [(f"{a} exemplar", shown(e.colors)) for a, e in zip("xyz", axes, strict=True)])]
     for r in results:
-        images = [(f"{name} = {setup.size // 2}", shown(s))
+        images = [(f"{name} = {_middle(setup.size)}", shown(s))
                   for name, s in zip("xyz", r.slices, strict=True)]
         if r.render is not None:
             images.append(("rendered cube", r.render))

@@ -289,6 +289,13 @@ class Exemplar:
         return (("left and right", "columns", across_columns, seam_columns),
                 ("top and bottom", "rows", across_rows, seam_rows))
 
+    def __setstate__(self, state: dict) -> None:
+        # Unpickled (compare sends exemplars to its worker processes), arrays come back
+        # writable; the seams and digest this object caches hold only while they are not.
+        self.__dict__.update(state)
+        self.colors.setflags(write=False)
+        self.features.setflags(write=False)
+
     def digest(self) -> str:
         """SHA-256 hex digest of the content (shapes, dtype, colors, features), not of the path."""
         sha = hashlib.sha256(b"warptex-exemplar-v1")
@@ -372,9 +379,9 @@ def wrapping_edges(seams: tuple[bool, bool], shape: tuple[int, int],
 
 
 def axis_triple(x: Any, y: Any = None, z: Any = None) -> tuple[Any, Any, Any]:
-    """The exemplars (or their files) of the x, y and z axes from those given, as every
-    command and plugin reads them: y's defaults to x's, z's to y's (Dong 2008, section 4,
-    takes one exemplar per axis, as Kopf 2007, section 6.2, does)."""
+    """The exemplars (or their files) of the x, y and z axes from those given, as the
+    commands' --ey/--ez and precompute read them: y's defaults to x's, z's to y's (Dong
+    2008, section 4, takes one exemplar per axis, as Kopf 2007, section 6.2, does)."""
     y = x if y is None else y
     return x, y, y if z is None else z
 
