@@ -840,3 +840,25 @@ def test_an_unpickled_exemplar_keeps_its_arrays_read_only(data_dir):
     again = pickle.loads(pickle.dumps(ex))
     assert not again.colors.flags.writeable and not again.features.flags.writeable
     assert again.features is again.colors and again.digest() == ex.digest()
+
+
+def test_axes_must_agree_on_color_channels_as_well_as_feature_channels():
+    """Three colors and a feature distance match four colors in feature channels, not in
+    colors, which a voxel averages: precompute and Kopf refuse the pair, naming the axes."""
+    from warptex.baselines import kopf
+    from warptex.candidates import precompute
+    from warptex.exemplar import check_same_channels
+
+    rng = np.random.default_rng(0)
+    rgb = Exemplar(rng.random((16, 16, 3), dtype=np.float32), name="rgb",
+                   feature_distance=rng.random((16, 16), dtype=np.float32))
+    rgba = Exemplar(rng.random((16, 16, 4), dtype=np.float32), name="rgba")
+    assert rgb.features.shape[2] == rgba.features.shape[2] == 4
+    check_same_channels([rgb, None, rgb])  # an unconstrained axis is left out
+    message = "same number of color channels; found x rgb 3, y rgba 4, z rgba 4"
+    with pytest.raises(ExemplarError, match=message):
+        check_same_channels([rgb, rgba, rgba])
+    with pytest.raises(ExemplarError, match=message):
+        precompute(rgb, rgba, cache=False)
+    with pytest.raises(ExemplarError, match="found x rgb 3, z rgba 4"):
+        kopf.synthesize(None, size=8, exemplars=[rgb, None, rgba], progress=False)

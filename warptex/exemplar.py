@@ -386,15 +386,17 @@ def axis_triple(x: Any, y: Any = None, z: Any = None) -> tuple[Any, Any, Any]:
     return x, y, y if z is None else z
 
 
-def check_same_channels(exemplars: Sequence[Exemplar]) -> None:
-    """An ExemplarError naming each axis' image unless the exemplars of the three axes have
-    as many feature channels: a voxel's triple reads a pixel of each."""
-    channels = [e.features.shape[2] for e in exemplars]
-    if len(set(channels)) != 1:
-        found = ", ".join(f"{axis} {e.path or e.name} {n}"
-                          for axis, e, n in zip("xyz", exemplars, channels, strict=True))
-        raise ExemplarError("the exemplars of the three axes must have the same number of "
-                            f"feature channels; found {found}")
+def check_same_channels(exemplars: Sequence[Exemplar | None]) -> None:
+    """An ExemplarError naming each axis' image unless the exemplars of the three axes
+    (None for an axis left unconstrained) have as many feature channels, and as many color
+    channels: a voxel's triple reads a pixel of each, and its color averages theirs."""
+    given = [(axis, e) for axis, e in zip("xyz", exemplars, strict=True) if e is not None]
+    for kind, count in (("feature", lambda e: e.features.shape[2]),
+                        ("color", lambda e: e.colors.shape[2])):
+        if len({count(e) for _, e in given}) > 1:
+            found = ", ".join(f"{axis} {e.path or e.name} {count(e)}" for axis, e in given)
+            raise ExemplarError("the exemplars of the three axes must have the same number of "
+                                f"{kind} channels; found {found}")
 
 
 def srgb_encoded(exemplars: list[Exemplar], raw: str | None = "raw") -> bool:

@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from kernels import kopf as _k
-from warptex.exemplar import Exemplar, as_exemplar, wrapping_edges
+from warptex.exemplar import Exemplar, as_exemplar, check_same_channels, wrapping_edges
 from warptex.parallel import THREADS, launch_ranges
 from warptex.settings import check_settings
 from warptex.warp_runtime import init_warp, launch
@@ -211,8 +211,7 @@ def _axis_exemplars(
     given = [e for e in axes if e is not None]
     if len(given) < 2:
         raise ValueError("at least two axes must be constrained by an exemplar")
-    if len({e.features.shape[2] for e in given}) != 1 or len({e.channels for e in given}) != 1:
-        raise ValueError("the exemplars of all axes must have the same channels")
+    check_same_channels(axes)
     if given[0].features.shape[2] > _k.MAX_FEATURES:
         raise ValueError(f"at most {_k.MAX_FEATURES} matching channels are supported, the "
                          f"exemplars have {given[0].features.shape[2]}")
