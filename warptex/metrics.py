@@ -158,11 +158,17 @@ def neighborhood_energy(
     better, but blur scores low too (see the module's notes)."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("slices", slices, low=1)
-    vol_patches = np.concatenate(
-        [patches(s, size, stride=PATCH_STRIDE) for s in axis_slices(volume, axis, slices)]
-    )
+    vol_patches = _slice_patches(volume, axis, size, slices, PATCH_STRIDE)
     nearest = _nearest_squared(exemplar_patches(exemplar, size, tileable), vol_patches)
     return float(np.mean(nearest) / (size * size * _variance(colors)))
+
+
+def _slice_patches(volume: np.ndarray, axis: int, size: int, slices: int,
+                   stride: int) -> np.ndarray:
+    """The ``size`` x ``size`` patches, every ``stride``-th each way, of ``slices`` evenly
+    spaced slices across ``axis``: what the patch measures read of a volume."""
+    return np.concatenate([patches(s, size, stride=stride)
+                           for s in axis_slices(volume, axis, slices)])
 
 
 def _nearest_squared(reference: np.ndarray, queries: np.ndarray) -> np.ndarray:
@@ -187,7 +193,7 @@ def completeness_energy(
     better."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("slices", slices, low=1)
-    slice_patches = np.concatenate([patches(s, size) for s in axis_slices(volume, axis, slices)])
+    slice_patches = _slice_patches(volume, axis, size, slices, stride=1)
     nearest = _nearest_squared(slice_patches, exemplar_patches(exemplar, size, tileable))
     return float(np.mean(nearest) / (size * size * _variance(colors)))
 
@@ -231,8 +237,7 @@ def sliced_wasserstein(
     check_count("directions", directions, low=1)
     check_count("slices", slices, low=1)
     check_count("seed", seed)
-    a = np.concatenate([patches(s, size, stride=PATCH_STRIDE)
-                        for s in axis_slices(volume, axis, slices)])
+    a = _slice_patches(volume, axis, size, slices, PATCH_STRIDE)
     b = exemplar_patches(exemplar, size, tileable)
     rng = np.random.default_rng(seed)
     dirs = rng.normal(size=(a.shape[1], directions)).astype(np.float32).astype(np.float64)
