@@ -3,18 +3,21 @@
 # (BENCHMARKS.md, "GPU checks"; stage its inputs with benchmarks/gpu_prepare.sh):
 #   - issue 7's speed bar first: Kopf and the lazy engine at 64^3 in the same run, every
 #     64 px exemplar (benchmarks/bench_kopf.py);
+#   - where the lazy engine's time goes on the GPU, host bookkeeping or device work
+#     (benchmarks/profile_synthesis.py);
 #   - CPU and CUDA synthesize bit-identical voxels (tests/test_synthesis.py), and agree on
 #     brick-store queries, surface shells and texel points (tests/test_cuda.py); the
 #     plugin's cuda_ad_rgb lookups equal SolidTexture.query (tests/test_plugin.py), and its
 #     cuda_* variants register, evaluate and upsample spectra as Mitsuba does
 #     (tests/test_spectral.py);
 #   - the engine's own figures (benchmarks/bench_synthesis.py).
-# Each step has its time limit, so that the whole ends within about 570 s (unpacking
+# Each step has its time limit, so that the whole ends within about 585 s (unpacking
 # included) and what finished comes back. PARTS is the folder holding the staged parts
 # carried by the earlier calls (the last part travels in .gpu/data); results go to $OUT (or
 # out/gpu). NAMES limits bench_kopf's exemplars (names without .png; default every
-# *_64.png); STEPS picks steps by name (default "kopf tests synthesis"), for a rerun of what
-# did not finish. Stage from the commit to be measured: .gpu/data/commit labels the results.
+# *_64.png); STEPS picks steps by name (default "kopf profile tests synthesis"), for a rerun
+# of what did not finish. Stage from the commit to be measured: .gpu/data/commit labels the
+# results.
 #
 #     benchmarks/gpu_checks.sh PARTS
 set -uo pipefail
@@ -33,7 +36,7 @@ fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 export WARP_CACHE_PATH=/tmp/warp-cache WARPTEX_CACHE=$data/cache
 names=${NAMES:-$(cd "$data/exemplars" && ls ./*_64.png | xargs -n1 basename | sed 's/\.png$//')}
-steps=" ${STEPS:-kopf tests synthesis} "
+steps=" ${STEPS:-kopf profile tests synthesis} "
 
 {
     echo "commit $(cat "$data/commit"), $(date -u '+%Y-%m-%d %H:%M UTC')"
@@ -44,11 +47,17 @@ steps=" ${STEPS:-kopf tests synthesis} "
 
 if [[ $steps == *" kopf "* ]]; then
     # shellcheck disable=SC2086  # one exemplar name per word
-    timeout 240 python3 benchmarks/bench_kopf.py --exemplars "$data/exemplars" --sizes 64 \
+    timeout 200 python3 benchmarks/bench_kopf.py --exemplars "$data/exemplars" --sizes 64 \
         --names $names 2>&1 | tee "$out/bench_kopf.txt"
 fi
+if [[ $steps == *" profile "* ]]; then
+    timeout 60 python3 benchmarks/profile_synthesis.py --exemplars "$data/exemplars" \
+        --names granite_64 rocks_in_sand_64 --sizes 64 2>&1 | tee "$out/profile.txt"
+    timeout 40 python3 benchmarks/profile_synthesis.py --exemplars "$data/exemplars" \
+        --names wood_rosewood_128 --sizes 128 2>&1 | tee -a "$out/profile.txt"
+fi
 if [[ $steps == *" tests "* ]]; then
-    timeout 220 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py \
+    timeout 180 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py \
         tests/test_synthesis.py tests/test_plugin.py tests/test_spectral.py -k cuda -rs 2>&1 \
         | tee "$out/pytest_cuda.txt"
 fi
