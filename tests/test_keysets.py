@@ -3,16 +3,23 @@ arrays included."""
 
 import numpy as np
 
-from warptex.keysets import distinct_sorted, lookup, pack, unique, unpack
+from warptex.keysets import distinct_sorted, lookup, pack, run_starts, unique, unpack
 from warptex.surface import _unique_rows
 
 
 def test_unique_matches_numpy():
     rng = np.random.default_rng(1)
+    # The last holds runs of repeats, as a box's block keys do, split and met again.
     for a in (rng.integers(-(1 << 40), 1 << 40, 5000), rng.integers(0, 7, 300),
-              np.zeros(0, np.int64), np.array([5])):
+              np.zeros(0, np.int64), np.array([5]), np.repeat(rng.integers(0, 9, 200), 4)):
         np.testing.assert_array_equal(unique(a), np.unique(a))
         np.testing.assert_array_equal(distinct_sorted(np.sort(a)), np.unique(a))
+
+
+def test_run_starts_finds_the_first_of_each_run():
+    assert run_starts(np.array([3, 3, 1, 1, 1, 3, 7])).tolist() == [0, 2, 5, 6]
+    assert run_starts(np.array([4])).tolist() == [0]
+    assert run_starts(np.zeros(0, np.int32)).tolist() == []
 
 
 def test_unique_rows_sorted_like_numpy():

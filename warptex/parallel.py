@@ -13,8 +13,6 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from itertools import pairwise
 from typing import Any
 
-import numpy as np
-
 from warptex.machine import usable_cores
 from warptex.warp_runtime import launch
 
@@ -60,7 +58,7 @@ def launch_ranges(
             kernel.infer_argument_types([start, *inputs, *outputs])
         )
     launch(kernel, per_item, [start, *inputs], outputs, device=device)
-    bounds = [int(b) for b in np.linspace(start + 1, stop, THREADS + 1)]
+    bounds = [start + 1 + (n - 1) * i // THREADS for i in range(THREADS + 1)]
     jobs = [
         _pool().submit(launch, kernel, (hi - lo) * per_item, [lo, *inputs], outputs,
                        device=device)

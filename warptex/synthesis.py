@@ -27,6 +27,7 @@ from warptex.keysets import (
     local_index,
     lookup,
     pack,
+    run_starts,
     unique,
     unpack,
 )
@@ -185,13 +186,6 @@ def _neighbor_table(keys: np.ndarray) -> np.ndarray:
     return np.stack([lookup(keys, keys + s) for s in steps], axis=1).astype(np.int32)
 
 
-def _voxel_rows(keys: np.ndarray, voxels: np.ndarray) -> np.ndarray:
-    """Flat index (block slot * 64 + local) of each of ``voxels`` (N, 3) in the blocks of
-    sorted ``keys``, which must hold them."""
-    return lookup(keys, pack(voxels // BLOCK)) * _BLOCK_VOXELS + (
-        local_index(voxels, BLOCK))
-
-
 @dataclass
 class _Level:
     """Final (corrected) triples in some blocks of one level, sorted by block key; only
@@ -199,10 +193,6 @@ class _Level:
 
     keys: np.ndarray
     triples: np.ndarray  # (M * 64, 3) int32
-
-    def rows(self, voxels: np.ndarray) -> np.ndarray:
-        """Rows of ``triples`` holding ``voxels`` (N, 3), whose blocks must be present."""
-        return _voxel_rows(self.keys, voxels)
 
 
 class _LevelCache:
@@ -370,7 +360,8 @@ class Synthesizer:
         cols = [cs.colors[cs.axis_source[k]].reshape(-1, cs.channels) for k in range(3)]
         out = cols[0][pixels[:, 0]] + cols[1][pixels[:, 1]]
         out += cols[2][pixels[:, 2]]
-        return (out / np.float32(3.0)).astype(np.float32)
+        out /= np.float32(3.0)
+        return out
 
     def pixel_triples(self, ijk: np.ndarray) -> np.ndarray:
         """Finest-level triples (N, 3) int32 of voxels ``ijk`` (N, 3) ints as flat pixel
@@ -395,8 +386,11 @@ class Synthesizer:
         of at most ``MAX_WORK_VOXELS`` work voxels. A voxel's triple does not depend on what
         else is requested (section 5.2), so the parts give what one call would."""
         keys = pack(ijk // BLOCK)
+        local = local_index(ijk, BLOCK)
         uniq = unique(keys)
         parts = self._parts(uniq)
+        if len(parts) == 1:  # the common case, without a copy of the request per part
+            return self._synthesize(self.finest, uniq, keys, local, parts[0][1])
         part_of_block = np.empty(len(uniq), np.int64)
         for n, (part_keys, _) in enumerate(parts):
             part_of_block[lookup(uniq, part_keys)] = n
@@ -404,8 +398,7 @@ class Synthesizer:
         out = np.empty((len(ijk), 3), np.int32)
         for n, (part_keys, work) in enumerate(parts):
             rows = np.flatnonzero(part == n)
-            level = self._synthesize(self.finest, part_keys, ijk[rows], work)
-            out[rows] = level.triples[level.rows(ijk[rows])]
+            out[rows] = self._synthesize(self.finest, part_keys, keys[rows], local[rows], work)
         return out
 
     def _parts(self, keys: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -434,20 +427,18 @@ class Synthesizer:
             out.triples[flat[hit]] = cache.triples[found[hit]]
         missing = flat[~hit]
         if len(missing):
-            voxels = (unpack(keys[missing // _BLOCK_VOXELS]) * BLOCK
-                      + _LOCAL[missing % _BLOCK_VOXELS])
-            blocks = distinct_sorted(keys[missing // _BLOCK_VOXELS])
-            computed = self._synthesize(level, blocks, voxels)
-            out.triples[missing] = computed.triples[computed.rows(voxels)]
+            voxel_keys = keys[missing // _BLOCK_VOXELS]
+            out.triples[missing] = self._synthesize(level, distinct_sorted(voxel_keys),
+                                                    voxel_keys, missing % _BLOCK_VOXELS)
             if cache is not None:
                 cache.insert(keys, missing, out.triples[missing])
         return out
 
-    def _synthesize(self, level: int, keys: np.ndarray, desired: np.ndarray,
-                    work: np.ndarray | None = None) -> _Level:
-        """Synthesize the ``desired`` voxels (coordinates) of ``level``, which lie in the
-        blocks ``keys``, on a work region padded by the apron (``work``, when the caller
-        has it already).
+    def _synthesize(self, level: int, keys: np.ndarray, voxel_keys: np.ndarray,
+                    local: np.ndarray, work: np.ndarray | None = None) -> np.ndarray:
+        """Triples (N, 3) of the desired voxels of ``level``, given by their block's key
+        and their index in it, which lie in the blocks ``keys``: synthesized on a work
+        region padded by the apron (``work``, when the caller has it already).
 
         Section 5.2: each correction step visits just the voxels whose value later steps
         read on the way to the desired ones, and the parent level is asked for just the
@@ -460,7 +451,7 @@ class Synthesizer:
         nvox = len(work) * _BLOCK_VOXELS
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
         nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
-        flat = _voxel_rows(work, desired)
+        flat = lookup(work, voxel_keys) * _BLOCK_VOXELS + local
         active, read = self._dependency_lists(nbr, coords, flat)
         # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
         # such as the features read valid pixels everywhere.
@@ -496,8 +487,7 @@ class Synthesizer:
         for step in active:
             corrected[step] = True
         self.voxels_synthesized[level] += int(corrected.sum())
-        out = triples.numpy().reshape(-1, _BLOCK_VOXELS, 3)[lookup(work, keys)]
-        return _Level(keys, out.reshape(-1, 3))
+        return triples.numpy()[flat]
 
     def _parents(self, coords_wp: wp.array, coords: np.ndarray, read: wp.array,
                  read_blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -567,7 +557,7 @@ class Synthesizer:
         dev = self.device
         chunk = _HALO_CHUNK["cpu" if wp.get_device(dev).is_cpu else "cuda"]
         block = listed // _BLOCK_VOXELS
-        starts = np.flatnonzero(np.diff(block, prepend=-1))  # listed voxels of each block
+        starts = run_starts(block)  # listed voxels of each block (``listed`` is sorted)
         blocks = block[starts]
         halo_of = np.full(nbr.shape[0], -1, np.int32)
         halo_of[blocks] = np.arange(len(blocks)) % chunk
