@@ -12,8 +12,9 @@ shows was synthesized (see :mod:`mitsuba_plugin.traced`)::
 
     mitsuba_plugin.set_best_variant()
     mitsuba_plugin.register()
-    image = mitsuba_plugin.render(mi.load_file("scenes/bunny_wood.xml"), spp=16)
-    mitsuba_plugin.save_caches()  # the brick stores of textures with a ``cache`` file
+    scene = mi.load_file("scenes/bunny_wood.xml")
+    image = mitsuba_plugin.render(scene, spp=16)
+    mitsuba_plugin.save_caches(scene)  # the brick stores of its textures with a ``cache`` file
 
 Under the JIT variants a symbolic render traces every live BSDF, so while a
 ``lazy_solid`` texture is alive in the process, render through ``render()``, in
@@ -217,6 +218,8 @@ def _traced_lookups(scene: mi.Scene, outcome: dict[str, int]) -> Iterator[bool]:
     if _tracer[0] == threading.get_ident():  # the lock would wait for this very thread
         raise RuntimeError("mitsuba_plugin: render() and traced_renders() cannot run "
                            "inside a traced_renders() block")
+    # Every live texture, not only those traversal finds in the scene: tracing another
+    # scene's costs nothing, and one that a plugin kept from traversal would raise.
     live = textures()
     with _tracing:
         try:
@@ -254,13 +257,20 @@ def _render_traced(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf | None:
     return None
 
 
-def textures() -> list:
-    """The ``lazy_solid`` textures alive in this process (e.g. of a loaded scene)."""
-    return list(live_textures)
+def textures(scene: mi.Object | None = None) -> list:
+    """The ``lazy_solid`` textures of ``scene`` (in its shapes' BSDFs, its media, nested
+    or not), each once; without a scene, every one alive in this process."""
+    if scene is None:
+        return list(live_textures)
+    # Found as the objects owning parameters: each lazy_solid exposes its to_world.
+    found = {id(entry[2]): entry[2] for entry in mi.traverse(scene).properties.values()
+             if entry[2] in live_textures}
+    return list(found.values())
 
 
-def save_caches() -> list[Path]:
-    """Write the brick store of every live ``lazy_solid`` texture that has a ``cache`` file,
-    as ``warptex render`` does after rendering, so that the next process starts from the
-    voxels synthesized here; returns the files written."""
-    return [path for texture in textures() if (path := texture.save()) is not None]
+def save_caches(scene: mi.Object | None = None) -> list[Path]:
+    """Write the brick store of each ``lazy_solid`` texture of ``scene`` (without one, of
+    every live texture) that has a ``cache`` file, as ``warptex render`` does after
+    rendering, so that the next process starts from the voxels synthesized here; returns
+    the files written."""
+    return [path for texture in textures(scene) if (path := texture.save()) is not None]

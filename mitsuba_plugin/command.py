@@ -13,6 +13,7 @@ import time
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 
 from warptex.archive import (
@@ -186,20 +187,20 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     loaded = time.perf_counter()
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
-        for texture in mitsuba_plugin.textures():
+        for texture in mitsuba_plugin.textures(scene):
             _check_store_file(texture, [output, statistics], save_stores)
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     # Read before rendering: each batch sets the sampler to its share of the samples.
     total = spp or sensor.sampler().sample_count()
     check_render_size(*sensor.film().crop_size(), _samples_per_batch(total))
-    with saved_when_stopped(mitsuba_plugin.save_caches if save_stores else list):
+    with saved_when_stopped(partial(mitsuba_plugin.save_caches, scene) if save_stores else list):
         image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
                                       seed=seed, progress=_progress)
         rendered = time.perf_counter()
         # Before the image: a stop while the stores are written (the longest of the writes)
         # leaves the image and its statistics as they were, never one beside the other's.
-        textures = [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures()]
+        textures = [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures(scene)]
     report = {
         "format": REPORT_FORMAT,
         "scene": str(scene_path),

@@ -237,6 +237,44 @@ def _scene_with_cache(tmp_path: Path, cache: str) -> Path:
     return scene
 
 
+def test_a_scenes_textures_are_found_in_its_media_and_nested_bsdfs(granite_32_file):
+    """``mitsuba_plugin.textures(scene)``: a medium's albedo and a texture inside a
+    two-sided BSDF, each once, and no texture of another scene."""
+    use("scalar_rgb")
+    medium = {"type": "lazy_solid_medium", "albedo": lazy(granite_32_file), "sigma_t": 2.0}
+    shared = mi.load_dict(lazy(granite_32_file) | {"seed": 4})
+    scene = mi.load_dict({"type": "scene", "a": {
+        "type": "sphere", "interior": medium,
+        "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": shared}}},
+        "b": {"type": "cube", "bsdf": {"type": "diffuse", "reflectance": shared}}})
+    other = mi.load_dict(lazy(granite_32_file))
+    found = mitsuba_plugin.textures(scene)
+    assert len(found) == 2 and shared in found and other not in found
+    assert other in mitsuba_plugin.textures()
+
+
+def test_render_command_reports_checks_and_saves_only_its_scenes_textures(tmp_path,
+                                                                         granite_32_file):
+    """A ``lazy_solid`` of another scene still alive in the process (a Python session's
+    earlier scene) is not the rendered scene's: `warptex render` neither lists it in the
+    statistics nor writes its brick store."""
+    from warptex.cli import main
+
+    use(warptex.best_mitsuba_variant())
+    other_store = tmp_path / "other.wtb"
+    other = mi.load_dict({"type": "scene", "shape": {
+        "type": "sphere", "bsdf": {"type": "diffuse", "reflectance": lazy(granite_32_file) | {
+            "cache": str(other_store)}}}})
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    out = tmp_path / "bunny.exr"
+    assert main(["render", str(scene), "-o", str(out), "--spp", "1", "--res", "8x8"]) == 0
+    (texture,) = json.loads((tmp_path / "bunny.exr.json").read_text())["textures"]
+    assert texture["saved_to"] == str(scene.parent / "bricks" / "bunny.wtb")
+    assert not other_store.exists()
+    # Its own scene finds it, and saves it where it says.
+    assert [Path(t.save()) for t in mitsuba_plugin.textures(other)] == [other_store]
+
+
 def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path):
     """The plugin's ``cache``: `warptex render` saves the brick store, and the next render
     of the scene reads every voxel from it, to the same image."""

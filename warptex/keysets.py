@@ -64,7 +64,8 @@ def lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
 
 
 def unique(a: np.ndarray) -> np.ndarray:
-    """The distinct values of ``a``, sorted (``np.unique(a)``, by sorting)."""
+    """The distinct values of ``a``, sorted: ``np.unique(a)`` for keys (a NaN is never
+    equal to another, so repeated NaNs are all kept), by sorting."""
     a = np.asarray(a).reshape(-1)
     # Neighbouring voxels of a request share their block's key: dropping repeats in a row
     # first (one pass) leaves a quarter of a box's keys to sort.
