@@ -9,6 +9,10 @@ Properties (XML or ``mi.load_dict``):
 ``_y``, ``_z``                    each defaults to ``exemplar``
 ``exemplar_max_size``  integer    shrink larger exemplars (area-averaged) until their larger side
                                   is this many pixels, at least 16 (default: as they are)
+``feature_distance``   boolean    add a feature-distance channel (Lefebvre & Hoppe 2006) from an
+                                  automatic luminance threshold to each exemplar (default false)
+``feature_mask``       string     binary image marking the features of ``exemplar`` (one
+                                  exemplar only), from which that channel is taken instead
 ``seed``               integer    synthesis seed, 0 to 2147483647 (default 0)
 ``jitter``             float      coarse-level jitter of the synthesis, 0 to 64 (default 1.0)
 ``shifted_tiles``      boolean    shift each tile of the initial tiling by its own offset, so
@@ -128,8 +132,9 @@ PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
 _DEFAULT_SCALE = 64.0
 _PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_max_size",
-               "seed", "jitter", "shifted_tiles", "tileable", "passes", "scale", "space",
-               "filter", "raw", "cache_bytes", "cache", "to_world")
+               "feature_distance", "feature_mask", "seed", "jitter", "shifted_tiles",
+               "tileable", "passes", "scale", "space", "filter", "raw", "cache_bytes", "cache",
+               "to_world")
 
 
 def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
@@ -163,19 +168,42 @@ def _check_known(props: mi.Properties) -> None:
             raise property_error(PLUGIN, key, f"is no property of {PLUGIN}{hint}")
 
 
+def _feature_options(props: mi.Properties, named: list[tuple[str, Path]],
+                     plugin: str = PLUGIN) -> dict:
+    """``Exemplar.load``'s feature options (Lefebvre & Hoppe 2006's feature-distance
+    channel, which the candidates match beside the colors), as the properties give them."""
+    automatic = get_property(props, "feature_distance", bool, False, plugin)
+    mask = get_property(props, "feature_mask", str, None, plugin)
+    if mask is None:
+        return {"feature_distance": automatic}
+    if automatic:
+        raise property_error(plugin, "feature_mask", 'and "feature_distance" exclude each '
+                             "other: the mask marks the features the distance is taken from")
+    if any(key != "exemplar" for key, _ in named):
+        raise property_error(plugin, "feature_mask", 'marks the pixels of one "exemplar"; '
+                             'with "exemplar_x", ... use "feature_distance"')
+    path = scene_path(mask, must_exist=True)
+    if not path.is_file():
+        raise property_error(plugin, "feature_mask", f'names a file that does not exist: "{mask}"')
+    return {"feature_mask": path}
+
+
 def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
-                    plugin: str = PLUGIN) -> list[Exemplar]:
-    """The exemplar images, each read once and shrunk to ``max_size``; one that cannot be
-    read is blamed on the property that names it."""
+                    plugin: str = PLUGIN, **features: Any) -> list[Exemplar]:
+    """The exemplar images, each read once, shrunk to ``max_size`` and given the
+    ``features`` of :func:`_feature_options`; one that cannot be read is blamed on the
+    property that names it (the mask's errors name the mask's file)."""
     loaded: dict[Path, Exemplar] = {}
+    mask = features.get("feature_mask")
     for key, path in named:
         if path not in loaded:
             try:
                 with warnings.catch_warnings(record=True) as said:
                     warnings.simplefilter("always")
-                    loaded[path] = Exemplar.load(path, max_size=max_size)
+                    loaded[path] = Exemplar.load(path, max_size=max_size, **features)
             except (ValueError, OSError) as e:
-                raise property_error(plugin, key, f"cannot be used: {e}") from e
+                at_fault = "feature_mask" if mask is not None and str(mask) in str(e) else key
+                raise property_error(plugin, at_fault, f"cannot be used: {e}") from e
             for warning in said:
                 _rewarn(warning, plugin, path)
     return [loaded[path] for _, path in named]
@@ -239,6 +267,9 @@ class LazySolidTexture(mi.Texture):
         named = _exemplar_paths(props)
         _check_known(props)
         self.exemplars = [path for _, path in named]
+        features = _feature_options(props, named)
+        self.feature_distance = bool(features.get("feature_distance", True))
+        self.feature_mask = features.get("feature_mask")
         self.max_size = get_property(props, "exemplar_max_size", int, None, PLUGIN)
         try:
             check_max_size(self.max_size)
@@ -276,7 +307,7 @@ class LazySolidTexture(mi.Texture):
                                      f"cannot be saved to {self.cache}: {problem}")
         # A JIT-typed transform, so mi.traverse can update it in place.
         self.to_world = mi.AffineTransform4f(_to_world(props).astype(np.float32))
-        exemplars = _load_exemplars(named, self.max_size)
+        exemplars = _load_exemplars(named, self.max_size, **features)
         try:
             self._decode_srgb = not self.raw and srgb_encoded(exemplars)
             check_lookup_channels(exemplars[0].channels)  # before pre-computing
@@ -371,7 +402,9 @@ class LazySolidTexture(mi.Texture):
         exemplars per axis, x, y, z; ``to_world`` as a 4x4 matrix): what `warptex render`
         records of each texture."""
         return {"exemplars": [str(p) for p in self.exemplars],
-                "exemplar_max_size": self.max_size, "seed": self.seed, "jitter": self.jitter,
+                "exemplar_max_size": self.max_size, "feature_distance": self.feature_distance,
+                "feature_mask": None if self.feature_mask is None else str(self.feature_mask),
+                "seed": self.seed, "jitter": self.jitter,
                 "shifted_tiles": self.shifted_tiles, "tileable": self.tileable,
                 "passes": self.passes, "scale": self.scale,
                 "to_world": np.round(_affine_matrix(self.to_world), 6).tolist(),
@@ -388,6 +421,10 @@ class LazySolidTexture(mi.Texture):
                                                                   strict=True))
         shrunk = ("" if p["exemplar_max_size"] is None
                   else f", exemplar_max_size={p['exemplar_max_size']}")
+        if p["feature_mask"] is not None:
+            shrunk += f', feature_mask="{p["feature_mask"]}"'
+        elif p["feature_distance"]:
+            shrunk += ", feature_distance=True"
         placed = "" if np.array_equal(p["to_world"], np.eye(4)) else f", to_world={p['to_world']}"
         return (f"LazySolidTexture[exemplars=[{names}]{shrunk}, seed={p['seed']}, "
                 f"jitter={p['jitter']}, shifted_tiles={p['shifted_tiles']}, "

@@ -73,6 +73,10 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
      'exemplar" must be a <string ...>'),  # checked though every axis has its own
     ({"to_world": "identity"}, "to_world\" must be a <transform ...>, got 'identity'"),
+    ({"feature_distance": "auto"}, "feature_distance\" must be a <boolean ...>, got 'auto'"),
+    ({"feature_mask": "no/such/mask.png"}, 'feature_mask" names a file that does not exist'),
+    ({"feature_mask": "mask.png", "feature_distance": True},
+     'feature_mask" and "feature_distance" exclude each other'),
 ])
 def test_property_errors_name_the_property(granite_32_file, props, name):
     use("scalar_rgb")
@@ -173,6 +177,46 @@ def test_passes_shifted_tiles_and_tileable_reach_the_synthesis(granite_32_file):
                                   Synthesizer(edges, seed=2).voxels(ijk))
     assert not np.array_equal(Synthesizer(edges, seed=2).voxels(ijk),
                               Synthesizer(cs, seed=2).voxels(ijk))
+
+
+def test_feature_distance_and_feature_mask_reach_the_candidates(granite_32_file, tmp_path):
+    """The feature-distance channel (Lefebvre & Hoppe 2006), automatic or from a mask, is
+    the one Exemplar.load adds: the same candidates, so the same voxels as the CLI's
+    --feature-distance/--feature-mask; a mask marks one exemplar, and its errors name it."""
+    from PIL import Image
+
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    use("scalar_rgb")
+    ijk = np.array([[3, 5, 7], [-4, 0, 9], [30, 2, -11]])
+    auto = load(granite_32_file, feature_distance=True)
+    with_distance = Exemplar.load(granite_32_file, feature_distance="auto")
+    assert auto.solid.synthesizer.candidates.digests == (with_distance.digest(),) * 3
+    assert with_distance.digest() != Exemplar.load(granite_32_file).digest()
+    np.testing.assert_array_equal(auto.solid.query(ijk + 0.5, filter="nearest"),
+                                  Synthesizer(precompute(with_distance)).voxels(ijk))
+    assert "feature_distance=True" in auto.to_string()
+    assert "feature" not in load(granite_32_file).to_string()
+
+    gray = np.asarray(Image.open(granite_32_file).convert("L"))
+    mask = tmp_path / "mask.png"
+    Image.fromarray(((gray > np.median(gray)) * 255).astype(np.uint8)).save(mask)
+    masked = load(granite_32_file, feature_mask=str(mask))
+    marked = Exemplar.load(granite_32_file, feature_mask=mask)
+    assert masked.solid.synthesizer.candidates.digests == (marked.digest(),) * 3
+    assert f'feature_mask="{mask}"' in masked.to_string()
+    assert masked.properties()["feature_mask"] == str(mask)
+
+    with pytest.raises(RuntimeError, match=r'property "feature_mask" marks the pixels of one '
+                                           r'"exemplar"; with "exemplar_x", \.\.\. use'):
+        load(granite_32_file, exemplar_y=str(granite_32_file), feature_mask=str(mask))
+    small = tmp_path / "small.png"
+    Image.fromarray(np.zeros((16, 16), np.uint8)).save(small)
+    with pytest.raises(RuntimeError, match=r'property "feature_mask" cannot be used: .*small.png: '
+                                           r"feature mask is 16x16 pixels"):
+        load(granite_32_file, feature_mask=str(small))
 
 
 def test_to_string_tells_textures_of_other_settings_apart(granite_32_file, tmp_path):
