@@ -127,6 +127,67 @@ def test_compare_shrinks_the_exemplar_to_max_size(tmp_path, data_dir, warp_devic
     assert (out / "table.md").read_text().startswith("# granite_64.png, shrunk to 32x32\n")
 
 
+def test_compare_runs_lazy_and_kopf_with_the_feature_distance(tmp_path, data_dir, warp_device):
+    """--feature-distance: lazy synthesis and Kopf match the feature-distance channel, so
+    their volumes are those made apart from the exemplar loaded with it; the measures take
+    its colors; the table says so."""
+    from warptex import metrics
+    from warptex.baselines.kopf import synthesize
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+
+    path = data_dir / "granite_64.png"
+    out = tmp_path / "cmp"
+    assert main(["compare", str(path), "--size", "16", "--methods", "lazy,kopf",
+                 "--feature-distance", "-o", str(out)]) == 0
+    table = json.loads((out / "table.json").read_text())
+    rows = {r["method"]: r for r in table["methods"]}
+    ex = Exemplar.load(path, feature_distance="auto")
+    assert ex.features.shape[2] == 4 and table["run"]["exemplar_digest"] == ex.digest()
+    lazy = Synthesizer(precompute(ex)).box((0, 0, 0), (16, 16, 16))
+    assert rows["lazy"]["energy"] == [metrics.neighborhood_energy(lazy, ex.colors, a)
+                                      for a in range(3)]
+    kopf = synthesize(ex, size=16, seed=0, progress=False)
+    assert rows["kopf"]["energy"] == [metrics.neighborhood_energy(kopf, ex.colors, a)
+                                      for a in range(3)]
+    assert table["run"]["feature_distance"] is True and table["run"]["feature_mask"] is None
+    assert "16^3, seed 0, feature distance;" in (out / "table.md").read_text()
+
+
+def test_a_feature_mask_marks_the_one_exemplar_and_reaches_the_lazy_cube(tmp_path, data_dir,
+                                                                       capsys):
+    """A mask is read with the exemplar, named in the table, passed to the lazy cube's
+    plugin; beside --feature-distance or --ey/--ez it is refused before any work."""
+    from warptex.compare import Setup, _cube_texture, _Job
+    from warptex.exemplar import Exemplar
+
+    granite = data_dir / "granite_64.png"
+    gray = np.asarray(Image.open(granite).convert("L"))
+    mask = tmp_path / "mask.png"
+    Image.fromarray(((gray > np.median(gray)) * 255).astype(np.uint8)).save(mask)
+    setup = Setup(granite, 16, feature_mask=mask)
+    assert setup.exemplars()[0].digest() == Exemplar.load(granite, feature_mask=mask).digest()
+    texture = _cube_texture("lazy", _Job(setup, setup.exemplars()), np.zeros((16, 16, 16, 3)))
+    assert texture["feature_mask"] == str(mask) and "feature_distance" not in texture
+    automatic = Setup(granite, 16, feature_distance=True)
+    assert _cube_texture("lazy", _Job(automatic, automatic.exemplars()),
+                         np.zeros((16, 16, 16, 3)))["feature_distance"] is True
+    with pytest.raises(ValueError, match="feature_mask and feature_distance exclude"):
+        Setup(granite, feature_mask=mask, feature_distance=True)
+    with pytest.raises(ValueError, match="feature_mask marks one exemplar"):
+        Setup(granite, feature_mask=mask, ez=granite)
+    out = tmp_path / "cmp"
+    assert main(["compare", str(granite), "--feature-mask", str(mask), "--ey", str(granite),
+                 "--methods", "noise", "-o", str(out)]) == 2
+    assert "--feature-mask marks one image" in capsys.readouterr().err and not out.exists()
+    assert main(["compare", str(granite), "--size", "16", "--feature-mask", str(mask),
+                 "--methods", "noise", "-o", str(out)]) == 0
+    run = json.loads((out / "table.json").read_text())["run"]
+    assert run["feature_mask"] == "mask.png" and run["feature_distance"] is True
+    assert "features from mask.png;" in (out / "table.md").read_text()
+
+
 @pytest.fixture
 def swapped_file(tmp_path, data_dir):
     """Granite turned a quarter and its red and blue swapped: another exemplar of the same

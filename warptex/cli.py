@@ -153,22 +153,27 @@ def _add_loading_arguments(parser: argparse.ArgumentParser) -> None:
         default="drop",
         help="drop an alpha channel (default) or keep it as a color channel",
     )
+    _add_feature_arguments(parser)
+    _add_max_size_argument(parser)
+    _add_tileable_argument(parser)
+
+
+def _add_feature_arguments(parser: argparse.ArgumentParser, advice: str = "") -> None:
     features = parser.add_mutually_exclusive_group()
     features.add_argument(
         "--feature-mask",
         type=Path,
         metavar="MASK",
-        help="binary image marking features; adds a feature-distance channel",
+        help=f"binary image marking features; adds a feature-distance channel{advice}",
     )
     features.add_argument(
         "--feature-distance",
         action="store_const",
         const="auto",
         default=False,
-        help="add a feature-distance channel from an automatic luminance threshold",
+        help="add a feature-distance channel from an automatic luminance threshold"
+        f"{advice}",
     )
-    _add_max_size_argument(parser)
-    _add_tileable_argument(parser)
 
 
 def _add_tileable_argument(parser: argparse.ArgumentParser, advice: str = "") -> None:
@@ -353,11 +358,15 @@ def _add_axis_exemplar_arguments(parser: argparse.ArgumentParser, first: str) ->
                         "along x and its columns along y (default: the y exemplar)")
 
 
+def _check_one_masked_exemplar(args: argparse.Namespace) -> None:
+    if args.feature_mask is not None and (args.ey or args.ez):
+        raise CliError("--feature-mask marks one image; use --feature-distance with --ey/--ez")
+
+
 def _load_axis_exemplars(args: argparse.Namespace, ex: Exemplar) -> list[Exemplar]:
     """The exemplars of the x (``ex``), y and z axes; --ey/--ez are read with the
     command's loading options (a feature mask marks one image only)."""
-    if args.feature_mask is not None and (args.ey or args.ez):
-        raise CliError("--feature-mask marks one image; use --feature-distance with --ey/--ez")
+    _check_one_masked_exemplar(args)
     ey, ez = (None if path is None else _load_exemplar(args, path) for path in (args.ey, args.ez))
     return list(axis_triple(ex, ey, ez))
 
@@ -1190,6 +1199,8 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="time each method N times and report the median, every run "
                         "kept in table.json (default 1)")
     _add_max_size_argument(parser, advice="; every method reads the shrunk images")
+    _add_feature_arguments(parser, advice=", which lazy synthesis and Kopf match beside the "
+                           "colors (the measures take colors only)")
     _add_tileable_argument(parser, advice="; for lazy, tiled and Kopf, and for the measures, "
                            "whose exemplar neighbourhoods wrap only where synthesis may")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
@@ -1209,10 +1220,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
     _check_at_least("--size", args.size, MIN_SIZE)
     _check_at_least("--repeats", args.repeats, 1)
+    _check_one_masked_exemplar(args)
     setup = Setup(args.exemplar, args.size, seed=args.seed, passes=args.passes,
                   jitter=args.jitter, shifted_tiles=args.shifted_tiles,
                   max_size=args.exemplar_max_size, tileable=TILEABLE[args.tileable],
-                  ey=args.ey, ez=args.ez)
+                  feature_distance=bool(args.feature_distance),
+                  feature_mask=args.feature_mask, ey=args.ey, ez=args.ez)
     # One clear error for a bad image before any work.
     exemplar = setup.exemplars()[0]
     if args.output.exists() and not args.output.is_dir():

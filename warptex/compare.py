@@ -118,7 +118,9 @@ class Setup:
     x axis and, where given, of y and z (:meth:`paths`); the volume's edge; the seed of every
     randomized method; the lazy engine's correction passes, jitter and shifted tiles
     (``lazy`` and ``tiled``; :class:`warptex.synthesis.Synthesizer`); the larger side the
-    exemplars are shrunk to when loaded (``Exemplar.load``); and whether their opposite
+    exemplars are shrunk to when loaded and their feature-distance channel, automatic or
+    from a mask of the one exemplar (``Exemplar.load``; lazy synthesis and Kopf match it,
+    the measures take colors); and whether their opposite
     edges are continued (:meth:`Exemplar.seams`), by the methods that synthesize and in the
     measures alike. The settings are checked as it is made (a SettingError, TypeError or
     ValueError naming the field), the files when :meth:`exemplars` first reads them.
@@ -136,6 +138,8 @@ class Setup:
     shifted_tiles: bool = False
     max_size: int | None = None
     tileable: bool | str = "auto"
+    feature_distance: bool = False
+    feature_mask: Path | None = None
     ey: Path | None = None
     ez: Path | None = None
     _axes: Axes | None = field(default=None, init=False, compare=False, repr=False)
@@ -150,16 +154,29 @@ class Setup:
                    "max_size": None if self.max_size is None else int(self.max_size),
                    "tileable": check_tileable(self.tileable),
                    "shifted_tiles": check_flag("shifted_tiles", self.shifted_tiles),
+                   "feature_distance": check_flag("feature_distance", self.feature_distance),
                    "exemplar": check_file_name("exemplar", self.exemplar)}
-        for name in ("ey", "ez"):
+        for name in ("feature_mask", "ey", "ez"):
             value = getattr(self, name)
             checked[name] = None if value is None else check_file_name(name, value)
+        if checked["feature_mask"] is not None:
+            if checked["feature_distance"]:
+                raise ValueError("feature_mask and feature_distance exclude each other: the "
+                                 "mask marks the features the distance is taken from")
+            if checked["ey"] is not None or checked["ez"] is not None:
+                raise ValueError("feature_mask marks one exemplar; with ey/ez use "
+                                 "feature_distance")
         for name, value in checked.items():
             object.__setattr__(self, name, value)
 
     def paths(self) -> tuple[Path, Path, Path]:
         """The exemplar files of the x, y and z axes (:func:`warptex.exemplar.axis_triple`)."""
         return axis_triple(self.exemplar, self.ey, self.ez)
+
+    def load_options(self) -> dict:
+        """How each exemplar file is read (``Exemplar.load``'s keywords)."""
+        return {"max_size": self.max_size, "feature_mask": self.feature_mask,
+                "feature_distance": "auto" if self.feature_distance else False}
 
     def exemplars(self) -> Axes:
         """The exemplars of the x, y and z axes, read on the first call, each file once with
@@ -187,7 +204,7 @@ def _read_axes(setup: Setup) -> Axes:
     for path in dict.fromkeys(paths):
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
-            files[path] = Exemplar.load(path, max_size=setup.max_size)
+            files[path] = Exemplar.load(path, **setup.load_options())
         for warning in said:  # the loader's advice names an option compare does not have
             text = (f"{path}: alpha channel dropped (compare measures colors only)"
                     if issubclass(warning.category, AlphaDropped) else str(warning.message))
@@ -374,13 +391,17 @@ def _cube_texture(method: str, job: _Job, volume: np.ndarray) -> dict:
     s, axes = job.setup, job.axes
     size = volume.shape[0]
     if method == "lazy":
-        shrink = {} if s.max_size is None else {"exemplar_max_size": s.max_size}
+        loading = {} if s.max_size is None else {"exemplar_max_size": s.max_size}
+        if s.feature_mask is not None:
+            loading["feature_mask"] = str(s.feature_mask)
+        elif s.feature_distance:
+            loading["feature_distance"] = True
         paths = s.paths()
         exemplars = ({"exemplar": str(paths[0])} if len(_distinct(axes)) == 1 else
                      {f"exemplar_{a}": str(p) for a, p in zip("xyz", paths, strict=True)})
         return {"type": "lazy_solid", **exemplars, "seed": s.seed, "jitter": s.jitter,
                 "shifted_tiles": s.shifted_tiles, "passes": s.passes,
-                "tileable": tileable_word(s.tileable), "scale": float(size)} | shrink
+                "tileable": tileable_word(s.tileable), "scale": float(size)} | loading
     colors = reencoded(volume[..., :3], srgb=axes[0].srgb, to_srgb=False)
     data = _mitsuba().TensorXf(np.ascontiguousarray(colors.transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
@@ -394,8 +415,8 @@ def _check_unchanged(setup: Setup) -> None:
     for path, e in dict(zip(setup.paths(), setup.exemplars(), strict=True)).items():
         with warnings.catch_warnings():  # said when first read
             warnings.simplefilter("ignore")
-            now = Exemplar.load(path, max_size=setup.max_size)
-        if now.digest() != e.digest():
+            now = Exemplar.load(path, **setup.load_options())
+        if now.digest() != e.digest():  # of the features too: a changed mask shows here
             raise ExemplarError(f"{path}: changed while the comparison ran; run it again")
 
 
@@ -707,6 +728,8 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     repeats = max((len(r.seconds_runs) for r in results), default=1)
     run = run_summary(setup.size, setup.seed) | {
         "passes": setup.passes, "exemplar_max_size": setup.max_size,
+        "feature_distance": setup.feature_distance or setup.feature_mask is not None,
+        "feature_mask": None if setup.feature_mask is None else setup.feature_mask.name,
         "exemplar_size": list(ex.shape[::-1]),
         "exemplar_digest": ex.digest(),
         "axis_exemplars": [{"file": p.name, "size": list(e.shape[::-1]), "digest": e.digest()}
@@ -719,7 +742,9 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     more = "".join((
         "" if setup.passes == DEFAULT_PASSES else f", {setup.passes} correction passes",
         "" if setup.jitter == DEFAULT_JITTER else f", jitter {setup.jitter:g}",
-        ", shifted tiles" if setup.shifted_tiles else ""))
+        ", shifted tiles" if setup.shifted_tiles else "",
+        f", features from {setup.feature_mask.name}" if setup.feature_mask is not None else
+        ", feature distance" if setup.feature_distance else ""))
     markdown = (f"# {_title(paths, axes)}\n\n{setup.size}^3, seed {setup.seed}{more}{told}; "
                 f"{run_line(run)}\n\n" + table_markdown(results) + _legend(measures, repeats))
     write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
