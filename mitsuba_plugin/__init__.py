@@ -259,7 +259,9 @@ def _render_traced(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf | None:
 
 def textures(scene: mi.Object | None = None) -> list:
     """The ``lazy_solid`` textures of ``scene`` (in its shapes' BSDFs, its media, nested
-    or not), each once; without a scene, every one alive in this process."""
+    or not), each once; without a scene, every one alive in this process. A medium that
+    only an emitter names is not among them: Mitsuba does not traverse it, and no
+    integrator looks it up."""
     if scene is None:
         return list(live_textures)
     # Found as the objects owning parameters: each lazy_solid exposes its to_world.

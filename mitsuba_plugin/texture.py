@@ -202,7 +202,9 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
                     warnings.simplefilter("always")
                     loaded[path] = Exemplar.load(path, max_size=max_size, **features)
             except (ValueError, OSError) as e:
-                at_fault = "feature_mask" if mask is not None and str(mask) in str(e) else key
+                # Exemplar.load's errors begin with the file at fault.
+                at_fault = ("feature_mask" if mask is not None and str(e).startswith(f"{mask}: ")
+                            else key)
                 raise property_error(plugin, at_fault, f"cannot be used: {e}") from e
             for warning in said:
                 _rewarn(warning, plugin, path)

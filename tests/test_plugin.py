@@ -217,6 +217,11 @@ def test_feature_distance_and_feature_mask_reach_the_candidates(granite_32_file,
     with pytest.raises(RuntimeError, match=r'property "feature_mask" cannot be used: .*small.png: '
                                            r"feature mask is 16x16 pixels"):
         load(granite_32_file, feature_mask=str(small))
+    # An exemplar's own error is the exemplar's, though the mask's name begins its name.
+    (tmp_path / "rock").write_bytes(mask.read_bytes())
+    (tmp_path / "rock_32.png").write_text("no image")
+    with pytest.raises(RuntimeError, match=r'property "exemplar" cannot be used: .*rock_32.png'):
+        load(tmp_path / "rock_32.png", feature_mask=str(tmp_path / "rock"))
 
 
 def test_to_string_tells_textures_of_other_settings_apart(granite_32_file, tmp_path):
