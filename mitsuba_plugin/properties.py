@@ -60,3 +60,12 @@ def scene_path(name: str, must_exist: bool) -> Path:
         return Path(str(resolver.resolve(str(path)))).absolute()
     first = Path(str(resolver[0])) if len(resolver) and not path.is_absolute() else Path()
     return (first / path).absolute()
+
+
+def existing_scene_file(name: str, key: str, plugin: str) -> Path:
+    """The file to read that property ``key`` names (:func:`scene_path`), or the error
+    naming that property where there is none."""
+    path = scene_path(name, must_exist=True)
+    if not path.is_file():
+        raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
+    return path

@@ -101,7 +101,13 @@ import mitsuba as mi
 import numpy as np
 
 import mitsuba_plugin
-from mitsuba_plugin.properties import choice_property, get_property, property_error, scene_path
+from mitsuba_plugin.properties import (
+    choice_property,
+    existing_scene_file,
+    get_property,
+    property_error,
+    scene_path,
+)
 from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, spectrum
 from mitsuba_plugin.traced import TracedLookup
@@ -151,10 +157,7 @@ def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[st
             typo = f' ("{near[0]}" is no property of {plugin})' if near else ""
             raise property_error(plugin, "exemplar",
                                  f'is required (or all of "exemplar_{axis}", ...){typo}')
-        path = scene_path(name, must_exist=True)
-        if not path.is_file():
-            raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
-        named.append((key, path))
+        named.append((key, existing_scene_file(name, key, plugin)))
     return named
 
 
@@ -182,10 +185,7 @@ def _feature_options(props: mi.Properties, named: list[tuple[str, Path]],
     if any(key != "exemplar" for key, _ in named):
         raise property_error(plugin, "feature_mask", 'marks the pixels of one "exemplar"; '
                              'with "exemplar_x", ... use "feature_distance"')
-    path = scene_path(mask, must_exist=True)
-    if not path.is_file():
-        raise property_error(plugin, "feature_mask", f'names a file that does not exist: "{mask}"')
-    return {"feature_mask": path}
+    return {"feature_mask": existing_scene_file(mask, "feature_mask", plugin)}
 
 
 def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
