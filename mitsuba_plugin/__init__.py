@@ -274,5 +274,6 @@ def save_caches(scene: mi.Object | None = None) -> list[Path]:
     """Write the brick store of each ``lazy_solid`` texture of ``scene`` (without one, of
     every live texture) that has a ``cache`` file, as ``warptex render`` does after
     rendering, so that the next process starts from the voxels synthesized here; returns
-    the files written."""
+    the store files, each of which then holds its texture's voxels (a file that holds them
+    already, unchanged since it was loaded or saved, is not rewritten)."""
     return [path for texture in textures(scene) if (path := texture.save()) is not None]

@@ -20,11 +20,11 @@ from warptex.archive import (
     file_problem,
     iso_date,
     overwritten_input,
-    write_atomically,
     write_failure,
+    write_together,
 )
 from warptex.machine import software_versions
-from warptex.store import saved_when_stopped
+from warptex.store import StoreFileError, saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
@@ -219,9 +219,10 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     text = json.dumps(report, indent=2) + "\n"
     try:
         # Synchronously: the default asynchronous write would race the rename.
-        write_atomically(output, lambda tmp: mi.util.write_bitmap(str(tmp), image,
-                                                                   write_async=False))
-        write_atomically(statistics, lambda tmp: tmp.write_text(text))
+        write_together([
+            (output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False)),
+            (statistics, lambda tmp: tmp.write_text(text)),
+        ])
     except OSError as error:
         raise OutputError(_write_failure(error, output)) from None
     _print_report(report)
@@ -233,7 +234,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
 
 def _write_failure(error: OSError, path: Path) -> str:
     """A write of ``path`` that failed after the render (a full disk, a lost mount), named
-    after the file write_atomically was asked for."""
+    after the file write_together was asked for."""
     return write_failure(error.filename or path, error)
 
 
@@ -287,6 +288,8 @@ def _save_and_report(texture, save: bool) -> dict:
         saved = texture.save() if save else None
     except OSError as error:
         failed = _write_failure(error, texture.cache)
+    except StoreFileError as error:  # a file of another kind put there during the render
+        failed = str(error)
     entry = {"texture": texture.to_string(), "properties": texture.properties(),
              "store": texture.solid.store.stats(),
              "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),

@@ -143,21 +143,21 @@ _PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_m
                "to_world")
 
 
-def _exemplar_paths(props: mi.Properties, plugin: str = PLUGIN) -> list[tuple[str, Path]]:
+def _exemplar_paths(props: mi.Properties) -> list[tuple[str, Path]]:
     """The exemplars of the x, y and z axes, each checked to exist, with the property that
     names each."""
-    get_property(props, "exemplar", str, None, plugin)  # checked even where axes override it
+    get_property(props, "exemplar", str, None, PLUGIN)  # checked even where axes override it
     named = []
     for axis in "xyz":
         key = f"exemplar_{axis}" if f"exemplar_{axis}" in props else "exemplar"
-        name = get_property(props, key, str, None, plugin)
+        name = get_property(props, key, str, None, PLUGIN)
         if name is None:
             unread = [k for k in props if k not in _PROPERTIES]
             near = difflib.get_close_matches("exemplar", unread, n=1)
-            typo = f' ("{near[0]}" is no property of {plugin})' if near else ""
-            raise property_error(plugin, "exemplar",
+            typo = f' ("{near[0]}" is no property of {PLUGIN})' if near else ""
+            raise property_error(PLUGIN, "exemplar",
                                  f'is required (or all of "exemplar_{axis}", ...){typo}')
-        named.append((key, existing_scene_file(name, key, plugin)))
+        named.append((key, existing_scene_file(name, key, PLUGIN)))
     return named
 
 
@@ -171,25 +171,24 @@ def _check_known(props: mi.Properties) -> None:
             raise property_error(PLUGIN, key, f"is no property of {PLUGIN}{hint}")
 
 
-def _feature_options(props: mi.Properties, named: list[tuple[str, Path]],
-                     plugin: str = PLUGIN) -> dict:
+def _feature_options(props: mi.Properties, named: list[tuple[str, Path]]) -> dict:
     """``Exemplar.load``'s feature options (Lefebvre & Hoppe 2006's feature-distance
     channel, which the candidates match beside the colors), as the properties give them."""
-    automatic = get_property(props, "feature_distance", bool, False, plugin)
-    mask = get_property(props, "feature_mask", str, None, plugin)
+    automatic = get_property(props, "feature_distance", bool, False, PLUGIN)
+    mask = get_property(props, "feature_mask", str, None, PLUGIN)
     if mask is None:
         return {"feature_distance": automatic}
     if automatic:
-        raise property_error(plugin, "feature_mask", 'and "feature_distance" exclude each '
+        raise property_error(PLUGIN, "feature_mask", 'and "feature_distance" exclude each '
                              "other: the mask marks the features the distance is taken from")
     if any(key != "exemplar" for key, _ in named):
-        raise property_error(plugin, "feature_mask", 'marks the pixels of one "exemplar"; '
+        raise property_error(PLUGIN, "feature_mask", 'marks the pixels of one "exemplar"; '
                              'with "exemplar_x", ... use "feature_distance"')
-    return {"feature_mask": existing_scene_file(mask, "feature_mask", plugin)}
+    return {"feature_mask": existing_scene_file(mask, "feature_mask", PLUGIN)}
 
 
 def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
-                    plugin: str = PLUGIN, **features: Any) -> list[Exemplar]:
+                    **features: Any) -> list[Exemplar]:
     """The exemplar images, each read once, shrunk to ``max_size`` and given the
     ``features`` of :func:`_feature_options`; one that cannot be read is blamed on the
     property that names it (the mask's errors name the mask's file)."""
@@ -205,19 +204,19 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
                 # Exemplar.load's errors begin with the file at fault.
                 at_fault = ("feature_mask" if mask is not None and str(e).startswith(f"{mask}: ")
                             else key)
-                raise property_error(plugin, at_fault, f"cannot be used: {e}") from e
+                raise property_error(PLUGIN, at_fault, f"cannot be used: {e}") from e
             for warning in said:
-                _rewarn(warning, plugin, path)
+                _rewarn(warning, path)
     return [loaded[path] for _, path in named]
 
 
-def _rewarn(warning: warnings.WarningMessage, plugin: str, path: Path) -> None:
+def _rewarn(warning: warnings.WarningMessage, path: Path) -> None:
     """A warning of Exemplar.load as a scene's author reads it: the plugin has no alpha
     property to keep the channel with, as the API and the command line have."""
     message = str(warning.message)
     if issubclass(warning.category, AlphaDropped):
-        message = f"{path}: alpha channel dropped ({plugin} gives colors only)"
-    warnings.warn(f"{plugin}: {message}", warning.category, stacklevel=3)
+        message = f"{path}: alpha channel dropped ({PLUGIN} gives colors only)"
+    warnings.warn(f"{PLUGIN}: {message}", warning.category, stacklevel=3)
 
 
 def _exemplar_names(named: list[tuple[str, Path]]) -> str:
@@ -270,7 +269,7 @@ class LazySolidTexture(mi.Texture):
         _check_known(props)
         self.exemplars = [path for _, path in named]
         features = _feature_options(props, named)
-        self.feature_distance = bool(features.get("feature_distance", True))
+        self.feature_distance = bool(features.get("feature_distance", False))
         self.feature_mask = features.get("feature_mask")
         self.max_size = get_property(props, "exemplar_max_size", int, None, PLUGIN)
         try:

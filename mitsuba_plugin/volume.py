@@ -74,7 +74,7 @@ def lazy_solid_medium(props: mi.Properties,
                                  f"must be finite and not negative, got {sigma_t}")
     scale = get_property(props, "scale", float, 1.0, MEDIUM)
     if not (math.isfinite(scale) and scale >= 0):
-        raise property_error(MEDIUM, "scale", f"must not be negative, got {scale}")
+        raise property_error(MEDIUM, "scale", f"must be finite and not negative, got {scale}")
     medium = {"type": "heterogeneous", "albedo": volume_type(albedo), "sigma_t": sigma_t,
               "scale": scale}
     # A nested phase function arrives under a name of the parser's ("_arg_0"). Only nested

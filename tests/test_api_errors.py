@@ -3,12 +3,15 @@ an error from deep inside NumPy, pathlib or Warp, or a silently truncated value.
 
 from __future__ import annotations
 
+import errno
+import os
+
 import numpy as np
 import pytest
 
 import warptex
 from warptex import metrics
-from warptex.archive import write_atomically
+from warptex.archive import write_atomically, write_together
 from warptex.candidates import precompute
 from warptex.settings import MAX_JITTER, MAX_PASSES, MAX_SEED, SettingError, check_settings
 from warptex.volume_files import write_image, write_volume
@@ -110,6 +113,26 @@ def test_a_failed_write_names_the_file_asked_for(tmp_path):
         write_atomically(target, lambda tmp: tmp.write_bytes(b"x"))
     assert caught.value.filename == str(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_files_written_together_are_all_left_as_they_were_when_one_fails(tmp_path):
+    """write_together: the second file's write fails (a full disk), so the first, written
+    already, is not put in place either; the error names the file that failed."""
+    first, second = tmp_path / "image.png", tmp_path / "image.png.json"
+    first.write_bytes(b"old image")
+    second.write_text("old figures")
+
+    def full(tmp):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+
+    with pytest.raises(OSError) as caught:
+        write_together([(first, lambda tmp: tmp.write_bytes(b"new image")), (second, full)])
+    assert caught.value.filename == str(second) and caught.value.errno == errno.ENOSPC
+    assert (first.read_bytes(), second.read_text()) == (b"old image", "old figures")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["image.png", "image.png.json"]
+    write_together([(first, lambda tmp: tmp.write_bytes(b"new image")),
+                    (second, lambda tmp: tmp.write_text("new figures"))])
+    assert (first.read_bytes(), second.read_text()) == (b"new image", "new figures")
 
 
 def test_the_ends_of_every_range_are_accepted_and_one_step_beyond_refused():

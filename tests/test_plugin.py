@@ -207,7 +207,10 @@ def test_feature_distance_and_feature_mask_reach_the_candidates(granite_32_file,
     marked = Exemplar.load(granite_32_file, feature_mask=mask)
     assert masked.solid.synthesizer.candidates.digests == (marked.digest(),) * 3
     assert f'feature_mask="{mask}"' in masked.to_string()
+    # As read from the scene: the mask's distance is no automatic one.
     assert masked.properties()["feature_mask"] == str(mask)
+    assert masked.properties()["feature_distance"] is False
+    assert auto.properties()["feature_distance"] is True
 
     with pytest.raises(RuntimeError, match=r'property "feature_mask" marks the pixels of one '
                                            r'"exemplar"; with "exemplar_x", \.\.\. use'):

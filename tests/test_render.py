@@ -3,7 +3,9 @@ agreement with Mitsuba's own gridvolume texture, and the bundled scene."""
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import re
 from datetime import datetime
 from pathlib import Path
@@ -379,6 +381,63 @@ def test_a_store_that_cannot_be_written_does_not_cost_the_image(tmp_path, capsys
     assert entry["not_saved"] == message and entry["saved_to"] is None
     assert rgb(mi.Bitmap(str(out))).shape == (16, 16, 3)
     assert store.read_bytes() == before
+
+
+def test_statistics_that_cannot_be_written_leave_image_and_statistics_as_they_were(
+        tmp_path, capsys, monkeypatch):
+    """A full disk while the statistics are written: the new image is not put in place
+    either, so the last render's image stays beside its own statistics; the error names
+    the statistics file."""
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    out = tmp_path / "img.exr"
+    statistics = tmp_path / "img.exr.json"
+    argv = ["render", str(scene), "--res", "16x16", "-o", str(out)]
+    assert main([*argv, "--spp", "2"]) == 0
+    before = out.read_bytes(), statistics.read_bytes()
+    mitsuba_plugin.live_textures.clear()
+    write_text = Path.write_text
+
+    def full_for_statistics(self, *args, **kwargs):
+        if self.name.startswith(f".{statistics.stem}.") and self.suffix == ".json":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return write_text(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full_for_statistics)
+    capsys.readouterr()
+    assert main([*argv, "--spp", "1"]) == 1
+    assert capsys.readouterr().err.endswith(
+        f"warptex: error: {statistics}: cannot write (No space left on device)\n")
+    assert (out.read_bytes(), statistics.read_bytes()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["img.exr", "img.exr.json", "scenes"]
+
+
+def test_a_store_file_replaced_during_the_render_is_not_overwritten(tmp_path, capsys,
+                                                                    monkeypatch):
+    """A file of another kind put where the brick store is saved while the scene renders:
+    it is left as it is, the image and statistics are written, and the statistics and the
+    exit status say why the store was not saved."""
+    import mitsuba_plugin.command
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    store = scene.parent / "bricks" / "bunny.wtb"
+
+    def progress(done: int, total: int) -> None:
+        store.parent.mkdir(exist_ok=True)
+        store.write_text("someone's notes")
+
+    monkeypatch.setattr(mitsuba_plugin.command, "_progress", progress)
+    out = tmp_path / "img.exr"
+    assert main(["render", str(scene), "--spp", "1", "--res", "16x16", "-o", str(out)]) == 1
+    message = (f"{store}: exists and is not a warptex brick store file; it would be "
+               "overwritten, choose another store path")
+    assert capsys.readouterr().err.endswith(f"warptex: error: {message}\n")
+    (entry,) = json.loads((tmp_path / "img.exr.json").read_text())["textures"]
+    assert entry["not_saved"] == message and entry["saved_to"] is None
+    assert rgb(mi.Bitmap(str(out))).shape == (16, 16, 3)
+    assert store.read_text() == "someone's notes"
 
 
 def test_render_command_reads_a_store_it_may_not_write(tmp_path, monkeypatch):

@@ -324,6 +324,20 @@ def test_zero_cache_still_answers(candidates):
     assert store.stats()["bricks"] == 0
 
 
+def test_sample_refuses_an_out_it_could_not_write_into(candidates):
+    """``sample`` writes colors into ``out``: one of another dtype, shape or layout, which
+    Warp would quietly copy and the colors be lost with the copy, is refused."""
+    store = BrickStore(synthesizer(candidates))
+    pts = np.array([[0.5, 0.5, 0.5], [9.5, 1.5, 2.5]])
+    for out in (np.empty((2, 3), np.float64), np.empty((3, 2), np.float32).T,
+                np.empty((2, 4), np.float32), [[0.0] * 3] * 2):
+        with pytest.raises(ValueError, match=r"out must be a C-contiguous float32 array of "
+                                             r"shape \(2, 3\)"):
+            store.sample(pts, "nearest", out)
+    np.testing.assert_array_equal(sample(store, pts), store.synthesizer.voxels(
+        np.floor(pts).astype(int)))
+
+
 def test_save_load_keeps_the_most_recent_bricks_that_fit(candidates, tmp_path: Path):
     syn = synthesizer(candidates)
     store = BrickStore(syn)

@@ -91,21 +91,33 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
     readers never see a partial file, and a failed write leaves nothing behind. The
     temporary name keeps the suffix, lower-cased, for writers that pick the format from it
     (Mitsuba's bitmap writer takes ``.PNG`` for an unknown format)."""
-    path = Path(path)
+    write_together([(path, write)])
+
+
+def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) -> None:
+    """:func:`write_atomically` for files that belong together (an image and its
+    statistics): every temporary file is written before any is renamed, so a write that
+    fails (a full disk) leaves all of them as they were, never a new one beside an old."""
     tag = f"{os.getpid()}.{threading.get_ident()}"
-    tmp = path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
+    staged = [(Path(path), write) for path, write in writes]
+    temporary = [path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
+                 for path, _ in staged]
+    current = None  # the file being written or renamed
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write(tmp)
-        os.replace(tmp, path)
+        for (current, write), tmp in zip(staged, temporary, strict=True):
+            current.parent.mkdir(parents=True, exist_ok=True)
+            write(tmp)
+        for (current, _), tmp in zip(staged, temporary, strict=True):
+            os.replace(tmp, current)
     except OSError as error:
         if error.errno is None:
             raise
         # Named after the file asked for: the temporary name means nothing to a user.
-        raise type(error)(error.errno, error.strerror, str(path)) from error
+        raise type(error)(error.errno, error.strerror, str(current)) from error
     finally:
-        with contextlib.suppress(OSError):  # where the write failed, so may this
-            tmp.unlink(missing_ok=True)
+        for tmp in temporary:
+            with contextlib.suppress(OSError):  # where the write failed, so may this
+                tmp.unlink(missing_ok=True)
 
 
 def is_temporary(name: str, prefix: str, suffix: str) -> bool:

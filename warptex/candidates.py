@@ -361,6 +361,9 @@ def _deciding_sources() -> list[Path] | None:
                            sys.modules[Exemplar.__module__]))
 
 
+_code_digest()  # now: the code this process runs, even if its files are edited meanwhile
+
+
 def cached_candidate_path(ex: Exemplar, tileable: bool | str = "auto") -> Path | None:
     """The cache file of ``ex`` repeated thrice with default parameters but ``tileable``,
     if it is there, whole (checksummed) and of these exemplars and parameters; None for a

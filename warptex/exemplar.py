@@ -291,7 +291,7 @@ class Exemplar:
 
     def __setstate__(self, state: dict) -> None:
         # Unpickled (compare sends exemplars to its worker processes), arrays come back
-        # writable; the seams and digest this object caches hold only while they are not.
+        # writable; the seams this object caches hold only while they are not.
         self.__dict__.update(state)
         self.colors.setflags(write=False)
         self.features.setflags(write=False)

@@ -206,7 +206,9 @@ def _file_state(path: Path) -> tuple | None:
 def _taking_turns(path: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``path``'s folder: every process's saves there take turns,
     so a merge reads the file that the previous save wrote. Where the folder cannot be
-    locked (a file system without locks), saves go on untaken, as before merging."""
+    locked (a file system without locks), saves go on without turns: two at once may
+    then keep only the bricks of the later, which costs voxels synthesized again, never
+    a wrong one."""
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         folder = os.open(path.parent, os.O_RDONLY)
@@ -447,16 +449,21 @@ class BrickStore:
 
     def sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
         """Colors of float64 ``points`` (N, 3) into ``out`` (N, C) float32."""
+        if not (isinstance(out, np.ndarray) and out.dtype == np.float32
+                and out.flags.c_contiguous and out.shape == (len(points), self.channels)):
+            # On the CPU the kernels write into ``out`` itself: any other array would be
+            # copied by Warp, and the colors lost with the copy.
+            got = (f"{out.dtype} {out.shape}" if isinstance(out, np.ndarray)
+                   else type(out).__name__)
+            raise ValueError(f"out must be a C-contiguous float32 array of shape "
+                             f"{(len(points), self.channels)}, got {got}")
         if filter not in FILTERS:
             raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
         n = len(points)
         if n == 0:
             return
         kernel = _k.sample_nearest if filter == "nearest" else _k.sample_trilinear
-        pts = self._on_device(points, wp.vec3d)
-        res = self._results(out)
-        missed = wp.zeros(n, dtype=wp.int32, device=self._device)
-        count = wp.zeros(1, dtype=wp.int32, device=self._device)
+        pts, res, missed, count = self._lookup_arrays(points, out)
         with self._reading():
             misses = self._launch(kernel, pts, res, missed, count)
         with self._counts:
@@ -485,9 +492,7 @@ class BrickStore:
         with self._lock.exclusive():
             if version != self._version or len(slots) == 0 or self._torn:
                 return
-            stamps = self._index.stamps.numpy()
-            stamps[slots] = next(self._tick)
-            self._index.stamps.assign(stamps)
+            self._stamp(slots)
 
     def snapshot(self) -> Snapshot:
         """The stored bricks and their voxels' color sums (see :class:`Snapshot`)."""
@@ -554,9 +559,9 @@ class BrickStore:
         A file this texture saved before, from this or another process, is merged with, not
         replaced: its voxels are the same as ours, so both renders' work stays warm. Its
         bricks count as older than ours, and the most recent that fit ``cache_bytes`` or
-        the file's own size, whichever is larger, are written. Saves to one file take
-        turns, so none loses the bricks of another. A damaged file or another texture's is
-        replaced, with a warning.
+        the memory that the file's bricks take, whichever is larger, are written. Saves to
+        one file take turns, so none loses the bricks of another. A damaged file or
+        another texture's is replaced, with a warning.
 
         The file is left as it is, and False returned, when it is the one this store was
         loaded from or last saved to, unchanged since, and no voxel was stored since: it
@@ -670,7 +675,8 @@ class BrickStore:
                 # Everything this batch synthesized goes back in, so each round leaves
                 # fewer voxels to make and the loop ends whatever other threads evict.
                 for v, payload in made:
-                    self._insert(v, payload)
+                    kept = ~self._stored(v)  # not those still stored: they would be repacked
+                    self._insert(v[kept], payload[kept])
                 absent = voxels[~self._stored(voxels)]
                 if len(absent) == 0:
                     result = run()
@@ -681,12 +687,8 @@ class BrickStore:
     def _finish(self, kernel, points: np.ndarray, filter: str, out: np.ndarray,
                 rows: np.ndarray) -> None:
         """Second half of a batch: the points whose voxels were missing."""
-        pts = self._on_device(np.ascontiguousarray(points), wp.vec3d)
         sub = np.empty((len(points), self.channels), np.float32)
-        res = self._results(sub)
-        dev = self._device
-        missed = wp.zeros(len(points), dtype=wp.int32, device=dev)
-        count = wp.zeros(1, dtype=wp.int32, device=dev)
+        pts, res, missed, count = self._lookup_arrays(np.ascontiguousarray(points), sub)
         misses = self._with_voxels(self._to_store(voxels_read(points, filter)),
                                    lambda: self._launch(kernel, pts, res, missed, count))
         if misses:
@@ -694,6 +696,13 @@ class BrickStore:
             raise RuntimeError(f"{misses} of {len(points)} points still read voxels missing "
                                "from the brick store after synthesizing them")
         out[rows] = res.numpy()
+
+    def _lookup_arrays(self, points: np.ndarray, out: np.ndarray) -> tuple[wp.array, ...]:
+        """A lookup launch's points, colors (bound for ``out``), flags of the points that
+        missed a voxel and count of them."""
+        missed = wp.zeros(len(points), dtype=wp.int32, device=self._device)
+        count = wp.zeros(1, dtype=wp.int32, device=self._device)
+        return self._on_device(points, wp.vec3d), self._results(out), missed, count
 
     def _to_store(self, voxels: np.ndarray) -> np.ndarray:
         """The unique voxels to have stored for reading ``voxels``."""
@@ -811,10 +820,14 @@ class BrickStore:
         self._base[slots] = start + _range_starts(self._voxel_counts(slots))
         self._upload_pool(start, start + len(triples))
         self._upload_slots()
+        self._stamp(slots)
+        self._version += 1
+
+    def _stamp(self, slots: np.ndarray) -> None:
+        """Count the bricks in ``slots`` as used now (least recently used go first)."""
         stamps = self._index.stamps.numpy()
         stamps[slots] = next(self._tick)
         self._index.stamps.assign(stamps)
-        self._version += 1
 
     def _by_recency(self) -> np.ndarray:
         """The slots of stored bricks, least recently used first (equal stamps by slot)."""

@@ -84,6 +84,7 @@ def shell(
     nfaces = len(mesh.faces)
     counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
     none = wp.empty(0, dtype=wp.vec3i, device=dev)
+    # The counting pass: ``counts`` stands in for the offsets it does not read.
     launch_ranges(_k.touched_voxels, 0, nfaces, [vertices, faces, counts, 0], [counts, none],
                   device=dev)
     counts_np = counts.numpy()

@@ -118,7 +118,8 @@ class SolidTexture:
                 self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
                                         whole_bricks=whole_bricks)
         except BaseException:
-            _WITH_STORE_FILES.discard(self)  # no store file of its own after all
+            with _STORE_FILES_LOCK:  # another thread may be going through the set
+                _WITH_STORE_FILES.discard(self)  # no store file of its own after all
             raise
 
     @property
@@ -189,8 +190,10 @@ class SolidTexture:
         return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
     def save(self, path: str | Path | None = None) -> Path:
-        """Write the brick store to ``path`` or to the ``store`` path given at creation;
-        the store file of a live texture of other settings is refused (StoreFileError)."""
+        """Write the brick store to ``path`` or to the ``store`` path given at creation,
+        and return that file, which then holds the store's voxels (:meth:`BrickStore.save`
+        does not rewrite a file that holds them already); the store file of a live texture
+        of other settings is refused (StoreFileError)."""
         target = Path(path) if path is not None else self.path
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
