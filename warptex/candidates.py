@@ -191,9 +191,7 @@ class CandidateSet:
         is never mixed with candidates computed otherwise under the same exemplars and
         parameters (by another warptex version, or a candidate file edited since)."""
         flat = _flatten(self)
-        layout = {"axis_source": list(self.axis_source),
-                  "shifts": [[s.shift for s in lvl] for lvl in self.sources],
-                  "margins": [[list(s.margins) for s in lvl] for lvl in self.sources]}
+        layout = {"axis_source": list(self.axis_source), **_source_layout(self)}
         digest = hashlib.sha256(json.dumps(layout).encode())
         for name in sorted(flat.keys() - {"meta"}):
             array = np.ascontiguousarray(flat[name])
@@ -208,8 +206,7 @@ class CandidateSet:
     @classmethod
     def load(cls, path: str | Path) -> CandidateSet:
         """Read a file written by :meth:`save`; raise CandidateCacheError if it is damaged."""
-        arrays = read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
-        return _unflatten(arrays, path)
+        return _unflatten(_read_file(path), path)
 
 
 def precompute(
@@ -269,7 +266,7 @@ def _cached(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet
 def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[str, np.ndarray]:
     """The arrays of the cache file ``path``, whole (checksummed) and of ``exemplars`` and
     ``params``; CandidateCacheError otherwise."""
-    arrays = read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
+    arrays = _read_file(path)
     meta = _meta(arrays, path)
     found = {"digests": meta["digests"], "params": meta["params"]}
     # Through JSON, as the file's went: tuples become lists, so equal compares equal.
@@ -284,8 +281,13 @@ def read_cache_meta(path: Path) -> dict:
     """What a whole (checksummed) candidate file of this format version says it holds:
     ``digests`` and ``params``, which name it (:func:`cache_file_name`), and ``names``
     where recorded; CandidateCacheError otherwise."""
-    return _meta(read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate",
-                              CandidateCacheError), path)
+    return _meta(_read_file(path), path)
+
+
+def _read_file(path: str | Path) -> dict[str, np.ndarray]:
+    """The arrays of a whole candidate file of this format version (CandidateCacheError
+    otherwise), before its contents are checked."""
+    return read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
 
 
 def _meta(arrays: dict[str, np.ndarray], path: Path) -> dict:
@@ -780,6 +782,13 @@ def _direct_neighbours(marked: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return near.reshape(-1)
 
 
+def _source_layout(cs: CandidateSet) -> dict[str, list]:
+    """Each level's sources' projection shifts and candidate margins, as the files and
+    the content digest record them."""
+    return {"shifts": [[s.shift for s in lvl] for lvl in cs.sources],
+            "margins": [[list(s.margins) for s in lvl] for lvl in cs.sources]}
+
+
 def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
     meta = {
         "params": cs.params,
@@ -788,8 +797,7 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
         "num_levels": cs.num_levels,
         "num_sources": len(cs.colors),
         "num_roles": len(cs.roles[0]),
-        "shifts": [[s.shift for s in lvl] for lvl in cs.sources],
-        "margins": [[list(s.margins) for s in lvl] for lvl in cs.sources],
+        **_source_layout(cs),
         "stats": cs.stats,
         "names": list(cs.names),
     }
