@@ -187,6 +187,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     loaded = time.perf_counter()
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
+        _check_renderable(scene, sensor)
         for texture in mitsuba_plugin.textures(scene):
             _check_store_file(texture, [output, statistics], save_stores)
     except ValueError as e:
@@ -236,6 +237,22 @@ def _write_failure(error: OSError, path: Path) -> str:
     """A write of ``path`` that failed after the render (a full disk, a lost mount), named
     after the file write_together was asked for."""
     return write_failure(error.filename or path, error)
+
+
+def _check_renderable(scene, sensor) -> None:
+    """Refuse a loaded scene that Mitsuba would fail to render only once it starts, with
+    an error from deep inside it: no integrator, an empty film, no samples."""
+    if scene.integrator() is None:
+        raise ValueError('the scene has no <integrator>: add one, such as <integrator '
+                         'type="path"/>')
+    width, height = sensor.film().crop_size()
+    if width < 1 or height < 1:
+        raise ValueError(f"the film is {width}x{height} pixels: give --res, or a positive "
+                         "width and height in the scene or with -D")
+    if sensor.sampler().sample_count() < 1:
+        raise ValueError("the sampler takes no samples per pixel (its sample_count is "
+                         f"{sensor.sampler().sample_count()}): give --spp, or a positive "
+                         "sample_count in the scene or with -D")
 
 
 def _check_store_file(texture, outputs: list[Path], saved: bool) -> None:

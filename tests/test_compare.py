@@ -682,7 +682,7 @@ def test_an_exemplar_s_alpha_is_dropped_with_one_warning_that_fits_compare(tmp_p
     """The warning comes once, from the command, not again from each method's process, and
     names no --alpha option, which compare does not have."""
     rgba = np.dstack([np.asarray(Image.open(data_dir / "granite_64.png")),
-                      np.full((64, 64), 255, np.uint8)])
+                      np.full((64, 64), 128, np.uint8)])  # half transparent
     Image.fromarray(rgba).save(tmp_path / "rgba.png")
     assert main(["compare", str(tmp_path / "rgba.png"), "--size", "16", "--methods",
                  "noise,flat", "-o", str(tmp_path / "cmp")]) == 0

@@ -122,6 +122,22 @@ def test_png_rgba_alpha_dropped_with_warning(tmp_path, rng):
     np.testing.assert_array_equal(exemplar.colors, rgba[..., :3] / np.float32(255))
 
 
+def test_an_alpha_channel_opaque_everywhere_is_dropped_without_a_warning(tmp_path, rng):
+    """Photos saved with an alpha channel that is opaque everywhere are common; dropping
+    it loses nothing, so nothing is said. One transparent pixel brings the warning back."""
+    rgba = rng.integers(0, 256, size=(16, 20, 4), dtype=np.uint8)
+    rgba[..., 3] = 255
+    Image.fromarray(rgba, mode="RGBA").save(tmp_path / "opaque.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        exemplar = Exemplar.load(tmp_path / "opaque.png")
+    np.testing.assert_array_equal(exemplar.colors, rgba[..., :3] / np.float32(255))
+    rgba[3, 4, 3] = 254
+    Image.fromarray(rgba, mode="RGBA").save(tmp_path / "almost.png")
+    with pytest.warns(AlphaDropped, match=r"almost\.png: alpha channel dropped"):
+        Exemplar.load(tmp_path / "almost.png")
+
+
 def test_png_rgba_alpha_kept_as_last_channel(tmp_path, rng):
     rgba = rng.integers(0, 256, size=(16, 20, 4), dtype=np.uint8)
     Image.fromarray(rgba, mode="RGBA").save(tmp_path / "rgba.png")
@@ -568,6 +584,27 @@ def test_feature_mask_problems(tmp_path, data_dir):
         Exemplar.load(path, feature_mask=tmp_path / "empty_mask.png")
     with pytest.raises(ExemplarError, match="file not found"):
         Exemplar.load(path, feature_mask=tmp_path / "missing_mask.png")
+
+
+def test_a_photo_given_as_feature_mask_is_used_with_a_warning(tmp_path, data_dir):
+    """A mask with many grey pixels is no black-and-white mask (a photo given by mistake):
+    it is thresholded at half its maximum as any mask is, and a warning says so. A binary
+    one, RGB or with a few grey pixels along its edges, brings none."""
+    path = data_dir / "granite_64.png"
+    with pytest.warns(UserWarning, match=r"granite_64\.png: not a black-and-white feature "
+                                         r"mask \(\d+% of its pixels are grey\); features are "
+                                         r"marked where its first channel exceeds half"):
+        photo = Exemplar.load(path, feature_mask=path)
+    first = np.asarray(Image.open(path))[..., 0]
+    np.testing.assert_array_equal(photo.features[..., 3],
+                                  feature_distance_from_mask(first > 0.5 * first.max()))
+    binary = np.zeros((64, 64, 3), np.uint8)
+    binary[10:40, 20:50] = 255
+    binary[10, 20:50] = 128  # one anti-aliased edge
+    Image.fromarray(binary).save(tmp_path / "mask.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Exemplar.load(path, feature_mask=tmp_path / "mask.png")
 
 
 # --- shrinking (max_size) ------------------------------------------------------------------

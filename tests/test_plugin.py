@@ -353,7 +353,9 @@ def test_a_dropped_alpha_channel_is_said_in_the_plugin_s_words(granite_32_file, 
 
     use("scalar_rgb")
     rgba = tmp_path / "rgba.png"
-    Image.open(granite_32_file).convert("RGBA").save(rgba)
+    half_transparent = Image.open(granite_32_file).convert("RGBA")
+    half_transparent.putalpha(128)
+    half_transparent.save(rgba)
     with pytest.warns(AlphaDropped) as said:
         load(rgba)
     (message,) = [str(w.message) for w in said if issubclass(w.category, AlphaDropped)]

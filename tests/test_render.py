@@ -500,6 +500,28 @@ def test_bundled_cut_sphere_scene_renders():
                for t in mitsuba_plugin.textures() if t not in before)
 
 
+@pytest.mark.parametrize("case", ["-D spp=0", "-D width=0", "no integrator"])
+def test_render_command_refuses_a_scene_mitsuba_could_not_render(tmp_path, capsys, case):
+    """A scene that loads but that Mitsuba fails to render, with an error from deep inside
+    it (no integrator, an empty film, no samples): one line naming what to give."""
+    from warptex.cli import main
+
+    scene = REPO / "scenes" / "bunny_wood.xml"
+    extra = case.split() if case.startswith("-D") else []
+    if case == "no integrator":
+        scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+        scene.write_text(re.sub(r"<integrator.*?</integrator>", "", scene.read_text(),
+                                flags=re.DOTALL))
+    out = tmp_path / "img.png"
+    assert main(["render", str(scene), "-o", str(out), *extra]) == 2
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.startswith(f"warptex: error: {scene}: ")
+    assert {"-D spp=0": "the sampler takes no samples per pixel (its sample_count is 0)",
+            "-D width=0": "the film is 0x256 pixels: give --res",
+            "no integrator": "the scene has no <integrator>"}[case] in err
+    assert not out.exists() and not out.with_name("img.png.json").exists()
+
+
 @pytest.mark.parametrize("folder", ["plain", "KeyboardInterrupt"])
 def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch, folder):
     """Ctrl-C while a texture pre-computes its candidates is an interruption, not a scene

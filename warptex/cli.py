@@ -164,7 +164,8 @@ def _add_feature_arguments(parser: argparse.ArgumentParser, advice: str = "") ->
         "--feature-mask",
         type=Path,
         metavar="MASK",
-        help=f"binary image marking features; adds a feature-distance channel{advice}",
+        help="black-and-white image, the exemplar's size, marking features (pixels above half "
+        f"its maximum, in its first channel); adds a feature-distance channel{advice}",
     )
     features.add_argument(
         "--feature-distance",
@@ -199,7 +200,8 @@ def _add_max_size_argument(parser: argparse.ArgumentParser, advice: str = _SCALE
         type=int,
         metavar="PIXELS",
         help="shrink larger exemplars (area-averaged, aspect kept) until their larger side is "
-        f"PIXELS (at least {MIN_EXEMPLAR_SIZE}), as photographs often need: pre-computing the "
+        f"PIXELS (at least {MIN_EXEMPLAR_SIZE}; default: no shrinking), as photographs often "
+        "need: pre-computing the "
         "candidates of a 512x512 image takes 5 minutes on 2 CPU cores, of a 256x256 one about a "
         f"minute{advice}",
     )

@@ -62,6 +62,11 @@ _SHRINK_BAND = 256  # columns shrunk at once
 _PYRAMID_SIGMA = 1.0
 
 
+# More than this share of grey pixels (neither within 10% of black nor of white) is no mask:
+# anti-aliased or JPEG-compressed masks have some along their edges.
+_MASK_GREY_SHARE = 0.05
+
+
 class AlphaDropped(UserWarning):
     """An exemplar's alpha channel was dropped on loading (``alpha="drop"``)."""
 
@@ -180,10 +185,11 @@ class Exemplar:
         path = check_file_name("path", path)
         array, has_alpha, stored_srgb = _read(path)
         if has_alpha and alpha == "drop":
-            warnings.warn(
-                f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in the CLI)",
-                AlphaDropped, stacklevel=2,
-            )
+            if not _opaque(array[..., -1]):  # an alpha that is opaque everywhere says nothing
+                warnings.warn(
+                    f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in "
+                    "the CLI)", AlphaDropped, stacklevel=2,
+                )
             array = array[..., :-1]
         read_shape = array.shape
         if max_size is not None:
@@ -193,6 +199,7 @@ class Exemplar:
         if feature_mask is not None:
             mask_path = Path(feature_mask)
             mask_image = _read(mask_path)[0]
+            _warn_unless_binary(mask_image, str(mask_path))
             if mask_image.shape[:2] != read_shape[:2]:
                 raise ExemplarError(
                     f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
@@ -624,6 +631,28 @@ def _validated_distance(distance: np.ndarray, shape: tuple[int, int], name: str)
     if not np.isfinite(data).all():
         raise ExemplarError(f"{name}: feature distance contains NaN or Inf values")
     return data
+
+
+def _opaque(alpha: np.ndarray) -> bool:
+    """Whether an alpha channel, as stored, is fully opaque everywhere."""
+    full = np.iinfo(alpha.dtype).max if np.issubdtype(alpha.dtype, np.integer) else 1.0
+    return bool(np.all(alpha >= full))
+
+
+def _warn_unless_binary(image: np.ndarray, name: str) -> None:
+    """Warn where a feature mask is no black-and-white image (a photo given by mistake):
+    it is thresholded at half its maximum all the same, which may mark nothing useful."""
+    first = image[..., 0] if image.ndim == 3 else image
+    if first.dtype == np.bool_:
+        return
+    values = first.astype(np.float32)
+    top = float(values.max())
+    grey = float(np.mean((values > 0.1 * top) & (values < 0.9 * top))) if top > 0 else 0.0
+    if grey > _MASK_GREY_SHARE:
+        channel = "its first channel" if image.ndim == 3 else "it"
+        warnings.warn(f"{name}: not a black-and-white feature mask ({grey:.0%} of its pixels "
+                      f"are grey); features are marked where {channel} exceeds half its "
+                      "maximum", stacklevel=3)
 
 
 def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:
