@@ -290,9 +290,8 @@ def _status(text: str) -> Iterator[None]:
 
 
 def _progress(done: int, total: int) -> None:
-    if not sys.stderr.isatty():  # a log: one line per batch, not carriage returns
-        print(f"rendering: batch {done}/{total}", file=sys.stderr, flush=True)
-        return
+    # Redrawn in place as tqdm's bars are, so that in a log the command's stderr makes
+    # lines of it as of theirs: the first, then at most one every few seconds, and the last.
     end = "\n" if done == total else ""
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 

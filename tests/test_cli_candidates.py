@@ -367,3 +367,13 @@ def test_progress_bars_in_a_log_are_lines_at_most_every_few_seconds(monkeypatch)
                  "", "\n", "warning\n", "\r", "\rnext: 0%"):
         log.write(text)
     assert "".join(written) == "bar: 0%\nbar: 90%\nbar: 100%\nwarning\nnext: 0%\n"
+    # A bar whose last update was written (10 s after the one before) and which then closes
+    # with that update's redraw, tqdm's rate changed: one line of it, not two.
+    written.clear()
+    clock = iter([20.0, 20.0, 31.0, 31.5])
+    for text in ("\r", "\rvol: 0%| 0/3 [00:00<?, ?slab/s]",
+                 "\rvol: 100%| 3/3 [00:11<00:00, 1.67slab/s]",
+                 "\rvol: 100%| 3/3 [00:11<00:00, 1.66slab/s]", "\n"):
+        log.write(text)
+    assert "".join(written) == ("vol: 0%| 0/3 [00:00<?, ?slab/s]\n"
+                                "vol: 100%| 3/3 [00:11<00:00, 1.67slab/s]\n")

@@ -1423,6 +1423,7 @@ class _LogLines:
         self._bar = False  # a bar is being drawn
         self._pending: str | None = None  # its last redraw, not yet written
         self._written = 0.0  # when a redraw was last written
+        self._shown = ""  # the progress of the redraw last written (see _progress)
 
     def write(self, text: str) -> int:
         if not text:  # tqdm writes nothing at times, which must not end a bar
@@ -1434,25 +1435,36 @@ class _LogLines:
                 self._pending, self._bar = None, False
                 return len(text)
             if not self._bar or now - self._written >= _LOG_SECONDS:
-                self._stream.write(line + "\n")
+                self._write_line(line)
                 self._pending, self._written = None, now
             else:
                 self._pending = line
             self._bar = True
             return len(text)
         if self._pending is not None:
-            self._stream.write(self._pending + "\n")
+            # A bar's closing redraw repeats its last update, if written, but for the rate.
+            if _progress(self._pending) != self._shown:
+                self._write_line(self._pending)
             self._pending = None
         if not (self._bar and text == "\n"):  # not the newline that ends a finished bar
             self._stream.write(text)
         self._bar = False
         return len(text)
 
+    def _write_line(self, line: str) -> None:
+        self._stream.write(line + "\n")
+        self._shown = _progress(line)
+
     def __getattr__(self, name: str) -> Any:
         return getattr(self._stream, name)
 
 
 _LOG_SECONDS = 10.0
+
+
+def _progress(line: str) -> str:
+    """A bar's line without its times and rate, tqdm's last "[...]"."""
+    return line.rsplit(" [", 1)[0]
 
 
 @contextlib.contextmanager
