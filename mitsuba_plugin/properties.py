@@ -3,6 +3,8 @@ error that names the plugin and the property at fault (as Mitsuba's own plugins 
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +22,21 @@ class PropertyError(ValueError):
 def property_error(plugin: str, name: str, problem: str) -> PropertyError:
     """The Mitsuba-style error, to raise, for property ``name`` of ``plugin``."""
     return PropertyError(f'{plugin}: property "{name}" {problem}')
+
+
+def check_known(names: Iterable[str], known: tuple[str, ...], plugin: str) -> None:
+    """Refuse a property ``plugin`` does not read, with the one it may be a typo of: Mitsuba
+    would refuse it too, after the plugin's work, and name no likely one."""
+    for name in names:
+        if name not in known:
+            raise property_error(plugin, name, f"is no property of {plugin}"
+                                               f"{did_you_mean(name, known)}")
+
+
+def did_you_mean(name: str, known: tuple[str, ...]) -> str:
+    """The hint at the one of ``known`` that ``name`` may be a typo of, or ""."""
+    near = difflib.get_close_matches(name, known, n=1)
+    return f'; did you mean "{near[0]}"?' if near else ""
 
 
 def get_property(props: mi.Properties, name: str, kind: type, default: Any,

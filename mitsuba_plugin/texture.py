@@ -102,6 +102,7 @@ import numpy as np
 
 import mitsuba_plugin
 from mitsuba_plugin.properties import (
+    check_known,
     choice_property,
     existing_scene_file,
     get_property,
@@ -159,16 +160,6 @@ def _exemplar_paths(props: mi.Properties) -> list[tuple[str, Path]]:
                                  f'is required (or all of "exemplar_{axis}", ...){typo}')
         named.append((key, existing_scene_file(name, key, PLUGIN)))
     return named
-
-
-def _check_known(props: mi.Properties) -> None:
-    """Refuse a property the plugin does not read, with the one it may be a typo of: Mitsuba
-    would refuse it too, after the exemplars' work, and name no likely one."""
-    for key in props:
-        if key not in _PROPERTIES:
-            near = difflib.get_close_matches(key, _PROPERTIES, n=1)
-            hint = f'; did you mean "{near[0]}"?' if near else ""
-            raise property_error(PLUGIN, key, f"is no property of {PLUGIN}{hint}")
 
 
 def _feature_options(props: mi.Properties, named: list[tuple[str, Path]]) -> dict:
@@ -266,7 +257,7 @@ class LazySolidTexture(mi.Texture):
         super().__init__(props)
         check_upsampling()  # before any work: this Mitsuba's spectra may be refused
         named = _exemplar_paths(props)
-        _check_known(props)
+        check_known(props, _PROPERTIES, PLUGIN)
         self.exemplars = [path for _, path in named]
         features = _feature_options(props, named)
         self.feature_distance = bool(features.get("feature_distance", False))

@@ -9,6 +9,7 @@ volume that queries it at each medium interaction's position::
         <texture type="lazy_solid" name="albedo"> ... </texture>
         <float name="sigma_t" value="6"/>   <!-- optional, default 1; or a nested volume -->
         <float name="scale" value="1"/>     <!-- optional, default 1: multiplies sigma_t -->
+        <boolean name="sample_emitters" value="true"/>  <!-- optional, as Mitsuba's media -->
         <phase type="hg"> ... </phase>      <!-- optional, default isotropic -->
     </medium>
 """
@@ -19,10 +20,18 @@ import math
 
 import mitsuba as mi
 
-from mitsuba_plugin.properties import get_property, property_error
+from mitsuba_plugin.properties import (
+    check_known,
+    did_you_mean,
+    get_property,
+    property_error,
+)
 from mitsuba_plugin.spectrum import spectrum
 
 MEDIUM = "lazy_solid_medium"
+# A nested phase function may go by any name (unnamed, the parser's "_arg_0"); "phase" is
+# here for the typos of it.
+_PROPERTIES = ("albedo", "sigma_t", "scale", "sample_emitters", "phase")
 
 
 class LazySolidVolume(mi.Volume):
@@ -63,27 +72,33 @@ def lazy_solid_medium(props: mi.Properties,
     ``volume_type`` is bound when the module is (re)loaded for a variant: a later reload
     for another variant rebinds the module's ``LazySolidVolume``, not this default.
     """
+    nested = [name for name in props if name not in ("albedo", "sigma_t")
+              and props.type(name) == mi.Properties.Type.Object]
+    check_known([name for name in props if name not in nested], _PROPERTIES, MEDIUM)
+    for name in nested:
+        if not isinstance(props[name], mi.PhaseFunction):
+            hint = did_you_mean(name, _PROPERTIES[:-1])  # a misspelt albedo, say
+            raise property_error(MEDIUM, name, f"is no property of {MEDIUM}{hint}" if hint
+                                 else "must be a nested phase function (<phase ...>)")
     albedo = props.get("albedo", None)
     if albedo is None or not hasattr(albedo, "colors_at"):
         raise property_error(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
-    sigma_t = props.get("sigma_t", 1.0)  # a number, or a nested volume Mitsuba checks
+    sigma_t = props.get("sigma_t", 1.0)
     if isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
         sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too
         if not (math.isfinite(sigma_t) and sigma_t >= 0):
             raise property_error(MEDIUM, "sigma_t",
                                  f"must be finite and not negative, got {sigma_t}")
+    elif not isinstance(sigma_t, mi.Volume):  # which Mitsuba's medium checks itself
+        got = repr(sigma_t) if isinstance(sigma_t, str | bool) else type(sigma_t).__name__
+        raise property_error(MEDIUM, "sigma_t", f"must be a <float ...> or a nested volume, "
+                             f"got {got}")
     scale = get_property(props, "scale", float, 1.0, MEDIUM)
     if not (math.isfinite(scale) and scale >= 0):
         raise property_error(MEDIUM, "scale", f"must be finite and not negative, got {scale}")
     medium = {"type": "heterogeneous", "albedo": volume_type(albedo), "sigma_t": sigma_t,
-              "scale": scale}
-    # A nested phase function arrives under a name of the parser's ("_arg_0"). Only nested
-    # objects are read here, so Mitsuba still reports a misspelled property as unreferenced.
-    nested = [name for name in props if name not in ("albedo", "sigma_t")
-              and props.type(name) == mi.Properties.Type.Object]
-    for name in nested:
-        if not isinstance(props[name], mi.PhaseFunction):
-            raise property_error(MEDIUM, name, "must be a nested phase function (<phase ...>)")
+              "scale": scale,
+              "sample_emitters": get_property(props, "sample_emitters", bool, True, MEDIUM)}
     if len(nested) > 1:
         raise property_error(MEDIUM, "phase", f"must be given once, got {len(nested)}")
     if nested:

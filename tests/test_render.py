@@ -143,8 +143,18 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "bsdf" must be a '
                        "nested phase function"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "bsdf": {"type": "diffuse"}})
-    with pytest.raises(RuntimeError, match=r'unreferenced property(.|\n)*"sigmat"'):  # a typo
-        mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "sigmat": 2.0})
+    for typo, value, meant in (("sigmat", 2.0, "sigma_t"), ("albedoo", albedo, "albedo")):
+        with pytest.raises(RuntimeError, match=f'lazy_solid_medium: property "{typo}" is no '
+                           f'property of lazy_solid_medium; did you mean "{meant}"'):
+            mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, typo: value})
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" must be a '
+                       r"<float \.\.\.> or a nested volume, got 'six'"):
+        mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "sigma_t": "six"})
+    quiet = mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                          "sigma_t": {"type": "constvolume", "value": 2.0},
+                          "sample_emitters": False})
+    assert not quiet.use_emitter_sampling()
+    assert mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo}).use_emitter_sampling()
 
 
 def test_medium_takes_a_nested_phase_function_and_an_integer_sigma_t():
