@@ -93,6 +93,25 @@ def test_cache_files_tell_each_kind_apart(folder, computed, image):
     assert cc.cache_files(folder / "not yet made") == []
 
 
+def test_cache_files_of_one_photo_loaded_otherwise_are_told_apart(image, tmp_path, monkeypatch,
+                                                                  capsys):
+    """Files of one photo with a feature-distance channel, shrunk, or of other parameters
+    are listed with what sets each apart, not as rows of the same name."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    precompute(Exemplar.load(image), progress=False)
+    precompute(Exemplar.load(image, feature_distance=True), progress=False)
+    precompute(Exemplar.load(GRANITE, max_size=16), progress=False)
+    precompute(Exemplar.load(image), tileable=True, progress=False)
+    listed = sorted((f.names[0], f.settings) for f in cc.cache_files(tmp_path))
+    assert listed == sorted([(image.name, ()), (f"{image.name} (feature distance)", ()),
+                             ("granite_64.png (shrunk to 16x16)", ()),
+                             (image.name, ("tileable=True",))])
+    assert main(["cache"]) == 0
+    out = capsys.readouterr().out
+    assert "  granite_64.png (shrunk to 16x16)\n" in out
+    assert f"  {image.name}; tileable=True\n" in out
+
+
 def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):
     current, _ = computed
     renamed = folder / f"{candidates.CACHE_PREFIX}{'3' * 40}.wtc"

@@ -21,6 +21,7 @@ from warptex.archive import archive_version, is_temporary
 from warptex.candidates import (
     CACHE_PREFIX,
     CACHE_SUFFIX,
+    DEFAULT_PARAMS,
     FILE_MAGIC,
     FORMAT_VERSION,
     CandidateCacheError,
@@ -52,6 +53,7 @@ class CacheFile:
     modified: float  # seconds since the epoch
     status: str  # one of STATUSES
     names: tuple[str, ...] = ()  # the exemplars (x, y, z) as named when computed, if recorded
+    settings: tuple[str, ...] = ()  # its parameters that are not the defaults, "name=value"
     # Inode, modification time (ns) and size when listed: a file replaced since (a damaged
     # one recomputed by another run) is not the file judged, and is not deleted.
     identity: tuple[int, int, int] = (0, 0, 0)
@@ -79,13 +81,16 @@ def cache_files(folder: Path | None = None, now: float | None = None) -> list[Ca
         try:
             info = path.stat()
             if cached:
-                status, names = _status(path)
+                status, meta = _status(path)
             else:
                 old = now - info.st_mtime > UNFINISHED_AGE
-                status, names = (UNFINISHED if old else BEING_WRITTEN), ()
+                status, meta = (UNFINISHED if old else BEING_WRITTEN), {}
         except FileNotFoundError:  # renamed into place or pruned by another run meanwhile
             continue
-        found.append(CacheFile(path, info.st_size, info.st_mtime, status, names,
+        names = tuple(str(n) for n in meta.get("names", ()))
+        params = meta.get("params", {}) if isinstance(meta.get("params"), dict) else {}
+        settings = tuple(f"{k}={v}" for k, v in params.items() if DEFAULT_PARAMS.get(k) != v)
+        found.append(CacheFile(path, info.st_size, info.st_mtime, status, names, settings,
                                _identity(info)))
     return sorted(found, key=lambda f: (f.modified, f.path.name))
 
@@ -114,24 +119,25 @@ def _identity(info: os.stat_result) -> tuple[int, int, int]:
     return info.st_ino, info.st_mtime_ns, info.st_size
 
 
-def _status(path: Path) -> tuple[str, tuple[str, ...]]:
+def _status(path: Path) -> tuple[str, dict]:
+    """The file's status, and what it says it holds (:func:`read_cache_meta`) where it can
+    be read."""
     try:
         version = archive_version(path, FILE_MAGIC)
     except FileNotFoundError:
         raise
     except OSError:  # another user's file in a shared folder, or a folder of that name
-        return UNREADABLE, ()
+        return UNREADABLE, {}
     if version is None:
-        return DAMAGED, ()
+        return DAMAGED, {}
     if version != FORMAT_VERSION:
-        return OTHER_VERSION, ()
+        return OTHER_VERSION, {}
     try:
         meta = read_cache_meta(path)
     except CandidateCacheError:
-        return DAMAGED, ()
-    names = tuple(str(n) for n in meta.get("names", ()))
+        return DAMAGED, {}
     try:
         expected = cache_file_name(meta["digests"], meta["params"])
     except TypeError:  # not JSON-serializable: cannot come from any warptex
-        return DAMAGED, names
-    return (IN_USE if path.name == expected else OTHER_VERSION), names
+        return DAMAGED, meta
+    return (IN_USE if path.name == expected else OTHER_VERSION), meta

@@ -159,8 +159,9 @@ class CandidateSet:
     sources: list[list[SourceLevel]]  # [level][source]
     roles: list[list[RoleLevel]]  # [level][role]
     stats: dict = field(default_factory=dict)
-    # The exemplars' names (x, y, z) when computed, for people listing cache files; the
-    # digests, not the names, say what the candidates are of.
+    # The exemplars' names (x, y, z) when computed, with what set them apart from their
+    # files (:func:`_exemplar_label`), for people listing cache files; the digests, not the
+    # names, say what the candidates are of.
     names: tuple[str, ...] = field(default=(), compare=False)
     # How precompute got these: "loaded" from its cache, "written" to it, "not written"
     # (the cache could not be written), or "" without a cache. Not saved in files.
@@ -465,10 +466,20 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
         colors=[pyr[-1].colors.astype(np.float32) for pyr in pyramids],
         sources=sources,
         roles=roles,
-        names=tuple(e.name for e in exemplars),
+        names=tuple(_exemplar_label(e) for e in exemplars),
     )
     cs.stats = {"fallback_pixels": fallbacks}
     return cs
+
+
+def _exemplar_label(ex: Exemplar) -> str:
+    """``ex``'s name, with what sets it apart from its file as loaded plainly (its size
+    where shrunk, a feature-distance channel): what cache listings name it by."""
+    h, w = ex.shape
+    notes = [f"shrunk to {w}x{h}"] if ex.file_shape not in (None, ex.shape) else []
+    if ex.features.shape[2] > ex.channels:
+        notes.append("feature distance")
+    return f"{ex.name} ({', '.join(notes)})" if notes else str(ex.name)
 
 
 def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:

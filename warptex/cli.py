@@ -470,8 +470,9 @@ def _cmd_cache(args: argparse.Namespace) -> int:
         print(f"  {'written':<16}  {'size':>9}  {'status':<13}  {'file':<55}  exemplars")
     for f in files:
         written = time.strftime("%Y-%m-%d %H:%M", time.localtime(f.modified))
+        settings = f"; {', '.join(f.settings)}" if f.settings else ""
         print(f"  {written:<16}  {_mib_tenths(f.size):>9}  {f.status:<13}  {f.path.name:<55}  "
-              f"{_exemplar_names(f.names)}")
+              f"{_exemplar_names(f.names)}{settings}")
     if not files:
         print("no candidate files")
     else:
@@ -503,7 +504,8 @@ def _cache_report(folder: Path, files: list, deleted: tuple[int, int] | None,
     return {
         "candidate_cache": str(folder),
         "files": [{"file": str(f.path), "written": iso_date(f.modified), "bytes": f.size,
-                   "status": f.status, "exemplars": list(f.names)} for f in files],
+                   "status": f.status, "exemplars": list(f.names),
+                   "settings": list(f.settings)} for f in files],
         "deleted": None if deleted is None else {"files": deleted[0], "bytes": deleted[1]},
         "kernel_cache": kernels,
     }
