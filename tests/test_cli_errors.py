@@ -552,3 +552,16 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, argv, victim):
     assert f"would overwrite {work / victim}" in err or \
         f"would overwrite the input {work / victim}" in err
     assert {p.name: p.read_bytes() for p in work.iterdir()} == before
+
+
+@pytest.mark.parametrize("command", ["slice", "volume"])
+def test_an_output_that_is_a_folder_is_named_so_whatever_its_name(files, tmp_path, capsys,
+                                                                  command):
+    """A folder given as output, with no suffix or a right one: the same error, that it is
+    a folder, not one about its suffix."""
+    for folder in (tmp_path / "renders", tmp_path / "volume.npy"):
+        folder.mkdir()
+        assert main([command, str(files["exemplar"]), "-o", str(folder)]) == 2
+        err = capsys.readouterr().err
+        assert err.endswith(f"warptex: error: {folder}: is a folder, expected a file name\n")
+        assert not any(folder.iterdir())

@@ -77,6 +77,9 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
     that it is one of ``formats`` and that the file can be written where it is asked for
     (missing folders are created then)."""
     suffix = path.suffix.lower()
+    with contextlib.suppress(OSError):  # file_problem says why it cannot be looked up
+        if path.is_dir():  # before its name's suffix, which a folder's need not have
+            raise CliError(f"{path}: is a folder, expected a file name")
     if formats is not None and not suffix and path.name.lower() in formats:
         raise CliError(f"{path}: {what} needs a name before {path.name} (out{path.name}, say)")
     if formats is not None and suffix not in formats:
