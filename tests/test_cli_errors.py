@@ -565,3 +565,27 @@ def test_an_output_that_is_a_folder_is_named_so_whatever_its_name(files, tmp_pat
         err = capsys.readouterr().err
         assert err.endswith(f"warptex: error: {folder}: is a folder, expected a file name\n")
         assert not any(folder.iterdir())
+
+
+def test_every_command_s_help_ends_with_examples_that_parse(capsys):
+    """Each command's --help shows examples, one per line, and each is a command line that
+    the parser takes, naming files that the checkout has: help that does not go stale."""
+    import shlex
+
+    from warptex import cli
+
+    repo = Path(__file__).resolve().parent.parent
+    parser = cli._parser()
+    for name in cli._SUBCOMMANDS:
+        with pytest.raises(SystemExit):
+            main([name, "--help"])
+        text = capsys.readouterr().out
+        examples = cli._EXAMPLES[name]
+        assert text.rstrip().endswith("\n".join(f"  {e}" for e in examples))
+        for example in examples:
+            argv = shlex.split(example)[1:]
+            args = parser.parse_args(argv)
+            assert args.command == name
+            for value in argv:
+                if value.startswith("scenes/"):
+                    assert (repo / value).is_file(), value

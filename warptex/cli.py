@@ -1353,9 +1353,46 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"warptex {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add_parser, _ in _SUBCOMMANDS.values():
+    for name, (add_parser, _) in _SUBCOMMANDS.items():
         add_parser(subparsers)
+        command = subparsers.choices[name]
+        command.formatter_class = _HelpFormatter
+        command.epilog = "examples, from a checkout's folder:\n" + "\n".join(_EXAMPLES[name])
     return parser
+
+
+_WOOD = "scenes/textures/wood_rosewood_64.png"
+_BUNNY = "scenes/meshes/bunny.ply"
+# Each command's --help ends with these, run from a checkout (its scenes/ and their files).
+_EXAMPLES = {
+    "info": [f"warptex info {_WOOD}"],
+    "precompute": [f"warptex precompute {_WOOD}",
+                   "warptex precompute photo.jpg --exemplar-max-size 128 -o photo.wtc"],
+    "cache": ["warptex cache", "warptex cache --prune"],
+    "volume": [f"warptex volume {_WOOD} --size 64 -o out/wood.npy",
+               f"warptex volume {_WOOD} --size 32 --method kopf -o out/wood_kopf.exr"],
+    "slice": [f"warptex slice {_WOOD} -o out/slice.png",
+              f"warptex slice {_WOOD} --origin 0 0 0.5 --u 0 1 0 --v 0 0 1 --shape 128 128 "
+              "-o out/across.png"],
+    "bake": [f"warptex bake {_BUNNY} --exemplar {_WOOD} --resolution 256 -o out/bunny.ply",
+             f"warptex bake {_BUNNY} --exemplar {_WOOD} --resolution 256 --uv auto "
+             "-o out/bunny.obj"],
+    "cut": [f"warptex cut {_BUNNY} --exemplar {_WOOD} --resolution 256 --normal 1 0 0 "
+            "-o out/half.ply"],
+    "compare": [f"warptex compare {_WOOD} --size 32 --methods lazy,tiled,noise -o out/compare"],
+    "render": ["warptex render scenes/bunny_wood.xml -o out/bunny.png --spp 16 --res 256x256"],
+}
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's, but the lines after an epilog's first (its examples) are kept as they
+    are, one command each, rather than run together into a paragraph."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        first, newline, lines = text.partition("\n")
+        if not newline:
+            return super()._fill_text(text, width, indent)
+        return "\n".join([indent + first, *(f"{indent}  {line}" for line in lines.splitlines())])
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
