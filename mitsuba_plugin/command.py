@@ -187,7 +187,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     loaded = time.perf_counter()
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
-        _check_renderable(scene, sensor)
+        _check_renderable(scene, sensor, spp)
         for texture in mitsuba_plugin.textures(scene):
             _check_store_file(texture, [output, statistics], save_stores)
     except ValueError as e:
@@ -239,9 +239,10 @@ def _write_failure(error: OSError, path: Path) -> str:
     return write_failure(error.filename or path, error)
 
 
-def _check_renderable(scene, sensor) -> None:
+def _check_renderable(scene, sensor, spp: int | None) -> None:
     """Refuse a loaded scene that Mitsuba would fail to render only once it starts, with
-    an error from deep inside it: no integrator, an empty film, no samples."""
+    an error from deep inside it: no integrator, an empty film, no samples (``spp``, where
+    given, replaces the sampler's count)."""
     if scene.integrator() is None:
         raise ValueError('the scene has no <integrator>: add one, such as <integrator '
                          'type="path"/>')
@@ -249,7 +250,7 @@ def _check_renderable(scene, sensor) -> None:
     if width < 1 or height < 1:
         raise ValueError(f"the film is {width}x{height} pixels: give --res, or a positive "
                          "width and height in the scene or with -D")
-    if sensor.sampler().sample_count() < 1:
+    if spp is None and sensor.sampler().sample_count() < 1:
         raise ValueError("the sampler takes no samples per pixel (its sample_count is "
                          f"{sensor.sampler().sample_count()}): give --spp, or a positive "
                          "sample_count in the scene or with -D")

@@ -48,7 +48,9 @@ def get_property(props: mi.Properties, name: str, kind: type, default: Any,
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
     if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
-        raise property_error(plugin, name, f"must be {_KINDS[kind]}, got {value!r}")
+        got = (repr(value) if isinstance(value, int | float | str | bool)
+               else f"a nested {type(value).__name__}")
+        raise property_error(plugin, name, f"must be {_KINDS[kind]}, got {got}")
     return value
 
 

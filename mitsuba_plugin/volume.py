@@ -29,9 +29,10 @@ from mitsuba_plugin.properties import (
 from mitsuba_plugin.spectrum import spectrum
 
 MEDIUM = "lazy_solid_medium"
-# A nested phase function may go by any name (unnamed, the parser's "_arg_0"); "phase" is
-# here for the typos of it.
-_PROPERTIES = ("albedo", "sigma_t", "scale", "sample_emitters", "phase")
+# Besides these, a nested phase function, which may go by any name (unnamed, the parser's
+# "_arg_0"); "phase" is in _PROPERTIES for the typos of it.
+_VALUES = ("albedo", "sigma_t", "scale", "sample_emitters")
+_PROPERTIES = (*_VALUES, "phase")
 
 
 class LazySolidVolume(mi.Volume):
@@ -72,12 +73,12 @@ def lazy_solid_medium(props: mi.Properties,
     ``volume_type`` is bound when the module is (re)loaded for a variant: a later reload
     for another variant rebinds the module's ``LazySolidVolume``, not this default.
     """
-    nested = [name for name in props if name not in ("albedo", "sigma_t")
+    nested = [name for name in props if name not in _VALUES
               and props.type(name) == mi.Properties.Type.Object]
     check_known([name for name in props if name not in nested], _PROPERTIES, MEDIUM)
     for name in nested:
         if not isinstance(props[name], mi.PhaseFunction):
-            hint = did_you_mean(name, _PROPERTIES[:-1])  # a misspelt albedo, say
+            hint = did_you_mean(name, _VALUES)  # a misspelt albedo, say
             raise property_error(MEDIUM, name, f"is no property of {MEDIUM}{hint}" if hint
                                  else "must be a nested phase function (<phase ...>)")
     albedo = props.get("albedo", None)
@@ -89,10 +90,9 @@ def lazy_solid_medium(props: mi.Properties,
         if not (math.isfinite(sigma_t) and sigma_t >= 0):
             raise property_error(MEDIUM, "sigma_t",
                                  f"must be finite and not negative, got {sigma_t}")
-    elif not isinstance(sigma_t, mi.Volume):  # which Mitsuba's medium checks itself
-        got = repr(sigma_t) if isinstance(sigma_t, str | bool) else type(sigma_t).__name__
-        raise property_error(MEDIUM, "sigma_t", f"must be a <float ...> or a nested volume, "
-                             f"got {got}")
+    elif isinstance(sigma_t, str | bool):  # colours, spectra and volumes Mitsuba checks
+        raise property_error(MEDIUM, "sigma_t", f"must be a <float ...>, a colour or a nested "
+                             f"volume, got {sigma_t!r}")
     scale = get_property(props, "scale", float, 1.0, MEDIUM)
     if not (math.isfinite(scale) and scale >= 0):
         raise property_error(MEDIUM, "scale", f"must be finite and not negative, got {scale}")

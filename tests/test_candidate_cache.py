@@ -102,14 +102,21 @@ def test_cache_files_of_one_photo_loaded_otherwise_are_told_apart(image, tmp_pat
     precompute(Exemplar.load(image, feature_distance=True), progress=False)
     precompute(Exemplar.load(GRANITE, max_size=16), progress=False)
     precompute(Exemplar.load(image), tileable=True, progress=False)
-    listed = sorted((f.names[0], f.settings) for f in cc.cache_files(tmp_path))
-    assert listed == sorted([(image.name, ()), (f"{image.name} (feature distance)", ()),
-                             ("granite_64.png (shrunk to 16x16)", ()),
-                             (image.name, ("tileable=True",))])
+    rgba = Image.open(image).convert("RGBA")
+    rgba.putalpha(128)
+    rgba.save(tmp_path / "rgba.png")
+    precompute(Exemplar.load(tmp_path / "rgba.png", alpha="keep"), progress=False)
+    listed = sorted((f.names[0], str(f.settings)) for f in cc.cache_files(tmp_path))
+    assert listed == sorted([(image.name, "{}"), (f"{image.name} (feature distance)", "{}"),
+                             ("granite_64.png (shrunk to 16x16)", "{}"),
+                             (image.name, "{'tileable': True}"), ("rgba.png (4 channels)", "{}")])
     assert main(["cache"]) == 0
     out = capsys.readouterr().out
     assert "  granite_64.png (shrunk to 16x16)\n" in out
-    assert f"  {image.name}; tileable=True\n" in out
+    assert f"  {image.name}; tileable=yes\n" in out
+    assert main(["cache", "--json"]) == 0
+    files = json.loads(capsys.readouterr().out)["files"]
+    assert sorted(json.dumps(f["settings"]) for f in files) == ['{"tileable": true}'] + ["{}"] * 4
 
 
 def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):

@@ -583,6 +583,8 @@ def test_every_command_s_help_ends_with_examples_that_parse(capsys):
         text = capsys.readouterr().out
         examples = cli._EXAMPLES[name]
         assert text.rstrip().endswith("\n".join(f"  {e}" for e in examples))
+        if name == "cache":  # an epilog of its own comes first, wrapped as argparse does
+            assert "Deleted candidates are computed again when next needed" in text
         for example in examples:
             argv = shlex.split(example)[1:]
             args = parser.parse_args(argv)

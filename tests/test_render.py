@@ -148,11 +148,18 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
                            f'property of lazy_solid_medium; did you mean "{meant}"'):
             mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, typo: value})
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" must be a '
-                       r"<float \.\.\.> or a nested volume, got 'six'"):
+                       r"<float \.\.\.>, a colour or a nested volume, got 'six'"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "sigma_t": "six"})
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "scale" must be a '
+                       r"<float \.\.\.>, got a nested "):
+        mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                      "scale": {"type": "constvolume", "value": 2.0}})
     quiet = mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
                           "sigma_t": {"type": "constvolume", "value": 2.0},
                           "sample_emitters": False})
+    coloured = mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                             "sigma_t": {"type": "rgb", "value": [0.5, 0.4, 0.3]}})
+    assert "sigma_t" in str(coloured)  # an <rgb> sigma_t, as Mitsuba's heterogeneous takes
     assert not quiet.use_emitter_sampling()
     assert mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo}).use_emitter_sampling()
 
@@ -197,8 +204,20 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert f"passes={props['passes']}," in texture["texture"]
     assert len(props["to_world"]) == 4 and props["space"] in ("world", "object")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bunny.PNG", "bunny.PNG.json"]
-    # Captured, stderr is no terminal: progress comes a line per batch, no carriage returns.
+    # Captured, stderr is no terminal: progress comes as lines, no carriage returns.
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
+
+
+def test_render_progress_in_a_log_is_its_first_and_last_line(tmp_path, capsys, monkeypatch):
+    """In a log, a render's batches are lines as a bar's redraws are: the first, at most
+    one every _LOG_SECONDS (made longer than any render here), and the last."""
+    from warptex import cli
+
+    monkeypatch.setattr(cli, "_LOG_SECONDS", 1e9)
+    assert cli.main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
+                     str(tmp_path / "b.png"), "--spp", "4", "--res", "8x8"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "rendering" in line]
+    assert lines == ["rendering: batch 0/4", "rendering: batch 4/4"]
 
 
 def test_render_command_takes_scene_parameters_and_a_sampler_seed(tmp_path):
@@ -530,6 +549,9 @@ def test_render_command_refuses_a_scene_mitsuba_could_not_render(tmp_path, capsy
             "-D width=0": "the film is 0x256 pixels: give --res",
             "no integrator": "the scene has no <integrator>"}[case] in err
     assert not out.exists() and not out.with_name("img.png.json").exists()
+    if case == "-D spp=0":  # --spp replaces the scene's count
+        assert main(["render", str(scene), "-o", str(out), *extra, "--spp", "1",
+                     "--res", "8x8"]) == 0
 
 
 @pytest.mark.parametrize("folder", ["plain", "KeyboardInterrupt"])

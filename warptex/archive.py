@@ -1,12 +1,13 @@
 """Files written atomically, and versioned, checksummed files of NumPy arrays.
 
-Every single file warptex writes goes through :func:`write_atomically` (a mesh that comes
-with its material and texture files is staged whole by ``warptex.mesh_files.export``, then
-each file renamed into place). The candidate cache and the brick store persist through
-archives: a header holds a magic string, a format version and the SHA-256 of the payload
-(an uncompressed ``.npz``), so a truncated, corrupt or foreign file is detected and never
-used, and a reader never sees a half-written file (it is written under a temporary name,
-then renamed).
+Every single file warptex writes goes through :func:`write_atomically`, or
+:func:`write_together` for files that belong together (a render's image and statistics; a
+mesh that comes with its material and texture files is staged whole by
+``warptex.mesh_files.export``), then each file is renamed into place. The candidate cache
+and the brick store persist through archives: a header holds a magic string, a format
+version and the SHA-256 of the payload (an uncompressed ``.npz``), so a truncated, corrupt
+or foreign file is detected and never used, and a reader never sees a half-written file (it
+is written under a temporary name, then renamed).
 """
 
 from __future__ import annotations
@@ -97,7 +98,9 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
 def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) -> None:
     """:func:`write_atomically` for files that belong together (an image and its
     statistics): every temporary file is written before any is renamed, so a write that
-    fails (a full disk) leaves all of them as they were, never a new one beside an old."""
+    fails (a full disk) leaves all of them as they were, never a new one beside an old.
+    Only a rename that fails after an earlier one went through (the file's place taken by
+    a folder meanwhile) can still leave them mixed."""
     tag = f"{os.getpid()}.{threading.get_ident()}"
     staged = [(Path(path), write) for path, write in writes]
     temporary = [path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")

@@ -14,7 +14,7 @@ import errno
 import os
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from warptex.archive import archive_version, is_temporary
@@ -53,7 +53,7 @@ class CacheFile:
     modified: float  # seconds since the epoch
     status: str  # one of STATUSES
     names: tuple[str, ...] = ()  # the exemplars (x, y, z) as named when computed, if recorded
-    settings: tuple[str, ...] = ()  # its parameters that are not the defaults, "name=value"
+    settings: dict = field(default_factory=dict)  # its parameters that are not the defaults
     # Inode, modification time (ns) and size when listed: a file replaced since (a damaged
     # one recomputed by another run) is not the file judged, and is not deleted.
     identity: tuple[int, int, int] = (0, 0, 0)
@@ -89,7 +89,7 @@ def cache_files(folder: Path | None = None, now: float | None = None) -> list[Ca
             continue
         names = tuple(str(n) for n in meta.get("names", ()))
         params = meta.get("params", {}) if isinstance(meta.get("params"), dict) else {}
-        settings = tuple(f"{k}={v}" for k, v in params.items() if DEFAULT_PARAMS.get(k) != v)
+        settings = {k: v for k, v in params.items() if DEFAULT_PARAMS.get(k) != v}
         found.append(CacheFile(path, info.st_size, info.st_mtime, status, names, settings,
                                _identity(info)))
     return sorted(found, key=lambda f: (f.modified, f.path.name))

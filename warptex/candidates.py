@@ -474,9 +474,12 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
 
 def _exemplar_label(ex: Exemplar) -> str:
     """``ex``'s name, with what sets it apart from its file as loaded plainly (its size
-    where shrunk, a feature-distance channel): what cache listings name it by."""
+    where shrunk, channels other than RGB, a feature-distance channel): what cache listings
+    name it by."""
     h, w = ex.shape
     notes = [f"shrunk to {w}x{h}"] if ex.file_shape not in (None, ex.shape) else []
+    if ex.channels != 3:  # an alpha channel kept, or a grey photo
+        notes.append(f"{ex.channels} channel{'s' if ex.channels > 1 else ''}")
     if ex.features.shape[2] > ex.channels:
         notes.append("feature distance")
     return f"{ex.name} ({', '.join(notes)})" if notes else str(ex.name)

@@ -473,7 +473,7 @@ def _cmd_cache(args: argparse.Namespace) -> int:
         print(f"  {'written':<16}  {'size':>9}  {'status':<13}  {'file':<55}  exemplars")
     for f in files:
         written = time.strftime("%Y-%m-%d %H:%M", time.localtime(f.modified))
-        settings = f"; {', '.join(f.settings)}" if f.settings else ""
+        settings = "".join(f"; {_setting(k, v)}" for k, v in f.settings.items())
         print(f"  {written:<16}  {_mib_tenths(f.size):>9}  {f.status:<13}  {f.path.name:<55}  "
               f"{_exemplar_names(f.names)}{settings}")
     if not files:
@@ -508,10 +508,16 @@ def _cache_report(folder: Path, files: list, deleted: tuple[int, int] | None,
         "candidate_cache": str(folder),
         "files": [{"file": str(f.path), "written": iso_date(f.modified), "bytes": f.size,
                    "status": f.status, "exemplars": list(f.names),
-                   "settings": list(f.settings)} for f in files],
+                   "settings": f.settings} for f in files],
         "deleted": None if deleted is None else {"files": deleted[0], "bytes": deleted[1]},
         "kernel_cache": kernels,
     }
+
+
+def _setting(name: str, value: object) -> str:
+    """A candidate parameter as the command line gives it (``tileable=yes``)."""
+    shown = ("yes" if value else "no") if isinstance(value, bool) else value
+    return f"{name}={shown}"
 
 
 def _exemplar_names(names: tuple[str, ...]) -> str:
@@ -1357,17 +1363,19 @@ def _parser() -> argparse.ArgumentParser:
         add_parser(subparsers)
         command = subparsers.choices[name]
         command.formatter_class = _HelpFormatter
-        command.epilog = "examples, from a checkout's folder:\n" + "\n".join(_EXAMPLES[name])
+        examples = "\n".join([_EXAMPLES_HEADING, *_EXAMPLES[name]])
+        command.epilog = f"{command.epilog}\n\n{examples}" if command.epilog else examples
     return parser
 
 
 _WOOD = "scenes/textures/wood_rosewood_64.png"
 _BUNNY = "scenes/meshes/bunny.ply"
 # Each command's --help ends with these, run from a checkout (its scenes/ and their files).
+_EXAMPLES_HEADING = "examples, from a checkout's folder:"
 _EXAMPLES = {
     "info": [f"warptex info {_WOOD}"],
     "precompute": [f"warptex precompute {_WOOD}",
-                   "warptex precompute photo.jpg --exemplar-max-size 128 -o photo.wtc"],
+                   f"warptex precompute {_WOOD} --exemplar-max-size 32 -o out/wood_32.wtc"],
     "cache": ["warptex cache", "warptex cache --prune"],
     "volume": [f"warptex volume {_WOOD} --size 64 -o out/wood.npy",
                f"warptex volume {_WOOD} --size 32 --method kopf -o out/wood_kopf.exr"],
@@ -1385,14 +1393,19 @@ _EXAMPLES = {
 
 
 class _HelpFormatter(argparse.HelpFormatter):
-    """argparse's, but the lines after an epilog's first (its examples) are kept as they
-    are, one command each, rather than run together into a paragraph."""
+    """argparse's, but the examples that end an epilog (the lines after its heading) are
+    kept as they are, one command each, rather than run together into a paragraph."""
 
     def _fill_text(self, text: str, width: int, indent: str) -> str:
-        first, newline, lines = text.partition("\n")
-        if not newline:
-            return super()._fill_text(text, width, indent)
-        return "\n".join([indent + first, *(f"{indent}  {line}" for line in lines.splitlines())])
+        prose, heading, examples = text.partition(_EXAMPLES_HEADING)
+        filled = []
+        for paragraph in prose.split("\n\n"):  # a loop: a comprehension's super() fails
+            if paragraph.strip():
+                filled.append(super()._fill_text(paragraph, width, indent))
+        if heading:
+            filled.append("\n".join([indent + heading, *(f"{indent}  {line}" for line
+                                                        in examples.strip("\n").splitlines())]))
+        return "\n\n".join(filled)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -151,10 +151,12 @@ class Exemplar:
 
         Args:
             path: the image file.
-            alpha: ``"drop"`` removes an alpha channel with a warning, ``"keep"`` keeps it as the
-                last color channel.
-            feature_mask: binary image of the same size; nonzero pixels are "feature". Adds the
-                feature-distance channel computed from it.
+            alpha: ``"drop"`` removes an alpha channel, with a warning unless it is opaque
+                everywhere; ``"keep"`` keeps it as the last color channel.
+            feature_mask: black-and-white image of the same size; pixels above half its
+                maximum (in its first channel) are "feature", and a mask with many grey
+                pixels is used so with a warning. Adds the feature-distance channel computed
+                from it.
             feature_distance: ``"auto"`` (or True) adds a feature-distance channel from an
                 automatic (Otsu) threshold of the luminance when no ``feature_mask`` is given.
             max_size: shrink a larger image, and its feature mask, by area averaging until its
@@ -199,12 +201,12 @@ class Exemplar:
         if feature_mask is not None:
             mask_path = Path(feature_mask)
             mask_image = _read(mask_path)[0]
-            _warn_unless_binary(mask_image, str(mask_path))
             if mask_image.shape[:2] != read_shape[:2]:
                 raise ExemplarError(
                     f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
                     f"{path} is {_size(read_shape)}"
                 )
+            _warn_unless_binary(mask_image, str(mask_path))
             if array.shape[:2] != read_shape[:2]:
                 mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
                                      str(mask_path))
