@@ -733,6 +733,36 @@ def test_a_setup_holds_plain_values_that_table_json_can_write(tmp_path, data_dir
     assert not (tmp_path / "bad").exists()
 
 
+def test_a_report_that_cannot_be_written_whole_leaves_the_last_one(tmp_path, data_dir,
+                                                                   monkeypatch):
+    """sheet.png, table.md and table.json are written together: a full disk at the last
+    leaves the last report's three files as they were, not a new sheet beside old tables."""
+    import errno
+    import os
+
+    setup = compare.Setup(data_dir / "granite_64.png", 16)
+    row = compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0,
+                               0.0, slices=[np.zeros((16, 16, 3), np.float32)] * 3)
+    out = tmp_path / "out"
+    files = compare.write_report(compare.Comparison(setup, [row]), out)
+    before = [f.read_bytes() for f in files]
+    write_text = Path.write_text
+
+    def full(self, text, *args, **kwargs):
+        if self.suffix == ".json":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return write_text(self, text, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    brighter = compare.MethodResult("noise", [1.0] * 3, [1.0] * 3, [1.0] * 3, [1.0] * 3, 1.0,
+                                    1.0, 1.0, slices=[np.ones((16, 16, 3), np.float32)] * 3)
+    with pytest.raises(OSError) as caught:
+        compare.write_report(compare.Comparison(setup, [brighter]), out)
+    assert caught.value.filename == str(out / "table.json")
+    assert [f.read_bytes() for f in files] == before
+    assert sorted(p.name for p in out.iterdir()) == sorted(f.name for f in files)
+
+
 def test_a_mixed_axis_error_names_the_file_given_for_that_axis(tmp_path, data_dir):
     """An image given twice is merged only after the checks, so they name what was given."""
     import shutil

@@ -97,6 +97,20 @@ def test_windows_do_not_wrap_across_a_seam(granite):
     assert np.isin(matches, seamed.axes[2].window_pixels).all()
 
 
+def test_pca_keeps_95_percent_of_the_variance_or_says_how_much_less(granite, monkeypatch):
+    """Section 4.2's PCA keeps the coefficients that hold 95% of the windows' variance; where
+    more are needed than the kernels hold, the share kept is warned of, not hidden."""
+    colors = np.ascontiguousarray(granite.colors[:SIZE, :SIZE])
+    full = kopf._search_structure(colors, (False, False))
+    assert 1 < full.dims <= kopf._k.MAX_DIMS
+    assert not full.basis[:, full.dims:].any() and full.basis[:, : full.dims].any()
+    monkeypatch.setattr(kopf._k, "MAX_DIMS", full.dims - 1)
+    with pytest.warns(UserWarning, match=rf"Kopf's PCA keeps {full.dims - 1} dimensions, "
+                                         rf"9\d\.\d% of the variance .*; 95% needs {full.dims}"):
+        capped = kopf._search_structure(colors, (False, False))
+    assert capped.dims == full.dims - 1
+
+
 def test_each_axis_keeps_its_own_seams(granite):
     """Per-axis exemplars with other seams search other windows: all of granite's, those
     of a ramp that do not wrap across its left and right edges."""

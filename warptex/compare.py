@@ -5,7 +5,9 @@ and :func:`write_report` writes the sheet and tables.
 
 Methods: ``lazy`` (this project), ``kopf`` (Kopf et al. 2007 global optimization, plain
 weighted averages), ``kopf-meanshift`` (the same with its mean-shift clustering, section 4.1),
-``tiled`` (a periodic volume repeated, the usual practice of Dong 2008 Fig. 11), and three
+``tiled`` (a 64^3 block of the lazy engine's texture repeated, the usual practice of Dong
+2008 Fig. 11, which repeats a periodic block: above 64 voxels these copies also meet at seams),
+and three
 references that are no solid texture: ``extrude`` (the z axis' exemplar stacked along z),
 ``noise`` (i.i.d. exemplar pixels) and ``flat`` (the exemplars' mean color everywhere, which
 shows what the neighbourhood energy rewards, ``warptex.metrics``).
@@ -40,7 +42,7 @@ from tqdm import std
 from tqdm.auto import tqdm
 
 from warptex import metrics
-from warptex.archive import iso_date, write_atomically
+from warptex.archive import iso_date, write_together
 from warptex.exemplar import (
     AlphaDropped,
     Exemplar,
@@ -82,7 +84,7 @@ TIMING = ("seconds: the median of the wall-clock runs per method in seconds_runs
           "pre-computation of candidates, computed afresh, is timed apart (precompute_seconds)")
 MEMORY = ("peak_mib: rise of the process's resident host memory during the timed runs; "
           "device_peak_mib: high-water mark of Warp's CUDA memory pool in the method's "
-          "process (pre-computation included), null on the CPU")
+          "process (pre-computation and the kernels' first run included), null on the CPU")
 
 
 @dataclass
@@ -284,8 +286,9 @@ def _kopf(job: _Job, size: int, mean_shift: bool = False) -> np.ndarray:
 
 
 def _tiled(job: _Job, size: int) -> np.ndarray:
-    # The periodic block of the usual practice is the lazy engine's own 64^3 here, so the
-    # difference to `lazy` is the repetition alone.
+    # The block of the usual practice is the lazy engine's own 64^3 here, so the difference
+    # to `lazy` is the repetition, and above TILE voxels the seams where copies meet (the
+    # engine's texture is not periodic; Fig. 11's block is).
     period = min(size, TILE)
     block = _lazy(job, period)
     reps = -(-size // period)
@@ -328,7 +331,8 @@ def _extrude_large(job: _Job, volume: np.ndarray) -> np.ndarray:
     return _tile_slice(job.axes[2].colors, _edge(job.axes, volume.shape[0]))
 
 
-# Per method: the timed volume, and the 256-voxel slice its repetition score looks at.
+# Per method: the timed volume, and the large slice (at least 256 voxels, _edge) its
+# repetition score looks at.
 _RUN: dict[str, tuple[Callable[..., np.ndarray], Callable[..., np.ndarray]]] = {
     "lazy": (_lazy, _lazy_large),
     "kopf": (_kopf, _periodic_large),
@@ -465,6 +469,7 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
     runs = []
     with PeakMemory() as memory:
         for _ in range(repeats):
+            volume = None  # not held while the next run makes its own: each run's peak
             start = time.perf_counter()
             volume = make_volume(job, size)
             runs.append(time.perf_counter() - start)
@@ -622,7 +627,7 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _legend(measures: dict, repeats: int) -> str:
+def _legend(measures: dict, repeats: int, gpu: bool = False) -> str:
     """What ``table.md``'s columns measure (:func:`_measure_settings`), below the table."""
     runs = "one wall-clock run" if repeats == 1 else f"the median of {repeats} wall-clock runs"
     edge, exclude = measures["repetition_slice"], measures["repetition_exclude"]
@@ -638,7 +643,9 @@ def _legend(measures: dict, repeats: int) -> str:
         "compare. "
         f"seconds: {runs} in a fresh process, kernels compiled first; "
         "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
-        "host memory during the run.\n")
+        "host memory during the run" + ("; GPU MiB: high-water mark of Warp's CUDA memory pool "
+                                         "in the method's process, the pre-computation and the "
+                                         "kernels' first run included" if gpu else "") + ".\n")
 
 
 def _title(paths: Sequence[Path], axes: Axes) -> str:
@@ -697,7 +704,7 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     (``axis_exemplars``: file name, [width, height] as loaded, content digest), the x axis'
     also as ``exemplar`` (the file), ``exemplar_size`` and ``exemplar_digest``. The JSON's
     per-axis lists are in the order of its ``axes``."""
-    from warptex.sheets import save_png, sheet
+    from warptex.sheets import png_writer, sheet
 
     if not isinstance(comparison, Comparison) or not isinstance(comparison.setup, Setup):
         raise TypeError(f"comparison must be a warptex.compare.Comparison (what compare "
@@ -722,7 +729,7 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
         if r.render is not None:
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
-    save_png(sheet(rows), sheet_file)
+    sheet_image = sheet(rows)
     word = tileable_word(setup.tileable)
     measures = _measure_settings(_edge(axes, setup.size))
     repeats = max((len(r.seconds_runs) for r in results), default=1)
@@ -746,12 +753,15 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
         f", features from {setup.feature_mask.name}" if setup.feature_mask is not None else
         ", feature distance" if setup.feature_distance else ""))
     markdown = (f"# {_title(paths, axes)}\n\n{setup.size}^3, seed {setup.seed}{more}{told}; "
-                f"{run_line(run)}\n\n" + table_markdown(results) + _legend(measures, repeats))
-    write_atomically(markdown_file, lambda tmp: tmp.write_text(markdown))
+                f"{run_line(run)}\n\n" + table_markdown(results)
+                + _legend(measures, repeats, any(r.device_peak_mib is not None for r in results)))
     payload = [{k: v for k, v in asdict(r).items() if k not in ("slices", "render")}
                for r in results]
     table = json.dumps({"format": TABLE_FORMAT, "exemplar": paths[0].name,
                         "axes": list("xyz"), "run": run, "methods": payload}, indent=2)
-    write_atomically(json_file, lambda tmp: tmp.write_text(table))
+    # Together, once all three are made: a failure leaves the last report whole.
+    write_together([(sheet_file, png_writer(sheet_image)),
+                    (markdown_file, lambda tmp: tmp.write_text(markdown)),
+                    (json_file, lambda tmp: tmp.write_text(table))])
     return files
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -63,4 +64,10 @@ def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], cell: int = 160)
 
 def save_png(image: np.ndarray, path: str | Path) -> None:
     """Write an 8-bit image atomically (temporary name, then rename)."""
-    write_atomically(path, lambda tmp: Image.fromarray(image).save(tmp, format="PNG"))
+    write_atomically(path, png_writer(image))
+
+
+def png_writer(image: np.ndarray) -> Callable[[Path], None]:
+    """What writes an 8-bit image as PNG to the file it is given (``write_atomically``'s
+    ``write``)."""
+    return lambda path: Image.fromarray(image).save(path, format="PNG")
