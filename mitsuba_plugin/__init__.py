@@ -30,6 +30,7 @@ import threading
 import weakref
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from numbers import Integral
 from pathlib import Path
 
 import drjit as dr
@@ -157,9 +158,24 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     ``TRACED_ROUNDS`` tries, or when a texture cannot be traced, it is rendered in
     wavefront mode, where every lookup synthesizes what it lacks. Either way each color
     is the stored voxel's, so the image does not depend on the mode.
+
+    ``spp`` (default: the scene's sampler's count) and ``batches`` are positive integers;
+    batch ``i`` samples with the seed ``seed * batches + i``, which Mitsuba keeps in 32 bits.
     """
+    _check_scene(scene)
+    for name, value in (("spp", spp), ("batches", batches), ("seed", seed)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, Integral)):
+            raise TypeError(f"{name} must be an integer, got {value!r}")
     total = spp if spp is not None else first_sensor(scene).sampler().sample_count()
-    batches = max(1, min(batches, total))
+    if total < 1:
+        raise ValueError(f"spp must be positive, got {total}" if spp is not None else
+                         "the scene's sampler takes no samples per pixel: give spp")
+    if batches < 1:
+        raise ValueError(f"batches must be positive, got {batches}")
+    batches = min(batches, total)
+    if not 0 <= seed * batches + batches - 1 < 2**32:
+        raise ValueError(f"seed must be 0 to {2**32 // batches - 1} for {batches} "
+                         f"batch{'es' if batches > 1 else ''}, got {seed}")
     image = None
     if progress is not None:
         progress(0, batches)
@@ -264,10 +280,19 @@ def textures(scene: mi.Object | None = None) -> list:
     integrator looks it up."""
     if scene is None:
         return list(live_textures)
+    _check_scene(scene)
     # Found as the objects owning parameters: each lazy_solid exposes its to_world.
     found = {id(entry[2]): entry[2] for entry in mi.traverse(scene).properties.values()
              if entry[2] in live_textures}
     return list(found.values())
+
+
+def _check_scene(scene: object) -> None:
+    """Refuse what is not a loaded Mitsuba object (a scene's file name, say), which Mitsuba
+    would answer with an error of its own internals."""
+    if not isinstance(scene, mi.Object):
+        raise TypeError(f"scene must be a loaded Mitsuba scene (mi.load_file, mi.load_dict), "
+                        f"got {scene!r}")
 
 
 def save_caches(scene: mi.Object | None = None) -> list[Path]:

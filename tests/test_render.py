@@ -182,6 +182,26 @@ def test_medium_takes_a_nested_phase_function_and_an_integer_sigma_t():
         assert "UniformSpectrum[value=6.000000]" in str(medium)
 
 
+def test_render_refuses_arguments_mitsuba_would_fail_on_deep_inside():
+    """mitsuba_plugin.render, textures and save_caches: one error naming the argument, not
+    a ZeroDivisionError or Dr.Jit's words."""
+    use("scalar_rgb")
+    scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=4, height=4)
+    for kwargs, error, words in (
+            ({"spp": 0}, ValueError, "spp must be positive, got 0"),
+            ({"spp": 2.5}, TypeError, "spp must be an integer, got 2.5"),
+            ({"batches": 0}, ValueError, "batches must be positive, got 0"),
+            ({"seed": -1}, ValueError, "seed must be 0 to 4294967295 for 1 batch, got -1"),
+            ({"spp": 4, "batches": 4, "seed": 2**30}, ValueError,
+             "seed must be 0 to 1073741823 for 4 batches, got 1073741824")):
+        with pytest.raises(error, match=re.escape(words)):
+            mitsuba_plugin.render(scene, **kwargs)
+    for call in (mitsuba_plugin.render, mitsuba_plugin.textures, mitsuba_plugin.save_caches):
+        with pytest.raises(TypeError, match="scene must be a loaded Mitsuba scene"):
+            call("scenes/bunny_wood.xml")
+    assert mitsuba_plugin.render(scene, spp=2, batches=2, seed=2**31 - 1).shape == (4, 4, 3)
+
+
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""

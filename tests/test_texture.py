@@ -190,6 +190,39 @@ def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates
     assert path.read_bytes() == b"not a store"
 
 
+def test_a_store_that_could_never_be_saved_is_refused_before_any_work(candidates, tmp_path,
+                                                                     monkeypatch):
+    """A store named as a folder, or where it does not exist and could not be written, is
+    refused when the texture is made (as the plugin's cache is), not at its first save; an
+    existing one is read even from a place that cannot be written; save() names its path."""
+    import warptex.texture
+
+    with pytest.raises(StoreFileError, match=r"store names a folder, not a file: '.*/bricks/'"):
+        texture(candidates, store=f"{tmp_path}/bricks/")
+    existing = tmp_path / "kept.wtb"
+    texture(candidates, store=existing).save()
+    monkeypatch.setattr(warptex.texture, "file_problem",
+                        lambda path: f"cannot write in {path.parent} (Read-only file system)")
+    with pytest.raises(StoreFileError, match=r"new\.wtb: a brick store could not be saved "
+                                             r"there: cannot write in .* \(Read-only"):
+        texture(candidates, store=tmp_path / "new.wtb")
+    assert texture(candidates, store=existing).store.stats()["bricks"] == 0
+    with pytest.raises(TypeError, match=r"path must be a file name \(str or Path\), got 3"):
+        texture(candidates).save(3)
+
+
+def test_a_texture_says_how_its_colors_are_encoded(granite_32_file, candidates, tmp_path):
+    """srgb: as the exemplar stores its colors (an 8-bit PNG: sRGB-encoded; float .npy:
+    linear); unknown (None) for a CandidateSet, which does not record it."""
+    from warptex.exemplar import Exemplar
+    from warptex.texture import SolidTexture
+
+    assert SolidTexture(granite_32_file, device="cpu").srgb is True
+    linear = Exemplar.load(granite_32_file, srgb=False)
+    assert SolidTexture(linear, device="cpu").srgb is False
+    assert texture(candidates).srgb is None
+
+
 def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(candidates,
                                                                            tmp_path):
     """Each would start empty from the other's file and discard its bricks on saving;

@@ -26,6 +26,8 @@ _LAZY = {
     "CandidateSet": "warptex.candidates",
     "Synthesizer": "warptex.synthesis",
     "SolidTexture": "warptex.texture",
+    "SettingError": "warptex.settings",
+    "StoreFileError": "warptex.store",
 }
 # Submodules the README names as ``warptex.<module>.<name>``, imported on first access too.
 _SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "metrics", "sheets",
@@ -36,7 +38,9 @@ __all__ = [
     "Exemplar",
     "ExemplarError",
     "PyramidLevel",
+    "SettingError",
     "SolidTexture",
+    "StoreFileError",
     "Synthesizer",
     "__version__",
     "best_mitsuba_variant",

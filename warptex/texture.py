@@ -17,8 +17,9 @@ from typing import Any, Literal
 import numpy as np
 import warp as wp
 
+from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
-from warptex.exemplar import Exemplar
+from warptex.exemplar import Exemplar, as_exemplar
 from warptex.machine import memory_problem
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
@@ -26,6 +27,7 @@ from warptex.settings import (
     DEFAULT_PASSES,
     FILTERS,
     check_file_name,
+    names_folder,
 )
 from warptex.store import BrickStore, StoreFileError, settings_differences
 from warptex.synthesis import COORD_LIMIT, REQUEST_BYTES_PER_VOXEL, Synthesizer
@@ -74,13 +76,29 @@ def _check_unshared(path: Path, synthesizer: Synthesizer,
             _WITH_STORE_FILES.add(joining)
 
 
+def _store_file(store: object) -> Path:
+    """The ``store`` file, refused before any work (StoreFileError) where it names a
+    folder, or where it does not exist and could not be written: its first save would fail
+    after the work it was to keep."""
+    path = check_file_name("store", store)
+    if isinstance(store, str) and names_folder(store):
+        raise StoreFileError(f"store names a folder, not a file: {store!r}")
+    problem = None if path.exists() else file_problem(path)
+    if problem is not None:
+        raise StoreFileError(f"{path}: a brick store could not be saved there: {problem}")
+    return path
+
+
 class SolidTexture:
     """An unbounded solid texture synthesized from exemplar photos, queried at points.
 
     ``source`` is an exemplar path, an :class:`Exemplar` or a :class:`CandidateSet`
-    (pre-computation is cached on disk). ``store`` names a brick store file: loaded when
-    it exists and matches this texture, written by :meth:`save`; a store file that a live
-    texture of other settings has is refused (StoreFileError). ``cache_bytes`` bounds
+    (pre-computation is cached on disk). ``seed`` (0 to 2^31 - 1) picks one of the
+    texture's many solids; ``jitter`` (0 to 64) is the strength of the random warp that
+    varies the initial tiling (Dong 2008, 5.1). ``store`` names a brick store file:
+    loaded when it exists and matches this texture, written by :meth:`save`; one that could
+    not be written where it is named, or that a live texture of other settings has, is
+    refused (StoreFileError). ``cache_bytes`` bounds
     the bricks kept in memory. ``passes`` is the number of correction passes per level
     (Dong 2008, 5.1): more look better and cost more (see BENCHMARKS.md). ``shifted_tiles``
     shifts each tile of the initial tiling by its own offset (:class:`Synthesizer`).
@@ -88,6 +106,11 @@ class SolidTexture:
     8^3 bricks: faster for thin sets such as mesh surfaces and cuts (see
     :class:`~warptex.store.BrickStore`). ``device`` is the Warp device that synthesizes
     (default: a GPU when there is one, see :func:`warptex.device`).
+
+    Colors come as the exemplar stores them; ``srgb`` says whether that is sRGB-encoded
+    (8-bit photos) or linear, None where a CandidateSet was given, which does not record it.
+    ``synthesizer`` is the :class:`Synthesizer` behind the store, for voxels by integer
+    coordinates (``synthesizer.voxels``, ``synthesizer.box``).
     """
 
     def __init__(
@@ -103,9 +126,12 @@ class SolidTexture:
         whole_bricks: bool = True,
         shifted_tiles: bool = False,
     ) -> None:
-        self.path = None if store is None else check_file_name("store", store)  # before the work
-        candidates = (source if isinstance(source, CandidateSet)
-                      else precompute(source, progress=None))
+        self.path = None if store is None else _store_file(store)  # before the work
+        if isinstance(source, CandidateSet):
+            candidates, self.srgb = source, None
+        else:
+            exemplar = as_exemplar(source)
+            candidates, self.srgb = precompute(exemplar, progress=None), exemplar.srgb
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
                                        shifted_tiles=shifted_tiles)
         if self.path is not None:
@@ -133,7 +159,10 @@ class SolidTexture:
         filter: Literal["trilinear", "nearest"] = "trilinear",
         fill: float | Sequence[float] | None = None,
     ) -> np.ndarray:
-        """Colors (N, C) float32 at ``points`` (N, 3) float32 or float64.
+        """Colors (N, C) float32 at ``points`` (N, 3) float32 or float64, in texture space:
+        one unit is one finest voxel, and voxel v's center is v + 0.5 (so ``nearest`` at
+        ``v + 0.5`` is ``synthesizer.voxels(v)``). Colors are as the exemplar stores them
+        (``srgb``).
 
         ``nearest`` is the color of the voxel containing the point, ``trilinear`` the
         blend of the 8 voxel centers around it. Points that are NaN or infinite raise
@@ -194,7 +223,7 @@ class SolidTexture:
         and return that file, which then holds the store's voxels (:meth:`BrickStore.save`
         does not rewrite a file that holds them already); the store file of a live texture
         of other settings is refused (StoreFileError)."""
-        target = Path(path) if path is not None else self.path
+        target = check_file_name("path", path) if path is not None else self.path
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
         _check_unshared(target, self.synthesizer)
