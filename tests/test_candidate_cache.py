@@ -10,6 +10,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -100,6 +101,9 @@ def test_cache_files_of_one_photo_loaded_otherwise_are_told_apart(image, tmp_pat
     monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
     precompute(Exemplar.load(image), progress=False)
     precompute(Exemplar.load(image, feature_distance=True), progress=False)
+    mask = tmp_path / "mask.png"
+    Image.fromarray((np.arange(16 * 16).reshape(16, 16) % 7 < 3).astype(np.uint8) * 255).save(mask)
+    precompute(Exemplar.load(image, feature_mask=mask), progress=False)
     precompute(Exemplar.load(GRANITE, max_size=16), progress=False)
     precompute(Exemplar.load(image), tileable=True, progress=False)
     rgba = Image.open(image).convert("RGBA")
@@ -107,7 +111,9 @@ def test_cache_files_of_one_photo_loaded_otherwise_are_told_apart(image, tmp_pat
     rgba.save(tmp_path / "rgba.png")
     precompute(Exemplar.load(tmp_path / "rgba.png", alpha="keep"), progress=False)
     listed = sorted((f.names[0], str(f.settings)) for f in cc.cache_files(tmp_path))
-    assert listed == sorted([(image.name, "{}"), (f"{image.name} (feature distance)", "{}"),
+    assert listed == sorted([(image.name, "{}"),
+                             (f"{image.name} (automatic feature distance)", "{}"),
+                             (f"{image.name} (feature distance from mask.png)", "{}"),
                              ("granite_64.png (shrunk to 16x16)", "{}"),
                              (image.name, "{'tileable': True}"), ("rgba.png (4 channels)", "{}")])
     assert main(["cache"]) == 0
@@ -116,7 +122,7 @@ def test_cache_files_of_one_photo_loaded_otherwise_are_told_apart(image, tmp_pat
     assert f"  {image.name}; tileable=yes\n" in out
     assert main(["cache", "--json"]) == 0
     files = json.loads(capsys.readouterr().out)["files"]
-    assert sorted(json.dumps(f["settings"]) for f in files) == ['{"tileable": true}'] + ["{}"] * 4
+    assert sorted(json.dumps(f["settings"]) for f in files) == ['{"tileable": true}'] + ["{}"] * 5
 
 
 def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):

@@ -481,7 +481,10 @@ def _exemplar_label(ex: Exemplar) -> str:
     if ex.channels != 3:  # an alpha channel kept, or a grey photo
         notes.append(f"{ex.channels} channel{'s' if ex.channels > 1 else ''}")
     if ex.features.shape[2] > ex.channels:
-        notes.append("feature distance")
+        source = ex.features_from
+        notes.append("feature distance" if source in (None, "given") else
+                     "automatic feature distance" if source == "automatic" else
+                     f"feature distance from {source}")
     return f"{ex.name} ({', '.join(notes)})" if notes else str(ex.name)
 
 

@@ -121,6 +121,9 @@ class Exemplar:
         self.name = name
         self.path: Path | None = None
         self.file_shape: tuple[int, int] | None = None  # (H, W) in its file, before max_size
+        # Where a feature-distance channel came from, as listings name it: "given", a mask's
+        # file name (Exemplar.load), "automatic"; None without one.
+        self.features_from: str | None = None if feature_distance is None else "given"
         self.colors = _validated_colors(array, name)
         self._seam_contrast: tuple[float, float] | None = None  # once: colors are read-only
         self._seams: tuple[bool, bool] | None = None
@@ -222,6 +225,10 @@ class Exemplar:
         exemplar.name = path.name
         exemplar.path = path.resolve()
         exemplar.file_shape = read_shape[:2]
+        if feature_mask is not None:
+            exemplar.features_from = Path(feature_mask).name
+        elif feature_distance:
+            exemplar.features_from = "automatic"
         return exemplar
 
     @property
