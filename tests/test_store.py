@@ -338,6 +338,40 @@ def test_sample_refuses_an_out_it_could_not_write_into(candidates):
         np.floor(pts).astype(int)))
 
 
+def test_voxels_another_thread_evicted_mid_batch_are_made_again_and_each_stored_once(
+        candidates, monkeypatch):
+    """Voxels stored when a batch began but evicted while it synthesized the absent ones are
+    made in a second round; that round puts back only what is no longer stored, so the
+    first round's voxels are not repacked again (pool space left behind)."""
+    store = BrickStore(synthesizer(candidates), whole_bricks=False)
+    stored_first = np.array([[1, 2, 3], [9, 9, 9], [-4, 0, 17]])
+    absent = np.array([[30, 1, 2], [-20, 5, 5]])
+    store.prefetch(stored_first)
+    synthesize, insert = store._synthesize, store._insert
+    made, inserted = [], []
+
+    def evicted_meanwhile(voxels):
+        triples = synthesize(voxels)
+        if not made:  # as another thread's eviction would, while this batch synthesizes
+            with store._changing():
+                store._empty()
+        made.append(len(voxels))
+        return triples
+
+    def counted(voxels, payload):
+        inserted.append(len(voxels))
+        insert(voxels, payload)
+
+    monkeypatch.setattr(store, "_synthesize", evicted_meanwhile)
+    monkeypatch.setattr(store, "_insert", counted)
+    both = np.concatenate([stored_first, absent])
+    store.prefetch(both)
+    assert made == [len(absent), len(stored_first)]
+    assert [n for n in inserted if n] == [len(absent), len(stored_first)]
+    assert store._stored(both).all()
+    np.testing.assert_array_equal(sample(store, both + 0.5), store.synthesizer.voxels(both))
+
+
 def test_save_load_keeps_the_most_recent_bricks_that_fit(candidates, tmp_path: Path):
     syn = synthesizer(candidates)
     store = BrickStore(syn)
