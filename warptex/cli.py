@@ -1478,7 +1478,7 @@ class _LogLines:
         self._bar = False  # a bar is being drawn
         self._pending: str | None = None  # its last redraw, not yet written
         self._written = 0.0  # when a redraw was last written
-        self._shown = ""  # the progress of the redraw last written (see _progress)
+        self._shown = ""  # the progress of the redraw last written (see _without_times)
 
     def write(self, text: str) -> int:
         if not text:  # tqdm writes nothing at times, which must not end a bar
@@ -1498,7 +1498,7 @@ class _LogLines:
             return len(text)
         if self._pending is not None:
             # A bar's closing redraw repeats its last update, if written, but for the rate.
-            if _progress(self._pending) != self._shown:
+            if _without_times(self._pending) != self._shown:
                 self._write_line(self._pending)
             self._pending = None
         if not (self._bar and text == "\n"):  # not the newline that ends a finished bar
@@ -1508,7 +1508,7 @@ class _LogLines:
 
     def _write_line(self, line: str) -> None:
         self._stream.write(line + "\n")
-        self._shown = _progress(line)
+        self._shown = _without_times(line)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._stream, name)
@@ -1517,7 +1517,7 @@ class _LogLines:
 _LOG_SECONDS = 10.0
 
 
-def _progress(line: str) -> str:
+def _without_times(line: str) -> str:
     """A bar's line without its times and rate, tqdm's last "[...]"."""
     return line.rsplit(" [", 1)[0]
 
