@@ -88,8 +88,9 @@ def cache_files(folder: Path | None = None, now: float | None = None) -> list[Ca
         except FileNotFoundError:  # renamed into place or pruned by another run meanwhile
             continue
         names = tuple(str(n) for n in meta.get("names", ()))
-        params = meta.get("params", {}) if isinstance(meta.get("params"), dict) else {}
-        settings = {k: v for k, v in params.items() if DEFAULT_PARAMS.get(k) != v}
+        params = meta.get("params")
+        settings = ({k: v for k, v in params.items() if DEFAULT_PARAMS.get(k) != v}
+                    if isinstance(params, dict) else {})
         found.append(CacheFile(path, info.st_size, info.st_mtime, status, names, settings,
                                _identity(info)))
     return sorted(found, key=lambda f: (f.modified, f.path.name))

@@ -480,11 +480,9 @@ def _exemplar_label(ex: Exemplar) -> str:
     notes = [f"shrunk to {w}x{h}"] if ex.file_shape not in (None, ex.shape) else []
     if ex.channels != 3:  # an alpha channel kept, or a grey photo
         notes.append(f"{ex.channels} channel{'s' if ex.channels > 1 else ''}")
-    if ex.features.shape[2] > ex.channels:
-        source = ex.features_from
-        notes.append("feature distance" if source in (None, "given") else
-                     "automatic feature distance" if source == "automatic" else
-                     f"feature distance from {source}")
+    if ex.features_from is not None:  # set exactly where there is a feature channel
+        notes.append({"given": "feature distance", "automatic": "automatic feature distance"}
+                     .get(ex.features_from, f"feature distance from {ex.features_from}"))
     return f"{ex.name} ({', '.join(notes)})" if notes else str(ex.name)
 
 
