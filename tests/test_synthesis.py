@@ -292,6 +292,31 @@ def test_dependency_masks():
     assert len(chain) == 3 and all(c > 0 for c in chain)
 
 
+def _mask_radius(half: int, passes: int, subpasses: int) -> int:
+    """The dependency radius measured on :func:`dependency_mask` grids, one voxel of each
+    parity class dilated through every step."""
+    steps = correction_steps(passes, subpasses)
+    reach = len(steps) * half
+    n = 2 * reach + 3
+    worst = 0
+    for parity in range(8):
+        desired = np.zeros((n, n, n), bool)
+        c = reach + np.array([parity & 1, (parity >> 1) & 1, (parity >> 2) & 1])
+        desired[tuple(c)] = True
+        hit = np.argwhere(dependency_mask(desired, half, steps))
+        worst = max(worst, int(np.abs(hit - c).max()))
+    return worst
+
+
+@pytest.mark.parametrize("half,passes,subpasses",
+                         [(2, 2, 1), (3, 1, 1), (2, 0, 8), (1, 3, 8), (2, 1, 8), (2, 2, 8),
+                          (3, 1, 8), (4, 2, 1)])
+def test_dependency_radius_is_the_masks_extent(half, passes, subpasses):
+    """dependency_radius follows parity classes instead of dilating grids: it must
+    reach exactly as far as the masks do, sub-passes' chains included."""
+    assert dependency_radius(half, passes, subpasses) == _mask_radius(half, passes, subpasses)
+
+
 def _corrected(desired: np.ndarray, steps: list[int]) -> np.ndarray:
     """Voxels corrected by some step: the ones each step's mask holds in its class
     (grid indices of the same parity as the voxel coordinates)."""

@@ -14,7 +14,7 @@ DEFAULT_JITTER = 1.0
 MAX_JITTER = 64.0  # warp offsets stay far inside the int32 1/256-voxel arithmetic
 DEFAULT_PASSES = 2  # the paper's (section 5.2)
 # Each pass widens every level's dependency region (section 5.2), so time grows faster than
-# the passes; hundreds would exhaust memory in dependency_radius's masks alone.
+# the passes: one cold voxel costs 3,234 corrected voxels at 2 passes and 373,546 at 8.
 MAX_PASSES = 8
 MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
 FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered

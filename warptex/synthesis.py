@@ -117,17 +117,34 @@ def dependency_mask(desired: np.ndarray, half: int, steps: list[int]) -> np.ndar
 @cache
 def dependency_radius(half: int, passes: int, subpasses: int) -> int:
     """How far (Chebyshev) a voxel's dependencies reach within one level, through all
-    its correction steps."""
-    steps = correction_steps(passes, subpasses)
-    reach = len(steps) * half
-    n = 2 * reach + 3
+    its correction steps: the extent of :func:`dependency_mask` of one voxel.
+
+    A voxel joins the mask through a chain of reads, one per step, and which reads a
+    step makes depends only on the parity class of the voxel read from (section 5.2,
+    sub-passes). So the farthest reach along each axis and sign is carried per parity
+    class from step to step instead of dilating grids, whose cost grows with the fourth
+    power of the steps (seconds for 2 passes of 8 sub-passes, minutes for 8 passes).
+    """
+    reads = np.argwhere(neighborhood_shape(half)) - half
+    flip = (reads & 1) @ np.array([1, 2, 4])  # what a read does to the parity class
+    along = np.concatenate([reads, -reads], axis=1)  # each axis, each sign
+    unreached = np.iinfo(np.int64).min // 4
+    # gain[f]: the farthest one read that flips the class by f reaches along each
+    gain = np.full((8, 6), unreached, np.int64)
+    for f in np.unique(flip):
+        gain[f] = along[flip == f].max(axis=0)
+    classes = np.arange(8)
     worst = 0
-    for parity in range(8 if subpasses > 1 else 1):
-        desired = np.zeros((n, n, n), bool)
-        c = reach + np.array([parity & 1, (parity >> 1) & 1, (parity >> 2) & 1])
-        desired[tuple(c)] = True
-        hit = np.argwhere(dependency_mask(desired, half, steps))
-        worst = max(worst, int(np.abs(hit - c).max()))
+    for start in classes:
+        farthest = np.full((8, 6), unreached, np.int64)  # per class of the voxels reached
+        farthest[start] = 0
+        for step in reversed(correction_steps(passes, subpasses)):
+            grown = farthest.copy()
+            for c in classes if step < 0 else [step]:
+                if farthest[c, 0] > unreached:
+                    grown = np.maximum(grown, farthest[c] + gain[c ^ classes])
+            farthest = grown
+        worst = max(worst, int(farthest.max()))
     return worst
 
 
