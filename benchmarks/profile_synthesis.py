@@ -12,8 +12,9 @@ time is summed by where it is spent:
   among them, which cProfile does not count apart.
 
 On a CUDA device, the second run also records the device's activity (``wp.timing_begin``):
-the time of each kernel and copy, summed by name. Kernels are compiled and candidates
-pre-computed before anything is timed.
+the time of each kernel and copy, summed by name; and the box is timed once more with the
+memory pool giving its free memory back at every synchronization, as CUDA's default does.
+Kernels are compiled and candidates pre-computed before anything is timed.
 
     python benchmarks/profile_synthesis.py [--exemplars DIR] [--names granite_64 ...]
                                            [--sizes 64 128] [--device cuda:0]
@@ -70,14 +71,34 @@ def device_activity(results: list) -> list[tuple[float, int, str]]:
     return sorted(((sum(v), len(v), k) for k, v in total.items()), reverse=True)
 
 
+def released_pool_seconds(candidates, size: int, device: str) -> float:
+    """Seconds of the box from a fresh engine with the device's memory pool at CUDA's
+    release threshold of 0, which ``warp_runtime.init_warp`` raises."""
+    kept = wp.get_mempool_release_threshold(device)
+    wp.set_mempool_release_threshold(device, 0)
+    try:
+        wp.synchronize_device(device)  # gives back what the pool held
+        engine = Synthesizer(candidates, device=device)
+        start = time.perf_counter()
+        engine.box((0, 0, 0), (size,) * 3)
+        return time.perf_counter() - start
+    finally:
+        wp.set_mempool_release_threshold(device, kept)
+
+
 def profile_box(candidates, size: int, device: str) -> None:
     engine = Synthesizer(candidates, device=device)
     start = time.perf_counter()
     engine.box((0, 0, 0), (size,) * 3)
     wall = time.perf_counter() - start
 
-    engine = Synthesizer(candidates, device=device)
     cuda = wp.get_device(device).is_cuda
+    if cuda and wp.is_mempool_enabled(device):
+        print(f"\n{size}^3 on {device}: {wall:.3f} s with the memory pool warptex keeps, "
+              f"{released_pool_seconds(candidates, size, device):.3f} s with CUDA's default "
+              "(free memory released at every synchronization)")
+
+    engine = Synthesizer(candidates, device=device)
     if cuda:
         wp.timing_begin(cuda_filter=wp.TIMING_ALL)
     profile = cProfile.Profile()

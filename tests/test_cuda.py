@@ -45,6 +45,18 @@ def test_surface_shell_and_texel_points_agree(warp_device):
         np.testing.assert_array_equal(a, b)
 
 
+def test_gpu_memory_pools_keep_memory_between_requests(warp_device):
+    """CUDA's default pool gives its memory back at every synchronization, which the engine
+    makes at every level; warptex raises its release threshold where it was left at 0."""
+    import warp as wp
+
+    from warptex.warp_runtime import init_warp
+
+    init_warp()
+    pooled = [gpu for gpu in wp.get_cuda_devices() if gpu.is_mempool_enabled]
+    assert all(wp.get_mempool_release_threshold(gpu) > 0 for gpu in pooled)
+
+
 def test_compare_reads_the_device_memory_the_engine_held(warp_device):
     """`compare` reports the high-water mark of Warp's CUDA memory pool for a lazy method on
     a GPU: at least what the process allocated there; nothing for the CPU."""

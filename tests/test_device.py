@@ -83,6 +83,25 @@ def test_init_warp_runs_once(warp_device, monkeypatch):
     assert calls == []
 
 
+def test_start_keeps_gpu_memory_pooled_unless_set_otherwise(monkeypatch):
+    """CUDA's default pool gives its memory back at every synchronization; at start-up each
+    GPU with a pool left at that default keeps ``POOL_KEPT`` of its memory instead, and a
+    threshold someone chose is kept."""
+    from types import SimpleNamespace
+
+    gpus = [SimpleNamespace(name="default", is_mempool_enabled=True, threshold=0),
+            SimpleNamespace(name="chosen", is_mempool_enabled=True, threshold=1 << 30),
+            SimpleNamespace(name="no pool", is_mempool_enabled=False, threshold=0)]
+    set_to = {}
+    monkeypatch.setattr(wp, "init", lambda: None)
+    monkeypatch.setattr(wp, "get_cuda_devices", lambda: gpus)
+    monkeypatch.setattr(wp, "get_mempool_release_threshold", lambda gpu: gpu.threshold)
+    monkeypatch.setattr(wp, "set_mempool_release_threshold",
+                        lambda gpu, value: set_to.__setitem__(gpu.name, value))
+    device_module.init_warp.__wrapped__()
+    assert set_to == {"default": device_module.POOL_KEPT}
+
+
 def _noisy_init() -> None:
     """Stands in for ``wp.init`` on a machine without an NVIDIA driver: Warp's library
     writes its warning to file descriptor 2, beside anything else worth seeing."""

@@ -26,6 +26,13 @@ _ENV = "WARPTEX_DEVICE"
 _CHOICES = ("cpu", "cuda")
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 _START_LOCK = threading.Lock()
+# CUDA's default memory pool hands its free memory back to the driver at every
+# synchronization (release threshold 0), and the engine reads each level's results back
+# before it allocates the next level's arrays, so these would be mapped afresh every
+# time: tens of milliseconds a GiB (rapidsai/rmm#2510, NVIDIA/cuda-python#771). Warp keeps
+# CUDA's default; this share of each GPU's memory stays pooled instead, unless the
+# threshold was set otherwise.
+POOL_KEPT = 0.25
 
 
 @functools.cache
@@ -33,7 +40,8 @@ def init_warp() -> None:
     """Initialise Warp once, without its start-up banner.
 
     The kernel cache goes to ``WARP_CACHE_PATH`` when that is set, so tests and CI can keep
-    compiled kernels in a known project-local folder.
+    compiled kernels in a known project-local folder. Each GPU's memory pool keeps up to
+    ``POOL_KEPT`` of its memory between requests.
     """
     # functools.cache does not lock: two threads' first calls may both get here, and the
     # capture below swaps the process's file descriptor 2.
@@ -50,6 +58,9 @@ def init_warp() -> None:
             wp.init()  # a user who asked for CUDA wants to know why it is missing
         else:
             _init_without_driver_warning()
+        for gpu in wp.get_cuda_devices():
+            if gpu.is_mempool_enabled and wp.get_mempool_release_threshold(gpu) == 0:
+                wp.set_mempool_release_threshold(gpu, POOL_KEPT)
 
 
 def _init_without_driver_warning() -> None:
