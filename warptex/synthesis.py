@@ -472,7 +472,7 @@ class Synthesizer:
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
         nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
         flat = lookup(work, voxel_keys) * _BLOCK_VOXELS + local
-        active, read = self._dependency_lists(nbr, coords, flat)
+        active, read, read_host = self._dependency_lists(nbr, coords, flat)
         # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
         # such as the features read valid pixels everywhere.
         triples = wp.zeros(nvox, dtype=wp.vec3i, device=dev)
@@ -482,7 +482,7 @@ class Synthesizer:
                           [coords_wp, t, self.seed, jitter, int(self.shifted_tiles)], [triples],
                           device=dev)
         else:
-            read_blocks = np.flatnonzero(read.numpy().reshape(-1, _BLOCK_VOXELS).any(axis=1))
+            read_blocks = np.flatnonzero(read_host.reshape(-1, _BLOCK_VOXELS).any(axis=1))
             parent = self._final(level - 1, *self._parents(coords_wp, coords, read,
                                                            read_blocks))
             parent_slot = np.full(len(coords), -1, np.int32)
@@ -525,11 +525,11 @@ class Synthesizer:
         return keys, np.flatnonzero(parents.numpy())
 
     def _dependency_lists(self, nbr: wp.array, coords: np.ndarray,
-                          desired: np.ndarray) -> tuple[list[np.ndarray], wp.array]:
+                          desired: np.ndarray) -> tuple[list[np.ndarray], wp.array, np.ndarray]:
         """Section 5.2, ComputeMask, voxel-exact within one level: the voxels each
         correction step corrects (flat work indices, sorted) and the mask (one byte per
-        work voxel) of the voxels the first step reads, undoing the steps from last to
-        first."""
+        work voxel) of the voxels the first step reads, on the device and on the host,
+        undoing the steps from last to first."""
         dev = self.device
         nvox = len(coords) * _BLOCK_VOXELS
         need = np.zeros(nvox, np.uint8)
@@ -547,7 +547,7 @@ class Synthesizer:
                           [wp.array(listed, dtype=wp.int32, device=dev), nbr, self._shape],
                           [need_wp], device=dev)
             need = need_wp.numpy()
-        return active[::-1], need_wp
+        return active[::-1], need_wp, need
 
     def _correct(self, active: list[np.ndarray], nbr: wp.array, triples: wp.array,
                  t: _k.LevelTables) -> None:
