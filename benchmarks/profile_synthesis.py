@@ -1,8 +1,9 @@
 """Where the lazy engine's time goes for a box (Dong 2008, section 5): host or device.
 
-For each exemplar and box size, one fresh engine synthesizes the box twice: once plainly
-(the wall time the other benchmarks report) and once under cProfile, whose per-function
-time is summed by where it is spent:
+For each exemplar and box size, fresh engines synthesize the box: once plainly (the wall
+time the other benchmarks report); five times with the time inside the engine's kernel
+launches taken out (the host's bookkeeping, on the CPU); and once under cProfile, whose
+per-function time is summed by where it is spent:
 
 - Warp: launches, copies between host and device, and waiting for them. On the CPU a
   launch's kernel runs inside it (or in the worker threads it waits for); on a GPU
@@ -25,12 +26,15 @@ from __future__ import annotations
 import argparse
 import cProfile
 import pstats
+import statistics
 import time
 from collections import defaultdict
 from pathlib import Path
+from unittest import mock
 
 import warp as wp
 
+import warptex.synthesis
 from warptex.candidates import precompute
 from warptex.exemplar import Exemplar
 from warptex.synthesis import Synthesizer
@@ -38,6 +42,7 @@ from warptex.synthesis import Synthesizer
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
 TOP = 12  # host functions and device activities listed per box
+OUTSIDE_RUNS = 5  # fresh engines whose time outside the launches is measured
 
 
 def place(filename: str, function: str) -> str:
@@ -86,12 +91,42 @@ def released_pool_seconds(candidates, size: int, device: str) -> float:
         wp.set_mempool_release_threshold(device, kept)
 
 
+def outside_launches_seconds(candidates, size: int, device: str) -> tuple[float, float]:
+    """Median wall time of the box from a fresh engine, and the median part of it spent
+    outside the engine's kernel launches (``launch_ranges``), without cProfile's overhead.
+    On the CPU that part is the host's bookkeeping; on a GPU, where launches return at
+    once, it includes waiting for the results the host reads back."""
+    real = warptex.synthesis.launch_ranges
+    inside = [0.0]
+
+    def timed(*args, **kwargs) -> None:
+        start = time.perf_counter()
+        try:
+            real(*args, **kwargs)
+        finally:
+            inside[0] += time.perf_counter() - start
+
+    walls, outside = [], []
+    with mock.patch.object(warptex.synthesis, "launch_ranges", timed):
+        for _ in range(OUTSIDE_RUNS):
+            engine = Synthesizer(candidates, device=device)
+            inside[0] = 0.0
+            start = time.perf_counter()
+            engine.box((0, 0, 0), (size,) * 3)
+            walls.append(time.perf_counter() - start)
+            outside.append(walls[-1] - inside[0])
+    return statistics.median(walls), statistics.median(outside)
+
+
 def profile_box(candidates, size: int, device: str) -> None:
     engine = Synthesizer(candidates, device=device)
     start = time.perf_counter()
     engine.box((0, 0, 0), (size,) * 3)
     wall = time.perf_counter() - start
 
+    wall_median, outside = outside_launches_seconds(candidates, size, device)
+    print(f"\n{size}^3 on {device}: median of {OUTSIDE_RUNS} fresh engines {wall_median:.3f} s, "
+          f"of which {outside * 1000:.1f} ms outside the kernel launches")
     cuda = wp.get_device(device).is_cuda
     if cuda and wp.is_mempool_enabled(device):
         print(f"\n{size}^3 on {device}: {wall:.3f} s with the memory pool warptex keeps, "
