@@ -329,6 +329,11 @@ def _corrected(desired: np.ndarray, steps: list[int]) -> np.ndarray:
     return corrected
 
 
+def _inside(mask: np.ndarray) -> bool:
+    """Whether ``mask`` stays off its grid's faces (grown no farther than the grid)."""
+    return not any(np.take(mask, i, axis=a).any() for a in range(3) for i in (0, -1))
+
+
 @pytest.mark.parametrize("subpasses", [1, 8])
 def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses):
     """Section 5.2 voxel-exact: one requested voxel makes the finest level correct only
@@ -336,10 +341,13 @@ def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses):
     not whole padded blocks."""
     syn = Synthesizer(candidates, seed=2, subpasses=subpasses)
     steps = correction_steps(syn.passes, subpasses)
-    n = 4 * len(steps) * 2 + 9
-    origin = 100 - n // 2  # even, so grid parity is voxel parity
+    # Grids just large enough for the masks, which must not reach their faces.
+    room = dependency_radius(2, syn.passes, subpasses) + 2
+    half = room + room % 2
+    n = 2 * half + 1
+    origin = 100 - half  # even, so grid parity is voxel parity
     desired = np.zeros((n, n, n), bool)
-    centre = np.array([n // 2 + 1, n // 2, n // 2 + 1])  # odd, even, odd: parity 5
+    centre = np.array([half + 1, half, half + 1])  # odd, even, odd: parity 5
     desired[tuple(centre)] = True
     corrected = _corrected(desired, steps)
     syn.triples(centre[None] + origin)
@@ -347,11 +355,13 @@ def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses):
     if subpasses == 1:
         assert int(corrected.sum()) == 5 * 5 * 3 - 3 * 5 + 1  # one 3-neighbourhood
     # The parents of every voxel the finest level reads, on an even-aligned coarse grid.
-    parents = np.unique((np.argwhere(dependency_mask(desired, 2, steps)) + origin) >> 1, axis=0)
-    margin = 2 * len(steps) + 2
-    base = (parents.min(axis=0) - margin) & ~1
-    coarse = np.zeros(tuple(parents.max(axis=0) - base + margin + 1), bool)
+    mask = dependency_mask(desired, 2, steps)
+    assert _inside(mask)
+    parents = np.unique((np.argwhere(mask) + origin) >> 1, axis=0)
+    base = (parents.min(axis=0) - room) & ~1
+    coarse = np.zeros(tuple(parents.max(axis=0) - base + room + 1), bool)
     coarse[tuple((parents - base).T)] = True
+    assert _inside(dependency_mask(coarse, 2, steps))
     assert syn.voxels_synthesized[syn.finest - 1] == int(_corrected(coarse, steps).sum())
 
 
