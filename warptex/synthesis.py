@@ -129,7 +129,7 @@ def dependency_radius(half: int, passes: int, subpasses: int) -> int:
     flip = (reads & 1) @ np.array([1, 2, 4])  # what a read does to the parity class
     along = np.concatenate([reads, -reads], axis=1)  # each axis, each sign
     unreached = np.iinfo(np.int64).min // 4
-    # gain[f]: the farthest one read that flips the class by f reaches along each
+    # gain[f]: how far one read that flips the class by f reaches, along each axis and sign
     gain = np.full((8, 6), unreached, np.int64)
     for f in np.unique(flip):
         gain[f] = along[flip == f].max(axis=0)
