@@ -59,8 +59,10 @@ def init_warp() -> None:
         else:
             _init_without_driver_warning()
         for gpu in wp.get_cuda_devices():
-            if gpu.is_mempool_enabled and wp.get_mempool_release_threshold(gpu) == 0:
-                wp.set_mempool_release_threshold(gpu, POOL_KEPT)
+            # A pool that refuses keeps CUDA's default: slower, never wrong.
+            with contextlib.suppress(RuntimeError):
+                if gpu.is_mempool_enabled and wp.get_mempool_release_threshold(gpu) == 0:
+                    wp.set_mempool_release_threshold(gpu, POOL_KEPT)
 
 
 def _init_without_driver_warning() -> None:
