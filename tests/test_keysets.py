@@ -3,7 +3,15 @@ arrays included."""
 
 import numpy as np
 
-from warptex.keysets import distinct_sorted, lookup, pack, run_starts, unique, unpack
+from warptex.keysets import (
+    distinct_sorted,
+    lookup,
+    lookup_runs,
+    pack,
+    run_starts,
+    unique,
+    unpack,
+)
 from warptex.surface import _unique_rows
 
 
@@ -49,3 +57,12 @@ def test_lookup_finds_each_present_key_and_only_those():
     expected = [where.get(int(q), -1) for q in query]
     assert lookup(keys, query).tolist() == expected
     assert lookup(keys[:0], query).tolist() == [-1] * len(query)
+
+
+def test_lookup_of_runs_is_lookup():
+    rng = np.random.default_rng(4)
+    keys = np.unique(rng.integers(-50, 50, 40))
+    runs = np.repeat(rng.integers(-60, 60, 300), rng.integers(1, 6, 300))
+    for query in (runs, rng.integers(-60, 60, 500), runs[:1], runs[:0]):
+        np.testing.assert_array_equal(lookup_runs(keys, query), lookup(keys, query))
+    assert lookup_runs(keys, runs).dtype == lookup(keys, runs).dtype

@@ -63,6 +63,16 @@ def lookup(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
     return np.where(keys[pos] == query, pos, -1)
 
 
+def lookup_runs(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """:func:`lookup` for a ``query`` that comes in runs of equal values, as the voxels of a
+    request do block by block (a box's rows hold four voxels of a block in a row): each
+    run is searched once."""
+    if len(query) == 0:
+        return np.zeros(0, np.int64)
+    starts = run_starts(query)
+    return np.repeat(lookup(keys, query[starts]), np.diff(starts, append=len(query)))
+
+
 def unique(a: np.ndarray) -> np.ndarray:
     """The distinct values of ``a``, sorted: ``np.unique(a)`` for keys (a NaN is never
     equal to another, so repeated NaNs are all kept), by sorting."""

@@ -26,6 +26,7 @@ from warptex.keysets import (
     distinct_sorted,
     local_index,
     lookup,
+    lookup_runs,
     pack,
     run_starts,
     unique,
@@ -414,7 +415,7 @@ class Synthesizer:
         part_of_block = np.empty(len(uniq), np.int64)
         for n, (part_keys, _) in enumerate(parts):
             part_of_block[lookup(uniq, part_keys)] = n
-        part = part_of_block[lookup(uniq, keys)]
+        part = part_of_block[lookup_runs(uniq, keys)]
         out = np.empty((len(ijk), 3), np.int32)
         for n, (part_keys, work) in enumerate(parts):
             rows = np.flatnonzero(part == n)
@@ -471,7 +472,7 @@ class Synthesizer:
         nvox = len(work) * _BLOCK_VOXELS
         coords_wp = wp.array(coords, dtype=wp.vec3i, device=dev)
         nbr = wp.array(_neighbor_table(work), dtype=wp.int32, device=dev)
-        flat = lookup(work, voxel_keys) * _BLOCK_VOXELS + local
+        flat = lookup_runs(work, voxel_keys) * _BLOCK_VOXELS + local
         active, read, read_host = self._dependency_lists(nbr, coords, flat)
         # Zeros (pixel 0) in blocks left out of the upsampling, so whole-array kernels
         # such as the features read valid pixels everywhere.
