@@ -292,6 +292,24 @@ def test_dependency_masks():
     assert len(chain) == 3 and all(c > 0 for c in chain)
 
 
+@pytest.mark.parametrize("spread", [1, 50])
+def test_neighbor_table_finds_every_present_neighbour(spread):
+    """Compact block sets (a dense grid over their bounding box) and sparse ones (searched)
+    give each block's 27 neighbours' slots, -1 where absent."""
+    rng = np.random.default_rng(spread)
+    blocks = np.unique(rng.integers(-4, 4, (600, 3)) * spread + rng.integers(-1, 2, (600, 3)),
+                       axis=0)
+    cells = np.prod(blocks.max(axis=0) - blocks.min(axis=0) + 3) / len(blocks)
+    assert (cells <= synthesis._DENSE_CELLS_PER_BLOCK) == (spread == 1)  # one of each way
+    keys = pack(blocks)
+    order = np.argsort(keys)
+    keys, blocks = keys[order], blocks[order]
+    slot = {tuple(b): i for i, b in enumerate(blocks.tolist())}
+    offsets = np.indices((3, 3, 3)).reshape(3, -1).T - 1
+    expected = [[slot.get(tuple(b + d), -1) for d in offsets] for b in blocks]
+    np.testing.assert_array_equal(synthesis._neighbor_table(keys, blocks), expected)
+
+
 def _mask_radius(half: int, passes: int, subpasses: int) -> int:
     """The dependency radius measured on :func:`dependency_mask` grids, one voxel of each
     parity class dilated through every step."""
