@@ -518,10 +518,13 @@ class Synthesizer:
                 device=dev,
             )
         self._correct(active, nbr, triples, t)
-        corrected = np.zeros(nvox, bool)
-        for step in active:
-            corrected[step] = True
-        self.voxels_synthesized[level] += int(corrected.sum())
+        # The mask only grows as the steps are undone, so the first step of each parity
+        # class lists every voxel of that class that any step corrects.
+        first_of_class: dict[int, int] = {}
+        for step, listed in zip(correction_steps(self.passes, self.subpasses), active,
+                                strict=True):
+            first_of_class.setdefault(step, len(listed))
+        self.voxels_synthesized[level] += sum(first_of_class.values())
         return np.take(triples.numpy(), flat, axis=0)
 
     def _parents(self, coords_wp: wp.array, coords: np.ndarray, read: wp.array,
