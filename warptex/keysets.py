@@ -17,7 +17,7 @@ _MASK = (1 << KEY_BITS) - 1
 def pack(coords: np.ndarray) -> np.ndarray:
     """Keys of integer coordinates (N, 3), packed as ``kernels.common`` describes; the keys
     of coordinates keep their order when x, then y, then z are compared."""
-    c = np.asarray(coords).astype(np.int64) + KEY_BIAS
+    c = np.asarray(coords, np.int64) + KEY_BIAS
     return (c[:, 0] << (2 * KEY_BITS)) | (c[:, 1] << KEY_BITS) | c[:, 2]
 
 
