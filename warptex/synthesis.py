@@ -279,7 +279,10 @@ class _LevelCache:
         slot, local = self._slots(keys, flat)
         self.triples[slot * _BLOCK_VOXELS + local] = triples
         # The bits last: a stop before them leaves voxels uncached, never cached wrong.
-        np.bitwise_or.at(self.valid, slot, np.uint64(1) << local.astype(np.uint64))
+        # ``flat`` is sorted, so each block's voxels lie together: one OR per block.
+        starts = run_starts(slot)
+        self.valid[slot[starts]] |= np.bitwise_or.reduceat(
+            np.uint64(1) << local.astype(np.uint64), starts)
 
 
 class Synthesizer:
