@@ -3,15 +3,7 @@ arrays included."""
 
 import numpy as np
 
-from warptex.keysets import (
-    distinct_sorted,
-    lookup,
-    lookup_runs,
-    pack,
-    run_starts,
-    unique,
-    unpack,
-)
+from warptex.keysets import distinct_sorted, lookup, lookup_runs, pack, run_starts, unique, unpack
 from warptex.surface import _unique_rows
 
 
