@@ -218,9 +218,6 @@ def _neighbor_table(keys: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     return grid[cell[:, None] + offsets @ strides]
 
 
-_Listed = tuple[np.ndarray, wp.array]  # voxels a correction step visits: host, device
-
-
 @dataclass
 class _Level:
     """Final (corrected) triples in some blocks of one level, sorted by block key; only
@@ -527,8 +524,8 @@ class Synthesizer:
         # The mask only grows as the steps are undone, so the first step of each parity
         # class lists every voxel of that class that any step corrects.
         first_of_class: dict[int, int] = {}
-        for step, (listed, _) in zip(correction_steps(self.passes, self.subpasses), active,
-                                     strict=True):
+        for step, listed in zip(correction_steps(self.passes, self.subpasses), active,
+                                strict=True):
             first_of_class.setdefault(step, len(listed))
         self.voxels_synthesized[level] += sum(first_of_class.values())
         return np.take(triples.numpy(), flat, axis=0)
@@ -549,31 +546,31 @@ class Synthesizer:
         return keys, np.flatnonzero(parents.numpy())
 
     def _dependency_lists(self, nbr: wp.array, coords: np.ndarray,
-                          desired: np.ndarray) -> tuple[list[_Listed], wp.array, np.ndarray]:
+                          desired: np.ndarray) -> tuple[list[np.ndarray], wp.array, np.ndarray]:
         """Section 5.2, ComputeMask, voxel-exact within one level: the voxels each
-        correction step corrects (flat work indices, sorted, on the host and the device)
-        and the mask (one byte per work voxel) of the voxels the first step reads, on the
-        device and on the host, undoing the steps from last to first."""
+        correction step corrects (flat work indices, sorted) and the mask (one byte per
+        work voxel) of the voxels the first step reads, on the device and on the host,
+        undoing the steps from last to first."""
         dev = self.device
         nvox = len(coords) * _BLOCK_VOXELS
         need = np.zeros(nvox, np.uint8)
         need[desired] = 1
         need_wp = wp.array(need, dtype=wp.uint8, device=dev)
         steps = correction_steps(self.passes, self.subpasses)
-        active: list[_Listed] = []
+        active: list[np.ndarray] = []
         for step in reversed(steps):
             listed = np.flatnonzero(need).astype(np.int32)
             if step >= 0:
                 world = coords[listed // _BLOCK_VOXELS] * BLOCK + _LOCAL[listed % _BLOCK_VOXELS]
                 listed = listed[(world & 1) @ np.array([1, 2, 4]) == step]
-            listed_wp = wp.array(listed, dtype=wp.int32, device=dev)
-            active.append((listed, listed_wp))
-            launch_ranges(_k.spread_need, 0, len(listed), [listed_wp, nbr, self._shape],
+            active.append(listed)
+            launch_ranges(_k.spread_need, 0, len(listed),
+                          [wp.array(listed, dtype=wp.int32, device=dev), nbr, self._shape],
                           [need_wp], device=dev)
             need = need_wp.numpy()
         return active[::-1], need_wp, need
 
-    def _correct(self, active: list[_Listed], nbr: wp.array, triples: wp.array,
+    def _correct(self, active: list[np.ndarray], nbr: wp.array, triples: wp.array,
                  t: _k.LevelTables) -> None:
         """Correction passes (section 5.1): step n corrects the voxels ``active[n]``."""
         dev = self.device
@@ -583,7 +580,8 @@ class Synthesizer:
         qproj = wp.empty(nvox * 3, dtype=_k.appearance_vector, device=dev)
         other = wp.empty_like(triples)
         src, dst = triples, other
-        for listed, voxels in active:
+        for listed in active:
+            voxels = wp.array(listed, dtype=wp.int32, device=dev)
             launch_ranges(_k.voxel_features, 0, nvox, [src, t], [feats], device=dev)
             wp.copy(dst, src)
             self._correct_step(listed, voxels, nbr, src, feats, t, qproj, dst)
