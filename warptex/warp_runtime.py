@@ -31,7 +31,7 @@ _START_LOCK = threading.Lock()
 # before it allocates the next level's arrays, so these would be mapped afresh every
 # time: tens of milliseconds a GiB (rapidsai/rmm#2510, NVIDIA/cuda-python#771). Warp keeps
 # CUDA's default; this share of each GPU's memory stays pooled instead, unless the
-# threshold was set otherwise.
+# threshold was set to another value (a 0 set on purpose cannot be told from the default).
 POOL_KEPT = 0.25
 
 
