@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from timing import timed_runs
 
 from warptex import metrics
 from warptex.baselines import kopf
@@ -50,13 +51,9 @@ def timed_lazy(ex: Exemplar, size: int) -> tuple[np.ndarray, float]:
     """A box of the lazy engine and the median seconds of ``LAZY_RUNS`` fresh engines (empty
     coarse caches), kernels compiled and candidates pre-computed first."""
     candidates = precompute(ex, progress=False)
-    Synthesizer(candidates).box((0, 0, 0), (4, 4, 4))  # compile kernels
-    times = []
-    for _ in range(LAZY_RUNS):
-        engine = Synthesizer(candidates)
-        start = time.perf_counter()
-        box = engine.box((0, 0, 0), (size,) * 3)
-        times.append(time.perf_counter() - start)
+    box = Synthesizer(candidates).box((0, 0, 0), (size,) * 3)  # compiles the kernels too
+    times = timed_runs(lambda engine: engine.box((0, 0, 0), (size,) * 3), LAZY_RUNS,
+                       lambda: Synthesizer(candidates))
     return box, statistics.median(times)
 
 

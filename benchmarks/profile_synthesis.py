@@ -29,10 +29,12 @@ import pstats
 import statistics
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from unittest import mock
 
 import warp as wp
+from timing import timed_runs
 
 import warptex.synthesis
 from warptex.candidates import precompute
@@ -79,17 +81,15 @@ def device_activity(results: list) -> list[tuple[float, int, str]]:
 def released_pool_seconds(candidates, size: int, device: str) -> float:
     """Median seconds of the box from ``OUTSIDE_RUNS`` fresh engines with the device's
     memory pool at CUDA's release threshold of 0, which ``warp_runtime.init_warp`` raises."""
+
+    def fresh() -> Synthesizer:
+        wp.synchronize_device(device)  # gives back what the pool held
+        return Synthesizer(candidates, device=device)
+
     kept = wp.get_mempool_release_threshold(device)
     wp.set_mempool_release_threshold(device, 0)
     try:
-        times = []
-        for _ in range(OUTSIDE_RUNS):
-            wp.synchronize_device(device)  # gives back what the pool held
-            engine = Synthesizer(candidates, device=device)
-            start = time.perf_counter()
-            engine.box((0, 0, 0), (size,) * 3)
-            times.append(time.perf_counter() - start)
-        return statistics.median(times)
+        return statistics.median(timed_runs(box_of(size), OUTSIDE_RUNS, fresh))
     finally:
         wp.set_mempool_release_threshold(device, kept)
 
@@ -100,32 +100,32 @@ def outside_launches_seconds(candidates, size: int, device: str) -> tuple[float,
     On the CPU that part is the host's bookkeeping; on a GPU, where launches return at
     once, it includes waiting for the results the host reads back."""
     real = warptex.synthesis.launch_ranges
-    inside = [0.0]
+    inside: list[float] = []  # seconds in launches, per run
 
     def timed(*args, **kwargs) -> None:
         start = time.perf_counter()
         try:
             real(*args, **kwargs)
         finally:
-            inside[0] += time.perf_counter() - start
+            inside[-1] += time.perf_counter() - start
 
-    walls, outside = [], []
+    def fresh() -> Synthesizer:
+        inside.append(0.0)
+        return Synthesizer(candidates, device=device)
+
     with mock.patch.object(warptex.synthesis, "launch_ranges", timed):
-        for _ in range(OUTSIDE_RUNS):
-            engine = Synthesizer(candidates, device=device)
-            inside[0] = 0.0
-            start = time.perf_counter()
-            engine.box((0, 0, 0), (size,) * 3)
-            walls.append(time.perf_counter() - start)
-            outside.append(walls[-1] - inside[0])
+        walls = timed_runs(box_of(size), OUTSIDE_RUNS, fresh)
+    outside = [wall - launches for wall, launches in zip(walls, inside, strict=True)]
     return statistics.median(walls), statistics.median(outside)
 
 
+def box_of(size: int) -> Callable[[Synthesizer], object]:
+    """What synthesizes the ``size``^3 box at the origin with the engine it is given."""
+    return lambda engine: engine.box((0, 0, 0), (size,) * 3)
+
+
 def profile_box(candidates, size: int, device: str) -> None:
-    engine = Synthesizer(candidates, device=device)
-    start = time.perf_counter()
-    engine.box((0, 0, 0), (size,) * 3)
-    wall = time.perf_counter() - start
+    [wall] = timed_runs(box_of(size), 1, lambda: Synthesizer(candidates, device=device))
 
     wall_median, outside = outside_launches_seconds(candidates, size, device)
     print(f"\n{size}^3 on {device}: median of {OUTSIDE_RUNS} fresh engines {wall_median:.3f} s, "
