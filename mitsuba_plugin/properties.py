@@ -29,8 +29,13 @@ def check_known(names: Iterable[str], known: tuple[str, ...], plugin: str) -> No
     would refuse it too, after the plugin's work, and name no likely one."""
     for name in names:
         if name not in known:
-            raise property_error(plugin, name, f"is no property of {plugin}"
-                                               f"{did_you_mean(name, known)}")
+            raise unknown_property(plugin, name, known)
+
+
+def unknown_property(plugin: str, name: str, known: tuple[str, ...]) -> PropertyError:
+    """The error for property ``name``, which ``plugin`` does not read, naming the one of
+    ``known`` it may be a typo of."""
+    return property_error(plugin, name, f"is no property of {plugin}{did_you_mean(name, known)}")
 
 
 def did_you_mean(name: str, known: tuple[str, ...]) -> str:

@@ -25,6 +25,7 @@ from mitsuba_plugin.properties import (
     did_you_mean,
     get_property,
     property_error,
+    unknown_property,
 )
 from mitsuba_plugin.spectrum import spectrum
 
@@ -78,9 +79,9 @@ def lazy_solid_medium(props: mi.Properties,
     check_known([name for name in props if name not in nested], _PROPERTIES, MEDIUM)
     for name in nested:
         if not isinstance(props[name], mi.PhaseFunction):
-            hint = did_you_mean(name, _VALUES)  # a misspelt albedo, say
-            raise property_error(MEDIUM, name, f"is no property of {MEDIUM}{hint}" if hint
-                                 else "must be a nested phase function (<phase ...>)")
+            if did_you_mean(name, _VALUES):  # a misspelt albedo, say
+                raise unknown_property(MEDIUM, name, _VALUES)
+            raise property_error(MEDIUM, name, "must be a nested phase function (<phase ...>)")
     albedo = props.get("albedo", None)
     if albedo is None or not hasattr(albedo, "colors_at"):
         raise property_error(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
