@@ -67,8 +67,8 @@ def test_slice_arguments_are_checked(candidates, warp_device):
     for shape in (8, (8, 8, 3), (8.0, 8.0), (-1, 8)):
         with pytest.raises(ValueError, match="shape must be two positive ints"):
             tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), shape)
-    for origin in ((0, 0), "000", (0, np.nan, 0)):
-        with pytest.raises(ValueError, match="origin must be three finite numbers"):
+    for origin in ((0, 0), "000", (0, np.nan, 0), (1 + 2j, 0, 0)):
+        with pytest.raises(ValueError, match="origin must be three finite real numbers"):
             tex.slice(origin, (1, 0, 0), (0, 1, 0), (2, 2))
 
 
@@ -113,6 +113,22 @@ def test_a_failed_write_names_the_file_asked_for(tmp_path):
         write_atomically(target, lambda tmp: tmp.write_bytes(b"x"))
     assert caught.value.filename == str(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_a_write_through_a_symbolic_link_replaces_its_target_and_keeps_the_link(tmp_path):
+    """As ``open`` writes through a link: a file shared through links stays shared."""
+    target = tmp_path / "real" / "out.bin"
+    target.parent.mkdir()
+    target.write_bytes(b"old")
+    link = tmp_path / "link.bin"
+    link.symlink_to(target)
+    write_atomically(link, lambda tmp: tmp.write_bytes(b"new"))
+    assert link.is_symlink() and target.read_bytes() == b"new"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["out.bin"]
+    dangling = tmp_path / "dangling.bin"
+    dangling.symlink_to(tmp_path / "real" / "made.bin")
+    write_atomically(dangling, lambda tmp: tmp.write_bytes(b"made"))
+    assert dangling.is_symlink() and (tmp_path / "real" / "made.bin").read_bytes() == b"made"
 
 
 def test_files_written_together_are_all_left_as_they_were_when_one_fails(tmp_path):

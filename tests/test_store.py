@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import warnings
 from pathlib import Path
 
@@ -617,6 +618,40 @@ def test_saves_to_one_file_merge_rather_than_replace(candidates, tmp_path: Path)
     assert BrickStore.load(path, synthesizer(candidates, seed=3)).stats()["voxels"] == 1
 
 
+def test_a_store_saved_through_a_symbolic_link_merges_into_its_target(candidates,
+                                                                    tmp_path: Path):
+    """Saving through a link writes the file it points to, in turns with saves to that
+    file, rather than replacing the link with a file of its own."""
+    syn = synthesizer(candidates)
+    target = tmp_path / "stores" / "shared.wtb"
+    first, second = BrickStore(syn, whole_bricks=False), BrickStore(syn, whole_bricks=False)
+    first.prefetch(np.array([[0, 0, 0]]))
+    first.save(target)
+    link = tmp_path / "link.wtb"
+    link.symlink_to(target)
+    second.prefetch(np.array([[40, 0, 0]]))
+    second.save(link)
+    assert link.is_symlink()
+    assert BrickStore.load(target, syn, whole_bricks=False).stats()["voxels"] == 2
+
+
+def test_prefetch_refuses_voxels_the_engine_refuses(candidates):
+    """Before a brick key could wrap them onto other voxels: nothing is stored."""
+    from warptex.synthesis import COORD_LIMIT
+
+    store = BrickStore(synthesizer(candidates))
+    for voxels, problem in (([[3, 5, 2**24 + 8]], "must lie within"),
+                            ([[-COORD_LIMIT - 1, 0, 0]], "must lie within"),
+                            ([[-0.5, 0.7, 9.9]], "integer array"),
+                            ([[np.nan, 0, 0]], "integer array"),
+                            ([1, 2, 3], "integer array")):
+        with pytest.raises(ValueError, match=problem):
+            store.prefetch(np.array(voxels))
+    assert store.stats()["voxels"] == 0
+    store.prefetch(np.zeros((0, 3), np.int64))
+    assert store.stats()["voxels"] == 0
+
+
 def test_a_store_that_stored_nothing_since_leaves_its_file_as_it_is(candidates,
                                                                       tmp_path: Path):
     """Saving to the file a store was loaded from, or last saved to, rewrites it only when
@@ -765,6 +800,14 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
                             (float_keys, "brick keys of unexpected type")):
         write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
         with pytest.warns(UserWarning, match=problem):
+            assert BrickStore.load(path, syn).stats()["bricks"] == 0
+    # Checksummed, but no archive NumPy reads: refused in the same words as damage.
+    from warptex.archive import _VERSION_BYTES
+
+    magic_and_version = path.read_bytes()[:len(_MAGIC) + _VERSION_BYTES]
+    for payload in (b"PK\x03\x04" + bytes(60), b""):
+        path.write_bytes(magic_and_version + hashlib.sha256(payload).digest() + payload)
+        with pytest.warns(UserWarning, match="unreadable brick store data"):
             assert BrickStore.load(path, syn).stats()["bricks"] == 0
     # Bits stored column-major are the same bits.
     write_archive(path, _MAGIC, FORMAT_VERSION, dict(good, valid=np.asfortranarray(good["valid"])))

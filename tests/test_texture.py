@@ -190,6 +190,26 @@ def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates
     assert path.read_bytes() == b"not a store"
 
 
+def test_a_foreign_store_file_is_refused_before_the_candidates_are_computed(tmp_path,
+                                                                           monkeypatch):
+    """Pre-computing a large exemplar's candidates takes minutes: not spent on a texture
+    whose store file would be refused after them."""
+    import warptex.texture
+    from warptex.texture import SolidTexture
+
+    def computed(*args, **kwargs):
+        raise AssertionError("candidates computed before the store file was checked")
+
+    monkeypatch.setattr(warptex.texture, "precompute", computed)
+    foreign = tmp_path / "photo.png"
+    foreign.write_bytes(b"an image the user keeps")
+    with pytest.raises(StoreFileError, match=r"photo\.png: exists and is not a warptex brick"):
+        SolidTexture(tmp_path / "any.png", store=foreign)
+    with pytest.raises(StoreFileError, match="is a folder, expected a brick store file"):
+        SolidTexture(tmp_path / "any.png", store=tmp_path)
+    assert foreign.read_bytes() == b"an image the user keeps"
+
+
 def test_a_store_that_could_never_be_saved_is_refused_before_any_work(candidates, tmp_path,
                                                                      monkeypatch):
     """A store named as a folder, or where it does not exist and could not be written, is
@@ -209,6 +229,14 @@ def test_a_store_that_could_never_be_saved_is_refused_before_any_work(candidates
     assert texture(candidates, store=existing).store.stats()["bricks"] == 0
     with pytest.raises(TypeError, match=r"path must be a file name \(str or Path\), got 3"):
         texture(candidates).save(3)
+    # save(path) is checked as store= is, before a file named like the folder is written.
+    with pytest.raises(StoreFileError, match=r"path names a folder, not a file: '.*/stores/'"):
+        texture(candidates).save(f"{tmp_path}/stores/")
+    monkeypatch.undo()
+    (tmp_path / "blocker").write_text("a file")
+    with pytest.raises(StoreFileError, match=r"could not be saved there: .*blocker is a file"):
+        texture(candidates).save(tmp_path / "blocker" / "s.wtb")
+    assert not (tmp_path / "stores").exists()
 
 
 def test_a_texture_says_how_its_colors_are_encoded(granite_32_file, candidates, tmp_path):

@@ -18,6 +18,7 @@ import io
 import os
 import tempfile
 import threading
+import zipfile
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
@@ -103,15 +104,18 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     a folder meanwhile) can still leave them mixed."""
     tag = f"{os.getpid()}.{threading.get_ident()}"
     staged = [(Path(path), write) for path, write in writes]
+    targets = [written_through(path) for path, _ in staged]
     temporary = [path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
-                 for path, _ in staged]
-    current = None  # the file being written or renamed
+                 for path in targets]
+    current = None  # the file being written or renamed, as the caller named it
     try:
-        for (current, write), tmp in zip(staged, temporary, strict=True):
-            current.parent.mkdir(parents=True, exist_ok=True)
+        for (path, write), target, tmp in zip(staged, targets, temporary, strict=True):
+            current = path
+            target.parent.mkdir(parents=True, exist_ok=True)
             write(tmp)
-        for (current, _), tmp in zip(staged, temporary, strict=True):
-            os.replace(tmp, current)
+        for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
+            current = path
+            os.replace(tmp, target)
     except OSError as error:
         if error.errno is None:
             raise
@@ -121,6 +125,13 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         for tmp in temporary:
             with contextlib.suppress(OSError):  # where the write failed, so may this
                 tmp.unlink(missing_ok=True)
+
+
+def written_through(path: Path) -> Path:
+    """The file that writing ``path`` replaces: a symbolic link's target, as ``open``
+    writes through a link. Renaming onto the link itself would replace the link and leave
+    its target, perhaps shared, as it was."""
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
 def is_temporary(name: str, prefix: str, suffix: str) -> bool:
@@ -202,5 +213,5 @@ def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
     try:
         with np.load(io.BytesIO(payload), allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except (ValueError, KeyError, OSError) as e:
+    except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile) as e:
         raise error(f"{path}: unreadable {kind} data ({e})") from None

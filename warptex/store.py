@@ -47,12 +47,13 @@ from warptex.archive import (
     read_archive,
     write_archive,
     write_failure,
+    written_through,
 )
 from warptex.code_digest import code_digest, module_sources
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
-from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer
+from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer, check_voxels
 from warptex.warp_runtime import launch
 
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
@@ -482,9 +483,11 @@ class BrickStore:
 
     def prefetch(self, voxels: np.ndarray) -> None:
         """Store integer ``voxels`` (N, 3) (their whole bricks with ``whole_bricks``),
-        synthesizing the absent ones in one engine request."""
+        synthesizing the absent ones in one engine request; coordinates the engine refuses
+        are refused here, before a brick key could wrap them onto other voxels."""
+        voxels = check_voxels(voxels)
         if len(voxels):
-            self._with_voxels(self._to_store(np.asarray(voxels, np.int64)), lambda: None)
+            self._with_voxels(self._to_store(voxels), lambda: None)
 
     def mark_used(self, slots: np.ndarray, version: int) -> None:
         """Count pool ``slots`` of the snapshot of ``version`` as just used, for
@@ -569,7 +572,7 @@ class BrickStore:
         that only reads it (so such a render does not make its bricks the file's most
         recently used). Else True.
         """
-        path = Path(path)
+        path = written_through(Path(path))  # saves through a link take turns at its target
         check_store_path(path)
         with self._reading():
             version = self._version

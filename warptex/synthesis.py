@@ -173,6 +173,19 @@ def dependency_chain(half: int, passes: int, subpasses: int, levels: int) -> lis
     return counts
 
 
+def check_voxels(ijk: np.ndarray) -> np.ndarray:
+    """Voxel coordinates ``ijk`` as an (N, 3) int64 array, or a ValueError: they must be
+    integers (a fraction names no voxel) within [-COORD_LIMIT, COORD_LIMIT), where block
+    keys hold them without wrapping onto another voxel."""
+    ijk = np.asarray(ijk)
+    if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
+        raise ValueError(f"voxel coordinates must be an (N, 3) integer array, got "
+                         f"{ijk.dtype} {ijk.shape}")
+    if len(ijk) and (ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT):
+        raise ValueError(f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})")
+    return ijk.astype(np.int64)
+
+
 def _three_ints(name: str, values) -> tuple[int, int, int]:
     """``values`` as three Python ints, or a ValueError naming ``name``: fractions are
     refused, not truncated onto another voxel."""
@@ -405,15 +418,9 @@ class Synthesizer:
         """Finest-level triples (N, 3) int32 of voxels ``ijk`` (N, 3) ints as flat pixel
         indices: entry ``[n, k]`` is ``row * width + column`` in axis k's exemplar, what the
         brick store keeps (section 6.2)."""
-        ijk = np.asarray(ijk)
-        if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
-            raise ValueError(f"voxel coordinates must be an (N, 3) integer array, got "
-                             f"{ijk.dtype} {ijk.shape}")
+        ijk = check_voxels(ijk)
         if len(ijk) == 0:
             return np.zeros((0, 3), np.int32)
-        if ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT:
-            raise ValueError(f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})")
-        ijk = ijk.astype(np.int64)
         with self._lock:  # the finest level is never cached: just the voxels asked for
             return self._in_parts(ijk)
 

@@ -29,7 +29,7 @@ from warptex.settings import (
     check_file_name,
     names_folder,
 )
-from warptex.store import BrickStore, StoreFileError, settings_differences
+from warptex.store import BrickStore, StoreFileError, check_store_path, settings_differences
 from warptex.synthesis import COORD_LIMIT, REQUEST_BYTES_PER_VOXEL, Synthesizer
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
@@ -76,13 +76,14 @@ def _check_unshared(path: Path, synthesizer: Synthesizer,
             _WITH_STORE_FILES.add(joining)
 
 
-def _store_file(store: object) -> Path:
-    """The ``store`` file, refused before any work (StoreFileError) where it names a
-    folder, or where it does not exist and could not be written: its first save would fail
-    after the work it was to keep."""
-    path = check_file_name("store", store)
+def _store_file(store: object, name: str = "store") -> Path:
+    """The ``store`` file (the argument ``name``), refused before any work (StoreFileError)
+    where it names a folder, holds a file of another kind, or does not exist and could not
+    be written: its first save would fail after the work it was to keep."""
+    path = check_file_name(name, store)
     if isinstance(store, str) and names_folder(store):
-        raise StoreFileError(f"store names a folder, not a file: {store!r}")
+        raise StoreFileError(f"{name} names a folder, not a file: {store!r}")
+    check_store_path(path)
     problem = None if path.exists() else file_problem(path)
     if problem is not None:
         raise StoreFileError(f"{path}: a brick store could not be saved there: {problem}")
@@ -202,8 +203,9 @@ class SolidTexture:
         ``origin + r*u + c*v``; the plane need not be axis-aligned."""
         for name, vector in (("origin", origin), ("u", u), ("v", v)):
             a = np.asarray(vector)
-            if a.shape != (3,) or not np.issubdtype(a.dtype, np.number) or not np.isfinite(a).all():
-                raise ValueError(f"{name} must be three finite numbers, got {vector!r}")
+            real = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
+            if a.shape != (3,) or not real or not np.isfinite(a).all():
+                raise ValueError(f"{name} must be three finite real numbers, got {vector!r}")
         rows_cols = tuple(shape) if np.ndim(shape) == 1 else ()
         if len(rows_cols) != 2 or not all(isinstance(n, Integral) and not isinstance(n, bool)
                                           and n > 0 for n in rows_cols):
@@ -223,7 +225,7 @@ class SolidTexture:
         and return that file, which then holds the store's voxels (:meth:`BrickStore.save`
         does not rewrite a file that holds them already); the store file of a live texture
         of other settings is refused (StoreFileError)."""
-        target = check_file_name("path", path) if path is not None else self.path
+        target = _store_file(path, "path") if path is not None else self.path
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
         _check_unshared(target, self.synthesizer)
