@@ -131,6 +131,21 @@ def test_a_write_through_a_symbolic_link_replaces_its_target_and_keeps_the_link(
     assert dangling.is_symlink() and (tmp_path / "real" / "made.bin").read_bytes() == b"made"
 
 
+def test_a_library_writer_failing_for_another_reason_names_the_file_asked_for(tmp_path):
+    """A writer's RuntimeError without a system reason keeps its words, the temporary
+    file's name in them replaced by the file asked for."""
+    target = tmp_path / "out.exr"
+
+    def odd(tmp):
+        raise RuntimeError(f'cannot encode "{tmp}": unsupported channel layout')
+
+    with pytest.raises(OSError) as caught:
+        write_atomically(target, odd)
+    assert caught.value.errno == errno.EIO and caught.value.filename == str(target)
+    assert caught.value.strerror == f'cannot encode "{target}": unsupported channel layout'
+    assert not any(tmp_path.iterdir())
+
+
 def test_files_written_together_are_all_left_as_they_were_when_one_fails(tmp_path):
     """write_together: the second file's write fails (a full disk), so the first, written
     already, is not put in place either; the error names the file that failed."""

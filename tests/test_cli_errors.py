@@ -267,6 +267,59 @@ def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, ca
     assert not [p for p in out.rglob(".*")]  # no temporary left
 
 
+# Outputs that OpenEXR or Mitsuba's bitmap writer writes: they raise RuntimeError, not
+# OSError, where the disk is full.
+LIBRARY_WRITE_FAILURES = [
+    (["volume", "{exemplar}", "--size", "8", "--passes", "0", "-o", "{out}/v.exr"], "v.exr"),
+    (["slice", "{exemplar}", "--shape", "4", "4", "--passes", "0", "-o", "{out}/s.exr"],
+     "s.exr"),
+    (["render", str(REPO / "scenes" / "bunny_wood.xml"), "--spp", "1", "--res", "8x8",
+      "-o", "{out}/r.exr"], "r.exr"),
+]
+
+
+@pytest.mark.parametrize(("argv", "failing"), LIBRARY_WRITE_FAILURES,
+                         ids=[c[1] for c in LIBRARY_WRITE_FAILURES])
+def test_an_image_library_that_cannot_write_is_one_clear_error(files, tmp_path, capsys,
+                                                               monkeypatch, argv, failing):
+    """OpenEXR and Mitsuba say a full disk in a RuntimeError naming the temporary file:
+    reported as any failed write, naming the output, which keeps its old contents."""
+    import mitsuba as mi
+    import OpenEXR
+
+    def full(path):
+        raise RuntimeError(f'Failed to write pixel data to image file "{path}". No space '
+                           "left on device.")
+
+    class FullDisk:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def write(self, path):
+            full(path)
+
+    monkeypatch.setattr(OpenEXR, "File", FullDisk)
+    monkeypatch.setattr(mi.util, "write_bitmap", lambda path, *args, **kwargs: full(path))
+    out = tmp_path / "out"
+    out.mkdir()
+    target = out / failing
+    target.write_bytes(b"old")
+    names = {k: str(v) for k, v in files.items()} | {"out": str(out)}
+    capsys.readouterr()
+    assert main([a.format(**names) for a in argv]) == 1
+    err = capsys.readouterr().err
+    assert err.endswith(f"warptex: error: {target}: cannot write (No space left on device)\n")
+    assert "Traceback" not in err
+    assert target.read_bytes() == b"old"
+    assert not [p for p in out.rglob(".*")]
+
+
 @pytest.mark.parametrize("command", ["volume", "slice", "precompute", "render", "bake"])
 @pytest.mark.parametrize("ending", ["/", "/.", "/.."])
 def test_an_output_name_of_a_folder_is_refused(files, tmp_path, capsys, command, ending):

@@ -13,6 +13,7 @@ is written under a temporary name, then renamed).
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import io
 import os
@@ -112,7 +113,10 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         for (path, write), target, tmp in zip(staged, targets, temporary, strict=True):
             current = path
             target.parent.mkdir(parents=True, exist_ok=True)
-            write(tmp)
+            try:
+                write(tmp)
+            except RuntimeError as error:
+                raise _library_failure(error, tmp, path) from error
         for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
             current = path
             os.replace(tmp, target)
@@ -125,6 +129,22 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         for tmp in temporary:
             with contextlib.suppress(OSError):  # where the write failed, so may this
                 tmp.unlink(missing_ok=True)
+
+
+# Reasons a failed write gives that an image library's words may carry.
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EIO)
+
+
+def _library_failure(error: RuntimeError, tmp: Path, path: Path) -> OSError:
+    """A failed write of an image library (OpenEXR and Mitsuba's bitmap raise RuntimeError,
+    a full disk among its causes) as the OSError of any failed write: the system's reason
+    where the library's words give it, else those words, naming ``path`` instead of the
+    temporary file, which means nothing to a user."""
+    text = str(error)
+    for code in _WRITE_ERRNOS:
+        if os.strerror(code) in text:
+            return OSError(code, os.strerror(code), str(path))
+    return OSError(errno.EIO, text.replace(str(tmp), str(path)), str(path))
 
 
 def written_through(path: Path) -> Path:
