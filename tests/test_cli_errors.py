@@ -3,6 +3,7 @@ or file at fault, exit code 2, and nothing written or overwritten."""
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 from pathlib import Path
@@ -377,6 +378,30 @@ def test_cut_checks_both_halves_before_writing_either(files, tmp_path, capsys):
                  "--resolution", "8", "-o", str(out / "c.ply")]) == 2
     assert f"{out / 'c_b.ply'}: is a folder, expected a file name" in capsys.readouterr().err
     assert [p.name for p in out.iterdir()] == ["c_b.ply"]
+
+
+def test_a_cut_whose_second_half_cannot_be_written_writes_neither(files, tmp_path, capsys,
+                                                                  monkeypatch):
+    """The disk fills while the second half is written: the first half's new file is not
+    put beside the second's old one, and both keep their old contents."""
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("c.ply", "c_b.ply"):
+        (out / name).write_bytes(b"old")
+    write_bytes = Path.write_bytes
+
+    def full_at_second_half(self, data):
+        if self.name.startswith(".c_b."):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return write_bytes(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full_at_second_half)
+    assert main(["cut", str(files["mesh"]), "--exemplar", str(files["exemplar"]),
+                 "--resolution", "8", "--passes", "0", "-o", str(out / "c.ply")]) == 1
+    err = capsys.readouterr().err
+    assert err.endswith(f"{out / 'c_b.ply'}: cannot write (No space left on device)\n")
+    assert sorted(p.name for p in out.iterdir()) == ["c.ply", "c_b.ply"]
+    assert (out / "c.ply").read_bytes() == (out / "c_b.ply").read_bytes() == b"old"
 
 
 def test_an_unwritable_cache_folder(files, tmp_path, capsys, monkeypatch):

@@ -2,12 +2,11 @@
 
 Every single file warptex writes goes through :func:`write_atomically`, or
 :func:`write_together` for files that belong together (a render's image and statistics; a
-mesh that comes with its material and texture files is staged whole by
-``warptex.mesh_files.export``), then each file is renamed into place. The candidate cache
-and the brick store persist through archives: a header holds a magic string, a format
-version and the SHA-256 of the payload (an uncompressed ``.npz``), so a truncated, corrupt
-or foreign file is detected and never used, and a reader never sees a half-written file (it
-is written under a temporary name, then renamed).
+mesh with its material and texture files, both halves of a cut), then each file is renamed
+into place. The candidate cache and the brick store persist through archives: a header
+holds a magic string, a format version and the SHA-256 of the payload (an uncompressed
+``.npz``), so a truncated, corrupt or foreign file is detected and never used, and a reader
+never sees a half-written file (it is written under a temporary name, then renamed).
 """
 
 from __future__ import annotations
@@ -102,7 +101,7 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     statistics): every temporary file is written before any is renamed, so a write that
     fails (a full disk) leaves all of them as they were, never a new one beside an old.
     Only a rename that fails after an earlier one went through (the file's place taken by
-    a folder meanwhile) can still leave them mixed."""
+    a folder between the check and the rename) can still leave them mixed."""
     tag = f"{os.getpid()}.{threading.get_ident()}"
     staged = [(Path(path), write) for path, write in writes]
     targets = [written_through(path) for path, _ in staged]
@@ -117,6 +116,10 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
                 write(tmp)
             except RuntimeError as error:
                 raise _library_failure(error, tmp, path) from error
+        for (path, _), target in zip(staged, targets, strict=True):
+            if target.is_dir():  # refused before any file is replaced, not half way
+                current = path
+                raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))
         for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
             current = path
             os.replace(tmp, target)

@@ -1017,13 +1017,17 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
     return {"mesh": mesh, "image": image, "uv": uv}
 
 
-def _export_baked(baked: dict, output: Path, srgb: bool | None) -> list[Path]:
-    """Write what :func:`_baked` made, its colors in each format's encoding (``srgb``: see
+def _export_baked(baked: list[dict], outputs: list[Path], srgb: bool | None) -> list[Path]:
+    """Write what :func:`_baked` made for each output, together (a cut's two halves: both
+    or, where a write fails, neither), its colors in each format's encoding (``srgb``: see
     warptex.mesh_files.export); returns the files written."""
-    from warptex.mesh_files import export, exported_files
+    from warptex.mesh_files import mesh_files, write_files
 
-    with _writing(output, *exported_files(output, uv_texture="image" in baked)):
-        return export(path=output, srgb=srgb, **baked)
+    files = [f for b, output in zip(baked, outputs, strict=True)
+             for f in mesh_files(path=output, srgb=srgb, **b)]
+    with _writing(outputs[0], *(f for f, _ in files)):
+        write_files(files)
+    return [f for f, _ in files]
 
 
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
@@ -1122,8 +1126,8 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     with _store_saved_when_stopped(tex, args):
         count = _synthesize_shell(tex, mesh, args.resolution, transform)
-        files = _export_baked(_baked(tex, mesh, transform, args, args.output.name),
-                              args.output, srgb)
+        files = _export_baked([_baked(tex, mesh, transform, args, args.output.name)],
+                              [args.output], srgb)
         print(f"surface shell: {count} voxels")
         return _finish_mesh_command(tex, args, files, start)
 
@@ -1169,9 +1173,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
         # Both halves baked before either is written: a cut stopped half way writes neither.
         baked = [_baked(tex, half, transform, args, output.name)
                  for half, output in zip(halves, outputs, strict=True)]
-        files = [f for b, output in zip(baked, outputs, strict=True)
-                 for f in _export_baked(b, output, srgb)]
-        return _finish_mesh_command(tex, args, files, start)
+        return _finish_mesh_command(tex, args, _export_baked(baked, outputs, srgb), start)
 
 
 def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:

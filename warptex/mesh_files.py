@@ -4,15 +4,13 @@ baked results of ``warptex.bake``)."""
 
 from __future__ import annotations
 
-import errno
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from PIL import Image
 
+from warptex.archive import write_together
 from warptex.exemplar import reencoded
 from warptex.sheets import to_rgb, to_rgb8
 
@@ -55,9 +53,25 @@ def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None,
            srgb: bool | None = None) -> list[Path]:
-    """Write a textured mesh, each file atomically: PLY/GLB with vertex ``colors``, or GLB
-    (embedded PNG) / OBJ (+ MTL + PNG, :func:`exported_files`, written before the OBJ)
-    with a UV ``image``. Returns the files written.
+    """Write a textured mesh atomically (:func:`mesh_files`): PLY/GLB with vertex
+    ``colors``, or GLB (embedded PNG) / OBJ (+ MTL + PNG, :func:`exported_files`) with a UV
+    ``image``. Returns the files written."""
+    files = mesh_files(mesh, path, colors=colors, image=image, uv=uv, srgb=srgb)
+    write_files(files)
+    return [f for f, _ in files]
+
+
+def write_files(files: list[tuple[Path, bytes]]) -> None:
+    """Write files and their contents together (``archive.write_together``): all of them,
+    or, where one fails, none (the meshes of both halves of a cut among them)."""
+    write_together([(f, lambda tmp, data=data: tmp.write_bytes(data)) for f, data in files])
+
+
+def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
+               image: np.ndarray | None = None, uv: np.ndarray | None = None,
+               srgb: bool | None = None) -> list[tuple[Path, bytes]]:
+    """The files :func:`export` writes and their contents, an OBJ's material and texture
+    before the OBJ, which is renamed into place last: it never arrives without them.
 
     ``srgb``: whether the colors are sRGB-encoded (``Exemplar.srgb``), so that each file
     holds what its readers assume: PNG textures and PLY vertex colors sRGB-encoded, glTF
@@ -92,19 +106,9 @@ def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None
         raise ValueError("nothing to export: give colors or an image")
     out = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, visual=visual,
                           vertex_attributes=attributes, process=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=path.parent, prefix=f".{path.name}.") as tmp:
-        staged = Path(tmp) / path.name
-        if suffix == ".obj":
-            options["mtl_name"] = f"{path.stem}.mtl"
-        out.export(staged, **options)
-        # The mesh file last: an .obj never arrives before its material and texture, and a
-        # folder in the place of any of them is refused before one is replaced.
-        staged_files = sorted(Path(tmp).iterdir(), key=lambda f: (f.name == path.name, f.name))
-        targets = [path.parent / f.name for f in staged_files]
-        for target in targets:
-            if target.is_dir():
-                raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))
-        for f, target in zip(staged_files, targets, strict=True):
-            os.replace(f, target)
-    return targets
+    if suffix != ".obj":
+        return [(path, out.export(file_type=suffix[1:], **options))]
+    text, companions = trimesh.exchange.obj.export_obj(out, mtl_name=f"{path.stem}.mtl",
+                                                        return_texture=True)
+    return [*((path.parent / name, companions[name]) for name in sorted(companions)),
+            (path, text.encode())]
