@@ -131,6 +131,26 @@ def test_a_write_through_a_symbolic_link_replaces_its_target_and_keeps_the_link(
     assert dangling.is_symlink() and (tmp_path / "real" / "made.bin").read_bytes() == b"made"
 
 
+def test_a_failed_write_leaves_no_folder_it_made(tmp_path):
+    """Folders made for the files are removed again when the write fails (compare's -o
+    DIR on a full disk), not those that were there, nor one another writer filled."""
+    def full(tmp):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+
+    with pytest.raises(OSError, match="No space"):
+        write_together([(tmp_path / "new" / "deeper" / "a.png", lambda tmp: tmp.write_bytes(b"a")),
+                        (tmp_path / "new" / "b.json", full)])
+    assert not any(tmp_path.iterdir())
+
+    def crowded(tmp):
+        (tmp_path / "new" / "theirs.txt").write_text("another writer's")
+        full(tmp)
+
+    with pytest.raises(OSError, match="No space"):
+        write_atomically(tmp_path / "new" / "deeper" / "c.npy", crowded)
+    assert [p.name for p in tmp_path.rglob("*")] == ["new", "theirs.txt"]
+
+
 def test_a_library_writer_failing_for_another_reason_names_the_file_asked_for(tmp_path):
     """A writer's RuntimeError without a system reason keeps its words, the temporary
     file's name in them replaced by the file asked for."""

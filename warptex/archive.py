@@ -99,18 +99,23 @@ def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:
 def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) -> None:
     """:func:`write_atomically` for files that belong together (an image and its
     statistics): every temporary file is written before any is renamed, so a write that
-    fails (a full disk) leaves all of them as they were, never a new one beside an old.
-    Only a rename that fails after an earlier one went through (the file's place taken by
-    a folder between the check and the rename) can still leave them mixed."""
+    fails (a full disk) leaves all of them as they were, never a new one beside an old,
+    and no folder made for them. Only a rename that fails after an earlier one went
+    through (the file's place taken by a folder between the check and the rename) can
+    still leave them mixed."""
     tag = f"{os.getpid()}.{threading.get_ident()}"
     staged = [(Path(path), write) for path, write in writes]
     targets = [written_through(path) for path, _ in staged]
     temporary = [path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
                  for path in targets]
     current = None  # the file being written or renamed, as the caller named it
+    made: list[Path] = []  # folders made here, outermost first
+    done = False
     try:
         for (path, write), target, tmp in zip(staged, targets, temporary, strict=True):
             current = path
+            made += [f for f in reversed([target.parent, *target.parent.parents])
+                     if not f.exists()]
             target.parent.mkdir(parents=True, exist_ok=True)
             try:
                 write(tmp)
@@ -123,6 +128,7 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
             current = path
             os.replace(tmp, target)
+        done = True
     except OSError as error:
         if error.errno is None:
             raise
@@ -132,6 +138,10 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         for tmp in temporary:
             with contextlib.suppress(OSError):  # where the write failed, so may this
                 tmp.unlink(missing_ok=True)
+        if not done:
+            for folder in reversed(made):
+                with contextlib.suppress(OSError):  # not empty: another writer's files
+                    folder.rmdir()
 
 
 # Reasons a failed write gives that an image library's words may carry.

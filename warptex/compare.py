@@ -711,7 +711,6 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
                         f"returns) of a Setup, got {comparison!r}")
     setup, results = comparison.setup, comparison.results
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
     paths = setup.paths()
     axes = setup.exemplars()
