@@ -139,9 +139,6 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     if resolution is not None and {"width", "height"} & set(parameters):
         raise ValueError("--res sets the parameters width and height: give them with -D or "
                          "--res, not both")
-    if spp is not None and "spp" in parameters:  # --spp would win without a word
-        raise ValueError("--spp sets the samples per pixel, which the scene's $spp sets "
-                         "too: give them with -D spp or --spp, not both")
     statistics = output.with_name(output.name + ".json")
     clash = overwritten_input([output, statistics], [scene_path, *scene_files(scene_path)])
     if clash is not None:

@@ -141,8 +141,6 @@ CASES = [
      "-D sets parameters this scene does not use: shade"),
     (["render", "{no_sensor}", "--res", "16x16", "-D", "width=8", "-o", "{out}/r.png"],
      "give them with -D or --res, not both"),
-    (["render", "{no_sensor}", "--spp", "1", "-D", "spp=2", "-o", "{out}/r.png"],
-     "give them with -D spp or --spp, not both"),
     (["render", "{no_sensor}", "--sampler-seed", "-1", "-o", "{out}/r.png"],
      "--sampler-seed must be 0 to 536870911, got -1"),
     (["render", "{no_sensor}", "--res", "100000x100000", "-o", "{out}/r.png"],
