@@ -121,6 +121,28 @@ def candidates_bar() -> bool | None:
     return _candidates_bar
 
 
+_stores_read_only = False
+
+
+@contextmanager
+def stores_read_only() -> Iterator[None]:
+    """``lazy_solid`` textures of scenes loaded in this block only read their ``cache``
+    files, as ``warptex render --read-only-stores`` does: their ``save()`` writes nothing,
+    and a file yet to be made in a place that cannot be written is no error (a shared
+    folder not filled yet); the render starts without one."""
+    global _stores_read_only
+    before, _stores_read_only = _stores_read_only, True
+    try:
+        yield
+    finally:
+        _stores_read_only = before
+
+
+def stores_are_read_only() -> bool:
+    """Whether textures made now only read their ``cache`` (:func:`stores_read_only`)."""
+    return _stores_read_only
+
+
 @contextmanager
 def wavefront() -> Iterator[None]:
     """Dr.Jit's ``SymbolicLoops`` and ``SymbolicCalls`` off for the duration.

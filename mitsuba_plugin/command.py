@@ -12,7 +12,7 @@ import sys
 import time
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from functools import partial
 from pathlib import Path
 
@@ -165,8 +165,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                            else {"width": resolution[0], "height": resolution[1]})
     start = time.perf_counter()
     try:
+        reading = nullcontext() if save_stores else mitsuba_plugin.stores_read_only()
         with _status(f"loading {scene_path.name} (exemplars new to the candidate cache are "
-                     "pre-computed first)"), mitsuba_plugin.candidates_progress():
+                     "pre-computed first)"), mitsuba_plugin.candidates_progress(), reading:
             scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
         # Ctrl-C in a plugin that Mitsuba built on this thread comes wrapped, the Python

@@ -31,8 +31,9 @@ Properties (XML or ``mi.load_dict``):
 ``filter``             string     ``trilinear`` (default) or ``nearest``
 ``raw``                boolean    render an 8- or 16-bit exemplar's values as they are stored,
                                   without decoding sRGB (default false, as Mitsuba's ``bitmap``)
-``cache``              string     brick store file: loaded when it exists, written by ``save()``;
-                                  refused when a live texture of other settings has it
+``cache``              string     brick store file: loaded when it exists, written by ``save()``
+                                  (not in scenes loaded within ``stores_read_only()``); refused
+                                  when a live texture of other settings has it
 ``cache_bytes``        integer    memory bound of the brick store (default 256 MiB; scalar
                                   variants keep up to about as much again, see below)
 =====================  =========  ==============================================================
@@ -290,13 +291,17 @@ class LazySolidTexture(mi.Texture):
         if cache is not None and names_folder(cache):
             raise property_error(PLUGIN, "cache", f'names a folder, not a file: "{cache}"')
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
+        self._read_only = mitsuba_plugin.stores_are_read_only()
         # A store file yet to be made that never can be would only fail its first save,
         # after a render's work; one that exists is loaded even from a read-only place.
+        store = self.cache
         if self.cache is not None and not self.cache.exists():
-            problem = file_problem(self.cache)
+            problem = None if self._read_only else file_problem(self.cache)
             if problem is not None:
                 raise property_error(PLUGIN, "cache",
                                      f"cannot be saved to {self.cache}: {problem}")
+            if self._read_only:
+                store = None  # nothing to read, and nothing will be saved
         # A JIT-typed transform, so mi.traverse can update it in place.
         self.to_world = mi.AffineTransform4f(_to_world(props).astype(np.float32))
         exemplars = _load_exemplars(named, self.max_size, **features)
@@ -313,7 +318,7 @@ class LazySolidTexture(mi.Texture):
         try:
             self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                       passes=self.passes, cache_bytes=cache_bytes,
-                                      store=self.cache, shifted_tiles=self.shifted_tiles)
+                                      store=store, shifted_tiles=self.shifted_tiles)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
         colors = _exemplar_colors(candidates)
@@ -526,8 +531,9 @@ class LazySolidTexture(mi.Texture):
         return None if self._scalar is None else self._scalar.stats()
 
     def save(self) -> Path | None:
-        """Write the brick store to the ``cache`` file, if one was given."""
-        return self.solid.save() if self.cache is not None else None
+        """Write the brick store to the ``cache`` file, if one was given and the texture
+        was not made to only read it (:func:`mitsuba_plugin.stores_read_only`)."""
+        return self.solid.save() if self.cache is not None and not self._read_only else None
 
     def _scalar_color(self, it: mi.Interaction3f) -> list[float]:
         """RGB at the point of a scalar variant's interaction ``it``: from the mirrored

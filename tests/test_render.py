@@ -512,6 +512,39 @@ def test_render_command_reads_a_store_it_may_not_write(tmp_path, monkeypatch):
     assert store.read_bytes() == before
 
 
+def test_render_command_reads_no_store_where_a_read_only_place_has_none_yet(tmp_path, capsys,
+                                                                            monkeypatch):
+    """--read-only-stores with a ``cache`` not made yet in a place that cannot be written
+    (a shared folder not filled yet): rendered without a store, where without the flag
+    the scene is refused as its store could not be saved."""
+    import mitsuba_plugin.command
+    import mitsuba_plugin.texture
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "shared/bunny.wtb")
+    missing = scene.parent / "shared" / "bunny.wtb"
+
+    def read_only(path):
+        return f"cannot write in {path.parent} (Read-only file system)" if path == missing else None
+
+    monkeypatch.setattr(mitsuba_plugin.command, "file_problem", read_only)
+    monkeypatch.setattr(mitsuba_plugin.texture, "file_problem", read_only)
+    argv = ["render", str(scene), "--spp", "1", "--res", "16x16"]
+    assert main([*argv, "-o", str(tmp_path / "refused.exr")]) == 2
+    assert 'property "cache" cannot be saved to' in capsys.readouterr().err
+    mitsuba_plugin.live_textures.clear()
+    assert main([*argv, "--read-only-stores", "-o", str(tmp_path / "read.exr")]) == 0
+    (report,) = json.loads((tmp_path / "read.exr.json").read_text())["textures"]
+    assert report["saved_to"] is None and report["store"]["voxels_added"] > 0
+    assert report["properties"]["cache"] == str(missing)
+    assert not missing.parent.exists()
+    with mitsuba_plugin.stores_read_only():  # as loaded from Python: save() writes nothing
+        loaded = mi.load_file(str(scene), width=16, height=16)
+    (texture,) = mitsuba_plugin.textures(loaded)
+    texture.solid.query(np.zeros((1, 3)))
+    assert mitsuba_plugin.save_caches(loaded) == [] and not missing.parent.exists()
+
+
 @pytest.mark.parametrize("case", ["the output", "its statistics", "read-only"])
 def test_render_command_refuses_a_store_it_could_not_save_before_rendering(
         tmp_path, capsys, monkeypatch, case):

@@ -1290,7 +1290,7 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--read-only-stores", action="store_true",
                         help="read the brick stores the scene names (lazy_solid's cache) "
                         "without writing them back: a shared store, or one in a place that "
-                        "cannot be written")
+                        "cannot be written (where there is none yet, rendered without one)")
     parser.add_argument("-D", dest="parameters", action="append", default=[],
                         type=_scene_parameter, metavar="NAME=VALUE",
                         help="set a parameter the scene declares (<default name=\"NAME\" "
