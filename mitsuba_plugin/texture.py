@@ -5,8 +5,8 @@ Properties (XML or ``mi.load_dict``):
 =====================  =========  ==============================================================
 ``exemplar``           string     exemplar image; relative paths are taken from the scene file's
                                   folder (``mi.load_dict``: the working directory)
-``exemplar_x``         string     optional exemplars of the three axes (Dong 2008, section 4);
-``_y``, ``_z``                    each defaults to ``exemplar``
+``exemplar_x``         string     optional exemplars of the three axes (Dong 2008, section 4):
+``_y``, ``_z``                    x's defaults to ``exemplar``, y's to x's, z's to y's
 ``exemplar_max_size``  integer    shrink larger exemplars (area-averaged) until their larger side
                                   is this many pixels, at least 16 (default: as they are)
 ``feature_distance``   boolean    add a feature-distance channel (Lefebvre & Hoppe 2006) from an
@@ -147,19 +147,26 @@ _PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_m
 
 def _exemplar_paths(props: mi.Properties) -> list[tuple[str, Path]]:
     """The exemplars of the x, y and z axes, each checked to exist, with the property that
-    names each."""
-    get_property(props, "exemplar", str, None, PLUGIN)  # checked even where axes override it
-    named = []
+    names each: ``exemplar_x`` defaults to ``exemplar``, ``exemplar_y`` to x's and
+    ``exemplar_z`` to y's, as ``precompute`` and the commands' --ey/--ez take them
+    (``warptex.exemplar.axis_triple``), so a scene and a command given the same images
+    synthesize the same solid."""
+    plain = get_property(props, "exemplar", str, None, PLUGIN)  # checked even where unused
+    named: list[tuple[str, Path]] = []
     for axis in "xyz":
-        key = f"exemplar_{axis}" if f"exemplar_{axis}" in props else "exemplar"
-        name = get_property(props, key, str, None, PLUGIN)
-        if name is None:
+        key = f"exemplar_{axis}"
+        if key in props:
+            named.append((key, existing_scene_file(get_property(props, key, str, None, PLUGIN),
+                                                   key, PLUGIN)))
+        elif named:
+            named.append(named[-1])
+        elif plain is not None:
+            named.append(("exemplar", existing_scene_file(plain, "exemplar", PLUGIN)))
+        else:
             unread = [k for k in props if k not in _PROPERTIES]
             near = difflib.get_close_matches("exemplar", unread, n=1)
             typo = f' ("{near[0]}" is no property of {PLUGIN})' if near else ""
-            raise property_error(PLUGIN, "exemplar",
-                                 f'is required (or all of "exemplar_{axis}", ...){typo}')
-        named.append((key, existing_scene_file(name, key, PLUGIN)))
+            raise property_error(PLUGIN, "exemplar", f'is required (or "exemplar_x"){typo}')
     return named
 
 
@@ -214,7 +221,7 @@ def _rewarn(warning: warnings.WarningMessage, path: Path) -> None:
 def _exemplar_names(named: list[tuple[str, Path]]) -> str:
     """The exemplar properties of :func:`_exemplar_paths`, as an error names them: the
     per-axis ones where any is given, since those are what differ from the others."""
-    axes = [key for key, _ in named if key != "exemplar"]
+    axes = dict.fromkeys(key for key, _ in named if key != "exemplar")
     return '", "'.join(axes) if axes else "exemplar"
 
 

@@ -221,12 +221,13 @@ def precompute(
 ) -> CandidateSet:
     """Pre-compute the 3D candidates of three exemplars (Dong 2008, section 4).
 
-    ``ey``/``ez`` default to ``ex``. With ``cache`` the result is stored under
-    ``WARPTEX_CACHE`` keyed by exemplar content and parameters, and a later call loads
-    it; a damaged cache file, or one that holds the candidates of other exemplars or
-    parameters (copied or renamed), is reported once and recomputed, and a cache that
-    cannot be written is reported once and left out. ``progress`` shows a bar on stderr; None shows
-    it when stderr is a terminal.
+    ``ey`` defaults to ``ex`` and ``ez`` to ``ey`` (:func:`~warptex.exemplar.axis_triple`,
+    as the commands' --ey/--ez and the plugin's ``exemplar_y``/``_z``). With ``cache`` the
+    result is stored under ``WARPTEX_CACHE`` keyed by exemplar content and parameters, and
+    a later call loads it; a damaged cache file, or one that holds the candidates of other
+    exemplars or parameters (copied or renamed), is reported once and recomputed, and a
+    cache that cannot be written is reported once and left out. ``progress`` shows a bar on
+    stderr; None shows it when stderr is a terminal.
     """
     check_flag("cache", cache)
     if progress is not None:
