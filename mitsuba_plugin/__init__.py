@@ -184,7 +184,7 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     ``spp`` (default: the scene's sampler's count) and ``batches`` are positive integers;
     batch ``i`` samples with the seed ``seed * batches + i``, which Mitsuba keeps in 32 bits.
     """
-    _check_scene(scene)
+    _check_scene(scene, whole=True)
     for name, value in (("spp", spp), ("batches", batches), ("seed", seed)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, Integral)):
             raise TypeError(f"{name} must be an integer, got {value!r}")
@@ -309,10 +309,11 @@ def textures(scene: mi.Object | None = None) -> list:
     return list(found.values())
 
 
-def _check_scene(scene: object) -> None:
-    """Refuse what is not a loaded Mitsuba object (a scene's file name, say), which Mitsuba
-    would answer with an error of its own internals."""
-    if not isinstance(scene, mi.Object):
+def _check_scene(scene: object, whole: bool = False) -> None:
+    """Refuse what is not a loaded Mitsuba object (a scene's file name, say), or, where a
+    ``whole`` scene is needed (to render it), not a scene: Mitsuba would answer either with
+    an error of its own internals."""
+    if not isinstance(scene, mi.Scene if whole else mi.Object):
         raise TypeError(f"scene must be a loaded Mitsuba scene (mi.load_file, mi.load_dict), "
                         f"got {scene!r}")
 

@@ -12,7 +12,7 @@ import pytest
 import warptex
 from warptex import metrics
 from warptex.archive import write_atomically, write_together
-from warptex.candidates import precompute
+from warptex.candidates import CandidateSet, precompute
 from warptex.settings import MAX_JITTER, MAX_PASSES, MAX_SEED, SettingError, check_settings
 from warptex.volume_files import write_image, write_volume
 
@@ -48,6 +48,20 @@ def test_sources_of_the_wrong_kind_are_named(candidates, warp_device):
     assert synth.box(np.array([1, 2, 3]), (1, 1, 2)).shape == (1, 1, 2, 3)
     with pytest.raises(ValueError, match="device must be a Warp device such as 'cpu'"):
         Synthesizer(candidates, device="foo")
+    for subpasses in (True, 2):  # True would pass for 1
+        with pytest.raises(ValueError, match="subpasses must be 1 or 8"):
+            Synthesizer(candidates, subpasses=subpasses)
+    for call in (CandidateSet.load, candidates.save):
+        with pytest.raises(TypeError, match=r"path must be a file name \(str or Path\), got 3"):
+            call(3)
+
+
+def test_kopf_refuses_a_callback_it_cannot_call_before_any_work(granite_32, monkeypatch):
+    from warptex.baselines import kopf
+
+    monkeypatch.setattr(kopf, "_axis_exemplars", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(TypeError, match="on_iteration must be a function or None, got 5"):
+        kopf.synthesize(granite_32, size=16, on_iteration=5, progress=False)
 
 
 def test_texture_arguments_of_the_wrong_kind_are_named(candidates, warp_device):
@@ -91,6 +105,27 @@ def test_metrics_name_what_does_not_fit(granite_32):
     with pytest.raises(ValueError, match="too small for the repetition score"):
         metrics.repetition_score(colors[:16, :16])
     assert 0.0 <= metrics.repetition_score(np.tile(colors[..., 0], (2, 2))) <= 1.0
+
+
+def test_reference_volumes_and_patches_name_the_argument_at_fault(granite_32):
+    """The helpers comparisons are built from refuse what NumPy would take otherwise (a
+    2-int shape, a fractional depth) or fail on deep inside."""
+    colors = granite_32.colors
+    for shape in ((4, 4), (4, 4, -1), (4, 4, 2.0), 4):
+        with pytest.raises(ValueError, match="shape must be"):
+            metrics.iid_noise(colors, shape)
+    assert metrics.iid_noise(granite_32, (2, 3, 4)).shape == (2, 3, 4, 3)
+    for depth, problem in ((1.5, "depth must be an integer"), (0, "depth must be at least 1")):
+        with pytest.raises(ValueError, match=problem):
+            metrics.extrusion(colors, depth)
+    with pytest.raises(ValueError, match=r"exemplar must be an \(H, W, C\) image"):
+        metrics.extrusion(colors[..., 0], 2)
+    with pytest.raises(ValueError, match=r"image must be an \(H, W, C\) image"):
+        metrics.patches(colors[..., 0], 5)
+    with pytest.raises(ValueError, match="size \\(of the patches\\) must be at least 1"):
+        metrics.patches(colors, 0)
+    with pytest.raises(ValueError, match=r"volume must be a \(D, H, W, C\) array"):
+        metrics.axis_slices([[1.0]], 0)
 
 
 def test_files_refuse_what_their_formats_cannot_hold(tmp_path):

@@ -199,6 +199,9 @@ def test_render_refuses_arguments_mitsuba_would_fail_on_deep_inside():
     for call in (mitsuba_plugin.render, mitsuba_plugin.textures, mitsuba_plugin.save_caches):
         with pytest.raises(TypeError, match="scene must be a loaded Mitsuba scene"):
             call("scenes/bunny_wood.xml")
+    (texture,) = mitsuba_plugin.textures(scene)  # a part of a scene is no scene to render
+    with pytest.raises(TypeError, match="scene must be a loaded Mitsuba scene"):
+        mitsuba_plugin.render(texture)
     assert mitsuba_plugin.render(scene, spp=2, batches=2, seed=2**31 - 1).shape == (4, 4, 3)
 
 

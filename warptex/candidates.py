@@ -45,7 +45,7 @@ from warptex.exemplar import (
 )
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
-from warptex.settings import check_flag, check_tileable
+from warptex.settings import check_file_name, check_flag, check_tileable
 from warptex.warp_runtime import init_warp
 
 FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
@@ -202,11 +202,12 @@ class CandidateSet:
 
     def save(self, path: str | Path) -> None:
         """Write a versioned, checksummed file atomically (temporary name, then rename)."""
-        write_archive(path, FILE_MAGIC, FORMAT_VERSION, _flatten(self))
+        write_archive(check_file_name("path", path), FILE_MAGIC, FORMAT_VERSION, _flatten(self))
 
     @classmethod
     def load(cls, path: str | Path) -> CandidateSet:
         """Read a file written by :meth:`save`; raise CandidateCacheError if it is damaged."""
+        path = check_file_name("path", path)
         return _unflatten(_read_file(path), path)
 
 

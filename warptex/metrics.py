@@ -45,6 +45,7 @@ def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarra
     oriented like the exemplar of that axis."""
     _check_axis(axis)
     check_count("count (of slices)", count, low=1)
+    volume = _volume(volume)
     depth = volume.shape[axis]
     picks = np.unique(np.linspace(0, depth - 1, min(count, depth)).astype(int))
     return [axis_slice(volume, axis, int(i)) for i in picks]
@@ -54,7 +55,7 @@ def axis_slice(volume: np.ndarray, axis: int, index: int) -> np.ndarray:
     """The slice ``index`` perpendicular to ``axis`` as an (rows, cols, C) image oriented
     like the exemplar of that axis (volume axes axis+1, axis+2 as rows and columns)."""
     _check_axis(axis)
-    s = np.take(volume, index, axis=axis)
+    s = np.take(_volume(volume), index, axis=axis)
     # np.take drops `axis`; remaining axes are the other two in increasing order.
     remaining = [a for a in range(3) if a != axis]
     order = [(axis + 1) % 3, (axis + 2) % 3]
@@ -65,6 +66,9 @@ def patches(image: np.ndarray, size: int, stride: int = 1,
             wrap: bool | tuple[bool, bool] = False) -> np.ndarray:
     """All ``size`` x ``size`` patches of an (H, W, C) image as rows (n, size*size*C);
     ``wrap`` (for rows and columns, or one for both) lets them wrap around the edges."""
+    image = _image(image, "image")
+    size = check_count("size (of the patches)", size, low=1)
+    stride = check_count("stride", stride, low=1)
     wrap_rows, wrap_cols = (wrap, wrap) if np.ndim(wrap) == 0 else wrap
     h, w, c = image.shape
     image = np.pad(image, ((0, size - 1 if wrap_rows else 0), (0, size - 1 if wrap_cols else 0),
@@ -94,12 +98,8 @@ def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np
     arrays of the same channels, whose slices across ``axis`` and the exemplar itself hold
     ``size`` x ``size`` patches; else a ValueError or TypeError saying which argument is
     wrong."""
-    exemplar = _colors(exemplar)
-    volume = np.asarray(volume)
-    if volume.ndim != 4:
-        raise ValueError(f"volume must be a (D, H, W, C) array, got shape {volume.shape}")
-    if exemplar.ndim != 3:
-        raise ValueError(f"exemplar must be an (H, W, C) image, got shape {exemplar.shape}")
+    exemplar = _image(_colors(exemplar))
+    volume = _volume(volume)
     for name, a in (("volume", volume), ("exemplar", exemplar)):
         if not np.issubdtype(a.dtype, np.floating):
             raise TypeError(f"{name} must hold float colors (as warptex loads them), got "
@@ -134,6 +134,22 @@ def _colors(exemplar: np.ndarray | Exemplar) -> np.ndarray:
         raise TypeError(f"exemplar must be an (H, W, C) image array or a warptex.Exemplar "
                         f"(Exemplar.load reads a file), got {exemplar!r}")
     return np.asarray(getattr(exemplar, "colors", exemplar))
+
+
+def _image(image: object, name: str = "exemplar") -> np.ndarray:
+    """``image`` as an (H, W, C) array, or a ValueError naming the argument ``name``."""
+    image = np.asarray(image)
+    if image.ndim != 3 or 0 in image.shape:
+        raise ValueError(f"{name} must be an (H, W, C) image, got shape {image.shape}")
+    return image
+
+
+def _volume(volume: object) -> np.ndarray:
+    """``volume`` as a (D, H, W, C) array, or a ValueError."""
+    volume = np.asarray(volume)
+    if volume.ndim != 4:
+        raise ValueError(f"volume must be a (D, H, W, C) array, got shape {volume.shape}")
+    return volume
 
 
 def _check_axis(axis: object) -> None:
@@ -333,7 +349,11 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
 def iid_noise(exemplar: np.ndarray | Exemplar, shape: tuple[int, int, int],
               seed: int = 0) -> np.ndarray:
     """A volume of independent exemplar pixels: right histogram, no structure."""
-    exemplar = _colors(exemplar)
+    exemplar = _image(_colors(exemplar))
+    sides = tuple(shape) if np.ndim(shape) == 1 else ()
+    if len(sides) != 3:
+        raise ValueError(f"shape must be three positive ints, got {shape!r}")
+    shape = tuple(check_count("shape", n, low=1) for n in sides)
     flat = exemplar.reshape(-1, exemplar.shape[2])
     idx = np.random.default_rng(seed).integers(0, len(flat), size=int(np.prod(shape)))
     return flat[idx].reshape(*shape, exemplar.shape[2])
@@ -341,7 +361,8 @@ def iid_noise(exemplar: np.ndarray | Exemplar, shape: tuple[int, int, int],
 
 def extrusion(exemplar: np.ndarray | Exemplar, depth: int, axis: int = 2) -> np.ndarray:
     """The exemplar stacked along ``axis``: perfect on that axis' slices, streaks elsewhere."""
-    exemplar = _colors(exemplar)
+    exemplar = _image(_colors(exemplar))
+    depth = check_count("depth", depth, low=1)
     _check_axis(axis)
     order = [(axis + 1) % 3, (axis + 2) % 3]
     vol = np.repeat(exemplar[None], depth, axis=0)  # (depth, rows, cols, C)

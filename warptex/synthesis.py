@@ -328,7 +328,7 @@ class Synthesizer:
         if not isinstance(candidates, CandidateSet):
             raise TypeError(f"candidates must be a CandidateSet (warptex.precompute makes one), "
                             f"got {type(candidates).__name__}")
-        if subpasses not in (1, 8):
+        if isinstance(subpasses, bool) or subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
         check_settings(jitter, passes, seed)
         levels = check_count("levels", levels)

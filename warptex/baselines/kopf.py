@@ -158,6 +158,8 @@ def synthesize(
     """
     check_size(size)
     check_settings(seed=seed)
+    if on_iteration is not None and not callable(on_iteration):  # not after a level's work
+        raise TypeError(f"on_iteration must be a function or None, got {on_iteration!r}")
     counts = [iterations] * LEVELS if np.ndim(iterations) == 0 else list(iterations)
     if len(counts) != LEVELS or not all(isinstance(t, Integral) and not isinstance(t, bool)
                                         and t >= 1 for t in counts):
