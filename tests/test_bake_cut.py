@@ -209,6 +209,14 @@ def test_export_formats(texture, sphere, tmp_path):
     assert not list(tmp_path.glob(".t.ply*"))
 
 
+def test_an_obj_named_with_spaces_is_refused_and_nothing_written(tmp_path):
+    """``mtllib my mesh.mtl`` would name two files to the readers of the .obj."""
+    mesh, uv = _square()
+    with pytest.raises(ValueError, match="choose a name without spaces"):
+        export(mesh, tmp_path / "my mesh.obj", image=np.full((8, 8, 3), 0.5, np.float32), uv=uv)
+    assert not any(tmp_path.iterdir())
+
+
 def test_an_obj_never_arrives_before_its_texture(tmp_path, disk_full_at):
     """Where the .obj's texture cannot be written (a folder of its name), none of its files
     is: the error names the texture, and no temporary is left. A texture whose write fails

@@ -96,6 +96,8 @@ CASES = [
      "--resolution must be at least 1"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "0", "--uv", "auto",
       "-o", "{out}/b.glb"], "--texture-size must be at least 1"),
+    (["bake", "{mesh}", "--exemplar", "{exemplar}", "--uv", "auto", "-o", "{out}/my b.obj"],
+     "my b.obj: an .obj names its .mtl and texture after itself on lines that readers split"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "-o", "{out}/b.obj"],
      "vertex colors (--uv none) must end in .ply or .glb"),
     (["bake", "{exemplar}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],

@@ -917,7 +917,12 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
 def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -> list[Path]:
     """Everything about a bake or cut that can be wrong, checked before the work; returns
     the mesh files to write (a cut's second half gets the suffix _b)."""
-    from warptex.mesh_files import UV_TEXTURE_FORMATS, VERTEX_COLOR_FORMATS, exported_files
+    from warptex.mesh_files import (
+        UV_TEXTURE_FORMATS,
+        VERTEX_COLOR_FORMATS,
+        check_obj_name,
+        exported_files,
+    )
     from warptex.synthesis import COORD_LIMIT
 
     _check_at_least("--resolution", args.resolution, 1)
@@ -945,6 +950,11 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
         _check_output(outputs[1], formats, what)
     for output in outputs:
         files = exported_files(output, uv_texture=args.uv != "none")
+        if len(files) > 1:
+            try:
+                check_obj_name(output)
+            except ValueError as error:
+                raise CliError(str(error)) from None
         _check_inputs_kept(args, files)
         for side in files[1:]:  # the material library and texture of an .obj
             problem = file_problem(side)

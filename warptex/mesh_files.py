@@ -50,6 +50,17 @@ def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
     return [path]
 
 
+def check_obj_name(path: str | Path) -> None:
+    """A ValueError where an OBJ with a UV texture would be named with whitespace: its
+    material library and texture take its name, on lines (``mtllib``, ``map_Kd``) that
+    readers split at spaces."""
+    path = Path(path)
+    if path.suffix.lower() == ".obj" and any(c.isspace() for c in path.stem):
+        raise ValueError(f"{path}: an .obj names its .mtl and texture after itself on lines "
+                         "that readers split at spaces; choose a name without spaces "
+                         "(or .glb)")
+
+
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None,
            srgb: bool | None = None) -> list[Path]:
@@ -108,6 +119,7 @@ def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | 
                           vertex_attributes=attributes, process=False)
     if suffix != ".obj":
         return [(path, out.export(file_type=suffix[1:], **options))]
+    check_obj_name(path)
     text, companions = trimesh.exchange.obj.export_obj(out, mtl_name=f"{path.stem}.mtl",
                                                         return_texture=True)
     return [*((path.parent / name, companions[name]) for name in sorted(companions)),
