@@ -121,3 +121,29 @@ def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, monkeypatch, 
     assert failed.value.filename == str(path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == [name]
+
+
+def test_a_short_npy_write_says_why(tmp_path):
+    """A file larger than the process may write (as a full disk, a write that falls short)
+    is an OSError with the system's reason, naming the file, not NumPy's byte counts."""
+    script = f"""
+import resource, signal, sys
+import numpy as np
+from warptex.volume_files import write_volume
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (8192, 8192))
+try:
+    write_volume(r"{tmp_path / 'big.npy'}", np.zeros((16, 16, 16, 3), np.float32), srgb=False)
+except OSError as error:
+    print(error.errno, error.strerror, error.filename)
+"""
+    import errno
+    import os
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parent.parent, timeout=120, check=True)
+    assert done.stdout.strip() == (f"{errno.EFBIG} {os.strerror(errno.EFBIG)} "
+                                   f"{tmp_path / 'big.npy'}")
+    assert not any(tmp_path.iterdir())
