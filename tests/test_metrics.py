@@ -146,13 +146,20 @@ def test_histogram_distance_of_a_constant_volume_is_known():
     assert metrics.histogram_distance(vol + 5.0, ex, 1) <= 2.0  # clipped into the last bin
 
 
-def test_repetition_score_leaves_out_shifts_within_exclude():
-    """Smooth noise correlates with itself over a few pixels only: high when near shifts
-    count, low when they are excluded as the default does."""
+def test_repetition_score_counts_peaks_not_the_fall_off_of_large_features():
+    """Smooth noise correlates with itself over its features' size, falling off from shift
+    0 without a peak: low whatever ``exclude`` (the highest correlation past 8 pixels at
+    all, the earlier score, was 0.7 for features of 8 pixels). A tiling peaks at its period
+    and streaks along their length, both at 1."""
     rng = np.random.default_rng(4)
-    smooth = gaussian_filter(rng.standard_normal((128, 128)), 3.0, mode="wrap")
-    assert metrics.repetition_score(smooth, exclude=1) > 0.6
-    assert metrics.repetition_score(smooth) < 0.3
+    noise = rng.standard_normal((256, 256))
+    for sigma, exclude in ((3.0, 1), (8.0, 8)):
+        smooth = gaussian_filter(noise, sigma, mode="wrap")
+        assert metrics.repetition_score(smooth, exclude=exclude) < 0.35
+    tile = gaussian_filter(rng.standard_normal((64, 64)), 3.0, mode="wrap")
+    assert metrics.repetition_score(np.tile(tile, (4, 4))) == pytest.approx(1.0)
+    streaks = np.tile(gaussian_filter(noise[0], 3.0, mode="wrap")[None], (256, 1))
+    assert metrics.repetition_score(streaks) == pytest.approx(1.0)
 
 
 def test_inputs_without_a_meaning_are_one_clear_error():

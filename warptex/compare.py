@@ -69,8 +69,9 @@ from warptex.settings import (
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
 # Of table.json; 2: format, axes, passes, exemplar max size and digest; 3: pre-computation
 # seconds, device memory, the settings of the methods and measures, more versions; 4: the
-# exemplar of each axis, the lazy engine's jitter and shifted tiles as run.
-TABLE_FORMAT = 4
+# exemplar of each axis, the lazy engine's jitter and shifted tiles as run; 5: repetition
+# counts peaks of the autocorrelation only.
+TABLE_FORMAT = 5
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 _KOPF = ("kopf", "kopf-meanshift")
@@ -638,8 +639,9 @@ def _legend(measures: dict, repeats: int, gpu: bool = False) -> str:
         "patch (blur and flat volumes lack the sharp ones); SWD: sliced Wasserstein "
         "distance of the patches, which mostly sees "
         "colors (see `noise`); histogram: L1 distance of the color histograms, 0 to 2; "
-        f"repetition: highest autocorrelation of a {edge}-voxel slice at shifts past "
-        f"{exclude} voxels, 0 to 1 (warptex.metrics). Scores of volumes of other sizes do not "
+        f"repetition: highest autocorrelation of a {edge}-voxel slice at a peak past "
+        f"{exclude} voxels, 0 to 1 (warptex.metrics); the periodic volumes (tiled, Kopf's, "
+        "flat) show their block tiled there. Scores of volumes of other sizes do not "
         "compare. "
         f"seconds: {runs} in a fresh process, kernels compiled first; "
         "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "

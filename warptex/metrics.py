@@ -32,6 +32,7 @@ import os
 from numbers import Integral
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from warptex.exemplar import Exemplar, seams_of, wrapping_edges
@@ -295,15 +296,18 @@ def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
 
 
 def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
-    """Highest normalized autocorrelation of a large slice at shifts farther than
-    ``exclude`` pixels: 1 for a pattern repeated at a shift of up to half the slice along
-    each axis, low when nothing repeats. ``image`` is (H, W) or (H, W, C), at least
-    ``2 * (exclude + 1)`` pixels along one side; a period longer than half the slice goes
-    unseen, so the slice must be at least twice the longest period to be found.
+    """Highest normalized autocorrelation of a large slice at a peak of it: a shift farther
+    than ``exclude`` pixels whose correlation no neighbouring shift exceeds. 1 for a pattern
+    repeated at a shift of up to half the slice along each axis (streaks, an extrusion's,
+    repeat at every shift along them), low when nothing repeats. ``image`` is (H, W) or
+    (H, W, C), at least ``2 * (exclude + 1)`` pixels along one side; a period longer than
+    half the slice goes unseen, so the slice must be at least twice the longest period to
+    be found.
 
     Each shift's correlation is taken over the pixels the image and its shifted copy share
     (no wrap-around), normalized by their energies, so it is at most 1 and exactly 1 where
-    the overlap repeats."""
+    the overlap repeats. Only peaks count: the correlation of large features falls off
+    slowly around shift 0, which is their size, not a repetition (Dong 2008, Fig. 11)."""
     image = np.asarray(image, dtype=np.float64)
     image = image[:, :, None] if image.ndim == 2 else image
     if image.ndim != 3:
@@ -336,10 +340,13 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     first = energy(0, h - dy, left, w - right)
     second = energy(dy, h, right, w - left)
     norm = np.sqrt(first * second)
-    counted = np.maximum(dy, np.abs(dx)) > exclude
     with np.errstate(divide="ignore", invalid="ignore"):
-        score = np.where(counted & (norm > 0), shared / norm, 0.0)
-    return float(min(score.max(), 1.0))
+        score = np.where(norm > 0, shared / norm, 0.0)
+    # Shift -d correlates as d does: mirrored below dy = 0, every shift has its neighbours.
+    whole = np.concatenate([score[:0:-1, ::-1], score])
+    peak = whole == ndimage.maximum_filter(whole, size=3, mode="nearest")
+    counted = peak[h // 2:] & (np.maximum(dy, np.abs(dx)) > exclude)
+    return float(min(np.where(counted, score, 0.0).max(), 1.0))
 
 
 # Reference volumes: where each metric should find a solid texture worst, so that tests and
