@@ -307,7 +307,9 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     Each shift's correlation is taken over the pixels the image and its shifted copy share
     (no wrap-around), normalized by their energies, so it is at most 1 and exactly 1 where
     the overlap repeats. Only peaks count: the correlation of large features falls off
-    slowly around shift 0, which is their size, not a repetition (Dong 2008, Fig. 11)."""
+    slowly around shift 0, which is their size, not a repetition (Dong 2008, Fig. 11). A
+    shift at the end of the range counts where no shift inside it correlates more: a
+    period a little longer than half the slice shows there as a rising correlation."""
     image = np.asarray(image, dtype=np.float64)
     image = image[:, :, None] if image.ndim == 2 else image
     if image.ndim != 3:
