@@ -16,7 +16,13 @@ from PIL import Image
 
 from warptex import candidate_cache as cc
 from warptex import candidates
-from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
+from warptex.candidates import (
+    DEFAULT_PARAMS,
+    CandidateCacheError,
+    CandidateSet,
+    cache_path,
+    precompute,
+)
 from warptex.cli import main
 from warptex.exemplar import Exemplar
 
@@ -130,6 +136,26 @@ def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):
     renamed = folder / f"{candidates.CACHE_PREFIX}{'3' * 40}.wtc"
     shutil.copy(current, renamed)
     assert _statuses(folder)[renamed.name] == cc.OTHER_VERSION
+
+
+def test_a_pipe_named_like_a_cache_file_is_listed_unreadable_not_waited_on(folder):
+    """Reading a pipe would wait for a writer for ever (``warptex cache`` hung)."""
+    import signal
+
+    def waited(*_):
+        raise TimeoutError("waited for a writer of the pipe")
+
+    pipe = folder / f"{candidates.CACHE_PREFIX}{'4' * 40}.wtc"
+    os.mkfifo(pipe)
+    before = signal.signal(signal.SIGALRM, waited)
+    signal.alarm(30)
+    try:
+        assert _statuses(folder)[pipe.name] == cc.UNREADABLE
+        with pytest.raises(CandidateCacheError, match="not a regular file"):
+            CandidateSet.load(pipe)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, before)
 
 
 def test_unreadable_and_replaced_files_are_left_alone(folder, computed):

@@ -21,7 +21,7 @@ import pytest
 
 import warptex.candidates as candidates
 from warptex import Exemplar, ExemplarError, exact_pca, parallel
-from warptex.archive import write_archive
+from warptex.archive import read_archive, write_archive
 from warptex.candidates import (
     FORMAT_VERSION,
     CandidateCacheError,
@@ -581,6 +581,47 @@ def test_a_cache_file_of_other_exemplars_is_reported_and_replaced(warp_device):
     assert path.read_bytes() == good_bytes
 
 
+def test_a_cache_file_another_version_computed_is_not_served(warp_device):
+    """Named as this code names its file (renamed from another version's name), but
+    computed by other code: reported and computed again, and listed as another version."""
+    from warptex.candidate_cache import OTHER_VERSION, cache_files
+
+    ex = _crop(slice(8, 24), slice(0, 16))
+    good = precompute(ex)
+    path = cached_candidate_path(ex)
+    older = CandidateSet.load(path)
+    older.code = "another version's code"
+    older.save(path)
+    assert cached_candidate_path(ex) is None
+    assert {f.path: f.status for f in cache_files()}[path] == OTHER_VERSION
+    with pytest.warns(UserWarning, match="candidates another version of warptex computed"):
+        again = precompute(ex)
+    _assert_same(good, again)
+    assert CandidateSet.load(path).code == good.code != ""
+
+
+def test_a_checksummed_file_whose_arrays_do_not_fit_is_refused(tmp_path, granite):
+    """Written by other means but checksummed: out-of-range candidates crashed the process
+    that loaded them (the crossbar kernel read beyond its arrays), short ones loaded."""
+    granite.save(tmp_path / "g.wtc")
+    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    finest = granite.num_levels - 1
+    beyond = dict(arrays)
+    beyond[f"L{finest}/R0/cand"] = arrays[f"L{finest}/R0/cand"] + 60000
+    short = dict(arrays)
+    short[f"L{finest}/R0/cand"] = arrays[f"L{finest}/R0/cand"][:-1]
+    small = dict(arrays)
+    small[f"L{finest}/S0/feat"] = arrays[f"L{finest}/S0/feat"][:5, :5]
+    counted = dict(arrays)
+    counted[f"L{finest}/R0/count"] = arrays[f"L{finest}/R0/count"] + 200
+    for name, bad in (("beyond", beyond), ("short", short), ("small", small),
+                      ("counted", counted)):
+        write_archive(tmp_path / f"{name}.wtc", candidates.FILE_MAGIC, FORMAT_VERSION, bad)
+        with pytest.raises(CandidateCacheError, match="unreadable candidate data"):
+            CandidateSet.load(tmp_path / f"{name}.wtc")
+
+
 def test_content_digest_is_kept_through_a_file_and_sees_one_coefficient(tmp_path, granite):
     granite.save(tmp_path / "g.wtc")
     assert CandidateSet.load(tmp_path / "g.wtc").content_digest == granite.content_digest
@@ -655,7 +696,8 @@ def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):
     assert sorted(p.resolve().relative_to(root).as_posix()
                   for p in candidates._deciding_sources()) == [
         "kernels/candidates.py", "kernels/common.py", "warptex/candidates.py",
-        "warptex/exact_pca.py", "warptex/exemplar.py"]
+        "warptex/exact_pca.py", "warptex/exemplar.py", "warptex/parallel.py",
+        "warptex/warp_runtime.py"]
     files = [tmp_path / "a.py", tmp_path / "b.py"]
     for f in files:
         f.write_text("x = 1\n")

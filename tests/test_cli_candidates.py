@@ -174,6 +174,36 @@ def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, priva
     assert cache.read_bytes() == b"damaged"
 
 
+def test_precompute_reads_a_cache_it_could_not_write(images, private_cache, capsys,
+                                                     monkeypatch):
+    """A shared cache on a read-only mount that holds the candidates already: read, not
+    refused for the write it does not need."""
+    import warptex.cli
+
+    assert main(["precompute", str(images["a"])]) == 0
+    capsys.readouterr()
+
+    def read_only(folder, *args):
+        raise warptex.cli.CliError(f"{folder}: cannot write (Read-only file system)")
+
+    monkeypatch.setattr(warptex.cli, "_check_writable_folder", read_only)
+    assert main(["precompute", str(images["a"])]) == 0
+    assert "loaded from cache" in capsys.readouterr().out
+    assert main(["precompute", str(images["b"])]) == 2  # not there: it would be written
+    assert "Read-only file system" in capsys.readouterr().err
+
+
+def test_a_cache_folder_given_with_a_tilde_is_the_home_folder(monkeypatch, tmp_path):
+    from warptex.candidates import cache_dir
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("WARPTEX_CACHE", "~/warptex-cache")
+    assert cache_dir() == tmp_path / "warptex-cache"
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("WARPTEX_CACHE", "relative")
+    assert cache_dir() == tmp_path / "relative"
+
+
 def test_precompute_no_cache_three_exemplars(images, private_cache, capsys):
     before = set(private_cache.iterdir())
     args = ["precompute", str(images["a"]), "--ey", str(images["b"]), "--ez", str(images["c"])]

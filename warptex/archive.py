@@ -16,6 +16,7 @@ import errno
 import hashlib
 import io
 import os
+import stat
 import tempfile
 import threading
 import zipfile
@@ -210,8 +211,17 @@ def archive_version(path: str | Path, magic: bytes) -> int | None:
     Raises:
         OSError: the file cannot be read.
     """
-    with open(path, "rb") as file:
+    with open(_regular_file(path), "rb") as file:
         return _header_version(file.read(_header_bytes(magic)), magic)
+
+
+def _regular_file(path: str | Path) -> Path:
+    """``path``, or an OSError where it is no regular file: reading a pipe named like a
+    cache file would wait for a writer for ever."""
+    path = Path(path)
+    if not stat.S_ISREG(path.stat().st_mode):
+        raise OSError(errno.EINVAL, "not a regular file", str(path))
+    return path
 
 
 def _header_bytes(magic: bytes) -> int:
@@ -231,7 +241,7 @@ def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
     and the ``kind`` of file expected) when it cannot be trusted."""
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = _regular_file(path).read_bytes()
     except OSError as e:
         raise error(f"{path}: cannot read {kind} file ({e.strerror})") from None
     found = _header_version(data, magic)

@@ -27,6 +27,7 @@ from warptex.candidates import (
     CandidateCacheError,
     cache_dir,
     cache_file_name,
+    computed_here,
     read_cache_meta,
 )
 
@@ -141,4 +142,5 @@ def _status(path: Path) -> tuple[str, dict]:
         expected = cache_file_name(meta["digests"], meta["params"])
     except TypeError:  # not JSON-serializable: cannot come from any warptex
         return DAMAGED, meta
-    return (IN_USE if path.name == expected else OTHER_VERSION), meta
+    current = path.name == expected and computed_here(meta)
+    return (IN_USE if current else OTHER_VERSION), meta

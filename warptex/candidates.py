@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 from kernels import candidates as _k
 from kernels import common as _common
 from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
-from warptex import exact_pca, parallel
+from warptex import exact_pca, parallel, warp_runtime
 from warptex.archive import ArchiveError, folder_problem, read_archive, write_archive
 from warptex.code_digest import code_digest, module_sources
 from warptex.exemplar import (
@@ -166,6 +166,9 @@ class CandidateSet:
     # How precompute got these: "loaded" from its cache, "written" to it, "not written"
     # (the cache could not be written), or "" without a cache. Not saved in files.
     cache_status: str = field(default="", compare=False, repr=False)
+    # Digest of the code that computed them (``warptex.code_digest``), which the cache
+    # compares with its own; "" where not recorded.
+    code: str = field(default="", compare=False, repr=False)
 
     @property
     def num_levels(self) -> int:
@@ -277,6 +280,9 @@ def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[
     if wanted != found:
         raise CandidateCacheError(f"{path}: holds the candidates of other exemplars or "
                                   "parameters (a copied or renamed cache file)")
+    if not computed_here(meta):
+        raise CandidateCacheError(f"{path}: holds candidates another version of warptex "
+                                  "computed (a copied or renamed cache file)")
     return arrays
 
 
@@ -331,8 +337,8 @@ def _check_size(exemplars: list[Exemplar]) -> None:
 def cache_dir() -> Path:
     """Folder of the on-disk caches: ``WARPTEX_CACHE`` or the user's cache directory."""
     env = os.environ.get("WARPTEX_CACHE")
-    if env:
-        return Path(env)
+    if env:  # "~/..." as a shell would take it; absolute, so that listings say where
+        return Path(env).expanduser().absolute()
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "warptex"
 
@@ -360,10 +366,17 @@ def _code_digest() -> str:
 
 
 def _deciding_sources() -> list[Path] | None:
-    """This module, its kernels and their building blocks, its PCA and the exemplar's
-    pyramid; None where a module has no source file."""
-    return module_sources((sys.modules[__name__], _k, _common, exact_pca,
-                           sys.modules[Exemplar.__module__]))
+    """This module, its kernels and their building blocks, how they are launched (ranges
+    of a launch split over threads), its PCA and the exemplar's pyramid; None where a
+    module has no source file."""
+    return module_sources((sys.modules[__name__], _k, _common, parallel, warp_runtime,
+                           exact_pca, sys.modules[Exemplar.__module__]))
+
+
+def computed_here(meta: dict) -> bool:
+    """Whether a candidate file's ``meta`` says this code computed it: a cache file renamed
+    from another version's name holds what other code computed."""
+    return meta.get("code") == _code_digest()
 
 
 _code_digest()  # now: the code this process runs, even if its files are edited meanwhile
@@ -469,6 +482,7 @@ def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> Candi
         sources=sources,
         roles=roles,
         names=tuple(_exemplar_label(e) for e in exemplars),
+        code=_code_digest(),
     )
     cs.stats = {"fallback_pixels": fallbacks}
     return cs
@@ -817,6 +831,7 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
         **_source_layout(cs),
         "stats": cs.stats,
         "names": list(cs.names),
+        "code": cs.code,
     }
     out: dict[str, np.ndarray] = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     for j, c in enumerate(cs.colors):
@@ -884,12 +899,7 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
             )
         sources.append(lvl_src)
         roles.append(lvl_roles)
-    half = int(meta["params"]["neighborhood"]) // 2
-    axis_source = tuple(meta["axis_source"])
-    for lv in range(nl):
-        for r, role in enumerate(roles[lv]):
-            role.cb = _crossbar_errors(_trio(sources[lv], axis_source, r), role.cand, half)
-    return CandidateSet(
+    cs = CandidateSet(
         params=meta["params"],
         digests=tuple(meta["digests"]),
         axis_source=tuple(meta["axis_source"]),
@@ -898,4 +908,48 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
         roles=roles,
         stats=meta["stats"],
         names=tuple(meta.get("names", ())),
+        code=str(meta.get("code", "")),
     )
+    _check_layout(cs)
+    half = int(cs.params["neighborhood"]) // 2
+    for lv in range(nl):
+        for r, role in enumerate(roles[lv]):
+            role.cb = _crossbar_errors(_trio(sources[lv], cs.axis_source, r), role.cand, half)
+    return cs
+
+
+def _check_layout(cs: CandidateSet) -> None:
+    """ValueError unless a loaded set's arrays fit together as the kernels index them: a
+    file that passes its checksum but was written by other means (candidate files travel
+    between machines) would send them out of bounds."""
+    resolved_params(cs.params)
+    n = int(cs.params["neighborhood"])
+    sources = len(cs.colors)
+    if (len(cs.axis_source) != 3 or not all(0 <= j < sources for j in cs.axis_source)
+            or len(cs.roles[0]) != (1 if len(set(cs.axis_source)) == 1 else 3)):
+        raise ValueError(f"axes {cs.axis_source} of {sources} exemplars, {len(cs.roles[0])} roles")
+    for j, colors in enumerate(cs.colors):
+        if colors.ndim != 3 or colors.shape[:2] != cs.sources[-1][j].size:
+            raise ValueError(f"colors of exemplar {j}: shape {colors.shape}")
+    for lv in range(cs.num_levels):
+        for j, s in enumerate(cs.sources[lv]):
+            pixels, dims = s.size[0] * s.size[1], s.basis.shape[0]
+            if (s.feat.ndim != 3 or s.feat.shape[2] != cs.sources[0][0].feat.shape[2]
+                    or s.basis.shape[1:] != (n * n * s.feat.shape[2],)
+                    or not 1 <= dims <= MAX_DIMS or s.proj.shape != (pixels, dims)
+                    or s.cand2d.ndim != 2 or s.cand2d.shape[0] != pixels
+                    or not _indices_below(s.cand2d, pixels)):
+                raise ValueError(f"level {lv}, exemplar {j}: arrays that do not fit together")
+        for r, role in enumerate(cs.roles[lv]):
+            owner, *others = (p.size[0] * p.size[1] for p in _trio(cs.sources[lv],
+                                                                    cs.axis_source, r))
+            if (role.cand.ndim != 3 or role.cand.shape[0] != owner or role.cand.shape[2] != 2
+                    or role.count.shape != (owner,) or role.fallback.shape != (owner,)
+                    or not _indices_below(role.count, role.cand.shape[1] + 1)
+                    or not all(_indices_below(role.cand[..., k], others[k]) for k in (0, 1))):
+                raise ValueError(f"level {lv}, role {r}: 3D candidates that do not fit")
+
+
+def _indices_below(a: np.ndarray, limit: int) -> bool:
+    """Whether every entry of ``a`` indexes one of ``limit`` pixels."""
+    return a.size == 0 or (int(a.min()) >= 0 and int(a.max()) < limit)

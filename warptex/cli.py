@@ -331,7 +331,7 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     params = _candidate_params(args)
     cache = None if args.no_cache else cache_path(exemplars, resolved_params(params))
-    if cache is not None:
+    if cache is not None and not cache.is_file():  # one there is read, even where read-only
         _check_cache_folder(cache.parent)
     start = time.perf_counter()
     cs = precompute(*exemplars, cache=not args.no_cache, progress=True, **params)
