@@ -530,11 +530,11 @@ def test_sigterm_is_an_interrupt_that_leaves_no_partial_file(files, tmp_path, ca
     output file and no temporary one; the process's own SIGTERM handling is restored."""
     before = signal.getsignal(signal.SIGTERM)
 
-    def write_then_terminated(file, array) -> None:
+    def write_then_terminated(file, header) -> None:
         file.write(b"\x93NUMPY, the first bytes of it")
         os.kill(os.getpid(), signal.SIGTERM)
 
-    monkeypatch.setattr(np, "save", write_then_terminated)
+    monkeypatch.setattr(np.lib.format, "write_array_header_1_0", write_then_terminated)
     out = tmp_path / "out"
     out.mkdir()
     assert main(["volume", str(files["exemplar"]), "--size", "8", "--passes", "0",
