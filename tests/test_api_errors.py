@@ -164,6 +164,16 @@ def test_a_write_through_a_symbolic_link_replaces_its_target_and_keeps_the_link(
     dangling.symlink_to(tmp_path / "real" / "made.bin")
     write_atomically(dangling, lambda tmp: tmp.write_bytes(b"made"))
     assert dangling.is_symlink() and (tmp_path / "real" / "made.bin").read_bytes() == b"made"
+    # The temporary file is named as asked: writers take the format from its suffix.
+    suffixes = []
+    other = tmp_path / "image.png"
+    other.symlink_to(target)
+    write_atomically(other, lambda tmp: suffixes.append(tmp.suffix) or tmp.write_bytes(b"png"))
+    assert suffixes == [".png"] and target.read_bytes() == b"png"
+    with pytest.raises(ValueError, match="are one file"):
+        write_together([(target, lambda tmp: tmp.write_bytes(b"a")),
+                        (link, lambda tmp: tmp.write_bytes(b"b"))])
+    assert target.read_bytes() == b"png"
 
 
 def test_a_failed_write_leaves_no_folder_it_made(tmp_path):

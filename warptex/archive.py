@@ -107,8 +107,15 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     tag = f"{os.getpid()}.{threading.get_ident()}"
     staged = [(Path(path), write) for path, write in writes]
     targets = [written_through(path) for path, _ in staged]
-    temporary = [path.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
-                 for path in targets]
+    places = [os.path.abspath(target) for target in targets]
+    for n, place in enumerate(places):
+        if place in places[:n]:
+            raise ValueError(f"{staged[places.index(place)][0]} and {staged[n][0]} are one "
+                             "file (a link to the other): write each once")
+    # Beside the file replaced, for the rename; named as asked, for writers that take the
+    # format from the suffix.
+    temporary = [target.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
+                 for (path, _), target in zip(staged, targets, strict=True)]
     current = None  # the file being written or renamed, as the caller named it
     made: list[Path] = []  # folders made here, outermost first
     done = False
