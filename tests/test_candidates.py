@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import warp as wp
 
 import warptex.candidates as candidates
 from warptex import Exemplar, ExemplarError, exact_pca, parallel
@@ -689,6 +690,12 @@ def test_cache_file_name_depends_on_content_parameters_and_code(warp_device, mon
     assert len(by_version) == 64 and by_version != from_sources
     monkeypatch.setattr(candidates, "_deciding_sources", lambda: None)
     assert uncached_code_digest() == by_version
+    # Another Warp compiles the kernels otherwise: its files are keyed otherwise.
+    monkeypatch.setattr(candidates, "_deciding_sources", lambda: None)
+    monkeypatch.setattr(wp.config, "version", wp.config.version + ".other")
+    assert uncached_code_digest() != by_version
+    monkeypatch.undo()
+    assert uncached_code_digest() == from_sources
 
 
 def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):

@@ -213,8 +213,8 @@ def test_an_unloadable_kernel_build_is_a_clear_error(tmp_path, monkeypatch, warp
 
 def _kernel_cache(folder, loaded: list[str]) -> dict[str, object]:
     """A kernel cache holding this warptex's builds ``loaded``, a build of other code of one
-    of its modules, a build left unfinished two hours ago, one in progress, and builds of
-    another program's modules."""
+    of its modules, a build and a deletion left unfinished two hours ago, a build and a
+    deletion in progress, and builds of another program's modules."""
     for name in loaded:
         (folder / name).mkdir()
     other = folder / "wp_kernels.synthesis_0000000"
@@ -224,17 +224,25 @@ def _kernel_cache(folder, loaded: list[str]) -> dict[str, object]:
     dead.mkdir()
     two_hours_ago = time.time() - 7200
     os.utime(dead, (two_hours_ago, two_hours_ago))
+    abandoned = folder / ".deleting-wp_kernels.synthesis_7654321-999"
+    abandoned.mkdir()
+    (abandoned / "wp_kernels.synthesis_7654321.o").write_bytes(b"x" * 50)
+    os.utime(abandoned, (two_hours_ago, two_hours_ago))
     building = folder / "wp_kernels.lookup_1234567_p3_t4"
-    building.mkdir()
-    foreign = [folder / "wp_other.kernels_0000000", folder / "wp_kernelsx.synthesis_0000000"]
-    for f in foreign:
+    deleting = folder / ".deleting-wp_kernels.synthesis_7654321-998"
+    foreign = [folder / "wp_other.kernels_0000000", folder / "wp_kernelsx.synthesis_0000000",
+               folder / ".deleting-wp_other.kernels_0000000-5"]
+    for f in [building, deleting, *foreign]:
         f.mkdir()
-    return {"other": other, "dead": dead, "building": building, "foreign": foreign}
+    os.utime(foreign[2], (two_hours_ago, two_hours_ago))
+    return {"other": other, "dead": dead, "abandoned": abandoned, "building": building,
+            "deleting": deleting, "foreign": foreign}
 
 
 def test_stale_kernel_builds_are_other_code_and_dead_builds(granite_32, tmp_path, monkeypatch):
     """Every build this process loaded is kept; a build of other code of warptex's kernel
-    modules and one left unfinished an hour ago are stale; nothing else is touched."""
+    modules and a build or deletion left unfinished an hour ago are stale; nothing else is
+    touched."""
     from warptex.candidates import precompute
     from warptex.synthesis import Synthesizer
 
@@ -246,9 +254,11 @@ def test_stale_kernel_builds_are_other_code_and_dead_builds(granite_32, tmp_path
 
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     made = _kernel_cache(tmp_path, loaded)
-    assert device_module.stale_kernel_builds() == [made["dead"], made["other"]]
-    assert device_module.delete_kernel_builds([made["dead"], made["other"]]) == (2, 100)
-    kept = {tmp_path / name for name in loaded} | {made["building"], *made["foreign"]}
+    stale = [made["abandoned"], made["dead"], made["other"]]
+    assert device_module.stale_kernel_builds() == stale
+    assert device_module.delete_kernel_builds(stale) == (3, 150)
+    kept = ({tmp_path / name for name in loaded}
+            | {made["building"], made["deleting"], *made["foreign"]})
     assert set(tmp_path.iterdir()) == kept
     assert device_module.stale_kernel_builds() == []
 
@@ -261,9 +271,10 @@ def test_cache_command_lists_and_prunes_stale_kernel_builds(tmp_path, monkeypatc
     made = _kernel_cache(tmp_path, [])
     assert main(["cache"]) == 0
     out = capsys.readouterr().out
-    assert "of which 2 kernel builds of other warptex versions or left unfinished" in out
-    assert made["other"].is_dir() and made["dead"].is_dir()  # listing deletes nothing
+    assert "of which 3 kernel builds of other warptex versions or left unfinished" in out
+    assert all(made[k].is_dir() for k in ("other", "dead", "abandoned"))  # listing deletes nothing
     assert main(["cache", "--prune"]) == 0
-    assert "deleted: 2 kernel builds" in capsys.readouterr().out
-    assert not made["other"].exists() and not made["dead"].exists()
-    assert made["building"].is_dir() and all(f.is_dir() for f in made["foreign"])
+    assert "deleted: 3 kernel builds" in capsys.readouterr().out
+    assert not any(made[k].exists() for k in ("other", "dead", "abandoned"))
+    assert made["building"].is_dir() and made["deleting"].is_dir()
+    assert all(f.is_dir() for f in made["foreign"])

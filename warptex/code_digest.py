@@ -1,6 +1,8 @@
 """Digests of the code that decides what a cache holds: a cache written by other code, even
 under the same format version, is keyed otherwise and never served (caches are never
-silently wrong), at the price of recomputing it after each change to that code."""
+silently wrong), at the price of recomputing it after each change to that code. Warp's
+version is part of that code: another Warp compiles the same kernels to other instructions,
+which may round otherwise."""
 
 from __future__ import annotations
 
@@ -17,8 +19,13 @@ def module_sources(modules: Iterable[ModuleType]) -> list[Path] | None:
 
 
 def code_digest(sources: Sequence[Path] | None, constants: str) -> str:
-    """SHA-256 of the ``sources``' bytes and of ``constants`` (values set outside them);
-    of the constants and warptex's version where the sources cannot be read."""
+    """SHA-256 of the ``sources``' bytes, of ``constants`` (values set outside them) and of
+    Warp's version; of those constants and warptex's version where the sources cannot be
+    read."""
+    return _digest(sources, f"{constants} warp {_warp_version()}")
+
+
+def _digest(sources: Sequence[Path] | None, constants: str) -> str:
     if sources is not None:
         try:
             return sources_digest(sources, constants)
@@ -33,6 +40,12 @@ def sources_digest(paths: Sequence[Path], constants: str) -> str:
     for path in paths:
         digest.update(path.read_bytes())
     return digest.hexdigest()
+
+
+def _warp_version() -> str:
+    import warp as wp
+
+    return wp.config.version
 
 
 def _package_version() -> str:
@@ -54,4 +67,4 @@ def installed_code_digest() -> str:
 
     roots = [Path(m.__file__).parent for m in (warptex, kernels, mitsuba_plugin)]
     files = [f for root in roots for f in sorted(root.rglob("*.py"))]
-    return code_digest(files, "")
+    return _digest(files, "")

@@ -176,13 +176,22 @@ _BUILD_FOLDER = re.compile(r"wp_(?P<module>[\w.]+)_[0-9a-f]{7}(?P<building>_p\d+
 _UNFINISHED_SECONDS = 3600
 
 
+# A build folder being deleted, named so by _delete_build; one left over an hour ago was
+# left by a deletion that died.
+_DOOMED_FOLDER = re.compile(r"\.deleting-(?P<build>wp_.+)-\d+")
+
+
 def _delete_build(folder: Path) -> bool:
     """Delete a build folder, renamed first so that no other process loads it half-deleted;
     False when it was gone or cannot be renamed."""
-    doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
-    try:
-        folder.rename(doomed)
-    except OSError:
+    doomed = folder
+    if not _DOOMED_FOLDER.fullmatch(folder.name):
+        doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
+        try:
+            folder.rename(doomed)
+        except OSError:
+            return False
+    elif not folder.exists():
         return False
     shutil.rmtree(doomed, ignore_errors=True)
     return True
@@ -210,8 +219,8 @@ def build_folder(module_name: str, cpu: bool) -> Path | None:
 
 def stale_kernel_builds() -> list[Path]:
     """Folders of Warp's kernel cache that no run of this warptex loads: builds of its
-    kernel modules' other code (other warptex versions; Warp never deletes them) and builds
-    left unfinished over an hour ago. Empty for a Warp that names its builds otherwise.
+    kernel modules' other code (other warptex versions; Warp never deletes them), and builds
+    and deletions of builds left unfinished over an hour ago. Empty for a Warp that names its builds otherwise.
 
     Raises:
         OSError: the cache folder exists but cannot be listed.
@@ -225,10 +234,11 @@ def stale_kernel_builds() -> list[Path]:
         return []
     stale = []
     for folder in sorted(cache.iterdir()):
-        build = _BUILD_FOLDER.fullmatch(folder.name)
+        doomed = _DOOMED_FOLDER.fullmatch(folder.name)
+        build = _BUILD_FOLDER.fullmatch(doomed["build"] if doomed else folder.name)
         if not build or build["module"] not in modules or folder in current:
             continue
-        if build["building"]:
+        if build["building"] or doomed:
             try:
                 age = time.time() - folder.stat().st_mtime
             except OSError:  # renamed into place meanwhile
