@@ -220,7 +220,8 @@ def build_folder(module_name: str, cpu: bool) -> Path | None:
 def stale_kernel_builds() -> list[Path]:
     """Folders of Warp's kernel cache that no run of this warptex loads: builds of its
     kernel modules' other code (other warptex versions; Warp never deletes them), and builds
-    and deletions of builds left unfinished over an hour ago. Empty for a Warp that names its builds otherwise.
+    and deletions of builds left unfinished over an hour ago. Empty for a Warp that names
+    its builds otherwise.
 
     Raises:
         OSError: the cache folder exists but cannot be listed.
