@@ -83,7 +83,8 @@ TIMING = ("seconds: the median of the wall-clock runs per method in seconds_runs
           "as run.repeats), in a fresh process, Warp kernels compiled first; Kopf's include "
           "its PCA and search structures; the lazy engine's "
           "pre-computation of candidates, computed afresh, is timed apart (precompute_seconds)")
-MEMORY = ("peak_mib: rise of the process's resident host memory during the timed runs; "
+MEMORY = ("peak_mib: rise of the process's resident host memory during the timed runs "
+          "(the lazy engine's pre-computation, before them, not included); "
           "device_peak_mib: high-water mark of Warp's CUDA memory pool in the method's "
           "process (pre-computation and the kernels' first run included), null on the CPU")
 
@@ -645,9 +646,9 @@ def _legend(measures: dict, repeats: int, gpu: bool = False) -> str:
         "compare. "
         f"seconds: {runs} in a fresh process, kernels compiled first; "
         "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
-        "host memory during the run" + ("; GPU MiB: high-water mark of Warp's CUDA memory pool "
-                                         "in the method's process, the pre-computation and the "
-                                         "kernels' first run included" if gpu else "") + ".\n")
+        "host memory during the run, pre-computation not included"
+        + ("; GPU MiB: high-water mark of Warp's CUDA memory pool in the method's process, "
+           "the pre-computation and the kernels' first run included" if gpu else "") + ".\n")
 
 
 def _title(paths: Sequence[Path], axes: Axes) -> str:
