@@ -4,6 +4,7 @@ exemplars, two constrained axes, determinism."""
 from __future__ import annotations
 
 import functools
+import itertools
 
 import numpy as np
 import pytest
@@ -386,3 +387,69 @@ def test_mean_shift_bandwidth_shrinks_geometrically_over_a_level():
     np.testing.assert_allclose(kopf._bandwidths(2.0, 4),
                                2.0 * 0.25 ** (np.arange(4) / 3), rtol=1e-12)
     np.testing.assert_allclose(kopf._bandwidths(2.0, 1), [0.5])
+
+
+def test_optimization_averages_every_covering_window_by_its_irls_weight(granite_32,
+                                                                          warp_device):
+    """Equation 4: each voxel becomes the weighted mean of the exemplar texels that the
+    matched windows of every grid centre covering it put there, each window weighted by its
+    IRLS weight; recomputed here for two constrained axes of exemplars of other sizes."""
+    n = 8
+    first = np.ascontiguousarray(granite_32.colors[:16, :16])
+    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
+    volume = np.random.default_rng(1).random((n, n, n, 3)).astype(np.float32)
+    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
+    feats = [first, None, second]
+    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
+    opt.search()
+    match, weight = opt.match.numpy().copy(), opt.weight.numpy().copy()
+    h = n // 2
+    total, norm = np.zeros((n, n, n, 3)), np.zeros((n, n, n))
+    plain = np.zeros((n, n, n, 3))  # the unweighted mean, which must differ
+    for axis in (0, 2):
+        exemplar = feats[axis]
+        rows, cols = exemplar.shape[:2]
+        for c in range(opt.centres):
+            p = [0, 0, 0]
+            p[axis] = c // (h * h)
+            p[(axis + 1) % 3], p[(axis + 2) % 3] = 2 * (c // h % h), 2 * (c % h)
+            g = axis * opt.centres + c
+            u, v = divmod(int(match[g]), cols)
+            for a in range(8):
+                for b in range(8):
+                    q = list(p)
+                    q[(axis + 1) % 3] += a - 4
+                    q[(axis + 2) % 3] += b - 4
+                    q = tuple(x % n for x in q)
+                    texel = exemplar[(u + a - 4) % rows, (v + b - 4) % cols]
+                    total[q] += weight[g] * texel
+                    norm[q] += weight[g]
+                    plain[q] += texel
+    expected = total / norm[..., None]
+    assert np.abs(expected - plain / (2 * 64 // 4)).max() > 1e-3
+    opt.optimize(np.arange(n ** 3, dtype=np.int32))
+    np.testing.assert_allclose(opt.values.reshape(n, n, n, 3), expected, rtol=1e-5, atol=1e-6)
+
+
+def test_histograms_are_refreshed_while_an_optimization_phase_runs(granite_32, warp_device,
+                                                                  monkeypatch):
+    """Section 5: the histograms are updated as the voxels change, not once per phase, so
+    later voxels of a phase see the penalties of the voxels changed before them."""
+    n = 8
+    colors = np.ascontiguousarray(granite_32.colors[:16, :16])
+    volume = np.random.default_rng(7).random((n ** 3, 3)).astype(np.float32)
+    solid = wp.array(volume, dtype=wp.float32, device="cpu")
+    opt = kopf._LevelOptimizer([colors, colors, colors], [(False, False)] * 3, solid, True)
+    seen = []
+    penalty = kopf._Histograms.penalty
+
+    def recorded(histograms):
+        seen.append(histograms.counts.copy())
+        return penalty(histograms)
+
+    monkeypatch.setattr(kopf._Histograms, "penalty", recorded)
+    opt.search()
+    opt.optimize(np.random.default_rng(1).permutation(n ** 3).astype(np.int32))
+    assert len(seen) == kopf.HISTOGRAM_REFRESHES > 1
+    changed = [not np.array_equal(a, b) for a, b in itertools.pairwise(seen)]
+    assert sum(changed) > len(changed) // 2
