@@ -381,6 +381,31 @@ def test_volume_command_runs_kopf(tmp_path, data_dir, warp_device):
     assert volume.shape == (16, 16, 16, 3) and np.isfinite(volume).all()
 
 
+def test_volume_command_leaves_the_free_axis_of_kopf_unconstrained(tmp_path, data_dir,
+                                                                   warp_device, capsys):
+    """--free-axis y: Kopf's solid of the x and z exemplars alone (section 6.2), as from
+    Python; refused for lazy synthesis and beside an exemplar for that axis."""
+    from warptex.baselines.kopf import synthesize
+    from warptex.exemplar import Exemplar
+
+    path = data_dir / "granite_64.png"
+    out = tmp_path / "k.npy"
+    assert main(["volume", str(path), "--method", "kopf", "--size", "8", "--free-axis", "y",
+                 "-o", str(out)]) == 0
+    assert "y free" in capsys.readouterr().out
+    granite = Exemplar.load(path)
+    expected = synthesize(None, exemplars=(granite, None, granite), size=8, progress=False)
+    np.testing.assert_array_equal(np.load(out), expected)
+    assert not np.array_equal(expected, synthesize(granite, size=8, progress=False))
+    refused = tmp_path / "refused.npy"
+    assert main(["volume", str(path), "--free-axis", "y", "-o", str(refused)]) == 2
+    assert "--free-axis applies to --method kopf only" in capsys.readouterr().err
+    assert main(["volume", str(path), "--method", "kopf", "--size", "8", "--free-axis", "z",
+                 "--ez", str(path), "-o", str(refused)]) == 2
+    assert "drop --ez" in capsys.readouterr().err
+    assert not refused.exists()
+
+
 def test_volume_command_refuses_mean_shift_for_lazy(tmp_path, data_dir, capsys):
     out = tmp_path / "v.npy"
     assert main(["volume", str(data_dir / "granite_64.png"), "--mean-shift", "-o", str(out)]) == 2

@@ -353,6 +353,9 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
     return 0
 
 
+_AXES = ("x", "y", "z")
+
+
 def _add_axis_exemplar_arguments(parser: argparse.ArgumentParser, first: str) -> None:
     parser.add_argument("--ey", type=Path, metavar="FILE",
                         help="exemplar of the y axis: what planes y = const show, its rows "
@@ -587,6 +590,10 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--mean-shift", action="store_true",
                         help="with --method kopf: average only the dominant mean-shift cluster "
                         "of each voxel's texels (Kopf 2007, section 4.1): sharper, slower")
+    parser.add_argument("--free-axis", choices=_AXES,
+                        help="with --method kopf: leave planes across this axis unconstrained, "
+                        "matching the exemplars of the other two only (Kopf 2007, section "
+                        "6.2: for a material seen from two sides)")
     parser.add_argument(
         "-o",
         "--output",
@@ -608,8 +615,12 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     _check_inputs_kept(args, [args.output])
     _check_at_least("--size", args.size, 1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
-    if args.mean_shift and args.method != "kopf":
-        raise CliError("--mean-shift applies to --method kopf only")
+    for flag, given in (("--mean-shift", args.mean_shift), ("--free-axis", args.free_axis)):
+        if given and args.method != "kopf":
+            raise CliError(f"{flag} applies to --method kopf only")
+    if args.free_axis is not None and getattr(args, f"e{args.free_axis}", None) is not None:
+        raise CliError(f"--free-axis {args.free_axis} leaves that axis without an exemplar: "
+                       f"drop --e{args.free_axis}")
     lazy_only = (args.passes, args.jitter, args.shifted_tiles)
     if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False):
         raise CliError("--passes, --jitter and --shifted-tiles apply to lazy synthesis only, "
@@ -649,14 +660,18 @@ def _cmd_volume(args: argparse.Namespace) -> int:
 def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar], srgb: bool) -> int:
     from warptex.baselines.kopf import synthesize
 
+    constrained: list[Exemplar | None] = list(exemplars)
+    if args.free_axis is not None:
+        constrained[_AXES.index(args.free_axis)] = None
     try:
-        volume = synthesize(None, exemplars=exemplars, size=args.size, seed=args.seed,
+        volume = synthesize(None, exemplars=constrained, size=args.size, seed=args.seed,
                             mean_shift=args.mean_shift, tileable=TILEABLE[args.tileable])
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
         write_volume(args.output, volume, srgb=srgb)
     clustering = ", mean-shift clustering" if args.mean_shift else ""
+    clustering += f", {args.free_axis} free" if args.free_axis else ""
     print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, "
           f"{_count(volume.shape[3], 'channel')}, "
           f"seed {args.seed}")
