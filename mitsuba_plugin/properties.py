@@ -90,6 +90,11 @@ def existing_scene_file(name: str, key: str, plugin: str) -> Path:
     """The file to read that property ``key`` names (:func:`scene_path`), or the error
     naming that property where there is none."""
     path = scene_path(name, must_exist=True)
-    if not path.is_file():
-        raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
+    try:
+        if path.is_dir():
+            raise property_error(plugin, key, f'names a folder, not a file: "{name}"')
+        if not path.is_file():
+            raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
+    except OSError as error:  # a folder on the way that cannot be searched
+        raise property_error(plugin, key, f'cannot look up "{name}" ({error.strerror})') from None
     return path

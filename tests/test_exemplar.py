@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,8 @@ def _write_png16(path: Path, pixels: np.ndarray) -> Path:
 
 def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    # OpenEXR reads an array's memory as if contiguous: a channel sliced off writes garbage.
+    channels = {name: np.ascontiguousarray(data) for name, data in channels.items()}
     OpenEXR.File(header, channels).write(str(path))
     return path
 
@@ -228,6 +231,54 @@ def test_exr_extra_channels_follow_rgb(tmp_path, rng):
     np.testing.assert_array_equal(exemplar.colors[..., 4], rough)
 
 
+def test_exr_channels_are_told_by_their_name_in_either_case_and_after_a_layer(tmp_path, rng):
+    """As Mitsuba's bitmap reads them: r, g, b are R, G, B, and so are diffuse.R and
+    diffuse.g; sorted by their names they would come out blue first."""
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    expected = _load_quiet(_write_exr(tmp_path / "upper.exr", {"RGB": rgb})).colors
+    lower = {"r": rgb[..., 0], "g": rgb[..., 1], "b": rgb[..., 2]}
+    np.testing.assert_array_equal(_load_quiet(_write_exr(tmp_path / "lower.exr", lower)).colors,
+                                  expected)
+    layered = {"diffuse.R": rgb[..., 0], "diffuse.g": rgb[..., 1], "diffuse.B": rgb[..., 2]}
+    np.testing.assert_array_equal(
+        _load_quiet(_write_exr(tmp_path / "layer.exr", layered)).colors, expected)
+
+
+def test_exr_of_layers_reads_the_one_that_holds_colors(tmp_path, rng):
+    """A render's layers (Blender's ViewLayer.Combined with its alpha, ViewLayer.Depth.Z):
+    the colors and their alpha, the other layers left out with a warning naming them; two
+    layers of colors are refused unless one is the default layer."""
+    rgba = rng.random(size=(16, 16, 4)).astype(np.float32)
+    depth = np.full((16, 16), np.inf, np.float32)  # as renders write the background
+    channels = {f"ViewLayer.Combined.{c}": rgba[..., i] for i, c in enumerate("RGBA")}
+    path = _write_exr(tmp_path / "render.exr", {**channels, "ViewLayer.Depth.Z": depth})
+    with pytest.warns(UserWarning, match=r"render\.exr: OpenEXR layer ViewLayer\.Combined read, "
+                      r"channels of other layers left out: ViewLayer\.Depth\.Z"):
+        kept = Exemplar.load(path, alpha="keep")
+    np.testing.assert_array_equal(kept.colors, rgba)
+    two = {**channels, **{f"ViewLayer.Glossy.{c}": rgba[..., i] for i, c in enumerate("RGB")}}
+    _raises(_write_exr(tmp_path / "two.exr", two),
+            r"two\.exr: OpenEXR file has colors in 2 layers \(ViewLayer\.Combined, "
+            r"ViewLayer\.Glossy\): save the one to use alone")
+    default = {**{c: rgba[..., i] for i, c in enumerate("RGB")}, **two}
+    with pytest.warns(UserWarning, match="channels of other layers left out"):
+        np.testing.assert_array_equal(
+            Exemplar.load(_write_exr(tmp_path / "default.exr", default)).colors, rgba[..., :3])
+
+
+def test_exr_channels_that_cannot_be_colors_are_named(tmp_path, rng):
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    ids = {"RGB": rgb, "id": np.arange(256, dtype=np.uint32).reshape(16, 16)}
+    _raises(_write_exr(tmp_path / "ids.exr", ids),
+            r"ids\.exr: OpenEXR channel id holds integers \(object or material ids\)")
+    depth = {"RGB": rgb, "Z": np.full((16, 16), np.inf, np.float32)}
+    _raises(_write_exr(tmp_path / "depth.exr", depth),
+            r"depth\.exr: image contains NaN or Inf values \(in OpenEXR channel Z\)")
+    alpha = _write_exr(tmp_path / "alpha.exr", {"A": rgb[..., 0]})
+    _raises(alpha, r"alpha\.exr: image holds only an alpha channel \(alpha='keep'")
+    assert _load_quiet(alpha, alpha="keep").channels == 1
+
+
 def test_exr_luminance_only_is_one_channel(tmp_path, rng):
     y = rng.random(size=(16, 20)).astype(np.float32)
     exemplar = _load_quiet(_write_exr(tmp_path / "y.exr", {"Y": y}))
@@ -241,6 +292,15 @@ def test_npy_any_number_of_channels_as_stored(tmp_path, rng):
     exemplar = _load_quiet(tmp_path / "multi.npy")
     assert exemplar.channels == 7
     np.testing.assert_array_equal(exemplar.colors, data.astype(np.float32))
+
+
+def test_an_exr_of_many_channels_that_warptex_wrote_reads_back_in_order(tmp_path, rng):
+    """Its channels C0 ... C11 are taken in their numbers' order, C10 after C9."""
+    from warptex.volume_files import write_image
+
+    data = rng.random(size=(16, 16, 12)).astype(np.float32)
+    write_image(tmp_path / "many.exr", data, srgb=False)
+    np.testing.assert_array_equal(_load_quiet(tmp_path / "many.exr").colors, data)
 
 
 def test_npy_2d_and_uint16(tmp_path, rng):
@@ -399,6 +459,69 @@ def test_truncated_jpeg_is_unreadable(tmp_path, rng):
     data = (tmp_path / "full.jpg").read_bytes()
     (tmp_path / "cut.jpg").write_bytes(data[:200])
     _raises(tmp_path / "cut.jpg", r"cut\.jpg: unreadable image")
+
+
+def _png_with_chunk(path: Path, pixels: np.ndarray, kind: bytes, data: bytes) -> Path:
+    """An 8-bit RGB PNG with a chunk of ``kind`` inserted after its header."""
+    raw = _write_png8(path, pixels).read_bytes()
+    chunk = (len(data).to_bytes(4, "big") + kind + data
+             + zlib.crc32(kind + data).to_bytes(4, "big"))
+    path.write_bytes(raw[:33] + chunk + raw[33:])  # signature 8, IHDR 25
+    return path
+
+
+def test_png_values_are_read_as_stored_whatever_its_significant_bits(tmp_path, rng):
+    """An sBIT chunk (RGB565) leaves the stored values as they are, as Mitsuba and Pillow
+    read them; pypng would rescale them to 6 significant bits."""
+    pixels = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    path = _png_with_chunk(tmp_path / "sbit.png", pixels, b"sBIT", bytes([5, 6, 5]))
+    np.testing.assert_array_equal(_load_quiet(path).colors,
+                                  pixels.astype(np.float32) / np.float32(255))
+
+
+def test_damaged_files_of_valid_checksums_are_unreadable(tmp_path, rng):
+    """A PNG whose compressed data is damaged under valid CRCs; a .npy whose header is."""
+    raw = bytearray(_write_png8(tmp_path / "a.png", rng.integers(
+        0, 256, size=(16, 16, 3), dtype=np.uint8)).read_bytes())
+    start = raw.index(b"IDAT")
+    length = int.from_bytes(raw[start - 4:start], "big")
+    raw[start + 4:start + 4 + length] = bytes([0xFF]) * length
+    raw[start + 4 + length:start + 8 + length] = zlib.crc32(
+        bytes(raw[start:start + 4 + length])).to_bytes(4, "big")
+    (tmp_path / "zlib.png").write_bytes(bytes(raw))
+    _raises(tmp_path / "zlib.png", r"zlib\.png: unreadable PNG")
+    np.save(tmp_path / "a.npy", np.zeros((16, 16, 3), np.float32))
+    # A bracket left open: NumPy's parser of the header raises tokenize's own error.
+    header = (tmp_path / "a.npy").read_bytes().replace(b"{'descr'", b"{'descr'(")
+    (tmp_path / "header.npy").write_bytes(header)
+    _raises(tmp_path / "header.npy", r"header\.npy: unreadable \.npy file")
+
+
+def test_a_photograph_larger_than_pillow_decodes_is_named(tmp_path, rng, monkeypatch):
+    """Over Pillow's decompression-bomb limit: one error naming the file; between half of
+    it and it, no warning in Pillow's words, which name no file."""
+    from PIL import Image
+
+    Image.fromarray(rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)).save(
+        tmp_path / "a.bmp")
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 200)  # 256 pixels: warned
+    assert _load_quiet(tmp_path / "a.bmp").shape == (16, 16)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # over twice the limit: refused
+    _raises(tmp_path / "a.bmp", r"a\.bmp: too large to read")
+
+
+def test_a_file_that_cannot_be_looked_up_or_is_named_empty_is_one_error(tmp_path,
+                                                                         monkeypatch):
+    """A folder on the way that cannot be searched; an empty name, which Path takes for
+    the working folder."""
+    def unsearchable(self, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    _raises(Path(""), r"\.: is a directory")  # a Path given as such names that folder
+    with pytest.raises(ExemplarError, match="the exemplar's file name is empty"):
+        Exemplar.load("")
+    monkeypatch.setattr(Path, "exists", unsearchable)
+    _raises(tmp_path / "locked" / "a.png", r"a\.png: cannot look up file \(Permission denied\)")
 
 
 def test_corrupt_exr_is_unreadable(tmp_path):

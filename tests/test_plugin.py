@@ -70,6 +70,7 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"exemplar_max_size": "32"}, "exemplar_max_size\" must be an <integer ...>, got '32'"),
     ({"exemplar": "no/such/file.png"}, 'exemplar" names a file that does not exist'),
     ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
+    ({"exemplar": "/"}, 'exemplar" names a folder, not a file'),
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
      'exemplar" must be a <string ...>'),  # checked though every axis has its own
     ({"to_world": "identity"}, "to_world\" must be a <transform ...>, got 'identity'"),

@@ -139,7 +139,8 @@ def _check_finite(name: str, values: Sequence[float]) -> None:
         raise CliError(f"{name} must be finite numbers, got {' '.join(map(str, values))}")
 
 
-_EXEMPLAR_HELP = "exemplar image (PNG, JPEG, OpenEXR or .npy)"
+_EXEMPLAR_HELP = ("exemplar image: PNG, JPEG or another format Pillow reads, OpenEXR or .npy "
+                  "(README, Exemplars: how channels and alpha are read)")
 
 
 def _add_exemplar_arguments(parser: argparse.ArgumentParser) -> None:

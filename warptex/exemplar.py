@@ -20,7 +20,10 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
+import tokenize
 import warnings
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,9 +190,14 @@ class Exemplar:
         check_max_size(max_size)
         if srgb is not None:
             check_flag("srgb", srgb)
+        if path == "":  # not the working folder, which Path("") names
+            raise ExemplarError("the exemplar's file name is empty")
         path = check_file_name("path", path)
         array, has_alpha, stored_srgb = _read(path)
         if has_alpha and alpha == "drop":
+            if array.shape[-1] == 1:
+                raise ExemplarError(f"{path}: image holds only an alpha channel (alpha='keep' "
+                                    "reads it as one color channel; --alpha keep in the CLI)")
             if not _opaque(array[..., -1]):  # an alpha that is opaque everywhere says nothing
                 warnings.warn(
                     f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in "
@@ -217,7 +225,8 @@ class Exemplar:
             distance = feature_distance_from_mask(mask, name=str(mask_path))
         elif feature_distance:
             colors = _validated_colors(array, str(path))
-            distance = feature_distance_from_mask(otsu_mask(colors), name=str(path))
+            distance = feature_distance_from_mask(otsu_mask(colors),
+                                                  name=f"{path}: automatic (Otsu)")
 
         # Errors name the file as given; the exemplar itself goes by its file name.
         exemplar = cls(array, name=str(path), feature_distance=distance,
@@ -676,10 +685,13 @@ def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:
 def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
     """Read an image file as ``(H, W[, C])`` in its stored dtype, whether it has alpha and
     whether its colors are sRGB-encoded."""
-    if not path.exists():
-        raise ExemplarError(f"{path}: file not found")
-    if path.is_dir():
-        raise ExemplarError(f"{path}: is a directory, not an image")
+    try:
+        if not path.exists():
+            raise ExemplarError(f"{path}: file not found")
+        if path.is_dir():
+            raise ExemplarError(f"{path}: is a directory, not an image")
+    except OSError as error:  # a folder on the way that cannot be searched
+        raise ExemplarError(f"{path}: cannot look up file ({error.strerror})") from None
     try:
         with path.open("rb") as file:
             head = file.read(8)
@@ -700,9 +712,14 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
     # pypng rather than Pillow: Pillow reduces 16-bit RGB(A) PNGs to 8 bits.
     try:
         with path.open("rb") as file:
-            width, height, rows, info = png.Reader(file=file).asDirect()
+            reader = png.Reader(file=file)
+            reader.preamble()
+            # The stored values, as Mitsuba and Pillow read them: pypng would rescale them
+            # to the significant bits an sBIT chunk declares (RGB565 to 6 bits a channel).
+            reader.sbit = None
+            width, height, rows, info = reader.asDirect()
             pixels = np.vstack([np.asarray(row) for row in rows])
-    except (png.Error, OSError, ValueError) as error:
+    except (png.Error, OSError, ValueError, zlib.error) as error:
         raise ExemplarError(f"{path}: unreadable PNG ({error})") from None
     planes = info["planes"]
     pixels = pixels.reshape(height, width, planes)
@@ -724,38 +741,84 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
             channels = {name: channel.pixels for name, channel in file.channels().items()}
     except (RuntimeError, OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None
-    # Color first in RGB order, other channels (depth, roughness, ...) by name, alpha last.
-    color = [name for name in ("R", "G", "B") if name in channels]
-    if not color and "Y" in channels:
-        color = ["Y"]
-    rest = sorted(name for name in channels if name not in color and name != "A")
-    order = color + rest + (["A"] if "A" in channels else [])
+    order, alpha = _exr_channel_order(list(channels), path)
     if not order:
         raise ExemplarError(f"{path}: OpenEXR file has zero channels")
+    for name in order:
+        if np.issubdtype(channels[name].dtype, np.integer):
+            raise ExemplarError(f"{path}: OpenEXR channel {name} holds integers (object or "
+                                "material ids), not colors")
+        if not np.isfinite(channels[name]).all():
+            raise ExemplarError(f"{path}: image contains NaN or Inf values (in OpenEXR "
+                                f"channel {name})")
     try:
         pixels = np.stack([channels[name].astype(np.float32) for name in order], axis=2)
     except ValueError:
         raise ExemplarError(f"{path}: OpenEXR channels have different sizes") from None
-    return pixels, "A" in channels
+    return pixels, alpha
+
+
+def _exr_channel_order(names: list[str], path: Path) -> tuple[list[str], bool]:
+    """The channels of an OpenEXR file that make the exemplar, color first in RGB order,
+    other channels (depth, roughness, ...) by name, alpha last; and whether there is alpha.
+
+    Channels are told by their name after the layer's prefix (``diffuse.R``), in either
+    case, as Mitsuba's bitmap reads them. Of a file with layers, the one layer holding
+    colors is read, with a warning naming the channels of the others, left out.
+    """
+    layers: dict[str, dict[str, str]] = {}
+    for name in names:
+        layer, _, base = name.rpartition(".")
+        layers.setdefault(layer, {})[base.upper()] = name
+    colored = [layer for layer, bases in layers.items() if {"R", "G", "B", "Y"} & set(bases)]
+    if len(colored) > 1 and "" in colored:  # the default layer, as viewers show it
+        colored = [""]
+    if len(colored) > 1:
+        raise ExemplarError(f"{path}: OpenEXR file has colors in {len(colored)} layers "
+                            f"({', '.join(sorted(colored))}): save the one to use alone")
+    if not colored:
+        alpha = "A" in names
+        return [n for n in sorted(names, key=_numbered) if n != "A"] + ["A"] * alpha, alpha
+    bases = layers[colored[0]]
+    color = [bases[c] for c in ("R", "G", "B") if c in bases] or [bases["Y"]]
+    alpha = bases.get("A")
+    rest = sorted((n for n in bases.values() if n not in color and n != alpha), key=_numbered)
+    left_out = sorted(set(names) - set(bases.values()))
+    if left_out:
+        warnings.warn(f"{path}: OpenEXR layer {colored[0] or '(default)'} read, channels of "
+                      f"other layers left out: {', '.join(left_out)}", stacklevel=4)
+    return color + rest + ([alpha] if alpha else []), alpha is not None
+
+
+def _numbered(name: str) -> list[str | int]:
+    """Sort key of channel names with numbers in them taken as numbers: C2 before C10, as
+    warptex writes the channels of an image of more than four."""
+    return [int(part) if n % 2 else part for n, part in enumerate(re.split(r"(\d+)", name))]
 
 
 def _read_npy(path: Path) -> np.ndarray:
     try:
         return np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, SyntaxError, tokenize.TokenError) as error:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
 
 
 def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
     try:
-        with Image.open(path) as image:
-            image.load()
-            # Cameras store portrait photos sideways and say so in EXIF: upright, as viewers
-            # show them, since grain and layers run the way the photo shows.
-            ImageOps.exif_transpose(image, in_place=True)
-            return _pillow_pixels(image)
+        with warnings.catch_warnings():
+            # A photograph of 90 to 180 megapixels: Pillow warns of a decompression bomb in
+            # words that name no file; it is the user's own photo, and max_size shrinks it.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as image:
+                image.load()
+                # Cameras store portrait photos sideways and say so in EXIF: upright, as
+                # viewers show them, since grain and layers run the way the photo shows.
+                ImageOps.exif_transpose(image, in_place=True)
+                return _pillow_pixels(image)
     except UnidentifiedImageError:
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
+    except Image.DecompressionBombError as error:
+        raise ExemplarError(f"{path}: too large to read ({error})") from None
     except (OSError, ValueError, SyntaxError) as error:
         raise ExemplarError(f"{path}: unreadable image ({error})") from None
 
