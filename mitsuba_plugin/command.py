@@ -24,7 +24,7 @@ from warptex.archive import (
     write_together,
 )
 from warptex.machine import software_versions
-from warptex.store import StoreFileError, saved_when_stopped
+from warptex.store import StoreFileError, file_state, saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
@@ -301,8 +301,10 @@ def _progress(done: int, total: int) -> None:
 def _save_and_report(texture, save: bool) -> dict:
     """The texture's entry of the report, its store saved first if ``save``; a store that
     cannot be written (a full disk) is entered as ``not_saved``, why, and left as it was."""
-    saved, failed = None, None
+    saved, failed, before = None, None, None
     try:
+        if save and texture.cache is not None:
+            before = file_state(texture.cache)
         saved = texture.save() if save else None
     except OSError as error:
         failed = _write_failure(error, texture.cache)
@@ -311,7 +313,10 @@ def _save_and_report(texture, save: bool) -> dict:
     entry = {"texture": texture.to_string(), "properties": texture.properties(),
              "store": texture.solid.store.stats(),
              "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
-             "saved_to": None if saved is None else str(saved)}
+             "saved_to": None if saved is None else str(saved),
+             # A store that held every voxel already is left as it was (BrickStore.save).
+             "store_file": None if saved is None else
+             "unchanged" if before is not None and file_state(saved) == before else "written"}
     return entry if failed is None else entry | {"not_saved": failed}
 
 
@@ -331,5 +336,7 @@ def _print_report(report: dict) -> None:
               f"({s['bytes'] / 2**20:.2f} MiB), {lookups} {s['hits']} hits / "
               f"{s['misses']} misses, synthesis {s['synthesis_seconds']:.1f} s (summed over "
               "the threads that synthesized)"
-              + (f", saved to {entry['saved_to']}" if entry["saved_to"] else ""))
+              + (f", saved to {entry['saved_to']}" if entry["store_file"] == "written" else
+                 f", {entry['saved_to']} unchanged (it held them all)" if entry["saved_to"]
+                 else ""))
     print(f"  statistics: {report['image']}.json")

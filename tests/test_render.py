@@ -329,21 +329,26 @@ def test_render_command_reports_checks_and_saves_only_its_scenes_textures(tmp_pa
     assert [Path(t.save()) for t in mitsuba_plugin.textures(other)] == [other_store]
 
 
-def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path):
+def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path, capsys):
     """The plugin's ``cache``: `warptex render` saves the brick store, and the next render
-    of the scene reads every voxel from it, to the same image."""
+    of the scene reads every voxel from it, to the same image, leaving the file as it was
+    and saying so."""
     from warptex.cli import main
 
     scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
-    reports, images = [], []
+    reports, images, printed = [], [], []
     for run in range(2):
         out = tmp_path / f"run{run}.exr"
         assert main(["render", str(scene), "-o", str(out), "--spp", "1", "--res", "16x16"]) == 0
+        printed.append(capsys.readouterr().out)
         reports.append(json.loads((tmp_path / f"run{run}.exr.json").read_text())["textures"])
         images.append(rgb(mi.Bitmap(str(out))))
         mitsuba_plugin.live_textures.clear()  # as a new process would start
     store = scene.parent / "bricks" / "bunny.wtb"
     assert [r[0]["saved_to"] for r in reports] == [str(store)] * 2
+    assert [r[0]["store_file"] for r in reports] == ["written", "unchanged"]
+    assert f", saved to {store}" in printed[0]
+    assert f", {store} unchanged (it held them all)" in printed[1] and "saved to" not in printed[1]
     cold, warm = (r[0]["store"] for r in reports)
     assert cold["voxels_added"] == cold["voxels"] > 0
     assert warm["voxels_added"] == 0 and warm["voxels"] == cold["voxels"]

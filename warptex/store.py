@@ -193,7 +193,7 @@ def _range_starts(counts: np.ndarray) -> np.ndarray:
     return np.cumsum(counts) - counts
 
 
-def _file_state(path: Path) -> tuple | None:
+def file_state(path: Path) -> tuple | None:
     """What tells a file apart from one renamed to its name since (as every save does):
     its device, inode, size and modification time; None when there is none."""
     try:
@@ -436,7 +436,7 @@ class BrickStore:
         self._torn = False
         self._hits = self._misses = self._added = self._evicted = 0
         self._version = 0
-        # The store file last loaded from or written (_file_state) and the version then.
+        # The store file last loaded from or written (file_state) and the version then.
         self._synced: tuple | None = None
         self._seconds = 0.0
 
@@ -581,7 +581,7 @@ class BrickStore:
             ours = _Bricks(self._keys[live], self._payload[self._ranges(live)],
                            self._valid[live])
         with _taking_turns(path):
-            state = _file_state(path)
+            state = file_state(path)
             if state is not None and self._synced == (state, version):
                 return False
             try:
@@ -598,7 +598,7 @@ class BrickStore:
             write_archive(path, _MAGIC, FORMAT_VERSION,
                           {"identity": np.array(self.identity()),
                            "settings": np.array(self._settings_json()), **kept._asdict()})
-            self._synced = (_file_state(path), version)
+            self._synced = (file_state(path), version)
         return True
 
     @classmethod
@@ -615,7 +615,7 @@ class BrickStore:
         """
         check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
-        state = _file_state(Path(path))  # before reading: a file replaced meanwhile differs
+        state = file_state(Path(path))  # before reading: a file replaced meanwhile differs
         try:
             kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
