@@ -144,3 +144,52 @@ def test_split_launch_runs_every_thread_of_every_item_once(per_item, monkeypatch
             got = hits.numpy()
             assert np.all(got[: start * per_item] == 0)
             assert np.all(got[start * per_item:] == 1), (threads, start, n)
+
+
+class _Stopped(Exception):
+    pass
+
+
+def test_a_nearest_neighbour_query_stopped_by_a_signal_ends_before_the_signal_goes_on(
+        monkeypatch):
+    """SciPy's threaded queries read the tree until they end: Ctrl-C or SIGTERM during one
+    reaches its handler once the query has ended (the tree freed under a running query
+    ended the process with a segmentation fault), and the handlers are as before."""
+    import signal
+    import threading
+    import time
+
+    from scipy.spatial import cKDTree
+
+    from warptex.parallel import nearest
+
+    points = np.random.default_rng(0).random((500, 3))
+    tree = cKDTree(points)
+    ended = threading.Event()
+
+    def stop(signum, frame):
+        raise _Stopped(signum)
+
+    class Stopped:
+        def __init__(self, signum):
+            self.signum = signum
+
+        def query(self, queries, **options):
+            os.kill(os.getpid(), self.signum)
+            time.sleep(0.3)
+            ended.set()
+            return tree.query(queries, **options)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        for signum, raised in ((signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, _Stopped)):
+            ended.clear()
+            with pytest.raises(raised):
+                nearest(Stopped(signum), points[:5], k=2)
+            assert ended.is_set()
+        assert signal.getsignal(signal.SIGTERM) is stop
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    np.testing.assert_array_equal(nearest(tree, points[:5], k=2)[1],
+                                  tree.query(points[:5], k=2)[1])

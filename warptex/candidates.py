@@ -698,7 +698,7 @@ def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarra
     todo = np.arange(len(q))
     want = min(len(db), k + 8)
     while len(todo):
-        idx = tree.query(q[todo].astype(np.float64), k=want, workers=parallel.THREADS)[1]
+        idx = parallel.nearest(tree, q[todo].astype(np.float64), k=want)[1]
         idx = idx.reshape(len(todo), want)
         d2 = np.concatenate([
             ((q[todo[lo:lo + 4096], None, :] - db[idx[lo:lo + 4096]]) ** 2).sum(axis=2)

@@ -9,9 +9,15 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import signal
+import threading
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor, wait
 from itertools import pairwise
 from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
 
 from warptex.machine import usable_cores
 from warptex.warp_runtime import launch
@@ -77,3 +83,36 @@ def launch_ranges(
             with contextlib.suppress(KeyboardInterrupt):
                 wait(jobs)
         raise
+
+
+def nearest(tree: cKDTree, queries: np.ndarray, workers: int = THREADS,
+            **options: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query(queries, workers=workers, **options)``, run to its end when Ctrl-C or
+    SIGTERM comes meanwhile, which then goes on: SciPy joins its query threads in a way a
+    KeyboardInterrupt cuts short, and the threads went on reading the tree while the
+    interrupt freed it (a segmentation fault as the process ended)."""
+    with _signals_deferred((signal.SIGINT, signal.SIGTERM)):
+        return tree.query(queries, workers=workers, **options)
+
+
+@contextlib.contextmanager
+def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
+    """Hold back ``signals`` whose handlers are Python's in the block, then raise those that
+    came, to their handlers as before. Handlers can only be set in the main thread, which is
+    also the only one that they interrupt."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    before = {}
+    for number in signals:
+        handler = signal.getsignal(number)
+        if handler is not None:  # else set outside Python, and not to be restored
+            before[number] = signal.signal(number, lambda n, _frame: came.append(n))
+    try:
+        yield
+    finally:
+        for number, handler in before.items():
+            signal.signal(number, handler)
+        for number in dict.fromkeys(came):
+            signal.raise_signal(number)

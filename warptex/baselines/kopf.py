@@ -52,7 +52,7 @@ from tqdm import tqdm
 
 from kernels import kopf as _k
 from warptex.exemplar import Exemplar, as_exemplar, check_same_channels, wrapping_edges
-from warptex.parallel import THREADS, launch_ranges
+from warptex.parallel import launch_ranges, nearest
 from warptex.settings import check_settings
 from warptex.warp_runtime import init_warp, launch
 
@@ -301,15 +301,15 @@ def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray
     """
     tree = ax.tree
     if np.any(current < 0):
-        return ax.window_pixels[tree.query(query, eps=ANN_EPS, workers=THREADS)[1]]
+        return ax.window_pixels[nearest(tree, query, eps=ANN_EPS)[1]]
     rows = np.searchsorted(ax.window_pixels, current)
     bound = np.linalg.norm(query - tree.data[rows], axis=1)
     found = current.copy()
     order = np.argsort(bound)
     for group in np.array_split(order, _BOUND_GROUPS):
         if len(group):
-            _, idx = tree.query(query[group], eps=ANN_EPS, workers=THREADS,
-                                distance_upper_bound=float(bound[group[-1]]) * (1 + 1e-6))
+            _, idx = nearest(tree, query[group], eps=ANN_EPS,
+                             distance_upper_bound=float(bound[group[-1]]) * (1 + 1e-6))
             hit = idx < tree.n
             found[group[hit]] = ax.window_pixels[idx[hit]]
     return found
