@@ -200,6 +200,26 @@ def test_cpu_lookups_count_misses_by_their_flags(candidates, kernel):
     assert misses == missed.numpy().sum() > 0.99 * len(points)
 
 
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+@pytest.mark.parametrize("threads", [2, 3])
+def test_lookups_split_over_threads_give_the_colors_of_one_launch(candidates, monkeypatch,
+                                                                  filter, threads):
+    """A lookup launch of many points is split over CPU threads (as many as the machine
+    has cores; set here): every part must read its own points."""
+    from warptex import parallel
+
+    points = np.random.default_rng(0).uniform(-20, 20, (3 * parallel.MIN_SPLIT, 3))
+    monkeypatch.setattr(parallel, "THREADS", 1)
+    store = BrickStore(synthesizer(candidates))
+    one = sample(store, points, filter)
+    monkeypatch.setattr(parallel, "THREADS", threads)
+    assert np.array_equal(sample(store, points, filter), one)  # all hits: one launch
+    assert np.array_equal(sample(BrickStore(synthesizer(candidates)), points, filter), one)
+    if filter == "nearest":
+        voxels = np.floor(points).astype(np.int64)
+        assert np.array_equal(one, synthesizer(candidates).voxels(voxels))
+
+
 def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeypatch):
     store = BrickStore(synthesizer(candidates))
     monkeypatch.setattr(store, "_to_store", lambda voxels: voxels[:0])

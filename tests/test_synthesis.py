@@ -143,17 +143,39 @@ def test_a_request_stopped_while_caching_leaves_no_wrong_coarse_voxel(candidates
     assert np.array_equal(engine.voxels(both), cold.voxels(both))
 
 
-def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates):
+@pytest.mark.parametrize("cache_blocks", [200, None])
+def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates, cache_blocks):
+    """Also with a coarse cache small enough to be filled and cleared while the threads
+    race (200 blocks of 64 voxels, 12 bytes a voxel), which the engine's lock orders."""
     rng = np.random.default_rng(8)
-    requests = [_random_voxels(rng, 100, -80, 80) for _ in range(12)]
+    requests = [_random_voxels(rng, 60 if cache_blocks else 100, -80, 80)
+                for _ in range(24 if cache_blocks else 12)]
     serial = Synthesizer(candidates, seed=5, coarse_cache_bytes=0)
     expected = [serial.voxels(r) for r in requests]
+    cache = {} if cache_blocks is None else {"coarse_cache_bytes": cache_blocks * 64 * 12}
     for _ in range(2):
-        shared = Synthesizer(candidates, seed=5)
-        with ThreadPoolExecutor(4) as pool:
+        shared = Synthesizer(candidates, seed=5, **cache)
+        with ThreadPoolExecutor(8 if cache_blocks else 4) as pool:
             got = list(pool.map(shared.voxels, requests))
         for g, e in zip(got, expected, strict=True):
             assert np.array_equal(g, e)
+
+
+@pytest.mark.parametrize(("threads", "halo_chunk"), [(2, 256), (3, 1), (8, 3)])
+def test_results_do_not_depend_on_how_launches_are_split(candidates, monkeypatch, threads,
+                                                         halo_chunk):
+    """A machine of another number of cores splits each launch otherwise, and halos are
+    gathered in chunks: neither may change a voxel (here the split is set, whatever this
+    machine's cores)."""
+    from warptex import parallel
+
+    box = np.indices((24, 20, 22)).reshape(3, -1).T - 10
+    points = np.concatenate([box, _random_voxels(np.random.default_rng(1), 200)])
+    monkeypatch.setattr(parallel, "THREADS", 1)
+    one = Synthesizer(candidates, seed=3).triples(points)
+    monkeypatch.setattr(parallel, "THREADS", threads)
+    monkeypatch.setitem(synthesis._HALO_CHUNK, "cpu", halo_chunk)
+    assert np.array_equal(Synthesizer(candidates, seed=3).triples(points), one)
 
 
 def test_bit_identical_across_processes(candidates, tmp_path):
