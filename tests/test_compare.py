@@ -710,10 +710,11 @@ def test_an_exemplar_s_alpha_is_dropped_with_one_warning_that_fits_compare(tmp_p
                       np.full((64, 64), 128, np.uint8)])  # half transparent
     Image.fromarray(rgba).save(tmp_path / "rgba.png")
     assert main(["compare", str(tmp_path / "rgba.png"), "--size", "16", "--methods",
-                 "noise,flat", "-o", str(tmp_path / "cmp")]) == 0
+                 "noise,flat,lazy", "-o", str(tmp_path / "cmp")]) == 0
     err = capfd.readouterr().err
-    assert err.count("alpha channel dropped") == 1
+    assert err.count("alpha channel dropped") == 1  # lazy's cube, rendered, read it again
     assert "compare measures colors only" in err and "--alpha" not in err
+    assert "AlphaDropped" not in err  # no warning in Python's own format
 
 
 def test_every_method_sees_the_exemplars_as_first_read(tmp_path, data_dir):
@@ -814,3 +815,17 @@ def test_a_file_changed_before_the_lazy_cube_reads_it_again_is_refused(tmp_path,
     Image.open(data_dir / "granite_64.png").rotate(90).save(path)
     with pytest.raises(ExemplarError, match=re.escape(f"{path}: changed while the comparison")):
         _check_unchanged(setup)
+
+
+def test_compare_refuses_a_constant_exemplar_before_any_method(tmp_path, capsys):
+    """Its scores would be float32 rounding noise in units of a variance it does not have
+    (flat, identical to it, scored energy 1 and noise 0)."""
+    from PIL import Image
+
+    path = tmp_path / "const.png"
+    Image.fromarray(np.full((32, 32, 3), 77, np.uint8)).save(path)
+    out = tmp_path / "out"
+    assert main(["compare", str(path), "--size", "16", "--methods", "flat", "-o", str(out)]) == 2
+    assert f"{path}: image is constant: the measures are in units of its variance" in (
+        capsys.readouterr().err)
+    assert not out.exists()

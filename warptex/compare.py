@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import json
 import multiprocessing
+import pickle
 import platform
 import threading
 import time
@@ -213,6 +214,10 @@ def _read_axes(setup: Setup) -> Axes:
             text = (f"{path}: alpha channel dropped (compare measures colors only)"
                     if issubclass(warning.category, AlphaDropped) else str(warning.message))
             warnings.warn(text, warning.category, stacklevel=3)  # the caller of exemplars()
+    for path, exemplar in files.items():
+        if np.all(exemplar.colors == exemplar.colors[:1, :1]):  # its warning said so already
+            raise ExemplarError(f"{path}: image is constant: the measures are in units of "
+                                "its variance, which it has none of")
     read = [files[path] for path in paths]
     check_same_channels(read)  # before merging, so that errors name the files given
     srgb_encoded(read, raw=None)
@@ -569,8 +574,8 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     bar = tqdm(methods, desc="methods", disable=not progress)
     for method in bar:
         bar.set_postfix_str(method)  # one method can take minutes: the bar says which
-        with ProcessPoolExecutor(max_workers=1, mp_context=ctx,
-                                 initializer=_start_worker) as pool:
+        with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_start_worker,
+                                 initargs=(_shown_as_here(),)) as pool:
             job = pool.submit(_measure, method, setup, repeats)
             try:
                 out = job.result()
@@ -581,12 +586,27 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     return Comparison(setup, results)
 
 
-def _start_worker() -> None:
+def _start_worker(show_warning: Callable | None) -> None:
     """A method's process: large blocks mapped afresh, for its peak memory; progress bars
     locked between threads only, for tqdm's default lock between processes is a semaphore
-    that a worker stopped by :func:`_stop_workers` leaves to a warning at exit."""
+    that a worker stopped by :func:`_stop_workers` leaves to a warning at exit. Warnings are
+    shown as the caller's process shows them (the command's one line), but for a dropped
+    alpha, which :meth:`Setup.exemplars` reported already in compare's words."""
     map_large_blocks()
     std.tqdm.set_lock(threading.RLock())  # every kind of bar's
+    if show_warning is not None:
+        warnings.showwarning = show_warning
+    warnings.simplefilter("ignore", AlphaDropped)
+
+
+def _shown_as_here() -> Callable | None:
+    """How this process shows warnings, where a worker can be given it (a function of a
+    module, not one made in a notebook)."""
+    try:
+        pickle.dumps(warnings.showwarning)
+    except (pickle.PicklingError, AttributeError, TypeError):
+        return None
+    return warnings.showwarning
 
 
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
