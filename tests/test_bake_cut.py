@@ -155,6 +155,22 @@ def test_triangles_of_zero_area_are_left_out_of_a_cut():
         cut(line, origin, np.array([0.0, 1.0, 0.0]))
 
 
+def test_a_normal_of_any_finite_length_cuts_as_its_direction():
+    """Its length alone overflowed beyond 1e154 (NumPy warnings, then a cap left coarse)."""
+    box = trimesh.creation.box()
+    origin = np.full(3, 0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        expected = cut(box, origin, np.array([1.0, 1.0, 0.0]))
+        for scale in (1e308, 1e-300):
+            for half, same in zip(cut(box, origin, np.array([scale, scale, 0.0])), expected,
+                                  strict=True):
+                np.testing.assert_array_equal(half.vertices, same.vertices)
+                np.testing.assert_array_equal(half.faces, same.faces)
+    with pytest.raises(ValueError, match="finite, non-zero normal"):
+        cut(box, origin, np.array([np.inf, 0.0, 0.0]))
+
+
 def test_a_cut_through_separate_parts_caps_each():
     """Two boxes cut together: the cap has two outlines, which trimesh nests with rtree."""
     box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

@@ -23,8 +23,11 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray,
     it, and it still meets the outer surface vertex for vertex.
     """
     normal = np.asarray(normal, np.float64)
-    if not np.linalg.norm(normal) > 0:
-        raise ValueError("the cut plane needs a non-zero normal")
+    if not np.isfinite(normal).all() or not np.abs(normal).max() > 0:
+        raise ValueError("the cut plane needs a finite, non-zero normal")
+    # Scaled by its largest component first: its length alone overflows beyond 1e154.
+    normal = normal / np.abs(normal).max()
+    normal /= np.linalg.norm(normal)
     origin = np.asarray(origin, np.float64)
     # Triangles of zero area bound nothing, and the cap's triangulation fails on them.
     kept = mesh.area_faces > 0
