@@ -553,3 +553,22 @@ def test_cli_slice_shows_the_z_exemplar_as_its_photo_is_oriented(tmp_path, data_
     along_columns = np.all(step == (0, 1), axis=-1).sum()
     along_rows = np.all(step == (1, 0), axis=-1).sum()
     assert along_columns > 4 * along_rows
+
+
+def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_device,
+                                              capsys):
+    """Mesh files hold RGB: an alpha kept with --alpha keep is synthesized (it takes part in
+    the matching) but not written, which the command says before its work."""
+    from PIL import Image
+
+    from warptex.cli import main
+
+    granite = np.asarray(Image.open(data_dir / "granite_64.png"))[:32, :32]
+    rgba = np.dstack([granite, np.arange(32 * 32, dtype=np.uint8).reshape(32, 32)])
+    Image.fromarray(rgba).save(tmp_path / "rgba.png")
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    assert main(["bake", str(mesh_path), "--exemplar", str(tmp_path / "rgba.png"),
+                 "--alpha", "keep", "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
+    assert ("warptex: warning: mesh files hold RGB colors: 1 channel of 4 (an alpha kept by "
+            "--alpha keep) synthesized but not written") in capsys.readouterr().err

@@ -776,9 +776,10 @@ def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEF
         raise CliError(f"--{error.name} {error.problem}") from None
 
 
-def _solid_texture(args: argparse.Namespace):
+def _solid_texture(args: argparse.Namespace, mesh: bool = False):
     """The texture of the command's exemplars, and whether its colors are sRGB-encoded (None
-    where they are written as they are: see _colors_srgb)."""
+    where they are written as they are: see _colors_srgb); for a ``mesh`` command, a warning
+    first where its files cannot hold every channel."""
     from warptex.candidates import precompute
     from warptex.store import check_lookup_channels
     from warptex.texture import SolidTexture
@@ -789,6 +790,12 @@ def _solid_texture(args: argparse.Namespace):
     except ValueError as error:
         raise CliError(f"{args.exemplar}: {error}; `warptex volume` synthesizes any "
                        "number") from None
+    channels = exemplars[0].channels
+    if mesh and channels not in (1, 3):  # mesh files hold RGB (gray repeated)
+        lost = channels - 1 if channels == 2 else channels - 3
+        warnings.warn(f"mesh files hold RGB colors: {_count(lost, 'channel')} of {channels} "
+                      "(an alpha kept by --alpha keep) synthesized but not written",
+                      stacklevel=1)
     srgb = _colors_srgb(args, exemplars)
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
@@ -1148,7 +1155,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     mesh = _load_mesh(args.mesh, args.uv)
     transform = block_transform(mesh, args.resolution)
     _check_shell(mesh, transform, args.resolution)
-    tex, srgb = _solid_texture(args)
+    tex, srgb = _solid_texture(args, mesh=True)
     start = time.perf_counter()
     with _store_saved_when_stopped(tex, args):
         count = _synthesize_shell(tex, mesh, args.resolution, transform)
@@ -1192,7 +1199,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
         halves = cut(mesh, origin, np.asarray(args.normal))
     except ValueError as error:
         raise CliError(f"{args.mesh}: {error}") from None
-    tex, srgb = _solid_texture(args)
+    tex, srgb = _solid_texture(args, mesh=True)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
     with _store_saved_when_stopped(tex, args):
