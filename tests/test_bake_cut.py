@@ -572,3 +572,35 @@ def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_
                  "--alpha", "keep", "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
     assert ("warptex: warning: mesh files hold RGB colors: 1 channel of 4 (an alpha kept by "
             "--alpha keep) synthesized but not written") in capsys.readouterr().err
+
+
+def test_bake_keeps_the_file_s_vertices_and_cut_welds_them(tmp_path, data_dir, warp_device,
+                                                          capsys):
+    """A flat-shaded mesh, each face with its own vertices and normals: bake's colors come
+    one per vertex of the file, in its order (trimesh's processing welded them); cut welds
+    them to a closed surface, caps and all. A NaN vertex is refused, not left out with its
+    faces."""
+    from warptex.cli import main
+
+    box = trimesh.creation.box()
+    flat = trimesh.Trimesh(box.vertices[box.faces].reshape(-1, 3),
+                           np.arange(3 * len(box.faces)).reshape(-1, 3), process=False)
+    mesh_path = tmp_path / "flat.ply"
+    flat.export(mesh_path, vertex_normal=True)
+    exemplar = str(data_dir / "granite_64.png")
+    assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "16",
+                 "-o", str(tmp_path / "b.ply")]) == 0
+    baked = trimesh.load(tmp_path / "b.ply", process=False)
+    np.testing.assert_allclose(baked.vertices, flat.vertices, rtol=0, atol=1e-6)
+    assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "16",
+                 "--normal", "1", "0", "0", "-o", str(tmp_path / "c.ply")]) == 0
+    for half in ("c.ply", "c_b.ply"):
+        assert trimesh.load(tmp_path / half).is_watertight
+    broken = flat.copy()
+    broken.vertices[5] = np.nan
+    broken.export(tmp_path / "nan.ply")
+    capsys.readouterr()
+    assert main(["bake", str(tmp_path / "nan.ply"), "--exemplar", exemplar, "--resolution",
+                 "16", "-o", str(tmp_path / "n.ply")]) == 2
+    assert "nan.ply: vertex coordinates hold NaN or infinite values" in capsys.readouterr().err
+    assert not (tmp_path / "n.ply").exists()

@@ -65,6 +65,8 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     assert "kopf" not in run["settings"]
     assert run["measures"]["repetition_slice"] == 256 and run["measures"]["patch"] == 5
     assert "fresh process" in run["timing"] and "resident host memory" in run["memory"]
+    assert run["scores"].startswith("Lower is better in every score. energy:")
+    assert run["scores"] in (out / "table.md").read_text()  # the legend of table.md
     # The lazy engine's candidates are computed and timed apart; the others have none.
     for method, row in rows.items():
         assert ((row["precompute_seconds"] or 0) > 0) == (method in ("lazy", "tiled"))

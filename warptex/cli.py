@@ -1001,7 +1001,10 @@ def _texture_size(args: argparse.Namespace) -> int:
     return _TEXTURE_SIZE if args.texture_size is None else args.texture_size
 
 
-def _load_mesh(path: Path, uv: str = "none"):
+def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
+    """The mesh of file ``path``, its vertices as the file has them (bake's colors match
+    them by index), or welded where they coincide (``weld``: a cut's caps need a closed
+    surface, which a file of faces that each have their own vertices is not)."""
     import trimesh
 
     if path.is_dir():
@@ -1009,7 +1012,7 @@ def _load_mesh(path: Path, uv: str = "none"):
     if not path.is_file():
         raise CliError(f"{path}: mesh file not found")
     try:
-        mesh = trimesh.load(path, force="mesh")
+        mesh = trimesh.load(path, force="mesh", process=False)
     except NotImplementedError:  # how trimesh refuses a file type it has no reader for
         raise CliError(f"{path}: not a mesh format warptex reads (.{', .'.join(_MESH_FORMATS)}, "
                        "and the others trimesh reads)") from None
@@ -1018,6 +1021,10 @@ def _load_mesh(path: Path, uv: str = "none"):
                        f"(trimesh: {error or type(error).__name__})") from None
     if len(getattr(mesh, "faces", ())) == 0:
         raise CliError(f"{path}: no triangles found")
+    if not np.isfinite(mesh.vertices).all():  # trimesh would drop their faces, unsaid
+        raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
+    if weld:
+        mesh.merge_vertices(merge_tex=True, merge_norm=True)  # whatever their normals say
     if not mesh.area > 0:
         raise CliError(f"{path}: every triangle has zero area: the mesh has no surface")
     if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
@@ -1176,9 +1183,11 @@ def _add_cut_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--origin", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="a point of the plane in mesh coordinates (default: box centre)")
     parser.add_argument("--normal", type=float, nargs=3, default=(1.0, 0.0, 0.0),
-                        metavar=("X", "Y", "Z"), help="plane normal (default x)")
+                        metavar=("X", "Y", "Z"),
+                        help="plane normal, pointing into the first half (default x)")
     parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
-                        help="output mesh for the first half: .ply or .glb (vertex colors), "
+                        help="output mesh for the first half, the side the normal points "
+                        "to: .ply or .glb (vertex colors), "
                         ".glb or .obj (--uv auto), e.g. cut.ply; the second half gets the "
                         "suffix _b (cut_b.ply)")
 
@@ -1193,7 +1202,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
         raise CliError("--normal must not be 0 0 0: it is the direction across the cut")
     if args.origin is not None:
         _check_finite("--origin", args.origin)
-    mesh = _load_mesh(args.mesh)
+    mesh = _load_mesh(args.mesh, weld=True)
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:
         halves = cut(mesh, origin, np.asarray(args.normal))
@@ -1210,7 +1219,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
 
 
 def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
-    from warptex.compare import METHODS
+    from warptex.compare import METHOD_NOTES, METHODS
 
     parser = subparsers.add_parser(
         "compare",
@@ -1228,7 +1237,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "something that is no texture (the reference methods extrude, noise and flat show "
         "what; warptex.metrics says more). Scores of other --size do not compare. With "
         "--ey/--ez each axis has its own exemplar, its slices measured against it. "
-        f"Methods: {', '.join(METHODS)}.",
+        "Methods: " + "; ".join(f"{m}: {METHOD_NOTES[m]}" for m in METHODS) + ".",
     )
     parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     _add_axis_exemplar_arguments(parser, "EXEMPLAR")
@@ -1422,7 +1431,7 @@ _EXAMPLES = {
              "-o out/bunny.obj"],
     "cut": [f"warptex cut {_BUNNY} --exemplar {_WOOD} --resolution 256 --normal 1 0 0 "
             "-o out/half.ply"],
-    "compare": [f"warptex compare {_WOOD} --size 32 --methods lazy,tiled,noise -o out/compare"],
+    "compare": [f"warptex compare {_WOOD} --size 32 --methods lazy,extrude,noise -o out/compare"],
     "render": ["warptex render scenes/bunny_wood.xml -o out/bunny.png --spp 16 --res 256x256"],
 }
 

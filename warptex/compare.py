@@ -73,11 +73,23 @@ REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writ
 # exemplar of each axis, the lazy engine's jitter and shifted tiles as run; 5: repetition
 # counts peaks of the autocorrelation only.
 TABLE_FORMAT = 5
+TILE = 64  # edge of the periodic block of `tiled`
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
+# What each method is, as the command's help says it.
+METHOD_NOTES = {
+    "lazy": "this project's lazy synthesis (Dong 2008)",
+    "kopf": "Kopf et al. 2007 global optimization of a periodic volume",
+    "kopf-meanshift": "kopf with its mean-shift clustering (its section 4.1)",
+    "tiled": f"the lazy engine's {TILE}^3 block repeated, the usual practice (Dong 2008 "
+             f"Fig. 11), which below {TILE} voxels is lazy's volume itself, told apart by the "
+             "repetition score only",
+    "extrude": "the z axis' exemplar stacked along z",
+    "noise": "i.i.d. exemplar pixels",
+    "flat": "the exemplars' mean color everywhere",
+}
 _LAZY = ("lazy", "tiled")  # the methods that run the lazy engine
 _KOPF = ("kopf", "kopf-meanshift")
 LARGE = 256  # least edge of the slice the repetition score looks at
-TILE = 64  # edge of the periodic block of `tiled`
 MIN_SIZE = 8  # the measures read 5 x 5 patches of slices every 2 voxels
 # What table.json says of how the numbers were taken.
 TIMING = ("seconds: the median of the wall-clock runs per method in seconds_runs (as many "
@@ -652,9 +664,21 @@ def table_markdown(results: Sequence[MethodResult]) -> str:
 def _legend(measures: dict, repeats: int, gpu: bool = False) -> str:
     """What ``table.md``'s columns measure (:func:`_measure_settings`), below the table."""
     runs = "one wall-clock run" if repeats == 1 else f"the median of {repeats} wall-clock runs"
+    return (
+        f"\n{_scores_legend(measures)} "
+        f"seconds: {runs} in a fresh process, kernels compiled first; "
+        "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
+        "host memory during the run, pre-computation not included"
+        + ("; GPU MiB: high-water mark of Warp's CUDA memory pool in the method's process, "
+           "the pre-computation and the kernels' first run included" if gpu else "") + ".\n")
+
+
+def _scores_legend(measures: dict) -> str:
+    """What the scores measure, as ``table.md`` and ``table.json`` ("scores") say, for the
+    ``measures`` (:func:`_measure_settings`) they were taken with."""
     edge, exclude = measures["repetition_slice"], measures["repetition_exclude"]
     return (
-        "\nLower is better in every score. energy: mean squared distance of slice patches to "
+        "Lower is better in every score. energy: mean squared distance of slice patches to "
         "their nearest patch of that axis' exemplar, in units of its variance (it rewards blur: "
         "see `flat`); completeness: the same from each exemplar patch to its nearest slice "
         "patch (blur and flat volumes lack the sharp ones); SWD: sliced Wasserstein "
@@ -663,12 +687,7 @@ def _legend(measures: dict, repeats: int, gpu: bool = False) -> str:
         f"repetition: highest autocorrelation of a {edge}-voxel slice at a peak past "
         f"{exclude} voxels, 0 to 1 (warptex.metrics); the periodic volumes (tiled, Kopf's, "
         "flat) show their block tiled there. Scores of volumes of other sizes do not "
-        "compare. "
-        f"seconds: {runs} in a fresh process, kernels compiled first; "
-        "pre-computation: the lazy engine's candidates, computed afresh; peak MiB: rise of "
-        "host memory during the run, pre-computation not included"
-        + ("; GPU MiB: high-water mark of Warp's CUDA memory pool in the method's process, "
-           "the pre-computation and the kernels' first run included" if gpu else "") + ".\n")
+        "compare.")
 
 
 def _title(paths: Sequence[Path], axes: Axes) -> str:
@@ -766,7 +785,8 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
         "tileable": word,
         "settings": _method_settings([r.method for r in results], setup),
         "measures": measures,
-        "repeats": repeats, "timing": TIMING, "memory": MEMORY}
+        "repeats": repeats, "scores": _scores_legend(measures), "timing": TIMING,
+        "memory": MEMORY}
     told = "" if word == "auto" else f", tileable {word}"
     more = "".join((
         "" if setup.passes == DEFAULT_PASSES else f", {setup.passes} correction passes",
