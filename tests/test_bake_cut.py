@@ -467,6 +467,31 @@ def test_uncovered_texels_take_a_covered_color(warp_device):
     np.testing.assert_array_equal(image, np.broadcast_to([0.25, 0.5, 0.75], image.shape))
 
 
+def test_uv_layouts_that_bake_wrong_colors_are_told(texture, sphere):
+    """A mesh's own UVs: xatlas' layout bakes each point its own texel; two triangles over
+    one UV triangle (mirrored UVs) share it, and UVs past [0, 1] (tiled) leave parts
+    unbaked."""
+    from warptex.bake import uv_layout_problems
+
+    unwrapped = sphere.unwrap()
+    m = block_transform(unwrapped, 24)
+    _, covered = bake_uv_texture(texture, unwrapped, unwrapped.visual.uv, m, size=128)
+    assert uv_layout_problems(unwrapped.visual.uv, unwrapped.faces, covered) == []
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3]])
+    mirrored = np.array([[0.1, 0.1], [0.9, 0.1], [0.1, 0.9], [0.1, 0.9]])
+    mesh = trimesh.Trimesh(v, faces, process=False)
+    _, covered = bake_uv_texture(_Constant(), mesh, mirrored, np.eye(4), size=64)
+    (overlap,) = uv_layout_problems(mirrored, faces, covered)
+    share, said = overlap.split("% ", 1)  # two of the three triangles alike: about half
+    assert 45 <= int(share) <= 55 and said.startswith("of the UV area lies over other")
+    tiled = mirrored * np.array([3.0, 1.0])
+    _, covered = bake_uv_texture(_Constant(), mesh, tiled, np.eye(4), size=64)
+    assert uv_layout_problems(tiled, faces, covered)[0] == (
+        "the UVs of 2 of 3 triangles reach outside [0, 1] (tiled UVs), where no texel holds "
+        "their colors")
+
+
 def test_vertex_colors_use_the_filter_asked_for(texture):
     sphere = trimesh.creation.icosphere(subdivisions=2)
     m = block_transform(sphere, 24)
@@ -604,3 +629,19 @@ def test_bake_keeps_the_file_s_vertices_and_cut_welds_them(tmp_path, data_dir, w
                  "16", "-o", str(tmp_path / "n.ply")]) == 2
     assert "nan.ply: vertex coordinates hold NaN or infinite values" in capsys.readouterr().err
     assert not (tmp_path / "n.ply").exists()
+
+
+def test_bake_with_the_mesh_s_own_uvs_warns_of_a_mirrored_layout(tmp_path, data_dir, sphere,
+                                                                warp_device, capsys):
+    from warptex.cli import main
+
+    mesh = sphere.copy()
+    uv = mesh.vertices[:, :2] * 0.45 + 0.5  # front and back share one disc
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv)
+    mesh.export(tmp_path / "mirrored.obj")
+    assert main(["bake", str(tmp_path / "mirrored.obj"), "--exemplar",
+                 str(data_dir / "granite_64.png"), "--resolution", "16", "--uv", "mesh",
+                 "--texture-size", "64", "-o", str(tmp_path / "m.glb")]) == 0
+    err = capsys.readouterr().err
+    assert "mirrored.obj: " in err and "of the UV area lies over other triangles'" in err
+    assert "--uv auto makes UVs of its own" in err

@@ -55,6 +55,32 @@ def texel_points(
     return points.numpy(), owner.numpy() != _k.NO_TRIANGLE
 
 
+# Share of the UV area that may differ from the texels covered without overlap: texel
+# centres sample each triangle's area, more or less by a row along the layout's outlines.
+_OVERLAP_SLACK = 0.05
+
+
+def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray) -> list[str]:
+    """What makes a mesh's own UVs bake colors that are not its surface's: triangles reaching
+    outside [0, 1] (tiled UVs), whose parts outside no texel holds, and triangles whose UV
+    images overlap (mirrored or shared UVs), whose surface points share texels that show one
+    of them. ``covered`` is :func:`bake_uv_texture`'s coverage mask."""
+    uv = np.asarray(uv, np.float64)
+    corners = uv[np.asarray(faces)]
+    problems = []
+    outside = ((corners < 0.0) | (corners > 1.0)).any(axis=(1, 2))
+    if outside.any():
+        problems.append(f"the UVs of {outside.sum()} of {len(faces)} triangles reach outside "
+                        "[0, 1] (tiled UVs), where no texel holds their colors")
+    edges = corners[~outside, 1:] - corners[~outside, :1]
+    area = 0.5 * np.abs(edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]).sum()
+    shown = covered.mean()
+    if area > shown * (1 + _OVERLAP_SLACK):
+        problems.append(f"{1 - shown / area:.0%} of the UV area lies over other triangles' "
+                        "(mirrored or shared UVs), whose surface points then share texels")
+    return problems
+
+
 def bake_uv_texture(
     texture: PointTexture, mesh: trimesh.Trimesh, uv: np.ndarray, transform: np.ndarray,
     size: int = 1024, filter: str = "trilinear",

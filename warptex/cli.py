@@ -1037,7 +1037,7 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
     warptex.mesh_files.export, nothing written yet."""
     from tqdm.auto import tqdm
 
-    from warptex.bake import bake_uv_texture, vertex_colors
+    from warptex.bake import bake_uv_texture, uv_layout_problems, vertex_colors
 
     if args.uv == "none":
         return {"mesh": mesh,
@@ -1052,8 +1052,10 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
         uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut does not offer it
         size = _texture_size(args)
         bar.set_postfix_str(f"baking {size}^2 texels")
-        image, _ = bake_uv_texture(tex, mesh, uv, transform, size=size)
+        image, covered = bake_uv_texture(tex, mesh, uv, transform, size=size)
         bar.update()
+    for problem in uv_layout_problems(uv, mesh.faces, covered) if args.uv == "mesh" else ():
+        warnings.warn(f"{args.mesh}: {problem}; --uv auto makes UVs of its own", stacklevel=1)
     return {"mesh": mesh, "image": image, "uv": uv}
 
 
