@@ -831,3 +831,21 @@ def test_compare_refuses_a_constant_exemplar_before_any_method(tmp_path, capsys)
     assert f"{path}: image is constant: the measures are in units of its variance" in (
         capsys.readouterr().err)
     assert not out.exists()
+
+
+def test_the_lazy_cube_reads_the_candidates_its_method_computed(data_dir, tmp_path,
+                                                                 monkeypatch):
+    """They are computed once, afresh and timed, then cached where the cube's plugin looks
+    (it computed them a second time: minutes for a large exemplar)."""
+    import mitsuba as mi
+
+    import mitsuba_plugin
+    from warptex import compare
+
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
+    setup = compare.Setup(str(data_dir / "granite_64.png"), 16)
+    job, _ = compare._precomputed(compare._Job(setup, setup.exemplars()))
+    mi.set_variant("scalar_rgb")
+    mitsuba_plugin.register()
+    cube = mi.load_dict(compare._cube_texture("lazy", job, np.zeros((16, 16, 16, 3))))
+    assert cube.solid.synthesizer.candidates.cache_status == "loaded"
