@@ -709,18 +709,25 @@ def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
 
 
 def _read_png(path: Path) -> tuple[np.ndarray, bool]:
-    # pypng rather than Pillow: Pillow reduces 16-bit RGB(A) PNGs to 8 bits.
+    # pypng where Pillow differs: Pillow reduces 16-bit RGB(A) PNGs to 8 bits, scales 1- to
+    # 4-bit grey to 8 bits, and gives an RGB or grey image's transparent color (tRNS) no
+    # alpha channel. Elsewhere Pillow, which decodes in C: pypng takes about a second a
+    # megapixel, a photo's quarter of a minute before it is shrunk.
     try:
         with path.open("rb") as file:
             reader = png.Reader(file=file)
             reader.preamble()
-            # The stored values, as Mitsuba and Pillow read them: pypng would rescale them
-            # to the significant bits an sBIT chunk declares (RGB565 to 6 bits a channel).
-            reader.sbit = None
-            width, height, rows, info = reader.asDirect()
-            pixels = np.vstack([np.asarray(row) for row in rows])
+            by_pillow = reader.bitdepth == 8 and (reader.colormap or reader.trns is None)
+            if not by_pillow:
+                # The stored values, as Mitsuba and Pillow read them: pypng would rescale
+                # them to the significant bits of an sBIT chunk (RGB565 to 6 bits each).
+                reader.sbit = None
+                width, height, rows, info = reader.asDirect()
+                pixels = np.vstack([np.asarray(row) for row in rows])
     except (png.Error, OSError, ValueError, zlib.error) as error:
         raise ExemplarError(f"{path}: unreadable PNG ({error})") from None
+    if by_pillow:  # not turned by an EXIF orientation, as pypng's are not
+        return _read_pillow(path, upright=False, kind="PNG")
     planes = info["planes"]
     pixels = pixels.reshape(height, width, planes)
     bitdepth = info["bitdepth"]
@@ -803,7 +810,8 @@ def _read_npy(path: Path) -> np.ndarray:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
 
 
-def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
+def _read_pillow(path: Path, upright: bool = True,
+                 kind: str = "image") -> tuple[np.ndarray, bool]:
     try:
         with warnings.catch_warnings():
             # A photograph of 90 to 180 megapixels: Pillow warns of a decompression bomb in
@@ -813,14 +821,15 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
                 image.load()
                 # Cameras store portrait photos sideways and say so in EXIF: upright, as
                 # viewers show them, since grain and layers run the way the photo shows.
-                ImageOps.exif_transpose(image, in_place=True)
+                if upright:
+                    ImageOps.exif_transpose(image, in_place=True)
                 return _pillow_pixels(image)
     except UnidentifiedImageError:
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except Image.DecompressionBombError as error:
         raise ExemplarError(f"{path}: too large to read ({error})") from None
     except (OSError, ValueError, SyntaxError) as error:
-        raise ExemplarError(f"{path}: unreadable image ({error})") from None
+        raise ExemplarError(f"{path}: unreadable {kind} ({error})") from None
 
 
 def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:
