@@ -660,3 +660,26 @@ def test_every_command_s_help_ends_with_examples_that_parse(capsys):
             for value in argv:
                 if value.startswith("scenes/"):
                     assert (repo / value).is_file(), value
+
+
+def test_too_many_channels_for_lazy_synthesis_are_refused_before_pre_computing(
+        tmp_path, capsys, monkeypatch):
+    """40 channels: the engine's exact projections take at most 34 of 5-voxel rows; the
+    candidates were pre-computed first, minutes for a large exemplar, then refused."""
+    import warptex.candidates
+    from warptex.cli import main
+
+    path = tmp_path / "stack.npy"
+    np.save(path, np.random.default_rng(0).random((16, 16, 40), np.float32))
+
+    def never(*args, **kwargs):
+        raise AssertionError("pre-computed")
+
+    monkeypatch.setattr(warptex.candidates, "_compute", never)
+    assert main(["volume", str(path), "--size", "8", "-o", str(tmp_path / "v.npy")]) == 2
+    assert (f"{path}: 40 feature channels are too many for exact projections with 5-voxel "
+            "neighbourhoods (at most 34)") in capsys.readouterr().err
+    assert main(["compare", str(path), "--size", "8", "--methods", "noise,lazy",
+                 "-o", str(tmp_path / "cmp")]) == 2
+    assert "40 feature channels are too many" in capsys.readouterr().err
+    assert not (tmp_path / "cmp").exists()

@@ -426,7 +426,8 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "cache", help="list the candidate cache; prune the files no run will read again",
-        description="List the candidate cache (WARPTEX_CACHE, default ~/.cache/warptex): "
+        description="List the candidate cache (WARPTEX_CACHE, default $XDG_CACHE_HOME/warptex, "
+        "else ~/.cache/warptex): "
         "each file's date, size, exemplars and status. 'in use': read whenever its "
         "exemplars come up. 'other version': written by another warptex version (or "
         "renamed), which this one never reads. 'damaged': truncated or corrupt, computed "
@@ -436,7 +437,7 @@ def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
         "deleted here. Also says where Warp's kernel cache is, how large, and how much of it "
         "holds builds of other warptex versions.",
         epilog="Deleted candidates are computed again when next needed (a few seconds for a "
-        "64 px exemplar, minutes for 256 px).",
+        "64 px exemplar, about a minute for 256 px, minutes with one per axis).",
     )
     what = parser.add_mutually_exclusive_group()
     what.add_argument("--prune", action="store_true",
@@ -586,7 +587,8 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         choices=("lazy", "kopf"),
         default="lazy",
         help="lazy synthesis (Dong 2008, default) or the periodic global optimization of "
-        "Kopf et al. 2007 (slow: minutes for 64^3)",
+        "Kopf et al. 2007 (slower: 4 to 28 s for 64^3 on a 2-core CPU, 5 to 37 times lazy "
+        "synthesis; BENCHMARKS.md)",
     )
     parser.add_argument("--mean-shift", action="store_true",
                         help="with --method kopf: average only the dominant mean-shift cluster "
@@ -610,7 +612,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer, box_bytes
+    from warptex.synthesis import Synthesizer, box_bytes, check_feature_channels
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_inputs_kept(args, [args.output])
@@ -637,6 +639,10 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     thickness = max(b - a for a, b in itertools.pairwise(edges))
     _check_memory(args.size, exemplars[0].features.shape[2],
                   box_bytes((thickness, args.size, args.size)))  # one slab at a time
+    try:
+        check_feature_channels(exemplars[0].features.shape[2])
+    except ValueError as error:
+        raise CliError(f"{args.path}: {error}") from None
     cs = precompute(*exemplars, progress=True, **_candidate_params(args))
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes,
@@ -923,7 +929,7 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
                         help="bake a UV texture: "
                         + ", ".join(ways[w] for w in uv_sources if w in ways)
                         + ", or vertex colors only (none, default); xatlas is slow on large "
-                        "meshes (93 s for the 69k-face bunny on 2 cores)")
+                        "meshes (a step of the progress bar, timed)")
     parser.add_argument("--texture-size", type=int,
                         help=f"with --uv: edge of the UV texture in pixels (default "
                         f"{_TEXTURE_SIZE})")
@@ -1398,7 +1404,8 @@ def _parser() -> argparse.ArgumentParser:
         prog="warptex", description="Lazy solid texture synthesis from 2D exemplars.",
         epilog="environment: WARPTEX_DEVICE=cpu|cuda picks the device (default: a GPU when "
         "there is one); WARPTEX_CACHE is the folder of the candidate cache (default "
-        "~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel cache (built on first use). "
+        "$XDG_CACHE_HOME/warptex, else ~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel "
+        "cache (built on first use). "
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
         "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
         "(render, bake and cut save their brick stores first).",

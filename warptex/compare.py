@@ -585,6 +585,10 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_count("repeats", repeats, low=1)
+    if any(m in _LAZY for m in methods):  # before any method's minutes of work
+        from warptex.synthesis import check_feature_channels
+
+        check_feature_channels(setup.exemplars()[0].features.shape[2])
     setup.exemplars()
     if any(m in _KOPF for m in methods):
         from warptex.baselines.kopf import check_size

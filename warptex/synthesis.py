@@ -298,6 +298,16 @@ class _LevelCache:
             np.uint64(1) << local.astype(np.uint64), starts)
 
 
+def check_feature_channels(channels: int, neighborhood: int = 5) -> None:
+    """Refuse exemplars of more ``channels`` (colors and a feature distance) than the
+    engine's exact projections of ``neighborhood``-voxel rows add up: callers check before
+    the candidates are pre-computed, which takes minutes for a large exemplar."""
+    if neighborhood * channels > _k.EXACT_ROW_TERMS:
+        raise ValueError(f"{channels} feature channels are too many for exact projections "
+                         f"with {neighborhood}-voxel neighbourhoods (at most "
+                         f"{_k.EXACT_ROW_TERMS // neighborhood})")
+
+
 class Synthesizer:
     """Colors of any subset of an unbounded solid texture (Dong 2008, section 5).
 
@@ -354,11 +364,7 @@ class Synthesizer:
             raise ValueError(f"neighbourhoods of more than {2 * BLOCK + 1} voxels are not "
                              f"supported (the candidates use {2 * half + 1}): a kernel reads "
                              f"voxels at most {BLOCK} away through its block's neighbours")
-        channels = int(candidates.sources[0][0].feat.shape[2])
-        if (2 * half + 1) * channels > _k.EXACT_ROW_TERMS:
-            raise ValueError(f"{channels} feature channels are too many for exact projections "
-                             f"with {2 * half + 1}-voxel neighbourhoods (at most "
-                             f"{_k.EXACT_ROW_TERMS // (2 * half + 1)})")
+        check_feature_channels(int(candidates.sources[0][0].feat.shape[2]), 2 * half + 1)
         self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
         if self._apron + 2 > _KEY_MARGIN:
             raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
