@@ -928,8 +928,8 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
     parser.add_argument("--uv", choices=uv_sources, default="none",
                         help="bake a UV texture: "
                         + ", ".join(ways[w] for w in uv_sources if w in ways)
-                        + ", or vertex colors only (none, default); xatlas is slow on large "
-                        "meshes (a step of the progress bar, timed)")
+                        + ", or vertex colors only (none, default); xatlas takes a while on "
+                        "large meshes (21 s for the 69k-face bunny on 2 cores)")
     parser.add_argument("--texture-size", type=int,
                         help=f"with --uv: edge of the UV texture in pixels (default "
                         f"{_TEXTURE_SIZE})")
