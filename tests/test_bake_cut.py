@@ -599,12 +599,12 @@ def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_
             "--alpha keep) synthesized but not written") in capsys.readouterr().err
 
 
-def test_bake_keeps_the_file_s_vertices_and_cut_welds_them(tmp_path, data_dir, warp_device,
-                                                          capsys):
-    """A flat-shaded mesh, each face with its own vertices and normals: bake's colors come
-    one per vertex of the file, in its order (trimesh's processing welded them); cut welds
-    them to a closed surface, caps and all. A NaN vertex is refused, not left out with its
-    faces."""
+def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, data_dir,
+                                                                    warp_device, capsys):
+    """A flat-shaded mesh, each face with its own vertices and normals: bake keeps a vertex
+    per normal, as trimesh loads it (processing without the normals welded it); cut welds them to a closed surface, caps and
+    all. A NaN vertex of a face is refused, not left out with its faces; an unused vertex
+    far away is dropped, not synthesized (its point lay beyond the texture's range)."""
     from warptex.cli import main
 
     box = trimesh.creation.box()
@@ -616,7 +616,7 @@ def test_bake_keeps_the_file_s_vertices_and_cut_welds_them(tmp_path, data_dir, w
     assert main(["bake", str(mesh_path), "--exemplar", exemplar, "--resolution", "16",
                  "-o", str(tmp_path / "b.ply")]) == 0
     baked = trimesh.load(tmp_path / "b.ply", process=False)
-    np.testing.assert_allclose(baked.vertices, flat.vertices, rtol=0, atol=1e-6)
+    assert len(baked.vertices) == 24  # each corner once per side: not welded to 8
     assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "16",
                  "--normal", "1", "0", "0", "-o", str(tmp_path / "c.ply")]) == 0
     for half in ("c.ply", "c_b.ply"):
@@ -629,6 +629,12 @@ def test_bake_keeps_the_file_s_vertices_and_cut_welds_them(tmp_path, data_dir, w
                  "16", "-o", str(tmp_path / "n.ply")]) == 2
     assert "nan.ply: vertex coordinates hold NaN or infinite values" in capsys.readouterr().err
     assert not (tmp_path / "n.ply").exists()
+    stray = trimesh.Trimesh(np.vstack([box.vertices, [[1e7, 0.0, 0.0], [np.nan] * 3]]),
+                            box.faces, process=False)
+    stray.export(tmp_path / "stray.ply")
+    assert main(["bake", str(tmp_path / "stray.ply"), "--exemplar", exemplar, "--resolution",
+                 "16", "-o", str(tmp_path / "s.ply")]) == 0
+    assert len(trimesh.load(tmp_path / "s.ply", process=False).vertices) == len(box.vertices)
 
 
 def test_bake_with_the_mesh_s_own_uvs_warns_of_a_mirrored_layout(tmp_path, data_dir, sphere,

@@ -1008,9 +1008,10 @@ def _texture_size(args: argparse.Namespace) -> int:
 
 
 def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
-    """The mesh of file ``path``, its vertices as the file has them (bake's colors match
-    them by index), or welded where they coincide (``weld``: a cut's caps need a closed
-    surface, which a file of faces that each have their own vertices is not)."""
+    """The mesh of file ``path`` as trimesh processes it (vertices that coincide welded,
+    unless their normals or UVs differ; unused ones dropped), or with every coincident
+    vertex welded (``weld``: a cut's caps need a closed surface, which flat-shaded faces
+    with vertices of their own are not)."""
     import trimesh
 
     if path.is_dir():
@@ -1018,7 +1019,14 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
     if not path.is_file():
         raise CliError(f"{path}: mesh file not found")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        # As the file has it first: trimesh's processing drops the faces of a NaN vertex
+        # unsaid, and loses the vertex normals that keep it from welding flat faces.
+        raw = trimesh.load(path, force="mesh", process=False)
+        if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
+            raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
+        mesh = trimesh.load(path, force="mesh")
+    except CliError:
+        raise
     except NotImplementedError:  # how trimesh refuses a file type it has no reader for
         raise CliError(f"{path}: not a mesh format warptex reads (.{', .'.join(_MESH_FORMATS)}, "
                        "and the others trimesh reads)") from None
@@ -1027,8 +1035,6 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
                        f"(trimesh: {error or type(error).__name__})") from None
     if len(getattr(mesh, "faces", ())) == 0:
         raise CliError(f"{path}: no triangles found")
-    if not np.isfinite(mesh.vertices).all():  # trimesh would drop their faces, unsaid
-        raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
     if weld:
         mesh.merge_vertices(merge_tex=True, merge_norm=True)  # whatever their normals say
     if not mesh.area > 0:
