@@ -602,9 +602,10 @@ def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_
 def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, data_dir,
                                                                     warp_device, capsys):
     """A flat-shaded mesh, each face with its own vertices and normals: bake keeps a vertex
-    per normal, as trimesh loads it (processing without the normals welded it); cut welds them to a closed surface, caps and
-    all. A NaN vertex of a face is refused, not left out with its faces; an unused vertex
-    far away is dropped, not synthesized (its point lay beyond the texture's range)."""
+    per normal, as trimesh loads it (processing without the normals welded it); cut welds
+    them to a closed surface, caps and all. A NaN vertex of a face is refused, not left out
+    with its faces; an unused vertex far away is dropped, not synthesized (its point lay
+    beyond the texture's range)."""
     from warptex.cli import main
 
     box = trimesh.creation.box()

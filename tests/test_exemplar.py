@@ -556,6 +556,27 @@ def test_a_photograph_larger_than_pillow_decodes_is_named(tmp_path, rng, monkeyp
     _raises(tmp_path / "a.bmp", r"a\.bmp: too large to read")
 
 
+def test_a_png_that_pillow_refuses_is_read_by_pypng(tmp_path, rng, monkeypatch):
+    """Over Pillow's pixel limit (or with a text chunk larger than it takes): pypng reads
+    it, as before Pillow decoded 8-bit PNGs."""
+    from PIL import Image
+
+    pixels = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    path = _write_png8(tmp_path / "a.png", pixels)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # over twice the limit
+    np.testing.assert_array_equal(_load_quiet(path).colors,
+                                  pixels.astype(np.float32) / np.float32(255))
+
+
+def test_an_exr_alpha_is_checked_only_where_it_is_kept(tmp_path, rng):
+    rgba = rng.random(size=(16, 16, 4)).astype(np.float32)
+    rgba[3, 4, 3] = np.nan
+    path = _write_exr(tmp_path / "alpha.exr", {"RGBA": rgba})
+    with pytest.warns(UserWarning, match="alpha channel dropped"):
+        np.testing.assert_array_equal(Exemplar.load(path).colors, rgba[..., :3])
+    _raises(path, r"alpha\.exr: image contains NaN or Inf values", alpha="keep")
+
+
 def test_a_file_that_cannot_be_looked_up_or_is_named_empty_is_one_error(tmp_path,
                                                                          monkeypatch):
     """A folder on the way that cannot be searched; an empty name, which Path takes for

@@ -717,17 +717,28 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
         with path.open("rb") as file:
             reader = png.Reader(file=file)
             reader.preamble()
-            by_pillow = reader.bitdepth == 8 and (reader.colormap or reader.trns is None)
-            if not by_pillow:
-                # The stored values, as Mitsuba and Pillow read them: pypng would rescale
-                # them to the significant bits of an sBIT chunk (RGB565 to 6 bits each).
-                reader.sbit = None
-                width, height, rows, info = reader.asDirect()
-                pixels = np.vstack([np.asarray(row) for row in rows])
     except (png.Error, OSError, ValueError, zlib.error) as error:
         raise ExemplarError(f"{path}: unreadable PNG ({error})") from None
-    if by_pillow:  # not turned by an EXIF orientation, as pypng's are not
-        return _read_pillow(path, upright=False, kind="PNG")
+    if reader.bitdepth == 8 and (reader.colormap or reader.trns is None):
+        try:  # not turned by an EXIF orientation, as pypng's are not
+            return _pillow_decoded(path, upright=False)
+        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+            pass  # what Pillow refuses (over its pixel limit, a large text chunk) pypng reads
+    return _read_png_with_pypng(path)
+
+
+def _read_png_with_pypng(path: Path) -> tuple[np.ndarray, bool]:
+    try:
+        with path.open("rb") as file:
+            reader = png.Reader(file=file)
+            reader.preamble()
+            # The stored values, as Mitsuba and Pillow read them: pypng would rescale them
+            # to the significant bits of an sBIT chunk (RGB565 to 6 bits a channel).
+            reader.sbit = None
+            width, height, rows, info = reader.asDirect()
+            pixels = np.vstack([np.asarray(row) for row in rows])
+    except (png.Error, OSError, ValueError, zlib.error) as error:
+        raise ExemplarError(f"{path}: unreadable PNG ({error})") from None
     planes = info["planes"]
     pixels = pixels.reshape(height, width, planes)
     bitdepth = info["bitdepth"]
@@ -755,7 +766,8 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
         if np.issubdtype(channels[name].dtype, np.integer):
             raise ExemplarError(f"{path}: OpenEXR channel {name} holds integers (object or "
                                 "material ids), not colors")
-        if not np.isfinite(channels[name]).all():
+        # An alpha is checked where it is kept (alpha="keep"), not where it is dropped.
+        if not (alpha and name == order[-1]) and not np.isfinite(channels[name]).all():
             raise ExemplarError(f"{path}: image contains NaN or Inf values (in OpenEXR "
                                 f"channel {name})")
     try:
@@ -810,26 +822,30 @@ def _read_npy(path: Path) -> np.ndarray:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
 
 
-def _read_pillow(path: Path, upright: bool = True,
-                 kind: str = "image") -> tuple[np.ndarray, bool]:
+def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
     try:
-        with warnings.catch_warnings():
-            # A photograph of 90 to 180 megapixels: Pillow warns of a decompression bomb in
-            # words that name no file; it is the user's own photo, and max_size shrinks it.
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(path) as image:
-                image.load()
-                # Cameras store portrait photos sideways and say so in EXIF: upright, as
-                # viewers show them, since grain and layers run the way the photo shows.
-                if upright:
-                    ImageOps.exif_transpose(image, in_place=True)
-                return _pillow_pixels(image)
+        return _pillow_decoded(path, upright=True)
     except UnidentifiedImageError:
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except Image.DecompressionBombError as error:
         raise ExemplarError(f"{path}: too large to read ({error})") from None
     except (OSError, ValueError, SyntaxError) as error:
-        raise ExemplarError(f"{path}: unreadable {kind} ({error})") from None
+        raise ExemplarError(f"{path}: unreadable image ({error})") from None
+
+
+def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
+    """Pillow's pixels of ``path``, turned ``upright`` as EXIF says; Pillow's errors."""
+    with warnings.catch_warnings():
+        # A photograph of 90 to 180 megapixels: Pillow warns of a decompression bomb in
+        # words that name no file; it is the user's own photo, and max_size shrinks it.
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        with Image.open(path) as image:
+            image.load()
+            # Cameras store portrait photos sideways and say so in EXIF: upright, as
+            # viewers show them, since grain and layers run the way the photo shows.
+            if upright:
+                ImageOps.exif_transpose(image, in_place=True)
+            return _pillow_pixels(image)
 
 
 def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:
