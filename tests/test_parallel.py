@@ -193,3 +193,39 @@ def test_a_nearest_neighbour_query_stopped_by_a_signal_ends_before_the_signal_go
         signal.signal(signal.SIGTERM, previous)
     np.testing.assert_array_equal(nearest(tree, points[:5], k=2)[1],
                                   tree.query(points[:5], k=2)[1])
+
+
+def test_every_signal_held_back_during_a_query_reaches_its_handler():
+    """Ctrl-C and SIGTERM both during one query: each goes on to its own handler after it
+    (SIGTERM was lost behind Ctrl-C's KeyboardInterrupt), and the handlers are as before."""
+    import signal
+
+    from scipy.spatial import cKDTree
+
+    from warptex.parallel import nearest
+
+    points = np.random.default_rng(0).random((100, 3))
+    tree = cKDTree(points)
+    reached = []
+
+    def record(signum, frame):
+        reached.append(signum)
+
+    class Stopped:
+        def query(self, queries, **options):
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)
+            assert reached == []  # held back while the query runs
+            return tree.query(queries, **options)
+
+    previous = {n: signal.signal(n, record) for n in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        nearest(Stopped(), points[:3], k=1)
+        for _ in range(1000):  # Python runs handlers between bytecodes
+            if len(reached) == 2:
+                break
+        assert sorted(reached) == sorted([signal.SIGINT, signal.SIGTERM])
+        assert all(signal.getsignal(n) is record for n in previous)
+    finally:
+        for n, handler in previous.items():
+            signal.signal(n, handler)

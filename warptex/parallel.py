@@ -85,34 +85,48 @@ def launch_ranges(
         raise
 
 
-def nearest(tree: cKDTree, queries: np.ndarray, workers: int = THREADS,
+def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
             **options: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``tree.query(queries, workers=workers, **options)``, run to its end when Ctrl-C or
-    SIGTERM comes meanwhile, which then goes on: SciPy joins its query threads in a way a
-    KeyboardInterrupt cuts short, and the threads went on reading the tree while the
+    """``tree.query(queries, workers=workers or THREADS, **options)``, run to its end when
+    Ctrl-C or SIGTERM comes meanwhile, which then goes on: SciPy joins its query threads in
+    a way a KeyboardInterrupt cuts short, and the threads went on reading the tree while the
     interrupt freed it (a segmentation fault as the process ended)."""
     with _signals_deferred((signal.SIGINT, signal.SIGTERM)):
-        return tree.query(queries, workers=workers, **options)
+        return tree.query(queries, workers=workers or THREADS, **options)
 
 
 @contextlib.contextmanager
 def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
-    """Hold back ``signals`` whose handlers are Python's in the block, then raise those that
-    came, to their handlers as before. Handlers can only be set in the main thread, which is
-    also the only one that they interrupt."""
+    """Hold back ``signals`` whose handlers are Python's in the block, then let those that
+    came go to their handlers as before. Handlers can only be set in the main thread, which
+    is also the only one that they interrupt. The handlers are swapped with the signals
+    blocked, so that none comes between two swaps (a handler that raised there left the
+    others swapped for good), and given back before any is delivered."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     came: list[int] = []
-    before = {}
-    for number in signals:
-        handler = signal.getsignal(number)
-        if handler is not None:  # else set outside Python, and not to be restored
-            before[number] = signal.signal(number, lambda n, _frame: came.append(n))
+    with _blocked(signals):
+        before = {number: signal.signal(number, lambda n, _frame: came.append(n))
+                  for number in signals if signal.getsignal(number) is not None}
     try:
         yield
     finally:
-        for number, handler in before.items():
-            signal.signal(number, handler)
-        for number in dict.fromkeys(came):
-            signal.raise_signal(number)
+        with _blocked(signals):  # those that came go on once all handlers are back
+            for number, handler in before.items():
+                signal.signal(number, handler)
+            for number in dict.fromkeys(came):
+                signal.raise_signal(number)
+
+
+@contextlib.contextmanager
+def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
+    """The block with ``signals`` held pending by the system, where it can."""
+    if not hasattr(signal, "pthread_sigmask"):  # Windows
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
