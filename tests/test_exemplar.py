@@ -266,6 +266,22 @@ def test_exr_of_layers_reads_the_one_that_holds_colors(tmp_path, rng):
             Exemplar.load(_write_exr(tmp_path / "default.exr", default)).colors, rgba[..., :3])
 
 
+def test_exr_layer_choice_prefers_colors_and_refuses_channels_told_apart_by_case(tmp_path,
+                                                                                 rng):
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    grey_and_color = {"Y": rgb[..., 0], **{f"diffuse.{c}": rgb[..., i]
+                                           for i, c in enumerate("RGB")}}
+    with pytest.warns(UserWarning, match="channels of other layers left out: Y"):
+        loaded = Exemplar.load(_write_exr(tmp_path / "y.exr", grey_and_color))
+    np.testing.assert_array_equal(loaded.colors, rgb)
+    _raises(_write_exr(tmp_path / "case.exr", {"RGB": rgb, "r": rgb[..., 0]}),
+            r"case\.exr: OpenEXR channels (R and r|r and R) are one channel told apart by case")
+    no_color = {"depth": rgb[..., 0], "a": rgb[..., 1]}
+    np.testing.assert_array_equal(
+        _load_quiet(_write_exr(tmp_path / "data.exr", no_color), alpha="keep").colors,
+        rgb[..., :2])  # depth, then the alpha last
+
+
 def test_exr_channels_that_cannot_be_colors_are_named(tmp_path, rng):
     rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
     ids = {"RGB": rgb, "id": np.arange(256, dtype=np.uint32).reshape(16, 16)}

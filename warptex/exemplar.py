@@ -788,16 +788,22 @@ def _exr_channel_order(names: list[str], path: Path) -> tuple[list[str], bool]:
     layers: dict[str, dict[str, str]] = {}
     for name in names:
         layer, _, base = name.rpartition(".")
-        layers.setdefault(layer, {})[base.upper()] = name
-    colored = [layer for layer, bases in layers.items() if {"R", "G", "B", "Y"} & set(bases)]
-    if len(colored) > 1 and "" in colored:  # the default layer, as viewers show it
+        same = layers.setdefault(layer, {}).setdefault(base.upper(), name)
+        if same != name:
+            raise ExemplarError(f"{path}: OpenEXR channels {same} and {name} are one channel "
+                                "told apart by case only: save one of them")
+    # The layer of RGB colors, else of luminance, the default layer first, as viewers show.
+    colored = ([layer for layer, bases in layers.items() if {"R", "G", "B"} & set(bases)]
+               or [layer for layer, bases in layers.items() if "Y" in bases])
+    if len(colored) > 1 and "" in colored:
         colored = [""]
     if len(colored) > 1:
         raise ExemplarError(f"{path}: OpenEXR file has colors in {len(colored)} layers "
                             f"({', '.join(sorted(colored))}): save the one to use alone")
     if not colored:
-        alpha = "A" in names
-        return [n for n in sorted(names, key=_numbered) if n != "A"] + ["A"] * alpha, alpha
+        alphas = [n for n in names if n.upper() == "A"]
+        rest = sorted((n for n in names if n not in alphas), key=_numbered)
+        return rest + alphas, bool(alphas)
     bases = layers[colored[0]]
     color = [bases[c] for c in ("R", "G", "B") if c in bases] or [bases["Y"]]
     alpha = bases.get("A")
@@ -805,7 +811,7 @@ def _exr_channel_order(names: list[str], path: Path) -> tuple[list[str], bool]:
     left_out = sorted(set(names) - set(bases.values()))
     if left_out:
         warnings.warn(f"{path}: OpenEXR layer {colored[0] or '(default)'} read, channels of "
-                      f"other layers left out: {', '.join(left_out)}", stacklevel=4)
+                      f"other layers left out: {', '.join(left_out)}", stacklevel=5)
     return color + rest + ([alpha] if alpha else []), alpha is not None
 
 
