@@ -681,5 +681,16 @@ def test_too_many_channels_for_lazy_synthesis_are_refused_before_pre_computing(
             "neighbourhoods (at most 34)") in capsys.readouterr().err
     assert main(["compare", str(path), "--size", "8", "--methods", "noise,lazy",
                  "-o", str(tmp_path / "cmp")]) == 2
-    assert "40 feature channels are too many" in capsys.readouterr().err
+    assert f"{path}: 40 feature channels are too many" in capsys.readouterr().err
     assert not (tmp_path / "cmp").exists()
+
+
+def test_an_empty_file_name_is_refused_as_such(tmp_path, capsys):
+    """Path("") names the working folder, which the error named instead ('.: is a
+    directory')."""
+    from warptex.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["volume", "", "-o", str(tmp_path / "v.npy")])
+    assert stop.value.code == 2
+    assert "argument EXEMPLAR: empty file name" in capsys.readouterr().err

@@ -405,6 +405,9 @@ def test_volume_command_leaves_the_free_axis_of_kopf_unconstrained(tmp_path, dat
     assert main(["volume", str(path), "--method", "kopf", "--size", "8", "--free-axis", "z",
                  "--ez", str(path), "-o", str(refused)]) == 2
     assert "drop --ez" in capsys.readouterr().err
+    assert main(["volume", str(path), "--method", "kopf", "--size", "8", "--free-axis", "x",
+                 "--ey", str(path), "-o", str(refused)]) == 2
+    assert "give the y axis' exemplar as EXEMPLAR, not --ey" in capsys.readouterr().err
     assert not refused.exists()
 
 

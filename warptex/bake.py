@@ -58,6 +58,7 @@ def texel_points(
 # Share of the UV area that may differ from the texels covered without overlap: texel
 # centres sample each triangle's area, more or less by a row along the layout's outlines.
 _OVERLAP_SLACK = 0.05
+_UV_SLACK = 1e-4  # of the texture's side: far below one texel of any texture baked
 
 
 def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray) -> list[str]:
@@ -68,7 +69,8 @@ def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray) -
     uv = np.asarray(uv, np.float64)
     corners = uv[np.asarray(faces)]
     problems = []
-    outside = ((corners < 0.0) | (corners > 1.0)).any(axis=(1, 2))
+    # Exporters' float32 rounding leaves UVs of a layout in [0, 1] a hair outside it.
+    outside = ((corners < -_UV_SLACK) | (corners > 1.0 + _UV_SLACK)).any(axis=(1, 2))
     if outside.any():
         problems.append(f"the UVs of {outside.sum()} of {len(faces)} triangles reach outside "
                         "[0, 1] (tiled UVs), where no texel holds their colors")

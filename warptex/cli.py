@@ -124,6 +124,14 @@ def _file_name(text: str) -> Path:
     return Path(text)
 
 
+def _input_file(text: str) -> Path:
+    """A file argument to read, refused where it is empty: Path("") names the working
+    folder, which the error would then name instead."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty file name")
+    return Path(text)
+
+
 def _count(n: int, noun: str) -> str:
     """``n`` and ``noun``, plural unless one: "1 channel", "3 channels"."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
@@ -144,7 +152,7 @@ _EXEMPLAR_HELP = ("exemplar image: PNG, JPEG or another format Pillow reads, Ope
 
 
 def _add_exemplar_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
+    parser.add_argument("path", type=_input_file, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     _add_loading_arguments(parser)
 
 
@@ -166,7 +174,7 @@ def _add_feature_arguments(parser: argparse.ArgumentParser, advice: str = "") ->
     features = parser.add_mutually_exclusive_group()
     features.add_argument(
         "--feature-mask",
-        type=Path,
+        type=_input_file,
         metavar="MASK",
         help="black-and-white image, the exemplar's size, marking features (pixels above half "
         f"its maximum, in its first channel); adds a feature-distance channel{advice}",
@@ -358,11 +366,11 @@ _AXES = ("x", "y", "z")
 
 
 def _add_axis_exemplar_arguments(parser: argparse.ArgumentParser, first: str) -> None:
-    parser.add_argument("--ey", type=Path, metavar="FILE",
+    parser.add_argument("--ey", type=_input_file, metavar="FILE",
                         help="exemplar of the y axis: what planes y = const show, its rows "
                         f"along z and its columns along x (default: {first}, which planes "
                         "x = const show, rows along y, columns along z)")
-    parser.add_argument("--ez", type=Path, metavar="FILE",
+    parser.add_argument("--ez", type=_input_file, metavar="FILE",
                         help="exemplar of the z axis: what planes z = const show, its rows "
                         "along x and its columns along y (default: the y exemplar)")
 
@@ -624,6 +632,9 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     if args.free_axis is not None and getattr(args, f"e{args.free_axis}", None) is not None:
         raise CliError(f"--free-axis {args.free_axis} leaves that axis without an exemplar: "
                        f"drop --e{args.free_axis}")
+    if args.free_axis == "x" and args.ey is not None:  # EXEMPLAR would be read for nothing
+        raise CliError("--free-axis x leaves EXEMPLAR's axis free: give the y axis' exemplar "
+                       "as EXEMPLAR, not --ey")
     lazy_only = (args.passes, args.jitter, args.shifted_tiles)
     if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False):
         raise CliError("--passes, --jitter and --shifted-tiles apply to lazy synthesis only, "
@@ -799,9 +810,9 @@ def _solid_texture(args: argparse.Namespace, mesh: bool = False):
     channels = exemplars[0].channels
     if mesh and channels not in (1, 3):  # mesh files hold RGB (gray repeated)
         lost = channels - 1 if channels == 2 else channels - 3
-        warnings.warn(f"mesh files hold RGB colors: {_count(lost, 'channel')} of {channels} "
-                      "(an alpha kept by --alpha keep) synthesized but not written",
-                      stacklevel=1)
+        what = " (an alpha kept by --alpha keep)" if args.alpha == "keep" else ""
+        warnings.warn(f"mesh files hold RGB colors: {_count(lost, 'channel')} of {channels}"
+                      f"{what} synthesized but not written", stacklevel=1)
     srgb = _colors_srgb(args, exemplars)
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
@@ -820,7 +831,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
         description="Evaluate any plane through the solid texture (Dong 2008, 6.4). Pixel "
         "(r, c) shows the texture at ORIGIN + r*U + c*V, in voxels of the finest level.",
     )
-    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
+    parser.add_argument("exemplar", type=_input_file, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     _add_loading_arguments(parser)
     parser.add_argument("--origin", type=float, nargs=3, default=(0.5, 0.5, 0.5),
                         metavar=("X", "Y", "Z"),
@@ -916,9 +927,9 @@ def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Se
 
 def _add_mesh_arguments(parser: argparse.ArgumentParser,
                         uv_sources: Sequence[str] = ("auto", "mesh", "none")) -> None:
-    parser.add_argument("mesh", type=Path, metavar="MESH",
+    parser.add_argument("mesh", type=_input_file, metavar="MESH",
                         help="triangle mesh (PLY, OBJ, GLB, STL, ...)")
-    parser.add_argument("--exemplar", type=Path, required=True, metavar="EXEMPLAR",
+    parser.add_argument("--exemplar", type=_input_file, required=True, metavar="EXEMPLAR",
                         help=_EXEMPLAR_HELP)
     _add_loading_arguments(parser)
     parser.add_argument("--resolution", type=int, default=1024,
@@ -1253,7 +1264,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
         "--ey/--ez each axis has its own exemplar, its slices measured against it. "
         "Methods: " + "; ".join(f"{m}: {METHOD_NOTES[m]}" for m in METHODS) + ".",
     )
-    parser.add_argument("exemplar", type=Path, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
+    parser.add_argument("exemplar", type=_input_file, metavar="EXEMPLAR", help=_EXEMPLAR_HELP)
     _add_axis_exemplar_arguments(parser, "EXEMPLAR")
     parser.add_argument("--size", type=int, default=64,
                         help="edge of each method's volume in voxels, at least 8 and, with "
@@ -1329,7 +1340,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
         "themselves: shrink a large photograph there, with <integer name=\"exemplar_max_size\" "
         "value=\"256\"/> in its lazy_solid.",
     )
-    parser.add_argument("scene", type=Path, metavar="SCENE", help="Mitsuba 3 scene file (.xml)")
+    parser.add_argument("scene", type=_input_file, metavar="SCENE",
+                        help="Mitsuba 3 scene file (.xml)")
     parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
                         help="image to write: .exr (linear) or .png (sRGB)")
     parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")

@@ -588,7 +588,10 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     if any(m in _LAZY for m in methods):  # before any method's minutes of work
         from warptex.synthesis import check_feature_channels
 
-        check_feature_channels(setup.exemplars()[0].features.shape[2])
+        try:
+            check_feature_channels(setup.exemplars()[0].features.shape[2])
+        except ValueError as error:
+            raise ValueError(f"{setup.paths()[0]}: {error}") from None
     setup.exemplars()
     if any(m in _KOPF for m in methods):
         from warptex.baselines.kopf import check_size
