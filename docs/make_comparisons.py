@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from warptex.archive import write_atomically
+from warptex.baselines.kopf import check_size
 from warptex.compare import METHODS, Setup, compare, run_line, run_summary, write_report
 
 HERE = Path(__file__).resolve().parent
@@ -26,13 +27,17 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=64,
                         help="edge of each method's volume in voxels (default 64)")
     args = parser.parse_args()
+    try:  # every method runs, Kopf's among them: its size rule, before minutes of work
+        check_size(args.size)
+    except ValueError as error:
+        parser.error(f"--size: {error}")
     if not any(args.exemplars.glob("*_64.png")):
         parser.error(f"{args.exemplars} holds no *_64.png exemplars: give the folder of the "
                      "exemplar photos with --exemplars")
     out = HERE / "comparisons"
     run = run_line(run_summary(args.size, 0))
     lines = [
-        "# Comparisons at 64^3",
+        f"# Comparisons at {args.size}^3",
         "",
         "`warptex compare` on each exemplar (64 px version); per exemplar a picture sheet",
         "(the middle slices across x, y, z and a rendered cube per method) and a table.",
