@@ -29,8 +29,10 @@ import contextlib
 import functools
 import json
 import multiprocessing
+import multiprocessing.queues
 import pickle
 import platform
+import queue
 import threading
 import time
 import warnings
@@ -491,9 +493,11 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
     make_volume, make_large = _RUN[method]
     precompute_seconds = None
     if method in _LAZY:
+        _phase("pre-computing candidates")
         job, precompute_seconds = _precomputed(job)
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(job, 8)
+    _phase(f"{size}^3, timed")
     runs = []
     with PeakMemory() as memory:
         for _ in range(repeats):
@@ -503,6 +507,7 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
             runs.append(time.perf_counter() - start)
     device = _engine_device() if method in _LAZY else "cpu"
     device_peak = _device_peak_mib(device)
+    _phase("measuring, rendering its cube")
     large = make_large(job, volume)
     render = render_cube(_cube_texture(method, job, volume))
     if method == "lazy":
@@ -602,19 +607,45 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     bar = tqdm(methods, desc="methods", disable=not progress)
     for method in bar:
         bar.set_postfix_str(method)  # one method can take minutes: the bar says which
+        phases = ctx.Queue()  # and what it is doing: candidates alone can take a minute
         with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_start_worker,
-                                 initargs=(_shown_as_here(),)) as pool:
+                                 initargs=(_shown_as_here(), phases)) as pool:
             job = pool.submit(_measure, method, setup, repeats)
             try:
-                out = job.result()
+                while True:
+                    try:
+                        out = job.result(timeout=_PHASE_SECONDS)
+                        break
+                    except TimeoutError:  # concurrent.futures' is the builtin from 3.11
+                        _show_phases(bar, method, phases)
             except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
                 _stop_workers(pool)
                 raise
+        _show_phases(bar, method, phases)
         results.append(MethodResult(**out))
     return Comparison(setup, results)
 
 
-def _start_worker(show_warning: Callable | None) -> None:
+_PHASE_SECONDS = 0.5  # how often the bar looks for what a method's process is doing
+_phases: multiprocessing.queues.Queue | None = None  # where a method's process says it
+
+
+def _phase(text: str) -> None:
+    """Say, on the bar of the process that runs the comparison, what this method's process
+    does now; nothing where it is not one (a test measuring in its own process)."""
+    if _phases is not None:
+        _phases.put(text)
+
+
+def _show_phases(bar: tqdm, method: str, phases: multiprocessing.queues.Queue) -> None:
+    """Show on ``bar`` each phase the method's process said since last looked."""
+    with contextlib.suppress(queue.Empty, OSError, ValueError):
+        while True:
+            bar.set_postfix_str(f"{method}: {phases.get_nowait()}")
+
+
+def _start_worker(show_warning: Callable | None,
+                  phases: multiprocessing.queues.Queue | None = None) -> None:
     """A method's process: large blocks mapped afresh, for its peak memory; progress bars
     locked between threads only, for tqdm's default lock between processes is a semaphore
     that a worker stopped by :func:`_stop_workers` leaves to a warning at exit. Warnings are
@@ -625,6 +656,8 @@ def _start_worker(show_warning: Callable | None) -> None:
     if show_warning is not None:
         warnings.showwarning = show_warning
     warnings.simplefilter("ignore", AlphaDropped)
+    global _phases
+    _phases = phases
 
 
 def _shown_as_here() -> Callable | None:
