@@ -40,3 +40,14 @@ def test_sheet_fits_each_image_in_its_cell_and_enlarges_it_sharply():
     np.testing.assert_array_equal(out[y:y + 16, x:x + 32], expected)
     assert (out[y + 16:y + 32, x:x + 32] == 255).all()
     assert out.shape == (4 + 14 + 32 + 4, x + 32 + 2 * 4, 3)
+
+
+def test_a_titled_sheet_holds_its_title_above_the_rows():
+    """A sheet passed around without its table names what it shows."""
+    image = np.zeros((4, 8, 3), np.float32)
+    plain = sheet([("r", [("a", image)])], cell=32)
+    titled = sheet([("r", [("a", image)])], cell=32, title="granite_64.png: 64^3, seed 0")
+    band = 14 + 4
+    np.testing.assert_array_equal(titled[band:, :plain.shape[1]], plain)
+    assert (titled[:band] < 128).any()  # the title's text
+    assert titled.shape[1] >= 7 * len("granite_64.png: 64^3, seed 0")  # room for it

@@ -819,7 +819,6 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
         if r.render is not None:
             images.append(("rendered cube", r.render))
         rows.append((r.method, images))
-    sheet_image = sheet(rows)
     word = tileable_word(setup.tileable)
     measures = _measure_settings(_edge(axes, setup.size))
     repeats = max((len(r.seconds_runs) for r in results), default=1)
@@ -843,6 +842,9 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
         ", shifted tiles" if setup.shifted_tiles else "",
         f", features from {setup.feature_mask.name}" if setup.feature_mask is not None else
         ", feature distance" if setup.feature_distance else ""))
+    # Named on the sheet too, which is often passed around without its table.
+    sheet_image = sheet(rows, title=f"{_title(paths, axes)}: {setup.size}^3, seed "
+                                    f"{setup.seed}{more}{told}")
     markdown = (f"# {_title(paths, axes)}\n\n{setup.size}^3, seed {setup.seed}{more}{told}; "
                 f"{run_line(run)}\n\n" + table_markdown(results)
                 + _legend(measures, repeats, any(r.device_peak_mib is not None for r in results)))

@@ -39,17 +39,22 @@ def volume_row(volume: np.ndarray, depth: int | None = None) -> list[tuple[str, 
     return out
 
 
-def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], cell: int = 160) -> np.ndarray:
-    """Compose labelled rows of labelled images into one 8-bit RGB sheet; every image is
-    scaled to fit a ``cell`` x ``cell`` square (pixels stay sharp when enlarged)."""
+def sheet(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], cell: int = 160,
+          title: str | None = None) -> np.ndarray:
+    """Compose labelled rows of labelled images into one 8-bit RGB sheet, under a ``title``
+    line if given; every image is scaled to fit a ``cell`` x ``cell`` square (pixels stay
+    sharp when enlarged)."""
     row_label_w = 8 * max(len(name) for name, _ in rows) + _GAP
     ncols = max(len(images) for _, images in rows)
-    height = len(rows) * (cell + _LABEL_HEIGHT + _GAP) + _GAP
-    width = row_label_w + ncols * (cell + _GAP) + _GAP
+    top = 0 if title is None else _LABEL_HEIGHT + _GAP
+    height = top + len(rows) * (cell + _LABEL_HEIGHT + _GAP) + _GAP
+    width = max(row_label_w + ncols * (cell + _GAP), 7 * len(title or "") + _GAP) + _GAP
     canvas = Image.new("RGB", (width, height), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
+    if title is not None:
+        draw.text((_GAP, _GAP), title, fill=(0, 0, 0))
     for r, (name, images) in enumerate(rows):
-        y = _GAP + r * (cell + _LABEL_HEIGHT + _GAP)
+        y = top + _GAP + r * (cell + _LABEL_HEIGHT + _GAP)
         draw.text((_GAP, y + _LABEL_HEIGHT + cell // 2 - 6), name, fill=(0, 0, 0))
         for c, (label, image) in enumerate(images):
             x = row_label_w + c * (cell + _GAP)
