@@ -595,7 +595,7 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         choices=("lazy", "kopf"),
         default="lazy",
         help="lazy synthesis (Dong 2008, default) or the periodic global optimization of "
-        "Kopf et al. 2007 (slower: 4 to 28 s for 64^3 on a 2-core CPU, 5 to 37 times lazy "
+        "Kopf et al. 2007 (slower: 4 to 28 s for 64^3 on a 2-core CPU, 5 to 39 times lazy "
         "synthesis; BENCHMARKS.md)",
     )
     parser.add_argument("--mean-shift", action="store_true",
