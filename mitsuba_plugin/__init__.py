@@ -29,7 +29,7 @@ import importlib
 import threading
 import weakref
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from numbers import Integral
 from pathlib import Path
 
@@ -100,47 +100,45 @@ def register() -> None:
     _registered.add(variant)
 
 
-_candidates_bar: bool | None = None  # None: a bar in a terminal only
+# How lazy_solid textures made now behave, set for scenes loaded in a block (below).
+_loading: dict[str, bool | None] = {
+    "candidates_bar": None,  # None: a bar in a terminal only
+    "stores_read_only": False,
+}
 
 
 @contextmanager
-def candidates_progress() -> Iterator[None]:
-    """Show the bar of the candidates that ``lazy_solid`` textures pre-compute while scenes
-    load in this block also where stderr is a log (a terminal shows it anyway), as
-    ``warptex render`` does: a new exemplar may take minutes."""
-    global _candidates_bar
-    before, _candidates_bar = _candidates_bar, True
+def _while_loading(setting: str, value: bool) -> Iterator[None]:
+    before, _loading[setting] = _loading[setting], value
     try:
         yield
     finally:
-        _candidates_bar = before
+        _loading[setting] = before
+
+
+def candidates_progress() -> AbstractContextManager[None]:
+    """Show the bar of the candidates that ``lazy_solid`` textures pre-compute while scenes
+    load in this block also where stderr is a log (a terminal shows it anyway), as
+    ``warptex render`` does: a new exemplar may take minutes."""
+    return _while_loading("candidates_bar", True)
 
 
 def candidates_bar() -> bool | None:
     """Whether candidates pre-computed now show their bar (``precompute``'s ``progress``)."""
-    return _candidates_bar
+    return _loading["candidates_bar"]
 
 
-_stores_read_only = False
-
-
-@contextmanager
-def stores_read_only() -> Iterator[None]:
+def stores_read_only() -> AbstractContextManager[None]:
     """``lazy_solid`` textures of scenes loaded in this block only read their ``cache``
     files, as ``warptex render --read-only-stores`` does: their ``save()`` writes nothing,
     and a file yet to be made in a place that cannot be written is no error (a shared
     folder not filled yet); the render starts without one."""
-    global _stores_read_only
-    before, _stores_read_only = _stores_read_only, True
-    try:
-        yield
-    finally:
-        _stores_read_only = before
+    return _while_loading("stores_read_only", True)
 
 
 def stores_are_read_only() -> bool:
     """Whether textures made now only read their ``cache`` (:func:`stores_read_only`)."""
-    return _stores_read_only
+    return bool(_loading["stores_read_only"])
 
 
 @contextmanager
