@@ -230,7 +230,7 @@ def _read_axes(setup: Setup) -> Axes:
                     if issubclass(warning.category, AlphaDropped) else str(warning.message))
             warnings.warn(text, warning.category, stacklevel=3)  # the caller of exemplars()
     for path, exemplar in files.items():
-        if np.all(exemplar.colors == exemplar.colors[:1, :1]):  # its warning said so already
+        if exemplar.constant:  # its warning said so already
             raise ExemplarError(f"{path}: image is constant: the measures are in units of "
                                 "its variance, which it has none of")
     read = [files[path] for path in paths]
@@ -590,14 +590,14 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_count("repeats", repeats, low=1)
+    axes = setup.exemplars()
     if any(m in _LAZY for m in methods):  # before any method's minutes of work
         from warptex.synthesis import check_feature_channels
 
         try:
-            check_feature_channels(setup.exemplars()[0].features.shape[2])
+            check_feature_channels(axes[0].features.shape[2])
         except ValueError as error:
             raise ValueError(f"{setup.paths()[0]}: {error}") from None
-    setup.exemplars()
     if any(m in _KOPF for m in methods):
         from warptex.baselines.kopf import check_size
 

@@ -137,7 +137,7 @@ class Exemplar:
             distance = _validated_distance(feature_distance, self.colors.shape[:2], name)
             self.features = np.concatenate([self.colors, distance[..., None]], axis=2)
             self.features.setflags(write=False)
-        if np.all(self.colors == self.colors[:1, :1]):
+        if self.constant:
             warnings.warn(f"{name}: image is constant; nothing to synthesize", stacklevel=2)
 
     @classmethod
@@ -249,6 +249,12 @@ class Exemplar:
     def channels(self) -> int:
         """Number of color channels ``C`` (feature channels may be one more)."""
         return self.colors.shape[2]
+
+    @property
+    def constant(self) -> bool:
+        """Whether every pixel has one color: nothing to synthesize, no variance to measure
+        distances in."""
+        return bool(np.all(self.colors == self.colors[:1, :1]))
 
     def pyramid(self, min_size: int = 8,
                 seams: tuple[bool, bool] | None = None) -> list[PyramidLevel]:

@@ -20,7 +20,7 @@ from scipy import ndimage
 
 from kernels import synthesis as _k
 from kernels.common import KEY_BIAS, KEY_BITS
-from warptex.candidates import CandidateSet
+from warptex.candidates import DEFAULT_PARAMS, CandidateSet
 from warptex.keysets import (
     cell_offsets,
     distinct_sorted,
@@ -298,7 +298,8 @@ class _LevelCache:
             np.uint64(1) << local.astype(np.uint64), starts)
 
 
-def check_feature_channels(channels: int, neighborhood: int = 5) -> None:
+def check_feature_channels(channels: int,
+                           neighborhood: int = DEFAULT_PARAMS["neighborhood"]) -> None:
     """Refuse exemplars of more ``channels`` (colors and a feature distance) than the
     engine's exact projections of ``neighborhood``-voxel rows add up: callers check before
     the candidates are pre-computed, which takes minutes for a large exemplar."""
