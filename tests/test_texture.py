@@ -210,6 +210,38 @@ def test_a_foreign_store_file_is_refused_before_the_candidates_are_computed(tmp_
     assert foreign.read_bytes() == b"an image the user keeps"
 
 
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"seed": -1}, "seed must be within"), ({"jitter": 100}, "jitter must be within"),
+    ({"passes": 99}, "passes must be within"), ({"cache_bytes": -5}, "cache_bytes must be at"),
+    ({"whole_bricks": "no"}, "whole_bricks must be True or False"),
+    ({"shifted_tiles": "no"}, "shifted_tiles must be True or False"),
+    ({"device": "cdua"}, "device must be a Warp device"),
+])
+def test_settings_are_refused_before_the_candidates_are_computed(granite_32_file, kwargs,
+                                                                 message, monkeypatch):
+    """Each was refused by the engine or the store, made after minutes of pre-computation
+    for a large exemplar."""
+    import warptex.texture
+    from warptex.texture import SolidTexture
+
+    monkeypatch.setattr(warptex.texture, "precompute",
+                        lambda *a, **k: pytest.fail("candidates computed before the check"))
+    with pytest.raises(ValueError, match=message):
+        SolidTexture(granite_32_file, **kwargs)
+
+
+def test_an_exemplar_of_too_many_channels_is_refused_before_its_candidates(monkeypatch):
+    import warptex.texture
+    from warptex.exemplar import Exemplar
+    from warptex.texture import SolidTexture
+
+    monkeypatch.setattr(warptex.texture, "precompute",
+                        lambda *a, **k: pytest.fail("candidates computed before the check"))
+    five = np.random.default_rng(0).random((16, 16, 5), dtype=np.float32)
+    with pytest.raises(ValueError, match="5 color channels; points are looked up in at most 4"):
+        SolidTexture(Exemplar(five))
+
+
 def test_a_store_that_could_never_be_saved_is_refused_before_any_work(candidates, tmp_path,
                                                                      monkeypatch):
     """A store named as a folder, or where it does not exist and could not be written, is
@@ -397,6 +429,22 @@ def test_bad_points_raise_unless_filled(candidates):
     np.testing.assert_array_equal(filled[good], tex.query(pts[good], filter="nearest"))
     with pytest.raises(ValueError, match="within"):
         tex.query(np.array([[1e9, 0, 0]]))
+
+
+def test_a_far_point_late_in_a_query_is_refused_before_any_batch(candidates, monkeypatch):
+    """The range was checked batch by batch: a far point in the last batch was refused
+    after every earlier batch had been synthesized (minutes for millions of points)."""
+    import warptex.texture
+    from warptex.texture import POINT_LIMIT
+
+    monkeypatch.setattr(warptex.texture, "BATCH", 8)
+    tex = texture(candidates)
+    pts = points_near_origin(40, 12)
+    pts[-1] = [0.5, POINT_LIMIT, 0.5]
+    pts[-3] = [-POINT_LIMIT - 7.0, 0.5, np.nan]  # NaN: given the fill color, not counted far
+    with pytest.raises(ValueError, match=f"1 of 40 points lie beyond \\+-{POINT_LIMIT}"):
+        tex.query(pts, fill=0.0)
+    assert tex.store.stats()["voxels_added"] == 0
 
 
 def test_bad_shapes_dtypes_and_empty_input(candidates):

@@ -312,6 +312,12 @@ def check_lookup_channels(channels: int) -> None:
                          f"{_k.MAX_CHANNELS} (gray, RGB or RGBA)")
 
 
+def check_store_settings(cache_bytes: object, whole_bricks: object) -> tuple[int, bool]:
+    """``cache_bytes`` and ``whole_bricks`` as :class:`BrickStore` keeps them, after a
+    SettingError unless they are a byte count and a bool."""
+    return check_count("cache_bytes", cache_bytes), check_flag("whole_bricks", whole_bricks)
+
+
 def store_settings(synthesizer: Synthesizer) -> dict:
     """Everything a stored voxel depends on: exemplars, candidate parameters and algorithm
     version, seed, jitter, tile shifts, engine version and parameters; digested by
@@ -411,8 +417,7 @@ class BrickStore:
     def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  whole_bricks: bool = True) -> None:
         self.synthesizer = synthesizer
-        self.cache_bytes = check_count("cache_bytes", cache_bytes)
-        self.whole_bricks = check_flag("whole_bricks", whole_bricks)
+        self.cache_bytes, self.whole_bricks = check_store_settings(cache_bytes, whole_bricks)
         cs = synthesizer.candidates
         sources = [cs.colors[cs.axis_source[k]] for k in range(3)]
         self.channels = cs.channels

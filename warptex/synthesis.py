@@ -309,6 +309,18 @@ def check_feature_channels(channels: int,
                          f"{_k.EXACT_ROW_TERMS // neighborhood})")
 
 
+def engine_device(device: str | None) -> str:
+    """The Warp device an engine asked for ``device`` (None: :func:`warptex.device`) runs
+    on, resolved once: "cuda" names whichever GPU is current on the calling thread, and
+    every array and launch of an engine stays on one GPU ("cuda:0")."""
+    init_warp()
+    try:
+        return str(wp.get_device(device or default_device()))
+    except (ValueError, RuntimeError) as error:  # Warp's words name no argument
+        raise ValueError(f"device must be a Warp device such as 'cpu' or 'cuda:0', got "
+                         f"{device!r} ({error})") from None
+
+
 class Synthesizer:
     """Colors of any subset of an unbounded solid texture (Dong 2008, section 5).
 
@@ -344,20 +356,13 @@ class Synthesizer:
         check_settings(jitter, passes, seed)
         levels = check_count("levels", levels)
         coarse_cache_bytes = check_count("coarse_cache_bytes", coarse_cache_bytes)
-        init_warp()
         self.candidates = candidates
         self.seed = int(seed)
         self.jitter = float(jitter)
         self.shifted_tiles = check_flag("shifted_tiles", shifted_tiles)
         self.passes = int(passes)
         self.subpasses = int(subpasses)
-        # "cuda" names whichever GPU is current on the calling thread; resolved once
-        # ("cuda:0"), every array and launch of this engine stays on one GPU.
-        try:
-            self.device = str(wp.get_device(device or default_device()))
-        except (ValueError, RuntimeError) as error:  # Warp's words name no argument
-            raise ValueError(f"device must be a Warp device such as 'cpu' or 'cuda:0', got "
-                             f"{device!r} ({error})") from None
+        self.device = engine_device(device)
         self.finest = candidates.num_levels - 1
         self.start = max(0, self.finest - int(levels))
         half = int(candidates.params["neighborhood"]) // 2

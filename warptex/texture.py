@@ -27,10 +27,24 @@ from warptex.settings import (
     DEFAULT_PASSES,
     FILTERS,
     check_file_name,
+    check_flag,
+    check_settings,
     names_folder,
 )
-from warptex.store import BrickStore, StoreFileError, check_store_path, settings_differences
-from warptex.synthesis import COORD_LIMIT, REQUEST_BYTES_PER_VOXEL, Synthesizer
+from warptex.store import (
+    BrickStore,
+    StoreFileError,
+    check_lookup_channels,
+    check_store_path,
+    check_store_settings,
+    settings_differences,
+)
+from warptex.synthesis import (
+    COORD_LIMIT,
+    REQUEST_BYTES_PER_VOXEL,
+    Synthesizer,
+    engine_device,
+)
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
@@ -127,11 +141,18 @@ class SolidTexture:
         whole_bricks: bool = True,
         shifted_tiles: bool = False,
     ) -> None:
-        self.path = None if store is None else _store_file(store)  # before the work
+        # Everything refusable is refused before pre-computing, which takes minutes for a
+        # large exemplar.
+        self.path = None if store is None else _store_file(store)
+        check_settings(jitter, passes, seed)
+        check_flag("shifted_tiles", shifted_tiles)
+        check_store_settings(cache_bytes, whole_bricks)
+        device = engine_device(device)
         if isinstance(source, CandidateSet):
             candidates, self.srgb = source, None
         else:
             exemplar = as_exemplar(source)
+            check_lookup_channels(exemplar.channels)
             candidates, self.srgb = precompute(exemplar, progress=None), exemplar.srgb
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
                                        shifted_tiles=shifted_tiles)
@@ -173,10 +194,16 @@ class SolidTexture:
         if filter not in FILTERS:
             raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
         fill_color = None if fill is None else self._fill_color(fill)
-        if fill_color is None and not np.isfinite(pts).all():
-            bad = int((~np.isfinite(pts).all(axis=1)).sum())
-            raise ValueError(f"{bad} of {len(pts)} points are NaN or infinite; pass fill= "
-                             "to give them a color instead")
+        finite = np.isfinite(pts).all(axis=1)
+        if fill_color is None and not finite.all():
+            raise ValueError(f"{int((~finite).sum())} of {len(pts)} points are NaN or "
+                             "infinite; pass fill= to give them a color instead")
+        # Refused before any batch is synthesized: a far point late in a large query would
+        # otherwise be found after minutes of work.
+        far = finite & (np.abs(pts) >= POINT_LIMIT).any(axis=1)
+        if far.any():
+            raise ValueError(f"{int(far.sum())} of {len(pts)} points lie beyond +-{POINT_LIMIT} "
+                             "voxels; points must lie within it")
         out = np.empty((len(pts), self.channels), np.float32)
         for start in range(0, len(pts), BATCH):
             chunk = pts[start : start + BATCH]
@@ -233,8 +260,6 @@ class SolidTexture:
         return target
 
     def _sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:
-        if len(points) and (points.min() <= -POINT_LIMIT or points.max() >= POINT_LIMIT):
-            raise ValueError(f"points must lie within +-{POINT_LIMIT} voxels")
         self.store.sample(np.ascontiguousarray(points, np.float64), filter, out)
 
     def _fill_color(self, fill: float | Sequence[float]) -> np.ndarray:
