@@ -722,6 +722,30 @@ def test_a_merged_save_keeps_what_fits_the_cache_or_the_file(candidates, tmp_pat
     assert BrickStore.load(path, syn).stats()["bricks"] == 4
 
 
+def test_a_merged_save_keeps_every_brick_of_ours_though_merging_grew_them(candidates,
+                                                                        tmp_path: Path):
+    """Two stores filling halves of the same bricks: merged, each brick holds both halves
+    and costs more than either store's room or the file's. Some of the second store's
+    bricks were left out, yet the file was marked as holding them all, so its next save
+    wrote nothing and a store loaded from it synthesized them again."""
+    syn = synthesizer(candidates)
+    path = tmp_path / "halves.wtb"
+    grid = np.stack(np.meshgrid(np.arange(32), np.arange(8), np.arange(8), indexing="ij"),
+                    axis=-1).reshape(-1, 3)
+    even, odd = grid[grid[:, 2] % 2 == 0], grid[grid[:, 2] % 2 == 1]
+    room = 4 * (SLOT_BYTES + 256 * 6)  # four bricks of 256 voxels: either half, not both
+    first = BrickStore(syn, whole_bricks=False, cache_bytes=room)
+    first.prefetch(even)
+    first.save(path)
+    second = BrickStore(syn, whole_bricks=False, cache_bytes=room)
+    second.prefetch(odd)
+    assert second.save(path)
+    assert not second.save(path)  # the file holds every brick of the second's
+    loaded = BrickStore.load(path, syn, whole_bricks=False, cache_bytes=1 << 30)
+    np.testing.assert_array_equal(sample(loaded, odd + 0.5), syn.voxels(odd))
+    assert loaded.stats()["misses"] == 0
+
+
 def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
     """Saves take turns on the file's folder, so each merge reads the file the previous
     one wrote (threads here; processes lock the same way)."""

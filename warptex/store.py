@@ -567,8 +567,10 @@ class BrickStore:
 
         A file this texture saved before, from this or another process, is merged with, not
         replaced: its voxels are the same as ours, so both renders' work stays warm. Its
-        bricks count as older than ours, and the most recent that fit ``cache_bytes`` or
-        the memory that the file's bricks take, whichever is larger, are written. Saves to
+        bricks count as older than ours, and the most recent that fit ``cache_bytes``, the
+        memory that the file's bricks take, or that ours take once merged with the file's
+        copies of them (a partly filled brick grows), whichever is largest, are written, so
+        every brick of ours is. Saves to
         one file take turns, so none loses the bricks of another. A damaged file or
         another texture's is replaced, with a warning.
 
@@ -597,8 +599,12 @@ class BrickStore:
                 saved = None
             budget = self.cache_bytes
             if saved is not None:  # a store of less room does not shrink a shared file
-                budget = max(budget, int(self._brick_costs(_voxels_per_brick(saved.valid)).sum()))
+                mine = len(ours.keys)
                 ours = _bricks_union(saved, ours)
+                # Our partly filled bricks may have grown by the file's voxels: all of them
+                # are kept still, as the file is then marked as holding them.
+                budget = max(budget, *(int(self._brick_costs(_voxels_per_brick(v)).sum())
+                                       for v in (saved.valid, ours.valid[len(ours.keys) - mine:])))
             kept = self._recent_that_fit(ours, budget)
             write_archive(path, _MAGIC, FORMAT_VERSION,
                           {"identity": np.array(self.identity()),
