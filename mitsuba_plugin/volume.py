@@ -1,13 +1,14 @@
-"""The ``lazy_solid_medium`` Mitsuba medium: a heterogeneous medium whose albedo is a
-``lazy_solid`` texture.
+"""The ``lazy_solid_medium`` Mitsuba medium: a heterogeneous medium whose albedo, and
+optionally extinction, is a ``lazy_solid`` texture.
 
 Mitsuba's own texture-to-volume conversion evaluates a texture at p = 0 only, and Python
-volumes cannot be registered as plugins, so this medium wraps its nested texture in a
-volume that queries it at each medium interaction's position::
+volumes cannot be registered as plugins, so this medium wraps its nested textures in a
+volume that queries them at each medium interaction's position::
 
     <medium type="lazy_solid_medium" name="interior">
         <texture type="lazy_solid" name="albedo"> ... </texture>
-        <float name="sigma_t" value="6"/>   <!-- optional, default 1; or a nested volume -->
+        <float name="sigma_t" value="6"/>   <!-- optional, default 1; a colour, a volume
+                                                 or another lazy_solid texture -->
         <float name="scale" value="1"/>     <!-- optional, default 1: multiplies sigma_t -->
         <boolean name="sample_emitters" value="true"/>  <!-- optional, as Mitsuba's media -->
         <phase type="hg"> ... </phase>      <!-- optional, default isotropic -->
@@ -69,7 +70,8 @@ class LazySolidVolume(mi.Volume):
 
 def lazy_solid_medium(props: mi.Properties,
                       volume_type: type[LazySolidVolume] = LazySolidVolume) -> mi.Medium:
-    """A ``heterogeneous`` medium whose albedo is a nested ``lazy_solid`` texture.
+    """A ``heterogeneous`` medium whose albedo is a nested ``lazy_solid`` texture, as may
+    be its ``sigma_t``.
 
     ``volume_type`` is bound when the module is (re)loaded for a variant: a later reload
     for another variant rebinds the module's ``LazySolidVolume``, not this default.
@@ -86,7 +88,9 @@ def lazy_solid_medium(props: mi.Properties,
     if albedo is None or not hasattr(albedo, "colors_at"):
         raise property_error(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
     sigma_t = props.get("sigma_t", 1.0)
-    if isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
+    if hasattr(sigma_t, "colors_at"):  # a lazy_solid: read at each point, as the albedo
+        sigma_t = volume_type(sigma_t)
+    elif isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
         sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too
         if not (math.isfinite(sigma_t) and sigma_t >= 0):
             raise property_error(MEDIUM, "sigma_t",

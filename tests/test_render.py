@@ -164,6 +164,27 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     assert mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo}).use_emitter_sampling()
 
 
+def test_a_lazy_solid_sigma_t_varies_with_the_point_as_the_texture_does():
+    """Mitsuba's texture-to-volume conversion reads a texture at p = 0 only: a lazy_solid
+    sigma_t was the texture's colour at the origin everywhere."""
+    use("scalar_rgb")
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    texture = {"type": "lazy_solid", "exemplar": str(wood), "filter": "nearest"}
+    medium = mi.load_dict({"type": "lazy_solid_medium", "albedo": dict(texture),
+                           "sigma_t": dict(texture)})
+    reference = mi.load_dict(texture)
+    seen = []
+    for p in ((0.0, 0.0, 0.0), (0.3, 0.1, 0.2), (0.7, -0.4, 0.5)):
+        mei = mi.MediumInteraction3f()
+        mei.p, mei.medium = mi.Point3f(*p), medium
+        _, _, sigma_t = medium.get_scattering_coefficients(mei)
+        it = mi.SurfaceInteraction3f()
+        it.p = mi.Point3f(*p)
+        np.testing.assert_allclose(np.ravel(sigma_t), np.ravel(reference.eval(it)), rtol=1e-6)
+        seen.append(tuple(np.ravel(sigma_t)))
+    assert len(set(seen)) == 3
+
+
 def test_medium_takes_a_nested_phase_function_and_an_integer_sigma_t():
     """Like Mitsuba's own media: a phase function nested in the scene (isotropic without),
     and <integer name="sigma_t" .../> as well as a float."""
