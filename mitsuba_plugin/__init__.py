@@ -172,6 +172,8 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
            progress: Callable[[int, int], None] | None = None) -> mi.TensorXf:
     """Render ``scene``: ``batches`` renders of ``spp / batches`` samples (with different
     seeds) averaged, calling ``progress(done, batches)`` before the first and after each.
+    A sampler that stratifies its samples (every one of Mitsuba's but ``independent``)
+    renders them in one batch, whose stratification then spans them all.
 
     Each batch is rendered in Mitsuba's symbolic mode with the textures' lookups traced,
     again after synthesizing what it missed, and kept only once it missed nothing; after
@@ -180,34 +182,70 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     is the stored voxel's, so the image does not depend on the mode.
 
     ``spp`` (default: the scene's sampler's count) and ``batches`` are positive integers;
-    batch ``i`` samples with the seed ``seed * batches + i``, which Mitsuba keeps in 32 bits.
+    an ``spp`` that the sampler would round (a stratified one takes squares) is refused.
+    Batch ``i`` samples with the seed ``seed * batches + i``, which Mitsuba keeps in 32
+    bits. The scene's sampler keeps its sample count.
     """
     _check_scene(scene, whole=True)
     for name, value in (("spp", spp), ("batches", batches), ("seed", seed)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, Integral)):
             raise TypeError(f"{name} must be an integer, got {value!r}")
-    total = spp if spp is not None else first_sensor(scene).sampler().sample_count()
-    if total < 1:
-        raise ValueError(f"spp must be positive, got {total}" if spp is not None else
-                         "the scene's sampler takes no samples per pixel: give spp")
-    if batches < 1:
-        raise ValueError(f"batches must be positive, got {batches}")
-    batches = min(batches, total)
+    sampler = first_sensor(scene).sampler()
+    shares = _batch_shares(sampler, spp, batches)
+    total, batches = sum(shares), len(shares)
     if not 0 <= seed * batches + batches - 1 < 2**32:
         raise ValueError(f"seed must be 0 to {2**32 // batches - 1} for {batches} "
                          f"batch{'es' if batches > 1 else ''}, got {seed}")
     image = None
     if progress is not None:
         progress(0, batches)
-    for i in range(batches):
-        share = total // batches + (i < total % batches)
-        part = _render_batch(scene, share, seed * batches + i)
-        weighted = part * (share / total)
-        image = weighted if image is None else image + weighted
-        dr.eval(image)
-        if progress is not None:
-            progress(i + 1, batches)
+    kept = sampler.sample_count()  # each batch sets it to its share
+    try:
+        for i, share in enumerate(shares):
+            part = _render_batch(scene, share, seed * batches + i)
+            weighted = part * (share / total)
+            image = weighted if image is None else image + weighted
+            dr.eval(image)
+            if progress is not None:
+                progress(i + 1, batches)
+    finally:
+        sampler.set_sample_count(kept)
     return image
+
+
+def _batch_shares(sampler: mi.Sampler, spp: int | None, batches: int) -> list[int]:
+    """Samples per pixel of each batch of a render of ``spp`` samples (default: the
+    sampler's count) in at most ``batches``: one batch unless ``sampler`` takes any count
+    as it is (a stratified one rounds 2 to 4 and would take more samples than its share,
+    stratified batch by batch instead of across all). ValueError for an ``spp`` or
+    ``batches`` that is not positive, or an ``spp`` the sampler would round."""
+    total = spp if spp is not None else sampler.sample_count()
+    if total < 1:
+        raise ValueError(f"spp must be positive, got {total}" if spp is not None else
+                         "the scene's sampler takes no samples per pixel: give spp")
+    if batches < 1:
+        raise ValueError(f"batches must be positive, got {batches}")
+    kind = str(sampler).split("[", 1)[0]
+    taken = _samples_taken(sampler, total)
+    if taken != total:
+        raise ValueError(f"{total} samples per pixel: the scene's {kind} takes {taken} when "
+                         f"asked for {total}; ask for {taken}, or use another sampler")
+    if kind != "IndependentSampler":
+        batches = 1
+    batches = min(batches, total)
+    return [total // batches + (i < total % batches) for i in range(batches)]
+
+
+def _samples_taken(sampler: mi.Sampler, count: int) -> int:
+    """The samples per pixel ``sampler`` takes when asked for ``count``, found on a copy
+    with Mitsuba's warning of the rounding held back."""
+    trial, level = sampler.clone(), mi.log_level()
+    mi.set_log_level(mi.LogLevel.Error)
+    try:
+        trial.set_sample_count(count)
+    finally:
+        mi.set_log_level(level)
+    return trial.sample_count()
 
 
 class MissedVoxels(RuntimeError):

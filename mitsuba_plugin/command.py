@@ -193,11 +193,14 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             _check_store_file(texture, [output, statistics], save_stores)
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
-    # Read before rendering: each batch sets the sampler to its share of the samples.
-    total = spp or sensor.sampler().sample_count()
-    check_render_size(*sensor.film().crop_size(), _samples_per_batch(total))
+    try:
+        shares = mitsuba_plugin._batch_shares(sensor.sampler(), spp, _BATCHES)
+    except ValueError as e:
+        raise ValueError(f"{scene_path}: {e}") from None
+    total = sum(shares)
+    check_render_size(*sensor.film().crop_size(), max(shares))
     with saved_when_stopped(partial(mitsuba_plugin.save_caches, scene) if save_stores else list):
-        image = mitsuba_plugin.render(scene, spp=total, batches=min(_BATCHES, total),
+        image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
                                       seed=seed, progress=_progress)
         rendered = time.perf_counter()
         # Before the image: a stop while the stores are written (the longest of the writes)

@@ -226,6 +226,40 @@ def test_render_refuses_arguments_mitsuba_would_fail_on_deep_inside():
     assert mitsuba_plugin.render(scene, spp=2, batches=2, seed=2**31 - 1).shape == (4, 4, 3)
 
 
+def test_render_keeps_the_samplers_count_and_its_stratification(tmp_path, capsys):
+    """Batches set the scene's sampler to their share of the samples: the next render that
+    took the scene's count rendered fewer. A stratified sampler rounded each batch's share
+    up (2 to 4): eight batches took 32 samples where 16 were asked, stratified batch by
+    batch; it now renders one batch, and a count it would round is refused."""
+    from warptex.cli import main
+
+    use("scalar_rgb")
+    scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=4, height=4, spp=12)
+    sampler = mitsuba_plugin.first_sensor(scene).sampler()
+    calls = []
+    mitsuba_plugin.render(scene, batches=4, progress=lambda *done: calls.append(done))
+    assert calls[-1] == (4, 4) and sampler.sample_count() == 12
+    xml = (REPO / "scenes" / "bunny_wood.xml").read_text()
+    stratified = tmp_path / "stratified.xml"
+    assert 'type="independent"' in xml
+    stratified.write_text(xml.replace('type="independent"', 'type="stratified"')
+                          .replace('value="meshes/', f'value="{REPO}/scenes/meshes/')
+                          .replace('value="textures/', f'value="{REPO}/scenes/textures/'))
+    scene = mi.load_file(str(stratified), width=4, height=4, spp=16)
+    calls.clear()
+    mitsuba_plugin.render(scene, batches=8, progress=lambda *done: calls.append(done))
+    assert calls == [(0, 1), (1, 1)]
+    with pytest.raises(ValueError, match="10 samples per pixel: the scene's StratifiedSampler "
+                                         "takes 16 when asked for 10; ask for 16"):
+        mitsuba_plugin.render(scene, spp=10)
+    out = tmp_path / "s.exr"
+    assert main(["render", str(stratified), "-o", str(out), "--res", "4x4", "--spp", "4"]) == 0
+    assert json.loads(out.with_name("s.exr.json").read_text())["spp"] == 4
+    assert "rendering: batch 1/1\n" in capsys.readouterr().err
+    assert main(["render", str(stratified), "-o", str(out), "--res", "4x4", "--spp", "5"]) == 2
+    assert "5 samples per pixel: the scene's StratifiedSampler takes 9" in capsys.readouterr().err
+
+
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""

@@ -1344,7 +1344,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="Mitsuba 3 scene file (.xml)")
     parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
                         help="image to write: .exr (linear) or .png (sRGB)")
-    parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
+    parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's); one "
+                        "its sampler takes as it is (a stratified sampler takes squares)")
     parser.add_argument("--res", metavar="WxH",
                         help="image size (default: the scene's); sets the scene's $width and "
                         "$height parameters, which the scene must declare: <default "
