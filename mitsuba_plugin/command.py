@@ -31,6 +31,8 @@ IMAGE_SUFFIXES = (".exr", ".png")
 # scene parameters, and each texture's properties as a mapping beside its string.
 REPORT_FORMAT = 2
 _BATCHES = 8  # renders of one image at most: each is a step of the progress line
+# Arguments of mi.load_file, which its keyword arguments (scene parameters) cannot be.
+_LOAD_FILE_ARGUMENTS = ("path", "parallel", "optimize")
 # Batches take the seeds seed * batches + i, which Mitsuba keeps as 32-bit integers.
 MAX_SEED = 2**32 // _BATCHES - 1
 
@@ -92,19 +94,40 @@ def scene_error(text: str, scene: Path | None = None) -> str:
     return f"{file} ({place}): {message}"
 
 
-def scene_files(scene_path: Path) -> list[Path]:
-    """The files a scene names (exemplars, meshes, included scenes, brick stores) that exist,
-    looked up as Mitsuba does: beside the scene, else from the working folder. A scene that
-    does not parse names none; loading it reports why."""
-    try:
-        root = ElementTree.parse(scene_path).getroot()
-    except (ElementTree.ParseError, OSError):
-        return []
-    found = []
-    for element in root.iter():
-        for value in (element.get("value"), element.get("filename")):
-            if value and "$" not in value:
-                found += [p for p in (scene_path.parent / value, Path(value)) if p.is_file()]
+def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> list[Path]:
+    """The files a scene names (exemplars, meshes, included scenes and what they name, brick
+    stores) that exist, looked up as Mitsuba does: beside the file naming them, else beside
+    the scene, else from the working folder; ``$name`` as the ``parameters`` given (``-D``)
+    or the scene's defaults set it, ``~`` as the home folder. A scene that does not parse
+    names none; loading it reports why."""
+    found: list[Path] = []
+    read: set[Path] = set()
+
+    def visit(path: Path, folders: tuple[Path, ...]) -> None:
+        if path.resolve() in read:  # an include cycle; Mitsuba refuses it when loading
+            return
+        read.add(path.resolve())
+        try:
+            root = ElementTree.parse(path).getroot()
+        except (ElementTree.ParseError, OSError):
+            return
+        values = {e.get("name"): e.get("value", "") for e in root.iter("default")}
+        values |= {name: str(value) for name, value in (parameters or {}).items()}
+        folders = (path.parent, *folders)
+        for element in root.iter():
+            for value in (element.get("value"), element.get("filename")):
+                if not value:
+                    continue
+                value = re.sub(r"\$(\w+)", lambda m: values.get(m.group(1), m.group(0)), value)
+                if "$" in value:
+                    continue
+                name = Path(value).expanduser()
+                files = [p for p in (*(f / name for f in folders), name) if p.is_file()]
+                found.extend(files)
+                if element.tag == "include" and files:
+                    visit(files[0], folders)
+
+    visit(scene_path, ())
     return found
 
 
@@ -139,8 +162,14 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     if resolution is not None and {"width", "height"} & set(parameters):
         raise ValueError("--res sets the parameters width and height: give them with -D or "
                          "--res, not both")
+    reserved = sorted(set(parameters) & set(_LOAD_FILE_ARGUMENTS))
+    if reserved:
+        raise ValueError(f"-D {reserved[0]}: Mitsuba's load_file takes {reserved[0]} as an "
+                         "argument of its own, so no scene parameter of that name can be set; "
+                         "rename it in the scene")
     statistics = output.with_name(output.name + ".json")
-    clash = overwritten_input([output, statistics], [scene_path, *scene_files(scene_path)])
+    clash = overwritten_input([output, statistics],
+                              [scene_path, *scene_files(scene_path, parameters)])
     if clash is not None:
         raise ValueError(f"{clash[0]}: would overwrite {clash[1]}, which the scene reads; "
                          "choose another output name")
@@ -188,9 +217,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     loaded = time.perf_counter()
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
-        _check_renderable(scene, sensor, spp)
+        _check_renderable(scene, sensor, spp, output)
         for texture in mitsuba_plugin.textures(scene):
-            _check_store_file(texture, [output, statistics], save_stores)
+            _check_texture_files(texture, [output, statistics], save_stores)
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     try:
@@ -243,13 +272,20 @@ def _write_failure(error: OSError, path: Path) -> str:
     return write_failure(error.filename or path, error)
 
 
-def _check_renderable(scene, sensor, spp: int | None) -> None:
-    """Refuse a loaded scene that Mitsuba would fail to render only once it starts, with
-    an error from deep inside it: no integrator, an empty film, no samples (``spp``, where
-    given, replaces the sampler's count)."""
+def _check_renderable(scene, sensor, spp: int | None, output: Path) -> None:
+    """Refuse a loaded scene that Mitsuba would fail to render, or to write to ``output``,
+    only once it starts or ends, with an error from deep inside it: no integrator, an empty
+    film, no samples (``spp``, where given, replaces the sampler's count), a film of more
+    channels than a PNG holds."""
     if scene.integrator() is None:
         raise ValueError('the scene has no <integrator>: add one, such as <integrator '
                          'type="path"/>')
+    aovs = scene.integrator().aov_names()
+    channels = sensor.film().base_channels_count()
+    if output.suffix.lower() == ".png" and (aovs or channels > 4):
+        held = (f"arbitrary outputs ({', '.join(aovs)})" if aovs else f"{channels} channels")
+        raise ValueError(f"{output}: the film holds {held}, more than a .png's RGB(A): write "
+                         ".exr")
     width, height = sensor.film().crop_size()
     if width < 1 or height < 1:
         raise ValueError(f"the film is {width}x{height} pixels: give --res, or a positive "
@@ -260,10 +296,17 @@ def _check_renderable(scene, sensor, spp: int | None) -> None:
                          "sample_count in the scene or with -D")
 
 
-def _check_store_file(texture, outputs: list[Path], saved: bool) -> None:
-    """Refuse, before rendering, a ``cache`` file that the render's end could not save: one
-    this command writes as its image or statistics, or, where it is ``saved``, one in a
-    place that cannot be written (the plugin accepts an existing store there, to read)."""
+def _check_texture_files(texture, outputs: list[Path], saved: bool) -> None:
+    """Refuse, before rendering, ``outputs`` that would overwrite a file the texture read
+    (named through an include or a parameter, which :func:`scene_files` may miss), and a
+    ``cache`` file that the render's end could not save: one this command writes as its
+    image or statistics, or, where it is ``saved``, one in a place that cannot be written
+    (the plugin accepts an existing store there, to read)."""
+    read = [*texture.exemplars, *([texture.feature_mask] if texture.feature_mask else [])]
+    clash = overwritten_input(outputs, read)
+    if clash is not None:
+        raise ValueError(f"{clash[0]}: would overwrite {clash[1]}, which a lazy_solid texture "
+                         "reads; choose another output name")
     cache = texture.cache
     if cache is None:
         return

@@ -143,6 +143,8 @@ CASES = [
      "-D sets parameters this scene does not use: shade"),
     (["render", "{no_sensor}", "--res", "16x16", "-D", "width=8", "-o", "{out}/r.png"],
      "give them with -D or --res, not both"),
+    (["render", "{no_sensor}", "-D", "optimize=false", "-o", "{out}/r.png"],
+     "-D optimize: Mitsuba's load_file takes optimize as an argument of its own"),
     (["render", "{no_sensor}", "--sampler-seed", "-1", "-o", "{out}/r.png"],
      "--sampler-seed must be 0 to 536870911, got -1"),
     (["render", "{no_sensor}", "--res", "100000x100000", "-o", "{out}/r.png"],
@@ -596,24 +598,35 @@ OVERWRITES = [
     (["render", "{work}/scene.xml", "-o", "{work}/wood.png"], "wood.png"),
     # The statistics go to OUTPUT.json, here the scene itself.
     (["render", "{work}/shot.png.json", "-o", "{work}/shot.png"], "shot.png.json"),
+    # Exemplars named through a parameter, an included file and the home folder.
+    (["render", "{work}/param.xml", "-D", "tex=half_b.png", "-o", "{work}/half_b.png"],
+     "half_b.png"),
+    (["render", "{work}/outer.xml", "-o", "{work}/sheet.png"], "sheet.png"),
+    (["render", "{work}/home.xml", "-o", "{work}/y.png"], "y.png"),
 ]
 
 
 @pytest.mark.parametrize(("argv", "victim"), OVERWRITES,
                          ids=[f"{c[0][0]}: {c[1]}" for c in OVERWRITES])
-def test_no_output_overwrites_an_input(files, tmp_path, capsys, argv, victim):
+def test_no_output_overwrites_an_input(files, tmp_path, capsys, monkeypatch, argv, victim):
     work = tmp_path / "work"
     work.mkdir()
+    monkeypatch.setenv("HOME", str(work))
     image = files["exemplar"].read_bytes()
     for name in ("wood.png", "y.png", "half_b.png", "sheet.png"):
         (work / name).write_bytes(image)
     np.save(work / "wood.npy", np.load(files["other"]))
     (work / "ball.ply").write_bytes(files["mesh"].read_bytes())
-    for name in ("scene.xml", "shot.png.json"):
-        (work / name).write_text(
-            '<scene version="3.0.0"><shape type="sphere"><bsdf type="diffuse"><texture '
-            'type="lazy_solid" name="reflectance"><string name="exemplar" value="wood.png"/>'
-            "</texture></bsdf></shape></scene>")
+    scene = ('<scene version="3.0.0">{default}<shape type="sphere"><bsdf type="diffuse">'
+             '<texture type="lazy_solid" name="reflectance"><string name="exemplar" '
+             'value="{exemplar}"/></texture></bsdf></shape></scene>')
+    for name, default, exemplar in (
+            ("scene.xml", "", "wood.png"), ("shot.png.json", "", "wood.png"),
+            ("param.xml", '<default name="tex" value="wood.png"/>', "$tex"),
+            ("inner.xml", "", "sheet.png"), ("home.xml", "", "~/y.png")):
+        (work / name).write_text(scene.format(default=default, exemplar=exemplar))
+    (work / "outer.xml").write_text('<scene version="3.0.0"><include filename="inner.xml"/>'
+                                    "</scene>")
     before = {p.name: p.read_bytes() for p in work.iterdir()}
     code = main([a.format(work=work) for a in argv])
     err = capsys.readouterr().err

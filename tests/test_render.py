@@ -260,6 +260,39 @@ def test_render_keeps_the_samplers_count_and_its_stratification(tmp_path, capsys
     assert "5 samples per pixel: the scene's StratifiedSampler takes 9" in capsys.readouterr().err
 
 
+def test_render_refuses_what_it_could_not_write_or_would_overwrite_once_loaded(
+        granite_32_file, tmp_path, capsys, monkeypatch):
+    """Checked on the loaded scene, before rendering: a film of arbitrary outputs (an aov
+    integrator) written to a .png failed after the render as a write error; an exemplar
+    that the scene's text does not show (found by Mitsuba's file resolver) is no output."""
+    import shutil
+
+    import mitsuba_plugin.command
+    from warptex.cli import main
+
+    exemplar = tmp_path / "granite.png"
+    shutil.copy(granite_32_file, exemplar)
+    aov = ('<integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
+           '<integrator type="path"/></integrator>')
+    scene = tmp_path / "scene.xml"
+    scene.write_text(
+        f'<scene version="3.0.0">{aov}<sensor type="perspective"><film type="hdrfilm">'
+        '<integer name="width" value="4"/><integer name="height" value="4"/></film></sensor>'
+        '<shape type="sphere"><bsdf type="diffuse"><texture type="lazy_solid" '
+        f'name="reflectance"><string name="exemplar" value="{exemplar}"/></texture></bsdf>'
+        '</shape></scene>')
+    assert main(["render", str(scene), "-o", str(tmp_path / "r.png"), "--spp", "1"]) == 2
+    assert "r.png: the film holds arbitrary outputs (" in capsys.readouterr().err
+    assert main(["render", str(scene), "-o", str(tmp_path / "r.exr"), "--spp", "1"]) == 0
+    before = exemplar.read_bytes()
+    monkeypatch.setattr(mitsuba_plugin.command, "scene_files", lambda *a: [])
+    scene.write_text(scene.read_text().replace(aov, '<integrator type="path"/>'))
+    assert main(["render", str(scene), "-o", str(exemplar), "--spp", "1"]) == 2
+    assert (f"{exemplar}: would overwrite {exemplar}, which a lazy_solid texture reads"
+            in capsys.readouterr().err)
+    assert exemplar.read_bytes() == before
+
+
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""
