@@ -174,7 +174,14 @@ def bump_sum(pos: wp.vec3i, seed: int, jitter: int, octave: int, cell: int, rmin
 
 @wp.func
 def warp_offset(pos: wp.vec3i, seed: int, jitter: int) -> wp.vec3i:
-    """Integer displacement of the continuous random warp: stronger at small scales."""
+    """Integer displacement of the continuous random warp (section 5.1, "Jitter").
+
+    Two octaves of bumps where the paper sums about 200 Gaussians: lattice cells of 16 and
+    6 voxels, radii 6-14 and 2-5 voxels, amplitudes 2-6 and 1-3 voxels times ``jitter``
+    (in 1/256). The small-scale octave is the stronger for its size, not in voxels as the
+    paper's A_i, and directions are random in a cube rather than normalized; the paper
+    says exact values do not matter, only that the warp randomizes.
+    """
     s = bump_sum(pos, seed, jitter, 0, 16, 6, 8, 2, 4)
     s += bump_sum(pos, seed, jitter, 1, 6, 2, 3, 1, 2)
     return wp.vec3i((s[0] + 128) >> 8, (s[1] + 128) >> 8, (s[2] + 128) >> 8)

@@ -327,12 +327,12 @@ class Synthesizer:
     Voxel coordinates are integers over all of Z^3 at the finest level L; level l voxel
     v covers finest voxels ``2**(L-l) * v ...``. Synthesis starts ``levels`` levels above
     the finest with a warped tiling of the candidate slab and runs ``passes`` correction
-    passes of ``subpasses`` interleaved sub-passes per level. The paper's "3 last levels"
-    (section 5.2) are ``levels=2``; the default's one level more varies the texture at a
-    larger scale (lower repetition, BENCHMARKS.md). ``shifted_tiles`` shifts each tile of
-    the slab by its own hashed offset, so that structured exemplars do not repeat every
-    exemplar width, at some cost in their neighbourhood energy (BENCHMARKS.md, "Exemplars
-    that do not tile").
+    passes of ``subpasses`` interleaved sub-passes per level. The default ``levels=3`` is
+    section 5.1's start three levels above the finest (l_start = L - 3); section 5.2's
+    "3 last levels" could also be read as ``levels=2``, which repeats more (BENCHMARKS.md).
+    ``shifted_tiles`` shifts each tile of the slab by its own hashed offset, so that
+    structured exemplars do not repeat every exemplar width, at some cost in their
+    neighbourhood energy (BENCHMARKS.md, "Exemplars that do not tile").
     """
 
     def __init__(
