@@ -151,7 +151,10 @@ def _exemplar_paths(props: mi.Properties) -> list[tuple[str, Path]]:
     ``exemplar_z`` to y's, as ``precompute`` and the commands' --ey/--ez take them
     (``warptex.exemplar.axis_triple``), so a scene and a command given the same images
     synthesize the same solid."""
-    plain = get_property(props, "exemplar", str, None, PLUGIN)  # checked even where unused
+    plain = get_property(props, "exemplar", str, None, PLUGIN)
+    if plain is not None and "exemplar_x" in props:
+        raise property_error(PLUGIN, "exemplar", 'and "exemplar_x" name the same axis: give '
+                             "one of them")
     named: list[tuple[str, Path]] = []
     for axis in "xyz":
         key = f"exemplar_{axis}"
@@ -240,17 +243,24 @@ def _to_world(props: mi.Properties) -> np.ndarray:
     except (AttributeError, TypeError, ValueError):
         raise property_error(PLUGIN, "to_world",
                              f"must be a <transform ...>, got {value!r}") from None
-    if not np.isfinite(matrix).all():
+    _inverse(matrix)
+    return matrix
+
+
+def _inverse(to_world: np.ndarray) -> np.ndarray:
+    """The inverse of a ``to_world`` matrix, as loaded or as a parameter update sets it,
+    after the property's error unless it is finite and invertible."""
+    if not np.isfinite(to_world).all():
         raise property_error(PLUGIN, "to_world", "must be finite: it has NaN or infinite "
                              "entries")
     try:
-        inverse = np.linalg.inv(matrix)
+        inverse = np.linalg.inv(to_world)
     except np.linalg.LinAlgError:
         inverse = None
     if inverse is None or not np.isfinite(inverse).all():
         raise property_error(PLUGIN, "to_world", "must be invertible: a scale of zero "
                              "collapses the block of matter")
-    return matrix
+    return inverse
 
 
 class LazySolidTexture(mi.Texture):
@@ -569,10 +579,9 @@ class LazySolidTexture(mi.Texture):
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
-        to_world = _affine_matrix(self.to_world)
+        inverse = _inverse(_affine_matrix(self.to_world))
         # Rows of plain floats: _apply_affine runs on single points in scalar variants.
-        self._world_to_texture = (np.diag([self.scale] * 3 + [1.0])
-                                  @ np.linalg.inv(to_world)).tolist()
+        self._world_to_texture = (np.diag([self.scale] * 3 + [1.0]) @ inverse).tolist()
 
 
 def _choice_of(condition: bool, if_true: float, if_false: float) -> float:

@@ -72,7 +72,8 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
     ({"exemplar": "/"}, 'exemplar" names a folder, not a file'),
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
-     'exemplar" must be a <string ...>'),  # checked though every axis has its own
+     'exemplar" must be a <string ...>'),
+    ({"exemplar_x": "a.png"}, 'exemplar" and "exemplar_x" name the same axis'),  # x ignored it
     ({"to_world": "identity"}, "to_world\" must be a <transform ...>, got 'identity'"),
     ({"feature_distance": "auto"}, "feature_distance\" must be a <boolean ...>, got 'auto'"),
     ({"feature_mask": "no/such/mask.png"}, 'feature_mask" names a file that does not exist'),
@@ -261,9 +262,11 @@ def test_per_axis_exemplars_default_as_precompute_and_the_commands_take_them(
     other = tmp_path / "turned.png"
     Image.open(granite_32_file).transpose(Image.Transpose.ROTATE_90).save(other)
     for props, axes in (({"exemplar_y": str(other)}, (granite_32_file, other)),
-                        ({"exemplar_x": str(other)}, (other,)),
+                        ({"exemplar": None, "exemplar_x": str(other)}, (other,)),
                         ({"exemplar_z": str(other)}, (granite_32_file, granite_32_file, other))):
-        texture = load(granite_32_file, **props)
+        texture = mi.load_dict({k: v for k, v in ({"type": "lazy_solid",
+                                                   "exemplar": str(granite_32_file)}
+                                                  | props).items() if v is not None})
         expected = precompute(*axes)
         got = texture.solid.synthesizer.candidates
         assert (got.axis_source, got.content_digest) == (expected.axis_source,
@@ -545,6 +548,12 @@ def test_traverse_updates_to_world(granite_32_file):
     params.update()
     after = np.array(tex.eval(interaction(np.array([[0.4, 0.6, 0.8]], np.float32))))
     np.testing.assert_allclose(after, before, atol=1e-6)
+    # An update is checked as the scene's property is (a bare LinAlgError, or NaN colours).
+    for matrix, problem in ((mi.AffineTransform4f().scale([1, 0, 1]), "invertible"),
+                            (mi.AffineTransform4f().scale([1, float("nan"), 1]), "finite")):
+        params["to_world"] = matrix
+        with pytest.raises(ValueError, match=f'lazy_solid: property "to_world" must be {problem}'):
+            params.update()
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
