@@ -263,6 +263,28 @@ def test_stale_kernel_builds_are_other_code_and_dead_builds(granite_32, tmp_path
     assert device_module.stale_kernel_builds() == []
 
 
+def test_builds_of_other_warp_versions_are_stale_and_nothing_else_beside_them(tmp_path,
+                                                                             monkeypatch):
+    """Warp keeps each version's builds in a folder of its own inside WARP_CACHE_PATH: after
+    an upgrade of Warp, warptex's builds in the old version's folder were never listed or
+    pruned. Only warptex's builds in folders named as versions are."""
+    device_module.init_warp()  # which names the folder after the version once, at start
+    current = tmp_path / wp.config.version
+    current.mkdir()
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(current))
+    old = tmp_path / "1.7.2"
+    notes = tmp_path / "notes"
+    for folder in (old, notes):
+        folder.mkdir()
+        for name in ("wp_kernels.lookup_89abcde", "wp_other.kernels_0000000"):
+            (folder / name).mkdir()
+    (tmp_path / "1.7.1").write_text("a file named as a version")
+    assert device_module.stale_kernel_builds() == [old / "wp_kernels.lookup_89abcde"]
+    # A cache folder not named as Warp's version has no siblings of other versions.
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(notes))
+    assert device_module.stale_kernel_builds() == [notes / "wp_kernels.lookup_89abcde"]
+
+
 def test_cache_command_lists_and_prunes_stale_kernel_builds(tmp_path, monkeypatch, capsys):
     from warptex.cli import main
 

@@ -172,6 +172,8 @@ def _drop_builds(module: Any) -> list[str]:
 # A build's folder: the module's name and the first digits of its code's hash; Warp builds
 # in one named after the process and thread as well, then renames it to this.
 _BUILD_FOLDER = re.compile(r"wp_(?P<module>[\w.]+)_[0-9a-f]{7}(?P<building>_p\d+_t\d+)?")
+# The folder Warp keeps one version's builds in, inside WARP_CACHE_PATH.
+_VERSION_FOLDER = re.compile(r"\d+\.\d+\.\d+[\w.+-]*")
 # A build folder in progress this long ago was left by a process that died.
 _UNFINISHED_SECONDS = 3600
 
@@ -219,9 +221,10 @@ def build_folder(module_name: str, cpu: bool) -> Path | None:
 
 def stale_kernel_builds() -> list[Path]:
     """Folders of Warp's kernel cache that no run of this warptex loads: builds of its
-    kernel modules' other code (other warptex versions; Warp never deletes them), and builds
-    and deletions of builds left unfinished over an hour ago. Empty for a Warp that names
-    its builds otherwise.
+    kernel modules' other code (other warptex versions; Warp never deletes them) and of
+    other Warp versions (in the cache's sibling folders named by version), and builds and
+    deletions of builds left unfinished over an hour ago. Empty for a Warp that names its
+    builds otherwise.
 
     Raises:
         OSError: the cache folder exists but cannot be listed.
@@ -233,8 +236,13 @@ def stale_kernel_builds() -> list[Path]:
     cache = Path(wp.config.kernel_cache_dir)
     if not cache.is_dir():
         return []
+    folders = sorted(cache.iterdir())
+    if cache.name == wp.config.version:  # Warp's folder for its version: others beside it
+        for other in sorted(cache.parent.iterdir()):
+            if other != cache and _VERSION_FOLDER.fullmatch(other.name) and other.is_dir():
+                folders += sorted(other.iterdir())
     stale = []
-    for folder in sorted(cache.iterdir()):
+    for folder in folders:
         doomed = _DOOMED_FOLDER.fullmatch(folder.name)
         build = _BUILD_FOLDER.fullmatch(doomed["build"] if doomed else folder.name)
         if not build or build["module"] not in modules or folder in current:
