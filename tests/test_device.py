@@ -293,7 +293,7 @@ def test_cache_command_lists_and_prunes_stale_kernel_builds(tmp_path, monkeypatc
     made = _kernel_cache(tmp_path, [])
     assert main(["cache"]) == 0
     out = capsys.readouterr().out
-    assert "of which 3 kernel builds of other warptex versions or left unfinished" in out
+    assert "of which 3 kernel builds of other warptex or Warp versions or left unfinished" in out
     assert all(made[k].is_dir() for k in ("other", "dead", "abandoned"))  # listing deletes nothing
     assert main(["cache", "--prune"]) == 0
     assert "deleted: 3 kernel builds" in capsys.readouterr().out

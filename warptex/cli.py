@@ -443,7 +443,7 @@ def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
         "'being written': a write of another run, perhaps still going. 'unreadable': not "
         "readable here (another user's file, a folder), left alone. Files stay until "
         "deleted here. Also says where Warp's kernel cache is, how large, and how much of it "
-        "holds builds of other warptex versions.",
+        "holds builds of other warptex or Warp versions.",
         epilog="Deleted candidates are computed again when next needed (a few seconds for a "
         "64 px exemplar, about a minute for 256 px, minutes with one per axis).",
     )
@@ -505,10 +505,10 @@ def _cmd_cache(args: argparse.Namespace) -> int:
           "between runs")
     stale = kernels["other_builds"]
     if kernels["deleted"] is not None:
-        print(f"deleted: {kernels['deleted']['builds']} kernel builds of other warptex versions "
-              f"or left unfinished, {_mib_tenths(kernels['deleted']['bytes'])}")
+        print(f"deleted: {kernels['deleted']['builds']} kernel builds of other warptex or "
+              f"Warp versions or left unfinished, {_mib_tenths(kernels['deleted']['bytes'])}")
     elif stale:
-        print(f"  of which {len(stale)} kernel builds of other warptex versions or left "
+        print(f"  of which {len(stale)} kernel builds of other warptex or Warp versions or left "
               f"unfinished, {_mib_tenths(kernels['other_bytes'])}: warptex cache --prune "
               "deletes them")
     return 0
