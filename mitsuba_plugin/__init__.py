@@ -264,8 +264,9 @@ def traced_renders(scene: mi.Scene) -> Iterator[None]:
     Render only ``scene`` in it: object-space textures find their frames among its
     shapes. Voxels the block reads that are not stored show a stand-in color; leaving the
     block synthesizes them and raises :class:`MissedVoxels`, and the gradients it left
-    are of stand-in colors: clear them and run it again. A texture that cannot be traced
-    (a CUDA variant, bricks scattered too widely) is a RuntimeError: render in
+    are of stand-in colors: clear them and run it again. Object-space textures take their
+    shapes' frames as the block starts: move shapes between blocks. A texture that cannot
+    be traced (a CUDA variant, bricks scattered too widely) is a RuntimeError: render in
     :func:`wavefront` mode then. Scalar variants need no block: any render works there.
     """
     if not dr.is_jit_v(mi.Float):
@@ -287,18 +288,19 @@ def traced_renders(scene: mi.Scene) -> Iterator[None]:
 @contextmanager
 def _traced_lookups(scene: mi.Scene, outcome: dict[str, int]) -> Iterator[bool]:
     """Serve the live textures' symbolic evals in ``scene`` from their stored voxels for
-    the block, which is told whether every texture can be traced; on leaving, the voxels
+    the block, which is told whether the scene's textures can be traced; on leaving, the voxels
     its renders missed are synthesized and counted in ``outcome["missed"]``."""
     if _tracer[0] == threading.get_ident():  # the lock would wait for this very thread
         raise RuntimeError("mitsuba_plugin: render() and traced_renders() cannot run "
                            "inside a traced_renders() block")
-    # Every live texture, not only those traversal finds in the scene: tracing another
-    # scene's costs nothing, and one that a plugin kept from traversal would raise.
-    live = textures()
+    # Every live texture, not only those traversal finds in the scene: Dr.Jit traces
+    # every texture of the variant into the program, those of other scenes included (an
+    # untraceable one of those is traced inert, not in the scene's way).
+    live, own = textures(), {id(t) for t in textures(scene)}
     with _tracing:
         try:
             _tracer[0] = threading.get_ident()
-            usable = all([t.begin_tracing(scene) for t in live])
+            usable = all([t.begin_tracing(scene, own=id(t) in own) for t in live])
             yield usable
         finally:
             for t in live:

@@ -26,14 +26,29 @@ _TABLE = "data/srgb.coeff"
 _GRAY_LIMIT = 8192.0
 
 
+# Mitsuba's luminance weights (linear sRGB), as the float32 constants it multiplies by.
+_LUMINANCE = tuple(float(np.float32(w)) for w in (0.212671, 0.715160, 0.072169))
+
+
 def spectrum(rgb: mi.Color3f, wavelengths: mi.UnpolarizedSpectrum) -> mi.UnpolarizedSpectrum:
     """``rgb`` as the current variant's spectrum at ``wavelengths`` (an interaction's; read
     in spectral variants only)."""
     if mi.is_spectral:
         return mi.srgb_model_eval(srgb_coefficients(rgb), wavelengths)
     if mi.is_monochromatic:
-        return mi.UnpolarizedSpectrum(mi.luminance(rgb))
+        return mi.UnpolarizedSpectrum(luminance(rgb))
     return rgb
+
+
+def luminance(rgb: mi.Color3f) -> mi.Float:
+    """``mi.luminance`` of ``rgb`` in float64 in one order of operations, rounded to float32
+    once: Mitsuba's scalar and LLVM builds compile theirs differently, a float32 ulp apart
+    on some colors, and a point's value must not depend on the variant."""
+    if not dr.is_jit_v(mi.Float):
+        return mi.Float(sum(w * float(c) for w, c in zip(_LUMINANCE, rgb, strict=True)))
+    wide = dr.float64_array_t(mi.Float)
+    r, g, b = (wide(c) for c in rgb)
+    return mi.Float(_LUMINANCE[0] * r + _LUMINANCE[1] * g + _LUMINANCE[2] * b)
 
 
 def srgb_coefficients(rgb: mi.Color3f) -> mi.Vector3f:

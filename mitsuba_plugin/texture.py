@@ -111,7 +111,7 @@ from mitsuba_plugin.properties import (
     scene_path,
 )
 from mitsuba_plugin.scalar import ScalarLookup
-from mitsuba_plugin.spectrum import check_upsampling, spectrum
+from mitsuba_plugin.spectrum import check_upsampling, luminance, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
@@ -138,6 +138,8 @@ from warptex.texture import SolidTexture, wrap_far
 
 PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
+# Pixel triples whose voxel colors estimate the mean of a texture decoded from sRGB.
+_MEAN_SAMPLES = 1 << 16
 _DEFAULT_SCALE = 64.0
 _PROPERTIES = ("exemplar", "exemplar_x", "exemplar_y", "exemplar_z", "exemplar_max_size",
                "feature_distance", "feature_mask", "seed", "jitter", "shifted_tiles",
@@ -338,24 +340,23 @@ class LazySolidTexture(mi.Texture):
                                       store=store, shifted_tiles=self.shifted_tiles)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
-        colors = _exemplar_colors(candidates)
+        axes = _axis_colors(candidates)
         # Traced lookups give voxels not yet stored this color, in stored values as theirs.
-        self._stand_in = tuple(float(c) for c in colors.mean(axis=0))
-        if self._decode_srgb:
-            colors = srgb_to_linear(colors)
+        self._stand_in = tuple(float(c) for c in np.mean([a.mean(axis=0) for a in axes], 0))
         # What eval gives on average (the mean channel; luminance in a monochrome variant)
         # and at most (spectra may exceed a color's largest channel, but never 1).
-        self._mean = float(colors.mean())
+        mean_rgb, max_rgb = _voxel_color_range(axes, self._decode_srgb)
+        self._mean = float(mean_rgb.mean())
         if mi.is_monochromatic:
-            mean_rgb = mi.Color3f(*(float(c) for c in colors.mean(axis=0)))
-            self._mean = float(np.ravel(mi.luminance(mean_rgb))[0])
-        self._max = 1.0 if mi.is_spectral else float(colors.max())
+            self._mean = float(np.ravel(luminance(mi.Color3f(*map(float, mean_rgb))))[0])
+        self._max = 1.0 if mi.is_spectral else float(max_rgb.max())
         self._traced: TracedLookup | None = None
         # The scalar variants' copies of bricks, as large as the store may be.
         self._scalar = (None if dr.is_jit_v(mi.Float)
                         else ScalarLookup(self.solid.store, self.filter, cache_bytes))
         self._frames: _ObjectFrames | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture
+        self._inert = False  # traced as another scene's texture that cannot be traced
         self._update_transform()
         mitsuba_plugin.live_textures.add(self)
 
@@ -368,7 +369,7 @@ class LazySolidTexture(mi.Texture):
         return self.colors_at(si, active)
 
     def eval_1(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Float:
-        return mi.luminance(self.colors_at(si, active))
+        return luminance(self.colors_at(si, active))
 
     def sample_spectrum(self, si: mi.SurfaceInteraction3f, sample: Any,
                         active: mi.Bool = True) -> tuple[Any, mi.UnpolarizedSpectrum]:
@@ -483,6 +484,8 @@ class LazySolidTexture(mi.Texture):
                                    "mitsuba_plugin.traced_renders block (backward passes "
                                    "too), or in wavefront mode (Dr.Jit's SymbolicLoops and "
                                    "SymbolicCalls flags off)")
+            if self._inert:
+                return dr.zeros(mi.Color3f, dr.width(it.p))
             p = [mi.Float64(c) for c in it.p]
             if self.space == "object":
                 p = self._frames.to_object(it, p)
@@ -510,19 +513,23 @@ class LazySolidTexture(mi.Texture):
 
     # -- traced lookups (driven by mitsuba_plugin.render and traced_renders) ------------
 
-    def begin_tracing(self, scene: mi.Scene) -> bool:
+    def begin_tracing(self, scene: mi.Scene, own: bool = True) -> bool:
         """Serve symbolic ``eval`` calls in ``scene`` from the stored voxels; False, and
         nothing changed, when this texture cannot be traced (see the module
-        documentation)."""
+        documentation). A texture of another scene (not ``own``) that cannot be traced is
+        traced inert instead, giving black: Dr.Jit traces every texture of the variant
+        into a render's program, though no point of ``scene`` calls one of another scene."""
         if not dr.is_jit_v(mi.Float) or dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
             return False  # CUDA: traced arithmetic is not bit-exact (module documentation)
         if self._traced is None:
             self._traced = TracedLookup(self.solid.store, self.filter, self._stand_in)
         if self.space == "object":
+            # Taken now: a shape's matrix cannot be read inside a symbolic render.
             self._frames = _ObjectFrames(scene)
         usable = self._traced.refresh()
-        self._tracing = threading.get_ident() if usable else None
-        return usable
+        self._inert = not usable and not own
+        self._tracing = threading.get_ident() if usable or self._inert else None
+        return usable or self._inert
 
     def fill_misses(self) -> int:
         """Synthesize the bricks that traced lookups missed since the last call; returns
@@ -604,11 +611,26 @@ def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
     return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in list(rows)[:3])
 
 
-def _exemplar_colors(candidates: CandidateSet) -> np.ndarray:
-    """RGB (N, 3) of every exemplar pixel: voxels average three of them, so these bound
-    the texture's range and give its mean."""
-    return _as_rgb(np.concatenate([c.reshape(-1, candidates.channels)
-                                  for c in candidates.colors]))
+def _axis_colors(candidates: CandidateSet) -> list[np.ndarray]:
+    """RGB (N, 3) of every pixel of each axis' exemplar (x, y, z), as stored: a voxel's
+    color is the mean of one pixel of each (Dong 2008, section 4)."""
+    return [_as_rgb(candidates.colors[k].reshape(-1, candidates.channels))
+            for k in candidates.axis_source]
+
+
+def _voxel_color_range(axes: list[np.ndarray], decode: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The mean RGB of the voxels of exemplars ``axes`` (:func:`_axis_colors`) and a bound
+    on their channels, as eval gives them (decoded from sRGB where ``decode``): each axis
+    weighs the same, whatever its size, and a voxel's three pixels are averaged before they
+    are decoded. The mean is estimated on a fixed sample of pixel triples; the bound is
+    exact, since a voxel averages its pixels in the same float32 order."""
+    bound = (axes[0].max(axis=0) + axes[1].max(axis=0) + axes[2].max(axis=0)) / np.float32(3)
+    if not decode:
+        return np.mean([a.mean(axis=0, dtype=np.float64) for a in axes], axis=0), bound
+    rng = np.random.default_rng(0)
+    triples = [a[rng.integers(len(a), size=_MEAN_SAMPLES)] for a in axes]
+    voxels = (triples[0] + triples[1] + triples[2]) / np.float32(3)
+    return srgb_to_linear(voxels).mean(axis=0, dtype=np.float64), srgb_to_linear(bound)
 
 
 def _as_rgb(colors: np.ndarray) -> np.ndarray:
@@ -631,11 +653,10 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f,
     placed = np.zeros(len(points), bool)
     for pointers in (it.instance, it.shape):
         for rows, obj in _objects(pointers, keep):
-            to_world = None if obj is None else _frame(obj)
+            to_object = None if obj is None else _to_object_matrix(obj)
             rows &= ~placed
-            if to_world is not None and rows.any():
-                to_object = np.linalg.inv(to_world).tolist()
-                out[rows] = np.stack(_apply_affine(to_object, *points[rows].T), axis=1)
+            if to_object is not None and rows.any():
+                out[rows] = np.stack(_apply_affine(to_object.tolist(), *points[rows].T), axis=1)
                 placed |= rows
     return out
 
@@ -653,10 +674,20 @@ def _objects(pointers: Any, keep: np.ndarray | None) -> list[tuple[np.ndarray, A
             for i, lane in zip(unique, lanes, strict=True) if i]
 
 
-def _frame(obj: mi.Object) -> np.ndarray | None:
-    """The object's ``to_world`` matrix, if it exposes one."""
+def _to_object_matrix(obj: mi.Object) -> np.ndarray | None:
+    """The inverse of the object's ``to_world`` matrix, if it exposes one that can be
+    inverted: a degenerate shape (a sphere of radius 0) has no frame, nor points to hit."""
     params = mi.traverse(obj)
-    return _affine_matrix(params["to_world"]) if "to_world" in params else None
+    if "to_world" not in params:
+        return None
+    to_world = _affine_matrix(params["to_world"])
+    if not np.isfinite(to_world).all():
+        return None
+    try:
+        inverse = np.linalg.inv(to_world)
+    except np.linalg.LinAlgError:
+        return None
+    return inverse if np.isfinite(inverse).all() else None
 
 
 class _ObjectFrames:
@@ -665,14 +696,14 @@ class _ObjectFrames:
     ``to_world`` parameter), found per lane through the shape pointers' registry ids."""
 
     def __init__(self, scene: mi.Scene) -> None:
-        framed = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]), _frame(s))
-                  for s in scene.shapes()]
+        framed = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]),
+                   _to_object_matrix(s)) for s in scene.shapes()]
         framed = [(i, m) for i, m in framed if m is not None]
         index = np.full(max([i for i, _ in framed], default=0) + 1, -1, np.int32)
         matrices = np.zeros((max(len(framed), 1), 12))
-        for n, (i, to_world) in enumerate(framed):
+        for n, (i, to_object) in enumerate(framed):
             index[i] = n
-            matrices[n] = np.linalg.inv(to_world)[:3].reshape(-1)
+            matrices[n] = to_object[:3].reshape(-1)
         self._index = mi.Int32(index)
         self._matrices = mi.Float64(matrices.reshape(-1))
 

@@ -28,7 +28,7 @@ from mitsuba_plugin.properties import (
     property_error,
     unknown_property,
 )
-from mitsuba_plugin.spectrum import spectrum
+from mitsuba_plugin.spectrum import luminance, spectrum
 
 MEDIUM = "lazy_solid_medium"
 # Besides these, a nested phase function, which may go by any name (unnamed, the parser's
@@ -53,7 +53,7 @@ class LazySolidVolume(mi.Volume):
         return mi.Vector3f(self.texture.colors_at(it, active))
 
     def eval_1(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Float:
-        return mi.luminance(self.texture.colors_at(it, active))
+        return luminance(self.texture.colors_at(it, active))
 
     def max(self) -> float:
         return self._max

@@ -140,9 +140,10 @@ def test_scattered_bricks_beyond_the_page_budget_are_not_traced(texture, monkeyp
 
 
 def lit_plane(path, space: str = "world", filter: str = "trilinear", integrator: str = "path",
-              **props):
-    """A floor and a wall of one lazy_solid texture under an environment, and that
-    texture: paths bounce between them, so later bounces read bricks the first did not."""
+              extra: dict | None = None, **props):
+    """A floor and a wall of one lazy_solid texture under an environment (and the objects
+    ``extra``), and that texture: paths bounce between them, so later bounces read bricks
+    the first did not."""
     before = set(mitsuba_plugin.textures())  # the objects: a freed one's id may be reused
     tex = {"type": "ref", "id": "tex"}
     T = mi.ScalarTransform4f
@@ -161,7 +162,7 @@ def lit_plane(path, space: str = "world", filter: str = "trilinear", integrator:
                  "to_world": T().translate([0, 1.5, 1]).rotate([1, 0, 0], 90).scale([2, 1, 1]),
                  "bsdf": {"type": "diffuse", "reflectance": tex}},
         "light": {"type": "constant"},
-    })
+    } | (extra or {}))
     (texture,) = [t for t in mitsuba_plugin.textures() if t not in before]
     return scene, texture
 
@@ -238,6 +239,38 @@ def test_object_space_is_traced_and_agrees_with_wavefront_mode(granite_32_file):
         wavefront = np.array(mi.render(scene, spp=4, seed=0))
     assert traced.std() > 0.02
     np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
+
+
+def test_a_shape_without_a_frame_stops_no_traced_render(granite_32_file):
+    """A sphere of radius 0 has a to_world that cannot be inverted: taking the frames of a
+    scene's shapes for an object-space texture (its own, or a live one of another scene)
+    raised LinAlgError, where wavefront mode rendered."""
+    other = lit_plane(granite_32_file, space="object")  # alive, of another scene
+    point = {"point": {"type": "sphere", "center": [0, 0, -3], "radius": 0.0}}
+    for space in ("world", "object"):
+        scene, texture = lit_plane(granite_32_file, space=space, extra=point)
+        traced = np.array(mitsuba_plugin.render(scene, spp=4))
+        assert texture.traced_stats()["renders"] >= 1
+        with mitsuba_plugin.wavefront():
+            wavefront = np.array(mi.render(scene, spp=4, seed=0))
+        np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
+    del other
+
+
+def test_an_untraceable_texture_of_another_scene_leaves_this_one_traced(granite_32_file):
+    """Dr.Jit traces every texture of the variant into a render's program: one of another
+    scene whose bricks lie too far apart to be traced sent every batch of this scene to
+    wavefront mode, and made this scene's traced_renders raise."""
+    _, far = lit_plane(granite_32_file)
+    far.solid.query(np.array([[0.0, 0.0, 0.0], [3e6, 3e6, 3e6]]))
+    assert not far.begin_tracing(mi.load_dict({"type": "scene"}))
+    far.end_tracing()
+    scene, texture = lit_plane(granite_32_file)
+    image = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats()["renders"] >= 1
+    with mitsuba_plugin.traced_renders(scene):
+        again = np.array(mi.render(scene, spp=4, seed=0))
+    np.testing.assert_allclose(again, image, rtol=1e-5, atol=1e-6)
 
 
 def test_out_of_rounds_a_pass_is_rendered_in_wavefront_mode(granite_32_file, monkeypatch):
@@ -437,12 +470,12 @@ def test_traced_blocks_end_their_tracing_and_do_not_nest(granite_32_file, monkey
     with pytest.raises(RuntimeError, match=r"cannot run inside a traced_renders\(\) block"), \
             mitsuba_plugin.traced_renders(scene):
         mitsuba_plugin.render(scene, spp=1)
-    monkeypatch.setattr(type(texture), "begin_tracing", lambda self, scene: False)
+    monkeypatch.setattr(type(texture), "begin_tracing", lambda self, scene, own=True: False)
     with pytest.raises(RuntimeError, match="cannot be traced"), \
             mitsuba_plugin.traced_renders(scene):
         pass
 
-    def failing(self, scene):
+    def failing(self, scene, own=True):
         raise MemoryError("while mirroring the store")
 
     # A texture failing to start tracing leaves nothing traced and nothing locked.
