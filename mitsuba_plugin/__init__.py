@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import importlib
 import threading
+import warnings
 import weakref
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
@@ -52,9 +53,16 @@ live_textures: weakref.WeakSet = weakref.WeakSet()
 
 
 def set_best_variant() -> str:
-    """Set and return ``llvm_ad_rgb`` when LLVM works here, else ``scalar_rgb``."""
+    """Set and return ``llvm_ad_rgb`` when LLVM works here, else ``scalar_rgb`` (with a
+    warning where libLLVM was found but Dr.Jit could not start it)."""
     variant = warptex.best_mitsuba_variant()
-    mi.set_variant(variant)
+    try:
+        mi.set_variant(variant)
+    except ImportError as e:
+        warnings.warn(f"warptex: Mitsuba falls back to scalar_rgb: {variant} does not start "
+                      f"({e})", stacklevel=2)
+        variant = "scalar_rgb"
+        mi.set_variant(variant)
     return variant
 
 
@@ -70,11 +78,13 @@ def use_variant(name: str) -> str:
     previous = mi.variant()
     try:
         mi.set_variant(name)
-    except ImportError as e:  # a CUDA variant without a usable GPU
+    except ImportError as e:  # no usable GPU, or a libLLVM Dr.Jit cannot start
         if previous is not None:  # Mitsuba is left without a variant otherwise
             mi.set_variant(previous)
-        raise ValueError(f"Mitsuba variant {name} needs a CUDA GPU and its driver, which "
-                         f"Dr.Jit does not find here ({e})") from None
+        if name.startswith("cuda_"):
+            raise ValueError(f"Mitsuba variant {name} needs a CUDA GPU and its driver, which "
+                             f"Dr.Jit does not find here ({e})") from None
+        raise ValueError(f"Mitsuba variant {name} does not start here ({e})") from None
     return name
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import errno
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -255,3 +257,18 @@ def test_the_modules_the_readme_names_are_reached_from_a_plain_import():
     assert result.returncode == 0, result.stderr
     with pytest.raises(AttributeError, match="no attribute 'volumes'"):
         warptex.volumes  # noqa: B018
+
+
+def test_another_kernels_package_is_named_as_the_cause(tmp_path):
+    """warptex's kernels are the top-level package ``kernels``: a folder of that name in the
+    working folder (or PyPI's package installed over it) hid it, and imports failed later
+    with "No module named 'kernels.candidates'"."""
+    (tmp_path / "kernels").mkdir()
+    (tmp_path / "kernels" / "__init__.py").write_text("")
+    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0
+    assert (f"the one Python found, {tmp_path / 'kernels' / '__init__.py'}, is another"
+            in run.stderr)
+    assert "No module named" not in run.stderr
+

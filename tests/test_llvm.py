@@ -48,10 +48,25 @@ def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
     assert llvm.configure_drjit() == tmp_path / "libLLVM-18.so.1"
     assert os.environ["DRJIT_LIBLLVM_PATH"] == str(tmp_path / "libLLVM-18.so.1")
 
-    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/opt/llvm/lib/libLLVM.so")
-    assert str(llvm.configure_drjit()) == "/opt/llvm/lib/libLLVM.so"
-    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/usr/lib/libLLVM-15.so")
+    chosen = tmp_path / "custom" / "libLLVM.so"  # a user's, of no version in its name
+    chosen.parent.mkdir()
+    chosen.write_bytes(b"")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(chosen))
+    assert llvm.configure_drjit() == chosen
+    old = tmp_path / "libLLVM-15.so"
+    old.write_bytes(b"")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(old))
     assert llvm.configure_drjit() is None
+    # One that names no file: Dr.Jit could not start it (a traceback from Mitsuba).
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "gone" / "libLLVM.so.19"))
+    assert llvm.configure_drjit() is None
+
+
+def test_a_preset_library_that_cannot_serve_is_named_in_the_fallback(tmp_path, monkeypatch):
+    pytest.importorskip("mitsuba")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "libfoo.so"))
+    with pytest.warns(UserWarning, match=r"DRJIT_LIBLLVM_PATH=.*libfoo\.so names no file"):
+        assert llvm.best_mitsuba_variant() == "scalar_rgb"
 
 
 def test_falls_back_to_scalar_with_one_warning(monkeypatch):
@@ -99,3 +114,27 @@ def test_llvm_variant_renders_in_subprocess():
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "rendered llvm_ad_rgb" in result.stdout
+
+
+def test_a_variant_that_does_not_start_falls_back_or_is_named(monkeypatch):
+    """A libLLVM that Dr.Jit cannot start: set_best_variant raised Mitsuba's ImportError,
+    and --variant llvm_ad_rgb was said to need a CUDA GPU."""
+    mi = pytest.importorskip("mitsuba")
+    import mitsuba_plugin
+
+    if llvm.configure_drjit() is None:
+        pytest.skip("needs a libLLVM found, which Dr.Jit is made to refuse")
+    real = mi.set_variant
+
+    def refusing(name, *args):
+        if name.startswith("llvm_"):
+            raise ImportError("the LLVM backend is inactive")
+        return real(name, *args)
+
+    monkeypatch.setattr(mi, "set_variant", refusing)
+    monkeypatch.setattr(mitsuba_plugin.warptex, "best_mitsuba_variant", lambda: "llvm_ad_rgb")
+    with pytest.warns(UserWarning, match="llvm_ad_rgb does not start"):
+        assert mitsuba_plugin.set_best_variant() == "scalar_rgb"
+    with pytest.raises(ValueError, match=r"Mitsuba variant llvm_ad_rgb does not start here "
+                                         r"\(the LLVM backend is inactive\)"):
+        mitsuba_plugin.use_variant("llvm_ad_rgb")

@@ -16,6 +16,28 @@ from warptex.llvm import best_mitsuba_variant, configure_drjit
 
 configure_drjit()
 
+
+def _check_kernels_package() -> None:
+    """Refuse, in one message, a ``kernels`` package that is not warptex's: PyPI's package
+    of that name installed over it, or a ``kernels`` folder first on the path, would fail
+    later with an error naming neither."""
+    try:
+        import kernels
+    except ImportError as error:  # warptex's imports nothing: this is another's
+        found, why = "it", f" ({error})"
+    else:
+        if getattr(kernels, "WARPTEX_KERNELS", False):
+            return
+        found, why = getattr(kernels, "__file__", None) or list(kernels.__path__), ""
+    raise ImportError(f"warptex's Warp kernels are the top-level package 'kernels', and the "
+                      f"one Python found, {found}, is another{why}: PyPI's 'kernels' package "
+                      "installed in this environment, or a 'kernels' folder in the working "
+                      "folder or on PYTHONPATH. Give warptex an environment of its own, or "
+                      "run it from another folder.")
+
+
+_check_kernels_package()
+
 from warptex.exemplar import Exemplar, ExemplarError, PyramidLevel  # noqa: E402
 from warptex.warp_runtime import device  # noqa: E402
 

@@ -1481,8 +1481,9 @@ class _HelpFormatter(argparse.HelpFormatter):
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    # A user of the command needs the message, not the source line that raised it.
-    print(f"warptex: warning: {message}", file=sys.stderr)
+    # A user of the command needs the message, not the source line that raised it; a
+    # message that names warptex for Python's users is not prefixed twice.
+    print(f"warptex: warning: {str(message).removeprefix('warptex: ')}", file=sys.stderr)
 
 
 # Modules nearly every command builds, and whether they run on the CPU whatever the device

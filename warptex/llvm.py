@@ -56,13 +56,22 @@ def configure_drjit() -> Path | None:
     """
     preset = os.environ.get(_ENV)
     if preset:
-        major = _major(preset)
-        # A user's choice is trusted unless its name says it is too old.
-        return None if major is not None and major < MIN_LLVM_MAJOR else Path(preset)
+        # A user's choice is trusted unless it is no file or its name says it is too old.
+        return None if _preset_problem(preset) else Path(preset)
     library = find_libllvm()
     if library is not None:
         os.environ[_ENV] = str(library)
     return library
+
+
+def _preset_problem(preset: str) -> str | None:
+    """Why the library ``DRJIT_LIBLLVM_PATH`` names cannot serve, or None."""
+    if not Path(preset).is_file():
+        return f"{_ENV}={preset} names no file"
+    major = _major(preset)
+    if major is not None and major < MIN_LLVM_MAJOR:
+        return f"{_ENV}={preset} is libLLVM {major}, older than {MIN_LLVM_MAJOR}"
+    return None
 
 
 def best_mitsuba_variant() -> str:
@@ -75,11 +84,13 @@ def best_mitsuba_variant() -> str:
     library = configure_drjit()
     if library is not None and "llvm_ad_rgb" in mi.variants():
         return "llvm_ad_rgb"
-    reason = (
-        f"no libLLVM >= {MIN_LLVM_MAJOR} found (install libllvm19 or set {_ENV})"
-        if library is None
-        else "this Mitsuba build has no llvm_ad_rgb variant"
-    )
+    preset = os.environ.get(_ENV)
+    if library is not None:
+        reason = "this Mitsuba build has no llvm_ad_rgb variant"
+    elif preset:
+        reason = f"{_preset_problem(preset)} (unset it to search, or name libLLVM 16 or newer)"
+    else:
+        reason = f"no libLLVM >= {MIN_LLVM_MAJOR} found (install libllvm19 or set {_ENV})"
     warnings.warn(f"warptex: Mitsuba falls back to scalar_rgb: {reason}", stacklevel=2)
     return "scalar_rgb"
 
