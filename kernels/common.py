@@ -10,6 +10,9 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+# Tells warptex's kernels from another package named ``kernels`` (warptex/__init__.py).
+WARPTEX_KERNELS = True
+
 # Integer coordinates (of voxels, blocks or bricks) packed into one int64 key: 21 bits per
 # axis, x most significant, each biased to be non-negative. warptex.keysets packs on the host.
 KEY_BIAS = 1 << 20

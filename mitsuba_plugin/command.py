@@ -96,14 +96,26 @@ def scene_error(text: str, scene: Path | None = None) -> str:
 
 def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> list[Path]:
     """The files a scene names (exemplars, meshes, included scenes and what they name, brick
-    stores) that exist, looked up as Mitsuba does: beside the file naming them, else beside
-    the scene, else from the working folder; ``$name`` as the ``parameters`` given (``-D``)
-    or the scene's defaults set it, ``~`` as the home folder. A scene that does not parse
+    stores) that exist, looked up as Mitsuba does: beside the scene, else from the working
+    folder; ``$name`` as the ``parameters`` given (``-D``) or the defaults of the scene and
+    of the files including it set it, ``~`` as the home folder. A scene that does not parse
     names none; loading it reports why."""
-    found: list[Path] = []
+    found: dict[Path, None] = {}
     read: set[Path] = set()
+    given = {name: str(value) for name, value in (parameters or {}).items()}
 
-    def visit(path: Path, folders: tuple[Path, ...]) -> None:
+    def existing(name: str) -> list[Path]:
+        try:
+            path = Path(name).expanduser()
+        except RuntimeError:  # ~user of no such user: no file, which loading reports
+            path = Path(name)
+        places = (scene_path.parent / path, path)
+        try:
+            return [p for p in places if p.is_file()]
+        except OSError:  # a value too long to be a file name, say
+            return []
+
+    def visit(path: Path, inherited: dict[str, str]) -> None:
         if path.resolve() in read:  # an include cycle; Mitsuba refuses it when loading
             return
         read.add(path.resolve())
@@ -111,9 +123,9 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
             root = ElementTree.parse(path).getroot()
         except (ElementTree.ParseError, OSError):
             return
-        values = {e.get("name"): e.get("value", "") for e in root.iter("default")}
-        values |= {name: str(value) for name, value in (parameters or {}).items()}
-        folders = (path.parent, *folders)
+        # A default never replaces a value set already (by an including file or -D).
+        own = {e.get("name"): e.get("value", "") for e in root.iter("default")}
+        values = own | inherited | given
         for element in root.iter():
             for value in (element.get("value"), element.get("filename")):
                 if not value:
@@ -121,14 +133,13 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
                 value = re.sub(r"\$(\w+)", lambda m: values.get(m.group(1), m.group(0)), value)
                 if "$" in value:
                     continue
-                name = Path(value).expanduser()
-                files = [p for p in (*(f / name for f in folders), name) if p.is_file()]
-                found.extend(files)
+                files = existing(value)
+                found.update(dict.fromkeys(files))
                 if element.tag == "include" and files:
-                    visit(files[0], folders)
+                    visit(files[0], values)
 
-    visit(scene_path, ())
-    return found
+    visit(scene_path, {})
+    return list(found)
 
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,

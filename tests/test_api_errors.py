@@ -265,10 +265,16 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
     with "No module named 'kernels.candidates'"."""
     (tmp_path / "kernels").mkdir()
     (tmp_path / "kernels" / "__init__.py").write_text("")
+    (tmp_path / "kernels" / "common.py").write_text("HUB = 'another package'\n")
     run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=120)
     assert run.returncode != 0
-    assert (f"the one Python found, {tmp_path / 'kernels' / '__init__.py'}, is another"
-            in run.stderr)
-    assert "No module named" not in run.stderr
+    assert (f"the one Python found, {tmp_path / 'kernels' / '__init__.py'}, is another "
+            f"({tmp_path / 'kernels' / 'common.py'} is not warptex's)" in run.stderr)
+    # A folder named kernels without __init__.py (a cache) hides nothing.
+    (tmp_path / "kernels" / "__init__.py").unlink()
+    (tmp_path / "kernels" / "common.py").unlink()
+    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
 

@@ -603,6 +603,8 @@ OVERWRITES = [
      "half_b.png"),
     (["render", "{work}/outer.xml", "-o", "{work}/sheet.png"], "sheet.png"),
     (["render", "{work}/home.xml", "-o", "{work}/y.png"], "y.png"),
+    # A bitmap named in an included file through a default of the scene including it.
+    (["render", "{work}/outer2.xml", "-o", "{work}/half_b.png"], "half_b.png"),
 ]
 
 
@@ -627,6 +629,13 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, monkeypatch, arg
         (work / name).write_text(scene.format(default=default, exemplar=exemplar))
     (work / "outer.xml").write_text('<scene version="3.0.0"><include filename="inner.xml"/>'
                                     "</scene>")
+    (work / "outer2.xml").write_text('<scene version="3.0.0"><default name="img" '
+                                     'value="half_b.png"/><include filename="inner2.xml"/>'
+                                     "</scene>")
+    (work / "inner2.xml").write_text(
+        '<scene version="3.0.0"><shape type="sphere"><bsdf type="diffuse"><texture '
+        'type="bitmap" name="reflectance"><string name="filename" value="$img"/></texture>'
+        "</bsdf></shape></scene>")
     before = {p.name: p.read_bytes() for p in work.iterdir()}
     code = main([a.format(work=work) for a in argv])
     err = capsys.readouterr().err
@@ -707,3 +716,17 @@ def test_an_empty_file_name_is_refused_as_such(tmp_path, capsys):
         main(["volume", "", "-o", str(tmp_path / "v.npy")])
     assert stop.value.code == 2
     assert "argument EXEMPLAR: empty file name" in capsys.readouterr().err
+
+
+def test_a_scene_naming_a_home_folder_of_no_user_is_refused_as_mitsuba_refuses_it(
+        tmp_path, capsys):
+    """Looking for the files a scene names expanded ~nosuchuser and stopped the render with
+    a traceback (RuntimeError: Could not determine home directory)."""
+    scene = tmp_path / "s.xml"
+    scene.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="diffuse">'
+                     '<texture type="bitmap" name="reflectance"><string name="filename" '
+                     f'value="~nosuchuser{"x" * 300}/y.png"/></texture></bsdf></shape></scene>')
+    assert main(["render", str(scene), "-o", str(tmp_path / "r.exr"),
+                 "--variant", "scalar_rgb"]) == 2
+    assert "cannot load the scene" in capsys.readouterr().err
+

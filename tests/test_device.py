@@ -280,6 +280,18 @@ def test_builds_of_other_warp_versions_are_stale_and_nothing_else_beside_them(tm
             (folder / name).mkdir()
     (tmp_path / "1.7.1").write_text("a file named as a version")
     assert device_module.stale_kernel_builds() == [old / "wp_kernels.lookup_89abcde"]
+    # Another user's version folder, unreadable here, is left alone, not an error.
+    unreadable = tmp_path / "1.8.0"
+    unreadable.mkdir()
+    listing = Path.iterdir
+
+    def iterdir(path):
+        if path == unreadable:
+            raise PermissionError(13, "Permission denied", str(path))
+        return listing(path)
+
+    monkeypatch.setattr(Path, "iterdir", iterdir)
+    assert device_module.stale_kernel_builds() == [old / "wp_kernels.lookup_89abcde"]
     # A cache folder not named as Warp's version has no siblings of other versions.
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(notes))
     assert device_module.stale_kernel_builds() == [notes / "wp_kernels.lookup_89abcde"]

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -60,6 +61,9 @@ def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
     # One that names no file: Dr.Jit could not start it (a traceback from Mitsuba).
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "gone" / "libLLVM.so.19"))
     assert llvm.configure_drjit() is None
+    # A bare name is Dr.Jit's dlopen's to find on the library path.
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "libLLVM-19.so")
+    assert llvm.configure_drjit() == Path("libLLVM-19.so")
 
 
 def test_a_preset_library_that_cannot_serve_is_named_in_the_fallback(tmp_path, monkeypatch):

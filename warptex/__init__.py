@@ -9,6 +9,7 @@ so ``import warptex`` stays light.
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import Any
 
 # Before anything can import Mitsuba: Dr.Jit reads DRJIT_LIBLLVM_PATH when its backend starts.
@@ -19,21 +20,24 @@ configure_drjit()
 
 def _check_kernels_package() -> None:
     """Refuse, in one message, a ``kernels`` package that is not warptex's: PyPI's package
-    of that name installed over it, or a ``kernels`` folder first on the path, would fail
-    later with an error naming neither."""
+    of that name installed over it, or a ``kernels`` package first on the path, would fail
+    later with an error naming neither. (A folder named ``kernels`` without an
+    ``__init__.py``, a cache say, only joins warptex's modules to it.)"""
     try:
-        import kernels
-    except ImportError as error:  # warptex's imports nothing: this is another's
-        found, why = "it", f" ({error})"
+        from kernels import common
+    except ImportError as error:
+        why = str(error)
     else:
-        if getattr(kernels, "WARPTEX_KERNELS", False):
+        if getattr(common, "WARPTEX_KERNELS", False):
             return
-        found, why = getattr(kernels, "__file__", None) or list(kernels.__path__), ""
+        why = f"{common.__file__} is not warptex's"
+    package = sys.modules.get("kernels")
+    found = getattr(package, "__file__", None) or list(getattr(package, "__path__", []))
     raise ImportError(f"warptex's Warp kernels are the top-level package 'kernels', and the "
-                      f"one Python found, {found}, is another{why}: PyPI's 'kernels' package "
-                      "installed in this environment, or a 'kernels' folder in the working "
-                      "folder or on PYTHONPATH. Give warptex an environment of its own, or "
-                      "run it from another folder.")
+                      f"one Python found, {found}, is another ({why}): PyPI's 'kernels' "
+                      "package installed in this environment, or a 'kernels' package in the "
+                      "working folder or on PYTHONPATH. Give warptex an environment of its "
+                      "own, or run it from another folder.")
 
 
 _check_kernels_package()

@@ -66,7 +66,8 @@ def configure_drjit() -> Path | None:
 
 def _preset_problem(preset: str) -> str | None:
     """Why the library ``DRJIT_LIBLLVM_PATH`` names cannot serve, or None."""
-    if not Path(preset).is_file():
+    # A bare name is looked up on the library path by Dr.Jit's dlopen, not here.
+    if os.sep in preset and not Path(preset).is_file():
         return f"{_ENV}={preset} names no file"
     major = _major(preset)
     if major is not None and major < MIN_LLVM_MAJOR:

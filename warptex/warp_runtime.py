@@ -238,9 +238,7 @@ def stale_kernel_builds() -> list[Path]:
         return []
     folders = sorted(cache.iterdir())
     if cache.name == wp.config.version:  # Warp's folder for its version: others beside it
-        for other in sorted(cache.parent.iterdir()):
-            if other != cache and _VERSION_FOLDER.fullmatch(other.name) and other.is_dir():
-                folders += sorted(other.iterdir())
+        folders += _other_version_folders(cache)
     stale = []
     for folder in folders:
         doomed = _DOOMED_FOLDER.fullmatch(folder.name)
@@ -256,6 +254,23 @@ def stale_kernel_builds() -> list[Path]:
                 continue
         stale.append(folder)
     return stale
+
+
+def _other_version_folders(cache: Path) -> list[Path]:
+    """What the folders of other Warp versions beside Warp's ``cache`` folder hold; one that
+    cannot be listed (another user's) is left alone."""
+    found = []
+    try:
+        others = sorted(cache.parent.iterdir())
+    except OSError:
+        return []
+    for other in others:
+        if other != cache and _VERSION_FOLDER.fullmatch(other.name) and other.is_dir():
+            try:
+                found += sorted(other.iterdir())
+            except OSError:
+                continue
+    return found
 
 
 def delete_kernel_builds(folders: Sequence[Path]) -> tuple[int, int]:
