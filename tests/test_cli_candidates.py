@@ -407,3 +407,16 @@ def test_progress_bars_in_a_log_are_lines_at_most_every_few_seconds(monkeypatch)
         log.write(text)
     assert "".join(written) == ("vol: 0%| 0/3 [00:00<?, ?slab/s]\n"
                                 "vol: 100%| 3/3 [00:11<00:00, 1.67slab/s]\n")
+    # A new step or phase is a line at once, before the long call it names: it was held
+    # back until the next redraw, after that call (25 s of unwrapping shown as step 0/2).
+    written.clear()
+    clock = iter([40.0, 40.0, 40.1, 40.2, 41.0, 41.5, 42.0])
+    for text in ("\r", "\rUV: step 0/2 [00:00]", "\rUV: step 0/2, unwrapping [00:00]",
+                 "\rUV: step 0/2, unwrapping [00:01]",
+                 "\rm:   0%|     | 0/2 [00:00<?, ?it/s, lazy]",
+                 "\rm:   0%|     | 0/2 [00:01<?, ?it/s, lazy: measuring]",
+                 "\rm:   0%|     | 0/2 [00:02<?, ?it/s, lazy: measuring]"):
+        log.write(text)
+    assert written == ["UV: step 0/2 [00:00]\n", "UV: step 0/2, unwrapping [00:00]\n",
+                       "m:   0%|     | 0/2 [00:00<?, ?it/s, lazy]\n",
+                       "m:   0%|     | 0/2 [00:01<?, ?it/s, lazy: measuring]\n"]

@@ -1544,7 +1544,8 @@ def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = N
 class _LogLines:
     """stderr where it is no terminal (a log): a progress bar's redraws ("\\r" and the bar)
     become lines of their own instead of one line of carriage returns: its first, then at
-    most one every ``_LOG_SECONDS``, and its last."""
+    most one every ``_LOG_SECONDS`` unless it says it does something else (a step or phase
+    that may take long), and its last."""
 
     def __init__(self, stream: TextIO) -> None:
         self._stream = stream
@@ -1552,6 +1553,7 @@ class _LogLines:
         self._pending: str | None = None  # its last redraw, not yet written
         self._written = 0.0  # when a redraw was last written
         self._shown = ""  # the progress of the redraw last written (see _without_times)
+        self._doing = ""  # what it said it was doing (see _activity)
 
     def write(self, text: str) -> int:
         if not text:  # tqdm writes nothing at times, which must not end a bar
@@ -1562,7 +1564,8 @@ class _LogLines:
             if not line:  # a bar cleared, as one that is not to be left: it has ended
                 self._pending, self._bar = None, False
                 return len(text)
-            if not self._bar or now - self._written >= _LOG_SECONDS:
+            if (not self._bar or now - self._written >= _LOG_SECONDS
+                    or _activity(line) != self._doing):
                 self._write_line(line)
                 self._pending, self._written = None, now
             else:
@@ -1581,7 +1584,7 @@ class _LogLines:
 
     def _write_line(self, line: str) -> None:
         self._stream.write(line + "\n")
-        self._shown = _without_times(line)
+        self._shown, self._doing = _without_times(line), _activity(line)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._stream, name)
@@ -1593,6 +1596,17 @@ _LOG_SECONDS = 10.0
 def _without_times(line: str) -> str:
     """A bar's line without its times and rate, tqdm's last "[...]"."""
     return line.rsplit(" [", 1)[0]
+
+
+def _activity(line: str) -> str:
+    """What a bar's line says its command is doing: its text without counts, percentages
+    and the bar itself, and the postfix tqdm puts after its times and rate ("[00:01<?,
+    ?it/s, lazy: measuring]"), which a bar of its own format puts before them."""
+    head, _, times = line.rpartition(" [")
+    if not head:
+        head, times = line, ""
+    postfix = times.rstrip("]").split(", ", 2)[2:]
+    return re.sub(r"[\d\u2588-\u258f]+", "", head) + "".join(postfix)
 
 
 @contextlib.contextmanager
