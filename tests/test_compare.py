@@ -864,6 +864,8 @@ def test_the_bar_says_what_each_method_s_process_is_doing(data_dir, tmp_path, mo
     compare(Setup(str(data_dir / "granite_64.png"), 8), ["lazy", "noise"], progress=True)
     err = capfd.readouterr().err
     for said in ("lazy: pre-computing candidates", "lazy: 8^3, timed",
-                 "lazy: measuring, rendering its cube", "noise: 8^3, timed"):
+                 "lazy: rendering its cube", "lazy: measuring energy",
+                 "lazy: measuring completeness", "lazy: measuring repetition",
+                 "noise: 8^3, timed"):
         assert said in err
     assert "noise: pre-computing" not in err

@@ -507,21 +507,32 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
             runs.append(time.perf_counter() - start)
     device = _engine_device() if method in _LAZY else "cpu"
     device_peak = _device_peak_mib(device)
-    _phase("measuring, rendering its cube")
+    _phase("its large volume")
     large = make_large(job, volume)
+    _phase("rendering its cube")
     render = render_cube(_cube_texture(method, job, volume))
     if method == "lazy":
         _check_unchanged(s)
-    # Each axis' slices against its own Exemplar, whose seams are decided once.
+
+    def per_axis(name: str, measure: Callable[[int], float]) -> list[float]:
+        # Each axis' slices against its own Exemplar, whose seams are decided once.
+        _phase(f"measuring {name}")
+        return [measure(a) for a in range(3)]
+
+    scores = {
+        "energy": per_axis("energy", lambda a: metrics.neighborhood_energy(
+            volume, axes[a], a, tileable=s.tileable)),
+        "completeness": per_axis("completeness", lambda a: metrics.completeness_energy(
+            volume, axes[a], a, tileable=s.tileable)),
+        "swd": per_axis("sliced Wasserstein", lambda a: metrics.sliced_wasserstein(
+            volume, axes[a], a, tileable=s.tileable)),
+        "histogram": per_axis("histograms", lambda a: metrics.histogram_distance(
+            volume, axes[a], a)),
+    }
+    _phase("measuring repetition")
     return {
         "method": method,
-        "energy": [metrics.neighborhood_energy(volume, axes[a], a, tileable=s.tileable)
-                   for a in range(3)],
-        "completeness": [metrics.completeness_energy(volume, axes[a], a, tileable=s.tileable)
-                         for a in range(3)],
-        "swd": [metrics.sliced_wasserstein(volume, axes[a], a, tileable=s.tileable)
-                for a in range(3)],
-        "histogram": [metrics.histogram_distance(volume, axes[a], a) for a in range(3)],
+        **scores,
         "repetition": metrics.repetition_score(large),
         "seconds": float(np.median(runs)),
         "seconds_runs": runs,
