@@ -255,8 +255,13 @@ def _volume(images, out: Path, *extra: str) -> int:
 def test_volume_slabs():
     assert cli._slab_edges(8) == [0, 8]
     assert cli._slab_edges(128) == [0, 64, 128]
-    assert cli._slab_edges(150) == [0, 44, 88, 132, 150]  # 46 voxels rounded to blocks
-    assert cli._slab_edges(300) == [0, 32, 64, 96, 128, 160, 192, 224, 256, 288, 300]
+    assert cli._slab_edges(150) == [0, 36, 76, 112, 150]  # 37.5 voxels rounded to blocks
+    assert cli._slab_edges(300) == [0, 32, 60, 88, 120, 152, 180, 208, 240, 272, 300]
+    # Two slabs over half a million voxels, so the bar moves; none of one voxel (a whole
+    # apron's work for it: 101 was 100 and 1).
+    assert cli._slab_edges(80) == [0, 80]
+    assert cli._slab_edges(100) == [0, 48, 100]
+    assert cli._slab_edges(101) == [0, 52, 101]
 
 
 def test_volume_npy_equals_box(images, expected, tmp_path, capsys, monkeypatch):

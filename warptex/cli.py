@@ -709,11 +709,14 @@ def _check_kopf_size(size: int) -> None:
 def _slab_edges(size: int) -> list[int]:
     """Where the x-slabs of a ``size``^3 volume begin, and its end: slabs of about a
     million voxels show progress, but none thinner than 32 voxels, which would spend more
-    on its apron than on itself, and whole blocks thick, which no two slabs share."""
+    on its apron than on itself, and whole blocks thick, which no two slabs share; all about
+    as thick (a last slab of one voxel paid a whole apron). A volume of over half a million
+    voxels (seconds) takes two at least, so that its bar moves."""
     from warptex.synthesis import BLOCK
 
-    thickness = min(size, max(32, (1 << 20) // size**2 // BLOCK * BLOCK))
-    return [*range(0, size, thickness), size]
+    thickness = min(size, max(32, (1 << 20) // size**2))
+    count = max(-(-size // thickness), 2 if size**3 > 1 << 19 else 1)
+    return sorted({round(i * size / count / BLOCK) * BLOCK for i in range(count)} | {size})
 
 
 def _check_memory(size: int, channels: int, working: int = 0) -> None:
