@@ -1,7 +1,12 @@
 """`warptex compare` (issue 7): every file, and rankings that follow from the methods."""
 
 import json
+import os
 import re
+import signal
+import subprocess
+import sys
+import time
 from datetime import datetime
 from pathlib import Path
 
@@ -869,3 +874,26 @@ def test_the_bar_says_what_each_method_s_process_is_doing(data_dir, tmp_path, mo
                  "noise: 8^3, timed"):
         assert said in err
     assert "noise: pre-computing" not in err
+
+
+def test_a_second_ctrl_c_while_compare_stops_prints_no_traceback(data_dir, tmp_path):
+    """Ctrl-C twice (or timeout's signal, which reaches the process and then its group): the
+    first left the wait for the workers' pool thread to the interpreter's exit, which the
+    second cut short with "Exception ignored ... KeyboardInterrupt" tracebacks."""
+    env = {**os.environ, "WARPTEX_CACHE": str(tmp_path / "cache")}
+    run = subprocess.Popen(
+        [sys.executable, "-m", "warptex", "compare", str(data_dir / "granite_64.png"),
+         "--size", "64", "--methods", "lazy,flat", "-o", str(tmp_path / "out")],
+        stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    said = ""
+    while "measuring" not in said and run.poll() is None:  # its method's process at work
+        said += run.stderr.readline()
+    for _ in range(2):  # to the process group, as a terminal's Ctrl-C goes
+        os.killpg(run.pid, signal.SIGINT)
+        time.sleep(0.5)
+    err = said + run.communicate(timeout=120)[1]
+    # 130, or ended by the second signal once the command returned (a shell says 130 too).
+    assert run.returncode in (130, -signal.SIGINT), err
+    assert "Traceback" not in err and "Exception ignored" not in err, err
+    assert not (tmp_path / "out").exists()
+

@@ -58,6 +58,7 @@ from warptex.exemplar import (
     srgb_encoded,
 )
 from warptex.machine import PeakMemory, map_large_blocks
+from warptex.parallel import deferred_stops
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -682,13 +683,16 @@ def _shown_as_here() -> Callable | None:
 
 
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
-    """Terminate a pool's workers now (``terminate_workers`` from Python 3.14 on)."""
-    if hasattr(pool, "terminate_workers"):
-        pool.terminate_workers()
-        return
-    for process in list((pool._processes or {}).values()):
-        process.terminate()
-    pool.shutdown(wait=False, cancel_futures=True)
+    """Terminate a pool's workers now (``terminate_workers`` from Python 3.14 on) and wait
+    for them and the pool's thread, a second Ctrl-C or SIGTERM held back meanwhile: left to
+    the interpreter's exit, that wait was cut short by it, with a traceback."""
+    with deferred_stops():
+        if hasattr(pool, "terminate_workers"):
+            pool.terminate_workers()
+        else:
+            for process in list((pool._processes or {}).values()):
+                process.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _trio(values: list[float]) -> str:

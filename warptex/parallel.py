@@ -91,8 +91,14 @@ def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
     Ctrl-C or SIGTERM comes meanwhile, which then goes on: SciPy joins its query threads in
     a way a KeyboardInterrupt cuts short, and the threads went on reading the tree while the
     interrupt freed it (a segmentation fault as the process ended)."""
-    with _signals_deferred((signal.SIGINT, signal.SIGTERM)):
+    with deferred_stops():
         return tree.query(queries, workers=workers or THREADS, **options)
+
+
+def deferred_stops() -> contextlib.AbstractContextManager[None]:
+    """The block run to its end when Ctrl-C or SIGTERM comes meanwhile, which then goes
+    on (see :func:`_signals_deferred`)."""
+    return _signals_deferred((signal.SIGINT, signal.SIGTERM))
 
 
 @contextlib.contextmanager
