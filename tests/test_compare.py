@@ -533,7 +533,7 @@ def test_stopping_a_comparison_ends_the_running_worker_at_once():
     import time
     from concurrent.futures import ProcessPoolExecutor
 
-    from warptex.compare import _stop_workers
+    from warptex.parallel import stop_workers
 
     def ended(worker) -> bool:
         worker.join(120)
@@ -551,7 +551,7 @@ def test_stopping_a_comparison_ends_the_running_worker_at_once():
     pool.submit(time.sleep, 600)
     workers = list(pool._processes.values())
     try:
-        _stop_workers(pool)
+        stop_workers(pool)
         assert workers and all(ended(w) for w in workers)
     finally:
         for worker in workers:

@@ -1,8 +1,12 @@
 """Splitting one Warp launch over CPU threads gives the result of one launch."""
 
+import multiprocessing
 import os
+import re
+import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -10,7 +14,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warptex.parallel import MIN_SPLIT, launch_ranges
+from warptex.parallel import MIN_SPLIT, in_child_process, launch_ranges
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -229,3 +233,18 @@ def test_every_signal_held_back_during_a_query_reaches_its_handler():
     finally:
         for n, handler in previous.items():
             signal.signal(n, handler)
+
+
+def _backtracking() -> None:
+    """Minutes in one C call that holds the GIL, as xatlas' unwrapping does."""
+    re.fullmatch(r"(a+)+b", "a" * 64)
+
+
+def test_a_stop_reaches_a_long_c_call_run_in_a_child_process():
+    """Ctrl-C or SIGTERM waited for xatlas' unwrapping to end (18 s on the bunny): run in a
+    child process, the call is stopped with it and the stop goes on at once."""
+    assert in_child_process(pow, 2, 10) == 1024
+    threading.Timer(1.0, signal.pthread_kill, (threading.get_ident(), signal.SIGINT)).start()
+    with pytest.raises(KeyboardInterrupt):
+        in_child_process(_backtracking)
+    assert multiprocessing.active_children() == []

@@ -1064,6 +1064,7 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
     from tqdm.auto import tqdm
 
     from warptex.bake import bake_uv_texture, uv_layout_problems, vertex_colors
+    from warptex.parallel import in_child_process
 
     if args.uv == "none":
         return {"mesh": mesh,
@@ -1073,7 +1074,7 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
         if args.uv == "auto":
             bar.set_postfix_str("unwrapping (xatlas)")
-            mesh = mesh.unwrap()
+            mesh = in_child_process(type(mesh).unwrap, mesh)
         bar.update()
         uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut does not offer it
         size = _texture_size(args)

@@ -58,7 +58,7 @@ from warptex.exemplar import (
     srgb_encoded,
 )
 from warptex.machine import PeakMemory, map_large_blocks
-from warptex.parallel import deferred_stops
+from warptex.parallel import stop_workers
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -631,7 +631,7 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
                     except TimeoutError:  # concurrent.futures' is the builtin from 3.11
                         _show_phases(bar, method, phases)
             except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
-                _stop_workers(pool)
+                stop_workers(pool)
                 raise
         _show_phases(bar, method, phases)
         results.append(MethodResult(**out))
@@ -660,9 +660,10 @@ def _start_worker(show_warning: Callable | None,
                   phases: multiprocessing.queues.Queue | None = None) -> None:
     """A method's process: large blocks mapped afresh, for its peak memory; progress bars
     locked between threads only, for tqdm's default lock between processes is a semaphore
-    that a worker stopped by :func:`_stop_workers` leaves to a warning at exit. Warnings are
-    shown as the caller's process shows them (the command's one line), but for a dropped
-    alpha, which :meth:`Setup.exemplars` reported already in compare's words."""
+    that a worker stopped by :func:`~warptex.parallel.stop_workers` leaves to a warning at
+    exit. Warnings are shown as the caller's process shows them (the command's one line),
+    but for a dropped alpha, which :meth:`Setup.exemplars` reported already in compare's
+    words."""
     map_large_blocks()
     std.tqdm.set_lock(threading.RLock())  # every kind of bar's
     if show_warning is not None:
@@ -680,19 +681,6 @@ def _shown_as_here() -> Callable | None:
     except (pickle.PicklingError, AttributeError, TypeError):
         return None
     return warnings.showwarning
-
-
-def _stop_workers(pool: ProcessPoolExecutor) -> None:
-    """Terminate a pool's workers now (``terminate_workers`` from Python 3.14 on) and wait
-    for them and the pool's thread, a second Ctrl-C or SIGTERM held back meanwhile: left to
-    the interpreter's exit, that wait was cut short by it, with a traceback."""
-    with deferred_stops():
-        if hasattr(pool, "terminate_workers"):
-            pool.terminate_workers()
-        else:
-            for process in list((pool._processes or {}).values()):
-                process.terminate()
-        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _trio(values: list[float]) -> str:

@@ -2,17 +2,21 @@
 
 Kernels written for this take the index of their first item as their first argument, so a
 launch over items [start, stop) can be cut into contiguous ranges launched from several
-threads. Items of such kernels are independent, so the result equals one launch.
+threads. Items of such kernels are independent, so the result equals one launch. Work that
+Ctrl-C or SIGTERM must not cut short is run to its end (:func:`deferred_stops`); one long
+call into C code that would keep them waiting runs in a process of its own
+(:func:`in_child_process`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
+import multiprocessing
 import signal
 import threading
-from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor, wait
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
 from itertools import pairwise
 from typing import Any
 
@@ -93,6 +97,32 @@ def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
     interrupt freed it (a segmentation fault as the process ended)."""
     with deferred_stops():
         return tree.query(queries, workers=workers or THREADS, **options)
+
+
+def in_child_process(function: Callable[..., Any], *args: Any) -> Any:
+    """``function(*args)`` run in a fresh process: a long call into C code that holds the
+    GIL (xatlas' unwrapping) kept Ctrl-C and SIGTERM waiting to its end, where now they stop
+    the child and go on at once. ``function``, its arguments and result must pickle."""
+    context = multiprocessing.get_context("spawn")  # no copy of this process' threads
+    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+        try:
+            return pool.submit(function, *args).result()
+        except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the child
+            stop_workers(pool)
+            raise
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate a pool's workers now (``terminate_workers`` from Python 3.14 on) and wait
+    for them and the pool's thread, a second Ctrl-C or SIGTERM held back meanwhile: left to
+    the interpreter's exit, that wait was cut short by it, with a traceback."""
+    with deferred_stops():
+        if hasattr(pool, "terminate_workers"):
+            pool.terminate_workers()
+        else:
+            for process in list((pool._processes or {}).values()):
+                process.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def deferred_stops() -> contextlib.AbstractContextManager[None]:
