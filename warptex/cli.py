@@ -1234,7 +1234,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     mesh = _load_mesh(args.mesh, weld=True)
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:
-        halves = cut(mesh, origin, np.asarray(args.normal))
+        halves = cut(mesh, origin, np.asarray(args.normal), progress=True)
     except ValueError as error:
         raise CliError(f"{args.mesh}: {error}") from None
     tex, srgb = _solid_texture(args, mesh=True)
