@@ -82,6 +82,17 @@ def _statuses(folder: Path) -> dict[str, str]:
     return {f.path.name: f.status for f in cc.cache_files(folder)}
 
 
+def test_reading_a_slow_cache_shows_a_bar(folder, monkeypatch, capsys):
+    """Every file is read whole: a large cache took seconds with nothing shown (1 GB in
+    4.9 s); a bar shows once reading takes over a second."""
+    import time
+
+    status = cc._status
+    monkeypatch.setattr(cc, "_status", lambda path: (time.sleep(0.4), status(path))[1])
+    assert cc.cache_files(folder, progress=True)
+    assert "reading the cache" in capsys.readouterr().err
+
+
 def test_cache_files_tell_each_kind_apart(folder, computed, image):
     current, other = computed
     files = {f.path.name: f for f in cc.cache_files(folder)}

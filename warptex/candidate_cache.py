@@ -17,6 +17,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm.auto import tqdm
+
 from warptex.archive import archive_version, is_temporary
 from warptex.candidates import (
     CACHE_PREFIX,
@@ -60,9 +62,11 @@ class CacheFile:
     identity: tuple[int, int, int] = (0, 0, 0)
 
 
-def cache_files(folder: Path | None = None, now: float | None = None) -> list[CacheFile]:
+def cache_files(folder: Path | None = None, now: float | None = None,
+                progress: bool = False) -> list[CacheFile]:
     """The cache files in ``folder`` (default: :func:`warptex.candidates.cache_dir`), oldest
-    first; none for a folder that does not exist yet.
+    first; none for a folder that does not exist yet. Each file is read whole (its checksum
+    tells a damaged one), seconds for a large cache: ``progress`` shows a bar then.
 
     Raises:
         NotADirectoryError: ``folder`` is a file.
@@ -75,7 +79,8 @@ def cache_files(folder: Path | None = None, now: float | None = None) -> list[Ca
         raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(folder))
     now = time.time() if now is None else now
     found = []
-    for path in folder.iterdir():
+    for path in tqdm(list(folder.iterdir()), desc="reading the cache", unit="file",
+                     disable=not progress, delay=1.0, leave=False):
         cached = path.name.startswith(CACHE_PREFIX) and path.name.endswith(CACHE_SUFFIX)
         if not cached and not is_temporary(path.name, CACHE_PREFIX, CACHE_SUFFIX):
             continue

@@ -463,7 +463,7 @@ def _cmd_cache(args: argparse.Namespace) -> int:
 
     folder = cc.cache_dir()
     try:
-        files = cc.cache_files(folder)
+        files = cc.cache_files(folder, progress=True)
     except OSError as error:
         raise CliError(f"{error.filename or folder}: cannot list the candidate cache "
                        f"({error.strerror or error}); WARPTEX_CACHE sets its folder") from None
