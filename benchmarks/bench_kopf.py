@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +79,9 @@ def main() -> None:
     args = parser.parse_args()
 
     warm = Exemplar(np.random.default_rng(0).random((16, 16, 3), dtype=np.float32))
-    kopf.synthesize(warm, size=16, iterations=1, progress=False)  # compile kernels
+    with warnings.catch_warnings():  # noise needs more PCA dimensions than Kopf keeps
+        warnings.simplefilter("ignore")
+        kopf.synthesize(warm, size=16, iterations=1, progress=False)  # compile kernels
 
     print(f"iterations per level (coarse to fine): {ITERATIONS}; mean-shift clustering: "
           f"{'on' if args.mean_shift else 'off'}")
