@@ -965,3 +965,25 @@ def test_margins_keep_candidates_off_each_seamed_edge_on_both_sides(warp_device)
             rows, cols = np.divmod(held, w)
             assert cols.min() == 2 and cols.max() == w - 3
             assert rows.min() == 0 and rows.max() == h - 1
+
+
+def test_the_bar_moves_after_each_half_of_a_role_level(monkeypatch, warp_device):
+    """A role's crossbar search and coherence test are about half its time each (24 s at a
+    256 px finest level, where the bar stood still): the bar moves after each."""
+    updates: list[float] = []
+
+    class Bar:
+        def __init__(self, *args, **kwargs) -> None:
+            pass
+
+        def update(self, n: float) -> None:
+            updates.append(n)
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(candidates, "tqdm", Bar)
+    exemplar = Exemplar.load(GRANITE)
+    precompute(exemplar, cache=False, progress=True)
+    finest = exemplar.shape[0] * exemplar.shape[1]
+    assert updates[-3:] == [finest, finest / 2, finest / 2]  # its source, then the halves
