@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import re
 import subprocess
 import sys
@@ -384,6 +385,22 @@ def test_volume_bad_arguments(images, tmp_path, capsys):
     assert f"{tmp_path / 'file' / 'v.npy'}: cannot write" in capsys.readouterr().err
     assert _volume(images, tmp_path / "new" / "v.npy") == 0  # missing folders are made
     assert (tmp_path / "new" / "v.npy").exists()
+
+
+def test_a_filling_bar_in_a_log_is_its_first_and_last_line():
+    """A real tqdm bar of each kind the commands draw: its fill, counts and units changing
+    are no new step (a line per cell of the bar was written)."""
+    from tqdm import tqdm
+
+    for options in ({"unit": "slab"}, {"unit": "px", "unit_scale": True},
+                    {"ascii": True, "ncols": 200}, {"postfix": "lazy"}):
+        log = io.StringIO()
+        with tqdm(total=2_000_000, file=cli._LogLines(log), mininterval=0, desc="bar",
+                  **options) as bar:
+            for _ in range(1000):
+                bar.update(2000)
+        lines = log.getvalue().splitlines()
+        assert len(lines) == 2 and "100%" in lines[-1], (options, lines)
 
 
 def test_progress_bars_in_a_log_are_lines_at_most_every_few_seconds(monkeypatch):

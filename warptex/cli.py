@@ -708,7 +708,7 @@ def _check_kopf_size(size: int) -> None:
 
 def _slab_edges(size: int) -> list[int]:
     """Where the x-slabs of a ``size``^3 volume begin, and its end: slabs of about a
-    million voxels show progress, but none thinner than 32 voxels, which would spend more
+    million voxels show progress, but none much thinner than 32 voxels, which would spend more
     on its apron than on itself, and whole blocks thick, which no two slabs share; all about
     as thick (a last slab of one voxel paid a whole apron). A volume of over half a million
     voxels (seconds) takes two at least, so that its bar moves."""
@@ -1610,7 +1610,8 @@ def _activity(line: str) -> str:
     if not head:
         head, times = line, ""
     postfix = times.rstrip("]").split(", ", 2)[2:]
-    return re.sub(r"[\d\u2588-\u258f]+", "", head) + "".join(postfix)
+    head = re.sub(r"\d+%\|[^|]*\|", "", head)  # the percentage and the bar, however full
+    return re.sub(r"[\d.]+[kMGTPEZY]?", "", head).replace(" ", "") + "".join(postfix)
 
 
 @contextlib.contextmanager

@@ -106,22 +106,25 @@ def in_child_process(function: Callable[..., Any], *args: Any) -> Any:
     context = multiprocessing.get_context("spawn")  # no copy of this process' threads
     with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
         try:
-            return pool.submit(function, *args).result()
+            # Started with Ctrl-C blocked, which the child keeps: a terminal's Ctrl-C reaches
+            # the whole group, and the child, cut short while starting, printed a traceback;
+            # this process stops it instead.
+            with _blocked((signal.SIGINT,)):
+                job = pool.submit(function, *args)
+            return job.result()
         except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the child
             stop_workers(pool)
             raise
 
 
 def stop_workers(pool: ProcessPoolExecutor) -> None:
-    """Terminate a pool's workers now (``terminate_workers`` from Python 3.14 on) and wait
-    for them and the pool's thread, a second Ctrl-C or SIGTERM held back meanwhile: left to
-    the interpreter's exit, that wait was cut short by it, with a traceback."""
+    """Terminate a pool's workers now and wait for them and the pool's thread, a second
+    Ctrl-C or SIGTERM held back meanwhile: left to the interpreter's exit, that wait was cut
+    short by it, with a traceback. (Python 3.14's ``terminate_workers`` leaves that wait to
+    the exit too: it lets go of the pool before it terminates.)"""
     with deferred_stops():
-        if hasattr(pool, "terminate_workers"):
-            pool.terminate_workers()
-        else:
-            for process in list((pool._processes or {}).values()):
-                process.terminate()
+        for process in list((pool._processes or {}).values()):
+            process.terminate()
         pool.shutdown(wait=True, cancel_futures=True)
 
 
