@@ -202,6 +202,9 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
             raise TypeError(f"{name} must be an integer, got {value!r}")
     sampler = first_sensor(scene).sampler()
     shares = _batch_shares(sampler, spp, batches)
+    for texture in textures(scene):
+        if texture.space == "object":
+            texture.emitted_from(scene)
     total, batches = sum(shares), len(shares)
     if not 0 <= seed * batches + batches - 1 < 2**32:
         raise ValueError(f"seed must be 0 to {2**32 // batches - 1} for {batches} "

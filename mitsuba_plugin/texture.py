@@ -355,6 +355,9 @@ class LazySolidTexture(mi.Texture):
         self._scalar = (None if dr.is_jit_v(mi.Float)
                         else ScalarLookup(self.solid.store, self.filter, cache_bytes))
         self._frames: _ObjectFrames | None = None
+        # The one shape whose area light this texture colours, for the points that light
+        # tracing emits from it, which carry no shape (see emitted_from).
+        self._emitter: mi.Shape | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture
         self._inert = False  # traced as another scene's texture that cannot be traced
         self._update_transform()
@@ -525,11 +528,23 @@ class LazySolidTexture(mi.Texture):
             self._traced = TracedLookup(self.solid.store, self.filter, self._stand_in)
         if self.space == "object":
             # Taken now: a shape's matrix cannot be read inside a symbolic render.
-            self._frames = _ObjectFrames(scene)
+            self.emitted_from(scene)
+            self._frames = _ObjectFrames(scene, self._emitter)
         usable = self._traced.refresh()
         self._inert = not usable and not own
         self._tracing = threading.get_ident() if usable or self._inert else None
         return usable or self._inert
+
+    def emitted_from(self, scene: mi.Scene) -> None:
+        """Take the shape whose area light this texture colours in ``scene``, where there is
+        exactly one, as the object of the points of no shape: Mitsuba's area lights emit
+        light tracing's rays (``ptracer``, ``sample_ray``) from points that carry none, which
+        an object-space texture read in world space. :func:`mitsuba_plugin.render` and
+        traced blocks call it."""
+        lit = [shape for shape in scene.shapes() if shape.emitter() is not None
+               and any(entry[2] is self
+                       for entry in mi.traverse(shape.emitter()).properties.values())]
+        self._emitter = lit[0] if len(lit) == 1 else None
 
     def fill_misses(self) -> int:
         """Synthesize the bricks that traced lookups missed since the last call; returns
@@ -564,7 +579,7 @@ class LazySolidTexture(mi.Texture):
         bricks (:mod:`mitsuba_plugin.scalar`), else from the store, which synthesizes."""
         p = [float(c) for c in it.p]
         if self.space == "object":
-            p = _to_object_space(np.array([p]), it, None)[0].tolist()
+            p = _to_object_space(np.array([p]), it, None, self._emitter)[0].tolist()
         point = _apply_affine(self._world_to_texture, *p)
         if not all(map(math.isfinite, point)):  # before round(), which raises on them
             return [0.0, 0.0, 0.0]
@@ -581,7 +596,7 @@ class LazySolidTexture(mi.Texture):
         points = points.astype(np.float64)
         with np.errstate(invalid="ignore"):  # zero times infinity: NaN, filled black
             if self.space == "object":
-                points = _to_object_space(points, it, keep)
+                points = _to_object_space(points, it, keep, self._emitter)
             texture = _apply_affine(self._world_to_texture, *points.T)
         return self.query_texture_space(np.stack(texture, axis=1))
 
@@ -640,10 +655,11 @@ def _as_rgb(colors: np.ndarray) -> np.ndarray:
     return np.repeat(colors[:, :1], 3, axis=1).astype(np.float32)
 
 
-def _to_object_space(points: np.ndarray, it: mi.Interaction3f,
-                    keep: np.ndarray | None) -> np.ndarray:
+def _to_object_space(points: np.ndarray, it: mi.Interaction3f, keep: np.ndarray | None,
+                     emitter: mi.Shape | None = None) -> np.ndarray:
     """``points`` taken into the frame of the instance each was found on, else of its
-    shape when the shape has a ``to_world`` parameter; unchanged otherwise.
+    shape when the shape has a ``to_world`` parameter, else, for points of no shape (an
+    area light's, as light tracing emits them), of ``emitter``; unchanged otherwise.
 
     ``keep`` marks the JIT lanes that ``points`` hold, None under the scalar variants.
     """
@@ -651,8 +667,9 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f,
         return points
     out = points.copy()
     placed = np.zeros(len(points), bool)
-    for pointers in (it.instance, it.shape):
+    for pointers, shapeless in ((it.instance, None), (it.shape, emitter)):
         for rows, obj in _objects(pointers, keep):
+            obj = shapeless if obj is None else obj
             to_object = None if obj is None else _to_object_matrix(obj)
             rows &= ~placed
             if to_object is not None and rows.any():
@@ -663,15 +680,15 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f,
 
 def _objects(pointers: Any, keep: np.ndarray | None) -> list[tuple[np.ndarray, Any]]:
     """The distinct objects behind shape ``pointers`` at the ``keep`` lanes, each with
-    the mask of the kept lanes that point to it."""
+    the mask of the kept lanes that point to it; None for the lanes of a null pointer."""
     if keep is None:
         return [(np.ones(1, bool), pointers)]
     ids = np.broadcast_to(dr.reinterpret_array(mi.UInt32, pointers).numpy(), keep.shape)
     kept = ids[keep]
     unique, first = np.unique(kept, return_index=True)
     lanes = np.flatnonzero(keep)[first]
-    return [(kept == i, pointers[int(lane)])
-            for i, lane in zip(unique, lanes, strict=True) if i]
+    return [(kept == i, pointers[int(lane)] if i else None)
+            for i, lane in zip(unique, lanes, strict=True)]
 
 
 def _to_object_matrix(obj: mi.Object) -> np.ndarray | None:
@@ -690,20 +707,27 @@ def _to_object_matrix(obj: mi.Object) -> np.ndarray | None:
     return inverse if np.isfinite(inverse).all() else None
 
 
+def _shape_id(shape: mi.Shape) -> int:
+    """The registry id that a shape pointer to ``shape`` holds in the JIT variants."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
+
+
 class _ObjectFrames:
     """:func:`_to_object_space` inside a traced program: the world-to-object matrix of
     each top-level shape of a scene that has a frame (instances, shapes with a
-    ``to_world`` parameter), found per lane through the shape pointers' registry ids."""
+    ``to_world`` parameter), found per lane through the shape pointers' registry ids, and
+    ``emitter``'s for the lanes of no shape."""
 
-    def __init__(self, scene: mi.Scene) -> None:
-        framed = [(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]),
-                   _to_object_matrix(s)) for s in scene.shapes()]
+    def __init__(self, scene: mi.Scene, emitter: mi.Shape | None = None) -> None:
+        framed = [(_shape_id(s), _to_object_matrix(s)) for s in scene.shapes()]
         framed = [(i, m) for i, m in framed if m is not None]
         index = np.full(max([i for i, _ in framed], default=0) + 1, -1, np.int32)
         matrices = np.zeros((max(len(framed), 1), 12))
         for n, (i, to_object) in enumerate(framed):
             index[i] = n
             matrices[n] = to_object[:3].reshape(-1)
+        at = -1 if emitter is None else _shape_id(emitter)
+        self._emitter = int(index[at]) if 0 <= at < len(index) else -1
         self._index = mi.Int32(index)
         self._matrices = mi.Float64(matrices.reshape(-1))
 
@@ -718,6 +742,9 @@ class _ObjectFrames:
             ids = dr.reinterpret_array(mi.UInt32, pointers)
             found = dr.gather(mi.Int32, self._index, ids, ids < size)
             frame = dr.select((frame < 0) & (ids < size), found, frame)
+        if self._emitter >= 0:  # a point of no shape: emitted from an area light
+            frame = dr.select(dr.reinterpret_array(mi.UInt32, it.shape) == 0,
+                              mi.Int32(self._emitter), frame)
         placed = frame >= 0
         at = mi.UInt32(dr.maximum(frame, 0)) * 12
         m = [dr.gather(mi.Float64, self._matrices, at + k, placed) for k in range(12)]

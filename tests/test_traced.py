@@ -485,3 +485,33 @@ def test_traced_blocks_end_their_tracing_and_do_not_nest(granite_32_file, monkey
     monkeypatch.undo()
     assert_plain_render_refused(scene)
     assert mitsuba_plugin.render(scene, spp=1).shape[0] > 0
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_light_tracing_reads_an_object_space_light_in_its_shape_s_frame(granite_32_file,
+                                                                        variant):
+    """Mitsuba's area lights emit ptracer's rays from points that carry no shape: an
+    object-space texture as a light's radiance was read there in world space. Read in its
+    shape's frame, it is the world-space texture placed by the shape's own to_world."""
+    mi.set_variant(variant)
+    mitsuba_plugin.register()
+    T = mi.ScalarTransform4f
+    place = T().translate([5.0, 0.0, 0.0])
+
+    def image(**placing) -> np.ndarray:
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "ptracer", "max_depth": 2},
+            "sensor": {"type": "perspective", "fov": 20,
+                       "to_world": T().look_at(origin=[5, 0, 5], target=[5, 0, 0],
+                                               up=[0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 8, "height": 8,
+                                "rfilter": {"type": "box"}}},
+            "rect": {"type": "rectangle", "to_world": place,
+                     "emitter": {"type": "area", "radiance": {
+                         "type": "lazy_solid", "exemplar": str(granite_32_file), "scale": 4.0,
+                         "filter": "nearest", **placing}}}})
+        return np.array(mitsuba_plugin.render(scene, spp=16))
+
+    in_object_space = image(space="object")
+    np.testing.assert_allclose(in_object_space, image(to_world=place), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(in_object_space, image(), rtol=1e-5, atol=1e-6)
