@@ -79,6 +79,9 @@ def lazy_solid_medium(props: mi.Properties,
     nested = [name for name in props if name not in _VALUES
               and props.type(name) == mi.Properties.Type.Object]
     check_known([name for name in props if name not in nested], _PROPERTIES, MEDIUM)
+    if "phase" in props and "phase" not in nested:  # <string name="phase" value="hg"/>
+        raise property_error(MEDIUM, "phase", "must be a nested phase function (<phase ...>), "
+                             f"got {props['phase']!r}")
     for name in nested:
         if not isinstance(props[name], mi.PhaseFunction):
             if did_you_mean(name, _VALUES):  # a misspelt albedo, say

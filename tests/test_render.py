@@ -140,6 +140,9 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
                        "once, got 2"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
                       "front": {"type": "hg"}, "back": {"type": "isotropic"}})
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "phase" must be a '
+                       r"nested phase function \(<phase \.\.\.>\), got 'hg'"):
+        mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "phase": "hg"})
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "bsdf" must be a '
                        "nested phase function"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "bsdf": {"type": "diffuse"}})
