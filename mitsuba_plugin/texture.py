@@ -335,11 +335,16 @@ class LazySolidTexture(mi.Texture):
         except ValueError as e:  # the exemplars do not go together
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
-            self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
-                                      passes=self.passes, cache_bytes=cache_bytes,
-                                      store=store, shifted_tiles=self.shifted_tiles)
+            with warnings.catch_warnings(record=True) as said:  # a store file ignored
+                warnings.simplefilter("always")
+                self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
+                                          passes=self.passes, cache_bytes=cache_bytes,
+                                          store=store, shifted_tiles=self.shifted_tiles)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
+        for warning in said:
+            warnings.warn(f'{PLUGIN}: property "cache": {warning.message}', warning.category,
+                          stacklevel=2)
         axes = _axis_colors(candidates)
         # Traced lookups give voxels not yet stored this color, in stored values as theirs.
         self._stand_in = tuple(float(c) for c in np.mean([a.mean(axis=0) for a in axes], 0))

@@ -712,3 +712,15 @@ def test_eval_1_grad_is_the_slope_along_the_surface(granite_32_file, variant):
     si.p = mi.Point3f(0.3 + 0.5 / 8.0, 0.7, 0.2)
     ahead = float(np.ravel(np.array(tex.eval_1(si)))[0])
     np.testing.assert_allclose(base[0], (ahead - here) / (0.5 / 8.0), rtol=1e-3)
+
+
+def test_a_store_file_ignored_is_said_of_the_cache_property(granite_32_file, tmp_path):
+    """The brick store's warning named neither the plugin nor its property, and Python
+    pointed at warptex's own line."""
+    use("scalar_rgb")
+    store = tmp_path / "bricks.wtb"
+    load(granite_32_file, cache=str(store)).save()
+    store.write_bytes(store.read_bytes()[:60])  # truncated
+    with pytest.warns(UserWarning, match=r'^lazy_solid: property "cache": ignoring brick '
+                                         r"store file, starting empty: .*bricks\.wtb"):
+        load(granite_32_file, cache=str(store))
