@@ -255,14 +255,22 @@ def _inverse(to_world: np.ndarray) -> np.ndarray:
     if not np.isfinite(to_world).all():
         raise property_error(PLUGIN, "to_world", "must be finite: it has NaN or infinite "
                              "entries")
-    try:
-        inverse = np.linalg.inv(to_world)
-    except np.linalg.LinAlgError:
-        inverse = None
-    if inverse is None or not np.isfinite(inverse).all():
+    inverse = _finite_inverse(to_world)
+    if inverse is None:
         raise property_error(PLUGIN, "to_world", "must be invertible: a scale of zero "
                              "collapses the block of matter")
     return inverse
+
+
+def _finite_inverse(matrix: np.ndarray) -> np.ndarray | None:
+    """The inverse of ``matrix``, None where it has none in finite numbers."""
+    if not np.isfinite(matrix).all():
+        return None
+    try:
+        inverse = np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        return None
+    return inverse if np.isfinite(inverse).all() else None
 
 
 class LazySolidTexture(mi.Texture):
@@ -700,16 +708,7 @@ def _to_object_matrix(obj: mi.Object) -> np.ndarray | None:
     """The inverse of the object's ``to_world`` matrix, if it exposes one that can be
     inverted: a degenerate shape (a sphere of radius 0) has no frame, nor points to hit."""
     params = mi.traverse(obj)
-    if "to_world" not in params:
-        return None
-    to_world = _affine_matrix(params["to_world"])
-    if not np.isfinite(to_world).all():
-        return None
-    try:
-        inverse = np.linalg.inv(to_world)
-    except np.linalg.LinAlgError:
-        return None
-    return inverse if np.isfinite(inverse).all() else None
+    return _finite_inverse(_affine_matrix(params["to_world"])) if "to_world" in params else None
 
 
 def _shape_id(shape: mi.Shape) -> int:
