@@ -37,7 +37,6 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import KW_ONLY, asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -58,7 +57,7 @@ from warptex.exemplar import (
     srgb_encoded,
 )
 from warptex.machine import PeakMemory, map_large_blocks
-from warptex.parallel import stop_workers
+from warptex.parallel import in_child_process
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -615,30 +614,19 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
 
         check_size(setup.size)
     results = []
-    ctx = multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("spawn")  # in_child_process's, for the phases' queue
     bar = tqdm(methods, desc="methods", disable=not progress)
     for method in bar:
         bar.set_postfix_str(method)  # one method can take minutes: the bar says which
         phases = ctx.Queue()  # and what it is doing: candidates alone can take a minute
-        with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_start_worker,
-                                 initargs=(_shown_as_here(), phases)) as pool:
-            job = pool.submit(_measure, method, setup, repeats)
-            try:
-                while True:
-                    try:
-                        out = job.result(timeout=_PHASE_SECONDS)
-                        break
-                    except TimeoutError:  # concurrent.futures' is the builtin from 3.11
-                        _show_phases(bar, method, phases)
-            except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the worker
-                stop_workers(pool)
-                raise
-        _show_phases(bar, method, phases)
+        show = functools.partial(_show_phases, bar, method, phases)
+        out = in_child_process(_measure, method, setup, repeats, initializer=_start_worker,
+                               initargs=(_shown_as_here(), phases), while_waiting=show)
+        show()
         results.append(MethodResult(**out))
     return Comparison(setup, results)
 
 
-_PHASE_SECONDS = 0.5  # how often the bar looks for what a method's process is doing
 _phases: multiprocessing.queues.Queue | None = None  # where a method's process says it
 
 

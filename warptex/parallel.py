@@ -28,6 +28,7 @@ from warptex.warp_runtime import launch
 
 THREADS = min(usable_cores(), 8)
 MIN_SPLIT = 4096  # fewer items than this run as one launch: threads would cost more
+WAIT_SECONDS = 0.5  # how often in_child_process calls its while_waiting
 
 
 @functools.cache
@@ -99,19 +100,27 @@ def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
         return tree.query(queries, workers=workers or THREADS, **options)
 
 
-def in_child_process(function: Callable[..., Any], *args: Any) -> Any:
-    """``function(*args)`` run in a fresh process: a long call into C code that holds the
-    GIL (xatlas' unwrapping) kept Ctrl-C and SIGTERM waiting to its end, where now they stop
-    the child and go on at once. ``function``, its arguments and result must pickle."""
+def in_child_process(function: Callable[..., Any], *args: Any,
+                     initializer: Callable[..., None] | None = None, initargs: tuple = (),
+                     while_waiting: Callable[[], None] | None = None) -> Any:
+    """``function(*args)`` run in a fresh process (set up by ``initializer(*initargs)``),
+    ``while_waiting()`` called every ``WAIT_SECONDS`` meanwhile: a long call into C code that
+    holds the GIL (xatlas' unwrapping) kept Ctrl-C and SIGTERM waiting to its end, where now
+    they stop the child and go on at once. What crosses to the child and back must pickle."""
     context = multiprocessing.get_context("spawn")  # no copy of this process' threads
-    with ProcessPoolExecutor(max_workers=1, mp_context=context) as pool:
+    with ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=initializer,
+                             initargs=initargs) as pool:
         try:
             # Started with Ctrl-C blocked, which the child keeps: a terminal's Ctrl-C reaches
             # the whole group, and the child, cut short while starting, printed a traceback;
             # this process stops it instead.
             with _blocked((signal.SIGINT,)):
                 job = pool.submit(function, *args)
-            return job.result()
+            while True:
+                try:
+                    return job.result(timeout=None if while_waiting is None else WAIT_SECONDS)
+                except TimeoutError:  # concurrent.futures' is the builtin from 3.11
+                    while_waiting()
         except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the child
             stop_workers(pool)
             raise
