@@ -57,7 +57,7 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     """``half`` (the part of a mesh on the side ``side`` points to) with its cap
     triangulated anew: trimesh triangulates a cap from its outline alone, in slivers that
     span it, so vertex colours would only interpolate the outline's. The cap becomes the
-    constrained Delaunay triangulation of the same outline vertices, refined by
+    constrained Delaunay triangulation of the outer surface's outline vertices, refined by
     :func:`_bisect_long_edges` until no edge of it is longer than ``max_edge``.
     """
     cap = cap_faces(half, origin, side)
@@ -67,17 +67,29 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     e1 = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
     e1 /= np.linalg.norm(e1)
     uv = (half.vertices - origin) @ np.stack([e1, np.cross(n, e1)], axis=1)
-    # The outline: the edges that only one cap triangle holds. A region built from them
-    # keeps every outline vertex, where a union of the triangles drops collinear ones.
-    keys, count = np.unique(_edge_keys(half.faces[cap], len(uv)), return_counts=True)
-    outline = _edge_ends(keys[count == 1], len(uv))
+    # The outline: the edges in the plane that only one face of the outer surface holds,
+    # and those of trimesh's cap that close an open mesh's section across its opening. Not
+    # the cap's other edges: where the plane crosses a flat quad's diagonal, they skip the
+    # middle one of three collinear outline vertices, and the cap would leave a crack there.
+    # A region built from them keeps every outline vertex, where a union of triangles
+    # drops collinear ones.
+    count = len(uv)
+    section = _boundary_keys(half.faces[~cap], count)
+    section = section[_in_plane(half, origin, side)[_edge_ends(section, count)].all(axis=1)]
+    ends = np.bincount(_edge_ends(section, count).ravel(), minlength=count) < 2
+    closing = np.setdiff1d(_boundary_keys(half.faces[cap], count), section)
+    closing = closing[ends[_edge_ends(closing, count)].all(axis=1)]
+    outline = _edge_ends(np.concatenate([section, closing]), count)
     region = shapely.build_area(shapely.union_all(shapely.linestrings(uv[outline])))
     triangles = shapely.get_parts(shapely.constrained_delaunay_triangles(region))
     corners = shapely.get_coordinates(triangles).reshape(len(triangles), 4, 2)[:, :3]
-    points = np.unique(half.faces[cap])
-    index = {uv[i].tobytes(): i for i in points}
+    index = {uv[i].tobytes(): i for i in np.unique(outline)}
     faces = np.array([index.get(c.tobytes(), -1) for c in corners.reshape(-1, 2)]).reshape(-1, 3)
-    if len(faces) == 0 or (faces < 0).any() or len(np.unique(faces)) != len(points):
+    # The outline's closed loops: an open mesh may also cross the plane in open chains,
+    # which bound nothing.
+    points = np.unique([index.get(c.tobytes(), -1) for c in shapely.get_coordinates(region)])
+    if (len(faces) == 0 or (faces < 0).any() or not np.array_equal(np.unique(faces), points)
+            or not np.isin(half.faces[cap], points).all()):
         warnings.warn("a cut's cap could not be refined; its colours interpolate its outline's",
                       stacklevel=3)
         return half
@@ -156,6 +168,12 @@ def _edge_keys(faces: np.ndarray, vertex_count: int) -> np.ndarray:
     return ends[..., 0] * vertex_count + ends[..., 1]
 
 
+def _boundary_keys(faces: np.ndarray, vertex_count: int) -> np.ndarray:
+    """The keys (:func:`_edge_keys`) of the edges that only one of ``faces`` holds."""
+    keys, holders = np.unique(_edge_keys(faces, vertex_count), return_counts=True)
+    return keys[holders == 1]
+
+
 def _edge_ends(keys: np.ndarray, vertex_count: int) -> np.ndarray:
     """The (E, 2) vertices of edge ``keys``; the inverse of :func:`_edge_keys`."""
     return np.stack(np.divmod(keys, vertex_count), axis=1)
@@ -164,7 +182,14 @@ def _edge_ends(keys: np.ndarray, vertex_count: int) -> np.ndarray:
 def cap_faces(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
               tolerance: float = 1e-6) -> np.ndarray:
     """Which faces of a cut half lie in the cut plane (the cap)."""
+    return _in_plane(half, origin, normal, tolerance)[half.faces].all(axis=1)
+
+
+def _in_plane(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
+              tolerance: float = 1e-6) -> np.ndarray:
+    """Which vertices of a cut half lie in the cut plane, within ``tolerance`` of the
+    half's size."""
     normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
-    dist = (half.vertices[half.faces] - np.asarray(origin, np.float64)) @ normal
+    dist = (half.vertices - np.asarray(origin, np.float64)) @ normal
     scale = max(float(np.ptp(half.vertices, axis=0).max()), 1e-12)
-    return (np.abs(dist) <= tolerance * scale).all(axis=1)
+    return np.abs(dist) <= tolerance * scale
