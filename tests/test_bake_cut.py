@@ -671,6 +671,21 @@ def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, d
     assert len(trimesh.load(tmp_path / "s.ply", process=False).vertices) == len(box.vertices)
 
 
+def test_bake_refuses_nan_uvs_of_the_mesh(tmp_path, data_dir, warp_device, capsys):
+    """A triangle with a NaN UV claimed no texel: its surface showed its neighbours'
+    colours, with a NumPy warning about a cast, and the file got the NaN UVs."""
+    from warptex.cli import main
+
+    mesh_path = tmp_path / "nan_uv.obj"
+    mesh_path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt nan 1\n"
+                         "f 1/1 2/2 3/3\nf 1/1 2/2 4/3\n")
+    assert main(["bake", str(mesh_path), "--exemplar", str(data_dir / "granite_64.png"),
+                 "--resolution", "16", "--uv", "mesh", "--texture-size", "32",
+                 "-o", str(tmp_path / "b.glb")]) == 2
+    assert "nan_uv.obj: UV coordinates hold NaN or infinite values" in capsys.readouterr().err
+    assert not (tmp_path / "b.glb").exists()
+
+
 def test_bake_with_the_mesh_s_own_uvs_warns_of_a_mirrored_layout(tmp_path, data_dir, sphere,
                                                                 warp_device, capsys):
     from warptex.cli import main

@@ -1055,6 +1055,10 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
         raise CliError(f"{path}: every triangle has zero area: the mesh has no surface")
     if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
         raise CliError(f"{path}: the mesh has no UVs; use --uv auto to make them")
+    # A triangle with a NaN UV holds no texel: its surface would show its neighbours' colors.
+    if uv == "mesh" and not np.isfinite(mesh.visual.uv[mesh.faces]).all():
+        raise CliError(f"{path}: UV coordinates hold NaN or infinite values; use --uv auto "
+                       "to make UVs")
     return mesh
 
 
