@@ -623,6 +623,28 @@ def test_a_checksummed_file_whose_arrays_do_not_fit_is_refused(tmp_path, granite
             CandidateSet.load(tmp_path / f"{name}.wtc")
 
 
+def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_path, granite):
+    """A file of a newer warptex (a parameter this one does not know) or written by other
+    means (lists too short, numbers of another type) raised a bare TypeError or IndexError
+    that named no file."""
+    import json
+
+    granite.save(tmp_path / "g.wtc")
+    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    changes = {"newer": {"params": {**meta["params"], "a_later_setting": 1}},
+               "no_levels": {"num_levels": 0}, "shifts": {"shifts": meta["shifts"][:1]},
+               "axes": {"axis_source": [0.0, 0.0, 0.0]}}
+    for name, change in changes.items():
+        path = tmp_path / f"{name}.wtc"
+        changed = {**arrays, "meta": np.frombuffer(json.dumps({**meta, **change}).encode(),
+                                                   np.uint8)}
+        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, changed)
+        with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
+            CandidateSet.load(path)
+
+
 def test_content_digest_is_kept_through_a_file_and_sees_one_coefficient(tmp_path, granite):
     granite.save(tmp_path / "g.wtc")
     assert CandidateSet.load(tmp_path / "g.wtc").content_digest == granite.content_digest

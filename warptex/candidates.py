@@ -869,10 +869,17 @@ def _compact_index(a: np.ndarray) -> np.ndarray:
 
 
 def _unflatten(d: dict[str, np.ndarray], path: str | Path) -> CandidateSet:
+    # A checksummed file's layout may still be another's: a newer warptex's parameter, a
+    # list too short or a number of another type fail as TypeError or IndexError.
     try:
-        return _from_arrays(d)
-    except (ValueError, KeyError) as e:
+        cs = _from_arrays(d)
+    except (ValueError, LookupError, TypeError) as e:
         raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+    half = int(cs.params["neighborhood"]) // 2
+    for lv in range(cs.num_levels):
+        for r, role in enumerate(cs.roles[lv]):
+            role.cb = _crossbar_errors(_trio(cs.sources[lv], cs.axis_source, r), role.cand, half)
+    return cs
 
 
 def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
@@ -899,7 +906,7 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
             lvl_roles.append(
                 RoleLevel(
                     cand=d[f"L{lv}/R{r}/cand"].astype(np.int32),
-                    cb=np.zeros(0, np.int32),  # derived below from the triples
+                    cb=np.zeros(0, np.int32),  # derived from the triples by _unflatten
                     count=d[f"L{lv}/R{r}/count"].astype(np.int32),
                     fallback=np.unpackbits(d[f"L{lv}/R{r}/fallback"], count=npix).astype(bool),
                 )
@@ -918,10 +925,6 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
         code=str(meta.get("code", "")),
     )
     _check_layout(cs)
-    half = int(cs.params["neighborhood"]) // 2
-    for lv in range(nl):
-        for r, role in enumerate(roles[lv]):
-            role.cb = _crossbar_errors(_trio(sources[lv], cs.axis_source, r), role.cand, half)
     return cs
 
 
