@@ -327,6 +327,16 @@ def test_npy_2d_and_uint16(tmp_path, rng):
     np.testing.assert_array_equal(exemplar.colors[..., 0], data / np.float32(65535))
 
 
+def test_big_endian_integers_are_the_integers_they_hold(tmp_path, rng):
+    """A .npy of big-endian uint16 (written on another machine, or raw PNG rows read with
+    np.frombuffer) was refused as an "unsupported data type >u2; use ... uint16"."""
+    data = rng.integers(0, 65536, size=(16, 16), dtype=np.uint16)
+    np.save(tmp_path / "big.npy", data.astype(">u2"))
+    for exemplar in (_load_quiet(tmp_path / "big.npy"), Exemplar(data.astype(">u2"))):
+        np.testing.assert_array_equal(exemplar.colors[..., 0], data / np.float32(65535))
+        assert exemplar.srgb
+
+
 def test_array_kinds(rng):
     floats = rng.normal(size=(16, 16, 64)).astype(np.float64)
     assert Exemplar(floats).channels == 64

@@ -630,10 +630,17 @@ def _validated_colors(array: object, name: str) -> np.ndarray:
 
 def _integer(array: object) -> bool:
     """Whether ``array`` holds 8- or 16-bit integers, which images store sRGB-encoded."""
-    return np.asarray(array).dtype in (np.uint8, np.uint16)
+    return _native(np.asarray(array).dtype) in (np.uint8, np.uint16)
+
+
+def _native(dtype: np.dtype) -> np.dtype:
+    """``dtype`` in this machine's byte order: a big-endian uint16 (``>u2``, as a .npy
+    written on another machine or a PNG's raw rows hold) is no uint16 to ``==``."""
+    return dtype.newbyteorder("=")
 
 
 def _to_float32(data: np.ndarray, name: str) -> np.ndarray:
+    data = data.astype(_native(data.dtype), copy=False)
     if data.dtype == np.uint8:
         return data.astype(np.float32) / np.float32(255)
     if data.dtype == np.uint16:
