@@ -194,6 +194,22 @@ def test_precompute_reads_a_cache_it_could_not_write(images, private_cache, caps
     assert "Read-only file system" in capsys.readouterr().err
 
 
+def test_a_cache_folder_that_cannot_be_looked_up_is_reported_not_a_traceback(
+        images, tmp_path, monkeypatch, capsys):
+    """WARPTEX_CACHE under a folder this user may not search (here: a name too long, which
+    fails the same way for root) raised a bare OSError from looking the cache file up: in
+    precompute(), and so in every command that synthesizes, and in ``warptex info``."""
+    folder = tmp_path / ("a" * 300) / "cache"
+    monkeypatch.setenv("WARPTEX_CACHE", str(folder))
+    assert main(["precompute", str(images["b"])]) == 2
+    assert f"{folder}: cannot make the cache folder" in capsys.readouterr().err
+    assert main(["info", str(images["b"])]) == 0
+    assert "candidates: not cached" in capsys.readouterr().out
+    with pytest.warns(UserWarning, match="candidates not cached: .*cannot look up"):
+        cs = precompute(images["b"])
+    assert cs.cache_status == "not written"
+
+
 def test_a_cache_folder_given_with_a_tilde_is_the_home_folder(monkeypatch, tmp_path):
     from warptex.candidates import cache_dir
 

@@ -241,7 +241,7 @@ def precompute(
     check_same_channels(exemplars)
     p = resolved_params(params)
     path = cache_path(exemplars, p) if cache else None
-    if path is not None and path.exists():
+    if path is not None and cache_file_there(path):
         try:
             loaded = _cached(path, exemplars, p)
             loaded.cache_status = "loaded"
@@ -349,6 +349,16 @@ def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
     return cache_dir() / cache_file_name([e.digest() for e in exemplars], params)
 
 
+def cache_file_there(path: Path) -> bool:
+    """Whether something is at the cache file ``path``; False where it cannot be looked up
+    (``WARPTEX_CACHE`` under a folder this user may not search, a name too long), which
+    writing it then reports, as for any cache that cannot be written."""
+    try:
+        return path.exists()
+    except OSError:
+        return False
+
+
 def cache_file_name(digests: Sequence[str], params: dict) -> str:
     """The name this warptex gives the cache file of exemplars of these content digests
     (x, y, z) and parameters; a file under another name is never read by it."""
@@ -389,7 +399,7 @@ def cached_candidate_path(ex: Exemplar, tileable: bool | str = "auto") -> Path |
     damaged one."""
     exemplars, params = [ex, ex, ex], resolved_params({"tileable": tileable})
     path = cache_path(exemplars, params)
-    if not path.exists():
+    if not cache_file_there(path):
         return None
     try:
         _cached_arrays(path, exemplars, params)

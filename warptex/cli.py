@@ -333,14 +333,14 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_precompute(args: argparse.Namespace) -> int:
-    from warptex.candidates import cache_path, precompute, resolved_params
+    from warptex.candidates import cache_file_there, cache_path, precompute, resolved_params
 
     if args.output is not None:
         _check_output(args.output, (".wtc",), "a candidate file")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     params = _candidate_params(args)
     cache = None if args.no_cache else cache_path(exemplars, resolved_params(params))
-    if cache is not None and not cache.is_file():  # one there is read, even where read-only
+    if cache is not None and not cache_file_there(cache):  # read, even where read-only
         _check_cache_folder(cache.parent)
     start = time.perf_counter()
     cs = precompute(*exemplars, cache=not args.no_cache, progress=True, **params)
