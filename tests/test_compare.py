@@ -883,3 +883,37 @@ def test_a_second_ctrl_c_while_compare_stops_prints_no_traceback(data_dir, tmp_p
     assert "Traceback" not in err and "Exception ignored" not in err, err
     assert not (tmp_path / "out").exists()
 
+
+
+def test_a_report_file_s_place_taken_is_named_before_any_method_and_after(tmp_path, data_dir,
+                                                                         monkeypatch, capsys):
+    """A folder where table.md goes is refused before any method runs (it was found only
+    after all of them, as "OUT: cannot write (Is a directory)", naming the folder asked
+    for); a write failing once the work is done names the report file that failed."""
+    import errno
+
+    granite = str(data_dir / "granite_64.png")
+    out = tmp_path / "out"
+    (out / "table.md").mkdir(parents=True)
+    ran = []
+    row = compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0,
+                               0.0, slices=[np.zeros((16, 16, 3), np.float32)] * 3)
+    monkeypatch.setattr(compare, "compare", lambda setup, methods, repeats: ran.append(
+        methods) or compare.Comparison(setup, [row]))
+    args = ["compare", granite, "--size", "16", "--methods", "noise", "-o", str(out)]
+    assert main(args) == 2 and not ran
+    assert f"{out / 'table.md'}: is a folder, expected a file name" in capsys.readouterr().err
+
+    (out / "table.md").rmdir()
+    write_text = Path.write_text
+
+    def full(self, text, *a, **kw):
+        if self.suffix == ".json":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return write_text(self, text, *a, **kw)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    assert main(args) == 1 and ran
+    assert f"{out / 'table.json'}: cannot write (No space left on device)" in (
+        capsys.readouterr().err)
+    assert list(out.iterdir()) == []

@@ -1321,7 +1321,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if args.output.exists() and not args.output.is_dir():
         raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
-    _check_inputs_kept(args, [args.output / name for name in REPORT_FILES])
+    report = [args.output / name for name in REPORT_FILES]
+    for path in report:  # a folder in a report file's place: before minutes of work
+        problem = file_problem(path)
+        if problem is not None:
+            raise CliError(f"{path}: {problem}")
+    _check_inputs_kept(args, report)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):
@@ -1330,7 +1335,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         comparison = compare(setup, methods, repeats=args.repeats)
     except ValueError as error:
         raise CliError(str(error)) from None
-    with _writing(args.output):
+    with _writing(args.output, *report):
         files = write_report(comparison, args.output)
     print(table_markdown(comparison.results))
     print("written: " + ", ".join(str(f) for f in files))
