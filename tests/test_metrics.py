@@ -276,23 +276,40 @@ def test_repetition_score_sees_every_period_up_to_half_the_slice(period):
     assert metrics.repetition_score(longer) < 0.2
 
 
-def test_repetition_score_equals_a_brute_force_reference():
+def _repetition_by_hand(image: np.ndarray, exclude: int) -> float:
     """Every shift's correlation over the overlap (no wrap-around), normalized by the
-    energies of both parts, its maximum past ``exclude`` and up to half each side."""
-    rng = np.random.default_rng(12)
-    image = gaussian_filter(rng.standard_normal((20, 26, 2)), (1.5, 1.5, 0))
+    energies of both parts, for shifts up to half each side; the highest of those past
+    ``exclude`` (each way) that no neighbouring shift exceeds."""
+    from scipy import ndimage
+
     x = image - image.mean(axis=(0, 1))
     h, w = x.shape[:2]
-    best = 0.0
-    for dy in range(-(h // 2), h // 2 + 1):
-        for dx in range(-(w // 2), w // 2 + 1):
-            if max(abs(dy), abs(dx)) <= 2:
-                continue
+    dys, dxs = np.arange(-(h // 2), h // 2 + 1), np.arange(-(w // 2), w // 2 + 1)
+    score = np.zeros((len(dys), len(dxs)))
+    for i, dy in enumerate(dys):
+        for j, dx in enumerate(dxs):
             a = x[max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)]
             b = x[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
-            best = max(best, float((a * b).sum() / np.sqrt((a**2).sum() * (b**2).sum())))
-    assert metrics.repetition_score(image, exclude=2) == pytest.approx(best, rel=1e-9)
-    assert 0.3 < best < 1.0
+            score[i, j] = (a * b).sum() / np.sqrt((a**2).sum() * (b**2).sum())
+    peak = score == ndimage.maximum_filter(score, size=3, mode="nearest")
+    past = np.maximum(np.abs(dys)[:, None], np.abs(dxs)[None, :]) > exclude
+    return float(np.where(peak & past, score, 0.0).max())
+
+
+@pytest.mark.parametrize("seed", [12, 14])
+def test_repetition_score_equals_a_brute_force_reference(seed):
+    """At every ``exclude`` from 0 (shift 0 alone left out) to 4: a shift of ``exclude``
+    pixels or less each way never counts, and one just past it only where it is a peak.
+    A faint period of 3 columns peaks at a shift of 3, counted up to ``exclude`` 2 only."""
+    rng = np.random.default_rng(seed)
+    image = gaussian_filter(rng.standard_normal((20, 26, 2)), (1.5, 1.0, 0))
+    image += 0.5 * np.roll(image, (2, -3), axis=(0, 1))  # no mirror symmetry
+    image += 0.3 * np.tile(rng.standard_normal((20, 3, 2)), (1, 9, 1))[:, :26]
+    scores = [_repetition_by_hand(image, exclude) for exclude in range(5)]
+    for exclude, expected in enumerate(scores):
+        assert metrics.repetition_score(image, exclude=exclude) == pytest.approx(expected,
+                                                                                rel=1e-9)
+    assert scores[2] > scores[3] > 0.5 and scores[0] < 1.0
 
 
 def test_wrapping_edges_wrap_a_seam_only_where_fewer_than_size_windows_fit():
