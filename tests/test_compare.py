@@ -920,3 +920,15 @@ def test_a_report_file_s_place_taken_is_named_before_any_method_and_after(tmp_pa
     assert f"{out / 'table.json'}: cannot write (No space left on device)" in (
         capsys.readouterr().err)
     assert list(out.iterdir()) == []
+
+
+def test_the_tiled_volume_is_lazy_s_own_up_to_its_block_as_its_note_says(monkeypatch):
+    """Up to 64 voxels, the default --size included, ``tiled`` is the lazy volume itself
+    (its note said "below 64"); past it, the 64^3 block repeated."""
+    blocks = {}
+    monkeypatch.setattr(compare, "_lazy", lambda job, size: blocks.setdefault(
+        size, np.random.default_rng(size).random((size, size, size, 1), np.float32)))
+    for size in (compare.TILE - 8, compare.TILE, compare.TILE + 8):
+        same = np.array_equal(compare._tiled(None, size), compare._lazy(None, size))
+        assert same == (size <= compare.TILE)
+    assert f"up to {compare.TILE} voxels" in compare.METHOD_NOTES["tiled"]

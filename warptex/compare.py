@@ -84,8 +84,8 @@ METHOD_NOTES = {
     "kopf": "Kopf et al. 2007 global optimization of a periodic volume",
     "kopf-meanshift": "kopf with its mean-shift clustering (its section 4.1)",
     "tiled": f"the lazy engine's {TILE}^3 block repeated, the usual practice (Dong 2008 "
-             f"Fig. 11), which below {TILE} voxels is lazy's volume itself, told apart by the "
-             "repetition score only",
+             f"Fig. 11), which up to {TILE} voxels (the default --size) is lazy's volume "
+             "itself, told apart by the repetition score only",
     "extrude": "the z axis' exemplar stacked along z",
     "noise": "i.i.d. exemplar pixels",
     "flat": "the exemplars' mean color everywhere",
