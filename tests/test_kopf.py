@@ -240,15 +240,18 @@ def test_same_seed_same_volume(granite):
         ({"tileable": "yes"}, "tileable must be"),
         ({"seed": -1}, r"seed must be within \[0, 2147483647\]"),
         ({"seed": 1.5}, "seed must be an integer"),
+        ({"progress": None}, "progress must be True or False, got None"),
+        ({"histogram_matching": "no"}, "histogram_matching must be True or False, got 'no'"),
+        ({"mean_shift": 1}, "mean_shift must be True or False, got 1"),
     ],
 )
 def test_bad_arguments(granite, kwargs, message):
-    args = {"exemplar": granite, **kwargs}
+    args = {"exemplar": granite, "progress": False, **kwargs}
     if "exemplars" in kwargs:
         args["exemplar"] = None
         args["exemplars"] = tuple(granite if e == "g" else e for e in kwargs["exemplars"])
     with pytest.raises(ValueError, match=message):
-        kopf.synthesize(progress=False, **args)
+        kopf.synthesize(**args)
 
 
 def test_sizes_and_exemplars_of_another_type(granite, granite_32_file):

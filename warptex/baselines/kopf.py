@@ -53,7 +53,7 @@ from tqdm import tqdm
 from kernels import kopf as _k
 from warptex.exemplar import Exemplar, as_exemplar, check_same_channels, wrapping_edges
 from warptex.parallel import launch_ranges, nearest
-from warptex.settings import check_settings
+from warptex.settings import check_flag, check_settings
 from warptex.warp_runtime import init_warp, launch
 
 LEVELS = 3  # "we use a three-level synthesis pyramid" (section 6)
@@ -158,6 +158,9 @@ def synthesize(
     """
     check_size(size)
     check_settings(seed=seed)
+    for name, flag in (("progress", progress), ("histogram_matching", histogram_matching),
+                       ("mean_shift", mean_shift)):
+        check_flag(name, flag)  # "no" would count as true
     if on_iteration is not None and not callable(on_iteration):  # not after a level's work
         raise TypeError(f"on_iteration must be a function or None, got {on_iteration!r}")
     counts = [iterations] * LEVELS if np.ndim(iterations) == 0 else list(iterations)
