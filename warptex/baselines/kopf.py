@@ -205,6 +205,10 @@ def _axis_exemplars(
 ) -> list[Exemplar | None]:
     if (exemplar is None) == (exemplars is None):
         raise ValueError("give either exemplar or exemplars (one per axis), not both or neither")
+    if exemplars is not None and (isinstance(exemplars, Exemplar | str | Path)
+                                  or not isinstance(exemplars, Sequence)):
+        raise TypeError("exemplars must be a sequence of three exemplars (x, y, z), got "
+                        f"{type(exemplars).__name__}; one exemplar for every axis is exemplar")
     axes = [exemplar] * 3 if exemplars is None else list(exemplars)
     if len(axes) != 3:
         raise ValueError(f"exemplars must have three entries (x, y, z), got {len(axes)}")
