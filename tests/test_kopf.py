@@ -460,3 +460,32 @@ def test_histograms_are_refreshed_while_an_optimization_phase_runs(granite_32, w
     assert len(seen) == kopf.HISTOGRAM_REFRESHES > 1
     changed = [not np.array_equal(a, b) for a, b in itertools.pairwise(seen)]
     assert sum(changed) > len(changed) // 2
+
+
+@pytest.mark.parametrize("command", ["volume", "compare"])
+def test_the_commands_refuse_a_kopf_volume_whose_search_does_not_fit(
+        granite_32_file, tmp_path, capsys, monkeypatch, command):
+    """The search holds PCA coefficients for a quarter of the voxels, hundreds of bytes a
+    voxel: a machine that holds the volume many times over can still lack the memory, which
+    the commands say before any work (kopf.working_bytes)."""
+    from warptex import compare, machine
+    from warptex.cli import main
+
+    size, volume_bytes = 64, 2 * 4 * 3 * 64**3  # the volume and its copy
+    monkeypatch.setattr(machine, "physical_memory", lambda: 8 * volume_bytes)
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("ran")
+
+    monkeypatch.setattr(kopf, "synthesize", no_work)
+    monkeypatch.setattr(compare, "compare", no_work)
+    argv = {"volume": ["--method", "kopf", "-o", str(tmp_path / "v.npy")],
+            "compare": ["--methods", "kopf", "-o", str(tmp_path / "cmp")]}[command]
+    assert main([command, str(granite_32_file), "--size", str(size), *argv]) == 2
+    assert f"--size {size}: a {size}^3 volume needs about" in capsys.readouterr().err
+    if command == "volume":  # and where it fits, Kopf runs
+        monkeypatch.setattr(machine, "physical_memory",
+                            lambda: volume_bytes + kopf.working_bytes(size))
+        monkeypatch.setattr(kopf, "synthesize",
+                            lambda *a, **k: np.zeros((size, size, size, 3), np.float32))
+        assert main([command, str(granite_32_file), "--size", str(size), *argv]) == 0

@@ -645,6 +645,9 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     srgb = bool(_colors_srgb(args, exemplars))
     _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
+        from warptex.baselines.kopf import working_bytes
+
+        _check_memory(args.size, exemplars[0].features.shape[2], working_bytes(args.size))
         return _volume_kopf(args, exemplars, srgb)
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
@@ -1330,7 +1333,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):
+        from warptex.baselines.kopf import working_bytes
+
         _check_kopf_size(args.size)
+        _check_memory(args.size, exemplar.features.shape[2], working_bytes(args.size))
     try:
         comparison = compare(setup, methods, repeats=args.repeats)
     except ValueError as error:

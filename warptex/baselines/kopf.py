@@ -75,6 +75,12 @@ _BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_searc
 # deviation of the level's exemplar texels (geometric in between): "gradually reduced as the
 # optimization of each resolution level progresses" (section 4.1).
 MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
+# Peak memory of a synthesis per voxel, beside the solid and its returned copy: most of it the
+# search's PCA coefficients (MAX_DIMS float32 per grid centre, a quarter of the voxels) and
+# its float64 copies of the kept ones (about 4 bytes a voxel per coefficient). Measured at
+# 64^3: 287 bytes (bricks_red_64, 39 coefficients), 325 (granite_64, 48); noise, which keeps
+# all 96, about 520.
+WORK_BYTES_PER_VOXEL = 600
 
 
 @dataclass(frozen=True)
@@ -116,6 +122,12 @@ def check_size(size: int) -> None:
         raise ValueError(f"size must be a positive multiple of {1 << LEVELS} for Kopf's method "
                          f"(its {LEVELS} levels halve it, the coarsest onto an even grid), "
                          f"got {size}")
+
+
+def working_bytes(size: int) -> int:
+    """About the most memory :func:`synthesize` takes for a ``size^3`` solid beside the
+    solid and its result, whatever the exemplar (``WORK_BYTES_PER_VOXEL``)."""
+    return size**3 * WORK_BYTES_PER_VOXEL
 
 
 def synthesize(
