@@ -256,12 +256,16 @@ def test_bad_arguments(granite, kwargs, message):
 
 def test_sizes_and_exemplars_of_another_type(granite, granite_32_file):
     """A size must be an integer (8.0 failed deep inside); an exemplar may be its file;
-    exemplars must be a sequence of them."""
+    exemplars must be a sequence of them; too many channels names the image."""
     for size in (8.0, "8", True):
         with pytest.raises(TypeError, match="size must be an integer"):
             kopf.synthesize(granite, size=size, progress=False)
     with pytest.raises(TypeError, match=r"an exemplar must be a warptex\.Exemplar or an image"):
         kopf.synthesize(np.zeros((16, 16, 3)), size=8, progress=False)
+    nine = Exemplar(np.random.default_rng(0).random((16, 16, 9), np.float32), name="nine")
+    with pytest.raises(ValueError, match=r"nine: 9 matching channels .*; Kopf's method handles "
+                                         "at most 8"):
+        kopf.synthesize(nine, size=8, progress=False)
     for one in (granite, str(granite_32_file), granite_32_file):  # not three: "x: not found"
         with pytest.raises(TypeError, match="exemplars must be a sequence of three exemplars"):
             kopf.synthesize(None, exemplars=one, size=8, progress=False)

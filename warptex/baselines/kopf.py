@@ -234,8 +234,10 @@ def _axis_exemplars(
         raise ValueError("at least two axes must be constrained by an exemplar")
     check_same_channels(axes)
     if given[0].features.shape[2] > _k.MAX_FEATURES:
-        raise ValueError(f"at most {_k.MAX_FEATURES} matching channels are supported, the "
-                         f"exemplars have {given[0].features.shape[2]}")
+        names = ", ".join(dict.fromkeys(str(e.path or e.name) for e in given))
+        raise ValueError(f"{names}: {given[0].features.shape[2]} matching channels (colors "
+                         f"and a feature distance); Kopf's method handles at most "
+                         f"{_k.MAX_FEATURES}")
     return axes
 
 
