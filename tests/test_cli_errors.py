@@ -431,6 +431,26 @@ def test_an_unusable_device_is_a_clear_error(files, tmp_path, capsys, monkeypatc
     assert main(["cache"]) == 0
 
 
+@pytest.mark.parametrize("command", ["volume", "render"])
+def test_a_kernel_cache_warp_cannot_make_is_a_clear_error(files, tmp_path, command):
+    """WARP_CACHE_PATH naming a file: Warp's start-up fails making its folder, which the
+    command reports as one line naming it, not a traceback. A process of its own, as Warp
+    starts once a process."""
+    import subprocess
+    import sys
+
+    out = tmp_path / ("v.npy" if command == "volume" else "r.png")
+    source = files["exemplar"] if command == "volume" else files["scene"]
+    env = {**os.environ, "WARP_CACHE_PATH": str(files["notes"])}
+    run = subprocess.run([sys.executable, "-m", "warptex", command, str(source), "-o", str(out)],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 2
+    assert run.stderr.startswith(f"warptex: error: {files['notes']}")
+    assert "WARP_CACHE_PATH sets its folder" in run.stderr
+    assert "Traceback" not in run.stderr and len(run.stderr.splitlines()) == 1
+    assert not out.exists() and files["notes"].read_text() == "not bricks"
+
+
 def test_texture_settings_reach_volume_and_slice(files, tmp_path):
     """--ey gives the y (and so z) axis its own exemplar, and --passes the engine its
     passes, in volume and slice alike."""

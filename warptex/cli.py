@@ -1511,10 +1511,17 @@ _KERNEL_MODULES = (("kernels.candidates", True), ("kernels.synthesis", False))
 
 
 def _check_device() -> None:
-    """A device asked for through the environment that cannot be had is a user error."""
-    if os.environ.get("WARPTEX_DEVICE", "").strip():
-        from warptex.warp_runtime import device
+    """A device asked for through the environment that cannot be had, or a kernel cache
+    folder (WARP_CACHE_PATH) that Warp cannot make as it starts, is a user error."""
+    from warptex.warp_runtime import device, init_warp
 
+    try:
+        init_warp()
+    except OSError as error:
+        where = error.filename or os.environ.get("WARP_CACHE_PATH", "Warp's kernel cache")
+        raise CliError(f"{where}: Warp cannot make its kernel cache there "
+                       f"({error.strerror or error}); WARP_CACHE_PATH sets its folder") from None
+    if os.environ.get("WARPTEX_DEVICE", "").strip():
         try:
             device()
         except (ValueError, RuntimeError) as error:
