@@ -632,6 +632,30 @@ def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_
             "--alpha keep) synthesized but not written") in capsys.readouterr().err
 
 
+def test_bake_names_finding_the_shell_before_that_long_call(tmp_path, granite_32_file,
+                                                            sphere, warp_device, capsys,
+                                                            monkeypatch):
+    """Finding a shell takes seconds at the default 1024^3 and moves no bar: the surface
+    shell's bar is shown, naming that step, before it starts."""
+    import warptex.surface
+    from warptex.cli import main
+
+    shown = []
+    found = warptex.surface.shell
+
+    def shell_seen(*args, **kwargs):
+        shown.append(capsys.readouterr().err)
+        return found(*args, **kwargs)
+
+    monkeypatch.setattr(warptex.surface, "shell", shell_seen)
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    assert main(["bake", str(mesh_path), "--exemplar", str(granite_32_file),
+                 "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
+    assert len(shown) == 1
+    assert "surface shell" in shown[0] and "finding the voxels" in shown[0]
+
+
 def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, data_dir,
                                                                     warp_device, capsys):
     """A flat-shaded mesh, each face with its own vertices and normals: bake keeps a vertex

@@ -1166,11 +1166,15 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     from warptex.surface import shell
     from warptex.texture import BATCH
 
-    voxels = shell(mesh, resolution, transform)
-    # Not query_slabs: its colors would be thrown away, and holding them, with a point and
-    # an order for every shell voxel at once, would double what the shell takes in memory.
-    # The shell is sorted along x, so each batch is a slab and one engine request.
-    with tqdm(total=len(voxels), desc="surface shell", unit="voxel", unit_scale=True) as bar:
+    # Finding the voxels is one long call (seconds at 1024^3): the bar names it first.
+    with tqdm(desc="surface shell", unit="voxel", unit_scale=True,
+              postfix="finding the voxels the surface passes through") as bar:
+        voxels = shell(mesh, resolution, transform)
+        bar.set_postfix_str("synthesizing them", refresh=False)
+        bar.reset(total=len(voxels))
+        # Not query_slabs: its colors would be thrown away, and holding them, with a point
+        # and an order for every shell voxel at once, would double what the shell takes in
+        # memory. The shell is sorted along x, so each batch is a slab and one engine request.
         for first in range(0, len(voxels), BATCH):
             part = voxels[first : first + BATCH]
             tex.query(part + 0.5, filter="nearest")
