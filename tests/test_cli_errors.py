@@ -724,6 +724,10 @@ def test_too_many_channels_for_lazy_synthesis_are_refused_before_pre_computing(
                  "-o", str(tmp_path / "cmp")]) == 2
     assert f"{path}: 40 feature channels are too many" in capsys.readouterr().err
     assert not (tmp_path / "cmp").exists()
+    # Nor does precompute make candidates that no synthesis could use.
+    assert main(["precompute", str(path), "-o", str(tmp_path / "c.wtc")]) == 2
+    assert f"{path}: 40 feature channels are too many" in capsys.readouterr().err
+    assert not (tmp_path / "c.wtc").exists()
 
 
 def test_an_empty_file_name_is_refused_as_such(tmp_path, capsys):

@@ -334,10 +334,15 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def _cmd_precompute(args: argparse.Namespace) -> int:
     from warptex.candidates import cache_file_there, cache_path, precompute, resolved_params
+    from warptex.synthesis import check_feature_channels
 
     if args.output is not None:
         _check_output(args.output, (".wtc",), "a candidate file")
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
+    try:  # candidates that no synthesis could use: minutes for nothing on a large exemplar
+        check_feature_channels(exemplars[0].features.shape[2])
+    except ValueError as error:
+        raise CliError(f"{args.path}: {error}") from None
     params = _candidate_params(args)
     cache = None if args.no_cache else cache_path(exemplars, resolved_params(params))
     if cache is not None and not cache_file_there(cache):  # read, even where read-only
