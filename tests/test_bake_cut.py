@@ -656,6 +656,23 @@ def test_bake_names_finding_the_shell_before_that_long_call(tmp_path, granite_32
     assert "surface shell" in shown[0] and "finding the voxels" in shown[0]
 
 
+def test_the_uv_bar_ticks_while_the_mesh_is_unwrapped(texture, sphere, capsys, monkeypatch):
+    """xatlas takes 21 s for the bunny in a child process; its bar's clock is redrawn
+    meanwhile rather than standing at the step's start."""
+    import argparse
+
+    import warptex.parallel
+    from warptex.cli import _baked
+
+    monkeypatch.setattr(warptex.parallel, "WAIT_SECONDS", 0.02)
+    args = argparse.Namespace(uv="auto", texture_size=8, mesh=Path("sphere.ply"))
+    capsys.readouterr()
+    _baked(texture, sphere, block_transform(sphere, 16), args, "b.glb")
+    err = capsys.readouterr().err
+    # A child's start-up alone takes over half a second: many redraws at 0.02 s.
+    assert err.count("unwrapping (xatlas)") > 5
+
+
 def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, data_dir,
                                                                     warp_device, capsys):
     """A flat-shaded mesh, each face with its own vertices and normals: bake keeps a vertex

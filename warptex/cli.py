@@ -1086,7 +1086,8 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
         if args.uv == "auto":
             bar.set_postfix_str("unwrapping (xatlas)")
-            mesh = in_child_process(type(mesh).unwrap, mesh)
+            # Its clock ticks while the child unwraps, so a slow unwrap does not look hung.
+            mesh = in_child_process(type(mesh).unwrap, mesh, while_waiting=bar.refresh)
         bar.update()
         uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut does not offer it
         size = _texture_size(args)
