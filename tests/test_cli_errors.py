@@ -703,6 +703,38 @@ def test_every_command_s_help_ends_with_examples_that_parse(capsys):
                     assert (repo / value).is_file(), value
 
 
+def test_the_help_examples_write_no_file_of_another(capsys):
+    """Run one after another, as a new user does, no example replaces what another wrote:
+    an .obj's texture is named after it, a cut's second half gets _b, a render's
+    statistics go beside it (and `make demo` is the render example)."""
+    import shlex
+
+    from warptex import cli
+    from warptex.compare import REPORT_FILES
+    from warptex.mesh_files import exported_files
+
+    parser = cli._parser()
+    written: dict[Path, str] = {}
+    for name in cli._SUBCOMMANDS:
+        for example in cli._EXAMPLES[name]:
+            args = parser.parse_args(shlex.split(example)[1:])
+            output = getattr(args, "output", None)
+            if output is None:
+                continue
+            if name == "compare":
+                files = [Path(output) / f for f in REPORT_FILES]
+            elif name in ("bake", "cut"):
+                halves = [output] + ([output.with_stem(output.stem + "_b")]
+                                     if name == "cut" else [])
+                files = [f for h in halves for f in exported_files(h, uv_texture=args.uv
+                                                                    != "none")]
+            else:
+                files = [output] + ([Path(f"{output}.json")] if name == "render" else [])
+            for f in files:
+                assert f not in written, f"{example} replaces {f}, written by {written[f]}"
+                written[f] = example
+
+
 def test_too_many_channels_for_lazy_synthesis_are_refused_before_pre_computing(
         tmp_path, capsys, monkeypatch):
     """40 channels: the engine's exact projections take at most 34 of 5-voxel rows; the

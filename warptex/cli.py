@@ -1485,7 +1485,7 @@ _EXAMPLES = {
               "-o out/across.png"],
     "bake": [f"warptex bake {_BUNNY} --exemplar {_WOOD} --resolution 256 -o out/bunny.ply",
              f"warptex bake {_BUNNY} --exemplar {_WOOD} --resolution 256 --uv auto "
-             "-o out/bunny.obj"],
+             "-o out/bunny_uv.obj"],
     "cut": [f"warptex cut {_BUNNY} --exemplar {_WOOD} --resolution 256 --normal 1 0 0 "
             "-o out/half.ply"],
     "compare": [f"warptex compare {_WOOD} --size 32 --methods lazy,extrude,noise -o out/compare"],
