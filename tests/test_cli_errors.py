@@ -451,6 +451,24 @@ def test_a_kernel_cache_warp_cannot_make_is_a_clear_error(files, tmp_path, comma
     assert not out.exists() and files["notes"].read_text() == "not bricks"
 
 
+@pytest.mark.parametrize("exemplar", ["missing.png", "{five}"])
+def test_cut_refuses_a_bad_exemplar_before_cutting(files, tmp_path, capsys, monkeypatch,
+                                                   exemplar):
+    """Cutting a large mesh takes a while: an exemplar that cannot be read, or not looked
+    up in, is refused before it, as bad input is before any work."""
+    import warptex.cut
+
+    def never(*args, **kwargs):
+        raise AssertionError("cut before the exemplar was checked")
+
+    monkeypatch.setattr(warptex.cut, "cut", never)
+    path = exemplar.format(five=files["five"])
+    assert main(["cut", str(files["mesh"]), "--exemplar", path, "-o",
+                 str(tmp_path / "c.ply")]) == 2
+    assert capsys.readouterr().err.startswith(f"warptex: error: {path}: ")
+    assert not any(tmp_path.iterdir())
+
+
 def test_texture_settings_reach_volume_and_slice(files, tmp_path):
     """--ey gives the y (and so z) axis its own exemplar, and --passes the engine its
     passes, in volume and slice alike."""

@@ -804,13 +804,13 @@ def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEF
         raise CliError(f"--{error.name} {error.problem}") from None
 
 
-def _solid_texture(args: argparse.Namespace, mesh: bool = False):
-    """The texture of the command's exemplars, and whether its colors are sRGB-encoded (None
-    where they are written as they are: see _colors_srgb); for a ``mesh`` command, a warning
-    first where its files cannot hold every channel."""
-    from warptex.candidates import precompute
+def _lookup_exemplars(args: argparse.Namespace,
+                      mesh: bool = False) -> tuple[list[Exemplar], bool | None]:
+    """The command's exemplars, checked before any work for the points looked up in them,
+    and whether their colors are sRGB-encoded (None where they are written as they are:
+    see _colors_srgb); for a ``mesh`` command, a warning where its files cannot hold every
+    channel."""
     from warptex.store import check_lookup_channels
-    from warptex.texture import SolidTexture
 
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.exemplar))
     try:  # before pre-computing: the channels are the same on every axis, or it says which
@@ -824,13 +824,21 @@ def _solid_texture(args: argparse.Namespace, mesh: bool = False):
         what = " (an alpha kept by --alpha keep)" if args.alpha == "keep" else ""
         warnings.warn(f"mesh files hold RGB colors: {_count(lost, 'channel')} of {channels}"
                       f"{what} synthesized but not written", stacklevel=1)
-    srgb = _colors_srgb(args, exemplars)
+    return exemplars, _colors_srgb(args, exemplars)
+
+
+def _solid_texture(args: argparse.Namespace, exemplars: list[Exemplar]):
+    """The texture of the command's ``exemplars`` (:func:`_lookup_exemplars`), their
+    candidates pre-computed."""
+    from warptex.candidates import precompute
+    from warptex.texture import SolidTexture
+
     try:
         # slice, bake and cut read thin sets (a plane, a surface): synthesize just those voxels.
         return SolidTexture(precompute(*exemplars, progress=True, **_candidate_params(args)),
                             seed=args.seed, jitter=args.jitter, passes=args.passes,
                             whole_bricks=False, shifted_tiles=args.shifted_tiles,
-                            store=getattr(args, "store", None)), srgb
+                            store=getattr(args, "store", None))
     except ValueError as error:
         raise CliError(str(error)) from None
 
@@ -888,7 +896,8 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         warnings.warn("--u and --v are zero or parallel: the slice shows a line or a point, "
                       "not a plane", stacklevel=1)
     _check_synthesis_arguments(args.jitter, args.passes, args.seed)
-    tex, srgb = _solid_texture(args)
+    exemplars, srgb = _lookup_exemplars(args)
+    tex = _solid_texture(args, exemplars)
     start = time.perf_counter()
     points = plane_points(args.origin, args.u, args.v, (h, w))
     image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
@@ -1208,7 +1217,8 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     mesh = _load_mesh(args.mesh, args.uv)
     transform = block_transform(mesh, args.resolution)
     _check_shell(mesh, transform, args.resolution)
-    tex, srgb = _solid_texture(args, mesh=True)
+    exemplars, srgb = _lookup_exemplars(args, mesh=True)
+    tex = _solid_texture(args, exemplars)
     start = time.perf_counter()
     with _store_saved_when_stopped(tex, args):
         count = _synthesize_shell(tex, mesh, args.resolution, transform)
@@ -1249,12 +1259,13 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     if args.origin is not None:
         _check_finite("--origin", args.origin)
     mesh = _load_mesh(args.mesh, weld=True)
+    exemplars, srgb = _lookup_exemplars(args, mesh=True)  # before the cut's work
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:
         halves = cut(mesh, origin, np.asarray(args.normal), progress=True)
     except ValueError as error:
         raise CliError(f"{args.mesh}: {error}") from None
-    tex, srgb = _solid_texture(args, mesh=True)
+    tex = _solid_texture(args, exemplars)
     start = time.perf_counter()
     transform = block_transform(mesh, args.resolution)
     with _store_saved_when_stopped(tex, args):
