@@ -1395,7 +1395,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="Mitsuba variant to render in, e.g. llvm_ad_spectral or "
                         "scalar_spectral for spectral rendering, llvm_ad_mono for "
                         f"monochrome (default: llvm_ad_rgb where libLLVM >= {MIN_LLVM_MAJOR} "
-                        "is found, else scalar_rgb)")
+                        "is found in the system's library folders or named by "
+                        "DRJIT_LIBLLVM_PATH, else scalar_rgb)")
     parser.add_argument("--read-only-stores", action="store_true",
                         help="read the brick stores the scene names (lazy_solid's cache) "
                         "without writing them back: a shared store, or one in a place that "
