@@ -281,6 +281,63 @@ def test_volume_slabs():
     assert cli._slab_edges(101) == [0, 52, 101]
 
 
+def test_work_voxels_counts_the_aprons_of_many_passes():
+    """The measure of a volume's time that decides its bar: a 16^3 box of 8 passes took
+    longer than an 80^3 one of the default 2 (3.0 s against 1.4 s), as its aprons grow."""
+    from warptex.synthesis import work_voxels
+
+    assert work_voxels((64,) * 3) < work_voxels((80,) * 3) < work_voxels((81,) * 3)
+    assert work_voxels((64,) * 3, 2) < work_voxels((64,) * 3, 3)
+    assert work_voxels((16,) * 3, 8) > work_voxels((80,) * 3)
+    assert work_voxels((16, 32, 32), 0) > 0  # upsampling alone is work too
+
+
+def test_a_slow_volume_of_one_slab_shows_its_bar_ticking(images, tmp_path, capsys,
+                                                          monkeypatch):
+    """A volume of one slab whose work is slow (a small one of many passes) shows its bar,
+    redrawn by a thread while the slab is synthesized; a quick one shows none."""
+    import threading
+
+    import warptex.synthesis
+    from warptex.synthesis import Synthesizer
+
+    ticking = []
+    box = Synthesizer.box
+
+    def seen(self, origin, shape):
+        ticking.append(any(t.name == "warptex-bar" for t in threading.enumerate()))
+        return box(self, origin, shape)
+
+    monkeypatch.setattr(Synthesizer, "box", seen)
+    capsys.readouterr()
+    assert _volume(images, tmp_path / "quick.npy") == 0
+    assert "volume" not in capsys.readouterr().err and ticking == [False]
+    # As if 3 passes made 8^3 voxels slow, as 8 passes make 16^3 (seconds on a GPU-less CPU).
+    monkeypatch.setattr(warptex.synthesis, "work_voxels",
+                        lambda shape, passes=2: 10**9 if passes == 3 else 1)
+    assert _volume(images, tmp_path / "slow.npy", "--passes", "3") == 0
+    err = capsys.readouterr().err
+    assert "volume: 100%" in err and "1/1" in err and ticking == [False, True]
+
+
+def test_ticking_redraws_a_bar_until_the_block_ends(monkeypatch):
+    import time
+
+    class Bar:
+        refreshed = 0
+
+        def refresh(self):
+            self.refreshed += 1
+
+    monkeypatch.setattr(cli, "_TICK_SECONDS", 0.01)
+    bar = Bar()
+    with cli._ticking(bar):
+        time.sleep(0.3)
+    seen = bar.refreshed
+    time.sleep(0.05)
+    assert seen > 5 and bar.refreshed == seen
+
+
 def test_volume_npy_equals_box(images, expected, tmp_path, capsys, monkeypatch):
     out = tmp_path / "v.npy"
     monkeypatch.setattr(cli, "_slab_edges", lambda size: [0, 3, 4, size])

@@ -55,6 +55,8 @@ from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
 
 # Imported inside the commands that need them, so `warptex info` stays light.
 if TYPE_CHECKING:
+    from tqdm import tqdm
+
     from warptex.candidates import CandidateSet
 
 
@@ -625,7 +627,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer, box_bytes, check_feature_channels
+    from warptex.synthesis import Synthesizer, box_bytes, check_feature_channels, work_voxels
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_inputs_kept(args, [args.output])
@@ -669,12 +671,17 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise CliError(str(error)) from None
     size = args.size
-    # Results depend on position only, so slabs along x concatenate to the whole box.
-    slabs = [
-        synth.box((x0, 0, 0), (x1 - x0, size, size))
-        for x0, x1 in tqdm(list(itertools.pairwise(edges)), desc="volume", unit="slab",
-                           disable=len(edges) <= 2)  # a bar of one step tells nothing
-    ]
+    # A slow volume of one slab (a small one of many passes) shows its bar too, its clock
+    # ticking: its time grows with the aprons of its passes, which thinner slabs would repeat.
+    slow = work_voxels((size,) * 3, args.passes) > work_voxels((_SECONDS_OF_WORK,) * 3)
+    shown = slow or len(edges) > 2
+    with tqdm(total=len(edges) - 1, desc="volume", unit="slab", disable=not shown) as bar:
+        slabs = []
+        for x0, x1 in itertools.pairwise(edges):
+            with _ticking(bar):
+                # Results depend on position only, so slabs along x concatenate to the box.
+                slabs.append(synth.box((x0, 0, 0), (x1 - x0, size, size)))
+            bar.update()
     volume = np.concatenate(slabs, axis=0)
     with _writing(args.output):
         write_volume(args.output, volume, srgb=srgb)
@@ -714,16 +721,22 @@ def _check_kopf_size(size: int) -> None:
         raise CliError(f"--{error}") from None
 
 
+# The side of a cube that synthesizes in seconds at the default passes (1.4 s for 80^3 on a
+# 2-core CPU): the commands show the progress of larger work.
+_SECONDS_OF_WORK = 80
+_TICK_SECONDS = 0.5  # how often a bar's clock is redrawn during one long call
+
+
 def _slab_edges(size: int) -> list[int]:
     """Where the x-slabs of a ``size``^3 volume begin, and its end: slabs of about a
     million voxels show progress, but none much thinner than 32 voxels, which would spend more
     on its apron than on itself, and whole blocks thick, which no two slabs share; all about
-    as thick (a last slab of one voxel paid a whole apron). A volume of over half a million
-    voxels (seconds) takes two at least, so that its bar moves."""
+    as thick (a last slab of one voxel paid a whole apron). A volume larger than
+    ``_SECONDS_OF_WORK``^3 takes two at least, so that its bar moves."""
     from warptex.synthesis import BLOCK
 
     thickness = min(size, max(32, (1 << 20) // size**2))
-    count = max(-(-size // thickness), 2 if size**3 > 1 << 19 else 1)
+    count = max(-(-size // thickness), 2 if size > _SECONDS_OF_WORK else 1)
     return sorted({round(i * size / count / BLOCK) * BLOCK for i in range(count)} | {size})
 
 
@@ -741,6 +754,28 @@ def _check_fits(need: int, what: str, advice: str) -> None:
     problem = memory_problem(need)
     if problem is not None:
         raise CliError(f"{what} {problem}; {advice}")
+
+
+@contextlib.contextmanager
+def _ticking(bar: tqdm) -> Iterator[None]:
+    """Redraw ``bar`` every ``_TICK_SECONDS`` while the block runs one long call (Warp's
+    CPU launches let other threads run), so that its clock shows the work going on."""
+    if getattr(bar, "disable", False):
+        yield
+        return
+    done = threading.Event()
+
+    def tick() -> None:
+        while not done.wait(_TICK_SECONDS):
+            bar.refresh()
+
+    ticker = threading.Thread(target=tick, name="warptex-bar", daemon=True)
+    ticker.start()
+    try:
+        yield
+    finally:
+        done.set()
+        ticker.join()
 
 
 @contextlib.contextmanager
@@ -1184,7 +1219,8 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
     # Finding the voxels is one long call (seconds at 1024^3): the bar names it first.
     with tqdm(desc="surface shell", unit="voxel", unit_scale=True,
               postfix="finding the voxels the surface passes through") as bar:
-        voxels = shell(mesh, resolution, transform)
+        with _ticking(bar):
+            voxels = shell(mesh, resolution, transform)
         bar.set_postfix_str("synthesizing them", refresh=False)
         bar.reset(total=len(voxels))
         # Not query_slabs: its colors would be thrown away, and holding them, with a point

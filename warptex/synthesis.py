@@ -88,6 +88,22 @@ def box_bytes(shape: tuple[int, int, int]) -> int:
     return d * h * w * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
 
 
+def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES, levels: int = 3,
+                half: int = DEFAULT_PARAMS["neighborhood"] // 2) -> int:
+    """About how many voxel corrections synthesizing a box of ``shape`` takes, a measure of
+    its time: at each level from the finest, the box grown by the apron its passes read
+    (section 5.2), corrected ``passes`` times, then halved for the level above. The aprons
+    grow with the passes, so a small box of many passes can take longer than a large one."""
+    apron = BLOCK * -(-dependency_radius(half, passes, 1) // BLOCK)
+    sides = np.asarray(shape, np.int64)
+    work = 0
+    for _ in range(levels + 1):
+        sides = sides + 2 * apron
+        work += max(passes, 1) * int(np.prod(sides))
+        sides = -(-sides // 2)
+    return work
+
+
 def neighborhood_shape(half: int) -> np.ndarray:
     """Voxels read by one correction: three orthogonal N x N planes (the 3-neighbourhood)."""
     n = 2 * half + 1
