@@ -38,10 +38,6 @@ from warptex.exemplar import srgb_to_linear
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 TEXTURE = re.compile(r'<texture type="lazy_solid".*?</texture>', re.S)
 PLASTIC = re.compile(r'<bsdf type="roughplastic">\s*<float name="alpha" value="[^"]*"/>')
-# Texture-space box around the bunny (scale 40, the scene's bunny spans about
-# [-0.8, 0.8] x [0, 1.55] x [-0.6, 0.6]) with a voxel of margin.
-ORIGIN = (-34, -2, -26)
-SHAPE = (68, 66, 52)
 
 
 def timed(render) -> float:
@@ -51,10 +47,23 @@ def timed(render) -> float:
     return time.perf_counter() - start
 
 
-def grid_xml(xml: str, vol: Path, scale: float) -> str:
-    """The scene with the lazy_solid texture replaced by a gridvolume-backed texture."""
-    o = [v / scale for v in ORIGIN]
-    s = [v / scale for v in SHAPE]
+def texture_box(scene, texture) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Origin and shape of the voxel box around the shapes that ``texture`` colours, with a
+    voxel of margin for trilinear lookups (texture coordinates are ``scale`` times world
+    ones: the scene gives the texture no ``to_world``)."""
+    bounds = [shape.bbox() for shape in scene.shapes()
+              if any(t is texture for t in mitsuba_plugin.textures(shape.bsdf()))]
+    low = np.min([np.array(b.min) for b in bounds], axis=0) * texture.scale
+    high = np.max([np.array(b.max) for b in bounds], axis=0) * texture.scale
+    origin = np.floor(low).astype(int) - 1
+    return tuple(origin.tolist()), tuple((np.ceil(high).astype(int) + 1 - origin).tolist())
+
+
+def grid_xml(xml: str, vol: Path, scale: float, origin: tuple, shape: tuple) -> str:
+    """The scene with the lazy_solid texture replaced by a gridvolume-backed texture of the
+    voxel box ``origin``, ``shape``."""
+    o = [v / scale for v in origin]
+    s = [v / scale for v in shape]
     grid = (f'<texture type="volume" name="reflectance"><volume type="gridvolume" '
             f'name="volume"><string name="filename" value="{vol}"/>'
             f'<transform name="to_world"><scale x="{s[0]}" y="{s[1]}" z="{s[2]}"/>'
@@ -106,8 +115,9 @@ def main() -> None:
     timed(render(scene, "wavefront"))
     warm_wavefront = [timed(render(scene, "wavefront")) for _ in range(args.repeat)]
 
+    origin, shape = texture_box(scene, texture)
     start = time.perf_counter()
-    box = texture.solid.synthesizer.box(ORIGIN, SHAPE)[..., :3]
+    box = texture.solid.synthesizer.box(origin, shape)[..., :3]
     box_seconds = time.perf_counter() - start
     box = srgb_to_linear(box)  # the colors the plugin renders, decoded from the PNG's sRGB
     scale = texture.scale
@@ -117,7 +127,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         vol = Path(tmp) / "bunny.vol"
         mi.VolumeGrid(np.ascontiguousarray(box.transpose(2, 1, 0, 3))).write(str(vol))
-        grid = mi.load_string(grid_xml(xml, vol, scale), **size)
+        grid = mi.load_string(grid_xml(xml, vol, scale, origin, shape), **size)
         timed(render(grid, "default"))
         grid_default = [timed(render(grid, "default")) for _ in range(args.repeat)]
         timed(render(grid, "wavefront"))
@@ -135,7 +145,7 @@ def main() -> None:
     print(f"warm, wavefront mode:     {ww:6.2f} s  {[round(x, 2) for x in warm_wavefront]}")
     print(f"gridvolume, default mode: {g:6.2f} s  {[round(x, 2) for x in grid_default]}")
     print(f"gridvolume, wavefront:    {gw:6.2f} s  {[round(x, 2) for x in grid_wavefront]}")
-    print(f"grid synthesis (Synthesizer.box {SHAPE}): {box_seconds:.2f} s")
+    print(f"grid synthesis (Synthesizer.box {shape} at {origin}): {box_seconds:.2f} s")
     print(f"ratio warm / grid default:   {w / g:.2f}  (target <= 1.5)")
     print(f"ratio warm wavefront / grid wavefront: {ww / gw:.2f}")
 
