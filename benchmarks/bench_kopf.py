@@ -25,7 +25,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from timing import timed_runs
+from timing import run_record, timed_runs
 
 from warptex import metrics
 from warptex.baselines import kopf
@@ -77,6 +77,7 @@ def main() -> None:
     parser.add_argument("--mean-shift", action="store_true",
                         help="Kopf with mean-shift clustering (section 4.1)")
     args = parser.parse_args()
+    print(run_record(), flush=True)
 
     warm = Exemplar(np.random.default_rng(0).random((16, 16, 3), dtype=np.float32))
     with warnings.catch_warnings():  # noise needs more PCA dimensions than Kopf keeps

@@ -27,6 +27,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
+
+from timing import run_record  # noqa: E402
+
 EXEMPLARS = REPO.parent / "shared" / "data" / "exemplars"
 PHOTO = EXEMPLARS / "dry_mud_256.png"
 
@@ -81,6 +84,7 @@ def main() -> None:
     if args.one is not None:
         print(json.dumps(one(args.photos, args.one)))
         return
+    print(run_record(), flush=True)
 
     mib = 2**20
     names = ", ".join(p.name for p in args.photos)

@@ -30,6 +30,7 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from timing import run_record
 
 import mitsuba_plugin
 import warptex  # noqa: F401  (before Mitsuba: points Dr.Jit at libLLVM)
@@ -84,6 +85,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--variant", help="Mitsuba variant (default: the best RGB one)")
     args = parser.parse_args()
+    print(run_record(), flush=True)
     variant = (mitsuba_plugin.use_variant(args.variant) if args.variant
                else mitsuba_plugin.set_best_variant())
     mitsuba_plugin.register()

@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
 import numpy as np  # noqa: E402
-from timing import best_of  # noqa: E402
+from timing import best_of, run_record  # noqa: E402
 
 from warptex.candidates import precompute  # noqa: E402
 from warptex.texture import SolidTexture  # noqa: E402
@@ -113,6 +113,7 @@ def main() -> None:
     parser.add_argument("--exemplar", default=str(REPO / "tests" / "data" / "granite_64.png"))
     parser.add_argument("--skip-cold", action="store_true")
     args = parser.parse_args()
+    print(run_record(), flush=True)
     candidates = precompute(args.exemplar)
     warm(candidates)
     if not args.skip_cold:

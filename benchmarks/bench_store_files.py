@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
 import numpy as np  # noqa: E402
-from timing import best_of  # noqa: E402
+from timing import best_of, run_record  # noqa: E402
 
 from warptex.candidates import precompute  # noqa: E402
 from warptex.keysets import pack  # noqa: E402
@@ -47,6 +47,7 @@ def main() -> None:
     parser.add_argument("--bricks", type=int, nargs="+", default=[10_000, 40_000, 85_000])
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
+    print(run_record(), flush=True)
     synthesizer = Synthesizer(precompute(args.exemplar), device="cpu")
     print("| bricks N | save, new file s | save over itself s | save of N other bricks over "
           "it s | merged file MiB | load of the merged file s |")

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from timing import run_record
 
 from warptex.exemplar import Exemplar
 from warptex.store import BrickStore
@@ -37,6 +38,7 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=2,
                         help="correction passes per pyramid level (default 2)")
     args = parser.parse_args()
+    print(run_record(), flush=True)
     res = args.resolution
     mesh = trimesh.load(args.mesh, force="mesh")
     tex = SolidTexture(Exemplar.load(args.exemplar), seed=1, cache_bytes=8 << 30,

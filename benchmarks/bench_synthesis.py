@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import best_of
+from timing import best_of, run_record
 
 from warptex import metrics
 from warptex.candidates import precompute
@@ -171,6 +171,7 @@ def main() -> None:
                         help="--memory's cap of finest work voxels per engine call (default "
                         f"warptex's, {MAX_WORK_VOXELS}; a small one splits small boxes)")
     args = parser.parse_args()
+    print(run_record(), flush=True)
     if args.memory:
         memory(args.exemplars, args.boxes, args.part_voxels)
         return

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from timing import run_record
 from tqdm import tqdm
 
 from warptex import metrics
@@ -99,6 +100,7 @@ def main() -> None:
     parser.add_argument("--sheet", type=Path, default=ROOT / "docs" / "experiments"
                         / "colour_voting.png")
     args = parser.parse_args()
+    print(run_record(), flush=True)
     names = args.names or sorted(p.stem.removesuffix("_64")
                                  for p in args.exemplars.glob("*_64.png"))
     targets = kopf_targets()

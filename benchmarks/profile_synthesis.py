@@ -34,7 +34,7 @@ from pathlib import Path
 from unittest import mock
 
 import warp as wp
-from timing import timed_runs
+from timing import run_record, timed_runs
 
 import warptex.synthesis
 from warptex.candidates import precompute
@@ -174,6 +174,7 @@ def main() -> None:
     parser.add_argument("--device", default=None,
                         help="Warp device (default: a GPU when there is one, else the CPU)")
     args = parser.parse_args()
+    print(run_record(), flush=True)
     device = str(wp.get_device(args.device)) if args.device else None
 
     for name in args.names:

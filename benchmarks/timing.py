@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import platform
+import subprocess
 import time
 from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def timed_runs(run: Callable[[T], object], repeat: int, prepare: Callable[[], T]) -> list[float]:
@@ -24,3 +29,28 @@ def timed_runs(run: Callable[[T], object], repeat: int, prepare: Callable[[], T]
 def best_of(fn: Callable[[], object], repeat: int) -> float:
     """The shortest of ``repeat`` wall-clock timings of ``fn()``, in seconds."""
     return min(timed_runs(lambda _: fn(), repeat, lambda: None))
+
+
+def run_record() -> str:
+    """The commit (``-dirty`` with uncommitted changes), date, machine and versions of this
+    run: what BENCHMARKS.md records beside its figures."""
+    import numpy as np
+    import warp as wp
+
+    from warptex.machine import physical_memory, usable_cores
+    from warptex.warp_runtime import device
+
+    try:
+        commit = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"],
+                                capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown (not a git checkout)"
+    cpuinfo = Path("/proc/cpuinfo")
+    models = ([line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
+               if line.startswith("model name")] if cpuinfo.exists() else [])
+    memory = physical_memory()
+    gib = "memory unknown" if memory is None else f"{memory / 2**30:.0f} GiB"
+    return (f"commit {commit}, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; "
+            f"{models[0] if models else platform.processor()}, {usable_cores()} cores, {gib}; "
+            f"Warp {wp.__version__} on {device()}, NumPy {np.__version__}, "
+            f"Python {platform.python_version()}")
