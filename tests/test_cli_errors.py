@@ -326,6 +326,17 @@ def test_an_output_name_of_a_folder_is_refused(files, tmp_path, capsys, command,
     assert not any(tmp_path.iterdir())
 
 
+def test_an_empty_output_folder_of_compare_is_refused(files, tmp_path, capsys, monkeypatch):
+    """compare -o "" named the working folder (Path("") is "."), where it wrote its files."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_code:
+        main(["compare", str(files["exemplar"]), "--size", "16", "--methods", "noise",
+              "-o", ""])
+    assert exit_code.value.code == 2
+    assert "argument -o/--output: empty folder name" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
 def test_an_obj_is_refused_before_any_work_where_its_texture_cannot_be_written(files,
                                                                                tmp_path,
                                                                                capsys):

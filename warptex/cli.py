@@ -126,6 +126,15 @@ def _file_name(text: str) -> Path:
     return Path(text)
 
 
+def _folder_name(text: str) -> Path:
+    """An output folder argument as a Path, refused where it is empty: Path("") names the
+    working folder, where the files would land unasked."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty folder name; give one, '.' for the working "
+                                         "folder")
+    return Path(text)
+
+
 def _input_file(text: str) -> Path:
     """A file argument to read, refused where it is empty: Path("") names the working
     folder, which the error would then name instead."""
@@ -1353,7 +1362,7 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
                            "colors (the measures take colors only)")
     _add_tileable_argument(parser, advice="; for lazy, tiled and Kopf, and for the measures, "
                            "whose exemplar neighbourhoods wrap only where synthesis may")
-    parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR",
+    parser.add_argument("-o", "--output", type=_folder_name, required=True, metavar="DIR",
                         help="output folder")
 
 
