@@ -1513,7 +1513,8 @@ def _parser() -> argparse.ArgumentParser:
         "cache (built on first use). "
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
         "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
-        "(render, bake and cut save their brick stores first).",
+        "(render, bake and cut save their brick stores first), 141 the reader of its "
+        "output closed it (`| head`).",
     )
     parser.add_argument("--version", action="version", version=f"warptex {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
