@@ -248,3 +248,22 @@ def test_a_stop_reaches_a_long_c_call_run_in_a_child_process():
     with pytest.raises(KeyboardInterrupt):
         in_child_process(_backtracking)
     assert multiprocessing.active_children() == []
+
+
+def _timed_out() -> None:
+    raise TimeoutError("the function's own")
+
+
+def test_a_timeout_the_child_raises_reaches_the_caller():
+    """The function's TimeoutError passed for the wait's: with ``while_waiting`` that was
+    called forever, without it the error was a TypeError."""
+    waited = []
+
+    def while_waiting():
+        waited.append(1)
+        if len(waited) > 100:  # the child ended at once: this is the endless loop
+            raise AssertionError("while_waiting called on and on")
+
+    for each in (None, while_waiting):
+        with pytest.raises(TimeoutError, match="the function's own"):
+            in_child_process(_timed_out, while_waiting=each)

@@ -116,11 +116,11 @@ def in_child_process(function: Callable[..., Any], *args: Any,
             # this process stops it instead.
             with _blocked((signal.SIGINT,)):
                 job = pool.submit(function, *args)
-            while True:
-                try:
-                    return job.result(timeout=None if while_waiting is None else WAIT_SECONDS)
-                except TimeoutError:  # concurrent.futures' is the builtin from 3.11
-                    while_waiting()
+            # Waited for apart from its result: a TimeoutError that the function raised
+            # would pass for the wait's own (the builtin, from 3.11) and loop forever.
+            while not wait([job], None if while_waiting is None else WAIT_SECONDS).done:
+                while_waiting()
+            return job.result()
         except KeyboardInterrupt:  # SIGTERM too (the CLI): the pool would wait for the child
             stop_workers(pool)
             raise
