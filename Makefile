@@ -31,6 +31,8 @@ llvm:
 	fi
 
 $(INSTALLED): pyproject.toml
-	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	# A venv that fails half-way (Debian without python3-venv) leaves a python without pip,
+	# which the next run would take for a venv: removed, the next run makes it again.
+	test -x $(PY) || $(PYTHON) -m venv $(VENV) || { rm -rf $(VENV); exit 1; }
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $@

@@ -1,0 +1,28 @@
+"""The Makefile's set-up, as `make test` and `make demo` run it on a fresh machine."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make")
+def test_a_venv_that_fails_half_way_is_made_again_by_the_next_run(tmp_path):
+    """Debian's python3 without python3-venv makes the venv's folder and python, then fails
+    for want of ensurepip: the next run, python3-venv installed, took that for a venv and
+    failed for good on "No module named pip"."""
+    shutil.copy(REPO / "Makefile", tmp_path)
+    (tmp_path / "pyproject.toml").touch()
+    python = tmp_path / "python3"
+    python.write_text('#!/bin/sh\nmkdir -p "$3/bin" && touch "$3/bin/python" '
+                      '&& chmod +x "$3/bin/python"\necho "ensurepip is not available" >&2\n'
+                      "exit 1\n")
+    python.chmod(0o755)
+    run = subprocess.run(["make", "-s", ".venv/.installed", f"PYTHON={python}"], cwd=tmp_path,
+                         capture_output=True, text=True)
+    assert run.returncode != 0
+    assert "ensurepip is not available" in run.stderr
+    assert not (tmp_path / ".venv").exists()
