@@ -56,6 +56,42 @@ def test_physical_memory_is_a_containers_limit_where_lower(tmp_path, monkeypatch
     assert machine.physical_memory() == (total if expected == "total" else expected)
 
 
+@pytest.mark.parametrize(("groups", "files", "expected"), [
+    ("0::/\n", {"cpu.max": "max 100000"}, 16),                        # v2 without a quota
+    ("0::/\n", {"cpu.max": "200000 100000"}, 2),                      # docker --cpus 2
+    ("0::/\n", {"cpu.max": "150000 100000"}, 2),                      # a part core counts
+    ("0::/\n", {"cpu.max": "20000 100000"}, 1),
+    ("0::/\n", {"cpu.max": "6400000 100000"}, 16),                    # more than the cores
+    ("0::/a/b\n", {"a/b/cpu.max": "max 100000", "a/cpu.max": "300000 100000"}, 3),
+    ("1:cpu,cpuacct:/job\n", {"cpu/job/cpu.cfs_quota_us": "400000",
+                               "cpu/job/cpu.cfs_period_us": "100000"}, 4),  # cgroup v1
+    ("1:cpu,cpuacct:/\n", {"cpu/cpu.cfs_quota_us": "-1",
+                            "cpu/cpu.cfs_period_us": "100000"}, 16),   # v1 without a quota
+    ("1:cpu:/\n", {"cpu/cpu.cfs_quota_us": "400000"}, 16),            # no period: unread
+    ("4:memory:/\n", {"cpu.max": "200000 100000"}, 16),               # no cpu controller
+    (None, {}, 16),                                                   # no cgroups at all
+])
+def test_usable_cores_are_a_containers_cpu_quota_where_fewer(tmp_path, monkeypatch, groups,
+                                                            files, expected):
+    """A quota of 2 cores on a 16-core machine: 8 threads only took turns, and `warptex
+    compare` reported 16 cores."""
+    import os
+
+    from warptex import machine
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    root = tmp_path / "cgroup"
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text + "\n")
+    proc = tmp_path / "proc_cgroup"
+    if groups is not None:
+        proc.write_text(groups)
+    monkeypatch.setattr(machine, "_PROC_CGROUP", proc)
+    monkeypatch.setattr(machine, "_CGROUP_ROOT", root)
+    assert machine.usable_cores() == expected
+
+
 def test_physical_memory_is_the_systems_total(monkeypatch):
     import os
 

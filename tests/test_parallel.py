@@ -122,6 +122,7 @@ def test_threads_follow_the_cores_the_process_may_use(monkeypatch):
         return
     monkeypatch.setattr(os, "cpu_count", lambda: 64)
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3, 5})
+    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))  # no CPU quota
     assert machine.usable_cores() == 3
 
 

@@ -7,22 +7,29 @@ the machine gets one clear error instead of a crash or a swap storm half-way.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
-# This process's control groups ("ID:controllers:path" lines) and where their memory limits
-# are read: cgroup v2's memory.max ("max" when there is none), v1's memory.limit_in_bytes (a
-# huge number when there is none).
+# This process's control groups ("ID:controllers:path" lines) and where their limits are read:
+# cgroup v2's memory.max and cpu.max ("max" where there is none), v1's memory.limit_in_bytes (a
+# huge number where there is none) and cpu.cfs_quota_us (-1) over cpu.cfs_period_us.
 _PROC_CGROUP = Path("/proc/self/cgroup")
 _CGROUP_ROOT = Path("/sys/fs/cgroup")
 
 
 def usable_cores() -> int:
     """Cores this process may run on: its CPU affinity where the system has one (a
-    container or ``taskset`` may allow fewer than the machine has), else all of them."""
+    container or ``taskset`` may allow fewer than the machine has), else all of them; fewer
+    where its container's CPU quota (``docker --cpus``, a Kubernetes limit) grants less
+    time than that, for threads beyond the quota only take turns."""
     if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return os.cpu_count() or 1
+        cores = max(1, len(os.sched_getaffinity(0)))
+    else:
+        cores = os.cpu_count() or 1
+    quota = _cgroup_cpus()
+    return cores if quota is None else max(1, min(cores, math.ceil(quota)))
 
 
 def physical_memory() -> int | None:
@@ -39,33 +46,59 @@ def physical_memory() -> int | None:
 def _cgroup_limit() -> int | None:
     """The lowest memory limit of this process's cgroup and those above it, as far as the
     cgroup file system shows them (a container sees its own group as the root)."""
+    limits = []
+    for level, v2 in _cgroup_levels("memory"):
+        text = _read(level / ("memory.max" if v2 else "memory.limit_in_bytes"))
+        if text.isdigit():
+            limits.append(int(text))
+    return min(limits, default=None)
+
+
+def _cgroup_cpus() -> float | None:
+    """The fewest cores' time that the CPU quotas of this process's cgroup and those above
+    it grant (1.5: one and a half cores' worth each period), or None without a quota."""
+    quotas = []
+    for level, v2 in _cgroup_levels("cpu"):
+        if v2:
+            fields = _read(level / "cpu.max").split()
+        else:
+            fields = [_read(level / "cpu.cfs_quota_us"), _read(level / "cpu.cfs_period_us")]
+        if len(fields) == 2 and all(f.isdigit() for f in fields) and int(fields[1]) > 0:
+            quotas.append(int(fields[0]) / int(fields[1]))
+    return min(quotas, default=None)
+
+
+def _cgroup_levels(controller: str) -> Iterator[tuple[Path, bool]]:
+    """The folders of this process's cgroups that ``controller`` governs and of those above
+    them, each with whether it is of cgroup v2."""
     try:
         lines = _PROC_CGROUP.read_text().splitlines()
     except OSError:
-        return None
-    limits = []
+        return
     for line in lines:
         fields = line.split(":", 2)
         if len(fields) != 3:
             continue
         _, controllers, group = fields
         if controllers == "":
-            base, name = _CGROUP_ROOT, "memory.max"
-        elif "memory" in controllers.split(","):
-            base, name = _CGROUP_ROOT / "memory", "memory.limit_in_bytes"
+            base, v2 = _CGROUP_ROOT, True
+        elif controller in controllers.split(","):
+            base, v2 = _CGROUP_ROOT / controller, False
         else:
             continue
         folder = base / group.lstrip("/")
         for level in [folder, *folder.parents]:
             if not level.is_relative_to(base):
                 break
-            try:
-                text = (level / name).read_text().strip()
-            except OSError:
-                continue
-            if text.isdigit():
-                limits.append(int(text))
-    return min(limits, default=None)
+            yield level, v2
+
+
+def _read(path: Path) -> str:
+    """A cgroup file's text, stripped; empty where there is no such file."""
+    try:
+        return path.read_text().strip()
+    except OSError:
+        return ""
 
 
 def memory_problem(need: int) -> str | None:
