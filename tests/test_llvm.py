@@ -21,6 +21,8 @@ from warptex import llvm
         ("libLLVM-17.so.1", 17),
         ("libLLVM-14.0.6.so.1", 14),
         ("libLLVM-15.so", 15),
+        ("libLLVM.so.18.1.8", 18),
+        ("libLLVM.so.1", None),  # Debian's llvm-18/lib/ names it so: an ABI number
         ("libLLVMSupport.so", None),
         ("libLLVM.a", None),
     ],

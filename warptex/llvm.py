@@ -27,8 +27,9 @@ _SEARCH_DIRS = (
     "/usr/lib",
     "/usr/local/lib",
 )
-# Debian ships both spellings: libLLVM.so.19.1 (llvm >= 18) and libLLVM-17.so.1 (older).
-_NAME = re.compile(r"^libLLVM(?:-(\d+)(?:\.\d+)*\.so(?:\.\d+)*|\.so\.(\d+)(?:\.\d+)*)$")
+# Debian ships both spellings: libLLVM.so.19.1 (llvm >= 18) and libLLVM-17.so.1 (older). A
+# lone number after ".so" is no LLVM version: Debian's /usr/lib/llvm-18/lib/libLLVM.so.1.
+_NAME = re.compile(r"^libLLVM(?:-(\d+)(?:\.\d+)*\.so(?:\.\d+)*|\.so\.(\d+)(?:\.\d+)+)$")
 
 
 def _major(path: str | Path) -> int | None:
