@@ -746,6 +746,27 @@ def test_a_merged_save_keeps_every_brick_of_ours_though_merging_grew_them(candid
     assert loaded.stats()["misses"] == 0
 
 
+def test_a_merge_pairs_each_brick_with_its_own_copy_whatever_the_recency_order(
+        candidates, tmp_path: Path):
+    """The saving store lists its bricks by recency, not by key: a brick of the file is
+    merged with the saving store's copy of that same brick (found through the key order),
+    never with the brick that sits at its place in the key order."""
+    syn = synthesizer(candidates)
+    path = tmp_path / "s.wtb"
+    first = BrickStore(syn, whole_bricks=False)
+    first.prefetch(np.array([[0, 0, 0], [21, 0, 0]]))
+    first.save(path)
+    second = BrickStore(syn, whole_bricks=False)
+    second.prefetch(np.array([[20, 0, 0]]))  # the later key used first
+    second.prefetch(np.array([[1, 2, 3]]))
+    second.save(path)
+    voxels = np.array([[0, 0, 0], [21, 0, 0], [20, 0, 0], [1, 2, 3]])
+    loaded = BrickStore.load(path, syn, whole_bricks=False)
+    assert (loaded.stats()["voxels"], loaded.stats()["bricks"]) == (4, 2)
+    np.testing.assert_array_equal(sample(loaded, voxels + 0.5), syn.voxels(voxels))
+    assert loaded.stats()["misses"] == 0
+
+
 def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
     """Saves take turns on the file's folder, so each merge reads the file the previous
     one wrote (threads here; processes lock the same way)."""
