@@ -119,6 +119,19 @@ def test_batch_composition_and_order_do_not_change_colors(candidates, filter):
                                   alone[::-1])
 
 
+def test_slabs_give_each_point_the_color_of_one_query(candidates, monkeypatch):
+    """query_slabs (slice, bake) takes the points in order of x, several slabs of them:
+    each point still gets its own color, in the caller's order."""
+    from warptex import texture as texture_module
+
+    monkeypatch.setattr(texture_module, "_SLAB", 64)
+    pts = points_near_origin(300, 9)
+    for filter in ("nearest", "trilinear"):
+        expected = texture(candidates).query(pts, filter=filter)
+        got = texture_module.query_slabs(texture(candidates), pts, filter)
+        np.testing.assert_array_equal(got, expected)
+
+
 def test_eviction_does_not_change_colors(candidates):
     pts = points_near_origin(400, 6)
     expected = texture(candidates).query(pts)
