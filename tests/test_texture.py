@@ -119,6 +119,18 @@ def test_batch_composition_and_order_do_not_change_colors(candidates, filter):
                                   alone[::-1])
 
 
+def test_queries_of_several_batches_give_each_point_its_own_color(candidates, monkeypatch):
+    """A query of more than BATCH points runs batch after batch: each point, filled ones
+    among them, keeps the color a query of it alone gives."""
+    from warptex import texture as texture_module
+
+    pts = points_near_origin(150, 12)
+    pts[[5, 70, 149]] = np.nan
+    expected = np.concatenate([texture(candidates).query(p[None], fill=0.25) for p in pts])
+    monkeypatch.setattr(texture_module, "BATCH", 64)
+    np.testing.assert_array_equal(texture(candidates).query(pts, fill=0.25), expected)
+
+
 def test_slabs_give_each_point_the_color_of_one_query(candidates, monkeypatch):
     """query_slabs (slice, bake) takes the points in order of x, several slabs of them:
     each point still gets its own color, in the caller's order."""
