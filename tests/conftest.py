@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,13 @@ REPO = Path(__file__).resolve().parent.parent
 
 # Before anything imports Warp, so compiled kernels land in one known, reusable folder.
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
+
+# A shell without job control starts a background job with Ctrl-C ignored, and Python then
+# raises no KeyboardInterrupt, nor do the commands the tests start (they inherit the
+# ignoring): the tests of what Ctrl-C does would fail or wait for nothing. Python's own
+# handler restored, children start with the default one.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
