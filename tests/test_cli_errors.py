@@ -182,6 +182,8 @@ CASES = [
     (["compare", "{exemplar}", "--methods", "noise,extrude,noise", "-o", "{out}/cmp"],
      "method(s) given more than once: noise"),
     (["compare", "{exemplar}", "-o", "{notes}"], "expected an output folder"),
+    (["compare", "{exemplar}", "-o", "{out}/" + "a" * 300],
+     "a" * 300 + ": cannot look up (File name too long)"),
     (["precompute", "{exemplar}", "--ey", "{gray}"],
      "same number of feature channels; found x {exemplar} 3, y {gray} 1, z {gray} 1"),
     (["volume", "{exemplar}", "--ez", "{gray}", "-o", "{out}/v.npy"],
