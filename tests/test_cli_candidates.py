@@ -321,21 +321,27 @@ def test_a_slow_volume_of_one_slab_shows_its_bar_ticking(images, tmp_path, capsy
 
 
 def test_ticking_redraws_a_bar_until_the_block_ends(monkeypatch):
-    import time
+    """The bar is redrawn again and again while the block runs (here until the third
+    redraw, however slowly this machine runs the thread), and never once it has ended: its
+    thread is gone. Not counted against a sleep, which a loaded machine may stretch."""
+    import threading
 
     class Bar:
-        refreshed = 0
+        def __init__(self):
+            self.refreshed = 0
+            self.third = threading.Event()
 
         def refresh(self):
             self.refreshed += 1
+            if self.refreshed == 3:
+                self.third.set()
 
     monkeypatch.setattr(cli, "_TICK_SECONDS", 0.01)
     bar = Bar()
     with cli._ticking(bar):
-        time.sleep(0.3)
-    seen = bar.refreshed
-    time.sleep(0.05)
-    assert seen > 5 and bar.refreshed == seen
+        assert bar.third.wait(timeout=60)  # a bound against hanging, not a timing
+    assert not any(t.name == "warptex-bar" for t in threading.enumerate())
+    assert bar.refreshed >= 3
 
 
 def test_volume_npy_equals_box(images, expected, tmp_path, capsys, monkeypatch):
