@@ -235,9 +235,9 @@ def _axis_exemplars(
     check_same_channels(axes)
     if given[0].features.shape[2] > _k.MAX_FEATURES:
         names = ", ".join(dict.fromkeys(str(e.path or e.name) for e in given))
-        raise ValueError(f"{names}: {given[0].features.shape[2]} matching channels (colors "
-                         f"and a feature distance); Kopf's method handles at most "
-                         f"{_k.MAX_FEATURES}")
+        what = " (colors and a feature distance)" if given[0].features_from else ""
+        raise ValueError(f"{names}: {given[0].features.shape[2]} matching channels{what}; "
+                         f"Kopf's method handles at most {_k.MAX_FEATURES}")
     return axes
 
 
