@@ -26,15 +26,18 @@ KINDS = [("rgb", "RGB"), ("spectral", "spectral"), ("mono", "monochrome")]
 
 
 def main() -> None:
-    import mitsuba as mi
-
-    import mitsuba_plugin
-
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     parser.add_argument("--res", type=int, default=256,
                         help="width and height of each render in pixels (default 256)")
     args = parser.parse_args()
+    for name in ("spp", "res"):  # else Mitsuba fails deep inside the first render
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be positive, got {getattr(args, name)}")
+    import mitsuba as mi
+
+    import mitsuba_plugin
+
     best = mitsuba_plugin.set_best_variant()
 
     def rendered(name: str) -> np.ndarray:
