@@ -1,8 +1,10 @@
-"""The scripts that make the pictures in docs/: their arguments are checked before any work."""
+"""The pictures in docs/: the scripts that make them check their arguments before any work,
+and the README links to each."""
 
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
@@ -29,3 +31,18 @@ def test_make_renders_refuses_sizes_mitsuba_would_fail_on_deep_inside(argv, monk
     err = capsys.readouterr().err
     assert f"error: {argv[0]} must be positive, got {argv[1]}" in err
     assert "Traceback" not in err
+
+
+def test_readme_links_resolve_and_name_every_picture_in_docs():
+    """Each relative link of README.md and scenes/README.md names a file that exists, and
+    each picture the docs scripts and experiments made is linked from README.md."""
+    links = {}
+    for readme in (REPO / "README.md", REPO / "scenes" / "README.md"):
+        for target in re.findall(r"\]\(([^)#\s]+)", readme.read_text()):
+            if "://" not in target:
+                links[(readme.parent / target).resolve()] = readme
+    missing = [f"{readme.name}: {path}" for path, readme in links.items() if not path.exists()]
+    assert missing == []
+    pictures = sorted(p for folder in ("slices", "renders", "experiments")
+                      for p in (REPO / "docs" / folder).glob("*.png"))
+    assert pictures and [p for p in pictures if p.resolve() not in links] == []
