@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tqdm import tqdm
+
 from warptex.archive import write_atomically
 from warptex.baselines.kopf import check_size
 from warptex.compare import METHODS, Setup, compare, run_line, run_summary, write_report
@@ -61,13 +63,14 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
         "---|",
     ]
-    for path in sorted(args.exemplars.glob("*_64.png")):
+    # Minutes per exemplar, an hour in all: a bar over the exemplars, and compare's own,
+    # which names the method and what it does.
+    for path in tqdm(sorted(args.exemplars.glob("*_64.png")), desc="exemplars"):
         name = path.stem.removesuffix("_64")
-        comparison = compare(Setup(path, args.size), METHODS, progress=False)
+        comparison = compare(Setup(path, args.size), METHODS)
         write_report(comparison, out / name)
         r = {m.method: m for m in comparison.results}
-        (more,) = compare(Setup(path, args.size, passes=MORE_PASSES), ["lazy"],
-                          progress=False).results
+        (more,) = compare(Setup(path, args.size, passes=MORE_PASSES), ["lazy"]).results
         lazy, kopf, ms, flat = (max(r[m].energy) for m in ("lazy", "kopf", "kopf-meanshift",
                                                            "flat"))
         seconds = {m: r[m].seconds for m in ("lazy", "kopf", "kopf-meanshift")}
@@ -84,7 +87,7 @@ def main() -> None:
             f"{seconds['kopf-meanshift'] / seconds['lazy']:.0f} | {more.seconds:.2f} | "
             f"{r['lazy'].repetition:.3f} | {r['tiled'].repetition:.3f} |"
         )
-        print(lines[-1], flush=True)
+        tqdm.write(lines[-1])
     text = "\n".join(lines) + "\n"
     write_atomically(out / "README.md", lambda tmp: tmp.write_text(text))
 

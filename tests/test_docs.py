@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -46,3 +47,34 @@ def test_readme_links_resolve_and_name_every_picture_in_docs():
     pictures = sorted(p for folder in ("slices", "renders", "experiments")
                       for p in (REPO / "docs" / folder).glob("*.png"))
     assert pictures and [p for p in pictures if p.resolve() not in links] == []
+
+
+def test_make_comparisons_shows_its_progress_over_the_exemplars(tmp_path, monkeypatch,
+                                                                capsys):
+    """An hour's run: a bar over the exemplars, and compare's own bar of the methods; each
+    exemplar's line of the index on stdout as it is measured."""
+    from warptex.compare import Comparison, MethodResult
+
+    make_comparisons = _script("make_comparisons")
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    shutil.copy(REPO / "scenes" / "textures" / "wood_rosewood_64.png", photos)
+    bars = []
+
+    def compare(setup, methods, progress=True):  # scores of no meaning, in no time
+        bars.append(progress)
+        return Comparison(setup, [MethodResult(m, [0.1] * 3, [0.2] * 3, [0.0] * 3, [0.0] * 3,
+                                               0.5, 1.0, 0.0, precompute_seconds=2.0)
+                                  for m in methods])
+
+    monkeypatch.setattr(make_comparisons, "compare", compare)
+    monkeypatch.setattr(make_comparisons, "write_report", lambda comparison, out: None)
+    monkeypatch.setattr(make_comparisons, "HERE", tmp_path)
+    (tmp_path / "comparisons").mkdir()
+    monkeypatch.setattr(sys, "argv", ["make_comparisons.py", "--exemplars", str(photos)])
+    make_comparisons.main()
+    out, err = capsys.readouterr()
+    assert re.search(r"exemplars: 100%.*1/1", err)
+    assert bars == [True, True]
+    assert out.startswith("| [wood_rosewood](wood_rosewood/sheet.png) | 0.100 |")
+    assert (tmp_path / "comparisons" / "README.md").read_text().endswith(out)
