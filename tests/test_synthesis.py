@@ -651,13 +651,13 @@ def test_upsampling_inherits_twice_the_parents_coordinates_plus_the_childs_offse
     np.testing.assert_array_equal(syn.triples(vox), expected)
 
 
-def test_correction_brings_a_banded_exemplars_slices_closer_to_it(exemplar_dir, warp_device):
+def test_correction_brings_a_banded_exemplars_slices_closer_to_it(data_dir, warp_device):
     """Section 5.1: correction passes replace each triple by its best candidate over all
     three planes, so a corrected texture's slices match the exemplar better than the
     start level's tiling, merely upsampled. Banded onyx, unlike granite, tells them apart
     clearly (0.12 against 0.16); picking worse candidates, skipping a pass or never
     offering 3D candidates brings the corrected one back to 0.16 or more."""
-    ex = Exemplar.load(exemplar_dir / "onyx_banded_64.png")
+    ex = Exemplar.load(data_dir / "onyx_banded_64.png")
     cs = precompute(ex, cache=False)
     energy = {passes: [metrics.neighborhood_energy(
         Synthesizer(cs, seed=3, passes=passes).box((0, 0, 0), (32, 32, 32)), ex.colors, a)
