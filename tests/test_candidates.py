@@ -849,6 +849,30 @@ def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
         assert (cand[:, :, 1, None] == near2[:, None, :]).any(axis=2).all(), lv
 
 
+def test_triples_are_among_the_keep_lowest_crossbar_errors(granite_32, warp_device):
+    """Section 4.1: of the S^2 triples of a pixel only the ``keep`` of least crossbar
+    error go on to the coherence test, so no stored triple scores worse than the keep-th
+    best of them."""
+    strips, keep = 4, 3
+    cs = precompute(granite_32, cache=False, strips=strips, keep=keep)
+    half = int(cs.params["neighborhood"]) // 2
+    for lv, level in enumerate(cs.sources):
+        feat = level[0].feat
+        pixels = np.arange(feat.shape[0] * feat.shape[1])
+        first, second = (_strip(feat, pixels, axis, half).reshape(len(pixels), -1)
+                         for axis in (0, 1))
+        near1 = _nearest(_squared_distances(second, first), strips)
+        near2 = _nearest(_squared_distances(first, second), strips)
+        triples = [np.broadcast_to(pixels[:, None, None], (len(pixels), strips, strips)),
+                   np.broadcast_to(near1[:, :, None], (len(pixels), strips, strips)),
+                   np.broadcast_to(near2[:, None, :], (len(pixels), strips, strips))]
+        errors = np.sort(_crossbar([feat] * 3, triples, half).reshape(len(pixels), -1), axis=1)
+        role = cs.roles[lv][0]
+        valid = np.arange(role.cb.shape[1])[None, :] < role.count[:, None]
+        worst = np.where(valid, role.cb, -1).max(axis=1)
+        assert (worst <= errors[:, keep - 1]).all(), lv
+
+
 def _ramp(rows: int, cols: int) -> Exemplar:
     """A noisy ramp from left to right: its left and right edges form a seam, its top and
     bottom edges do not."""
