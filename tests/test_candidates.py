@@ -815,6 +815,22 @@ def test_pca_keeps_the_fewest_dimensions_that_hold_the_variance(granite_32, warp
     assert min(dims) < 12  # the variance, not the cap, decided somewhere
 
 
+def test_pca_basis_is_orthonormal_axes_on_one_common_scale(granite_32, warp_device):
+    """The quantized basis is the principal axes, each of unit length, times one scale
+    (127 over the largest coefficient): distances in appearance space weigh every kept
+    component alike, as distances between the neighbourhoods themselves do."""
+    cs = precompute(granite_32, cache=False)
+    for lv, level in enumerate(cs.sources):
+        basis = level[0].basis.astype(np.float64)
+        assert np.abs(basis).max() == 127
+        gram = basis @ basis.T
+        scale = np.sqrt(np.diagonal(gram))
+        # Rounding each coefficient moves a norm by well under 5 %.
+        np.testing.assert_allclose(scale, scale.mean(), rtol=0.05, err_msg=f"level {lv}")
+        off = gram / np.outer(scale, scale) - np.eye(len(gram))
+        assert np.abs(off).max() < 0.05, lv
+
+
 def test_2d_candidates_are_the_nearest_neighbourhoods_more_than_2_pixels_away(granite_32,
                                                                                warp_device):
     cs = precompute(granite_32, cache=False)
