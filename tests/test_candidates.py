@@ -831,6 +831,25 @@ def test_pca_basis_is_orthonormal_axes_on_one_common_scale(granite_32, warp_devi
         assert np.abs(off).max() < 0.05, lv
 
 
+def test_projections_are_of_three_times_the_neighbourhood_in_basis_order(warp_device):
+    """Synthesis projects a voxel's N x N neighbourhoods, sums of three exemplar colours,
+    entry (a, b) then channel, a along the first pixel coordinate: the stored basis must
+    take that layout, and the stored projections be those of 3 * feat under it. A 24x32
+    crop, so that its neighbourhoods are not symmetric in a and b."""
+    cs = precompute(_crop(slice(8, 32), slice(0, 32)), cache=False)
+    half = int(cs.params["neighborhood"]) // 2
+    for lv, level in enumerate(cs.sources):
+        src = level[0]
+        feat = src.feat.astype(np.int64)
+        h, w, _ = feat.shape
+        u, v = np.divmod(np.arange(h * w), w)
+        vec = np.concatenate([feat[(u + a) % h, (v + b) % w]
+                              for a in range(-half, half + 1) for b in range(-half, half + 1)],
+                             axis=1)
+        expected = (3 * vec) @ src.basis.astype(np.int64).T >> src.shift
+        np.testing.assert_array_equal(src.proj, expected, f"level {lv}")
+
+
 def test_2d_candidates_are_the_nearest_neighbourhoods_more_than_2_pixels_away(granite_32,
                                                                                warp_device):
     cs = precompute(granite_32, cache=False)
