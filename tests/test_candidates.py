@@ -256,6 +256,17 @@ def test_coherence_holds_when_rounds_run_out(warp_device):
         np.testing.assert_array_equal(bad, role.fallback)
 
 
+
+def test_coherence_rounds_cut_the_lists_when_they_run_out(warp_device):
+    """After ``coherence_rounds`` rounds the lists are cut to their best k3 before
+    filtering on; without the cut, filtering would run to its fixpoint whatever the
+    setting."""
+    ex = _crop(slice(0, 32), slice(0, 32))
+    one, many = (precompute(ex, cache=False, coherence_rounds=r) for r in (1, 16))
+    assert any(not np.array_equal(a[0].cand, b[0].cand) or not np.array_equal(a[0].count,
+                                                                              b[0].count)
+               for a, b in zip(one.roles, many.roles, strict=True))
+
 # -- different exemplars per axis ---------------------------------------------------------
 
 
