@@ -842,6 +842,16 @@ def test_pca_basis_is_orthonormal_axes_on_one_common_scale(granite_32, warp_devi
         assert np.abs(off).max() < 0.05, lv
 
 
+def test_pca_axes_point_to_their_largest_coefficient(granite_32, warp_device):
+    """An eigensolver leaves each axis's sign free; the basis fixes it (its largest
+    coefficient positive), so that the stored projections, and the files and digests
+    that hold them, do not turn with the solver."""
+    cs = precompute(granite_32, cache=False)
+    for lv, level in enumerate(cs.sources):
+        basis = level[0].basis
+        assert (basis.max(axis=1) >= -basis.min(axis=1)).all(), lv
+
+
 def test_projections_are_of_three_times_the_neighbourhood_in_basis_order(warp_device):
     """Synthesis projects a voxel's N x N neighbourhoods, sums of three exemplar colours,
     entry (a, b) then channel, a along the first pixel coordinate: the stored basis must
