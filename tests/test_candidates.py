@@ -811,6 +811,19 @@ def test_features_of_all_exemplars_are_quantized_over_one_range(granite_32, warp
         np.testing.assert_array_equal(cs.sources[-1][j].feat, expected.astype(np.uint8))
 
 
+def test_a_constant_channel_quantizes_to_zero_without_warnings(warp_device):
+    """A channel of one value (a flat blue, a feature channel of nothing) has no range to
+    quantize over: it becomes 0, with no division by zero on the way."""
+    colors = np.array(_granite()[:32, :32])
+    colors[..., 2] = 0.5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cs = precompute(Exemplar(colors, name="flat blue"), cache=False)
+    for lv, level in enumerate(cs.sources):
+        assert not level[0].feat[..., 2].any(), lv
+        assert level[0].feat[..., :2].any(), lv
+
+
 def test_pca_keeps_the_fewest_dimensions_that_hold_the_variance(granite_32, warp_device):
     cs = precompute(granite_32, cache=False, variance=0.7, min_dims=1, max_dims=12)
     dims = []
