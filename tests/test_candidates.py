@@ -1082,6 +1082,21 @@ def test_margins_keep_candidates_off_each_seamed_edge_on_both_sides(warp_device)
             assert rows.min() == 0 and rows.max() == h - 1
 
 
+def test_each_role_keeps_to_the_margins_of_its_own_exemplars(warp_device):
+    """With a different exemplar on each axis, each coordinate of a triple keeps to the
+    margins of the exemplar it indexes: granite, which tiles, a ramp with a seam between
+    its left and right edges and a smaller ramp turned (a seam between top and bottom)."""
+    turned = Exemplar(np.ascontiguousarray(_ramp(24, 32).colors.transpose(1, 0, 2)),
+                      name="turned")
+    cs = precompute(Exemplar.load(GRANITE), _ramp(48, 64), turned, cache=False)
+    assert [s.margins for s in cs.sources[-1]] == [(0, 0), (0, 2), (2, 0)]
+    for lv, r in _role_cases(cs):
+        trio = _trio(cs, lv, r)
+        cand = cs.roles[lv][r].cand
+        for k in (0, 1):
+            assert trio[k + 1].usable()[cand[..., k]].all(), (lv, r, k)
+
+
 def test_the_bar_moves_after_each_half_of_a_role_level(monkeypatch, warp_device):
     """A role's crossbar search and coherence test are about half its time each (24 s at a
     256 px finest level, where the bar stood still): the bar moves after each."""
