@@ -1082,6 +1082,28 @@ def test_margins_keep_candidates_off_each_seamed_edge_on_both_sides(warp_device)
             assert rows.min() == 0 and rows.max() == h - 1
 
 
+def test_pca_of_a_photo_that_does_not_tile_is_of_the_neighbourhoods_inside_its_margins(
+        warp_device):
+    """Candidates never lie in the margins, whose neighbourhoods wrap across the seam, so
+    the appearance space is that of the neighbourhoods inside them: each axis of the basis
+    lies in the span of the leading principal axes of those (numpy's eigensolver), within
+    its quantization."""
+    cs = precompute(_ramp(24, 32), cache=False)
+    assert cs.sources[-1][0].margins == (0, 2)
+    for lv, level in enumerate(cs.sources):
+        src = level[0]
+        feat = src.feat.astype(np.int64)
+        h, w, _ = feat.shape
+        u, v = np.divmod(np.flatnonzero(src.usable()), w)
+        vec = 3 * np.concatenate([feat[(u + a) % h, (v + b) % w]
+                                  for a in range(-2, 3) for b in range(-2, 3)], axis=1)
+        axes = np.linalg.eigh(np.cov(vec.astype(np.float64), rowvar=False))[1]
+        leading = axes[:, ::-1][:, :src.basis.shape[0]]
+        basis = src.basis / np.linalg.norm(src.basis, axis=1, keepdims=True)
+        outside = np.linalg.norm(basis - basis @ leading @ leading.T, axis=1)
+        assert outside.max() < 0.05, (lv, outside)
+
+
 def test_each_role_keeps_to_the_margins_of_its_own_exemplars(warp_device):
     """With a different exemplar on each axis, each coordinate of a triple keeps to the
     margins of the exemplar it indexes: granite, which tiles, a ramp with a seam between
