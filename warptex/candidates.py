@@ -761,10 +761,9 @@ def _filter_coherent(
         listed = np.flatnonzero(retest)
         flags = np.arange(slots)[None, :] < count[:, None]
         flags[listed] = _continued(cand, count, sizes, listed)
-        flags[fallback, :1] = True  # a fallback pixel keeps its single best candidate
         kept = flags.sum(axis=1)
         empty = kept == 0
-        flags[empty, 0] = True
+        flags[empty, 0] = True  # keeps its best; a fallback pixel's list is that one already
         fallback |= empty
         kept = flags.sum(axis=1)
         done += 1
