@@ -900,6 +900,16 @@ def test_2d_candidates_are_the_nearest_neighbourhoods_more_than_2_pixels_away(gr
         np.testing.assert_array_equal(src.cand2d[:, 1:], _nearest(d2, k - 1))
 
 
+def _nearest_strips(feat: np.ndarray, strips: int, half: int):
+    """Each pixel of ``feat``, the ``strips`` pixels whose first-coordinate strip is
+    nearest its second-coordinate strip (pair 0-1), and the reverse (pair 2-0)."""
+    pixels = np.arange(feat.shape[0] * feat.shape[1])
+    first, second = (_strip(feat, pixels, axis, half).reshape(len(pixels), -1)
+                     for axis in (0, 1))
+    return (pixels, _nearest(_squared_distances(second, first), strips),
+            _nearest(_squared_distances(first, second), strips))
+
+
 def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
     """Section 4.1: q among the S strips nearest p's second-coordinate strip (pair 0-1),
     r among the S strips nearest p's first-coordinate strip (pair 2-0)."""
@@ -907,12 +917,7 @@ def test_triples_come_from_the_nearest_crossbar_strips(granite_32, warp_device):
     cs = precompute(granite_32, cache=False, strips=strips, keep=16)
     half = int(cs.params["neighborhood"]) // 2
     for lv, level in enumerate(cs.sources):
-        feat = level[0].feat
-        pixels = np.arange(feat.shape[0] * feat.shape[1])
-        first, second = (_strip(feat, pixels, axis, half).reshape(len(pixels), -1)
-                         for axis in (0, 1))
-        near1 = _nearest(_squared_distances(second, first), strips)
-        near2 = _nearest(_squared_distances(first, second), strips)
+        _, near1, near2 = _nearest_strips(level[0].feat, strips, half)
         cand = cs.roles[lv][0].cand
         assert (cand[:, :, 0, None] == near1[:, None, :]).any(axis=2).all(), lv
         assert (cand[:, :, 1, None] == near2[:, None, :]).any(axis=2).all(), lv
@@ -927,11 +932,7 @@ def test_triples_are_among_the_keep_lowest_crossbar_errors(granite_32, warp_devi
     half = int(cs.params["neighborhood"]) // 2
     for lv, level in enumerate(cs.sources):
         feat = level[0].feat
-        pixels = np.arange(feat.shape[0] * feat.shape[1])
-        first, second = (_strip(feat, pixels, axis, half).reshape(len(pixels), -1)
-                         for axis in (0, 1))
-        near1 = _nearest(_squared_distances(second, first), strips)
-        near2 = _nearest(_squared_distances(first, second), strips)
+        pixels, near1, near2 = _nearest_strips(feat, strips, half)
         triples = [np.broadcast_to(pixels[:, None, None], (len(pixels), strips, strips)),
                    np.broadcast_to(near1[:, :, None], (len(pixels), strips, strips)),
                    np.broadcast_to(near2[:, None, :], (len(pixels), strips, strips))]
