@@ -659,12 +659,13 @@ def _cmd_volume(args: argparse.Namespace) -> int:
         _check_kopf_size(args.size)
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     srgb = bool(_colors_srgb(args, exemplars))
-    _check_memory(args.size, exemplars[0].features.shape[2])
     if args.method == "kopf":
         from warptex.baselines.kopf import working_bytes
 
         _check_memory(args.size, exemplars[0].features.shape[2], working_bytes(args.size))
         return _volume_kopf(args, exemplars, srgb)
+    # Before the slabs are planned: a size far too large would keep that busy.
+    _check_memory(args.size, exemplars[0].features.shape[2])
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
     _check_memory(args.size, exemplars[0].features.shape[2],

@@ -60,7 +60,8 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     constrained Delaunay triangulation of the outer surface's outline vertices, refined by
     :func:`_bisect_long_edges` until no edge of it is longer than ``max_edge``.
     """
-    cap = cap_faces(half, origin, side)
+    in_plane = _in_plane(half, origin, side)
+    cap = in_plane[half.faces].all(axis=1)  # cap_faces, from the vertices found once
     if not cap.any():  # an open mesh cut where it has no inside
         return half
     n = side / np.linalg.norm(side)
@@ -75,7 +76,7 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     # drops collinear ones.
     count = len(uv)
     section = _boundary_keys(half.faces[~cap], count)
-    section = section[_in_plane(half, origin, side)[_edge_ends(section, count)].all(axis=1)]
+    section = section[in_plane[_edge_ends(section, count)].all(axis=1)]
     ends = np.bincount(_edge_ends(section, count).ravel(), minlength=count) < 2
     closing = np.setdiff1d(_boundary_keys(half.faces[cap], count), section)
     closing = closing[ends[_edge_ends(closing, count)].all(axis=1)]

@@ -94,7 +94,7 @@ def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES, level
     its time: at each level from the finest, the box grown by the apron its passes read
     (section 5.2), corrected ``passes`` times, then halved for the level above. The aprons
     grow with the passes, so a small box of many passes can take longer than a large one."""
-    apron = BLOCK * -(-dependency_radius(half, passes, 1) // BLOCK)
+    apron = BLOCK * _apron_blocks(half, passes, 1)
     sides = np.asarray(shape, np.int64)
     work = 0
     for _ in range(levels + 1):
@@ -166,6 +166,12 @@ def dependency_radius(half: int, passes: int, subpasses: int) -> int:
             farthest = grown
         worst = max(worst, int(farthest.max()))
     return worst
+
+
+def _apron_blocks(half: int, passes: int, subpasses: int) -> int:
+    """How many blocks beyond a request its work region reaches at each level: the
+    :func:`dependency_radius`, in whole blocks."""
+    return -(-dependency_radius(half, passes, subpasses) // BLOCK)
 
 
 def dependency_chain(half: int, passes: int, subpasses: int, levels: int) -> list[int]:
@@ -387,7 +393,7 @@ class Synthesizer:
                              f"supported (the candidates use {2 * half + 1}): a kernel reads "
                              f"voxels at most {BLOCK} away through its block's neighbours")
         check_feature_channels(int(candidates.sources[0][0].feat.shape[2]), 2 * half + 1)
-        self._apron = -(-dependency_radius(half, self.passes, self.subpasses) // BLOCK)
+        self._apron = _apron_blocks(half, self.passes, self.subpasses)
         if self._apron + 2 > _KEY_MARGIN:
             raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
                              f"{self.passes} passes of {self.subpasses} sub-passes and "
