@@ -37,7 +37,7 @@ def run_record() -> str:
     import numpy as np
     import warp as wp
 
-    from warptex.machine import physical_memory, usable_cores
+    from warptex.machine import cpu_model, physical_memory, usable_cores
     from warptex.warp_runtime import device
 
     try:
@@ -45,12 +45,9 @@ def run_record() -> str:
                                 capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown (not a git checkout)"
-    cpuinfo = Path("/proc/cpuinfo")
-    models = ([line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
-               if line.startswith("model name")] if cpuinfo.exists() else [])
     memory = physical_memory()
     gib = "memory unknown" if memory is None else f"{memory / 2**30:.0f} GiB"
     return (f"commit {commit}, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; "
-            f"{models[0] if models else platform.processor()}, {usable_cores()} cores, {gib}; "
+            f"{cpu_model()}, {usable_cores()} cores, {gib}; "
             f"Warp {wp.__version__} on {device()}, NumPy {np.__version__}, "
             f"Python {platform.python_version()}")

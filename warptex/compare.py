@@ -31,7 +31,6 @@ import json
 import multiprocessing
 import multiprocessing.queues
 import pickle
-import platform
 import queue
 import threading
 import time
@@ -558,19 +557,12 @@ def run_summary(size: int, seed: int) -> dict:
     date."""
     import warp as wp
 
-    from warptex.machine import software_versions, usable_cores
+    from warptex.machine import cpu_model, software_versions, usable_cores
     from warptex.parallel import THREADS
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as info:
-            cpu = next(line.split(":", 1)[1].strip() for line in info
-                       if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
     gpu = wp.get_device("cuda").name if _engine_device() == "cuda" else None
     versions = software_versions()
-    return {"size": size, "seed": seed, "cpu": cpu, "cores": usable_cores(),
+    return {"size": size, "seed": seed, "cpu": cpu_model(), "cores": usable_cores(),
             "threads": THREADS, "gpu": gpu, "warptex": versions.pop("warptex"),
             "warp": versions.pop("warp"), "versions": versions, "date": iso_date()}
 

@@ -19,6 +19,18 @@ _PROC_CGROUP = Path("/proc/self/cgroup")
 _CGROUP_ROOT = Path("/sys/fs/cgroup")
 
 
+def cpu_model() -> str:
+    """The CPU's model name as the system gives it ("AMD EPYC ..."), for reports of figures."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            return next(line.split(":", 1)[1].strip() for line in info
+                        if line.startswith("model name"))
+    except (OSError, StopIteration):
+        import platform
+
+        return platform.processor() or platform.machine()
+
+
 def usable_cores() -> int:
     """Cores this process may run on: its CPU affinity where the system has one (a
     container or ``taskset`` may allow fewer than the machine has), else all of them; fewer
