@@ -1,5 +1,6 @@
 """`warptex compare` (issue 7): every file, and rankings that follow from the methods."""
 
+import errno
 import json
 import os
 import re
@@ -758,19 +759,8 @@ def test_a_setup_holds_plain_values_that_table_json_can_write(tmp_path, data_dir
     assert not (tmp_path / "bad").exists()
 
 
-def test_a_report_that_cannot_be_written_whole_leaves_the_last_one(tmp_path, data_dir,
-                                                                   monkeypatch):
-    """sheet.png, table.md and table.json are written together: a full disk at the last
-    leaves the last report's three files as they were, not a new sheet beside old tables."""
-    import errno
-    import os
-
-    setup = compare.Setup(data_dir / "granite_64.png", 16)
-    row = compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0,
-                               0.0, slices=[np.zeros((16, 16, 3), np.float32)] * 3)
-    out = tmp_path / "out"
-    files = compare.write_report(compare.Comparison(setup, [row]), out)
-    before = [f.read_bytes() for f in files]
+def _json_disk_full(monkeypatch) -> None:
+    """Writes of .json files fail as on a full disk; the others succeed."""
     write_text = Path.write_text
 
     def full(self, text, *args, **kwargs):
@@ -779,6 +769,19 @@ def test_a_report_that_cannot_be_written_whole_leaves_the_last_one(tmp_path, dat
         return write_text(self, text, *args, **kwargs)
 
     monkeypatch.setattr(Path, "write_text", full)
+
+
+def test_a_report_that_cannot_be_written_whole_leaves_the_last_one(tmp_path, data_dir,
+                                                                   monkeypatch):
+    """sheet.png, table.md and table.json are written together: a full disk at the last
+    leaves the last report's three files as they were, not a new sheet beside old tables."""
+    setup = compare.Setup(data_dir / "granite_64.png", 16)
+    row = compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0,
+                               0.0, slices=[np.zeros((16, 16, 3), np.float32)] * 3)
+    out = tmp_path / "out"
+    files = compare.write_report(compare.Comparison(setup, [row]), out)
+    before = [f.read_bytes() for f in files]
+    _json_disk_full(monkeypatch)
     brighter = compare.MethodResult("noise", [1.0] * 3, [1.0] * 3, [1.0] * 3, [1.0] * 3, 1.0,
                                     1.0, 1.0, slices=[np.ones((16, 16, 3), np.float32)] * 3)
     with pytest.raises(OSError) as caught:
@@ -887,14 +890,11 @@ def test_a_second_ctrl_c_while_compare_stops_prints_no_traceback(data_dir, tmp_p
     assert not (tmp_path / "out").exists()
 
 
-
 def test_a_report_file_s_place_taken_is_named_before_any_method_and_after(tmp_path, data_dir,
                                                                          monkeypatch, capsys):
     """A folder where table.md goes is refused before any method runs (it was found only
     after all of them, as "OUT: cannot write (Is a directory)", naming the folder asked
     for); a write failing once the work is done names the report file that failed."""
-    import errno
-
     granite = str(data_dir / "granite_64.png")
     out = tmp_path / "out"
     (out / "table.md").mkdir(parents=True)
@@ -908,14 +908,7 @@ def test_a_report_file_s_place_taken_is_named_before_any_method_and_after(tmp_pa
     assert f"{out / 'table.md'}: is a folder, expected a file name" in capsys.readouterr().err
 
     (out / "table.md").rmdir()
-    write_text = Path.write_text
-
-    def full(self, text, *a, **kw):
-        if self.suffix == ".json":
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
-        return write_text(self, text, *a, **kw)
-
-    monkeypatch.setattr(Path, "write_text", full)
+    _json_disk_full(monkeypatch)
     assert main(args) == 1 and ran
     assert f"{out / 'table.json'}: cannot write (No space left on device)" in (
         capsys.readouterr().err)
