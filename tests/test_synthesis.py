@@ -12,6 +12,7 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
+from kernels import synthesis as _k
 from warptex import metrics, synthesis
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar
@@ -478,10 +479,16 @@ def test_candidate_counts_reach_the_search(granite_32, candidates):
     assert not np.array_equal(box, Synthesizer(candidates, seed=3).box((-5, 3, 7), (8, 8, 8)))
 
 
-def test_three_different_exemplars(data_dir, warp_device):
+@pytest.fixture(scope="module")
+def three_granites(data_dir, warp_device) -> CandidateSet:
+    """Candidates of three different 32x32 granite crops, one per axis."""
     base = Exemplar.load(data_dir / "granite_64.png").colors
     exs = [Exemplar(np.ascontiguousarray(base[i * 16 : i * 16 + 32, :32])) for i in range(3)]
-    cs = precompute(*exs, cache=False)
+    return precompute(*exs, cache=False)
+
+
+def test_three_different_exemplars(three_granites):
+    cs = three_granites
     assert len(cs.roles[0]) == 3
     syn = Synthesizer(cs, seed=2)
     box = syn.box((0, 0, 0), (8, 8, 8))
@@ -663,3 +670,89 @@ def test_correction_brings_a_banded_exemplars_slices_closer_to_it(data_dir, warp
         Synthesizer(cs, seed=3, passes=passes).box((0, 0, 0), (32, 32, 32)), ex.colors, a)
         for a in range(3)] for passes in (0, 2)}
     assert max(energy[2]) < 0.85 * min(energy[0])
+
+
+def _plane_projection(feat_at, basis: np.ndarray, shift: int, half: int, k: int) -> np.ndarray:
+    """NumPy reference of section 5.1's appearance vector of one plane: the N x N
+    neighbourhood of the plane of axis k (volume axes (k+1, k+2) as the exemplar's rows and
+    columns), in (a, b, channel) order, times the PCA basis, shifted and clamped as the
+    kernels store it. ``feat_at(d)`` gives the features at volume offset ``d``."""
+    rows = []
+    for a in range(-half, half + 1):
+        for b in range(-half, half + 1):
+            d = np.zeros(3, int)
+            d[(k + 1) % 3], d[(k + 2) % 3] = a, b
+            rows.append(feat_at(d))
+    acc = basis.astype(np.int64) @ np.concatenate(rows).astype(np.int64)
+    return np.clip(acc >> shift, -_k.PROJ_LIMIT, _k.PROJ_LIMIT)
+
+
+def test_the_reference_projection_of_a_slice_is_its_exemplar_pixels(candidates):
+    """The reference below reads plane k as the candidates read exemplar k: a volume
+    extruded along axis k from (three times) exemplar k projects to the exemplar's own
+    pixels' projections."""
+    source = candidates.sources[-1][candidates.axis_source[0]]
+    h, w = source.size
+    half = int(candidates.params["neighborhood"]) // 2
+    feat = 3 * source.feat.astype(np.int64)
+    for k in range(3):
+        for u, v in [(0, 0), (5, 17), (h - 1, 3), (20, w - 1)]:
+            pos = np.zeros(3, int)
+            pos[(k + 1) % 3], pos[(k + 2) % 3] = u, v
+
+            def feat_at(d, pos=pos, k=k):
+                p = pos + d
+                return feat[p[(k + 1) % 3] % h, p[(k + 2) % 3] % w]
+
+            expected = source.proj[u * w + v]
+            got = _plane_projection(feat_at, source.basis, source.shift, half, k)
+            np.testing.assert_array_equal(got[: len(expected)], expected)
+
+
+@pytest.mark.parametrize("exemplars", ["candidates", "three_granites"])
+def test_corrections_project_each_plane_as_the_reference_does(exemplars, request, monkeypatch):
+    """Every voxel a correction step lists gets, in each of its three planes, exactly the
+    reference's projection of its current neighbourhood (features: the sum of its triple's
+    three exemplar features; absent neighbours read as the voxel itself). A plane read
+    along swapped axes, or (with three exemplars) with another plane's basis, differs."""
+    candidates = request.getfixturevalue(exemplars)
+    syn = Synthesizer(candidates, seed=4)
+    seen: list[tuple] = []
+    original = Synthesizer._correct_step
+
+    def spy(self, listed, voxels, nbr, src, feats, t, qproj, dst):
+        original(self, listed, voxels, nbr, src, feats, t, qproj, dst)
+        level = next(lv for lv, tables in self._tables.items() if tables is t)
+        # Copies: on the CPU, numpy() shares memory that later steps overwrite.
+        seen.append((level, listed.copy(), nbr.numpy().copy(), src.numpy().copy(),
+                     qproj.numpy().reshape(-1, 3, _k.MAX_DIMS).copy()))
+
+    monkeypatch.setattr(Synthesizer, "_correct_step", spy)
+    syn.voxels(np.array([[3, -2, 7], [30, 31, 29]]))
+    assert {level for level, *_ in seen} == set(range(syn.start, syn.finest + 1))
+    rng = np.random.default_rng(0)
+    half = int(candidates.params["neighborhood"]) // 2
+    local = synthesis._LOCAL
+    for level, listed, nbr, triples, qproj in seen:
+        sources = [candidates.sources[level][candidates.axis_source[k]] for k in range(3)]
+
+        def features(j, sources=sources, triples=triples):
+            return sum(sources[k].feat.reshape(-1, sources[k].feat.shape[2])[triples[j, k]]
+                       .astype(np.int64) for k in range(3))
+
+        for i in rng.choice(listed, size=min(20, len(listed)), replace=False):
+            block, own = divmod(int(i), 64)
+
+            def feat_at(d, block=block, own=own, nbr=nbr, features=features):
+                p = local[own] + d
+                b = (p >> 2) + 1
+                slot = nbr[block, b[0] * 9 + b[1] * 3 + b[2]]
+                q = p & 3
+                j = slot * 64 + q[0] * 16 + q[1] * 4 + q[2] if slot >= 0 else block * 64 + own
+                return features(j)
+
+            for k in range(3):
+                s = sources[k]
+                expected = _plane_projection(feat_at, s.basis, s.shift, half, k)
+                np.testing.assert_array_equal(qproj[i, k, : len(expected)], expected,
+                                              err_msg=f"level {level}, voxel {i}, plane {k}")
