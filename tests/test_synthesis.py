@@ -481,10 +481,11 @@ def test_candidate_counts_reach_the_search(granite_32, candidates):
 
 @pytest.fixture(scope="module")
 def three_granites(data_dir, warp_device) -> CandidateSet:
-    """Candidates of three different 32x32 granite crops, one per axis."""
+    """Candidates of three different 32x32 granite crops, one per axis, taken as photos
+    that do not tile: their candidates keep margins."""
     base = Exemplar.load(data_dir / "granite_64.png").colors
     exs = [Exemplar(np.ascontiguousarray(base[i * 16 : i * 16 + 32, :32])) for i in range(3)]
-    return precompute(*exs, cache=False)
+    return precompute(*exs, cache=False, tileable=False)
 
 
 def test_three_different_exemplars(three_granites):
@@ -709,50 +710,157 @@ def test_the_reference_projection_of_a_slice_is_its_exemplar_pixels(candidates):
             np.testing.assert_array_equal(got[: len(expected)], expected)
 
 
+@dataclasses.dataclass
+class _Step:
+    """What one correction step read and wrote, copied (on the CPU, ``numpy()`` shares
+    memory that later steps overwrite)."""
+
+    level: int
+    listed: np.ndarray  # flat work voxels the step corrected
+    nbr: np.ndarray  # the work blocks' neighbour table
+    before: np.ndarray  # (voxels, 3) triples the step read
+    after: np.ndarray  # (voxels, 3) triples it wrote
+    qproj: np.ndarray  # (voxels, 3, MAX_DIMS) its projections of the listed voxels
+
+    def neighbor(self, i: int, d: np.ndarray) -> int:
+        """Flat index of the voxel at offset ``d`` from voxel ``i``, -1 if absent."""
+        block, own = divmod(int(i), 64)
+        p = synthesis._LOCAL[own] + d
+        b = (p >> 2) + 1
+        slot = self.nbr[block, b[0] * 9 + b[1] * 3 + b[2]]
+        q = p & 3
+        return -1 if slot < 0 else int(slot) * 64 + int(q[0] * 16 + q[1] * 4 + q[2])
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return rng.choice(self.listed, size=min(n, len(self.listed)), replace=False)
+
+
+def _correction_steps_of(cs: CandidateSet, monkeypatch) -> tuple[Synthesizer, list[_Step]]:
+    syn = Synthesizer(cs, seed=4)
+    steps: list[_Step] = []
+    original = Synthesizer._correct_step
+
+    def spy(self, listed, voxels, nbr, src, feats, t, qproj, dst):
+        original(self, listed, voxels, nbr, src, feats, t, qproj, dst)
+        level = next(lv for lv, tables in self._tables.items() if tables is t)
+        steps.append(_Step(level, listed.copy(), nbr.numpy().copy(), src.numpy().copy(),
+                           dst.numpy().copy(),
+                           qproj.numpy().reshape(-1, 3, _k.MAX_DIMS).copy()))
+
+    monkeypatch.setattr(Synthesizer, "_correct_step", spy)
+    syn.voxels(np.array([[3, -2, 7], [30, 31, 29]]))
+    assert {step.level for step in steps} == set(range(syn.start, syn.finest + 1))
+    return syn, steps
+
+
 @pytest.mark.parametrize("exemplars", ["candidates", "three_granites"])
 def test_corrections_project_each_plane_as_the_reference_does(exemplars, request, monkeypatch):
     """Every voxel a correction step lists gets, in each of its three planes, exactly the
     reference's projection of its current neighbourhood (features: the sum of its triple's
     three exemplar features; absent neighbours read as the voxel itself). A plane read
     along swapped axes, or (with three exemplars) with another plane's basis, differs."""
-    candidates = request.getfixturevalue(exemplars)
-    syn = Synthesizer(candidates, seed=4)
-    seen: list[tuple] = []
-    original = Synthesizer._correct_step
-
-    def spy(self, listed, voxels, nbr, src, feats, t, qproj, dst):
-        original(self, listed, voxels, nbr, src, feats, t, qproj, dst)
-        level = next(lv for lv, tables in self._tables.items() if tables is t)
-        # Copies: on the CPU, numpy() shares memory that later steps overwrite.
-        seen.append((level, listed.copy(), nbr.numpy().copy(), src.numpy().copy(),
-                     qproj.numpy().reshape(-1, 3, _k.MAX_DIMS).copy()))
-
-    monkeypatch.setattr(Synthesizer, "_correct_step", spy)
-    syn.voxels(np.array([[3, -2, 7], [30, 31, 29]]))
-    assert {level for level, *_ in seen} == set(range(syn.start, syn.finest + 1))
+    cs = request.getfixturevalue(exemplars)
+    _, steps = _correction_steps_of(cs, monkeypatch)
     rng = np.random.default_rng(0)
-    half = int(candidates.params["neighborhood"]) // 2
-    local = synthesis._LOCAL
-    for level, listed, nbr, triples, qproj in seen:
-        sources = [candidates.sources[level][candidates.axis_source[k]] for k in range(3)]
+    half = int(cs.params["neighborhood"]) // 2
+    for step in steps:
+        sources = [cs.sources[step.level][cs.axis_source[k]] for k in range(3)]
+        flat_feat = [s.feat.reshape(-1, s.feat.shape[2]).astype(np.int64) for s in sources]
+        for i in step.sample(20, rng):
 
-        def features(j, sources=sources, triples=triples):
-            return sum(sources[k].feat.reshape(-1, sources[k].feat.shape[2])[triples[j, k]]
-                       .astype(np.int64) for k in range(3))
-
-        for i in rng.choice(listed, size=min(20, len(listed)), replace=False):
-            block, own = divmod(int(i), 64)
-
-            def feat_at(d, block=block, own=own, nbr=nbr, features=features):
-                p = local[own] + d
-                b = (p >> 2) + 1
-                slot = nbr[block, b[0] * 9 + b[1] * 3 + b[2]]
-                q = p & 3
-                j = slot * 64 + q[0] * 16 + q[1] * 4 + q[2] if slot >= 0 else block * 64 + own
-                return features(j)
+            def feat_at(d, i=i, step=step, flat_feat=flat_feat):
+                j = step.neighbor(i, d)
+                tri = step.before[i if j < 0 else j]
+                return sum(flat_feat[k][tri[k]] for k in range(3))
 
             for k in range(3):
                 s = sources[k]
                 expected = _plane_projection(feat_at, s.basis, s.shift, half, k)
-                np.testing.assert_array_equal(qproj[i, k, : len(expected)], expected,
-                                              err_msg=f"level {level}, voxel {i}, plane {k}")
+                np.testing.assert_array_equal(step.qproj[i, k, : len(expected)], expected,
+                                              err_msg=f"level {step.level}, voxel {i}, plane {k}")
+
+
+def _wrapped_step(pix: int, du: int, dv: int, size: tuple[int, int]) -> int:
+    u, v = divmod(pix, size[1])
+    return (u + du) % size[0] * size[1] + (v + dv) % size[1]
+
+
+def _reference_correction(cs: CandidateSet, step: _Step, i: int, finest: bool) -> np.ndarray:
+    """NumPy reference of section 5.1's correction of voxel ``i``: the triple of least
+    3-plane distance among the 3D candidates of each plane's best k-coherent 2D
+    candidate and the in-plane neighbours' triples shifted to continue here (those
+    clear of the exemplars' margins); the first of equals wins, in the kernel's order."""
+    sources = [cs.sources[step.level][cs.axis_source[k]] for k in range(3)]
+    roles = [cs.roles[step.level][cs.role_of_axis(k)] for k in range(3)]
+    q = step.qproj[i].astype(np.int64)
+
+    def distance(k: int, pix: int) -> int:
+        e = sources[k].proj[pix].astype(np.int64) - q[k, : sources[k].proj.shape[1]]
+        return int(e @ e)
+
+    def offset(k: int, a: int, b: int) -> np.ndarray:
+        d = np.zeros(3, int)
+        d[(k + 1) % 3], d[(k + 2) % 3] = a, b
+        return d
+
+    own_triple = step.before[i]
+    best, best_d = own_triple, None
+    for k in range(3):
+        own, own_d = None, None
+        for da in (-1, 0, 1):
+            for db in (-1, 0, 1):
+                j = step.neighbor(i, offset(k, da, db))
+                pix = int((step.before[j] if j >= 0 else own_triple)[k])
+                p = _wrapped_step(pix, -da, -db, sources[k].size)
+                for cand in sources[k].cand2d[p]:
+                    dist = distance(k, int(cand))
+                    if own is None or dist < own_d:
+                        own, own_d = int(cand), dist
+        k1, k2 = (k + 1) % 3, (k + 2) % 3
+        keep = roles[k].cand.shape[1] if not finest else min(roles[k].cand.shape[1], 4)
+        for c in range(min(keep, int(roles[k].count[own]))):
+            p1, p2 = (int(x) for x in roles[k].cand[own, c])
+            dist = own_d + distance(k1, p1) + distance(k2, p2)
+            if best_d is None or dist < best_d:
+                best, best_d = np.array([0, 0, 0]), dist
+                best[k], best[k1], best[k2] = own, p1, p2
+    for k in range(3):
+        for a, b in [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)]:
+            d = offset(k, a, b)
+            # A face neighbour lies in two planes; the kernel offers it once.
+            if (a, b) == (0, 0) or (k == 1 and b == 0) or (k == 2 and 0 in (a, b)):
+                continue
+            j = step.neighbor(i, d)
+            if j < 0:
+                continue
+            shifted = [_wrapped_step(int(step.before[j][m]), -d[(m + 1) % 3], -d[(m + 2) % 3],
+                                     sources[m].size) for m in range(3)]
+            clear = all(
+                rows <= p // s.size[1] < s.size[0] - rows
+                and cols <= p % s.size[1] < s.size[1] - cols
+                for p, s, (rows, cols) in zip(shifted, sources,
+                                              [s.margins for s in sources], strict=True))
+            if clear:
+                dist = sum(distance(m, shifted[m]) for m in range(3))
+                if best_d is None or dist < best_d:
+                    best, best_d = np.array(shifted), dist
+    return np.asarray(best)
+
+
+@pytest.mark.parametrize("exemplars", ["candidates", "three_granites"])
+def test_corrections_pick_the_reference_triple(exemplars, request, monkeypatch):
+    """Each voxel a correction step lists takes exactly the triple the NumPy reference of
+    section 5.1 picks from the step's own projections: 3D candidates put in the wrong
+    exemplars, a plane's distance taken in another plane, the finest level's four 3D
+    candidates or the shifted neighbours' margins each make them differ."""
+    cs = request.getfixturevalue(exemplars)
+    syn, steps = _correction_steps_of(cs, monkeypatch)
+    rng = np.random.default_rng(1)
+    changed = 0
+    for step in steps:
+        for i in step.sample(40, rng):
+            expected = _reference_correction(cs, step, i, step.level == syn.finest)
+            np.testing.assert_array_equal(step.after[i], expected,
+                                          err_msg=f"level {step.level}, voxel {i}")
+            changed += not np.array_equal(step.after[i], step.before[i])
+    assert changed > 40  # corrections that keep every triple would test nothing
