@@ -9,13 +9,22 @@ The index also reports lazy synthesis with 3 correction passes per level: a seco
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from tqdm import tqdm
 
 from warptex.archive import write_atomically
 from warptex.baselines.kopf import check_size
-from warptex.compare import METHODS, Setup, compare, run_line, run_summary, write_report
+from warptex.compare import (
+    METHODS,
+    REPORT_FILES,
+    Setup,
+    compare,
+    run_line,
+    run_summary,
+    write_report,
+)
 
 HERE = Path(__file__).resolve().parent
 MORE_PASSES = 3  # the quality setting the index reports beside the default
@@ -65,7 +74,8 @@ def main() -> None:
     ]
     # Minutes per exemplar, an hour in all: a bar over the exemplars, and compare's own,
     # which names the method and what it does.
-    for path in tqdm(sorted(args.exemplars.glob("*_64.png")), desc="exemplars"):
+    photos = sorted(args.exemplars.glob("*_64.png"))
+    for path in tqdm(photos, desc="exemplars"):
         name = path.stem.removesuffix("_64")
         comparison = compare(Setup(path, args.size), METHODS)
         write_report(comparison, out / name)
@@ -90,6 +100,20 @@ def main() -> None:
         tqdm.write(lines[-1])
     text = "\n".join(lines) + "\n"
     write_atomically(out / "README.md", lambda tmp: tmp.write_text(text))
+    _remove_unlisted(out, {path.stem.removesuffix("_64") for path in photos})
+
+
+def _remove_unlisted(out: Path, names: set[str]) -> None:
+    """Remove the reports of exemplars this run did not compare: the index no longer
+    lists them, and their numbers came from another run, perhaps of other code."""
+    for folder in sorted(p for p in out.iterdir() if p.is_dir() and p.name not in names):
+        files = [folder / name for name in REPORT_FILES]
+        if all(f.is_file() for f in files):
+            for f in files:
+                f.unlink()
+            if not any(folder.iterdir()):
+                folder.rmdir()
+            tqdm.write(f"removed {folder}: an exemplar this run did not compare", file=sys.stderr)
 
 
 if __name__ == "__main__":

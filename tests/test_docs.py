@@ -49,10 +49,10 @@ def test_readme_links_resolve_and_name_every_picture_in_docs():
     assert pictures and [p for p in pictures if p.resolve() not in links] == []
 
 
-def test_make_comparisons_shows_its_progress_over_the_exemplars(tmp_path, monkeypatch,
-                                                                capsys):
-    """An hour's run: a bar over the exemplars, and compare's own bar of the methods; each
-    exemplar's line of the index on stdout as it is measured."""
+def _run_make_comparisons(tmp_path, monkeypatch) -> list[bool]:
+    """``docs/make_comparisons.py`` over the rosewood photo alone, writing under
+    ``tmp_path``, with a ``compare`` of meaningless scores in no time and no reports
+    written; the progress flags it passed to ``compare``."""
     from warptex.compare import Comparison, MethodResult
 
     make_comparisons = _script("make_comparisons")
@@ -61,7 +61,7 @@ def test_make_comparisons_shows_its_progress_over_the_exemplars(tmp_path, monkey
     shutil.copy(REPO / "scenes" / "textures" / "wood_rosewood_64.png", photos)
     bars = []
 
-    def compare(setup, methods, progress=True):  # scores of no meaning, in no time
+    def compare(setup, methods, progress=True):
         bars.append(progress)
         return Comparison(setup, [MethodResult(m, [0.1] * 3, [0.2] * 3, [0.0] * 3, [0.0] * 3,
                                                0.5, 1.0, 0.0, precompute_seconds=2.0)
@@ -70,11 +70,42 @@ def test_make_comparisons_shows_its_progress_over_the_exemplars(tmp_path, monkey
     monkeypatch.setattr(make_comparisons, "compare", compare)
     monkeypatch.setattr(make_comparisons, "write_report", lambda comparison, out: None)
     monkeypatch.setattr(make_comparisons, "HERE", tmp_path)
-    (tmp_path / "comparisons").mkdir()
+    (tmp_path / "comparisons").mkdir(exist_ok=True)
     monkeypatch.setattr(sys, "argv", ["make_comparisons.py", "--exemplars", str(photos)])
     make_comparisons.main()
+    return bars
+
+
+def test_make_comparisons_shows_its_progress_over_the_exemplars(tmp_path, monkeypatch,
+                                                                capsys):
+    """An hour's run: a bar over the exemplars, and compare's own bar of the methods; each
+    exemplar's line of the index on stdout as it is measured."""
+    bars = _run_make_comparisons(tmp_path, monkeypatch)
     out, err = capsys.readouterr()
     assert re.search(r"exemplars: 100%.*1/1", err)
     assert bars == [True, True]
     assert out.startswith("| [wood_rosewood](wood_rosewood/sheet.png) | 0.100 |")
     assert (tmp_path / "comparisons" / "README.md").read_text().endswith(out)
+
+
+def test_make_comparisons_removes_the_reports_its_index_no_longer_lists(tmp_path,
+                                                                         monkeypatch, capsys):
+    """A run over some exemplars rewrites the index with those alone: the reports of the
+    others, from an earlier run, go rather than stay unlisted and out of date. Folders
+    that hold anything else stay, with what they hold."""
+    from warptex.compare import REPORT_FILES
+
+    out = tmp_path / "comparisons"
+    for name in ("granite", "notes", "wood_rosewood"):
+        (out / name).mkdir(parents=True)
+        for report in REPORT_FILES:
+            (out / name / report).write_text("earlier run")
+    (out / "notes" / "plan.txt").write_text("mine")
+    (out / "half").mkdir()
+    (out / "half" / "sheet.png").write_text("not a report")
+    _run_make_comparisons(tmp_path, monkeypatch)
+    assert not (out / "granite").exists()
+    assert sorted(p.name for p in (out / "notes").iterdir()) == ["plan.txt"]
+    assert (out / "half" / "sheet.png").read_text() == "not a report"
+    assert all((out / "wood_rosewood" / report).exists() for report in REPORT_FILES)
+    assert f"removed {out / 'granite'}" in capsys.readouterr().err
