@@ -211,6 +211,42 @@ def test_an_unloadable_kernel_build_is_a_clear_error(tmp_path, monkeypatch, warp
     assert len(calls) == 2
 
 
+_DELETED_WHILE_LOADED = """
+import shutil
+from warp._src.context import Module
+
+compile_ = Module._compile
+
+
+def deleted_by_another_process(self, device, module_dir, *args, **kwargs):
+    compiled = compile_(self, device, module_dir, *args, **kwargs)
+    Module._compile = compile_
+    shutil.rmtree(module_dir)  # it found the build damaged
+    return compiled
+
+
+Module._compile = deleted_by_another_process
+"""
+
+
+def test_a_build_deleted_while_warp_loads_it_is_built_again_quietly(tmp_path):
+    """Another process that found a build damaged deletes it: this one, which found it
+    whole a moment before (Warp's ``_compile``, which builds a module only if its folder
+    is missing), misses its files. It builds the module again without warning of damage;
+    Warp alone fails."""
+    from warp._src.context import Module
+
+    assert hasattr(Module, "_compile"), "this Warp builds modules otherwise: test anew"
+    script = tmp_path / "doubling.py"
+    script.write_text(_DOUBLING.replace("init_warp()\n", "init_warp()\n" + _DELETED_WHILE_LOADED))
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         env={**os.environ, "WARP_CACHE_PATH": str(tmp_path / "kernels")},
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[0.0, 2.0, 4.0]"
+    assert "damaged" not in run.stderr
+
+
 def _kernel_cache(folder, loaded: list[str]) -> dict[str, object]:
     """A kernel cache holding this warptex's builds ``loaded``, a build of other code of one
     of its modules, a build and a deletion left unfinished two hours ago, a build and a

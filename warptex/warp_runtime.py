@@ -124,6 +124,8 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     """``wp.launch``, except that a damaged build of the kernel's module in Warp's kernel
     cache (a truncated object file or metadata, after a full disk or a copy cut short) is
     deleted, with a warning, and built again, once; Warp itself would fail on it forever.
+    A build that vanishes while Warp loads it, deleted so by another process, is built
+    again too, quietly.
 
     Raises:
         RuntimeError: the module built again cannot be loaded either.
@@ -131,6 +133,8 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     try:
         wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
         return
+    except FileNotFoundError:
+        pass  # Warp found the build, then its files were gone: Warp now builds it again
     except Exception as error:
         if not _unloadable(error):
             raise
