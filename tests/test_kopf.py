@@ -302,30 +302,38 @@ def _window(volume: np.ndarray, axis: int, p: tuple[int, int, int]) -> np.ndarra
 def test_search_energy_and_weights_are_those_of_equations_1_and_2(granite_32, warp_device):
     """For each grid centre of each constrained axis: energy |s - e|^0.8 and IRLS weight
     max(|s - e|, 1e-3)^(0.8 - 2), |s - e| the L2 distance of the voxel's window to the
-    matched exemplar window, recomputed here."""
+    matched exemplar window, recomputed here; the search returns the mean energy over the
+    centres of both axes. The second exemplar is not square, so its rows and columns cannot
+    be taken for each other."""
     n = 8
-    colors = np.ascontiguousarray(granite_32.colors[:16, :16])
+    first = np.ascontiguousarray(granite_32.colors[:16, :16])
+    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
     volume = np.random.default_rng(4).random((n, n, n, 3)).astype(np.float32)
     solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
-    feats = [colors, None, colors]
+    feats = [first, None, second]
     opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
-    opt.search()
+    mean_energy = opt.search()
     h = n // 2
     match, weight, energy = opt.match.numpy(), opt.weight.numpy(), opt.energy.numpy()
+    terms = []
     for axis in (0, 2):
-        for c in range(0, opt.centres, 7):
+        exemplar = feats[axis]
+        height, width = exemplar.shape[:2]
+        for c in range(opt.centres):
             p = [0, 0, 0]
             p[axis] = c // (h * h)
             p[(axis + 1) % 3], p[(axis + 2) % 3] = 2 * (c // h % h), 2 * (c % h)
             g = axis * opt.centres + c
-            u, v = divmod(int(match[g]), 16)
-            rows = (np.arange(u - 4, u + 4) % 16)[:, None]
-            cols = (np.arange(v - 4, v + 4) % 16)[None, :]
-            dist = np.linalg.norm((_window(volume, axis, tuple(p)) - colors[rows, cols])
+            u, v = divmod(int(match[g]), width)
+            rows = (np.arange(u - 4, u + 4) % height)[:, None]
+            cols = (np.arange(v - 4, v + 4) % width)[None, :]
+            dist = np.linalg.norm((_window(volume, axis, tuple(p)) - exemplar[rows, cols])
                                   .astype(np.float64))
             assert energy[g] == pytest.approx(dist ** kopf.R, rel=1e-4)
             assert weight[g] == pytest.approx(max(dist, kopf.MIN_DISTANCE) ** (kopf.R - 2),
                                               rel=1e-4)
+            terms.append(dist ** kopf.R)
+    assert mean_energy == pytest.approx(np.mean(terms), rel=1e-5)
 
 
 def test_upsampling_is_periodic_trilinear_interpolation(warp_device):
