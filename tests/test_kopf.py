@@ -484,6 +484,41 @@ def test_histograms_are_refreshed_while_an_optimization_phase_runs(granite_32, w
     assert sum(changed) > len(changed) // 2
 
 
+def test_histogram_penalty_is_the_excess_of_equation_5():
+    """Equation 5's sum over channels of max(0, H_s(b) - H_e(b)), b the bin of the exemplar
+    texel: 16 bins a channel spanning the exemplars' range, H_s the solid's share of voxels
+    in the bin, H_e the mean of the constrained axes' exemplars' shares (exemplars of
+    different sizes count alike), the excess counted in average bins (1/16 of the voxels).
+    Recomputed here on values at bin centres, so no value is near a bin's edge, with solid
+    values beyond the range falling in the end bins."""
+    rng = np.random.default_rng(8)
+    centres = ((np.arange(kopf.BINS) + 0.5) / kopf.BINS).astype(np.float32)
+
+    def drawn(count, skew):
+        share = np.arange(1, kopf.BINS + 1, dtype=np.float64) ** skew
+        return centres[rng.choice(kopf.BINS, (count, 2), p=share / share.sum())]
+
+    first = drawn(6 * 10, 1.0).reshape(6, 10, 2)
+    first[0, 0], first[0, 1] = 0.0, 1.0  # the range of both channels: [0, 1]
+    second = drawn(8 * 8, -1.0).reshape(8, 8, 2)
+    feats = [first, None, second]
+    pixels = np.concatenate([first.reshape(-1, 2), second.reshape(-1, 2)])
+    solid = np.concatenate([drawn(8 ** 3 - 4, 0.0), [[-0.5, 1.5], [1.5, -0.5]] * 2])
+    solid = solid.astype(np.float32)
+
+    def shares(values):
+        bins = np.clip(np.floor(values * kopf.BINS), 0, kopf.BINS - 1).astype(int)
+        return np.stack([np.bincount(b, minlength=kopf.BINS) for b in bins.T]) / len(values)
+
+    target = (shares(first.reshape(-1, 2)) + shares(second.reshape(-1, 2))) / 2
+    excess = np.maximum(0.0, shares(solid) - target) * kopf.BINS
+    bins = np.clip(np.floor(pixels * kopf.BINS), 0, kopf.BINS - 1).astype(int)
+    expected = excess[0, bins[:, 0]] + excess[1, bins[:, 1]]
+    assert (expected == 0).any() and (expected > 0.5).any()
+    penalty = kopf._Histograms(pixels, feats, solid).penalty()
+    np.testing.assert_allclose(penalty, expected, rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("command", ["volume", "compare"])
 def test_the_commands_refuse_a_kopf_volume_whose_search_does_not_fit(
         granite_32_file, tmp_path, capsys, monkeypatch, command):
