@@ -418,25 +418,20 @@ def test_mean_shift_bandwidth_shrinks_geometrically_over_a_level():
     np.testing.assert_allclose(kopf._bandwidths(2.0, 1), [0.5])
 
 
-def test_optimization_averages_every_covering_window_by_its_irls_weight(granite_32,
-                                                                          warp_device):
-    """Equation 4: each voxel becomes the weighted mean of the exemplar texels that the
-    matched windows of every grid centre covering it put there, each window weighted by its
-    IRLS weight; recomputed here for two constrained axes of exemplars of other sizes."""
-    n = 8
-    first = np.ascontiguousarray(granite_32.colors[:16, :16])
-    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
-    volume = np.random.default_rng(1).random((n, n, n, 3)).astype(np.float32)
-    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
-    feats = [first, None, second]
-    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
-    opt.search()
-    match, weight = opt.match.numpy().copy(), opt.weight.numpy().copy()
+def _equation_4(opt: kopf._LevelOptimizer, feats: list[np.ndarray | None],
+                penalty: list[np.ndarray | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every voxel by equations 4 and 5, from the optimizer's matches and IRLS weights: the
+    mean of the texels that the matched windows of every grid centre covering it put there,
+    each weighted by its window's weight over 1 + the penalty of that texel (``penalty`` per
+    axis, shaped like its exemplar; None for none); and the unweighted mean."""
+    n = opt.n
+    match, weight = opt.match.numpy(), opt.weight.numpy()
     h = n // 2
     total, norm = np.zeros((n, n, n, 3)), np.zeros((n, n, n))
-    plain = np.zeros((n, n, n, 3))  # the unweighted mean, which must differ
-    for axis in (0, 2):
-        exemplar = feats[axis]
+    plain = np.zeros((n, n, n, 3))
+    for axis, exemplar in enumerate(feats):
+        if exemplar is None:
+            continue
         rows, cols = exemplar.shape[:2]
         for c in range(opt.centres):
             p = [0, 0, 0]
@@ -450,14 +445,57 @@ def test_optimization_averages_every_covering_window_by_its_irls_weight(granite_
                     q[(axis + 1) % 3] += a - 4
                     q[(axis + 2) % 3] += b - 4
                     q = tuple(x % n for x in q)
-                    texel = exemplar[(u + a - 4) % rows, (v + b - 4) % cols]
-                    total[q] += weight[g] * texel
-                    norm[q] += weight[g]
-                    plain[q] += texel
-    expected = total / norm[..., None]
-    assert np.abs(expected - plain / (2 * 64 // 4)).max() > 1e-3
-    opt.optimize(np.arange(n ** 3, dtype=np.int32))
-    np.testing.assert_allclose(opt.values.reshape(n, n, n, 3), expected, rtol=1e-5, atol=1e-6)
+                    texel = ((u + a - 4) % rows, (v + b - 4) % cols)
+                    w = weight[g] / (1.0 + (0.0 if penalty is None else penalty[axis][texel]))
+                    total[q] += w * exemplar[texel]
+                    norm[q] += w
+                    plain[q] += exemplar[texel]
+    covering = 64 // 4 * sum(f is not None for f in feats)  # windows of the m = 2 grid
+    return total / norm[..., None], plain / covering
+
+
+def _two_axis_optimizer(granite_32: Exemplar) -> tuple[kopf._LevelOptimizer, list]:
+    """Searched 8^3 random solid, x and z constrained by exemplars of other sizes."""
+    n = 8
+    first = np.ascontiguousarray(granite_32.colors[:16, :16])
+    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
+    volume = np.random.default_rng(1).random((n, n, n, 3)).astype(np.float32)
+    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
+    feats = [first, None, second]
+    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
+    opt.search()
+    return opt, feats
+
+
+def test_optimization_averages_every_covering_window_by_its_irls_weight(granite_32,
+                                                                          warp_device):
+    """Equation 4: each voxel becomes the weighted mean of the exemplar texels that the
+    matched windows of every grid centre covering it put there, each window weighted by its
+    IRLS weight; recomputed here for two constrained axes of exemplars of other sizes."""
+    opt, feats = _two_axis_optimizer(granite_32)
+    expected, plain = _equation_4(opt, feats)
+    assert np.abs(expected - plain).max() > 1e-3
+    opt.optimize(np.arange(opt.n ** 3, dtype=np.int32))
+    np.testing.assert_allclose(opt.values.reshape(expected.shape), expected, rtol=1e-5,
+                               atol=1e-6)
+
+
+def test_histogram_penalty_divides_the_weight_of_each_texel(granite_32, warp_device):
+    """Equation 5: each texel e_u,i,v that a window puts on a voxel weighs that window's IRLS
+    weight over 1 + the penalty of that texel (not of the window's centre pixel); penalties
+    drawn here at random, the voxels recomputed by equation 4."""
+    opt, feats = _two_axis_optimizer(granite_32)
+    penalty = (3 * np.random.default_rng(2).random(len(opt.penalty))).astype(np.float32)
+    opt.penalty.numpy()[:] = penalty
+    split = feats[0].shape[0] * feats[0].shape[1]
+    per_axis = [penalty[:split].reshape(feats[0].shape[:2]), None,
+                penalty[split:].reshape(feats[2].shape[:2])]
+    expected, _ = _equation_4(opt, feats, per_axis)
+    unpenalized, _ = _equation_4(opt, feats)
+    assert np.abs(expected - unpenalized).max() > 1e-2
+    opt.optimize(np.arange(opt.n ** 3, dtype=np.int32))
+    np.testing.assert_allclose(opt.values.reshape(expected.shape), expected, rtol=1e-5,
+                               atol=1e-6)
 
 
 def test_histograms_are_refreshed_while_an_optimization_phase_runs(granite_32, warp_device,
