@@ -105,6 +105,12 @@ def test_pca_keeps_95_percent_of_the_variance_or_says_how_much_less(granite, mon
     full = kopf._search_structure(colors, (False, False))
     assert 1 < full.dims <= kopf._k.MAX_DIMS
     assert not full.basis[:, full.dims:].any() and full.basis[:, : full.dims].any()
+    # The kept coefficients hold 95% of the windows' variance, one fewer would not.
+    windows = kopf._windows(colors, (False, False))[0].astype(np.float64)
+    centred = windows - windows.mean(axis=0)
+    share = [np.sum((centred @ full.basis[:, :k]) ** 2) / np.sum(centred ** 2)
+             for k in (full.dims - 1, full.dims)]
+    assert share[0] < kopf.VARIANCE_KEPT <= share[1]
     monkeypatch.setattr(kopf._k, "MAX_DIMS", full.dims - 1)
     with pytest.warns(UserWarning, match=rf"Kopf's PCA keeps {full.dims - 1} dimensions, "
                                          rf"9\d\.\d% of the variance .*; 95% needs {full.dims}"):
