@@ -360,6 +360,24 @@ def test_upsampling_is_periodic_trilinear_interpolation(warp_device):
                                rtol=1e-5, atol=1e-6)
 
 
+def test_each_level_matches_the_exemplar_at_its_scale(granite_32, monkeypatch, warp_device):
+    """Coarse to fine (section 4), the volume doubles at each level and so does the
+    exemplar it is matched against: the finest level takes the exemplar itself."""
+    seen = []
+    init = kopf._LevelOptimizer.__init__
+
+    def recorded(self, feats, seams, solid, histograms):
+        seen.append((solid.shape[0], feats[0]))
+        init(self, feats, seams, solid, histograms)
+
+    monkeypatch.setattr(kopf._LevelOptimizer, "__init__", recorded)
+    kopf.synthesize(granite_32, size=8, iterations=1, progress=False)
+    assert [(voxels, f.shape) for voxels, f in seen] == [(2 ** 3, (8, 8, 3)),
+                                                         (4 ** 3, (16, 16, 3)),
+                                                         (8 ** 3, (32, 32, 3))]
+    np.testing.assert_array_equal(seen[-1][1], granite_32.features)
+
+
 def test_bounded_search_finds_every_window_closer_than_the_current_match(granite_32,
                                                                          monkeypatch):
     """With an exact search (eps 0), the search bounded by the current matches returns,
