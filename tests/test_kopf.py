@@ -65,12 +65,19 @@ def test_shape_dtype_and_history(granite):
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_slices_are_oriented_like_the_metrics(granite, axis):
     # The exemplar stacked along `axis` (oriented as warptex.metrics reads slices) is a
-    # perfect solid for that axis' exemplar alone: every window is found exactly.
+    # perfect solid for that axis' exemplar alone: every window is found exactly. Exact
+    # matches get the weight of the floored distance, not an infinite one, and the
+    # optimization leaves the perfect solid as it is.
     colors = np.ascontiguousarray(granite.colors[:SIZE, :SIZE])
     volume = metrics.extrusion(colors, SIZE, axis=axis).reshape(-1, 3)
     feats = [colors if k == axis else None for k in range(3)]
     solid = wp.array(np.ascontiguousarray(volume), dtype=wp.float32, device="cpu")
-    assert kopf._LevelOptimizer(feats, [(False, False)] * 3, solid, False).search() < 1e-3
+    opt = kopf._LevelOptimizer(feats, [(False, False)] * 3, solid, False)
+    assert opt.search() < 1e-3
+    weights = opt.weight.numpy()[axis * opt.centres:(axis + 1) * opt.centres]
+    np.testing.assert_allclose(weights, kopf.MIN_DISTANCE ** (kopf.R - 2), rtol=1e-5)
+    opt.optimize(np.arange(SIZE ** 3, dtype=np.int32))
+    np.testing.assert_allclose(opt.values, volume, rtol=1e-5, atol=1e-6)
 
 
 def test_windows_do_not_wrap_across_a_seam(granite):
