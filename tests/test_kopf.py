@@ -367,22 +367,43 @@ def test_upsampling_is_periodic_trilinear_interpolation(warp_device):
                                rtol=1e-5, atol=1e-6)
 
 
-def test_each_level_matches_the_exemplar_at_its_scale(granite_32, monkeypatch, warp_device):
-    """Coarse to fine (section 4), the volume doubles at each level and so does the
-    exemplar it is matched against: the finest level takes the exemplar itself."""
+def _record_levels(monkeypatch) -> list[tuple[int, list, list]]:
+    """(voxels, per-axis exemplars, per-axis seams) of every level's optimizer, as made."""
     seen = []
     init = kopf._LevelOptimizer.__init__
 
     def recorded(self, feats, seams, solid, histograms):
-        seen.append((solid.shape[0], feats[0]))
+        seen.append((solid.shape[0], list(feats), list(seams)))
         init(self, feats, seams, solid, histograms)
 
     monkeypatch.setattr(kopf._LevelOptimizer, "__init__", recorded)
+    return seen
+
+
+def test_each_level_matches_the_exemplar_at_its_scale(granite_32, monkeypatch, warp_device):
+    """Coarse to fine (section 4), the volume doubles at each level and so does the
+    exemplar it is matched against: the finest level takes the exemplar itself."""
+    seen = _record_levels(monkeypatch)
     kopf.synthesize(granite_32, size=8, iterations=1, progress=False)
-    assert [(voxels, f.shape) for voxels, f in seen] == [(2 ** 3, (8, 8, 3)),
-                                                         (4 ** 3, (16, 16, 3)),
-                                                         (8 ** 3, (32, 32, 3))]
-    np.testing.assert_array_equal(seen[-1][1], granite_32.features)
+    assert [(voxels, f[0].shape) for voxels, f, _ in seen] == [(2 ** 3, (8, 8, 3)),
+                                                               (4 ** 3, (16, 16, 3)),
+                                                               (8 ** 3, (32, 32, 3))]
+    np.testing.assert_array_equal(seen[-1][1][0], granite_32.features)
+
+
+def test_each_axis_gets_its_own_exemplar_and_seams(granite_32, stripes, monkeypatch):
+    """Per-axis exemplars (section 6.2) reach the optimizer on their own axes, each with
+    its own seams: a ramp that does not tile left to right on x, bands that tile on z."""
+    ramp = Exemplar((np.linspace(0, 1, 32, dtype=np.float32)[None, :, None]
+                     + 0.1 * granite_32.colors).astype(np.float32))
+    rows, _ = stripes
+    seen = _record_levels(monkeypatch)
+    kopf.synthesize(None, exemplars=(ramp, None, rows), size=8, iterations=1, progress=False)
+    _, feats, seams = seen[-1]
+    assert seams == [(False, True), None, (False, False)]
+    np.testing.assert_array_equal(feats[0], ramp.features)
+    assert feats[1] is None
+    np.testing.assert_array_equal(feats[2], rows.features)
 
 
 def test_bounded_search_finds_every_window_closer_than_the_current_match(granite_32,
