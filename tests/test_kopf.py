@@ -550,6 +550,58 @@ def test_histogram_penalty_divides_the_weight_of_each_texel(granite_32, warp_dev
                                atol=1e-6)
 
 
+def _texels_of(opt: kopf._LevelOptimizer, feats: list[np.ndarray | None],
+               voxel: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The texels e_u,i,v the matched windows covering ``voxel`` put on it, and their IRLS
+    weights, in the kernel's order: axis, then window row, then column."""
+    n, h = opt.n, opt.n // 2
+    match, weight = opt.match.numpy(), opt.weight.numpy()
+    texels, weights = [], []
+    for axis, exemplar in enumerate(feats):
+        if exemplar is None:
+            continue
+        rows, cols = exemplar.shape[:2]
+        for a in range(8):
+            for b in range(8):
+                c = list(voxel)
+                c[(axis + 1) % 3] -= a - 4
+                c[(axis + 2) % 3] -= b - 4
+                c = [x % n for x in c]
+                if c[(axis + 1) % 3] % 2 or c[(axis + 2) % 3] % 2:
+                    continue  # no window of the m = 2 grid is centred there
+                g = (axis * opt.centres + (c[axis] * h + c[(axis + 1) % 3] // 2) * h
+                     + c[(axis + 2) % 3] // 2)
+                u, v = divmod(int(match[g]), cols)
+                texels.append(exemplar[(u + a - 4) % rows, (v + b - 4) % cols])
+                weights.append(weight[g])
+    return np.array(texels, np.float64), np.array(weights, np.float64)
+
+
+def test_mean_shift_averages_the_dominant_cluster_of_each_voxels_texels(granite_32,
+                                                                         warp_device):
+    """Section 4.1 after Wexler et al.: mean shift with a flat kernel of the given
+    bandwidth, started at the texel with the most weight within the bandwidth (its own
+    included; the first of equals), run for its steps, and the voxel the weighted mean of
+    the texels within the bandwidth of where it ends; recomputed here for every voxel."""
+    opt, feats = _two_axis_optimizer(granite_32)
+    bandwidth = 0.5 * opt.spread
+    expected = np.empty((opt.n ** 3, 3))
+    for i, voxel in enumerate(itertools.product(range(opt.n), repeat=3)):
+        texels, weights = _texels_of(opt, feats, voxel)
+        assert len(texels) == 2 * 16
+        near = ((texels[:, None] - texels[None]) ** 2).sum(axis=2) <= bandwidth ** 2
+        mode = texels[np.argmax(near @ weights)]
+        for _ in range(kopf._k.MEAN_SHIFT_STEPS + 1):
+            near = ((texels - mode) ** 2).sum(axis=1) <= bandwidth ** 2
+            if near.any():
+                mode = weights[near] @ texels[near] / weights[near].sum()
+        expected[i] = mode
+    plain, _ = _equation_4(opt, feats)
+    assert np.abs(expected - plain.reshape(-1, 3)).max() > 0.05
+    opt.optimize(np.arange(opt.n ** 3, dtype=np.int32), bandwidth)
+    np.testing.assert_allclose(opt.values, expected, rtol=1e-5, atol=1e-5)
+
+
 def test_histograms_are_refreshed_while_an_optimization_phase_runs(granite_32, warp_device,
                                                                   monkeypatch):
     """Section 5: the histograms are updated as the voxels change, not once per phase, so
