@@ -146,6 +146,17 @@ def test_histogram_distance_of_a_constant_volume_is_known():
     assert metrics.histogram_distance(vol + 5.0, ex, 1) <= 2.0  # clipped into the last bin
 
 
+def test_histogram_distance_reads_the_8_slices_across_its_axis():
+    """Voxels hold their x index, 0 to 15, and the exemplar each of 0 to 15 once: one value
+    to each of the 16 bins. Every slice across y or z holds every x: 0. The 8 slices across
+    x are constant, 8 values of 16 at 1/8 each: 8 * 1/16 + 8 * 1/16 = 1. A histogram of
+    every voxel gave 0 on every axis, one of the slices across x whatever the axis 1."""
+    ex = np.arange(16, dtype=np.float32).reshape(4, 4, 1)
+    vol = np.broadcast_to(np.arange(16, dtype=np.float32)[:, None, None, None],
+                          (16, 16, 16, 1))
+    assert [metrics.histogram_distance(vol, ex, axis) for axis in range(3)] == [1.0, 0.0, 0.0]
+
+
 def test_repetition_score_counts_peaks_not_the_fall_off_of_large_features():
     """Smooth noise correlates with itself over its features' size, falling off from shift
     0 without a peak: low whatever ``exclude`` (the highest correlation past 8 pixels at
