@@ -323,6 +323,19 @@ def test_repetition_score_equals_a_brute_force_reference(seed):
     assert scores[2] > scores[3] > 0.5 and scores[0] < 1.0
 
 
+@pytest.mark.parametrize("shape", [(10, 13), (13, 10), (12, 16)])
+def test_repetition_score_equals_the_reference_where_few_shifts_count(shape):
+    """Small noise images at every ``exclude`` they allow, up to all but the last ring of
+    shifts: which shifts are past ``exclude`` (farther than it along either axis), the last
+    shift each way (half of a side, both signs) and peaks among the 8 neighbours then decide
+    the score, not one high peak well inside the range."""
+    rng = np.random.default_rng(sum(shape))
+    image = gaussian_filter(rng.standard_normal((*shape, 2)), (0.7, 0.7, 0))
+    for exclude in range(max(shape) // 2):
+        assert metrics.repetition_score(image, exclude=exclude) == pytest.approx(
+            _repetition_by_hand(image, exclude), rel=1e-9), exclude
+
+
 def test_wrapping_edges_wrap_a_seam_only_where_fewer_than_size_windows_fit():
     """Across a seam, a side of 2 size - 1 pixels still holds `size` unwrapped windows, one
     pixel less does not."""
