@@ -336,6 +336,33 @@ def test_repetition_score_equals_the_reference_where_few_shifts_count(shape):
             _repetition_by_hand(image, exclude), rel=1e-9), exclude
 
 
+def test_repetition_score_sees_the_neighbours_of_shifts_along_a_side_mirrored():
+    """Noise repeated at the shift (1, -3) (slightly smeared along the diagonal) correlates
+    at (0, 4) too, on the fall-off of that excluded repetition: at (0, 4) the neighbour
+    (-1, 3), the shift (1, -3) mirrored, correlates more, so (0, 4) is no peak. Taken for one
+    where only shifts dy >= 0 were its neighbours, it scored 0.25 for an image with nothing
+    past 3 pixels repeated."""
+    rng = np.random.default_rng(0)
+    noise = rng.standard_normal((64, 64))
+    smeared = noise + np.roll(noise, (1, 1), axis=(0, 1))
+    image = smeared + np.roll(smeared, (1, -3), axis=(0, 1))
+    expected = _repetition_by_hand(image, 3)
+    assert expected < 0.15
+    assert metrics.repetition_score(image, exclude=3) == pytest.approx(expected, rel=1e-9)
+
+
+def test_a_repetition_next_to_a_stronger_excluded_one_is_still_a_peak():
+    """Noise repeated at 3 columns (excluded) and, fainter, at 5: the shift 5 is a peak
+    among its 8 neighbours, at 0.6 / (1 + 1 + 0.36) = 0.25, though the shift 3, two
+    columns away, correlates more (a 5 x 5 neighbourhood left it out, scoring 0.1)."""
+    rng = np.random.default_rng(1)
+    noise = rng.standard_normal((64, 64))
+    image = noise + np.roll(noise, 3, axis=1) + 0.6 * np.roll(noise, 5, axis=1)
+    expected = _repetition_by_hand(image, 3)
+    assert expected == pytest.approx(0.6 / 2.36, abs=0.05)
+    assert metrics.repetition_score(image, exclude=3) == pytest.approx(expected, rel=1e-9)
+
+
 def test_wrapping_edges_wrap_a_seam_only_where_fewer_than_size_windows_fit():
     """Across a seam, a side of 2 size - 1 pixels still holds `size` unwrapped windows, one
     pixel less does not."""
