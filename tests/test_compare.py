@@ -432,8 +432,8 @@ def measure(data_dir, monkeypatch):
     monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
     path = str(data_dir / "granite_64.png")
-    return lambda method, size=16, tileable="auto": compare._measure(
-        method, compare.Setup(path, size, tileable=tileable))
+    return lambda method, size=16, tileable="auto", seed=0: compare._measure(
+        method, compare.Setup(path, size, tileable=tileable, seed=seed))
 
 
 def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
@@ -445,10 +445,12 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
     job = compare._Job(compare.Setup(ex.path, 16), (ex, ex, ex))
     volume = compare._extrude(job, 16)
     for key, metric in (("energy", metrics.neighborhood_energy),
+                        ("completeness", metrics.completeness_energy),
                         ("swd", metrics.sliced_wasserstein),
                         ("histogram", metrics.histogram_distance)):
         assert row[key] == [metric(volume, ex.colors, axis) for axis in range(3)], key
-    assert len(set(row["energy"])) == 3  # three different values: an axis swap would show
+    for key in ("energy", "completeness"):  # three different values: an axis swap shows
+        assert len(set(row[key])) == 3, key
     # The sheet's slices are the middle ones, oriented like each axis' exemplar.
     for a in range(3):
         np.testing.assert_array_equal(row["slices"][a], metrics.axis_slice(volume, a, 8))
@@ -456,6 +458,28 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
     large = compare._extrude_large(job, volume)
     assert large.shape[:2] == (compare.LARGE, compare.LARGE)
     assert row["repetition"] == metrics.repetition_score(large)
+
+
+def test_the_patch_scores_follow_the_setting_tileable_and_not_the_methods_seed(measure,
+                                                                             data_dir):
+    """Energy, completeness and sliced Wasserstein distance measure against the exemplar's
+    patches as ``tileable`` says (granite tiles: "no" takes its wrapped patches away), and
+    the distance's projections are drawn from the measures' own seed, as table.json gives
+    it (``swd_seed``), whatever seed the methods ran with."""
+    from warptex import compare, metrics
+    from warptex.exemplar import Exemplar
+
+    row = measure("extrude", tileable=False, seed=3)
+    ex = Exemplar.load(data_dir / "granite_64.png")
+    volume = compare._extrude(compare._Job(compare.Setup(ex.path, 16), (ex, ex, ex)), 16)
+    for key, metric in (("energy", metrics.neighborhood_energy),
+                        ("completeness", metrics.completeness_energy),
+                        ("swd", metrics.sliced_wasserstein)):
+        expected = [metric(volume, ex, a, tileable=False) for a in range(3)]
+        assert row[key] == expected, key
+        assert expected != [metric(volume, ex, a) for a in range(3)], key
+    assert row["swd"] != [metrics.sliced_wasserstein(volume, ex, a, seed=3, tileable=False)
+                          for a in range(3)]
 
 
 def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
