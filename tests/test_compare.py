@@ -508,7 +508,8 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
 
     from warptex import compare
 
-    clock = iter([0.0, 1.0, 10.0, 13.0, 20.0, 22.0])
+    # Runs of 5, 2 and 1 s: neither their mean, first, last, least nor largest is 2.
+    clock = iter([0.0, 5.0, 10.0, 12.0, 20.0, 21.0])
     monkeypatch.setattr(compare, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
     monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
     monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
@@ -519,12 +520,12 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     setup = compare.Setup(data_dir / "granite_64.png", 16)
     row = compare._measure("noise", setup, repeats=3)
     assert sizes == [8, 16, 16, 16]  # the warm-up, then three timed volumes
-    assert row["seconds_runs"] == [1.0, 3.0, 2.0] and row["seconds"] == 2.0
+    assert row["seconds_runs"] == [5.0, 2.0, 1.0] and row["seconds"] == 2.0
     result = compare.MethodResult(**row)
     compare.write_report(compare.Comparison(setup, [result]), tmp_path)
     table = json.loads((tmp_path / "table.json").read_text())
     assert table["run"]["repeats"] == 3
-    assert table["methods"][0]["seconds_runs"] == [1.0, 3.0, 2.0]
+    assert table["methods"][0]["seconds_runs"] == [5.0, 2.0, 1.0]
     assert "the median of 3 wall-clock runs" in (tmp_path / "table.md").read_text()
     with pytest.raises(ValueError, match="repeats must be"):
         compare.compare(setup, ["noise"], repeats=0)
