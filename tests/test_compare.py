@@ -534,6 +534,34 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     assert "--repeats must be at least 1, got 0" in capsys.readouterr().err
 
 
+def test_peak_memory_is_that_of_the_timed_runs_in_mib(measure, monkeypatch):
+    """The memory window holds the timed runs alone: not the warm-up before them, nor the
+    large slice and the measures after; its rise in bytes is reported in MiB."""
+    from warptex import compare
+
+    said = []
+
+    class Window:  # a PeakMemory that says when it opens and closes, and rose by 3 MiB
+        growth = 0
+
+        def __enter__(self):
+            said.append("open")
+            return self
+
+        def __exit__(self, *exc):
+            said.append("close")
+            self.growth = 3 * 2**20
+
+    noise, noise_large = compare._RUN["noise"]
+    monkeypatch.setattr(compare, "PeakMemory", Window)
+    monkeypatch.setitem(compare._RUN, "noise", (
+        lambda job, size: said.append(size) or noise(job, size),
+        lambda job, volume: said.append("large") or noise_large(job, volume)))
+    row = measure("noise")
+    assert said == [8, "open", 16, "close", "large"]
+    assert row["peak_mib"] == 3.0
+
+
 def test_table_cells_sit_under_their_headers():
     from warptex.compare import MethodResult, table_markdown
 
