@@ -49,11 +49,17 @@ def test_readme_links_resolve_and_name_every_picture_in_docs():
     assert pictures and [p for p in pictures if p.resolve() not in links] == []
 
 
-def _run_make_comparisons(tmp_path, monkeypatch) -> list[bool]:
+def _run_make_comparisons(tmp_path, monkeypatch, result=None) -> list[bool]:
     """``docs/make_comparisons.py`` over the rosewood photo alone, writing under
-    ``tmp_path``, with a ``compare`` of meaningless scores in no time and no reports
-    written; the progress flags it passed to ``compare``."""
+    ``tmp_path``, with a ``compare`` of meaningless scores (or those ``result`` gives for a
+    method and its correction passes) in no time and no reports written; the progress
+    flags it passed to ``compare``."""
     from warptex.compare import Comparison, MethodResult
+
+    if result is None:
+        def result(method, passes):
+            return MethodResult(method, [0.1] * 3, [0.2] * 3, [0.0] * 3, [0.0] * 3, 0.5, 1.0,
+                                0.0, precompute_seconds=2.0)
 
     make_comparisons = _script("make_comparisons")
     photos = tmp_path / "photos"
@@ -63,9 +69,7 @@ def _run_make_comparisons(tmp_path, monkeypatch) -> list[bool]:
 
     def compare(setup, methods, progress=True):
         bars.append(progress)
-        return Comparison(setup, [MethodResult(m, [0.1] * 3, [0.2] * 3, [0.0] * 3, [0.0] * 3,
-                                               0.5, 1.0, 0.0, precompute_seconds=2.0)
-                                  for m in methods])
+        return Comparison(setup, [result(m, setup.passes) for m in methods])
 
     monkeypatch.setattr(make_comparisons, "compare", compare)
     monkeypatch.setattr(make_comparisons, "write_report", lambda comparison, out: None)
@@ -86,6 +90,45 @@ def test_make_comparisons_shows_its_progress_over_the_exemplars(tmp_path, monkey
     assert bars == [True, True]
     assert out.startswith("| [wood_rosewood](wood_rosewood/sheet.png) | 0.100 |")
     assert (tmp_path / "comparisons" / "README.md").read_text().endswith(out)
+
+
+def test_make_comparisons_reports_each_method_s_worst_axis(tmp_path, monkeypatch):
+    """The index's energies are the largest of the three axes', its bidirectional energies
+    the largest of the axes' sums (an axis other than the worst energy's here, so not the
+    sum of the two largest), and its ratios lazy over Kopf, as issue 7's bar reads them."""
+    from warptex.compare import MethodResult
+
+    scores = {  # energy and completeness per axis, seconds, repetition
+        "lazy": ([0.30, 0.10, 0.20], [0.10, 0.50, 0.20], 0.5, 0.2),
+        "lazy-3": ([0.12, 0.28, 0.20], [0.0] * 3, 0.75, 0.3),
+        "kopf": ([0.10, 0.20, 0.25], [0.60, 0.10, 0.10], 10.0, 1.0),
+        "kopf-meanshift": ([0.40, 0.20, 0.10], [0.0] * 3, 20.0, 1.0),
+        "tiled": ([0.0] * 3, [0.0] * 3, 0.1, 0.9),
+        "flat": ([0.05, 0.07, 0.06], [1.00, 0.90, 0.80], 0.1, 0.0),
+    }
+
+    def result(method, passes):
+        name = "lazy-3" if passes == 3 else method
+        energy, completeness, seconds, repetition = scores.get(name, ([0.0] * 3,) * 2
+                                                               + (0.1, 0.0))
+        return MethodResult(method, energy, completeness, [0.0] * 3, [0.0] * 3, repetition,
+                            seconds, 0.0, precompute_seconds=2.0)
+
+    _run_make_comparisons(tmp_path, monkeypatch, result)
+    lines = (tmp_path / "comparisons" / "README.md").read_text().splitlines()
+    header = next(line for line in lines if line.startswith("| exemplar |"))
+    # Header and cell of each column after the exemplar's, in order ("lazy / kopf" twice).
+    cells = list(zip([c.strip() for c in header.split("|")[2:-1]],
+                     [c.strip() for c in lines[-1].split("|")[2:-1]], strict=True))
+    assert cells == [
+        ("lazy energy", "0.300"), ("kopf energy", "0.250"), ("lazy / kopf", "1.20"),
+        ("kopf-ms energy", "0.400"), ("lazy / kopf-ms", "0.75"),
+        ("lazy-3 energy", "0.280"), ("lazy-3 / kopf", "1.12"), ("flat energy", "0.070"),
+        ("lazy bidirectional", "0.600"), ("kopf bidirectional", "0.700"),
+        ("lazy / kopf", "0.86"), ("flat bidirectional", "1.050"),
+        ("lazy s", "0.50"), ("lazy pre-computation s", "2.00"), ("kopf s", "10.0"),
+        ("kopf-ms s", "20.0"), ("kopf / lazy time", "20"), ("kopf-ms / lazy time", "40"),
+        ("lazy-3 s", "0.75"), ("lazy repetition", "0.200"), ("tiled repetition", "0.900")]
 
 
 def test_make_comparisons_removes_the_reports_its_index_no_longer_lists(tmp_path,
