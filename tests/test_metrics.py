@@ -411,3 +411,18 @@ def test_completeness_finds_every_exemplar_patch_and_misses_them_in_a_flat_volum
     assert both == pytest.approx(max(
         metrics.neighborhood_energy(vol, ex, a, tileable=True)
         + metrics.completeness_energy(vol, ex, a, tileable=True) for a in range(3)))
+
+
+def test_bidirectional_energy_is_the_largest_sum_over_the_axes(monkeypatch):
+    """Coherence worst across x, completeness across z: the worst axis' sum is z's, 0.7,
+    not the sum of each measure's worst, 0.8; the setting tileable reaches both."""
+    told = []
+
+    def scored(values):
+        return lambda volume, exemplar, axis, tileable: told.append(tileable) or values[axis]
+
+    monkeypatch.setattr(metrics, "neighborhood_energy", scored([0.3, 0.1, 0.2]))
+    monkeypatch.setattr(metrics, "completeness_energy", scored([0.1, 0.2, 0.5]))
+    assert metrics.bidirectional_energy(None, None, tileable=False) == pytest.approx(0.7)
+    assert metrics.worst_axis_energy(None, None, tileable=False) == 0.3
+    assert told == [False] * 9
