@@ -647,6 +647,27 @@ def test_large_slices_hold_every_period_twice(size, exemplar, edge):
     assert compare.large_edge(size, exemplar) == edge
 
 
+def test_the_large_slices_are_taken_at_the_middle_z(monkeypatch):
+    """The repetition score's slice is the z-slice the sheet shows, at size // 2: the lazy
+    engine's asked for there, 256 voxels each way; a periodic volume's repeated from its own
+    middle slice."""
+    asked = []
+
+    class Engine:  # a Synthesizer that says which box it is asked for
+        def box(self, origin, shape):
+            asked.append((origin, shape))
+            return np.zeros((*shape, 3), np.float32)
+
+    monkeypatch.setattr(compare, "_synthesizer", lambda job: Engine())
+    ex = type("Ex", (), {"shape": (64, 64)})()
+    job = compare._Job(None, (ex, ex, ex))
+    volume = np.random.default_rng(4).random((16, 16, 16, 3)).astype(np.float32)
+    assert compare._lazy_large(job, volume).shape == (256, 256, 3)
+    assert asked == [((0, 0, 8), (256, 256, 1))]
+    large = compare._periodic_large(job, volume)
+    np.testing.assert_array_equal(large[16:32, 48:64], volume[:, :, 8])
+
+
 def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block():
     """At 72^3 the tiled volume is its 64^3 block repeated and cut: its large slice repeats
     that block (score 1), not the 72-voxel cut with a seam in it (it scored 0.19)."""
