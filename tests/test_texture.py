@@ -81,6 +81,18 @@ def test_trilinear_blends_the_8_centers_across_brick_borders(candidates, referen
     np.testing.assert_array_equal(tex.query(BORDER + 0.5), reference.voxels(BORDER))
 
 
+def test_trilinear_in_partly_filled_bricks_synthesizes_the_corners_not_stored(candidates,
+                                                                             reference):
+    """Voxel by voxel (whole_bricks=False), one corner of a blend stored in each of the two
+    bricks it straddles: the six corners not stored are synthesized, not read from pool
+    positions that hold other voxels."""
+    tex = texture(candidates, whole_bricks=False)
+    tex.query(np.array([[7.5, 2.5, 5.5], [8.5, 3.5, 6.5]]), filter="nearest")
+    pts = np.array([[8.0, 3.0, 6.0], [7.75, 3.25, 6.1]])  # corners (7..8, 2..3, 5..6)
+    np.testing.assert_allclose(tex.query(pts), trilinear(reference, pts), rtol=1e-6, atol=1e-6)
+    assert tex.store.stats()["voxels"] == 8
+
+
 def test_the_whole_query_range_can_be_read(candidates, reference):
     """Points up to POINT_LIMIT on either side, whole bricks filled around them (the
     brick of the lowest point reaches the lowest voxel the engine takes)."""
