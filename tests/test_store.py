@@ -130,16 +130,18 @@ def check_table(store: BrickStore, keys: np.ndarray, slots: np.ndarray) -> None:
         assert not free[between].any()
 
 
-def test_least_recently_used_brick_is_evicted(candidates):
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+def test_least_recently_used_brick_is_evicted(candidates, filter):
+    """Hits of either lookup count as uses (at a brick's centre both read that brick only)."""
     store = BrickStore(synthesizer(candidates), cache_bytes=2 * BRICK_BYTES)
     a, b, c = brick_center((0, 0, 0)), brick_center((1, 0, 0)), brick_center((0, 1, 0))
     for p in (a, b, a, c):  # b is now the least recently used
-        sample(store, [p])
+        sample(store, [p], filter)
     assert store.stats()["misses"] == 3
-    sample(store, [a])
-    sample(store, [c])
+    sample(store, [a], filter)
+    sample(store, [c], filter)
     assert store.stats()["misses"] == 3
-    sample(store, [b])
+    sample(store, [b], filter)
     s = store.stats()
     assert s["misses"] == 4 and s["bricks"] == 2 and s["bricks_evicted"] == 2
     live = np.flatnonzero(store._keys != -1)
