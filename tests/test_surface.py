@@ -23,12 +23,15 @@ def test_sphere_shell_grows_with_area_and_hugs_the_surface(resolution, warp_devi
     assert len(np.unique(voxels, axis=0)) == len(voxels)
 
 
+@pytest.mark.parametrize("first", [0, 1, 2])
 @pytest.mark.parametrize("offset", [(0, 0, 0), (-10, -20, -30), (-1, 0, -2), (100000, -3, 7)])
-def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(offset, warp_device):
+def test_a_single_triangle_touches_exactly_the_voxels_it_crosses(offset, first, warp_device):
     """Moved by whole voxels too: floor (not truncation) finds the voxels of negative
-    points, and the rows come sorted below zero and far out."""
+    points, and the rows come sorted below zero and far out. The corners start at each
+    ``first`` in turn, so that the hypotenuse, whose edge axes alone keep out the voxels
+    beyond it, is each of the triangle's edges once."""
     corners = [[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]]
-    tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]], process=False)
+    tri = trimesh.Trimesh(vertices=corners, faces=[np.roll([0, 1, 2], -first)], process=False)
     m = np.eye(4)
     m[:3, 3] = offset
     voxels = shell(tri, transform=m)
