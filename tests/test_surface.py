@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from warptex.surface import block_transform, shell
+from warptex.surface import block_transform, shell, to_voxel_space
 
 
 @pytest.mark.parametrize("resolution", [24, 48])
@@ -49,6 +49,17 @@ def test_a_triangle_barely_entering_a_voxel_touches_it(axis, warp_device):
     tri = trimesh.Trimesh(vertices=corners, faces=[[0, 1, 2]], process=False)
     expected = {tuple(np.roll([0, 0, 0], axis)), tuple(np.roll([1, 0, 0], axis))}
     assert set(map(tuple, shell(tri, transform=np.eye(4)).tolist())) == expected
+
+
+def test_to_voxel_space_applies_the_transform_to_column_vectors():
+    """A rotation, a shear and a shift, against the 4x4 matrix applied to homogeneous
+    column vectors: the linear part is not symmetric, so its transpose would place the
+    mesh elsewhere in the texture."""
+    box = trimesh.creation.box(extents=[2.0, 1.0, 0.5])
+    m = np.array([[0.0, -3.0, 0.5, 10.0], [2.0, 0.0, 0.0, -4.0], [0.0, 1.0, 4.0, 7.5],
+                  [0.0, 0.0, 0.0, 1.0]])
+    homogeneous = np.c_[box.vertices, np.ones(len(box.vertices))]
+    np.testing.assert_allclose(to_voxel_space(box, m), (m @ homogeneous.T).T[:, :3])
 
 
 def test_block_transform_fits_the_bounding_box():
