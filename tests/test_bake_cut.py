@@ -454,14 +454,20 @@ def test_texel_points_of_a_flat_square_are_its_texel_centres(size, warp_device):
     np.testing.assert_allclose(points, expected, atol=1e-5)
 
 
-def test_a_skewed_triangle_interpolates_with_the_right_corner_weights(warp_device):
+@pytest.mark.parametrize("size", [(16, 16), (16, 20), (20, 16)])
+def test_a_skewed_triangle_interpolates_with_the_right_corner_weights(size, warp_device):
     """Positions not an affine copy of the UVs with symmetric roles: swapping the weights
-    of corners b and c moves the points."""
+    of corners b and c moves the points. The texels covered are those whose centres lie
+    in the UV triangle, also where width and height differ (no centre of those lies on its
+    hypotenuse)."""
     v = np.array([[0, 0, 0], [4, 0, 1], [0, 2, 3]], float)
     uv = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     mesh = trimesh.Trimesh(v, [[0, 1, 2]], process=False)
-    points, covered = texel_points(mesh, uv, np.eye(4), (16, 16))
-    c = _texel_centres(16, 16)[covered]
+    points, covered = texel_points(mesh, uv, np.eye(4), size)
+    centres = _texel_centres(*size)
+    if size[0] != size[1]:
+        np.testing.assert_array_equal(covered, centres.sum(axis=1) < 1)
+    c = centres[covered]
     assert 0.4 < covered.mean() < 0.6
     expected = c[:, :1] * (v[1] - v[0]) + c[:, 1:] * (v[2] - v[0])
     np.testing.assert_allclose(points[covered], expected, atol=1e-5)
