@@ -473,6 +473,19 @@ def test_a_skewed_triangle_interpolates_with_the_right_corner_weights(size, warp
     np.testing.assert_allclose(points[covered], expected, atol=1e-5)
 
 
+@pytest.mark.parametrize("first", [0, 1, 2])
+def test_texel_centres_on_a_triangle_s_edge_are_covered(first, warp_device):
+    """Half the square alone, its corners in each order so that the diagonal is each of its
+    edges once: the texel centres on the diagonal are its (no other triangle claims them)."""
+    mesh, uv = _square()
+    half = trimesh.Trimesh(mesh.vertices, [np.roll([0, 2, 3], -first)], process=False)
+    points, covered = texel_points(half, uv, np.eye(4), (8, 8))
+    centres = _texel_centres(8, 8)
+    np.testing.assert_array_equal(covered, centres[:, 0] <= centres[:, 1])
+    np.testing.assert_allclose(points[covered], np.c_[centres[covered], np.zeros(covered.sum())],
+                               atol=1e-6)
+
+
 def test_overlapping_triangles_resolve_to_the_lowest_numbered(warp_device):
     """Two charts on the same UVs: the texels show triangle 0's surface everywhere."""
     low, uv = _square(0.0)
