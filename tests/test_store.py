@@ -447,16 +447,19 @@ def test_only_the_voxels_read_are_synthesized_and_stored(candidates, tmp_path: P
 
 
 def test_a_partly_filled_brick_beside_whole_ones_reads_only_its_own_voxels(candidates):
-    """One whole brick and one holding a single voxel: the lookups must read the stored
-    bits wherever any brick is partly filled, not only where all are."""
+    """One whole brick and one lacking a single voxel, so that every word of its stored
+    bits holds some: the lookups must read the bits wherever any brick is partly filled,
+    not only where all are, nor only where a word is empty."""
     syn = synthesizer(candidates)
     store = BrickStore(syn, whole_bricks=False)
-    store.prefetch(np.concatenate([brick_voxels(brick_keys(np.array([[0, 0, 0]]))),
-                                   [[9, 1, 2]]]))
-    voxels = np.array([[3, 6, 1], [9, 1, 2], [12, 5, 3]])  # whole, stored, not stored
+    gap = np.array([[12, 5, 3]])
+    bricks = brick_voxels(brick_keys(np.array([[0, 0, 0], [8, 0, 0]])))
+    store.prefetch(bricks[(bricks != gap).any(axis=1)])
+    # In the whole brick, in the other after the gap, and the gap.
+    voxels = np.array([[3, 6, 1], [15, 7, 7], *gap])
     np.testing.assert_array_equal(sample(store, voxels + 0.5), syn.voxels(voxels))
     s = store.stats()
-    assert (s["misses"], s["voxels"]) == (1, 512 + 2)
+    assert (s["misses"], s["voxels"]) == (1, 2 * 512)
 
 
 def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path: Path,
