@@ -229,6 +229,27 @@ def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeyp
         sample(store, [brick_center((0, 0, 0)), brick_center((3, 0, 0))])
 
 
+def test_voxels_an_insertion_leaves_unstored_raise_rather_than_synthesize_for_ever(
+        candidates, monkeypatch):
+    """A store that keeps losing what it inserts (a fault of the store) is reported
+    after the first round, never synthesized again and again."""
+    store = BrickStore(synthesizer(candidates))
+    rounds = []
+    synthesize = store._synthesize
+
+    def counted(voxels):
+        rounds.append(len(voxels))
+        assert len(rounds) <= 2, "the batch synthesizes the same voxels round after round"
+        return synthesize(voxels)
+
+    monkeypatch.setattr(store, "_synthesize", counted)
+    monkeypatch.setattr(store, "_insert", lambda voxels, payload: None)
+    with pytest.raises(RuntimeError, match=r"(\d+) of \1 voxels inserted in the brick store "
+                                           "are not stored"):
+        sample(store, [brick_center((0, 0, 0))])
+    assert len(rounds) == 1
+
+
 def _cut_short(store: BrickStore, monkeypatch, step: str, after: bool) -> None:
     """Stop the store's next call of ``step`` with Ctrl-C's KeyboardInterrupt, before the
     step or right ``after`` it."""
