@@ -312,21 +312,30 @@ def _window(volume: np.ndarray, axis: int, p: tuple[int, int, int]) -> np.ndarra
     return out
 
 
+def _two_axis_optimizer(granite_32: Exemplar,
+                        seed: int = 1) -> tuple[kopf._LevelOptimizer, list, np.ndarray]:
+    """Searched 8^3 random solid (also returned), x and z constrained by exemplars of
+    other sizes, the second not square, so its rows and columns cannot be taken for each
+    other."""
+    n = 8
+    first = np.ascontiguousarray(granite_32.colors[:16, :16])
+    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
+    volume = np.random.default_rng(seed).random((n, n, n, 3)).astype(np.float32)
+    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
+    feats = [first, None, second]
+    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
+    opt.search()
+    return opt, feats, volume
+
+
 def test_search_energy_and_weights_are_those_of_equations_1_and_2(granite_32, warp_device):
     """For each grid centre of each constrained axis: energy |s - e|^0.8 and IRLS weight
     max(|s - e|, 1e-3)^(0.8 - 2), |s - e| the L2 distance of the voxel's window to the
     matched exemplar window, recomputed here; the search returns the mean energy over the
-    centres of both axes. The second exemplar is not square, so its rows and columns cannot
-    be taken for each other."""
-    n = 8
-    first = np.ascontiguousarray(granite_32.colors[:16, :16])
-    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
-    volume = np.random.default_rng(4).random((n, n, n, 3)).astype(np.float32)
-    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
-    feats = [first, None, second]
-    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
-    mean_energy = opt.search()
-    h = n // 2
+    centres of both axes (``_two_axis_optimizer``'s exemplars)."""
+    opt, feats, volume = _two_axis_optimizer(granite_32, seed=4)
+    mean_energy = opt.search()  # again: the same matches
+    h = opt.n // 2
     match, weight, energy = opt.match.numpy(), opt.weight.numpy(), opt.energy.numpy()
     terms = []
     for axis in (0, 2):
@@ -506,25 +515,12 @@ def _equation_4(opt: kopf._LevelOptimizer, feats: list[np.ndarray | None],
     return total / norm[..., None], plain / covering
 
 
-def _two_axis_optimizer(granite_32: Exemplar) -> tuple[kopf._LevelOptimizer, list]:
-    """Searched 8^3 random solid, x and z constrained by exemplars of other sizes."""
-    n = 8
-    first = np.ascontiguousarray(granite_32.colors[:16, :16])
-    second = np.ascontiguousarray(granite_32.colors[16:28, 8:28])  # 12 x 20
-    volume = np.random.default_rng(1).random((n, n, n, 3)).astype(np.float32)
-    solid = wp.array(volume.reshape(-1, 3), dtype=wp.float32, device="cpu")
-    feats = [first, None, second]
-    opt = kopf._LevelOptimizer(feats, [(False, False), None, (False, False)], solid, False)
-    opt.search()
-    return opt, feats
-
-
 def test_optimization_averages_every_covering_window_by_its_irls_weight(granite_32,
                                                                           warp_device):
     """Equation 4: each voxel becomes the weighted mean of the exemplar texels that the
     matched windows of every grid centre covering it put there, each window weighted by its
     IRLS weight; recomputed here for two constrained axes of exemplars of other sizes."""
-    opt, feats = _two_axis_optimizer(granite_32)
+    opt, feats, _ = _two_axis_optimizer(granite_32)
     expected, plain = _equation_4(opt, feats)
     assert np.abs(expected - plain).max() > 1e-3
     opt.optimize(np.arange(opt.n ** 3, dtype=np.int32))
@@ -536,7 +532,7 @@ def test_histogram_penalty_divides_the_weight_of_each_texel(granite_32, warp_dev
     """Equation 5: each texel e_u,i,v that a window puts on a voxel weighs that window's IRLS
     weight over 1 + the penalty of that texel (not of the window's centre pixel); penalties
     drawn here at random, the voxels recomputed by equation 4."""
-    opt, feats = _two_axis_optimizer(granite_32)
+    opt, feats, _ = _two_axis_optimizer(granite_32)
     penalty = (3 * np.random.default_rng(2).random(len(opt.penalty))).astype(np.float32)
     opt.penalty.numpy()[:] = penalty
     split = feats[0].shape[0] * feats[0].shape[1]
@@ -583,7 +579,7 @@ def test_mean_shift_averages_the_dominant_cluster_of_each_voxels_texels(granite_
     bandwidth, started at the texel with the most weight within the bandwidth (its own
     included; the first of equals), run for its steps, and the voxel the weighted mean of
     the texels within the bandwidth of where it ends; recomputed here for every voxel."""
-    opt, feats = _two_axis_optimizer(granite_32)
+    opt, feats, _ = _two_axis_optimizer(granite_32)
     bandwidth = 0.5 * opt.spread
     expected = np.empty((opt.n ** 3, 3))
     for i, voxel in enumerate(itertools.product(range(opt.n), repeat=3)):
