@@ -586,6 +586,64 @@ def test_object_space_follows_instances(granite_32_file, variant):
     np.testing.assert_allclose(colors[0], colors[1], atol=1e-6)
 
 
+def _texture_points(to_world: mi.ScalarTransform4f, points: np.ndarray) -> np.ndarray:
+    """World ``points`` (N, 3) taken into a frame by the inverse of its float32 matrix (as
+    Mitsuba stores a transform), in float64, then scaled by 8 voxels per unit."""
+    matrix = np.array(to_world.matrix, np.float32).astype(np.float64).reshape(4, 4)
+    local = np.linalg.inv(matrix) @ np.c_[points, np.ones(len(points))].T
+    return 8.0 * local[:3].T
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_rotated_frames_place_points_by_their_inverse_matrix(granite_32_file, variant):
+    """A to_world and object frames (a shape's, an instance's) that rotate and scale
+    unevenly: a point's color is the solid's at scale * to_world^-1 * p. Every frame
+    tested before only moved, so one whose rotation was transposed (the block of matter,
+    or the texture on a rotated object, turned the other way) failed no test."""
+    use(variant)
+    T = mi.ScalarTransform4f
+    turned = T().translate([0.5, -1.0, 2.0]).rotate([1, 2, 3], 40).scale([1.0, 2.0, 0.5])
+    tex = load(granite_32_file, scale=8.0, raw=True, to_world=turned)
+    points = np.random.default_rng(8).uniform(-1, 1, (8, 3)).astype(np.float32)
+    np.testing.assert_allclose(eval_at(tex, points), tex.solid.query(
+        _texture_points(turned, points.astype(np.float64))), atol=1e-5)
+
+    sphere_frame = T().translate([1.5, 0, 0]).rotate([0, 0, 1], 50).scale([0.8, 1.2, 1.0])
+    instance_frame = T().translate([-1.5, 0.5, 0]).rotate([1, 1, 0], 70)
+    obj = {"type": "lazy_solid", "exemplar": str(granite_32_file), "scale": 8.0,
+           "space": "object", "raw": True}
+    before = set(mitsuba_plugin.textures())
+    scene = mi.load_dict({
+        "type": "scene", "tex": obj,
+        "sphere": {"type": "sphere", "to_world": sphere_frame,
+                   "bsdf": {"type": "diffuse", "reflectance": {"type": "ref", "id": "tex"}}},
+        "group": {"type": "shapegroup", "s": {"type": "sphere", "bsdf": {
+            "type": "diffuse", "reflectance": {"type": "ref", "id": "tex"}}}},
+        "instance": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                     "to_world": instance_frame},
+    })
+    (solid,) = [t.solid for t in mitsuba_plugin.textures() if t not in before]
+    starts = np.array([[1.6, 0.2, -5], [1.3, -0.3, -5], [-1.4, 0.7, -5], [-1.7, 0.3, -5]])
+    if dr.is_jit_v(mi.Float):
+        rays = mi.Ray3f(mi.Point3f(starts.T.astype(np.float32)), mi.Vector3f(0, 0, 1))
+        with mitsuba_plugin.wavefront():  # the BSDF call reaches the texture
+            si = scene.ray_intersect(rays)
+            colors = np.array(si.bsdf().eval_diffuse_reflectance(si)).T
+        hits, distances = np.array(si.p, np.float64).T, np.array(si.t)
+    else:
+        colors, hits, distances = [], [], []
+        for start in starts:
+            si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*start), mi.Vector3f(0, 0, 1)))
+            colors.append(list(si.bsdf().eval_diffuse_reflectance(si)))
+            hits.append(list(si.p))
+            distances.append(si.t)
+        colors, hits = np.array(colors), np.array(hits, np.float64)
+    assert np.isfinite(distances).all()  # every ray hit its object
+    expected = np.concatenate([solid.query(_texture_points(sphere_frame, hits[:2])),
+                               solid.query(_texture_points(instance_frame, hits[2:]))])
+    np.testing.assert_allclose(colors, expected[:, :3], atol=1e-5)
+
+
 def test_mean_weighs_the_axes_alike_and_max_bounds_every_voxel(granite_32_file, tmp_path):
     """A voxel averages one pixel of each axis' exemplar: mean() weighed the exemplars by
     their pixel counts (a large bright one beside small dark ones: 4.9x the mean of
