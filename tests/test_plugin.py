@@ -54,6 +54,9 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"space": "foo"}, "space"),
     ({"filter": "cubic"}, "filter"),
     ({"scale": -2.0}, "scale"),
+    # Zero voxels per unit gives every point one voxel's color, infinitely many black.
+    ({"scale": 0}, 'scale" must be a positive number, got 0.0'),
+    ({"scale": float("inf")}, 'scale" must be a positive number, got inf'),
     ({"seed": "one"}, "seed"),
     ({"seed": -1}, "seed"),
     ({"cache_bytes": -1}, "cache_bytes"),
