@@ -205,6 +205,27 @@ def test_a_block_placed_beyond_the_texture_range_renders_as_in_wavefront_mode(gr
     np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
 
 
+def test_non_finite_points_are_black_in_traced_lookups_as_in_wavefront_ones(granite_32_file):
+    """A NaN or infinite shading point is black in a traced program too; the traced
+    lookup's masked-off lanes show the stand-in color of a miss, which a traced eval
+    that did not blacken them gave such points (no render test has one)."""
+    import drjit as dr
+
+    scene, texture = lit_plane(granite_32_file)
+    mitsuba_plugin.render(scene, spp=1)  # stores the plane's voxels
+    si = dr.zeros(mi.SurfaceInteraction3f, 4)
+    si.p = mi.Point3f([0.1, np.nan, 0.0, 0.3], [0.2, 0.0, np.inf, -0.4], [0.0, 0.0, 0.0, 0.0])
+    wavefront = np.array(texture.eval(si))
+    with mitsuba_plugin.traced_renders(scene):
+        # A condition Dr.Jit cannot see through, so the eval is traced (SymbolicScope).
+        traced = dr.if_stmt(args=(si,), cond=dr.opaque(mi.Bool, True, 4), true_fn=texture.eval,
+                            false_fn=lambda si: dr.zeros(mi.Color3f, 4), mode="symbolic")
+        traced = np.array(traced)
+    assert (wavefront[:, [0, 3]] > 0).all()
+    np.testing.assert_array_equal(wavefront[:, 1:3], 0.0)
+    np.testing.assert_array_equal(traced, wavefront)
+
+
 def test_object_space_is_traced_and_agrees_with_wavefront_mode(granite_32_file):
     """Object-space frames (instances, shapes with to_world) found per lane in the traced
     program give the image that wavefront mode gives."""
