@@ -670,6 +670,28 @@ def test_mean_weighs_the_axes_alike_and_max_bounds_every_voxel(granite_32_file, 
         assert colors.max() <= texture.max() < 1.0
 
 
+def test_mean_and_max_decode_each_voxel_of_a_two_tone_exemplar(tmp_path):
+    """Half black, half gray (128) pixels: a voxel averages 0 to 3 gray ones of its three
+    axes (binomial, 1:3:3:1), each average decoded from sRGB, so mean() is the mean of those
+    four decoded values; decoding the mean voxel instead gave 0.73 of it (1 to 2 percent
+    on the granite), and max() the undecoded gray 2.3 times too large; neither failed a
+    test before."""
+    from PIL import Image
+
+    from warptex.exemplar import srgb_to_linear
+
+    use("scalar_rgb")
+    gray = 128 / 255
+    board = (np.indices((16, 16)).sum(axis=0) % 2) * 128
+    Image.fromarray(np.repeat(board[..., None], 3, axis=2).astype(np.uint8)).save(
+        tmp_path / "board.png")
+    tex = load(tmp_path / "board.png")
+    levels = srgb_to_linear(np.array([1, 2, 3], np.float32) * np.float32(gray) / np.float32(3))
+    expected = (3 * levels[0] + 3 * levels[1] + levels[2]) / 8
+    assert float(tex.mean()) == pytest.approx(float(expected), rel=0.02)
+    assert tex.max() == pytest.approx(float(levels[2]), rel=1e-6)
+
+
 def _scalar_interaction(point: np.ndarray) -> mi.SurfaceInteraction3f:
     si = mi.SurfaceInteraction3f()
     si.p = mi.Point3f(*map(float, point))
