@@ -265,9 +265,9 @@ def test_render_keeps_the_samplers_count_and_its_stratification(tmp_path, capsys
 
 def test_batches_are_renders_of_their_shares_with_their_own_seeds_weighted_by_share():
     """render(spp=3, batches=2, seed=5) is Mitsuba's render of 2 samples with seed 10 and of
-    1 sample with seed 11, weighted 2:1, as render's documentation says: a batch seed
-    off by one, batches sharing a seed (their noise averages to nothing), shares that
-    drop the remainder or batches weighted alike passed the tests before."""
+    1 sample with seed 11, weighted 2:1, as render's documentation says: batches sharing
+    a seed (their noise averages to nothing), shares that drop the remainder, batches
+    weighted alike or batches of no samples passed the tests before."""
     use("scalar_rgb")
     scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=4, height=4)
     image = rgb(mitsuba_plugin.render(scene, spp=3, batches=2, seed=5))
@@ -275,6 +275,9 @@ def test_batches_are_renders_of_their_shares_with_their_own_seeds_weighted_by_sh
     two, one = (rgb(mi.render(scene, spp=spp, seed=seed)) for spp, seed in ((2, 10), (1, 11)))
     assert np.abs(two - one).max() > 0.01  # the seeds and counts make visible noise
     np.testing.assert_allclose(image, (2 * two + one) / 3, rtol=1e-5, atol=1e-6)
+    # More batches than samples per pixel: as many batches as samples, here one (seed 11).
+    np.testing.assert_allclose(rgb(mitsuba_plugin.render(scene, spp=1, batches=3, seed=11)),
+                               one, rtol=1e-5, atol=1e-6)
 
 
 def test_render_refuses_what_it_could_not_write_or_would_overwrite_once_loaded(
