@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +91,17 @@ def test_png_16bit_grayscale_round_trip(tmp_path, rng):
     np.testing.assert_array_equal(exemplar.colors, pixels.astype(np.float32) / 65535)
 
 
+def test_tiff_16bit_grayscale_keeps_16_bits(tmp_path, rng):
+    """Pillow reads a 16-bit grey TIFF as mode I;16 (16-bit PNGs go through pypng): its
+    values are scaled by 65535, not reduced to 8 bits first."""
+    grey = rng.integers(0, 65536, size=(16, 20), dtype=np.uint16)
+    Image.fromarray(grey).save(tmp_path / "grey16.tif")
+    exemplar = _load_quiet(tmp_path / "grey16.tif")
+    assert exemplar.channels == 1 and exemplar.srgb
+    np.testing.assert_array_equal(exemplar.colors[..., 0],
+                                  grey.astype(np.float32) / np.float32(65535))
+
+
 def test_png_8bit_grayscale_is_one_channel(tmp_path, rng):
     pixels = rng.integers(0, 256, size=(32, 40), dtype=np.uint8)
     Image.fromarray(pixels, mode="L").save(tmp_path / "gray.png")
@@ -107,9 +119,12 @@ def test_png_low_bit_depth_scaled_to_unit_range(tmp_path, rng):
     np.testing.assert_allclose(exemplar.colors[..., 0], pixels / 15, rtol=0, atol=1e-7)
 
 
-def test_png_palette_expands_to_rgb(tmp_path, rng):
+# 8 colors are stored in 4 bits, read by pypng; 256 in 8 bits without transparency, read by
+# Pillow as mode P, which must not gain an alpha channel read as a fourth color.
+@pytest.mark.parametrize("colors", [8, 256])
+def test_png_palette_expands_to_rgb(tmp_path, rng, colors):
     rgb = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
-    Image.fromarray(rgb).quantize(colors=8).save(tmp_path / "palette.png")
+    Image.fromarray(rgb).quantize(colors=colors).save(tmp_path / "palette.png")
     expected = np.asarray(Image.open(tmp_path / "palette.png").convert("RGB")) / np.float32(255)
     exemplar = _load_quiet(tmp_path / "palette.png")
     assert exemplar.channels == 3
@@ -487,9 +502,11 @@ def test_truncated_jpeg_is_unreadable(tmp_path, rng):
     _raises(tmp_path / "cut.jpg", r"cut\.jpg: unreadable image")
 
 
-def _png_with_chunk(path: Path, pixels: np.ndarray, kind: bytes, data: bytes) -> Path:
-    """An 8-bit RGB PNG with a chunk of ``kind`` inserted after its header."""
-    raw = _write_png8(path, pixels).read_bytes()
+def _png_with_chunk(path: Path, pixels: np.ndarray, kind: bytes, data: bytes,
+                    write: Callable[[Path, np.ndarray], Path] = _write_png8) -> Path:
+    """A PNG (8-bit RGB unless ``write`` says) with a chunk of ``kind`` inserted after its
+    header."""
+    raw = write(path, pixels).read_bytes()
     chunk = (len(data).to_bytes(4, "big") + kind + data
              + zlib.crc32(kind + data).to_bytes(4, "big"))
     path.write_bytes(raw[:33] + chunk + raw[33:])  # signature 8, IHDR 25
@@ -549,6 +566,12 @@ def test_png_values_are_read_as_stored_whatever_its_significant_bits(tmp_path, r
     path = _png_with_chunk(tmp_path / "sbit.png", pixels, b"sBIT", bytes([5, 6, 5]))
     np.testing.assert_array_equal(_load_quiet(path).colors,
                                   pixels.astype(np.float32) / np.float32(255))
+    # 16-bit PNGs, which pypng decodes, of 12 significant bits as scanners write them.
+    pixels = rng.integers(0, 65536, size=(16, 16, 3), dtype=np.uint16)
+    path = _png_with_chunk(tmp_path / "sbit16.png", pixels, b"sBIT", bytes([12, 12, 12]),
+                           write=_write_png16)
+    np.testing.assert_array_equal(_load_quiet(path).colors,
+                                  pixels.astype(np.float32) / np.float32(65535))
 
 
 def test_damaged_files_of_valid_checksums_are_unreadable(tmp_path, rng):
