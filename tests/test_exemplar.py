@@ -424,6 +424,9 @@ def test_srgb_transfer_functions():
     gray_alpha = reencoded(rgba[:, :2], srgb=False, to_srgb=True)
     np.testing.assert_array_equal(gray_alpha, np.c_[linear_to_srgb(rgba[:, 0]), rgba[:, 1]])
     np.testing.assert_array_equal(reencoded(rgba, srgb=True, to_srgb=True), rgba)
+    # Exactly three channels are RGB, all three re-encoded (compare decodes a volume's RGB).
+    np.testing.assert_array_equal(reencoded(rgba[:, :3], srgb=True, to_srgb=False),
+                                  srgb_to_linear(rgba[:, :3]))
 
 
 def test_array_encoding_follows_the_dtype_unless_given(rng):
