@@ -761,6 +761,22 @@ def test_feature_distance_from_mask_values():
     np.testing.assert_allclose(distance[0, 15], 0.0, atol=1e-7)
 
 
+def test_feature_distance_is_euclidean_between_pixel_centres():
+    """Against a brute-force reference: each pixel's distance to the nearest pixel on the
+    other side of the mask, Euclidean (a diagonal step is sqrt(2), as no chamfer or
+    city-block metric has it), less half a pixel, signed and scaled as documented."""
+    mask = np.zeros((16, 16), dtype=bool)
+    mask[5:9, 3:12] = True
+    mask[9:14, 6] = True
+    pixels = np.indices(mask.shape).reshape(2, -1).T
+    inside = mask.ravel()
+    apart = np.sqrt(((pixels[:, None] - pixels[None]) ** 2).sum(axis=2))
+    nearest = np.where(inside[:, None] != inside[None], apart, np.inf).min(axis=1)
+    signed = np.where(inside, nearest - 0.5, 0.5 - nearest)
+    expected = 0.5 + 0.5 * signed / np.abs(signed).max()
+    np.testing.assert_allclose(feature_distance_from_mask(mask).ravel(), expected, rtol=1e-6)
+
+
 def test_feature_distance_needs_an_edge():
     with pytest.raises(ExemplarError, match="no edges"):
         feature_distance_from_mask(np.ones((16, 16), dtype=bool))
