@@ -32,6 +32,12 @@ def candidates(granite_32, tmp_path_factory, warp_device) -> CandidateSet:
     return precompute(granite_32, cache=False)
 
 
+@pytest.fixture(scope="module")
+def wide_candidates(granite_32x48, warp_device) -> CandidateSet:
+    """Candidates of a 32x48 exemplar: a square one would hide a height read for a width."""
+    return precompute(granite_32x48, cache=False)
+
+
 def _random_voxels(rng: np.random.Generator, n: int, lo: int = -40, hi: int = 40) -> np.ndarray:
     return rng.integers(lo, hi, size=(n, 3))
 
@@ -198,10 +204,12 @@ def test_bit_identical_across_processes(candidates, tmp_path):
     assert np.array_equal(np.load(out), here)
 
 
-def test_initialization_tiles_the_candidate_slab(candidates):
+@pytest.mark.parametrize("which", ["candidates", "wide_candidates"])
+def test_initialization_tiles_the_candidate_slab(request, which):
     """Section 4.3 and 5.1: without jitter or correction a voxel holds the x exemplar's
     pixel under it and that pixel's first 3D candidate, its two other coordinates moved
     along the slab's depth (x): the column of the y exemplar, the row of the z one."""
+    candidates = request.getfixturevalue(which)
     syn = Synthesizer(candidates, jitter=0.0, passes=0, levels=0)
     n = int(candidates.params["neighborhood"])
     h, w = candidates.sources[syn.finest][0].size  # one exemplar on all three axes
@@ -643,11 +651,14 @@ def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.nd
                      np.stack([(first[:, 1] // w + depth) % h, first[:, 1] % w], 1)], 1)
 
 
-def test_upsampling_inherits_twice_the_parents_coordinates_plus_the_childs_offset(candidates):
+@pytest.mark.parametrize("which", ["candidates", "wide_candidates"])
+def test_upsampling_inherits_twice_the_parents_coordinates_plus_the_childs_offset(request,
+                                                                                  which):
     """Section 5.1, "Upsampling": child v of parent v >> 1 holds, in exemplar k, twice the
     parent's pixel plus v's offset within its parent along the axes (k+1, k+2) that
     exemplar spans, wrapped at the child level's size. Without correction the finest level
     is exactly the start level's tiling, upsampled."""
+    candidates = request.getfixturevalue(which)
     syn = Synthesizer(candidates, jitter=0.0, passes=0, levels=1)
     assert syn.start == syn.finest - 1
     vox = np.indices((6, 6, 6)).reshape(3, -1).T + np.array([-3, 17, -40])
