@@ -263,6 +263,15 @@ def test_shifted_tiles_end_the_period_and_stay_deterministic(candidates):
         Synthesizer(candidates, shifted_tiles=1)
 
 
+def test_seeds_shift_the_tiles_differently_without_jitter(candidates):
+    """With shifted tiles and no jitter the seed alone decides each tile's offset: two seeds
+    give two textures, else a user's seed would change nothing."""
+    pts = _random_voxels(np.random.default_rng(5), 100, lo=-200, hi=200)
+    one, two = (Synthesizer(candidates, seed=seed, jitter=0.0, shifted_tiles=True, passes=0,
+                            levels=0).triples(pts) for seed in (1, 2))
+    assert np.all(one != two, axis=(1, 2)).mean() > 0.5
+
+
 def test_jitter_lattice_floors_negative_coordinates(warp_device):
     """The jitter's lattice cells (``bump_sum``) need floor division at negative voxels;
     Warp's integer ``//`` truncated there before NVIDIA/warp#1918, so ``floor_div`` stands in."""
