@@ -201,6 +201,17 @@ def test_jpeg_camera_orientation_is_applied(tmp_path, orientation, turns):
     assert np.abs(exemplar.colors - upright).mean() < 0.01
 
 
+def test_png_orientation_is_not_applied(tmp_path, rng):
+    """PNGs are read as stored whatever their eXIf chunk says, as pypng reads those it
+    decodes (16-bit, transparent color) and as Mitsuba's bitmap reads them."""
+    pixels = rng.integers(0, 256, size=(16, 20, 3), dtype=np.uint8)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(pixels).save(tmp_path / "turned.png", exif=exif)
+    np.testing.assert_array_equal(_load_quiet(tmp_path / "turned.png").colors,
+                                  pixels / np.float32(255))
+
+
 def test_jpeg_grayscale_is_one_channel(tmp_path):
     pixels = np.tile(np.linspace(0, 255, 32).astype(np.uint8), (24, 1))
     Image.fromarray(pixels, mode="L").save(tmp_path / "gray.jpg", quality=100)
