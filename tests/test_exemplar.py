@@ -1005,13 +1005,18 @@ def test_pyramid_finest_level_is_the_image_and_coarser_levels_wrap_or_reflect_at
     assert torus[-1, 0, 0] > 0.01 and torus[0, -1, 0] == 0.0
 
 
-def test_pyramid_keeps_feature_channel_at_every_level(rng):
+# Seams too: the features' colors are blurred as the colors are, reflected across a seam.
+@pytest.mark.parametrize("seams", [None, (True, False), (False, True)])
+def test_pyramid_keeps_feature_channel_at_every_level(rng, seams):
     colors = rng.random(size=(40, 24, 3)).astype(np.float32)
-    exemplar = Exemplar(colors, feature_distance=np.linspace(0, 1, 40 * 24).reshape(40, 24))
-    for level in exemplar.pyramid():
+    distance = np.linspace(0, 1, 40 * 24).reshape(40, 24)
+    exemplar = Exemplar(colors, feature_distance=distance)
+    alone = Exemplar(distance.astype(np.float32)).pyramid(seams=seams or exemplar.seams())
+    for level, distance_level in zip(exemplar.pyramid(seams=seams), alone, strict=True):
         assert level.colors.shape[2] == 3
         assert level.features.shape[2] == 4
         np.testing.assert_array_equal(level.features[..., :3], level.colors)
+        np.testing.assert_array_equal(level.features[..., 3], distance_level.colors[..., 0])
 
 
 def test_pyramid_rejects_bad_min_size(rng):
