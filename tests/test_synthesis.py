@@ -272,6 +272,31 @@ def test_seeds_shift_the_tiles_differently_without_jitter(candidates):
     assert np.all(one != two, axis=(1, 2)).mean() > 0.5
 
 
+def test_jitter_moves_the_voxel_the_slab_is_read_at_along_every_axis(wide_candidates):
+    """Section 5.1, "Jitter": the start level is the slab's tiling read at each voxel moved
+    by a small random warp: a triple is the tiling's at some position (the x exemplar's
+    pixel and its first 3D candidate moved along the slab's depth), and for some voxels the
+    warp moves that position off the voxel's own along each axis: the pixel off its (y, z),
+    by a few pixels, the depth off its x's."""
+    syn = Synthesizer(wide_candidates, seed=3, jitter=1.0, passes=0, levels=0)
+    n = int(wide_candidates.params["neighborhood"])
+    h, w = wide_candidates.sources[syn.start][0].size
+    vox = _random_voxels(np.random.default_rng(6), 2000, lo=-300, hi=300)
+    got = syn.triples(vox)
+    first = wide_candidates.roles[syn.start][0].cand[got[:, 0, 0] * w + got[:, 0, 1], 0, :]
+
+    def tiled_at(depth):
+        q = np.stack([first[:, 0] // w, (first[:, 0] % w + depth) % w], 1)
+        r = np.stack([(first[:, 1] // w + depth) % h, first[:, 1] % w], 1)
+        return (got[:, 1] == q).all(axis=1) & (got[:, 2] == r).all(axis=1)
+
+    assert np.any([tiled_at(depth) for depth in range(-(n // 2), n // 2 + 1)], axis=0).all()
+    assert not tiled_at(vox[:, 0] % n - n // 2).all()  # x moves too
+    for axis, size in ((1, h), (2, w)):
+        moved = (got[:, 0, axis - 1] - vox[:, axis] + size // 2) % size - size // 2
+        assert 0.1 < np.mean(moved != 0) < 0.6 and np.abs(moved).max() <= 12, axis
+
+
 def test_jitter_lattice_floors_negative_coordinates(warp_device):
     """The jitter's lattice cells (``bump_sum``) need floor division at negative voxels;
     Warp's integer ``//`` truncated there before NVIDIA/warp#1918, so ``floor_div`` stands in."""
