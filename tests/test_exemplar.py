@@ -257,6 +257,20 @@ def test_exr_extra_channels_follow_rgb(tmp_path, rng):
     np.testing.assert_array_equal(exemplar.colors[..., 4], rough)
 
 
+def test_exr_alpha_follows_the_extra_channels(tmp_path, rng):
+    """Alpha comes last, after depth and the like: where it is dropped, it is alpha that
+    goes, not the last extra channel."""
+    rgba = rng.random(size=(16, 16, 4)).astype(np.float32)
+    depth = rng.random(size=(16, 16)).astype(np.float32)
+    path = _write_exr(tmp_path / "alpha.exr", {"RGBA": rgba, "Z": depth})
+    kept = _load_quiet(path, alpha="keep").colors
+    np.testing.assert_array_equal(kept, np.concatenate([rgba[..., :3], depth[..., None],
+                                                        rgba[..., 3:]], axis=2))
+    with pytest.warns(AlphaDropped):
+        dropped = Exemplar.load(path).colors
+    np.testing.assert_array_equal(dropped, kept[..., :4])
+
+
 def test_exr_channels_are_told_by_their_name_in_either_case_and_after_a_layer(tmp_path, rng):
     """As Mitsuba's bitmap reads them: r, g, b are R, G, B, and so are diffuse.R and
     diffuse.g; sorted by their names they would come out blue first."""
