@@ -816,6 +816,9 @@ def test_otsu_mask_splits_two_levels(rng):
     expected = np.zeros((16, 16), dtype=bool)
     expected[5:11, 3:9] = True
     np.testing.assert_array_equal(otsu_mask(image), expected)
+    # Fewer than three channels (grey and a kept alpha): the first alone.
+    grey_alpha = np.stack([image[..., 0], rng.random((16, 16)).astype(np.float32)], axis=2)
+    np.testing.assert_array_equal(otsu_mask(grey_alpha), expected)
 
 
 def _blob_files(folder: Path, shape: tuple[int, int], rows: slice, cols: slice) -> np.ndarray:
