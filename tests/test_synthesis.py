@@ -38,6 +38,22 @@ def wide_candidates(granite_32x48, warp_device) -> CandidateSet:
     return precompute(granite_32x48, cache=False)
 
 
+@pytest.fixture(scope="module")
+def mixed_candidates(granite_32x48, warp_device) -> CandidateSet:
+    """Candidates of three exemplars of three sizes, 32x48, 32x32 and 48x32 along x, y and
+    z: each axis' coordinates wrap at its own exemplar's size."""
+    granite = granite_32x48.colors
+    return precompute(granite_32x48, Exemplar(np.ascontiguousarray(granite[:, 16:]), name="y"),
+                      Exemplar(np.ascontiguousarray(granite.swapaxes(0, 1)), name="z"),
+                      cache=False)
+
+
+def _sizes(candidates: CandidateSet, level: int) -> np.ndarray:
+    """(3, 2): the (height, width) of the exemplar of each axis at ``level``."""
+    return np.array([candidates.sources[level][candidates.axis_source[k]].size
+                     for k in range(3)])
+
+
 def _random_voxels(rng: np.random.Generator, n: int, lo: int = -40, hi: int = 40) -> np.ndarray:
     return rng.integers(lo, hi, size=(n, 3))
 
@@ -204,25 +220,26 @@ def test_bit_identical_across_processes(candidates, tmp_path):
     assert np.array_equal(np.load(out), here)
 
 
-@pytest.mark.parametrize("which", ["candidates", "wide_candidates"])
+@pytest.mark.parametrize("which", ["candidates", "wide_candidates", "mixed_candidates"])
 def test_initialization_tiles_the_candidate_slab(request, which):
     """Section 4.3 and 5.1: without jitter or correction a voxel holds the x exemplar's
     pixel under it and that pixel's first 3D candidate, its two other coordinates moved
-    along the slab's depth (x): the column of the y exemplar, the row of the z one."""
+    along the slab's depth (x): the column of the y exemplar, the row of the z one, each
+    wrapped at its own exemplar's size."""
     candidates = request.getfixturevalue(which)
     syn = Synthesizer(candidates, jitter=0.0, passes=0, levels=0)
     n = int(candidates.params["neighborhood"])
-    h, w = candidates.sources[syn.finest][0].size  # one exemplar on all three axes
+    (h, w), (_, wy), (hz, wz) = _sizes(candidates, syn.finest)
     vox = np.indices((n, h, w)).reshape(3, -1).T + np.array([-2 * n, 3 * h, -w])
     got = syn.triples(vox)
     own = (vox[:, 1] % h) * w + vox[:, 2] % w
-    first = candidates.roles[syn.finest][0].cand[own, 0, :]
+    first = candidates.roles[syn.finest][0].cand[own, 0, :]  # pixels of the y and z exemplars
     depth = vox[:, 0] % n - n // 2
     np.testing.assert_array_equal(got[:, 0], np.stack([vox[:, 1] % h, vox[:, 2] % w], 1))
-    np.testing.assert_array_equal(got[:, 1], np.stack([first[:, 0] // w,
-                                                       (first[:, 0] % w + depth) % w], 1))
-    np.testing.assert_array_equal(got[:, 2], np.stack([(first[:, 1] // w + depth) % h,
-                                                       first[:, 1] % w], 1))
+    np.testing.assert_array_equal(got[:, 1], np.stack([first[:, 0] // wy,
+                                                       (first[:, 0] % wy + depth) % wy], 1))
+    np.testing.assert_array_equal(got[:, 2], np.stack([(first[:, 1] // wz + depth) % hz,
+                                                       first[:, 1] % wz], 1))
 
 
 def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
@@ -676,31 +693,30 @@ def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.nd
     pixel under each voxel and that pixel's first 3D candidate, moved along the slab's
     depth (see test_initialization_tiles_the_candidate_slab)."""
     n = int(candidates.params["neighborhood"])
-    h, w = candidates.sources[level][0].size
+    (h, w), (_, wy), (hz, wz) = _sizes(candidates, level)
     own = (vox[:, 1] % h) * w + vox[:, 2] % w
     first = candidates.roles[level][0].cand[own, 0, :]
     depth = vox[:, 0] % n - n // 2
     return np.stack([np.stack([vox[:, 1] % h, vox[:, 2] % w], 1),
-                     np.stack([first[:, 0] // w, (first[:, 0] % w + depth) % w], 1),
-                     np.stack([(first[:, 1] // w + depth) % h, first[:, 1] % w], 1)], 1)
+                     np.stack([first[:, 0] // wy, (first[:, 0] % wy + depth) % wy], 1),
+                     np.stack([(first[:, 1] // wz + depth) % hz, first[:, 1] % wz], 1)], 1)
 
 
-@pytest.mark.parametrize("which", ["candidates", "wide_candidates"])
+@pytest.mark.parametrize("which", ["candidates", "wide_candidates", "mixed_candidates"])
 def test_upsampling_inherits_twice_the_parents_coordinates_plus_the_childs_offset(request,
                                                                                   which):
     """Section 5.1, "Upsampling": child v of parent v >> 1 holds, in exemplar k, twice the
     parent's pixel plus v's offset within its parent along the axes (k+1, k+2) that
-    exemplar spans, wrapped at the child level's size. Without correction the finest level
+    exemplar spans, wrapped at its child level's size. Without correction the finest level
     is exactly the start level's tiling, upsampled."""
     candidates = request.getfixturevalue(which)
     syn = Synthesizer(candidates, jitter=0.0, passes=0, levels=1)
     assert syn.start == syn.finest - 1
     vox = np.indices((6, 6, 6)).reshape(3, -1).T + np.array([-3, 17, -40])
     parent = _slab_tiling(candidates, syn.start, vox >> 1)
-    h, w = candidates.sources[syn.finest][0].size
     offset = np.stack([np.stack([vox[:, (k + 1) % 3] & 1, vox[:, (k + 2) % 3] & 1], 1)
                        for k in range(3)], 1)
-    expected = (2 * parent + offset) % np.array([h, w])
+    expected = (2 * parent + offset) % _sizes(candidates, syn.finest)
     np.testing.assert_array_equal(syn.triples(vox), expected)
 
 
