@@ -692,10 +692,10 @@ class BrickStore:
                 for v, payload in made:
                     kept = ~self._stored(v)  # not those still stored: they would be repacked
                     self._insert(v[kept], payload[kept])
-                    if not self._stored(v).all():  # else the loop would synthesize for ever
-                        raise RuntimeError(f"{len(v) - self._stored(v).sum()} of {len(v)} "
-                                           "voxels inserted in the brick store are not "
-                                           "stored")
+                    lost = np.count_nonzero(~self._stored(v))
+                    if lost:  # else the loop would synthesize them for ever
+                        raise RuntimeError(f"{lost} of {len(v)} voxels inserted in the brick "
+                                           "store are not stored")
                 absent = voxels[~self._stored(voxels)]
                 if len(absent) == 0:
                     result = run()
