@@ -229,17 +229,9 @@ def test_initialization_tiles_the_candidate_slab(request, which):
     candidates = request.getfixturevalue(which)
     syn = Synthesizer(candidates, jitter=0.0, passes=0, levels=0)
     n = int(candidates.params["neighborhood"])
-    (h, w), (_, wy), (hz, wz) = _sizes(candidates, syn.finest)
+    h, w = _sizes(candidates, syn.finest)[0]
     vox = np.indices((n, h, w)).reshape(3, -1).T + np.array([-2 * n, 3 * h, -w])
-    got = syn.triples(vox)
-    own = (vox[:, 1] % h) * w + vox[:, 2] % w
-    first = candidates.roles[syn.finest][0].cand[own, 0, :]  # pixels of the y and z exemplars
-    depth = vox[:, 0] % n - n // 2
-    np.testing.assert_array_equal(got[:, 0], np.stack([vox[:, 1] % h, vox[:, 2] % w], 1))
-    np.testing.assert_array_equal(got[:, 1], np.stack([first[:, 0] // wy,
-                                                       (first[:, 0] % wy + depth) % wy], 1))
-    np.testing.assert_array_equal(got[:, 2], np.stack([(first[:, 1] // wz + depth) % hz,
-                                                       first[:, 1] % wz], 1))
+    np.testing.assert_array_equal(syn.triples(vox), _slab_tiling(candidates, syn.finest, vox))
 
 
 def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
@@ -690,12 +682,13 @@ def test_a_box_larger_than_the_memory_is_refused_before_any_work(candidates, mon
 
 def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.ndarray:
     """Triples (N, 3, 2) of the start level without jitter or correction: the x exemplar's
-    pixel under each voxel and that pixel's first 3D candidate, moved along the slab's
-    depth (see test_initialization_tiles_the_candidate_slab)."""
+    pixel under each voxel and that pixel's first 3D candidate, its two other coordinates
+    moved along the slab's depth (x): the column of the y exemplar, the row of the z one,
+    each wrapped at its own exemplar's size."""
     n = int(candidates.params["neighborhood"])
     (h, w), (_, wy), (hz, wz) = _sizes(candidates, level)
     own = (vox[:, 1] % h) * w + vox[:, 2] % w
-    first = candidates.roles[level][0].cand[own, 0, :]
+    first = candidates.roles[level][0].cand[own, 0, :]  # pixels of the y and z exemplars
     depth = vox[:, 0] % n - n // 2
     return np.stack([np.stack([vox[:, 1] % h, vox[:, 2] % w], 1),
                      np.stack([first[:, 0] // wy, (first[:, 0] % wy + depth) % wy], 1),
@@ -734,6 +727,14 @@ def test_correction_brings_a_banded_exemplars_slices_closer_to_it(data_dir, warp
     assert max(energy[2]) < 0.85 * min(energy[0])
 
 
+def _plane_offset(k: int, a: int, b: int) -> np.ndarray:
+    """Volume offset of pixel offset (a, b) in the plane of axis k, whose exemplar spans
+    volume axes (k+1, k+2) as its rows and columns (kernels' ``plane_offset``)."""
+    d = np.zeros(3, int)
+    d[(k + 1) % 3], d[(k + 2) % 3] = a, b
+    return d
+
+
 def _plane_projection(feat_at, basis: np.ndarray, shift: int, half: int, k: int) -> np.ndarray:
     """NumPy reference of section 5.1's appearance vector of one plane: the N x N
     neighbourhood of the plane of axis k (volume axes (k+1, k+2) as the exemplar's rows and
@@ -742,9 +743,7 @@ def _plane_projection(feat_at, basis: np.ndarray, shift: int, half: int, k: int)
     rows = []
     for a in range(-half, half + 1):
         for b in range(-half, half + 1):
-            d = np.zeros(3, int)
-            d[(k + 1) % 3], d[(k + 2) % 3] = a, b
-            rows.append(feat_at(d))
+            rows.append(feat_at(_plane_offset(k, a, b)))
     acc = basis.astype(np.int64) @ np.concatenate(rows).astype(np.int64)
     return np.clip(acc >> shift, -_k.PROJ_LIMIT, _k.PROJ_LIMIT)
 
@@ -759,8 +758,7 @@ def test_the_reference_projection_of_a_slice_is_its_exemplar_pixels(candidates):
     feat = 3 * source.feat.astype(np.int64)
     for k in range(3):
         for u, v in [(0, 0), (5, 17), (h - 1, 3), (20, w - 1)]:
-            pos = np.zeros(3, int)
-            pos[(k + 1) % 3], pos[(k + 2) % 3] = u, v
+            pos = _plane_offset(k, u, v)
 
             def feat_at(d, pos=pos, k=k):
                 p = pos + d
@@ -859,18 +857,13 @@ def _reference_correction(cs: CandidateSet, step: _Step, i: int, finest: bool) -
         e = sources[k].proj[pix].astype(np.int64) - q[k, : sources[k].proj.shape[1]]
         return int(e @ e)
 
-    def offset(k: int, a: int, b: int) -> np.ndarray:
-        d = np.zeros(3, int)
-        d[(k + 1) % 3], d[(k + 2) % 3] = a, b
-        return d
-
     own_triple = step.before[i]
     best, best_d = own_triple, None
     for k in range(3):
         own, own_d = None, None
         for da in (-1, 0, 1):
             for db in (-1, 0, 1):
-                j = step.neighbor(i, offset(k, da, db))
+                j = step.neighbor(i, _plane_offset(k, da, db))
                 pix = int((step.before[j] if j >= 0 else own_triple)[k])
                 p = _wrapped_step(pix, -da, -db, sources[k].size)
                 for cand in sources[k].cand2d[p]:
@@ -887,7 +880,7 @@ def _reference_correction(cs: CandidateSet, step: _Step, i: int, finest: bool) -
                 best[k], best[k1], best[k2] = own, p1, p2
     for k in range(3):
         for a, b in [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)]:
-            d = offset(k, a, b)
+            d = _plane_offset(k, a, b)
             # A face neighbour lies in two planes; the kernel offers it once.
             if (a, b) == (0, 0) or (k == 1 and b == 0) or (k == 2 and 0 in (a, b)):
                 continue
@@ -897,10 +890,9 @@ def _reference_correction(cs: CandidateSet, step: _Step, i: int, finest: bool) -
             shifted = [_wrapped_step(int(step.before[j][m]), -d[(m + 1) % 3], -d[(m + 2) % 3],
                                      sources[m].size) for m in range(3)]
             clear = all(
-                rows <= p // s.size[1] < s.size[0] - rows
-                and cols <= p % s.size[1] < s.size[1] - cols
-                for p, s, (rows, cols) in zip(shifted, sources,
-                                              [s.margins for s in sources], strict=True))
+                s.margins[0] <= p // s.size[1] < s.size[0] - s.margins[0]
+                and s.margins[1] <= p % s.size[1] < s.size[1] - s.margins[1]
+                for p, s in zip(shifted, sources, strict=True))
             if clear:
                 dist = sum(distance(m, shifted[m]) for m in range(3))
                 if best_d is None or dist < best_d:
