@@ -210,8 +210,11 @@ def test_different_exemplar_per_axis(granite, stripes):
     def energy(ex: Exemplar, axis: int) -> float:
         return metrics.neighborhood_energy(volume, ex.colors, axis)
 
-    # z slices take after the bands, x slices after granite.
-    assert energy(rows, 2) < 0.8 * energy(granite, 2)
+    # z slices take after the bands, x slices after granite. Granite's own z slices are the
+    # yardstick for the bands: against granite's energy the margin is thin (0.52-0.76 of it
+    # on seeds 0-5), against a granite-only volume's it is wide (0.26-0.37).
+    granite_only, _ = _run(granite, True)
+    assert energy(rows, 2) < 0.5 * metrics.neighborhood_energy(granite_only, rows.colors, 2)
     assert energy(granite, 0) < 0.5 * energy(rows, 0)
 
 
