@@ -309,6 +309,25 @@ def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_dec
         np.testing.assert_allclose(np.array(grid), expected.transpose(2, 1, 0, 3), rtol=1e-5)
 
 
+def test_a_flat_cube_renders_as_its_converged_shading_without_noise(warp_device):
+    """Each visible face of a one-color cube shows one color: albedo x (sun's cosine-weighted
+    irradiance / pi + sky), what the path-traced sun and sky converge to; the sky around
+    it. Only pixels the cube's edges cut (antialiased) show anything else."""
+    from warptex.exemplar import srgb_to_linear
+
+    albedo, sky = np.array([0.45, 0.38, 0.28]), np.array(compare._SKY)
+    sun = np.array([0.4, 1.0, 0.7]) / np.linalg.norm([0.4, 1.0, 0.7])  # towards the sun
+    irradiance = np.array([2.2, 2.1, 2.0])
+    faces = [albedo * (irradiance * sun[axis] / np.pi + sky) for axis in range(3)]
+    image = srgb_to_linear(compare.render_cube({"type": "rgb", "value": list(albedo)},
+                                               resolution=64)).reshape(-1, 3)
+    for expected in (*faces, sky):
+        matches = np.abs(image - expected).max(axis=1) < 2e-3
+        assert matches.mean() > 0.05, expected
+        image = image[~matches]
+    assert len(image) < 0.05 * 64 * 64  # the edges
+
+
 def test_compare_runs_both_kopf_variants(tmp_path, data_dir, warp_device):
     out = tmp_path / "cmp"
     assert main(["compare", str(data_dir / "granite_64.png"), "--size", "16",
