@@ -292,12 +292,11 @@ def test_jitter_moves_the_voxel_the_slab_is_read_at_along_every_axis(wide_candid
     h, w = wide_candidates.sources[syn.start][0].size
     vox = _random_voxels(np.random.default_rng(6), 2000, lo=-300, hi=300)
     got = syn.triples(vox)
-    first = wide_candidates.roles[syn.start][0].cand[got[:, 0, 0] * w + got[:, 0, 1], 0, :]
 
     def tiled_at(depth):
-        q = np.stack([first[:, 0] // w, (first[:, 0] % w + depth) % w], 1)
-        r = np.stack([(first[:, 1] // w + depth) % h, first[:, 1] % w], 1)
-        return (got[:, 1] == q).all(axis=1) & (got[:, 2] == r).all(axis=1)
+        # The tiling at the voxel of the read pixel whose x puts it at ``depth`` in its slab.
+        at = np.c_[np.broadcast_to(depth + n // 2, len(got)), got[:, 0]]
+        return (_slab_tiling(wide_candidates, syn.start, at) == got).all(axis=(1, 2))
 
     assert np.any([tiled_at(depth) for depth in range(-(n // 2), n // 2 + 1)], axis=0).all()
     assert not tiled_at(vox[:, 0] % n - n // 2).all()  # x moves too
