@@ -316,8 +316,8 @@ def test_a_flat_cube_renders_as_its_converged_shading_without_noise(warp_device)
     from warptex.exemplar import srgb_to_linear
 
     albedo, sky = np.array([0.45, 0.38, 0.28]), np.array(compare._SKY)
-    sun = np.array([0.4, 1.0, 0.7]) / np.linalg.norm([0.4, 1.0, 0.7])  # towards the sun
-    irradiance = np.array([2.2, 2.1, 2.0])
+    sun = -np.array(compare._SUN_DIRECTION) / np.linalg.norm(compare._SUN_DIRECTION)
+    irradiance = np.array(compare._SUN_IRRADIANCE)
     faces = [albedo * (irradiance * sun[axis] / np.pi + sky) for axis in range(3)]
     image = srgb_to_linear(compare.render_cube({"type": "rgb", "value": list(albedo)},
                                                resolution=64)).reshape(-1, 3)

@@ -381,7 +381,8 @@ def _mitsuba():
     return mi
 
 
-_SKY = (0.5, 0.5, 0.55)
+_SKY = (0.5, 0.5, 0.55)  # radiance
+_SUN_DIRECTION, _SUN_IRRADIANCE = (-0.4, -1.0, -0.7), (2.2, 2.1, 2.0)
 
 
 def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarray:
@@ -409,8 +410,8 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
                      "rfilter": {"type": "box"}, "pixel_format": "rgba"},
             "sampler": {"type": "independent", "sample_count": spp},
         },
-        "sun": {"type": "directional", "direction": [-0.4, -1.0, -0.7],
-                "irradiance": {"type": "rgb", "value": [2.2, 2.1, 2.0]}},
+        "sun": {"type": "directional", "direction": list(_SUN_DIRECTION),
+                "irradiance": {"type": "rgb", "value": list(_SUN_IRRADIANCE)}},
         "cube": {"type": "cube", "to_world": T().translate([0.5, 0.5, 0.5]).scale(0.5),
                  "bsdf": {"type": "diffuse", "reflectance": texture}},
     })
