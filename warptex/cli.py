@@ -1388,12 +1388,6 @@ def _cmd_compare(args: argparse.Namespace) -> int:
                   feature_mask=args.feature_mask, ey=args.ey, ez=args.ez)
     # One clear error for a bad image before any work.
     exemplar = setup.exemplars()[0]
-    try:
-        taken = args.output.exists() and not args.output.is_dir()
-    except OSError as error:  # a name too long, a folder this user may not search
-        raise CliError(f"{args.output}: cannot look up ({error.strerror or error})") from None
-    if taken:
-        raise CliError(f"{args.output}: is a file, expected an output folder")
     _check_writable_folder(args.output, args.output)
     report = [args.output / name for name in REPORT_FILES]
     for path in report:  # a folder in a report file's place: before minutes of work
