@@ -494,25 +494,26 @@ def _inside(mask: np.ndarray) -> bool:
     return not any(np.take(mask, i, axis=a).any() for a in range(3) for i in (0, -1))
 
 
-@pytest.mark.parametrize("subpasses", [1, 8])
-def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses):
-    """Section 5.2 voxel-exact: one requested voxel makes the finest level correct only
-    the voxels of its dependency mask, and the next level only those its parents need,
-    not whole padded blocks."""
+@pytest.mark.parametrize(("subpasses", "extent"), [(1, 1), (8, 1), (1, 13), (8, 13)])
+def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses, extent):
+    """Section 5.2 voxel-exact: a requested voxel, or a box of ``extent``^3 off the blocks'
+    grid (whose inner blocks the engine does not spread the mask from), makes the finest
+    level correct only the voxels of its dependency mask, and the next level only those
+    its parents need, not whole padded blocks."""
     syn = Synthesizer(candidates, seed=2, subpasses=subpasses)
     steps = correction_steps(syn.passes, subpasses)
     # Grids just large enough for the masks, which must not reach their faces.
-    room = dependency_radius(2, syn.passes, subpasses) + 2
+    room = dependency_radius(2, syn.passes, subpasses) + extent + 2
     half = room + room % 2
     n = 2 * half + 1
     origin = 100 - half  # even, so grid parity is voxel parity
     desired = np.zeros((n, n, n), bool)
-    centre = np.array([half + 1, half, half + 1])  # odd, even, odd: parity 5
-    desired[tuple(centre)] = True
+    corner = np.array([half + 1, half - extent // 2, half + 1])  # odd, ?, odd
+    desired[tuple(slice(c, c + extent) for c in corner)] = True
     corrected = _corrected(desired, steps)
-    syn.triples(centre[None] + origin)
+    syn.triples(np.argwhere(desired) + origin)
     assert syn.voxels_synthesized[syn.finest] == int(corrected.sum())
-    if subpasses == 1:
+    if subpasses == 1 and extent == 1:
         assert int(corrected.sum()) == 5 * 5 * 3 - 3 * 5 + 1  # one 3-neighbourhood
     # The parents of every voxel the finest level reads, on an even-aligned coarse grid.
     mask = dependency_mask(desired, 2, steps)
