@@ -329,6 +329,26 @@ def test_an_output_name_of_a_folder_is_refused(files, tmp_path, capsys, command,
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize(("extra", "said"), [
+    (["--seeds", "3"], "unrecognized arguments: --seeds 3; did you mean --seed?"),
+    (["stray"], "unrecognized arguments: stray (see"),
+    (["--size", "x"], "argument --size: invalid int value: 'x'"),
+])
+def test_a_command_line_mistake_is_one_line_from_the_command(files, tmp_path, capsys, extra,
+                                                             said):
+    """An option the command does not take was refused by the top-level parser, with its
+    usage (warptex [-h] [--version] COMMAND ...), as if the command did not matter; any
+    usage error printed a block of usage lines before it."""
+    out = tmp_path / "v.npy"
+    with pytest.raises(SystemExit) as stop:
+        main(["volume", str(files["exemplar"]), *extra, "-o", str(out)])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2
+    assert err.startswith("warptex volume: error: ") and said in err
+    assert err.endswith("(see 'warptex volume --help')\n") and err.count("\n") == 1
+    assert not out.exists()
+
+
 def test_an_empty_output_folder_of_compare_is_refused(files, tmp_path, capsys, monkeypatch):
     """compare -o "" named the working folder (Path("") is "."), where it wrote its files."""
     monkeypatch.chdir(tmp_path)

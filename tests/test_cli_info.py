@@ -168,11 +168,14 @@ def test_console_script_error_has_no_traceback(tmp_path):
     assert "Traceback" not in result.stderr
 
 
-def test_usage_error_is_exit_2(capsys):
+def test_no_command_shows_the_commands_and_is_exit_2(capsys):
+    """``warptex`` alone said only that a command is required; it now lists them."""
     with pytest.raises(SystemExit) as info:
         main([])
     assert info.value.code == 2
-    assert "usage: warptex" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("usage: warptex") and "COMMAND --help" in err
+    assert all(f"    {name} " in err for name in ("info", "slice", "render", "compare"))
 
 
 def test_info_on_shared_exemplar(exemplar_dir, capsys):

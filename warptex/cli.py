@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import itertools
 import json
 import math
@@ -20,7 +21,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, NoReturn, TextIO
 
 import numpy as np
 
@@ -1503,17 +1504,31 @@ _SUBCOMMANDS: dict[
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's, but a mistake on the command line is one line naming the command, as
+    every other refusal is, and says where the command's options are explained, instead
+    of a usage block of many lines."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="warptex", description="Lazy solid texture synthesis from 2D exemplars.",
-        epilog="environment: WARPTEX_DEVICE=cpu|cuda picks the device (default: a GPU when "
+        formatter_class=_HelpFormatter,
+        epilog="'warptex COMMAND --help' explains a command's options and ends with "
+        "examples.\n\n"
+        "environment: WARPTEX_DEVICE=cpu|cuda picks the device (default: a GPU when "
         "there is one); WARPTEX_CACHE is the folder of the candidate cache (default "
         "$XDG_CACHE_HOME/warptex, else ~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel "
-        "cache (built on first use). "
+        "cache (built on first use).\n\n"
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
         "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
         "(render, bake and cut save their brick stores first), 141 the reader of its "
-        "output closed it (`| head`).",
+        "output closed it (`| head`).\n\n"
+        + "\n".join([_EXAMPLES_HEADING, *(e for name in ("slice", "render", "compare")
+                                           for e in _EXAMPLES[name][:1])]),
     )
     parser.add_argument("--version", action="version", version=f"warptex {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -1614,12 +1629,34 @@ def _note_kernel_build() -> None:
 _NEGATIVE_NUMBER = re.compile(r"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?|-inf(inity)?", re.IGNORECASE)
 
 
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """Each command's parser, by name."""
+    return next(a for a in parser._actions
+                if isinstance(a, argparse._SubParsersAction)).choices
+
+
 def _float_options(parser: argparse.ArgumentParser) -> dict[str, int]:
     """The options of any subcommand whose values are floats, and how many each takes."""
-    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return {option: action.nargs if isinstance(action.nargs, int) else 1
-            for sub in commands.choices.values() for action in sub._actions
+            for sub in _subparsers(parser).values() for action in sub._actions
             if action.type is float for option in action.option_strings}
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """``argv`` parsed; an argument the command does not take is refused by the command's
+    parser, which names the command (the top-level parser would show its own usage) and
+    the option meant, where one is near."""
+    if not argv:  # no command: what the commands are, rather than that one is missing
+        parser.print_help(sys.stderr)
+        parser.exit(2)
+    args, unknown = parser.parse_known_args(_negative_values(argv, parser))
+    if unknown:
+        command = _subparsers(parser)[args.command]
+        options = [o for a in command._actions for o in a.option_strings]
+        near = difflib.get_close_matches(unknown[0].partition("=")[0], options, n=1)
+        meant = f"; did you mean {near[0]}?" if unknown[0].startswith("-") and near else ""
+        command.error(f"unrecognized arguments: {' '.join(unknown)}{meant}")
+    return args
 
 
 def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = None) -> list[str]:
@@ -1740,8 +1777,7 @@ def _terminated_like_interrupted() -> Iterator[None]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = _parser()
-    args = parser.parse_args(_negative_values(argv, parser))
+    args = _parse(_parser(), argv)
     _, command = _SUBCOMMANDS[args.command]
     with warnings.catch_warnings(), _terminated_like_interrupted(), _bars_as_log_lines():
         warnings.showwarning = _show_warning
