@@ -1179,11 +1179,20 @@ def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.Abstr
 def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:
     """What `bake` and `cut` end with: the store's report, the store saved if asked, and
     the files written."""
+    from warptex.store import file_state
+
     _report_store(tex, args.resolution, time.perf_counter() - start)
+    unchanged = ""
     if args.store is not None:
+        before = file_state(args.store)
         with _writing(args.store):
-            files.append(tex.save())
-    print("written: " + ", ".join(str(f) for f in files))
+            saved = tex.save()
+        # A store that held every voxel already is left as it was (BrickStore.save).
+        if before is not None and file_state(saved) == before:
+            unchanged = f"; {saved} unchanged (it held every voxel already)"
+        else:
+            files.append(saved)
+    print("written: " + ", ".join(str(f) for f in files) + unchanged)
     return 0
 
 
@@ -1553,7 +1562,7 @@ _EXAMPLES = {
     "volume": [f"warptex volume {_WOOD} --size 64 -o out/wood.npy",
                f"warptex volume {_WOOD} --size 32 --method kopf -o out/wood_kopf.exr"],
     "slice": [f"warptex slice {_WOOD} -o out/slice.png",
-              f"warptex slice {_WOOD} --origin 0 0 0.5 --u 0 1 0 --v 0 0 1 --shape 128 128 "
+              f"warptex slice {_WOOD} --origin 0.5 0.5 0.5 --u 0 1 0 --v 0 0 1 --shape 128 128 "
               "-o out/across.png"],
     "bake": [f"warptex bake {_BUNNY} --exemplar {_WOOD} --resolution 256 -o out/bunny.ply",
              f"warptex bake {_BUNNY} --exemplar {_WOOD} --resolution 256 --uv auto "
