@@ -1005,7 +1005,10 @@ def _add_mesh_arguments(parser: argparse.ArgumentParser,
     parser.add_argument("--uv", choices=uv_sources, default="none",
                         help="bake a UV texture: "
                         + ", ".join(ways[w] for w in uv_sources if w in ways)
-                        + ", or vertex colors only (none, default); xatlas takes a while on "
+                        + ", or vertex colors only (none, default)"
+                        + ("" if "mesh" in uv_sources else "; not the mesh's own UVs, which "
+                           "the caps a cut makes lack")
+                        + "; xatlas takes a while on "
                         "large meshes (21 s for the 69k-face bunny on 2 cores)")
     parser.add_argument("--texture-size", type=int,
                         help=f"with --uv: edge of the UV texture in pixels (default "
@@ -1135,7 +1138,7 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
 
     if args.uv == "none":
         return {"mesh": mesh,
-                "colors": vertex_colors(tex, mesh, transform, progress=f"colours of {name}")}
+                "colors": vertex_colors(tex, mesh, transform, progress=f"colors of {name}")}
     # Unwrapping is one long call: the bar names the step it is in and times it.
     with tqdm(total=2, desc=f"UV texture {name}",
               bar_format="{desc}: step {n}/{total}{postfix} [{elapsed}]") as bar:
@@ -1358,7 +1361,8 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="edge of each method's volume in voxels, at least 8 and, with "
                         "Kopf's methods, a multiple of 8 (default 64)")
     parser.add_argument("--methods", default=",".join(METHODS),
-                        help="comma-separated methods (default: all)")
+                        help="comma-separated methods, of " + ", ".join(METHODS)
+                        + " (default: all)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of every randomized method, 0 to 2147483647 (default 0)")
     parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,

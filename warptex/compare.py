@@ -525,7 +525,7 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
             runs.append(time.perf_counter() - start)
     device = _engine_device() if method in _LAZY else "cpu"
     device_peak = _device_peak_mib(device)
-    _phase("its large volume")
+    _phase("its large slice, for the repetition score")
     large = make_large(job, volume)
     _phase("rendering its cube")
     render = render_cube(_cube_texture(method, job, volume))

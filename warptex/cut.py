@@ -91,7 +91,7 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     points = np.unique([index.get(c.tobytes(), -1) for c in shapely.get_coordinates(region)])
     if (len(faces) == 0 or (faces < 0).any() or not np.array_equal(np.unique(faces), points)
             or not np.isin(half.faces[cap], points).all()):
-        warnings.warn("a cut's cap could not be refined; its colours interpolate its outline's",
+        warnings.warn("a cut's cap could not be refined; its colors interpolate its outline's",
                       stacklevel=3)
         return half
     # A cap faces away from its half, -n: clockwise in (e1, e2), whose normal is n.
