@@ -553,14 +553,20 @@ def test_a_reader_gone_early_ends_the_command_quietly(files):
     assert proc.returncode == 141 and err == ""
 
 
-def test_negative_numbers_in_any_notation_are_values(files, tmp_path):
-    """argparse reads "-1e3" as an unknown option; warptex takes it as the number, only
-    where a float option expects one (a file may be called -5)."""
+def test_negative_numbers_in_any_notation_are_values(files, tmp_path, capsys):
+    """argparse reads "-1e3" (or "-32x32") as an unknown option; warptex takes it as the
+    value, only where an option of numbers expects one (a file may be called -5), so that
+    the option's own check says what is wrong with it."""
     from warptex.cli import _negative_values
 
     assert _negative_values(["precompute", "-5"]) == ["precompute", "-5"]
     assert _negative_values(["x", "--normal", "-1e3", "0", "-2E-1", "-4e1"]) == [
         "x", "--normal", " -1e3", "0", " -2E-1", "-4e1"]
+    assert _negative_values(["x", "--res", "-32x32", "--filter", "-3", "-o", "-5.png"]) == [
+        "x", "--res", " -32x32", "--filter", "-3", "-o", "-5.png"]
+    assert main(["render", str(files["scene"]), "--res", "-32x32", "-o",
+                 str(tmp_path / "r.png")]) == 2
+    assert "--res must be positive, got '-32x32'" in capsys.readouterr().err
     a, b = tmp_path / "a.npy", tmp_path / "b.npy"
     common = ["slice", str(files["exemplar"]), "--shape", "2", "2", "--passes", "0"]
     assert main([*common, "--origin", "-1e3", "-2.5E1", "0", "-o", str(a)]) == 0

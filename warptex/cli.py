@@ -1637,9 +1637,9 @@ def _note_kernel_build() -> None:
               "version, about half a minute)", file=sys.stderr)
 
 
-# A negative number in any notation; argparse takes only plain ones ("-5", "-0.5") for values
-# and reads "-1e9" as an unknown option.
-_NEGATIVE_NUMBER = re.compile(r"-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?|-inf(inity)?", re.IGNORECASE)
+# A value starting as a negative number in any notation ("-1e9", "-inf", "-32x32"); argparse
+# takes only plain numbers ("-5", "-0.5") for values and reads the others as unknown options.
+_NEGATIVE_NUMBER = re.compile(r"-(\.?\d|inf)", re.IGNORECASE)
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -1648,11 +1648,14 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
                 if isinstance(a, argparse._SubParsersAction)).choices
 
 
-def _float_options(parser: argparse.ArgumentParser) -> dict[str, int]:
-    """The options of any subcommand whose values are floats, and how many each takes."""
+def _number_options(parser: argparse.ArgumentParser) -> dict[str, int]:
+    """The options of any subcommand whose values may be negative numbers (floats, integers,
+    and text such as --res WxH, refused then in words of its own), and how many values
+    each takes."""
     return {option: action.nargs if isinstance(action.nargs, int) else 1
             for sub in _subparsers(parser).values() for action in sub._actions
-            if action.type is float for option in action.option_strings}
+            if action.type in (float, int, None) and action.nargs != 0 and not action.choices
+            for option in action.option_strings}
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
@@ -1673,13 +1676,13 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespa
 
 
 def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = None) -> list[str]:
-    """``argv`` with the values of float options that are negative numbers given a leading
-    space, which keeps argparse from reading them as options; float() ignores it."""
-    options = _float_options(parser or _parser())
+    """``argv`` with the values of number options that are negative numbers given a leading
+    space, which keeps argparse from reading them as options; float() and int() ignore it."""
+    options = _number_options(parser or _parser())
     out = list(argv)
     for i, arg in enumerate(argv):
         for j in range(i + 1, min(i + 1 + options.get(arg, 0), len(argv))):
-            if _NEGATIVE_NUMBER.fullmatch(argv[j]):
+            if _NEGATIVE_NUMBER.match(argv[j]):
                 out[j] = f" {argv[j]}"
     return out
 
