@@ -918,13 +918,12 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
                         "voxel containing it")
     _add_texture_arguments(parser, "EXEMPLAR")
     parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
-                        help="output image: .png (8-bit, RGBA where an alpha channel is "
-                        "kept), .exr or .npy (float)")
+                        help="output image: .png (8-bit), .exr or .npy (float)")
     _add_raw_argument(parser, ".png (sRGB) and .exr (linear) images")
 
 
 def _cmd_slice(args: argparse.Namespace) -> int:
-    from warptex.sheets import save_png, to_png8
+    from warptex.sheets import save_png, to_rgb8
     from warptex.texture import plane_points, query_slabs
 
     suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
@@ -954,7 +953,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         if srgb is not None:
             image = reencoded(image, srgb=srgb, to_srgb=True)
         with _writing(args.output):
-            save_png(to_png8(image), args.output)
+            save_png(to_rgb8(image), args.output)
     else:
         with _writing(args.output):
             write_image(args.output, image, srgb=bool(srgb))
@@ -967,10 +966,17 @@ _PNG_SLACK = 1e-3  # filtering [0, 1] colors may overshoot by rounding, which is
 
 def _note_png_losses(image: np.ndarray) -> None:
     """Warn when an 8-bit PNG cannot show all of a slice: values outside [0, 1] (HDR
-    exemplars) are clipped. Every channel is kept: gray or RGB, and alpha (--alpha keep)."""
+    exemplars) are clipped and a fourth channel (--alpha keep) is dropped."""
+    lost = []
     if image.min() < -_PNG_SLACK or image.max() > 1.0 + _PNG_SLACK:
-        warnings.warn("the PNG keeps 8-bit values in [0, 1]: values outside are clipped; .exr "
-                      "or .npy keep them", stacklevel=1)
+        lost.append("values outside [0, 1] are clipped")
+    shown = 1 if image.shape[2] < 3 else 3
+    if image.shape[2] > shown:
+        lost.append(f"{_count(image.shape[2] - shown, 'channel')} of {image.shape[2]} "
+                    "dropped")
+    if lost:
+        warnings.warn(f"the PNG keeps 8-bit RGB: {' and '.join(lost)}; .exr or .npy keep all",
+                      stacklevel=1)
 
 
 def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],

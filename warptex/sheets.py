@@ -29,17 +29,6 @@ def to_rgb8(image: np.ndarray) -> np.ndarray:
     return (to_rgb(image) * 255.0 + 0.5).astype(np.uint8)
 
 
-def to_png8(image: np.ndarray) -> np.ndarray:
-    """An (H, W, C) float image in [0, 1] as an 8-bit PNG keeps it: its colors as
-    :func:`to_rgb8` makes them, then its alpha where it has one (gray or RGB with alpha,
-    read with ``--alpha keep``), as stored: alpha is no color, never sRGB-encoded."""
-    rgb = to_rgb8(image)
-    if image.shape[2] not in (2, 4):
-        return rgb
-    alpha = (np.clip(image[:, :, -1], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    return np.dstack([rgb, alpha])
-
-
 def volume_row(volume: np.ndarray, depth: int | None = None) -> list[tuple[str, np.ndarray]]:
     """The three axis-aligned slices through ``volume`` (middle by default), labelled."""
     out = []
