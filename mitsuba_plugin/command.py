@@ -49,7 +49,6 @@ def _samples_per_batch(total: int) -> int:
 
 def parse_resolution(text: str) -> tuple[int, int]:
     """``"WxH"`` as (width, height), both positive."""
-    text = text.strip()  # the command line's parser keeps "-32x32" a value with a space
     try:
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:

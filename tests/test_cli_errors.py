@@ -331,6 +331,10 @@ def test_an_output_name_of_a_folder_is_refused(files, tmp_path, capsys, command,
 
 @pytest.mark.parametrize(("extra", "said"), [
     (["--seeds", "3"], "unrecognized arguments: --seeds 3; did you mean --seed?"),
+    (["--store", "s.wtb"], "unrecognized arguments: --store s.wtb; --store is an option of "
+     "bake, cut (see"),
+    (["--normal", "-1e3", "0", "0"], "unrecognized arguments: --normal -1e3 0 0; --normal is "
+     "an option of cut (see"),
     (["stray"], "unrecognized arguments: stray (see"),
     (["--size", "x"], "argument --size: invalid int value: 'x'"),
 ])
@@ -563,7 +567,10 @@ def test_negative_numbers_in_any_notation_are_values(files, tmp_path, capsys):
     assert _negative_values(["x", "--normal", "-1e3", "0", "-2E-1", "-4e1"]) == [
         "x", "--normal", " -1e3", "0", " -2E-1", "-4e1"]
     assert _negative_values(["x", "--res", "-32x32", "--filter", "-3", "-o", "-5.png"]) == [
-        "x", "--res", " -32x32", "--filter", "-3", "-o", "-5.png"]
+        "x", "--res=-32x32", "--filter", "-3", "-o", "-5.png"]
+    with pytest.raises(SystemExit):
+        main(["volume", str(files["exemplar"]), "--size", "-1e3", "-o", str(tmp_path / "v.npy")])
+    assert "--size: invalid int value: '-1e3'" in capsys.readouterr().err
     assert main(["render", str(files["scene"]), "--res", "-32x32", "-o",
                  str(tmp_path / "r.png")]) == 2
     assert "--res must be positive, got '-32x32'" in capsys.readouterr().err

@@ -60,7 +60,7 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     # The figures say where they were measured: volume, machine, versions, date, device.
     table = json.loads((out / "table.json").read_text())
     run = table["run"]
-    assert table["format"] == 5 and table["axes"] == ["x", "y", "z"]
+    assert table["format"] == 6 and table["axes"] == ["x", "y", "z"]
     assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1 and run["passes"] == 2
     assert run["cpu"] and run["warp"] and 1 <= run["threads"] <= run["cores"]
     assert {"numpy", "scipy", "python", "mitsuba", "drjit", "warptex_code"} <= set(

@@ -380,8 +380,9 @@ def test_jitter_warp_matches_a_reference_written_from_its_description(warp_devic
         out[i] = _k.warp_offset(pos[i], seed, jitter)
 
     rng = np.random.default_rng(12)
-    pos = np.concatenate([_random_voxels(rng, 3000), _random_voxels(rng, 1000, -COORD_LIMIT,
-                                                                     COORD_LIMIT)])
+    corners = np.array(list(itertools.product((-COORD_LIMIT, COORD_LIMIT - 1), repeat=3)))
+    pos = np.concatenate([_random_voxels(rng, 3000), corners,  # int32 is tightest there
+                          _random_voxels(rng, 1000, -COORD_LIMIT, COORD_LIMIT)])
     out = wp.zeros(len(pos), dtype=wp.vec3i, device=warp_device)
     moved = []
     for seed, jitter in ((0, 256), (3, 256), (2**31 - 1, 2048), (7, 0)):
@@ -524,6 +525,28 @@ def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses, exten
     coarse[tuple((parents - base).T)] = True
     assert _inside(dependency_mask(coarse, 2, steps))
     assert syn.voxels_synthesized[syn.finest - 1] == int(_corrected(coarse, steps).sum())
+
+
+def test_a_block_is_enclosed_only_when_all_27_blocks_around_are_present_and_full():
+    """The mask is not spread from an enclosed block's voxels (section 5.2's masks, fewer
+    writes): a correction reads up to one block away, along edges too, so one partial
+    edge-diagonal block or one absent block around it must keep its voxels spreading.
+    Boxes, whose masks stay convex, never leave just such a block out."""
+    blocks = np.indices((3, 3, 3)).reshape(3, -1).T - 1
+    order = np.argsort(pack(blocks))
+    keys, blocks = pack(blocks)[order], blocks[order]
+    centre = int(np.flatnonzero((blocks == 0).all(axis=1))[0])
+    table = synthesis._neighbor_table(keys, blocks)
+    need = np.ones(len(keys) * 64, np.uint8)
+    assert synthesis._enclosed(need, table)[centre]
+    edge = int(np.flatnonzero((blocks == (1, 1, 0)).all(axis=1))[0])
+    need[edge * 64] = 0
+    assert not synthesis._enclosed(need, table)[centre]
+    # A corner block missing: the table says -1 there, whatever the last block holds.
+    kept = ~(blocks == (1, 1, 1)).all(axis=1)
+    table = synthesis._neighbor_table(keys[kept], blocks[kept])
+    centre = int(np.flatnonzero((blocks[kept] == 0).all(axis=1))[0])
+    assert not synthesis._enclosed(np.ones(kept.sum() * 64, np.uint8), table)[centre]
 
 
 def test_box_layout_matches_voxels(candidates):

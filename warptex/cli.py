@@ -1668,22 +1668,42 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespa
     args, unknown = parser.parse_known_args(_negative_values(argv, parser))
     if unknown:
         command = _subparsers(parser)[args.command]
-        options = [o for a in command._actions for o in a.option_strings]
-        near = difflib.get_close_matches(unknown[0].partition("=")[0], options, n=1)
-        meant = f"; did you mean {near[0]}?" if unknown[0].startswith("-") and near else ""
-        command.error(f"unrecognized arguments: {' '.join(unknown)}{meant}")
+        # As given, not as _negative_values passed them on.
+        joined = {f"{a}={b}": f"{a} {b}" for a, b in itertools.pairwise(argv)}
+        given = " ".join(joined.get(u, u.lstrip(" ")) for u in unknown)
+        command.error(f"unrecognized arguments: {given}{_meant(unknown[0], parser, command)}")
     return args
 
 
+def _meant(given: str, parser: argparse.ArgumentParser, command: argparse.ArgumentParser) -> str:
+    """What an option ``command`` does not take may be: one of its own spelt nearly so
+    (names compared without their dashes, which every long option shares), or one of
+    other commands."""
+    name = given.partition("=")[0]
+    if not name.startswith("-"):
+        return ""
+    own = {o.lstrip("-"): o for o in command._option_string_actions if o.startswith("--")}
+    near = difflib.get_close_matches(name.lstrip("-"), list(own), n=1, cutoff=0.75)
+    if near:
+        return f"; did you mean {own[near[0]]}?"
+    others = [n for n, sub in _subparsers(parser).items() if name in sub._option_string_actions]
+    return f"; {name} is an option of {', '.join(others)}" if others else ""
+
+
 def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = None) -> list[str]:
-    """``argv`` with the values of number options that are negative numbers given a leading
-    space, which keeps argparse from reading them as options; float() and int() ignore it."""
+    """``argv`` with the values of number options that are negative numbers kept from
+    being read as options: joined to an option of one value (``--res=-32x32``), which
+    argparse takes as it is, else given a leading space, which float() and int() ignore."""
     options = _number_options(parser or _parser())
-    out = list(argv)
-    for i, arg in enumerate(argv):
-        for j in range(i + 1, min(i + 1 + options.get(arg, 0), len(argv))):
-            if _NEGATIVE_NUMBER.match(argv[j]):
-                out[j] = f" {argv[j]}"
+    out = []
+    i = 0
+    while i < len(argv):
+        values = argv[i + 1 : i + 1 + options.get(argv[i], 0)]
+        if len(values) == 1 and _NEGATIVE_NUMBER.match(values[0]):
+            out.append(f"{argv[i]}={values[0]}")
+        else:
+            out += [argv[i], *(f" {v}" if _NEGATIVE_NUMBER.match(v) else v for v in values)]
+        i += 1 + len(values)
     return out
 
 

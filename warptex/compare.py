@@ -74,8 +74,9 @@ REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writ
 # Of table.json; 2: format, axes, passes, exemplar max size and digest; 3: pre-computation
 # seconds, device memory, the settings of the methods and measures, more versions; 4: the
 # exemplar of each axis, the lazy engine's jitter and shifted tiles as run; 5: repetition
-# counts peaks of the autocorrelation only.
-TABLE_FORMAT = 5
+# counts peaks of the autocorrelation only; 6: tiled's pre-computation seconds are null (it
+# reads the candidates that lazy computed).
+TABLE_FORMAT = 6
 TILE = 64  # edge of the periodic block of `tiled`
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
 # What each method is, as the command's help says it.
@@ -508,10 +509,10 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
     if method == "lazy":
         _phase("pre-computing candidates")
         job, precompute_seconds = _precomputed(job)
-    elif method in _LAZY:  # the same candidates: read where the lazy run cached them
+    elif method in _LAZY:  # the same candidates, from the cache where a lazy run left them
         from warptex.candidates import precompute
 
-        _phase("reading candidates")
+        _phase("candidates, from the cache where they are")
         job = replace(job, candidates=precompute(*axes, tileable=s.tileable))
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(job, 8)
