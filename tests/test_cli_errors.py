@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from warptex.cli import main
 
@@ -54,8 +55,6 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
 
 def _rotated(path: Path) -> np.ndarray:
     """The PNG's 8-bit pixels turned, so they are sRGB-encoded as the PNG's are."""
-    from PIL import Image
-
     return np.rot90(np.asarray(Image.open(path).convert("RGB"))).copy()
 
 
@@ -597,6 +596,19 @@ def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
     assert main(["slice", str(rgba), "--alpha", "keep", "--shape", "4", "4", "--passes", "0",
                  "-o", str(out)]) == 0
     assert "the PNG keeps 8-bit RGB: 1 channel of 4 dropped" in capsys.readouterr().err
+    # A file's alpha, kept, is the PNG's alpha, as stored; a .npy's fourth channel is data.
+    png = tmp_path / "rgba.png"
+    Image.fromarray(np.concatenate([color, color[..., 1:2]], axis=2)).save(png)
+    for name in ("slice.png", "slice.npy"):
+        assert main(["slice", str(png), "--alpha", "keep", "--shape", "4", "4", "--passes",
+                     "0", "-o", str(tmp_path / name)]) == 0
+    assert "PNG" not in capsys.readouterr().err
+    with Image.open(tmp_path / "slice.png") as written:
+        assert written.mode == "RGBA"
+        opacity = np.asarray(written)[..., 3]
+    expected = np.load(tmp_path / "slice.npy")[..., 3]
+    assert np.array_equal(opacity, (np.clip(expected, 0, 1) * 255 + 0.5).astype(np.uint8))
+    assert len(np.unique(opacity)) > 1  # not a constant alpha that any writer might add
 
 
 def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):

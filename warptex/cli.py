@@ -918,12 +918,13 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
                         "voxel containing it")
     _add_texture_arguments(parser, "EXEMPLAR")
     parser.add_argument("-o", "--output", type=_file_name, required=True, metavar="FILE",
-                        help="output image: .png (8-bit), .exr or .npy (float)")
+                        help="output image: .png (8-bit, with alpha where --alpha keep kept "
+                        "one), .exr or .npy (float)")
     _add_raw_argument(parser, ".png (sRGB) and .exr (linear) images")
 
 
 def _cmd_slice(args: argparse.Namespace) -> int:
-    from warptex.sheets import save_png, to_rgb8
+    from warptex.sheets import save_png, to_png8
     from warptex.texture import plane_points, query_slabs
 
     suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
@@ -949,11 +950,12 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
-        _note_png_losses(image)
+        alpha = all(e.kept_alpha for e in exemplars)  # another axis' may hold data there
+        _note_png_losses(image, alpha)
         if srgb is not None:
             image = reencoded(image, srgb=srgb, to_srgb=True)
         with _writing(args.output):
-            save_png(to_rgb8(image), args.output)
+            save_png(to_png8(image, alpha), args.output)
     else:
         with _writing(args.output):
             write_image(args.output, image, srgb=bool(srgb))
@@ -964,19 +966,22 @@ def _cmd_slice(args: argparse.Namespace) -> int:
 _PNG_SLACK = 1e-3  # filtering [0, 1] colors may overshoot by rounding, which is no loss
 
 
-def _note_png_losses(image: np.ndarray) -> None:
+def _note_png_losses(image: np.ndarray, alpha: bool) -> None:
     """Warn when an 8-bit PNG cannot show all of a slice: values outside [0, 1] (HDR
-    exemplars) are clipped and a fourth channel (--alpha keep) is dropped."""
+    exemplars) are clipped, and channels past gray or RGB (and a kept ``alpha``, which the
+    PNG keeps) are dropped."""
     lost = []
     if image.min() < -_PNG_SLACK or image.max() > 1.0 + _PNG_SLACK:
         lost.append("values outside [0, 1] are clipped")
-    shown = 1 if image.shape[2] < 3 else 3
+    colors = image.shape[2] - alpha
+    shown = (1 if colors < 3 else 3) + alpha
     if image.shape[2] > shown:
         lost.append(f"{_count(image.shape[2] - shown, 'channel')} of {image.shape[2]} "
                     "dropped")
     if lost:
-        warnings.warn(f"the PNG keeps 8-bit RGB: {' and '.join(lost)}; .exr or .npy keep all",
-                      stacklevel=1)
+        kept = "RGBA" if alpha else "RGB"
+        warnings.warn(f"the PNG keeps 8-bit {kept}: {' and '.join(lost)}; .exr or .npy keep "
+                      "all", stacklevel=1)
 
 
 def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],

@@ -127,6 +127,9 @@ class Exemplar:
         # Where a feature-distance channel came from, as listings name it: "given", a mask's
         # file name (Exemplar.load), "automatic"; None without one.
         self.features_from: str | None = None if feature_distance is None else "given"
+        # Whether the last color channel is the file's alpha, kept (Exemplar.load's
+        # alpha="keep"): synthesized as a color, written as alpha where a format has one.
+        self.kept_alpha = False
         self.colors = _validated_colors(array, name)
         self._seam_contrast: tuple[float, float] | None = None  # once: colors are read-only
         self._seams: tuple[bool, bool] | None = None
@@ -234,6 +237,7 @@ class Exemplar:
         exemplar.name = path.name
         exemplar.path = path.resolve()
         exemplar.file_shape = read_shape[:2]
+        exemplar.kept_alpha = has_alpha and alpha == "keep"
         if feature_mask is not None:
             exemplar.features_from = Path(feature_mask).name
         elif feature_distance:

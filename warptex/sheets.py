@@ -29,6 +29,16 @@ def to_rgb8(image: np.ndarray) -> np.ndarray:
     return (to_rgb(image) * 255.0 + 0.5).astype(np.uint8)
 
 
+def to_png8(image: np.ndarray, alpha: bool) -> np.ndarray:
+    """An (H, W, C) float image in [0, 1] as an 8-bit PNG keeps it: its colors as
+    :func:`to_rgb8` makes them RGB, then, with ``alpha``, its last channel as the PNG's
+    alpha, as stored (alpha is no color: never sRGB-encoded)."""
+    if not alpha:
+        return to_rgb8(image)
+    opacity = (np.clip(image[:, :, -1], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return np.dstack([to_rgb8(image[:, :, :-1]), opacity])
+
+
 def volume_row(volume: np.ndarray, depth: int | None = None) -> list[tuple[str, np.ndarray]]:
     """The three axis-aligned slices through ``volume`` (middle by default), labelled."""
     out = []
