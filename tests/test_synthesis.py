@@ -509,7 +509,7 @@ def test_levels_correct_exactly_the_dependency_mask(candidates, subpasses, exten
     n = 2 * half + 1
     origin = 100 - half  # even, so grid parity is voxel parity
     desired = np.zeros((n, n, n), bool)
-    corner = np.array([half + 1, half - extent // 2, half + 1])  # odd, ?, odd
+    corner = np.array([half + 1, half - extent // 2, half + 1])  # odd, even, odd: parity 5
     desired[tuple(slice(c, c + extent) for c in corner)] = True
     corrected = _corrected(desired, steps)
     syn.triples(np.argwhere(desired) + origin)

@@ -281,15 +281,20 @@ class _Job:
     candidates: object = None
 
 
-def _synthesizer(job: _Job):
+def _candidates(job: _Job):
+    """The job's candidates: those it holds, else the cache's (computed there if missing)."""
     from warptex.candidates import precompute
+
+    if job.candidates is not None:
+        return job.candidates
+    return precompute(*job.axes, tileable=job.setup.tileable)
+
+
+def _synthesizer(job: _Job):
     from warptex.synthesis import Synthesizer
 
     s = job.setup
-    candidates = job.candidates
-    if candidates is None:
-        candidates = precompute(*job.axes, tileable=s.tileable)
-    return Synthesizer(candidates, seed=s.seed, jitter=s.jitter, passes=s.passes,
+    return Synthesizer(_candidates(job), seed=s.seed, jitter=s.jitter, passes=s.passes,
                        shifted_tiles=s.shifted_tiles)
 
 
@@ -510,10 +515,8 @@ def _measure(method: str, s: Setup, repeats: int = 1) -> dict:
         _phase("pre-computing candidates")
         job, precompute_seconds = _precomputed(job)
     elif method in _LAZY:  # the same candidates, from the cache where a lazy run left them
-        from warptex.candidates import precompute
-
         _phase("candidates, from the cache where they are")
-        job = replace(job, candidates=precompute(*axes, tileable=s.tileable))
+        job = replace(job, candidates=_candidates(job))
     # Compile or load the Warp kernels outside the timing (cheap for the numpy methods).
     make_volume(job, 8)
     _phase(f"{size}^3, timed")
