@@ -24,17 +24,15 @@ from warptex.archive import (
     write_together,
 )
 from warptex.machine import software_versions
+from warptex.settings import MAX_SAMPLER_SEED, RENDER_BATCHES
 from warptex.store import StoreFileError, file_state, saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
 # scene parameters, and each texture's properties as a mapping beside its string.
 REPORT_FORMAT = 2
-_BATCHES = 8  # renders of one image at most: each is a step of the progress line
 # Arguments of mi.load_file, which its keyword arguments (scene parameters) cannot be.
 _LOAD_FILE_ARGUMENTS = ("path", "parallel", "optimize")
-# Batches take the seeds seed * batches + i, which Mitsuba keeps as 32-bit integers.
-MAX_SEED = 2**32 // _BATCHES - 1
 
 
 class OutputError(Exception):
@@ -44,7 +42,7 @@ class OutputError(Exception):
 
 def _samples_per_batch(total: int) -> int:
     """The most samples per pixel one of the batches of a ``total``-sample render holds."""
-    return -(-total // min(_BATCHES, total))
+    return -(-total // min(RENDER_BATCHES, total))
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -167,8 +165,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
     if spp is not None and spp < 1:
         raise ValueError(f"--spp must be positive, got {spp}")
-    if not 0 <= seed <= MAX_SEED:
-        raise ValueError(f"--sampler-seed must be 0 to {MAX_SEED}, got {seed}")
+    if not 0 <= seed <= MAX_SAMPLER_SEED:
+        raise ValueError(f"--sampler-seed must be 0 to {MAX_SAMPLER_SEED}, got {seed}")
     parameters = dict(parameters or {})
     if resolution is not None and {"width", "height"} & set(parameters):
         raise ValueError("--res sets the parameters width and height: give them with -D or "
@@ -234,7 +232,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     try:
-        shares = mitsuba_plugin._batch_shares(sensor.sampler(), spp, _BATCHES)
+        shares = mitsuba_plugin._batch_shares(sensor.sampler(), spp, RENDER_BATCHES)
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     total = sum(shares)

@@ -862,3 +862,10 @@ def test_a_scene_naming_a_home_folder_of_no_user_is_refused_as_mitsuba_refuses_i
                  "--variant", "scalar_rgb"]) == 2
     assert "cannot load the scene" in capsys.readouterr().err
 
+
+
+def test_render_help_gives_the_sampler_seed_range_it_checks(capsys):
+    """The range --sampler-seed's help gives is the one its error names (above)."""
+    with pytest.raises(SystemExit):
+        main(["render", "--help"])
+    assert "0 to 536870911;" in " ".join(capsys.readouterr().out.split())

@@ -59,7 +59,7 @@ def test_info_says_why_a_pattern_whose_edge_lies_on_the_wrap_tiles(tmp_path, cap
     at every stripe's edge: said where the photo tiles and beside a seam."""
     stripes = np.repeat((np.arange(32) // 4 % 2)[:, None] * 200, 32, axis=1)
     assert _tiles_line(tmp_path, stripes, capsys) == (
-        "tiles: yes (edges differ 0.0x left-right and 4.4x top-bottom as much as "
+        "tiles: yes (left-right edges identical; top-bottom edges differ 4.4x as much as "
         "neighbouring pixels; its top and bottom edges differ 4.4x, but at least 5% of its "
         "neighbouring rows differ as much: the wrap is one of the pattern's own edges)")
     # Beside a seam: a ramp from left to right, striped from top to bottom.
@@ -152,8 +152,10 @@ def test_info_not_an_image(tmp_path, capsys):
 def test_info_constant_image_warns(tmp_path, capsys, no_candidates):
     Image.fromarray(np.full((16, 16), 9, dtype=np.uint8)).save(tmp_path / "flat.png")
     assert main(["info", str(tmp_path / "flat.png")]) == 0
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert f"warptex: warning: {tmp_path / 'flat.png'}: image is constant" in err
+    # No pixel differs from its neighbours: there is no ratio, not a ratio of 0.0x.
+    assert "tiles: yes (left-right edges identical; top-bottom edges identical)\n" in out
 
 
 def test_console_script_error_has_no_traceback(tmp_path):

@@ -45,6 +45,7 @@ from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     FILTERS,
+    MAX_SAMPLER_SEED,
     MIN_EXEMPLAR_SIZE,
     TILEABLE,
     SettingError,
@@ -264,6 +265,19 @@ def _add_info_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_exemplar_arguments(parser)
 
 
+def _edge_contrast(across_columns: float, across_rows: float) -> str:
+    """How much an exemplar's opposite edges differ, against neighbouring pixels; edges
+    without a difference are said to be identical, for a ratio of 0 also stands for 0 / 0
+    where the pixels never change along an axis (a constant image, stripes)."""
+    if across_columns and across_rows:
+        return (f"edges differ {across_columns:.1f}x left-right and {across_rows:.1f}x "
+                "top-bottom as much as neighbouring pixels")
+    return "; ".join(f"{name} edges identical" if ratio == 0.0 else
+                     f"{name} edges differ {ratio:.1f}x as much as neighbouring pixels"
+                     for name, ratio in (("left-right", across_columns),
+                                         ("top-bottom", across_rows)))
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
     exemplar = _load_exemplar(args, args.path)
     height, width = exemplar.shape
@@ -287,9 +301,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     seams = exemplar.seam_problem()
     own = exemplar.own_edges()
     if seams is None:
-        across_columns, across_rows = exemplar.seam_contrast()
-        print(f"tiles: yes (edges differ {across_columns:.1f}x left-right and "
-              f"{across_rows:.1f}x top-bottom as much as neighbouring pixels{own})")
+        print(f"tiles: yes ({_edge_contrast(*exemplar.seam_contrast())}{own})")
     else:
         print(f"tiles: no: {seams}; candidates keep away from those edges and the pyramid "
               f"does not blur across them, so corrections never continue the seam{own}")
@@ -1470,7 +1482,8 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         "value=\"...\"/>, used as $NAME), as Mitsuba's -D; repeatable")
     parser.add_argument("--sampler-seed", type=int, default=0, metavar="N",
                         help="seed of the render's samples, not of the texture (lazy_solid's "
-                        "seed); renders of other seeds can be averaged (default 0)")
+                        f"seed), 0 to {MAX_SAMPLER_SEED}; renders of other seeds can be averaged "
+                        "(default 0)")
 
 
 def _scene_parameter(text: str) -> tuple[str, str]:

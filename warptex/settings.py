@@ -17,6 +17,9 @@ DEFAULT_PASSES = 2  # the paper's (section 5.2)
 # the passes: one cold voxel costs 3,234 corrected voxels at 2 passes and 373,546 at 8.
 MAX_PASSES = 8
 MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
+RENDER_BATCHES = 8  # renders of one image at most (`warptex render`): each a step of its bar
+# Batches take the sampler seeds seed * batches + i, which Mitsuba keeps as 32-bit integers.
+MAX_SAMPLER_SEED = 2**32 // RENDER_BATCHES - 1
 FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered
 DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
 DEFAULT_COARSE_CACHE_BYTES = 256 << 20  # coarse-level blocks the engine keeps per level
