@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import subprocess
 import sys
 import threading
@@ -558,3 +559,47 @@ def test_first_launch_of_a_kernel_may_be_split_over_threads(tmp_path, data_dir):
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "(50000, 3)" in done.stdout
+
+
+def test_store_files_cut_short_empty_or_with_loose_members(candidates, tmp_path):
+    """A store cut short within its magic is damaged (replaced, with a warning), not
+    another tool's file to refuse; an empty one (made by mktemp) is a place to save to,
+    loaded empty without a warning; one whose checksum holds but whose member is no array
+    (written by another tool) is damaged, not an AttributeError."""
+    import io
+    import zipfile
+
+    from warptex.store import _MAGIC
+
+    pts = points_near_origin(20, 3)
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    expected = tex.query(pts)
+    tex.save()
+    del tex
+    whole = path.read_bytes()
+
+    path.write_bytes(whole[:5])
+    with pytest.warns(UserWarning, match="not a warptex brick store"):
+        cut = texture(candidates, store=path)
+    np.testing.assert_array_equal(cut.query(pts), expected)
+    del cut
+
+    path.write_bytes(b"")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        empty = texture(candidates, store=path)
+    assert empty.store.stats()["bricks"] == 0
+    del empty
+
+    header = len(_MAGIC) + 4 + 32
+    members = zipfile.ZipFile(io.BytesIO(whole[header:]))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as out:
+        for name in members.namelist():
+            out.writestr(name, b"not an array" if name == "keys.npy" else members.read(name))
+    payload = buf.getvalue()
+    path.write_bytes(whole[:len(_MAGIC) + 4] + hashlib.sha256(payload).digest() + payload)
+    with pytest.warns(UserWarning, match="keys is not an array"):
+        loose = texture(candidates, store=path)
+    assert loose.store.stats()["bricks"] == 0

@@ -194,8 +194,8 @@ def write_archive(path: str | Path, magic: bytes, version: int,
 
 def is_foreign(path: str | Path, magic: bytes) -> bool:
     """Whether ``path`` holds something other than a ``magic`` archive, which writing one
-    there would destroy: a folder, a device or pipe, or a non-empty file that starts
-    otherwise. A missing path or an empty file is not foreign.
+    there would destroy: a folder, a device or pipe, or a file that starts otherwise. A
+    missing path, an empty file or one cut short within the magic is not foreign.
 
     Raises:
         OSError: the path cannot be looked up or read.
@@ -207,7 +207,8 @@ def is_foreign(path: str | Path, magic: bytes) -> bool:
         return True
     with open(path, "rb") as file:
         head = file.read(len(magic))
-    return len(head) > 0 and head != magic
+    # A start of the magic alone is an archive cut short, damaged rather than another's.
+    return not magic.startswith(head)
 
 
 def archive_version(path: str | Path, magic: bytes) -> int | None:
@@ -262,6 +263,11 @@ def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
         raise error(f"{path}: checksum mismatch (truncated or corrupt file)")
     try:
         with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            arrays = {k: z[k] for k in z.files}
     except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile) as e:
         raise error(f"{path}: unreadable {kind} data ({e})") from None
+    # NumPy gives the bytes of a member that is no .npy file (one another tool wrote) as is.
+    loose = sorted(k for k, value in arrays.items() if not isinstance(value, np.ndarray))
+    if loose:
+        raise error(f"{path}: unreadable {kind} data ({loose[0]} is not an array)")
+    return arrays

@@ -627,6 +627,8 @@ class BrickStore:
         check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         state = file_state(Path(path))  # before reading: a file replaced meanwhile differs
+        if Path(path).is_file() and Path(path).stat().st_size == 0:  # as save takes it: made
+            return store  # by mktemp, a place to save to, not a damaged store
         try:
             kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
