@@ -45,7 +45,8 @@ def luminance(rgb: mi.Color3f) -> mi.Float:
     once: Mitsuba's scalar and LLVM builds compile theirs differently, a float32 ulp apart
     on some colors, and a point's value must not depend on the variant."""
     if not dr.is_jit_v(mi.Float):
-        return mi.Float(sum(w * float(c) for w, c in zip(_LUMINANCE, rgb, strict=True)))
+        # mi.Float is Python's float here: rounded as the JIT variants' float32 is.
+        return float(np.float32(sum(w * float(c) for w, c in zip(_LUMINANCE, rgb, strict=True))))
     wide = dr.float64_array_t(mi.Float)
     r, g, b = (wide(c) for c in rgb)
     return mi.Float(_LUMINANCE[0] * r + _LUMINANCE[1] * g + _LUMINANCE[2] * b)

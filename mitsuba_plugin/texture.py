@@ -402,15 +402,22 @@ class LazySolidTexture(mi.Texture):
     def eval_1_grad(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Vector2f:
         """Gradient of ``eval_1`` with respect to the surface's (u, v), as ``bumpmap`` reads
         it: forward differences half a voxel long along ``dp_du`` and ``dp_dv`` (a solid
-        texture has no UV parametrization of its own)."""
-        base = self.eval_1(si, active)
+        texture has no UV parametrization of its own). In float64, each result rounded to
+        float32 once, in one order of operations: Mitsuba's scalar and LLVM builds compute
+        ``dr.norm`` an ulp apart, and the variants' gradients must agree as their colors do."""
+        wide = dr.float64_array_t(mi.Float)
+        base = wide(self.eval_1(si, active))
+        p = [wide(c) for c in si.p]
         slopes = []
         for dp in (si.dp_du, si.dp_dv):
-            length = dr.norm(dp)
+            d = [wide(c) for c in dp]
+            length = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
             # A degenerate parametrization (dp = 0) stays in place and has no slope.
+            step = 0.5 / (self.scale * dr.maximum(length, 1e-30))
             moved = mi.SurfaceInteraction3f(si)
-            moved.p = si.p + (0.5 / (self.scale * dr.maximum(length, 1e-30))) * dp
-            slopes.append((self.eval_1(moved, active) - base) * (2.0 * self.scale * length))
+            moved.p = mi.Point3f(*(mi.Float(c + step * e) for c, e in zip(p, d, strict=True)))
+            rise = wide(self.eval_1(moved, active)) - base
+            slopes.append(mi.Float(rise * (2.0 * self.scale * length)))
         return mi.Vector2f(*slopes)
 
     def mean(self) -> mi.Float:
