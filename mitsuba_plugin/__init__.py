@@ -30,7 +30,7 @@ import threading
 import warnings
 import weakref
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager, contextmanager
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from numbers import Integral
 from pathlib import Path
 
@@ -202,9 +202,6 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
             raise TypeError(f"{name} must be an integer, got {value!r}")
     sampler = first_sensor(scene).sampler()
     shares = _batch_shares(sampler, spp, batches)
-    for texture in textures(scene):
-        if texture.space == "object":
-            texture.emitted_from(scene)
     total, batches = sum(shares), len(shares)
     if not 0 <= seed * batches + batches - 1 < 2**32:
         raise ValueError(f"seed must be 0 to {2**32 // batches - 1} for {batches} "
@@ -213,16 +210,19 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     if progress is not None:
         progress(0, batches)
     kept = sampler.sample_count()  # each batch sets it to its share
-    try:
-        for i, share in enumerate(shares):
-            part = _render_batch(scene, share, seed * batches + i)
-            weighted = part * (share / total)
-            image = weighted if image is None else image + weighted
-            dr.eval(image)
-            if progress is not None:
-                progress(i + 1, batches)
-    finally:
-        sampler.set_sample_count(kept)
+    with ExitStack() as emitting:
+        for texture in textures(scene):
+            emitting.enter_context(texture.emitting_in(scene))
+        try:
+            for i, share in enumerate(shares):
+                part = _render_batch(scene, share, seed * batches + i)
+                weighted = part * (share / total)
+                image = weighted if image is None else image + weighted
+                dr.eval(image)
+                if progress is not None:
+                    progress(i + 1, batches)
+        finally:
+            sampler.set_sample_count(kept)
     return image
 
 

@@ -94,6 +94,8 @@ import difflib
 import math
 import threading
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -369,7 +371,7 @@ class LazySolidTexture(mi.Texture):
                         else ScalarLookup(self.solid.store, self.filter, cache_bytes))
         self._frames: _ObjectFrames | None = None
         # The one shape whose area light this texture colours, for the points that light
-        # tracing emits from it, which carry no shape (see emitted_from).
+        # tracing emits from it, which carry no shape: during a render only (emitting_in).
         self._emitter: mi.Shape | None = None
         self._tracing: int | None = None  # the thread whose render traces this texture
         self._inert = False  # traced as another scene's texture that cannot be traced
@@ -547,24 +549,34 @@ class LazySolidTexture(mi.Texture):
         if self._traced is None:
             self._traced = TracedLookup(self.solid.store, self.filter, self._stand_in)
         if self.space == "object":
-            # Taken now: a shape's matrix cannot be read inside a symbolic render.
-            self.emitted_from(scene)
-            self._frames = _ObjectFrames(scene, self._emitter)
+            # Taken now: a shape's matrix cannot be read inside a symbolic render. Another
+            # scene's texture is read by no point of this one, its light's included.
+            self._frames = _ObjectFrames(scene, self._emitting_shape(scene) if own else None)
         usable = self._traced.refresh()
         self._inert = not usable and not own
         self._tracing = threading.get_ident() if usable or self._inert else None
         return usable or self._inert
 
-    def emitted_from(self, scene: mi.Scene) -> None:
-        """Take the shape whose area light this texture colours in ``scene``, where there is
-        exactly one, as the object of the points of no shape: Mitsuba's area lights emit
-        light tracing's rays (``ptracer``, ``sample_ray``) from points that carry none, which
-        an object-space texture read in world space. :func:`mitsuba_plugin.render` and
-        traced blocks call it."""
+    @contextmanager
+    def emitting_in(self, scene: mi.Scene) -> Iterator[None]:
+        """In the block, read the points of no shape in the frame of the one shape whose
+        area light this texture colours in ``scene`` (object space, where there is exactly
+        one such shape): Mitsuba's area lights emit light tracing's rays (``ptracer``,
+        ``sample_ray``) from points that carry none. Outside it, in world space, whatever
+        was rendered before. :func:`mitsuba_plugin.render` renders in such a block."""
+        self._emitter = self._emitting_shape(scene)
+        try:
+            yield
+        finally:
+            self._emitter = None
+
+    def _emitting_shape(self, scene: mi.Scene) -> mi.Shape | None:
+        if self.space != "object":
+            return None
         lit = [shape for shape in scene.shapes() if shape.emitter() is not None
                and any(entry[2] is self
                        for entry in mi.traverse(shape.emitter()).properties.values())]
-        self._emitter = lit[0] if len(lit) == 1 else None
+        return lit[0] if len(lit) == 1 else None
 
     def fill_misses(self) -> int:
         """Synthesize the bricks that traced lookups missed since the last call; returns

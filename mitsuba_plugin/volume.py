@@ -98,6 +98,11 @@ def lazy_solid_medium(props: mi.Properties,
         if not (math.isfinite(sigma_t) and sigma_t >= 0):
             raise property_error(MEDIUM, "sigma_t",
                                  f"must be finite and not negative, got {sigma_t}")
+    elif isinstance(sigma_t, mi.Texture) and sigma_t.is_spatially_varying():
+        kind = str(sigma_t).split("[", 1)[0]
+        raise property_error(MEDIUM, "sigma_t", f"is a {kind} texture, which Mitsuba's media "
+                             "read at one point only: give a lazy_solid texture, a <float ...>, "
+                             "a colour or a nested volume")
     elif isinstance(sigma_t, str | bool):  # colours, spectra and volumes Mitsuba checks
         raise property_error(MEDIUM, "sigma_t", f"must be a <float ...>, a colour or a nested "
                              f"volume, got {sigma_t!r}")

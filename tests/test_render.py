@@ -153,6 +153,10 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" must be a '
                        r"<float \.\.\.>, a colour or a nested volume, got 'six'"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "sigma_t": "six"})
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" is a '
+                       "Checkerboard texture, which Mitsuba's media read at one point only"):
+        mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                      "sigma_t": {"type": "checkerboard"}})
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "scale" must be a '
                        r"<float \.\.\.>, got a nested "):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,

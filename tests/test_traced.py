@@ -531,8 +531,15 @@ def test_light_tracing_reads_an_object_space_light_in_its_shape_s_frame(granite_
                      "emitter": {"type": "area", "radiance": {
                          "type": "lazy_solid", "exemplar": str(granite_32_file), "scale": 4.0,
                          "filter": "nearest", **placing}}}})
-        return np.array(mitsuba_plugin.render(scene, spp=16))
+        return scene, np.array(mitsuba_plugin.render(scene, spp=16))
 
-    in_object_space = image(space="object")
-    np.testing.assert_allclose(in_object_space, image(to_world=place), rtol=1e-5, atol=1e-6)
-    assert not np.allclose(in_object_space, image(), rtol=1e-5, atol=1e-6)
+    scene, in_object_space = image(space="object")
+    # A plain render reads them in world space, also after mitsuba_plugin.render, which
+    # sets the frame for its own renders only (later plain renders took it too).
+    with mitsuba_plugin.wavefront():
+        plain = np.array(mi.render(scene, spp=16))
+    np.testing.assert_allclose(in_object_space, image(to_world=place)[1], rtol=1e-5,
+                               atol=1e-6)
+    in_world_space = image()[1]
+    assert not np.allclose(in_object_space, in_world_space, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(plain, in_world_space, rtol=1e-5, atol=1e-6)
