@@ -68,6 +68,15 @@ class LazySolidVolume(mi.Volume):
         return f"LazySolidVolume[texture={self.texture.to_string()}]"
 
 
+def _check_world_space(name: str, texture: mi.Texture) -> None:
+    """Refuse an object-space texture: a medium's points belong to no shape, so it would be
+    read in world space, not follow the shape as asked."""
+    if texture.space == "object":
+        raise property_error(MEDIUM, name, 'is a lazy_solid of space="object", which a medium '
+                             "cannot follow (its points belong to no shape): place it with "
+                             "to_world in world space")
+
+
 def lazy_solid_medium(props: mi.Properties,
                       volume_type: type[LazySolidVolume] = LazySolidVolume) -> mi.Medium:
     """A ``heterogeneous`` medium whose albedo is a nested ``lazy_solid`` texture, as may
@@ -90,8 +99,10 @@ def lazy_solid_medium(props: mi.Properties,
     albedo = props.get("albedo", None)
     if albedo is None or not hasattr(albedo, "colors_at"):
         raise property_error(MEDIUM, "albedo", 'must be a nested texture of type "lazy_solid"')
+    _check_world_space("albedo", albedo)
     sigma_t = props.get("sigma_t", 1.0)
     if hasattr(sigma_t, "colors_at"):  # a lazy_solid: read at each point, as the albedo
+        _check_world_space("sigma_t", sigma_t)
         sigma_t = volume_type(sigma_t)
     elif isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
         sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too

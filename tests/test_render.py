@@ -153,6 +153,11 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" must be a '
                        r"<float \.\.\.>, a colour or a nested volume, got 'six'"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo, "sigma_t": "six"})
+    for name in ("albedo", "sigma_t"):
+        with pytest.raises(RuntimeError, match=f'lazy_solid_medium: property "{name}" is a '
+                           'lazy_solid of space="object", which a medium cannot follow'):
+            mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                          name: dict(albedo, space="object")})
     with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" is a '
                        "Checkerboard texture, which Mitsuba's media read at one point only"):
         mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
