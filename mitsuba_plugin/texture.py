@@ -247,12 +247,12 @@ def _to_world(props: mi.Properties) -> np.ndarray:
     except (AttributeError, TypeError, ValueError):
         raise property_error(PLUGIN, "to_world",
                              f"must be a <transform ...>, got {value!r}") from None
-    _inverse(matrix)
     # The texture keeps it as an affine transform, which would drop a projective last row.
     if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
         row = " ".join(f"{c:g}" for c in matrix[3])
         raise property_error(PLUGIN, "to_world", f"must be affine: its last row is {row}, "
                              "not 0 0 0 1")
+    _inverse(matrix)
     return matrix
 
 

@@ -128,6 +128,8 @@ def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_fi
     with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be affine: '
                        "its last row is 0 0 0 2, not 0 0 0 1"):
         load(granite_32_file, to_world=mi.ScalarTransform4f(np.diag([2.0, 2.0, 2.0, 2.0])))
+    with pytest.raises(RuntimeError, match="must be affine: its last row is 0 0 0 0"):
+        load(granite_32_file, to_world=mi.ScalarTransform4f(np.diag([1.0, 1.0, 1.0, 0.0])))
 
 
 def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_file, tmp_path):
