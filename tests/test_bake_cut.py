@@ -760,3 +760,37 @@ def test_bake_with_the_mesh_s_own_uvs_warns_of_a_mirrored_layout(tmp_path, data_
     err = capsys.readouterr().err
     assert "mirrored.obj: " in err and "of the UV area lies over other triangles'" in err
     assert "--uv auto makes UVs of its own" in err
+
+
+def _cap_triangles(half: trimesh.Trimesh, normal: np.ndarray) -> set:
+    """A half's cap triangles (faces parallel to the cut plane) as sets of their corners'
+    coordinate bytes: the same set on both halves when their caps are the same triangles."""
+    corners = half.vertices[half.faces]
+    # Not trimesh's face_normals, zero for the triangles of a mesh of micrometres.
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    flat = np.abs(normals @ normal) > (1 - 1e-9) * np.linalg.norm(normals, axis=1)
+    return {frozenset(map(bytes, triangle)) for triangle in corners[flat]}
+
+
+@pytest.mark.parametrize(("mesh", "origin", "normal"), [
+    (trimesh.creation.icosphere(2), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0)),
+    (trimesh.creation.capsule(), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0)),
+    # 1e-8 from the equator's vertices, which trimesh's slicing takes to lie in the plane.
+    (trimesh.creation.icosphere(2), (0.0, 0.0, 1e-8), (0.0, 0.0, 1.0)),
+    (trimesh.creation.icosphere(3).apply_scale(1e-6), (2e-8, -1e-8, 3e-8), (0.3, -1.0, 0.6)),
+])
+def test_both_halves_of_a_cut_close_with_the_same_cap(mesh, origin, normal):
+    """Vertex colours interpolate over the cap's triangles, so where the halves' caps are
+    triangulated apart, the same cap point shows two colours (27/255 apart on the sphere).
+    The second half's frame was mirrored, its section's points an ulp off the first's, and
+    a plane that nearly grazed vertices, or a mesh of micrometres against trimesh's absolute
+    tolerance, left halves open."""
+    normal = np.asarray(normal) / np.linalg.norm(normal)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every cap refined
+        first, second = cut(mesh, np.asarray(origin), normal)
+    caps = _cap_triangles(first, normal)
+    assert len(caps) > 20 and caps == _cap_triangles(second, normal)
+    assert first.is_watertight and second.is_watertight
+    np.testing.assert_allclose(first.volume + second.volume, mesh.volume, rtol=1e-9)
+

@@ -506,6 +506,25 @@ def test_cut_refuses_a_bad_exemplar_before_cutting(files, tmp_path, capsys, monk
     assert not any(tmp_path.iterdir())
 
 
+def test_a_second_half_named_by_a_link_to_the_first_is_refused_before_the_cut(
+        files, tmp_path, capsys, monkeypatch):
+    """Both halves would be one file: refused up front in one line, where it was a
+    ValueError's traceback from the writer after the work."""
+    import warptex.cut
+
+    def never(*args, **kwargs):
+        raise AssertionError("cut before its outputs were checked")
+
+    monkeypatch.setattr(warptex.cut, "cut", never)
+    (tmp_path / "c.ply").touch()
+    (tmp_path / "c_b.ply").symlink_to(tmp_path / "c.ply")
+    assert main(["cut", str(files["mesh"]), "--exemplar", str(files["exemplar"]), "-o",
+                 str(tmp_path / "c.ply")]) == 2
+    assert capsys.readouterr().err == (
+        f"warptex: error: {tmp_path / 'c_b.ply'}: is {tmp_path / 'c.ply'} (a link to it); "
+        "each file of a cut is written once: choose another output name\n")
+
+
 def test_texture_settings_reach_volume_and_slice(files, tmp_path):
     """--ey gives the y (and so z) axis its own exemplar, and --passes the engine its
     passes, in volume and slice alike."""

@@ -1086,11 +1086,16 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
             problem = file_problem(side)
             if problem is not None:
                 raise CliError(f"{side} (written with {output}): {problem}")
+    written = [f for o in outputs for f in exported_files(o, uv_texture=args.uv != "none")]
+    places = [os.path.realpath(f) for f in written]
+    for n, place in enumerate(places):
+        if place in places[:n]:  # a link from the second half's name to the first's file
+            raise CliError(f"{written[n]}: is {written[places.index(place)]} (a link to it); "
+                           "each file of a cut is written once: choose another output name")
     if args.store is not None:
         from warptex.store import StoreFileError, check_store_path
 
         _check_output(args.store)
-        written = [f for o in outputs for f in exported_files(o, uv_texture=args.uv != "none")]
         if any(args.store.resolve() == f.resolve() for f in written):
             raise CliError(f"{args.store}: --store names an output file; choose another file")
         try:

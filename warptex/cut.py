@@ -21,8 +21,11 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     The first half lies on the side ``normal`` points to. Each cap is refined (see
     :func:`_refined_cap`) to twice the median length of the mesh's edges that cross the
     plane, so that vertex colours resolve the texture on it about as on the surface around
-    it, and it still meets the outer surface vertex for vertex. ``progress`` shows a bar
-    over the two halves (seconds each for a mesh of a few hundred thousand faces).
+    it, and it still meets the outer surface vertex for vertex. Both halves' caps are the
+    same triangles, so a point of the cut face shows one colour on either. A plane that
+    passes within 1e-7 of the mesh's size of a vertex, not through it, is moved off it by
+    about that much. ``progress`` shows a bar over the two halves (seconds each for a mesh
+    of a few hundred thousand faces).
     """
     normal = np.asarray(normal, np.float64)
     if not np.isfinite(normal).all() or not np.abs(normal).max() > 0:
@@ -37,19 +40,71 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
         raise ValueError("every triangle of the mesh has zero area")
     if not kept.all():
         mesh = mesh.submesh([kept], append=True, repair=False)
+    # trimesh slices within absolute tolerances (1e-8): cut at about unit size, scaled by a
+    # power of two, which scales coordinates exactly.
+    scale = 2.0 ** -np.ceil(np.log2(max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-300)))
+    unit = trimesh.Trimesh(mesh.vertices * scale, mesh.faces, process=False)
+    origin = _clear_plane(unit.vertices, origin * scale, normal)
     # How dense the surface is where the plane cuts it: its edges that cross the plane.
-    above = (mesh.vertices - origin) @ normal > 0
-    crossing = above[mesh.edges_unique[:, 0]] != above[mesh.edges_unique[:, 1]]
+    above = (unit.vertices - origin) @ normal > 0
+    crossing = above[unit.edges_unique[:, 0]] != above[unit.edges_unique[:, 1]]
     if not crossing.any():
         raise ValueError("the plane does not cut the mesh")
-    spacing = 2.0 * float(np.median(mesh.edges_unique_length[crossing]))
+    spacing = 2.0 * float(np.median(unit.edges_unique_length[crossing]))
+    sides = (normal, -normal)
+    sliced = [trimesh.intersections.slice_mesh_plane(unit, side, origin, cap=True)
+              for side in sides]
+    if any(half is None or len(half.faces) == 0 for half in sliced):
+        raise ValueError("the plane does not cut the mesh")
+    _share_section(*sliced, origin, normal)
     halves = []
-    for side in tqdm((normal, -normal), desc="cutting", unit="half", disable=not progress):
-        half = trimesh.intersections.slice_mesh_plane(mesh, side, origin, cap=True)
-        if half is None or len(half.faces) == 0:
-            raise ValueError("the plane does not cut the mesh")
-        halves.append(_refined_cap(half, origin, side, spacing))
+    for half, side in tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
+                           disable=not progress):
+        half = _refined_cap(half, origin, side, spacing)
+        halves.append(trimesh.Trimesh(half.vertices / scale, half.faces, process=False))
     return halves[0], halves[1]
+
+
+def _share_section(first: trimesh.Trimesh, second: trimesh.Trimesh, origin: np.ndarray,
+                   normal: np.ndarray) -> None:
+    """Give the vertices of ``second``'s section the coordinates of ``first``'s: trimesh
+    finds where the plane crosses an edge from the edge's end on each half's side, points
+    apart in their last bits, and the caps are to be triangulated from the same points."""
+    from scipy.spatial import cKDTree
+
+    ours, theirs = (np.flatnonzero(_in_plane(h, origin, normal, _CAP_TOLERANCE))
+                    for h in (first, second))
+    if not len(ours) or not len(theirs):
+        return
+    distance, nearest = cKDTree(first.vertices[ours]).query(second.vertices[theirs])
+    same = distance <= _CAP_TOLERANCE * max(float(np.ptp(first.vertices, axis=0).max()), 1e-300)
+    vertices = second.vertices.copy()
+    vertices[theirs[same]] = first.vertices[ours[nearest[same]]]
+    second.vertices = vertices
+
+
+# Vertices closer to the cut plane than this (of a mesh of unit size) but not on it are
+# taken as on it by trimesh's slicing (within 1e-8), or as off it by the slicing and on it
+# by a looser test of the cap: the section gains a second vertex beside each, and its cap
+# breaks. The cap's own test (_CAP_TOLERANCE, of the half's size) allows for rounding only.
+_PLANE_CLEARANCE = 1e-7
+_CAP_TOLERANCE = 1e-10
+
+
+def _clear_plane(vertices: np.ndarray, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """``origin`` moved along the unit ``normal`` by the least that leaves no vertex of a
+    mesh of about unit size within ``_PLANE_CLEARANCE`` of the plane, where one lies that
+    near without lying on it; unmoved otherwise (a plane through vertices is cut exactly)."""
+    distance = (vertices - origin) @ normal
+    near = distance[np.abs(distance) < 1e3 * _PLANE_CLEARANCE]
+    if not ((near != 0) & (np.abs(near) < _PLANE_CLEARANCE)).any():
+        return origin
+    offsets = np.concatenate([near - 1.01 * _PLANE_CLEARANCE, near + 1.01 * _PLANE_CLEARANCE])
+    clear = (np.abs(near[None, :] - offsets[:, None]) >= _PLANE_CLEARANCE).all(axis=1)
+    if not clear.any():  # vertices everywhere near the plane: nothing better to do
+        return origin
+    offsets = offsets[clear]
+    return origin + offsets[np.argmin(np.abs(offsets))] * normal
 
 
 def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
@@ -60,11 +115,15 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     constrained Delaunay triangulation of the outer surface's outline vertices, refined by
     :func:`_bisect_long_edges` until no edge of it is longer than ``max_edge``.
     """
-    in_plane = _in_plane(half, origin, side)
+    in_plane = _in_plane(half, origin, side, _CAP_TOLERANCE)
     cap = in_plane[half.faces].all(axis=1)  # cap_faces, from the vertices found once
     if not cap.any():  # an open mesh cut where it has no inside
         return half
+    # One frame for both halves (the normal's sign made positive in its first non-zero
+    # component), so that both triangulate the same points alike and their caps match.
     n = side / np.linalg.norm(side)
+    facing = np.sign(n[np.flatnonzero(n)[0]])
+    n = n * facing
     e1 = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
     e1 /= np.linalg.norm(e1)
     uv = (half.vertices - origin) @ np.stack([e1, np.cross(n, e1)], axis=1)
@@ -81,7 +140,7 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
     closing = np.setdiff1d(_boundary_keys(half.faces[cap], count), section)
     closing = closing[ends[_edge_ends(closing, count)].all(axis=1)]
     outline = _edge_ends(np.concatenate([section, closing]), count)
-    region = shapely.build_area(shapely.union_all(shapely.linestrings(uv[outline])))
+    region = shapely.build_area(shapely.union_all(shapely.linestrings(_in_order(uv[outline]))))
     triangles = shapely.get_parts(shapely.constrained_delaunay_triangles(region))
     corners = shapely.get_coordinates(triangles).reshape(len(triangles), 4, 2)[:, :3]
     index = {uv[i].tobytes(): i for i in np.unique(outline)}
@@ -94,8 +153,9 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
         warnings.warn("a cut's cap could not be refined; its colors interpolate its outline's",
                       stacklevel=3)
         return half
-    # A cap faces away from its half, -n: clockwise in (e1, e2), whose normal is n.
-    flip = _winding(uv, faces) > 0
+    # A cap faces away from its half: clockwise in (e1, e2), whose normal is n, where n
+    # points into the half.
+    flip = _winding(uv, faces) * facing > 0
     faces[flip] = faces[flip][:, ::-1]
     faces = np.concatenate([half.faces[~cap], faces])
     refine = np.arange(len(faces)) >= (~cap).sum()
@@ -119,9 +179,7 @@ def _bisect_long_edges(vertices: np.ndarray, faces: np.ndarray, refine: np.ndarr
         keys, ids = np.unique(_edge_keys(faces, len(vertices)), return_inverse=True)
         edges = _edge_ends(keys, len(vertices))
         ids = ids.reshape(-1, 3)
-        length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
-        rank = np.empty(len(edges), np.int64)  # by length, ties by index: one longest edge
-        rank[np.lexsort((np.arange(len(edges)), length))] = np.arange(len(edges))
+        rank, length = _rank_edges(vertices, edges)
         longest = rank[ids].argmax(axis=1)
         chosen = np.where(refine & (length[ids].max(axis=1) > max_edge),
                           ids[np.arange(len(faces)), longest], -1)
@@ -148,6 +206,31 @@ def _bisect_long_edges(vertices: np.ndarray, faces: np.ndarray, refine: np.ndarr
         m = midpoint[chosen[halved]]
         faces = np.concatenate([faces[~halved], np.stack([a, m, c], 1), np.stack([m, b, c], 1)])
         refine = np.concatenate([refine[~halved], refine[halved], refine[halved]])
+
+
+def _rank_edges(vertices: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each edge's rank by length, ties broken by where it lies (its midpoint, then its
+    direction), not by its index: the two halves of a cut number their cap's vertices
+    apart, and must still bisect it alike. Also the lengths."""
+    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
+    length = np.linalg.norm(a - b, axis=1)
+    direction = b - a
+    first = np.argmax(direction != 0, axis=1)
+    direction *= np.sign(direction[np.arange(len(edges)), first])[:, None]
+    keys = (*direction.T[::-1], *((a + b) / 2).T[::-1], length)
+    rank = np.empty(len(edges), np.int64)
+    rank[np.lexsort(keys)] = np.arange(len(edges))
+    return rank, length
+
+
+def _in_order(segments: np.ndarray) -> np.ndarray:
+    """2D ``segments`` (E, 2, 2), each from its lesser end (by u, then v), sorted: an
+    order that does not depend on the vertices' numbering, for the triangulation to
+    break its ties (cocircular points) alike on both halves of a cut."""
+    swap = np.lexsort((segments[:, :, 1], segments[:, :, 0]), axis=1)[:, 0] == 1
+    segments = np.where(swap[:, None, None], segments[:, ::-1], segments)
+    flat = segments.reshape(len(segments), 4)
+    return segments[np.lexsort(flat.T[::-1])]
 
 
 def _winding(uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
