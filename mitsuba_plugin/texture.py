@@ -376,8 +376,11 @@ class LazySolidTexture(mi.Texture):
                         else ScalarLookup(self.solid.store, self.filter, cache_bytes))
         self._frames: _ObjectFrames | None = None
         # The one shape whose area light this texture colours, for the points that light
-        # tracing emits from it, which carry no shape: during a render only (emitting_in).
+        # tracing emits from it, which carry no shape: during renders only (emitting_in),
+        # of which ``_emitting`` are under way.
         self._emitter: mi.Shape | None = None
+        self._emitting = 0
+        self._emitting_lock = threading.Lock()
         self._tracing: int | None = None  # the thread whose render traces this texture
         self._inert = False  # traced as another scene's texture that cannot be traced
         self._update_transform()
@@ -568,12 +571,19 @@ class LazySolidTexture(mi.Texture):
         area light this texture colours in ``scene`` (object space, where there is exactly
         one such shape): Mitsuba's area lights emit light tracing's rays (``ptracer``,
         ``sample_ray``) from points that carry none. Outside it, in world space, whatever
-        was rendered before. :func:`mitsuba_plugin.render` renders in such a block."""
-        self._emitter = self._emitting_shape(scene)
+        was rendered before. :func:`mitsuba_plugin.render` renders in such a block; blocks
+        may overlap (a preview rendered while a render goes on), the last leaving clears it."""
+        with self._emitting_lock:
+            if self._emitting == 0:
+                self._emitter = self._emitting_shape(scene)
+            self._emitting += 1
         try:
             yield
         finally:
-            self._emitter = None
+            with self._emitting_lock:
+                self._emitting -= 1
+                if self._emitting == 0:
+                    self._emitter = None
 
     def _emitting_shape(self, scene: mi.Scene) -> mi.Shape | None:
         if self.space != "object":

@@ -778,6 +778,9 @@ def _cap_triangles(half: trimesh.Trimesh, normal: np.ndarray) -> set:
     # 1e-8 from the equator's vertices, which trimesh's slicing takes to lie in the plane.
     (trimesh.creation.icosphere(2), (0.0, 0.0, 1e-8), (0.0, 0.0, 1.0)),
     (trimesh.creation.icosphere(3).apply_scale(1e-6), (2e-8, -1e-8, 3e-8), (0.3, -1.0, 0.6)),
+    # 5 cm at map coordinates: sliced near the origin, or rounding beats the tolerances.
+    (trimesh.creation.icosphere(3).apply_scale(0.05).apply_translation([5e5, 4.4e6, 100.0]),
+     (5e5 + 0.01, 4.4e6, 100.0), (1.0, 0.2, 0.3)),
 ])
 def test_both_halves_of_a_cut_close_with_the_same_cap(mesh, origin, normal):
     """Vertex colours interpolate over the cap's triangles, so where the halves' caps are
@@ -794,3 +797,35 @@ def test_both_halves_of_a_cut_close_with_the_same_cap(mesh, origin, normal):
     assert first.is_watertight and second.is_watertight
     np.testing.assert_allclose(first.volume + second.volume, mesh.volume, rtol=1e-9)
 
+
+
+def test_a_plane_through_vertices_up_to_rounding_is_not_moved():
+    """A cylinder's axis vertices lie 6e-17 off the plane x = 0 (cos(pi / 2) rounds): the
+    slicing and the cap take them as in it, so moving the plane off them would only leave
+    slivers 1e-7 wide beside them."""
+    cylinder = trimesh.creation.cylinder(1.0, 2.0, sections=32)
+    for half in cut(cylinder, np.zeros(3), np.array([1.0, 0.0, 0.0])):
+        edges = half.vertices[half.edges_unique]
+        assert np.linalg.norm(edges[:, 0] - edges[:, 1], axis=1).min() > 0.1
+        assert half.is_watertight
+
+
+def test_cap_ties_are_broken_by_position_not_numbering():
+    """The halves number a cap's vertices apart: the edges' ranks and the segments handed to
+    the triangulation must not depend on it (square caps are all ties)."""
+    from warptex.cut import _in_order, _rank_edges
+
+    rng = np.random.default_rng(3)
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0]], float)
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [0, 4], [1, 4], [2, 4], [3, 4]])
+    ranks = _rank_edges(vertices, edges)[0]
+    assert len(set(ranks)) == len(edges)  # equal lengths, still one order
+    order = rng.permutation(len(vertices))  # vertex i becomes number order[i]
+    renumbered = np.empty_like(vertices)
+    renumbered[order] = vertices
+    listed = rng.permutation(len(edges))  # and the edges listed in another order
+    flipped = order[edges][listed][:, ::-1]
+    np.testing.assert_array_equal(_rank_edges(renumbered, flipped)[0], ranks[listed])
+    segments = vertices[edges][:, :, :2]
+    shuffled = segments[rng.permutation(len(segments))][:, ::-1]
+    np.testing.assert_array_equal(_in_order(shuffled), _in_order(segments))

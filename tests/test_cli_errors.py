@@ -521,8 +521,8 @@ def test_a_second_half_named_by_a_link_to_the_first_is_refused_before_the_cut(
     assert main(["cut", str(files["mesh"]), "--exemplar", str(files["exemplar"]), "-o",
                  str(tmp_path / "c.ply")]) == 2
     assert capsys.readouterr().err == (
-        f"warptex: error: {tmp_path / 'c_b.ply'}: is {tmp_path / 'c.ply'} (a link to it); "
-        "each file of a cut is written once: choose another output name\n")
+        f"warptex: error: {tmp_path / 'c.ply'} and {tmp_path / 'c_b.ply'} are one file "
+        "(through a link); each file of a cut is written once: choose another output name\n")
 
 
 def test_texture_settings_reach_volume_and_slice(files, tmp_path):

@@ -543,3 +543,12 @@ def test_light_tracing_reads_an_object_space_light_in_its_shape_s_frame(granite_
     in_world_space = image()[1]
     assert not np.allclose(in_object_space, in_world_space, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(plain, in_world_space, rtol=1e-5, atol=1e-6)
+    # A render that ends while another goes on (a preview) leaves the other its frame.
+    steady = np.array(mitsuba_plugin.render(scene, spp=16, batches=2))
+
+    def preview(done: int, total: int) -> None:
+        if done == 1:
+            mitsuba_plugin.render(scene, spp=1)
+
+    overlapped = np.array(mitsuba_plugin.render(scene, spp=16, batches=2, progress=preview))
+    np.testing.assert_allclose(overlapped, steady, rtol=1e-5, atol=1e-6)

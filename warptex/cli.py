@@ -1089,9 +1089,10 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     written = [f for o in outputs for f in exported_files(o, uv_texture=args.uv != "none")]
     places = [os.path.realpath(f) for f in written]
     for n, place in enumerate(places):
-        if place in places[:n]:  # a link from the second half's name to the first's file
-            raise CliError(f"{written[n]}: is {written[places.index(place)]} (a link to it); "
-                           "each file of a cut is written once: choose another output name")
+        if place in places[:n]:  # links: the second half's name to the first's file, say
+            raise CliError(f"{written[places.index(place)]} and {written[n]} are one file "
+                           "(through a link); each file of a cut is written once: choose "
+                           "another output name")
     if args.store is not None:
         from warptex.store import StoreFileError, check_store_path
 

@@ -40,11 +40,12 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
         raise ValueError("every triangle of the mesh has zero area")
     if not kept.all():
         mesh = mesh.submesh([kept], append=True, repair=False)
-    # trimesh slices within absolute tolerances (1e-8): cut at about unit size, scaled by a
-    # power of two, which scales coordinates exactly.
-    scale = 2.0 ** -np.ceil(np.log2(max(float(np.ptp(mesh.vertices, axis=0).max()), 1e-300)))
-    unit = trimesh.Trimesh(mesh.vertices * scale, mesh.faces, process=False)
-    origin = _clear_plane(unit.vertices, origin * scale, normal)
+    # trimesh slices within absolute tolerances (1e-8): cut at about unit size and near the
+    # origin, where rounding stays far below them. Both steps are exact for the mesh's own
+    # vertices (see _unit_frame), which the halves keep bit for bit.
+    centre, scale = _unit_frame(mesh.vertices)
+    unit = trimesh.Trimesh((mesh.vertices - centre) * scale, mesh.faces, process=False)
+    origin = _clear_plane(unit.vertices, (origin - centre) * scale, normal)
     # How dense the surface is where the plane cuts it: its edges that cross the plane.
     above = (unit.vertices - origin) @ normal > 0
     crossing = above[unit.edges_unique[:, 0]] != above[unit.edges_unique[:, 1]]
@@ -61,8 +62,21 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     for half, side in tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
                            disable=not progress):
         half = _refined_cap(half, origin, side, spacing)
-        halves.append(trimesh.Trimesh(half.vertices / scale, half.faces, process=False))
+        halves.append(trimesh.Trimesh(half.vertices / scale + centre, half.faces,
+                                      process=False))
     return halves[0], halves[1]
+
+
+def _unit_frame(vertices: np.ndarray) -> tuple[np.ndarray, float]:
+    """A centre and a power-of-two scale that bring ``vertices`` to about unit size near
+    the origin, both exactly: the centre is zero on an axis where the mesh is not far from
+    the origin for its size, else within a quarter of its coordinates there, so that their
+    differences with it are exact (Sterbenz), and so is adding it back."""
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    size = max(float((high - low).max()), 1e-300)
+    middle = (low + high) / 2
+    centre = np.where(np.abs(middle) > 4 * size, middle, 0.0)
+    return centre, 2.0 ** -np.ceil(np.log2(size))
 
 
 def _share_section(first: trimesh.Trimesh, second: trimesh.Trimesh, origin: np.ndarray,
@@ -83,21 +97,23 @@ def _share_section(first: trimesh.Trimesh, second: trimesh.Trimesh, origin: np.n
     second.vertices = vertices
 
 
-# Vertices closer to the cut plane than this (of a mesh of unit size) but not on it are
-# taken as on it by trimesh's slicing (within 1e-8), or as off it by the slicing and on it
-# by a looser test of the cap: the section gains a second vertex beside each, and its cap
-# breaks. The cap's own test (_CAP_TOLERANCE, of the half's size) allows for rounding only.
+# Vertices closer to the cut plane than this (of a mesh of unit size) but off it by more
+# than rounding (_ON_PLANE) are taken as on it by trimesh's slicing (within 1e-8) and off it
+# by the cap's test, or near enough for the slicing to add a second vertex beside them: the
+# cap breaks. The cap's own test (_CAP_TOLERANCE, of the half's size) allows for rounding.
 _PLANE_CLEARANCE = 1e-7
+_ON_PLANE = 1e-12
 _CAP_TOLERANCE = 1e-10
 
 
 def _clear_plane(vertices: np.ndarray, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """``origin`` moved along the unit ``normal`` by the least that leaves no vertex of a
     mesh of about unit size within ``_PLANE_CLEARANCE`` of the plane, where one lies that
-    near without lying on it; unmoved otherwise (a plane through vertices is cut exactly)."""
+    near without lying on it up to rounding; unmoved otherwise (a plane through vertices,
+    as through a cylinder's axis, is cut there)."""
     distance = (vertices - origin) @ normal
     near = distance[np.abs(distance) < 1e3 * _PLANE_CLEARANCE]
-    if not ((near != 0) & (np.abs(near) < _PLANE_CLEARANCE)).any():
+    if not ((np.abs(near) > _ON_PLANE) & (np.abs(near) < _PLANE_CLEARANCE)).any():
         return origin
     offsets = np.concatenate([near - 1.01 * _PLANE_CLEARANCE, near + 1.01 * _PLANE_CLEARANCE])
     clear = (np.abs(near[None, :] - offsets[:, None]) >= _PLANE_CLEARANCE).all(axis=1)
@@ -153,8 +169,8 @@ def _refined_cap(half: trimesh.Trimesh, origin: np.ndarray, side: np.ndarray,
         warnings.warn("a cut's cap could not be refined; its colors interpolate its outline's",
                       stacklevel=3)
         return half
-    # A cap faces away from its half: clockwise in (e1, e2), whose normal is n, where n
-    # points into the half.
+    # A cap faces away from its half, against ``side``: clockwise in (e1, e2), whose normal
+    # n is ``side`` times ``facing``.
     flip = _winding(uv, faces) * facing > 0
     faces[flip] = faces[flip][:, ::-1]
     faces = np.concatenate([half.faces[~cap], faces])
@@ -210,17 +226,19 @@ def _bisect_long_edges(vertices: np.ndarray, faces: np.ndarray, refine: np.ndarr
 
 def _rank_edges(vertices: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each edge's rank by length, ties broken by where it lies (its midpoint, then its
-    direction), not by its index: the two halves of a cut number their cap's vertices
-    apart, and must still bisect it alike. Also the lengths."""
+    direction, along a direction of no symmetry of a mesh), not by its index: the two
+    halves of a cut number their cap's vertices apart, and must still bisect it alike.
+    Also the lengths."""
     a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
     length = np.linalg.norm(a - b, axis=1)
-    direction = b - a
-    first = np.argmax(direction != 0, axis=1)
-    direction *= np.sign(direction[np.arange(len(edges)), first])[:, None]
-    keys = (*direction.T[::-1], *((a + b) / 2).T[::-1], length)
+    across = np.abs((b - a) @ _TIE_DIRECTION)  # either way round
+    keys = (across, (a + b) @ _TIE_DIRECTION, length)
     rank = np.empty(len(edges), np.int64)
     rank[np.lexsort(keys)] = np.arange(len(edges))
     return rank, length
+
+
+_TIE_DIRECTION = np.array([0.5773502691896258, 0.3141592653589793, 0.7536116385232097])
 
 
 def _in_order(segments: np.ndarray) -> np.ndarray:
