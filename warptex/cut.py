@@ -229,12 +229,19 @@ def _rank_edges(vertices: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np
     direction, along a direction of no symmetry of a mesh), not by its index: the two
     halves of a cut number their cap's vertices apart, and must still bisect it alike.
     Also the lengths."""
-    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
-    length = np.linalg.norm(a - b, axis=1)
-    across = np.abs((b - a) @ _TIE_DIRECTION)  # either way round
-    keys = (across, (a + b) @ _TIE_DIRECTION, length)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    order = np.argsort(length, kind="stable")
+    # Only the runs of equal lengths are sorted again (few, but all of a symmetric cap's).
+    tied = length[order[1:]] == length[order[:-1]]
+    runs = np.flatnonzero(np.r_[False, tied] | np.r_[tied, False])
+    if len(runs):
+        along = vertices @ _TIE_DIRECTION
+        members = order[runs]
+        a, b = along[edges[members, 0]], along[edges[members, 1]]
+        run = np.cumsum(np.r_[True, np.diff(runs) > 1] | np.r_[True, ~tied[runs[1:] - 1]])
+        order[runs] = members[np.lexsort((np.abs(b - a), a + b, run))]  # either way round
     rank = np.empty(len(edges), np.int64)
-    rank[np.lexsort(keys)] = np.arange(len(edges))
+    rank[order] = np.arange(len(edges))
     return rank, length
 
 
