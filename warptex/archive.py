@@ -107,11 +107,10 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     tag = f"{os.getpid()}.{threading.get_ident()}"
     staged = [(Path(path), write) for path, write in writes]
     targets = [written_through(path) for path, _ in staged]
-    places = [os.path.abspath(target) for target in targets]
-    for n, place in enumerate(places):
-        if place in places[:n]:
-            raise ValueError(f"{staged[places.index(place)][0]} and {staged[n][0]} are one "
-                             "file (a link to the other): write each once")
+    twice = one_file_twice([path for path, _ in staged])
+    if twice is not None:
+        raise ValueError(f"{twice[0]} and {twice[1]} are one file (a link to the other): "
+                         "write each once")
     # Beside the file replaced, for the rename; named as asked, for writers that take the
     # format from the suffix.
     temporary = [target.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
@@ -166,6 +165,16 @@ def _library_failure(error: RuntimeError, tmp: Path, path: Path) -> OSError:
         if os.strerror(code) in text:
             return OSError(code, os.strerror(code), str(path))
     return OSError(errno.EIO, text.replace(str(tmp), str(path)), str(path))
+
+
+def one_file_twice(paths: Sequence[str | Path]) -> tuple[Path, Path] | None:
+    """The first two of ``paths`` that writing would write as one file (the same name, or
+    one a link to the other's file), which :func:`write_together` refuses; None if none."""
+    places = [os.path.abspath(written_through(Path(path))) for path in paths]
+    for n, place in enumerate(places):
+        if place in places[:n]:
+            return Path(paths[places.index(place)]), Path(paths[n])
+    return None
 
 
 def written_through(path: Path) -> Path:

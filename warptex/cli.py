@@ -30,6 +30,7 @@ from warptex.archive import (
     file_problem,
     folder_problem,
     iso_date,
+    one_file_twice,
     overwritten_input,
     write_failure,
 )
@@ -1087,12 +1088,10 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
             if problem is not None:
                 raise CliError(f"{side} (written with {output}): {problem}")
     written = [f for o in outputs for f in exported_files(o, uv_texture=args.uv != "none")]
-    places = [os.path.realpath(f) for f in written]
-    for n, place in enumerate(places):
-        if place in places[:n]:  # links: the second half's name to the first's file, say
-            raise CliError(f"{written[places.index(place)]} and {written[n]} are one file "
-                           "(through a link); each file of a cut is written once: choose "
-                           "another output name")
+    twice = one_file_twice(written)  # links: the second half's name to the first's file, say
+    if twice is not None:
+        raise CliError(f"{twice[0]} and {twice[1]} are one file (through a link); each file "
+                       "of a cut is written once: choose another output name")
     if args.store is not None:
         from warptex.store import StoreFileError, check_store_path
 

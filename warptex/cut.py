@@ -238,7 +238,8 @@ def _rank_edges(vertices: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np
         along = vertices @ _TIE_DIRECTION
         members = order[runs]
         a, b = along[edges[members, 0]], along[edges[members, 1]]
-        run = np.cumsum(np.r_[True, np.diff(runs) > 1] | np.r_[True, ~tied[runs[1:] - 1]])
+        # A run starts where a member's length differs from the one before it.
+        run = np.cumsum(np.r_[True, ~tied[runs[1:] - 1]])
         order[runs] = members[np.lexsort((np.abs(b - a), a + b, run))]  # either way round
     rank = np.empty(len(edges), np.int64)
     rank[order] = np.arange(len(edges))

@@ -193,6 +193,12 @@ def _range_starts(counts: np.ndarray) -> np.ndarray:
     return np.cumsum(counts) - counts
 
 
+def _empty_file(path: Path) -> bool:
+    """Whether ``path`` is an empty file (made by mktemp, say): a place to save a store to,
+    not a damaged one."""
+    return path.is_file() and path.stat().st_size == 0
+
+
 def file_state(path: Path) -> tuple | None:
     """What tells a file apart from one renamed to its name since (as every save does):
     its device, inode, size and modification time; None when there is none."""
@@ -592,8 +598,7 @@ class BrickStore:
             if state is not None and self._synced == (state, version):
                 return False
             try:
-                # An empty file (made by mktemp) is a place to save to, not a store.
-                saved = self._read(path) if path.exists() and path.stat().st_size else None
+                saved = self._read(path) if path.exists() and not _empty_file(path) else None
             except StoreFileError as e:
                 warnings.warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None
@@ -627,8 +632,8 @@ class BrickStore:
         check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         state = file_state(Path(path))  # before reading: a file replaced meanwhile differs
-        if Path(path).is_file() and Path(path).stat().st_size == 0:  # as save takes it: made
-            return store  # by mktemp, a place to save to, not a damaged store
+        if _empty_file(Path(path)):
+            return store
         try:
             kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
