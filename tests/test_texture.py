@@ -459,7 +459,7 @@ def test_bad_points_raise_unless_filled(candidates):
     pts[2, 0] = np.nan
     pts[5, 1] = np.inf
     pts[6, 2] = -np.inf
-    with pytest.raises(ValueError, match="3 of 10 points are NaN or infinite"):
+    with pytest.raises(ValueError, match="3 of 10 points are NaN, infinite or masked"):
         tex.query(pts)
     filled = tex.query(pts, filter="nearest", fill=-1.0)
     assert (filled[[2, 5, 6]] == -1).all()
@@ -467,6 +467,26 @@ def test_bad_points_raise_unless_filled(candidates):
     np.testing.assert_array_equal(filled[good], tex.query(pts[good], filter="nearest"))
     with pytest.raises(ValueError, match="within"):
         tex.query(np.array([[1e9, 0, 0]]))
+
+
+def test_masked_points_are_missing_points(candidates):
+    """np.asarray reads the values under a masked array's mask: a masked point far away
+    was refused, and one in range was given the color of the value under its mask."""
+    tex = texture(candidates)
+    pts = points_near_origin(10, 13).astype(np.float32)
+    mask = np.zeros_like(pts, bool)
+    mask[3, 1] = mask[7] = True
+    hidden = pts.copy()
+    hidden[7] = 1e9
+    points = np.ma.MaskedArray(hidden, mask)
+    with pytest.raises(ValueError, match="2 of 10 points are NaN, infinite or masked"):
+        tex.query(points)
+    filled = tex.query(points, filter="nearest", fill=[-1.0, -2.0, -3.0])
+    assert (filled[[3, 7]] == [-1.0, -2.0, -3.0]).all()
+    good = [0, 1, 2, 4, 5, 6, 8, 9]
+    np.testing.assert_array_equal(filled[good], tex.query(pts[good], filter="nearest"))
+    unmasked = np.ma.MaskedArray(pts)
+    np.testing.assert_array_equal(tex.query(unmasked), tex.query(pts))
 
 
 def test_a_far_point_late_in_a_query_is_refused_before_any_batch(candidates, monkeypatch):

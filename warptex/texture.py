@@ -187,8 +187,8 @@ class SolidTexture:
         (``srgb``).
 
         ``nearest`` is the color of the voxel containing the point, ``trilinear`` the
-        blend of the 8 voxel centers around it. Points that are NaN or infinite raise
-        ValueError unless ``fill`` gives their color.
+        blend of the 8 voxel centers around it. Points that are NaN or infinite, or masked
+        in a NumPy masked array, raise ValueError unless ``fill`` gives their color.
         """
         pts = _as_points(points)
         if filter not in FILTERS:
@@ -196,8 +196,8 @@ class SolidTexture:
         fill_color = None if fill is None else self._fill_color(fill)
         finite = np.isfinite(pts).all(axis=1)
         if fill_color is None and not finite.all():
-            raise ValueError(f"{int((~finite).sum())} of {len(pts)} points are NaN or "
-                             "infinite; pass fill= to give them a color instead")
+            raise ValueError(f"{int((~finite).sum())} of {len(pts)} points are NaN, "
+                             "infinite or masked; pass fill= to give them a color instead")
         # Refused before any batch is synthesized: a far point late in a large query would
         # otherwise be found after minutes of work.
         far = finite & (np.abs(pts) >= POINT_LIMIT).any(axis=1)
@@ -284,14 +284,19 @@ def plane_points(origin: np.ndarray, u: np.ndarray, v: np.ndarray,
 
 
 def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
-    """(N, 3) float32 or float64 host array of ``points``, or a clear error."""
+    """(N, 3) float32 or float64 host array of ``points``, or a clear error. A masked
+    array's masked points become NaN: np.asarray would read the values under the mask."""
     if isinstance(points, wp.array):
         points = points.numpy()
-    points = np.asarray(points)
+    masked = np.ma.isMaskedArray(points)
+    points = np.ma.asarray(points) if masked else np.asarray(points)
     if points.dtype not in (np.float32, np.float64):
         raise TypeError(f"points must be float32 or float64, got {points.dtype}")
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    if masked:
+        points = np.where(np.ma.getmaskarray(points).any(axis=1, keepdims=True), np.nan,
+                          points.data)
     return points
 
 
