@@ -441,7 +441,12 @@ def test_volume_of_exemplars_encoded_differently_is_refused_unless_stored_as_is(
         "linear.npy linear): convert one image, or keep the values as stored (--raw)\n")
     assert not out.exists()
     assert _volume(images, out, "--ey", str(linear), "--raw") == 0
-    assert _volume(images, tmp_path / "v.npy", "--ey", str(linear)) == 0  # values as stored
+    # A .npy file holds values as stored, but averaging two encodings is still asked for.
+    capsys.readouterr()
+    assert _volume(images, tmp_path / "v.npy", "--ey", str(linear)) == 2
+    assert "encoded differently" in capsys.readouterr().err
+    assert not (tmp_path / "v.npy").exists()
+    assert _volume(images, tmp_path / "v.npy", "--ey", str(linear), "--raw") == 0
 
 
 def test_volume_bad_extension_names_the_path(images, tmp_path, capsys):

@@ -858,6 +858,57 @@ def test_too_many_channels_for_lazy_synthesis_are_refused_before_pre_computing(
     assert not (tmp_path / "c.wtc").exists()
 
 
+@pytest.mark.parametrize(("channels", "methods", "said"), [
+    (9, "noise,kopf", "9 matching channels; Kopf's method handles at most 8"),
+    (5, "noise,lazy", "5 color channels; points are looked up in at most 4"),
+])
+def test_compare_refuses_channels_a_later_method_cannot_take_before_any_method_runs(
+        tmp_path, capsys, monkeypatch, channels, methods, said):
+    """Kopf's windows take at most 8 channels and the lazy cube's lookups 4: the methods
+    before it ran to the end (lazy's candidates for minutes), then the comparison failed
+    with no report (a traceback for the lazy cube)."""
+    from warptex import compare
+    from warptex.cli import main
+
+    path = tmp_path / "stack.npy"
+    np.save(path, np.random.default_rng(0).random((32, 32, channels), np.float32))
+
+    def never(*args, **kwargs):
+        raise AssertionError("a method ran")
+
+    monkeypatch.setattr(compare, "in_child_process", never)
+    assert main(["compare", str(path), "--size", "16", "--methods", methods,
+                 "-o", str(tmp_path / "cmp")]) == 2
+    assert f"warptex: error: {path}: {said}" in capsys.readouterr().err
+    assert not (tmp_path / "cmp").exists()
+    with pytest.raises(ValueError, match=said):
+        compare.compare(compare.Setup(path, 16), methods.split(","), progress=False)
+
+
+def test_a_kopf_search_beyond_the_memory_is_refused_naming_the_exemplar(
+        files, tmp_path, capsys, monkeypatch):
+    """The search's windows take kilobytes per exemplar pixel whatever the volume's size:
+    a 512 px photo took 1.1 GB for a 16^3 volume, which the memory check did not count."""
+    from warptex import machine
+    from warptex.baselines import kopf
+    from warptex.cli import main
+    from warptex.exemplar import as_exemplar
+
+    exemplar = files["exemplar"]
+    search = kopf.search_bytes([as_exemplar(exemplar)] * 3)
+    monkeypatch.setattr(machine, "physical_memory", lambda: search - 1)
+    monkeypatch.setattr(kopf, "synthesize", lambda *a, **k: pytest.fail("ran"))
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(exemplar), "--method", "kopf", "--size", "8",
+                 "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"warptex: error: {exemplar}: Kopf's search over its windows needs about" in err
+    assert "--exemplar-max-size" in err and not out.exists()
+    assert main(["compare", str(exemplar), "--methods", "kopf", "--size", "8",
+                 "-o", str(tmp_path / "cmp")]) == 2
+    assert f"{exemplar}: Kopf's search over its windows needs about" in capsys.readouterr().err
+
+
 def test_an_empty_file_name_is_refused_as_such(tmp_path, capsys):
     """Path("") names the working folder, which the error named instead ('.: is a
     directory')."""

@@ -716,6 +716,22 @@ def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
     assert [r.method for r in results] == methods
 
 
+def test_methods_are_a_sequence_of_names_not_one_string(monkeypatch, data_dir):
+    """A string was split into letters ("unknown method(s) n, o, i, s, e"); a generator was
+    used up by the check for names given twice, and nothing ran."""
+    def inline(fn, method, *args, **kwargs):
+        return {"method": method, "energy": [0.0] * 3, "completeness": [0.0] * 3,
+                "swd": [0.0] * 3, "histogram": [0.0] * 3, "repetition": 0.0, "seconds": 0.0,
+                "peak_mib": 0.0}
+
+    monkeypatch.setattr(compare, "in_child_process", inline)
+    setup = compare.Setup(data_dir / "granite_64.png", 16)
+    with pytest.raises(TypeError, match=r"such as \['noise'\], got the string 'noise'"):
+        compare.compare(setup, "noise", progress=False)
+    results = compare.compare(setup, (m for m in ["noise", "flat"]), progress=False).results
+    assert [r.method for r in results] == ["noise", "flat"]
+
+
 def test_compare_refuses_exemplars_that_one_volume_cannot_mix(tmp_path, data_dir, capsys):
     """Axes whose exemplars differ in channels or in color encoding are refused at once,
     naming the files, and nothing is written."""

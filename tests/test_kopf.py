@@ -682,8 +682,45 @@ def test_the_commands_refuse_a_kopf_volume_whose_search_does_not_fit(
     assert main([command, str(granite_32_file), "--size", str(size), *argv]) == 2
     assert f"--size {size}: a {size}^3 volume needs about" in capsys.readouterr().err
     if command == "volume":  # and where it fits, Kopf runs
+        from warptex.exemplar import as_exemplar
+
+        search = kopf.search_bytes([as_exemplar(granite_32_file)] * 3)
         monkeypatch.setattr(machine, "physical_memory",
-                            lambda: volume_bytes + kopf.working_bytes(size))
+                            lambda: volume_bytes + kopf.working_bytes(size) + search)
         monkeypatch.setattr(kopf, "synthesize",
                             lambda *a, **k: np.zeros((size, size, size, 3), np.float32))
         assert main([command, str(granite_32_file), "--size", str(size), *argv]) == 0
+
+
+@pytest.mark.parametrize("name", ["granite_64.png", "onyx_banded_64.png"])
+def test_search_bytes_cover_the_peak_of_building_a_search(data_dir, name):
+    """What the commands' memory check counts for the search (kopf.search_bytes) holds the
+    peak that building an exemplar's windows, PCA and tree takes, at its finest level."""
+    import tracemalloc
+
+    from warptex.exemplar import as_exemplar
+
+    exemplar = as_exemplar(data_dir / name)
+    features = np.ascontiguousarray(exemplar.features)
+    tracemalloc.start()
+    try:
+        kopf._search_structure(features, (False, False))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    budget = kopf.search_bytes([exemplar, None, exemplar])
+    assert peak <= budget, (peak, budget)
+    assert budget < 2 * peak  # a bound, not a refusal of every large photo
+    assert kopf.search_bytes([exemplar, as_exemplar(data_dir / name), None]) == 2 * budget
+
+
+def test_a_constant_exemplar_keeps_one_coefficient_without_a_warning(warp_device):
+    """Windows all alike have no variance: 95% of none needed '193' of 192 dimensions and
+    warned that 96 kept 0.0% of it."""
+    import warnings
+
+    flat = np.full((16, 16, 3), 0.5, np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ax = kopf._search_structure(flat, (False, False))
+    assert ax.dims == 1

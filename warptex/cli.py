@@ -619,7 +619,8 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
     _add_exemplar_arguments(parser)
     _add_texture_arguments(parser, "EXEMPLAR")
     parser.add_argument("--size", type=int, default=64,
-                        help="edge of the cube in voxels (default 64)")
+                        help="edge of the cube in voxels (default 64; a multiple of 8 with "
+                        "--method kopf)")
     parser.add_argument(
         "--method",
         choices=("lazy", "kopf"),
@@ -674,9 +675,7 @@ def _cmd_volume(args: argparse.Namespace) -> int:
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     srgb = bool(_colors_srgb(args, exemplars))
     if args.method == "kopf":
-        from warptex.baselines.kopf import working_bytes
-
-        _check_memory(args.size, exemplars[0].features.shape[2], working_bytes(args.size))
+        _check_kopf_memory(args.size, exemplars)
         return _volume_kopf(args, exemplars, srgb)
     # Before the slabs are planned: a size far too large would keep that busy.
     _check_memory(args.size, exemplars[0].features.shape[2])
@@ -743,6 +742,19 @@ def _check_kopf_size(size: int) -> None:
         check_size(size)
     except ValueError as error:
         raise CliError(f"--{error}") from None
+
+
+def _check_kopf_memory(size: int, exemplars: Sequence[Exemplar | None]) -> None:
+    """Refuse, before any work, a Kopf volume whose exemplars' search structures, or these
+    with the volume, would not fit in this machine's memory."""
+    from warptex.baselines.kopf import search_bytes, working_bytes
+
+    search = search_bytes(exemplars)
+    given = [e for e in exemplars if e is not None]
+    names = ", ".join(dict.fromkeys(str(e.path or e.name) for e in given))
+    _check_fits(search, f"{names}: Kopf's search over its windows",
+                "shrink the exemplar with --exemplar-max-size")
+    _check_memory(size, given[0].features.shape[2], working_bytes(size) + search)
 
 
 # The side of a cube that synthesizes in seconds at the default passes (1.4 s for 80^3 on a
@@ -849,10 +861,12 @@ def _add_raw_argument(parser: argparse.ArgumentParser, formats: str) -> None:
 
 def _colors_srgb(args: argparse.Namespace, exemplars: list[Exemplar]) -> bool | None:
     """Whether the colors to write are sRGB-encoded; None where they are written as they
-    are (--raw, or a .npy output). Exemplars encoded differently are refused otherwise."""
-    if args.raw or args.output.suffix.lower() == ".npy":
+    are (--raw, or a .npy output). Exemplars encoded differently are refused unless --raw,
+    as a voxel's color averages colors of all three."""
+    if args.raw:
         return None
-    return srgb_encoded(exemplars, raw="--raw")
+    srgb = srgb_encoded(exemplars, raw="--raw")
+    return None if args.output.suffix.lower() == ".npy" else srgb
 
 
 def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
@@ -1434,10 +1448,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if any(m.startswith("kopf") for m in methods):
-        from warptex.baselines.kopf import working_bytes
-
         _check_kopf_size(args.size)
-        _check_memory(args.size, exemplar.features.shape[2], working_bytes(args.size))
+        _check_kopf_memory(args.size, setup.exemplars())
     try:
         comparison = compare(setup, methods, repeats=args.repeats)
     except ValueError as error:

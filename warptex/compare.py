@@ -605,6 +605,10 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     exemplar is refused before any method runs."""
     if not isinstance(setup, Setup):
         raise TypeError(f"setup must be a warptex.compare.Setup, got {setup!r}")
+    if isinstance(methods, str):  # its letters would be taken for methods
+        raise TypeError(f"methods must be a sequence of method names, such as "
+                        f"[{methods!r}], got the string {methods!r}")
+    methods = list(methods)  # an iterator is read more than once below
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(
@@ -612,22 +616,26 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
         )
     if not methods:
         raise ValueError(f"no method given; choose from {', '.join(METHODS)}")
-    repeated = sorted({m for m in methods if list(methods).count(m) > 1})
+    repeated = sorted({m for m in methods if methods.count(m) > 1})
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
     check_count("repeats", repeats, low=1)
     axes = setup.exemplars()
     if any(m in _LAZY for m in methods):  # before any method's minutes of work
+        from warptex.store import check_lookup_channels
         from warptex.synthesis import check_feature_channels
 
         try:
             check_feature_channels(axes[0].features.shape[2])
+            if "lazy" in methods:  # its cube is rendered through the plugin's lookups
+                check_lookup_channels(axes[0].channels)
         except ValueError as error:
             raise ValueError(f"{setup.paths()[0]}: {error}") from None
     if any(m in _KOPF for m in methods):
-        from warptex.baselines.kopf import check_size
+        from warptex.baselines.kopf import check_channels, check_size
 
         check_size(setup.size)
+        check_channels(axes)
     results = []
     ctx = multiprocessing.get_context("spawn")  # in_child_process's, for the phases' queue
     bar = tqdm(methods, desc="methods", disable=not progress)
