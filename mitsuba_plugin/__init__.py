@@ -324,12 +324,20 @@ def _traced_lookups(scene: mi.Scene, outcome: dict[str, int]) -> Iterator[bool]:
 
 
 def _render_batch(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
-    if dr.is_jit_v(mi.Float):
-        image = _render_traced(scene, spp, seed)
-        if image is not None:
-            return image
-    with wavefront():
-        return mi.render(scene, spp=spp, seed=seed)
+    try:
+        if dr.is_jit_v(mi.Float):
+            image = _render_traced(scene, spp, seed)
+            if image is not None:
+                return image
+        with wavefront():
+            return mi.render(scene, spp=spp, seed=seed)
+    except RuntimeError as e:
+        # Dr.Jit wraps what escapes a custom operation, mi.render's included: a Ctrl-C
+        # during a render came as this RuntimeError, which the stores' saving on a stop
+        # (warptex.store.saved_when_stopped) and the commands' exit status did not see.
+        if isinstance(e.__cause__, KeyboardInterrupt):
+            raise KeyboardInterrupt from None
+        raise
 
 
 def _render_traced(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf | None:

@@ -475,26 +475,40 @@ def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path, capsys
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize("stop", ["Ctrl-C", "SIGTERM", "read-only"])
+@pytest.mark.parametrize("stop", ["Ctrl-C", "Ctrl-C in mi.render", "SIGTERM", "read-only"])
 def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, capsys,
                                                                       monkeypatch, stop):
     """Ctrl-C or SIGTERM after a render's first batch: the voxels synthesized so far are
     saved before the command stops, so a render of those samples synthesizes nothing;
-    with --read-only-stores the file is not written."""
+    with --read-only-stores the file is not written. Dr.Jit wraps a Ctrl-C that comes
+    within mi.render (its custom operation) in a RuntimeError: that ended in a traceback,
+    exit status 1 and nothing saved."""
     import mitsuba_plugin.command
+    import mitsuba_plugin.traced
     from warptex.cli import _Terminated, main
 
     scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
     store = scene.parent / "bricks" / "bunny.wtb"
     argv = ["render", str(scene), "--res", "16x16"]
     signal = _Terminated if stop == "SIGTERM" else KeyboardInterrupt
+    in_render = stop == "Ctrl-C in mi.render"
+    batches = []
+    colors = mitsuba_plugin.traced.TracedLookup.colors
 
     def progress(done: int, total: int) -> None:
-        if done == 1:
+        if done:
+            batches.append(done)
+        if done == 1 and not in_render:
             raise signal
+
+    def interrupted(self, *args, **kwargs):
+        if batches:  # the second batch's render, as Python handles the signal within it
+            raise KeyboardInterrupt
+        return colors(self, *args, **kwargs)
 
     with monkeypatch.context() as patch:
         patch.setattr(mitsuba_plugin.command, "_progress", progress)
+        patch.setattr(mitsuba_plugin.traced.TracedLookup, "colors", interrupted)
         extra = ["--read-only-stores"] if stop == "read-only" else []
         code = main([*argv, "--spp", "2", *extra, "-o", str(tmp_path / "stopped.exr")])
     assert code == (143 if stop == "SIGTERM" else 130)
