@@ -1224,8 +1224,13 @@ def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start
     unchanged = ""
     if args.store is not None:
         before = file_state(args.store)
-        with _writing(args.store):
-            saved = tex.save()
+        try:
+            with _writing(args.store):
+                saved = tex.save()
+        except _WorkFailed:
+            # The meshes stay written (the store only keeps work for later): say so.
+            print("written: " + ", ".join(str(f) for f in files) + f"; not {args.store}")
+            raise
         # A store that held every voxel already is left as it was (BrickStore.save).
         if before is not None and file_state(saved) == before:
             unchanged = f"; {saved} unchanged (it held every voxel already)"
