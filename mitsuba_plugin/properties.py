@@ -93,8 +93,11 @@ def existing_scene_file(name: str, key: str, plugin: str) -> Path:
     try:
         if path.is_dir():
             raise property_error(plugin, key, f'names a folder, not a file: "{name}"')
-        if not path.is_file():
+        if not path.exists():
             raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
+        if not path.is_file():
+            raise property_error(plugin, key, f'names no regular file (a pipe or a device): '
+                                 f'"{name}"')
     except OSError as error:  # a folder on the way that cannot be searched
         raise property_error(plugin, key, f'cannot look up "{name}" ({error.strerror})') from None
     return path

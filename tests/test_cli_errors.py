@@ -3,6 +3,7 @@ or file at fault, exit code 2, and nothing written or overwritten."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import signal
@@ -910,6 +911,54 @@ def test_a_kopf_search_beyond_the_memory_is_refused_naming_the_exemplar(
     assert main(["compare", str(exemplar), "--methods", "kopf", "--size", "8",
                  "-o", str(tmp_path / "cmp")]) == 2
     assert f"{exemplar}: Kopf's search over its windows needs about" in capsys.readouterr().err
+
+
+@pytest.fixture
+def pipes(tmp_path):
+    """Named pipes, each named like an input file, and a watchdog that opens any one read
+    meanwhile for writing and closes it: a reader that waits for a writer gets an empty
+    file, and the test fails on the wrong error instead of hanging."""
+    import threading
+
+    names = {k: tmp_path / f"pipe.{k}" for k in ("png", "npy", "ply", "xml")}
+    for path in names.values():
+        os.mkfifo(path)
+    done = threading.Event()
+
+    def release() -> None:
+        while not done.wait(0.05):
+            for path in names.values():
+                with contextlib.suppress(OSError):  # no reader waiting: as it should be
+                    os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+
+    watchdog = threading.Thread(target=release, daemon=True)
+    watchdog.start()
+    yield names
+    done.set()
+    watchdog.join()
+
+
+def test_a_named_pipe_given_as_an_input_file_is_refused_without_reading_it(
+        pipes, files, tmp_path, capsys):
+    """``info`` on a pipe named like an image waited for a writer for ever; ``bake`` and
+    ``render`` called theirs "not found"."""
+    from warptex.exemplar import Exemplar
+
+    exemplar = str(files["exemplar"])
+    for argv, said in [
+        (["info", str(pipes["png"])], f"{pipes['png']}: is not a regular file"),
+        (["info", str(pipes["npy"])], f"{pipes['npy']}: is not a regular file"),
+        (["slice", exemplar, "--feature-mask", str(pipes["png"]), "-o",
+          str(tmp_path / "s.png")], f"{pipes['png']}: is not a regular file"),
+        (["bake", str(pipes["ply"]), "--exemplar", exemplar, "-o", str(tmp_path / "b.ply")],
+         f"{pipes['ply']}: is not a regular file (a pipe or a device), expected a mesh file"),
+        (["render", str(pipes["xml"]), "-o", str(tmp_path / "r.png")],
+         f"{pipes['xml']}: is not a regular file (a pipe or a device), expected a scene"),
+    ]:
+        assert main(argv) == 2, argv
+        assert said in capsys.readouterr().err, argv
+    with pytest.raises(ValueError, match="is not a regular file"):
+        Exemplar.load(pipes["png"])
 
 
 def test_an_empty_file_name_is_refused_as_such(tmp_path, capsys):

@@ -74,6 +74,8 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"exemplar": "no/such/file.png"}, 'exemplar" names a file that does not exist'),
     ({"exemplar_y": "missing.png"}, 'exemplar_y" names a file that does not exist'),
     ({"exemplar": "/"}, 'exemplar" names a folder, not a file'),
+    ({"exemplar": "/dev/null"},
+     'exemplar" names no regular file .a pipe or a device.: "/dev/null"'),
     ({"exemplar": 5, "exemplar_x": "a.png", "exemplar_y": "a.png", "exemplar_z": "a.png"},
      'exemplar" must be a <string ...>'),
     ({"exemplar_x": "a.png"}, 'exemplar" and "exemplar_x" name the same axis'),  # x ignored it

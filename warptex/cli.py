@@ -1132,8 +1132,11 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
 
     if path.is_dir():
         raise CliError(f"{path}: is a folder, expected a mesh file")
-    if not path.is_file():
+    if not path.exists():
         raise CliError(f"{path}: mesh file not found")
+    if not path.is_file():
+        raise CliError(f"{path}: is not a regular file (a pipe or a device), expected a mesh "
+                       "file")
     try:
         # As the file has it first: trimesh's processing drops the faces of a NaN vertex
         # unsaid, and loses the vertex normals that keep it from welding flat faces.
@@ -1526,8 +1529,11 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     if args.scene.is_dir():
         raise CliError(f"{args.scene}: is a folder, expected a scene file")
-    if not args.scene.is_file():
+    if not args.scene.exists():
         raise CliError(f"{args.scene}: scene file not found")
+    if not args.scene.is_file():
+        raise CliError(f"{args.scene}: is not a regular file (a pipe or a device), expected "
+                       "a scene file")
     _check_output(args.output, IMAGE_SUFFIXES, "the image")
     try:
         resolution = None if args.res is None else parse_resolution(args.res)

@@ -707,6 +707,9 @@ def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
             raise ExemplarError(f"{path}: file not found")
         if path.is_dir():
             raise ExemplarError(f"{path}: is a directory, not an image")
+        if not path.is_file():  # a pipe would keep the read below waiting for a writer
+            raise ExemplarError(f"{path}: is not a regular file (a pipe or a device), not an "
+                                "image")
     except OSError as error:  # a folder on the way that cannot be searched
         raise ExemplarError(f"{path}: cannot look up file ({error.strerror})") from None
     try:
