@@ -489,6 +489,18 @@ def test_masked_points_are_missing_points(candidates):
     np.testing.assert_array_equal(tex.query(unmasked), tex.query(pts))
 
 
+def test_points_of_either_byte_order_are_read_alike(candidates):
+    """Big-endian floats, as np.fromfile reads another machine's file, were refused as
+    "must be float32 or float64, got >f8"."""
+    tex = texture(candidates)
+    pts = points_near_origin(10, 14)
+    for dtype in (">f8", ">f4", "<f4"):
+        np.testing.assert_array_equal(tex.query(pts.astype(dtype)),
+                                      tex.query(pts.astype(np.dtype(dtype).newbyteorder("="))))
+    with pytest.raises(TypeError, match="float32 or float64, got float16"):
+        tex.query(pts.astype(np.float16))
+
+
 def test_a_far_point_late_in_a_query_is_refused_before_any_batch(candidates, monkeypatch):
     """The range was checked batch by batch: a far point in the last batch was refused
     after every earlier batch had been synthesized (minutes for millions of points)."""
