@@ -31,7 +31,8 @@ def test_vol_header_and_data_of_a_non_cubic_volume(tmp_path, channels):
 
 
 @pytest.mark.parametrize(("channels", "names"),
-                         [(1, ["Y"]), (2, ["C0", "C1"]), (3, list("RGB")), (4, list("RGBA"))])
+                         [(1, ["Y"]), (2, ["Y", "A"]), (3, list("RGB")), (4, list("RGBA")),
+                          (5, ["C0", "C1", "C2", "C3", "C4"])])
 def test_exr_channel_names_and_layout(tmp_path, channels, names):
     import OpenEXR
 
@@ -52,6 +53,18 @@ def test_exr_channel_names_and_layout(tmp_path, channels, names):
         assert sorted(file.channels()) == sorted(names)
 
 
+def test_a_gray_and_alpha_exr_reads_back_as_gray_and_alpha(tmp_path):
+    """Two channels were written as C0, C1, which no reader takes for gray and alpha (nor
+    warptex: it read them as two gray channels without alpha)."""
+    from warptex.exemplar import Exemplar
+
+    image = np.random.default_rng(3).random((16, 16, 2), np.float32)
+    write_image(tmp_path / "la.exr", image, srgb=False)
+    back = Exemplar.load(tmp_path / "la.exr", alpha="keep")
+    np.testing.assert_array_equal(back.colors, image)
+    assert back.kept_alpha
+
+
 @pytest.mark.parametrize("channels", [1, 2, 3, 4])
 def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, srgb_decoded):
     """.exr and .vol hold linear colors, as their readers assume: sRGB-encoded ones are
@@ -70,7 +83,7 @@ def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, s
     write_image(tmp_path / "i.exr", vol[0], srgb=True)
     with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
         got = file.channels()
-        names = sorted(got, key=lambda n: ["R", "G", "B", "A", "Y", "C0", "C1"].index(n))
+        names = sorted(got, key=lambda n: ["R", "G", "B", "Y", "A"].index(n))
         image = np.stack([got[n].pixels for n in names], axis=2)
     np.testing.assert_allclose(image, linear[0], rtol=1e-5)
     for name in ("v.npy", "i.npy"):

@@ -85,11 +85,10 @@ def _write_npy(path: Path, array: np.ndarray) -> None:
 
 
 def _exr_channel_names(channels: int) -> list[str]:
-    if channels == 1:
-        return ["Y"]
-    if channels in (3, 4):
-        return list("RGBA"[:channels])
-    return [f"C{c}" for c in range(channels)]
+    """Named as the exemplars' channels are read (gray, gray and alpha, RGB, RGBA), so
+    that OpenEXR's and Mitsuba's readers know them; numbered past four."""
+    known = {1: ["Y"], 2: ["Y", "A"], 3: list("RGB"), 4: list("RGBA")}
+    return known.get(channels, [f"C{c}" for c in range(channels)])
 
 
 def _write_exr_volume(path: Path, volume: np.ndarray) -> None:
