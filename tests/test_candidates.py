@@ -1140,3 +1140,21 @@ def test_the_bar_moves_after_each_half_of_a_role_level(monkeypatch, warp_device)
     precompute(exemplar, cache=False, progress=True)
     finest = exemplar.shape[0] * exemplar.shape[1]
     assert updates[-3:] == [finest, finest / 2, finest / 2]  # its source, then the halves
+
+
+@pytest.mark.parametrize(("xdg", "expected"), [
+    (None, "{home}/.cache/warptex"), ("", "{home}/.cache/warptex"),
+    ("/srv/cache", "/srv/cache/warptex"), ("relcache", "{home}/.cache/warptex"),
+])
+def test_the_cache_folder_follows_xdg_cache_home_when_absolute(monkeypatch, tmp_path, xdg,
+                                                                expected):
+    """A relative XDG_CACHE_HOME put the cache in whatever folder a command ran from."""
+    from warptex.candidates import cache_dir
+
+    monkeypatch.delenv("WARPTEX_CACHE", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    if xdg is None:
+        monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    else:
+        monkeypatch.setenv("XDG_CACHE_HOME", xdg)
+    assert cache_dir() == Path(expected.format(home=tmp_path))

@@ -340,8 +340,9 @@ def cache_dir() -> Path:
     env = os.environ.get("WARPTEX_CACHE")
     if env:  # "~/..." as a shell would take it; absolute, so that listings say where
         return Path(env).expanduser().absolute()
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "warptex"
+    base = Path(os.environ.get("XDG_CACHE_HOME") or "")
+    # The XDG specification ignores a relative path: it would move with the working folder.
+    return (base if base.is_absolute() else Path.home() / ".cache") / "warptex"
 
 
 def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
