@@ -112,6 +112,8 @@ CASES = [
      "{flat}: every triangle has zero area"),
     (["render", "{out}/missing.xml", "-o", "{out}/r.png"],
      "{out}/missing.xml: scene file not found"),
+    (["render", "{no_sensor}", "-D", "spp=2", "-D", "spp=3", "-o", "{out}/r.png"],
+     "-D spp is given more than once (2, 3): give it once"),
     (["render", "{no_sensor}", "-o", "{notes}/r.png"],
      "{notes}/r.png: cannot write, {notes} is a file, not a folder"),
     (["precompute", "{exemplar}", "--no-cache", "-o", "{notes}/c.wtc"],

@@ -1535,6 +1535,11 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise CliError(f"{args.scene}: is not a regular file (a pipe or a device), expected "
                        "a scene file")
     _check_output(args.output, IMAGE_SUFFIXES, "the image")
+    given = [name for name, _ in args.parameters]
+    twice = next((name for name in given if given.count(name) > 1), None)
+    if twice is not None:  # which one the render used would be left unsaid
+        values = ", ".join(v for name, v in args.parameters if name == twice)
+        raise CliError(f"-D {twice} is given more than once ({values}): give it once")
     try:
         resolution = None if args.res is None else parse_resolution(args.res)
         render_scene(args.scene, args.output, spp=args.spp, resolution=resolution,
