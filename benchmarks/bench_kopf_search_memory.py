@@ -2,8 +2,9 @@
 the exemplar, PCA, ANN tree), which grows with the exemplar's pixels, not the solid's size.
 
 Prints, per exemplar, the peak that Python's allocations reach while one search structure
-is built at full resolution (tracemalloc: NumPy's and SciPy's arrays), per pixel, and what
-the commands' memory check counts for it (``warptex.baselines.kopf.search_bytes``).
+is built at full resolution with the exemplar's own seams (``tileable="auto"``, the default;
+tracemalloc: NumPy's and SciPy's arrays), per pixel, and what the commands' memory check
+counts for it (``warptex.baselines.kopf.search_bytes``).
 
     python benchmarks/bench_kopf_search_memory.py [--exemplars DIR] [--names rust_256 ...]
 """
@@ -28,9 +29,10 @@ def search_peak(exemplar: Exemplar) -> tuple[int, int]:
     """Peak bytes while the search structure of ``exemplar`` is built, and its PCA's kept
     coefficients."""
     features = np.ascontiguousarray(exemplar.features)
+    seams = exemplar.seams("auto")
     tracemalloc.start()
     try:
-        axis = kopf._search_structure(features, (False, False))
+        axis = kopf._search_structure(features, seams)
         return tracemalloc.get_traced_memory()[1], axis.dims
     finally:
         tracemalloc.stop()
@@ -43,14 +45,15 @@ def main() -> None:
                         default=["granite_64", "bricks_red_128", "rust_256", "wood_rosewood_256"])
     args = parser.parse_args()
     print(run_record(), flush=True)
-    print("\n| exemplar | pixels | PCA coefficients | peak MiB | bytes per pixel | "
-          "search_bytes MiB |")
-    print("|---|---|---|---|---|---|")
+    print("\n| exemplar | pixels | seams (rows, columns) | PCA coefficients | peak MiB | "
+          "bytes per pixel | search_bytes MiB |")
+    print("|---|---|---|---|---|---|---|")
     for name in args.names:
         exemplar = Exemplar.load(args.exemplars / f"{name}.png")
         peak, dims = search_peak(exemplar)
         pixels = exemplar.shape[0] * exemplar.shape[1]
-        print(f"| {name} | {exemplar.shape[1]}x{exemplar.shape[0]} | {dims} | "
+        seams = ", ".join("yes" if s else "no" for s in exemplar.seams("auto"))
+        print(f"| {name} | {exemplar.shape[1]}x{exemplar.shape[0]} | {seams} | {dims} | "
               f"{peak / 2**20:.1f} | {peak / pixels:.0f} | "
               f"{kopf.search_bytes([exemplar]) / 2**20:.1f} |", flush=True)
 

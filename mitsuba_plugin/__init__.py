@@ -333,10 +333,11 @@ def _render_batch(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
             return mi.render(scene, spp=spp, seed=seed)
     except RuntimeError as e:
         # Dr.Jit wraps what escapes a custom operation, mi.render's included: a Ctrl-C
-        # during a render came as this RuntimeError, which the stores' saving on a stop
+        # (or the commands' SIGTERM, a KeyboardInterrupt of theirs) during a render came as
+        # this RuntimeError, which the stores' saving on a stop
         # (warptex.store.saved_when_stopped) and the commands' exit status did not see.
         if isinstance(e.__cause__, KeyboardInterrupt):
-            raise KeyboardInterrupt from None
+            raise e.__cause__ from None
         raise
 
 

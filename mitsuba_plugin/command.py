@@ -209,8 +209,12 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             scene = mi.load_file(str(scene_path), **params)
     except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
         # Ctrl-C in a plugin that Mitsuba built on this thread comes wrapped, the Python
-        # exception's own line last; one on a loading thread arrives when loading ends.
-        if re.search(r"^KeyboardInterrupt\b", str(e), re.MULTILINE):
+        # exception's own line last (the commands' SIGTERM is a KeyboardInterrupt of theirs,
+        # which they tell apart by its signal); one on a loading thread arrives when loading
+        # ends.
+        if isinstance(e.__cause__, KeyboardInterrupt):
+            raise e.__cause__ from None
+        if re.search(r"^(?:[\w.]+\.)?(?:KeyboardInterrupt|_Terminated)\b", str(e), re.MULTILINE):
             raise KeyboardInterrupt from None
         unused = set(re.findall(r"^\s*- \$(\w+)=", str(e), re.MULTILINE))
         if resolution is not None and unused & {"width", "height"}:

@@ -902,17 +902,25 @@ def test_a_kopf_search_beyond_the_memory_is_refused_naming_the_exemplar(
 
     exemplar = files["exemplar"]
     search = kopf.search_bytes([as_exemplar(exemplar)] * 3)
-    monkeypatch.setattr(machine, "physical_memory", lambda: search - 1)
+    small = 2 * 4 * 3 * 8**3 + kopf.working_bytes(8)  # an 8^3 volume and its work
+    monkeypatch.setattr(machine, "physical_memory", lambda: search + small - 1)
     monkeypatch.setattr(kopf, "synthesize", lambda *a, **k: pytest.fail("ran"))
     out = tmp_path / "v.npy"
     assert main(["volume", str(exemplar), "--method", "kopf", "--size", "8",
                  "-o", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"warptex: error: {exemplar}: Kopf's search over its windows needs about" in err
-    assert "--exemplar-max-size" in err and not out.exists()
+    said = f"{exemplar}: Kopf's search over its windows (with the 8^3 volume) needs about"
+    assert f"warptex: error: {said}" in err
+    assert "shrink the exemplar with --exemplar-max-size" in err and not out.exists()
     assert main(["compare", str(exemplar), "--methods", "kopf", "--size", "8",
                  "-o", str(tmp_path / "cmp")]) == 2
-    assert f"{exemplar}: Kopf's search over its windows needs about" in capsys.readouterr().err
+    assert said in capsys.readouterr().err
+    # Where the volume takes more than the search, a smaller --size is the advice.
+    large = 2 * 4 * 3 * 64**3 + kopf.working_bytes(64)
+    monkeypatch.setattr(machine, "physical_memory", lambda: search + large - 1)
+    assert main(["volume", str(exemplar), "--method", "kopf", "--size", "64",
+                 "-o", str(out)]) == 2
+    assert "warptex: error: --size 64: a 64^3 volume needs about" in capsys.readouterr().err
 
 
 @pytest.fixture

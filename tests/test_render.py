@@ -475,7 +475,8 @@ def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path, capsys
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize("stop", ["Ctrl-C", "Ctrl-C in mi.render", "SIGTERM", "read-only"])
+@pytest.mark.parametrize("stop", ["Ctrl-C", "Ctrl-C in mi.render", "SIGTERM",
+                                  "SIGTERM in mi.render", "read-only"])
 def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, capsys,
                                                                       monkeypatch, stop):
     """Ctrl-C or SIGTERM after a render's first batch: the voxels synthesized so far are
@@ -490,8 +491,8 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
     scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
     store = scene.parent / "bricks" / "bunny.wtb"
     argv = ["render", str(scene), "--res", "16x16"]
-    signal = _Terminated if stop == "SIGTERM" else KeyboardInterrupt
-    in_render = stop == "Ctrl-C in mi.render"
+    signal = _Terminated if stop.startswith("SIGTERM") else KeyboardInterrupt
+    in_render = stop.endswith("in mi.render")
     batches = []
     colors = mitsuba_plugin.traced.TracedLookup.colors
 
@@ -503,7 +504,7 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
 
     def interrupted(self, *args, **kwargs):
         if batches:  # the second batch's render, as Python handles the signal within it
-            raise KeyboardInterrupt
+            raise signal
         return colors(self, *args, **kwargs)
 
     with monkeypatch.context() as patch:
@@ -511,7 +512,7 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
         patch.setattr(mitsuba_plugin.traced.TracedLookup, "colors", interrupted)
         extra = ["--read-only-stores"] if stop == "read-only" else []
         code = main([*argv, "--spp", "2", *extra, "-o", str(tmp_path / "stopped.exr")])
-    assert code == (143 if stop == "SIGTERM" else 130)
+    assert code == (143 if stop.startswith("SIGTERM") else 130)
     assert not (tmp_path / "stopped.exr").exists()
     err = capsys.readouterr().err
     if stop == "read-only":
@@ -746,12 +747,16 @@ def test_render_command_refuses_a_scene_mitsuba_could_not_render(tmp_path, capsy
                      "--res", "8x8"]) == 0
 
 
-@pytest.mark.parametrize("folder", ["plain", "KeyboardInterrupt"])
-def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch, folder):
+@pytest.mark.parametrize(("folder", "stop"), [("plain", "Ctrl-C"),
+                                               ("KeyboardInterrupt", "Ctrl-C"),
+                                               ("plain", "SIGTERM")])
+def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch, folder, stop):
     """Ctrl-C while a texture pre-computes its candidates is an interruption, not a scene
     error, though Mitsuba wraps what a plugin raises; a path that happens to hold the word
-    does not make an error one."""
+    does not make an error one. SIGTERM there was "cannot load the scene" and exit 2."""
+    import os
     import shutil
+    import signal
 
     from warptex.cli import main
 
@@ -761,6 +766,8 @@ def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch,
     shutil.copytree(REPO / "scenes", scenes)
 
     def interrupted(*args, **kwargs):
+        if stop == "SIGTERM":  # the command's handler raises it in this frame
+            os.kill(os.getpid(), signal.SIGTERM)
         raise KeyboardInterrupt
 
     out = tmp_path / "out"
@@ -768,8 +775,9 @@ def test_render_command_interrupted_while_loading(tmp_path, capsys, monkeypatch,
             "1", "--res", "16x16"]
     with monkeypatch.context() as patch:
         patch.setattr(mitsuba_plugin.texture, "precompute", interrupted)
-        assert main(argv) == 130
-    assert capsys.readouterr().err.endswith("warptex: interrupted\n")
+        assert main(argv) == (143 if stop == "SIGTERM" else 130)
+    said = "terminated" if stop == "SIGTERM" else "interrupted"
+    assert capsys.readouterr().err.endswith(f"warptex: {said}\n")
     (scenes / "textures" / "wood_rosewood_64.png").write_bytes(b"broken")
     assert main(argv) == 2
     assert "cannot be used" in capsys.readouterr().err

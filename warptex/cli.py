@@ -38,6 +38,7 @@ from warptex.exemplar import (
     Exemplar,
     ExemplarError,
     axis_triple,
+    file_names,
     reencoded,
     srgb_encoded,
 )
@@ -464,8 +465,8 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "cache", help="list the candidate cache; prune the files no run will read again",
-        description="List the candidate cache (WARPTEX_CACHE, default $XDG_CACHE_HOME/warptex, "
-        "else ~/.cache/warptex): "
+        description="List the candidate cache (WARPTEX_CACHE, default $XDG_CACHE_HOME/warptex "
+        "where that is an absolute path, else ~/.cache/warptex): "
         "each file's date, size, exemplars and status. 'in use': read whenever its "
         "exemplars come up. 'other version': written by another warptex version (or "
         "renamed), which this one never reads. 'damaged': truncated or corrupt, computed "
@@ -751,10 +752,13 @@ def _check_kopf_memory(size: int, exemplars: Sequence[Exemplar | None]) -> None:
 
     search = search_bytes(exemplars)
     given = [e for e in exemplars if e is not None]
-    names = ", ".join(dict.fromkeys(str(e.path or e.name) for e in given))
-    _check_fits(search, f"{names}: Kopf's search over its windows",
-                "shrink the exemplar with --exemplar-max-size")
-    _check_memory(size, given[0].features.shape[2], working_bytes(size) + search)
+    channels = given[0].features.shape[2]
+    cube = _volume_bytes(size, channels) + working_bytes(size)
+    if search >= cube:  # the photo's windows, more than the cube, are what does not fit
+        _check_fits(search + cube, f"{file_names(given)}: Kopf's search over its windows "
+                    f"(with the {size}^3 volume)",
+                    "shrink the exemplar with --exemplar-max-size")
+    _check_memory(size, channels, working_bytes(size) + search)
 
 
 # The side of a cube that synthesizes in seconds at the default passes (1.4 s for 80^3 on a
@@ -779,8 +783,13 @@ def _slab_edges(size: int) -> list[int]:
 def _check_memory(size: int, channels: int, working: int = 0) -> None:
     """Refuse a cube whose float32 ``channels`` (held twice while the slabs are joined),
     with ``working`` bytes besides, would not fit in this machine's memory."""
-    _check_fits(2 * 4 * channels * size**3 + working, f"--size {size}: a {size}^3 volume",
+    _check_fits(_volume_bytes(size, channels) + working, f"--size {size}: a {size}^3 volume",
                 "use a smaller --size, or `warptex slice` and the Python API for parts of it")
+
+
+def _volume_bytes(size: int, channels: int) -> int:
+    """A float32 cube of ``channels``, held twice while its slabs are joined."""
+    return 2 * 4 * channels * size**3
 
 
 def _check_fits(need: int, what: str, advice: str) -> None:
@@ -1585,8 +1594,8 @@ def _parser() -> argparse.ArgumentParser:
         "examples.\n\n"
         "environment: WARPTEX_DEVICE=cpu|cuda picks the device (default: a GPU when "
         "there is one); WARPTEX_CACHE is the folder of the candidate cache (default "
-        "$XDG_CACHE_HOME/warptex, else ~/.cache/warptex); WARP_CACHE_PATH is Warp's kernel "
-        "cache (built on first use).\n\n"
+        "$XDG_CACHE_HOME/warptex where absolute, else ~/.cache/warptex); WARP_CACHE_PATH is "
+        "Warp's kernel cache (built on first use).\n\n"
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
         "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
         "(render, bake and cut save their brick stores first), 141 the reader of its "
@@ -1845,7 +1854,13 @@ class _Terminated(KeyboardInterrupt):
     so that the same clean-up runs (temporary files deleted, worker processes stopped)."""
 
 
+# Set by SIGTERM: a library that wraps the _Terminated raised inside it (Mitsuba's scene
+# loader gives its text only) hands on a plain KeyboardInterrupt, still a termination.
+_terminated = threading.Event()
+
+
 def _raise_terminated(signum: int, frame: object) -> None:
+    _terminated.set()
     raise _Terminated
 
 
@@ -1854,6 +1869,7 @@ def _terminated_like_interrupted() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():  # signals go to the main one
         yield
         return
+    _terminated.clear()
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         yield
@@ -1884,6 +1900,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"warptex: error: {error}", file=sys.stderr)
             return error.exit_code if isinstance(error, CliError) else 2
         except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
-            terminated = isinstance(stop, _Terminated)
+            terminated = isinstance(stop, _Terminated) or _terminated.is_set()
             print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)
             return 143 if terminated else 130  # as for a command that the signal ends

@@ -434,6 +434,12 @@ def check_same_channels(exemplars: Sequence[Exemplar | None]) -> None:
                                 f"{kind} channels; found {found}")
 
 
+def file_names(exemplars: Sequence[Exemplar]) -> str:
+    """The files of ``exemplars`` (their names where they have none), each once, as an
+    error about them all names them."""
+    return ", ".join(dict.fromkeys(str(e.path or e.name) for e in exemplars))
+
+
 def srgb_encoded(exemplars: list[Exemplar], raw: str | None = "raw") -> bool:
     """Whether the exemplars of the three axes hold sRGB-encoded colors (``srgb``); an
     ExemplarError naming them where some do and others are linear, as a voxel's color

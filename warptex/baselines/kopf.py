@@ -51,7 +51,13 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from kernels import kopf as _k
-from warptex.exemplar import Exemplar, as_exemplar, check_same_channels, wrapping_edges
+from warptex.exemplar import (
+    Exemplar,
+    as_exemplar,
+    check_same_channels,
+    file_names,
+    wrapping_edges,
+)
 from warptex.parallel import launch_ranges, nearest
 from warptex.settings import check_flag, check_settings
 from warptex.warp_runtime import init_warp, launch
@@ -83,11 +89,13 @@ MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 WORK_BYTES_PER_VOXEL = 600
 # Peak memory of an exemplar's search structure per window (pixel) while it is built: its
 # float64 window of 64 values per feature, centred in place, beside its coefficients (at most
-# MAX_DIMS float64) and the tree over them; then the coefficients and tree are kept for the
-# level. Measured with tracemalloc: 1,663 bytes (rust_256, 13 coefficients), 2,066
-# (granite_64, 48).
+# MAX_DIMS float64) and the tree over them, which are kept for the level (the coarser level's,
+# a quarter as large, still held); and, once per exemplar, the (64 F)^2 covariance with the
+# eigensolver's copies of it. Measured with tracemalloc: 1,663 bytes a pixel (rust_256, 13
+# coefficients), 2,066 (granite_64, 48), 5,528 (8 random channels at 64x64, 96).
 SEARCH_BYTES_PER_FEATURE = 512
-SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_DIMS + 256
+SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_DIMS + 512
+SEARCH_COVARIANCES = 3
 
 
 @dataclass(frozen=True)
@@ -142,8 +150,13 @@ def search_bytes(exemplars: Sequence[Exemplar | None]) -> int:
     for a free one) take, at the finest level, where they are largest: it grows with the
     exemplars' pixels, not with the solid's size."""
     distinct = {id(e): e for e in exemplars if e is not None}.values()
-    return sum(e.shape[0] * e.shape[1] * (SEARCH_BYTES_PER_FEATURE * e.features.shape[2]
-                                          + SEARCH_BYTES_PER_WINDOW) for e in distinct)
+    total = 0
+    for e in distinct:
+        features = e.features.shape[2]
+        total += (e.shape[0] * e.shape[1] * (SEARCH_BYTES_PER_FEATURE * features
+                                            + SEARCH_BYTES_PER_WINDOW)
+                  + SEARCH_COVARIANCES * 8 * (_k.WINDOW * _k.WINDOW * features) ** 2)
+    return total
 
 
 def synthesize(
@@ -258,9 +271,9 @@ def check_channels(exemplars: Sequence[Exemplar | None]) -> None:
     (one per axis, None for a free one) are few enough for the search's windows."""
     given = [e for e in exemplars if e is not None]
     if given and given[0].features.shape[2] > _k.MAX_FEATURES:
-        names = ", ".join(dict.fromkeys(str(e.path or e.name) for e in given))
         what = " (colors and a feature distance)" if given[0].features_from else ""
-        raise ValueError(f"{names}: {given[0].features.shape[2]} matching channels{what}; "
+        raise ValueError(f"{file_names(given)}: {given[0].features.shape[2]} matching "
+                         f"channels{what}; "
                          f"Kopf's method handles at most {_k.MAX_FEATURES}")
 
 
@@ -291,17 +304,19 @@ def _windows(features: np.ndarray, seams: tuple[bool, bool]) -> tuple[np.ndarray
     :meth:`Exemplar.seams`), where a wrapped window is no part of the photo
     (:func:`warptex.exemplar.wrapping_edges`)."""
     h, w, nfeat = features.shape
-    # Filled shift by shift: the 64 shifted copies, held at once, doubled the peak memory.
-    windows = np.empty((h, w, _k.WINDOW * _k.WINDOW, nfeat), features.dtype)
+    wrap_rows, wrap_cols = wrapping_edges(seams, (h, w), _k.WINDOW)
+    rows = np.flatnonzero(_window_centres(h, wrap_rows))
+    cols = np.flatnonzero(_window_centres(w, wrap_cols))
+    # Filled shift by shift, at the kept centres only: the 64 shifted copies held at once,
+    # or all windows and then the kept ones, doubled the peak memory.
+    windows = np.empty((len(rows), len(cols), _k.WINDOW * _k.WINDOW, nfeat), features.dtype)
+    kept = np.ix_(rows, cols)
     for a in range(_k.WINDOW):
         for b in range(_k.WINDOW):
-            windows[:, :, a * _k.WINDOW + b] = np.roll(features, (_k.HALF - a, _k.HALF - b),
-                                                       axis=(0, 1))
-    windows = windows.reshape(h * w, _k.WINDOW * _k.WINDOW * nfeat)
-    wrap_rows, wrap_cols = wrapping_edges(seams, (h, w), _k.WINDOW)
-    inside = _window_centres(h, wrap_rows)[:, None] & _window_centres(w, wrap_cols)[None, :]
-    pixels = np.flatnonzero(inside).astype(np.int32)
-    return (windows if len(pixels) == h * w else windows[pixels]), pixels
+            shifted = np.roll(features, (_k.HALF - a, _k.HALF - b), axis=(0, 1))
+            windows[:, :, a * _k.WINDOW + b] = shifted[kept]
+    pixels = (rows[:, None] * w + cols[None, :]).reshape(-1).astype(np.int32)
+    return windows.reshape(len(pixels), _k.WINDOW * _k.WINDOW * nfeat), pixels
 
 
 def _window_centres(side: int, wrap: bool) -> np.ndarray:
