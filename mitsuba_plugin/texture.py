@@ -66,7 +66,8 @@ last bits); the CUDA variants should too (not yet checked on a GPU).
 Variants: ``eval`` gives the color as the variant's spectrum (:mod:`mitsuba_plugin.spectrum`:
 as it is in RGB variants, its luminance in monochrome ones, Mitsuba's upsampling of it in
 spectral ones); ``eval_3`` is always the RGB color, ``eval_1`` its luminance. ``bumpmap``
-reads ``eval_1_grad`` (forward differences half a voxel long along ``dp_du`` and ``dp_dv``), and
+reads ``eval_1_grad`` (forward differences half a voxel of ``scale`` and ``to_world`` long
+along ``dp_du`` and ``dp_dv``), and
 light tracing from a textured emitter ``sample_spectrum`` (wavelengths sampled as for
 Mitsuba's color-based spectra).
 
@@ -412,22 +413,27 @@ class LazySolidTexture(mi.Texture):
     def eval_1_grad(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Vector2f:
         """Gradient of ``eval_1`` with respect to the surface's (u, v), as ``bumpmap`` reads
         it: forward differences half a voxel long along ``dp_du`` and ``dp_dv`` (a solid
-        texture has no UV parametrization of its own). In float64, each result rounded to
-        float32 once, in one order of operations: Mitsuba's scalar and LLVM builds compute
-        ``dr.norm`` an ulp apart, and the variants' gradients must agree as their colors do."""
+        texture has no UV parametrization of its own), voxels as ``scale`` and ``to_world``
+        size them (not an object-space shape's own ``to_world``). In float64, each result
+        rounded to float32 once, in one order of operations: Mitsuba's scalar and LLVM builds
+        compute ``dr.norm`` an ulp apart, and the variants' gradients must agree as their
+        colors do."""
         wide = dr.float64_array_t(mi.Float)
         base = wide(self.eval_1(si, active))
         p = [wide(c) for c in si.p]
         slopes = []
         for dp in (si.dp_du, si.dp_dv):
             d = [wide(c) for c in dp]
-            length = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+            # Voxels along dp, per unit of u: a to_world that scales the texture scales them.
+            t = [row[0] * d[0] + row[1] * d[1] + row[2] * d[2]
+                 for row in self._world_to_texture[:3]]
+            voxels = dr.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
             # A degenerate parametrization (dp = 0) stays in place and has no slope.
-            step = 0.5 / (self.scale * dr.maximum(length, 1e-30))
+            step = 0.5 / dr.maximum(voxels, 1e-30)
             moved = mi.SurfaceInteraction3f(si)
             moved.p = mi.Point3f(*(mi.Float(c + step * e) for c, e in zip(p, d, strict=True)))
             rise = wide(self.eval_1(moved, active)) - base
-            slopes.append(mi.Float(rise * (2.0 * self.scale * length)))
+            slopes.append(mi.Float(rise * (2.0 * voxels)))
         return mi.Vector2f(*slopes)
 
     def mean(self) -> mi.Float:

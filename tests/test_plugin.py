@@ -830,6 +830,18 @@ def test_eval_1_grad_is_the_slope_along_the_surface(granite_32_file, variant):
     si.p = mi.Point3f(0.3 + 0.5 / 8.0, 0.7, 0.2)
     ahead = float(np.ravel(np.array(tex.eval_1(si)))[0])
     np.testing.assert_allclose(base[0], (ahead - here) / (0.5 / 8.0), rtol=1e-3)
+    # A to_world that makes voxels 4 times larger makes the steps 4 times longer: half a
+    # voxel still (they were half of a voxel of scale alone, an eighth of one here). From
+    # x = 1.3 voxels, half a voxel crosses the centre at 1.5 into the next trilinear cell.
+    larger = load(granite_32_file, scale=8.0, to_world=mi.ScalarTransform4f().scale(4.0))
+    si.p = mi.Point3f(0.65 + 2.0 / 8.0, 0.7, 0.2)
+    ahead = float(np.ravel(np.array(larger.eval_1(si)))[0])
+    si.p = mi.Point3f(0.65, 0.7, 0.2)
+    here = float(np.ravel(np.array(larger.eval_1(si)))[0])
+    si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 0, 0)
+    slope = float(np.ravel(np.array(larger.eval_1_grad(si)))[0])
+    assert ahead != here
+    np.testing.assert_allclose(slope, (ahead - here) / (2.0 / 8.0), rtol=1e-3)
 
 
 def test_a_store_file_ignored_is_said_of_the_cache_property(granite_32_file, tmp_path):
