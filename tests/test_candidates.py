@@ -634,6 +634,43 @@ def test_a_checksummed_file_whose_arrays_do_not_fit_is_refused(tmp_path, granite
             CandidateSet.load(tmp_path / f"{name}.wtc")
 
 
+def test_a_checksummed_file_of_three_exemplars_whose_arrays_disagree_is_refused(tmp_path,
+                                                                               warp_device):
+    """The kernels take the first exemplar's and the first role's candidate row widths for
+    all: a narrower one elsewhere passed the checks and crashed the process that
+    synthesized from it. Colors of other channels, features that are not 8-bit,
+    projections beyond their 12 bits and shifts beyond an int's also passed."""
+    import json
+
+    axes = [_crop(slice(0, 16), slice(0, 16)), _crop(slice(16, 32), slice(0, 16)),
+            _crop(slice(0, 16), slice(16, 32))]
+    precompute(*axes, cache=False).save(tmp_path / "three.wtc")
+    arrays = read_archive(tmp_path / "three.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    assert meta["num_sources"] == meta["num_roles"] == 3
+    CandidateSet.load(tmp_path / "three.wtc")  # as written, it loads
+    last = meta["num_levels"] - 1
+    shifts = [list(level) for level in meta["shifts"]]
+    shifts[last][2] = 40
+    changes = {
+        "narrow_2d": {f"L{last}/S2/cand2d": arrays[f"L{last}/S2/cand2d"][:, :1]},
+        "empty_2d": {f"L{last}/S{j}/cand2d": arrays[f"L{last}/S{j}/cand2d"][:, :0]
+                     for j in range(3)},
+        "narrow_3d": {f"L{last}/R2/cand": arrays[f"L{last}/R2/cand"][:, :1]},
+        "channels": {"colors/1": arrays["colors/1"][..., :2]},
+        "features": {f"L{last}/S1/feat": arrays[f"L{last}/S1/feat"].astype(np.int16) + 300},
+        "projections": {f"L{last}/S0/proj": arrays[f"L{last}/S0/proj"] * 16},
+        "shift": {"meta": np.frombuffer(json.dumps({**meta, "shifts": shifts}).encode(),
+                                        np.uint8)},
+    }
+    for name, change in changes.items():
+        path = tmp_path / f"{name}.wtc"
+        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
+        with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
+            CandidateSet.load(path)
+
+
 def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_path, granite):
     """A file of a newer warptex (a parameter this one does not know) or written by other
     means (lists too short, numbers of another type) raised a bare TypeError or IndexError

@@ -949,21 +949,30 @@ def _check_layout(cs: CandidateSet) -> None:
             or len(cs.roles[0]) != (1 if len(set(cs.axis_source)) == 1 else 3)):
         raise ValueError(f"axes {cs.axis_source} of {sources} exemplars, {len(cs.roles[0])} roles")
     for j, colors in enumerate(cs.colors):
-        if colors.ndim != 3 or colors.shape[:2] != cs.sources[-1][j].size:
+        if (colors.ndim != 3 or colors.shape[:2] != cs.sources[-1][j].size
+                or colors.shape[2] != cs.colors[0].shape[2]):
             raise ValueError(f"colors of exemplar {j}: shape {colors.shape}")
     for lv in range(cs.num_levels):
+        # The kernels take one row width for every exemplar's 2D candidates and every
+        # role's 3D ones: the first's.
+        k2, k3 = cs.sources[lv][0].cand2d.shape[1:2], cs.roles[lv][0].cand.shape[1:2]
         for j, s in enumerate(cs.sources[lv]):
             pixels, dims = s.size[0] * s.size[1], s.basis.shape[0]
             if (s.feat.ndim != 3 or s.feat.shape[2] != cs.sources[0][0].feat.shape[2]
+                    or s.feat.dtype != np.uint8 or s.proj.dtype != np.int16
                     or s.basis.shape[1:] != (n * n * s.feat.shape[2],)
                     or not 1 <= dims <= MAX_DIMS or s.proj.shape != (pixels, dims)
+                    or not _indices_below(np.abs(s.proj), PROJ_LIMIT + 1)
+                    or not 0 <= s.shift < 32
                     or s.cand2d.ndim != 2 or s.cand2d.shape[0] != pixels
+                    or s.cand2d.shape[1:2] != k2 or k2[0] < 1
                     or not _indices_below(s.cand2d, pixels)):
                 raise ValueError(f"level {lv}, exemplar {j}: arrays that do not fit together")
         for r, role in enumerate(cs.roles[lv]):
             owner, *others = (p.size[0] * p.size[1] for p in _trio(cs.sources[lv],
                                                                     cs.axis_source, r))
             if (role.cand.ndim != 3 or role.cand.shape[0] != owner or role.cand.shape[2] != 2
+                    or role.cand.shape[1:2] != k3 or k3[0] < 1
                     or role.count.shape != (owner,) or role.fallback.shape != (owner,)
                     or not _indices_below(role.count, role.cand.shape[1] + 1)
                     or not all(_indices_below(role.cand[..., k], others[k]) for k in (0, 1))):
