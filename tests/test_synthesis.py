@@ -772,6 +772,35 @@ def test_a_box_larger_than_the_memory_is_refused_before_any_work(candidates, mon
         tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), (40000, 40000))
 
 
+def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candidates,
+                                                                          monkeypatch):
+    """The README says so of voxels() as of box(); only box() checked, so scattered points
+    ran, each with its block and apron."""
+    import warptex.machine
+    from warptex.synthesis import (
+        BLOCK,
+        REQUEST_BYTES_PER_VOXEL,
+        WORK_BYTES_PER_VOXEL,
+        request_bytes,
+    )
+
+    syn = Synthesizer(candidates)
+    points = np.random.default_rng(5).integers(-1000, 1000, (4096, 3))
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: request_bytes(points) - 1)
+    for ask in (syn.voxels, syn.triples):
+        with pytest.raises(ValueError, match=r"a request of 4096 voxels needs about \d+ [GM]iB, "
+                           r"this machine has \d+ [GM]iB; synthesize them in parts"):
+            ask(points)
+    assert sum(syn.voxels_synthesized.values()) == 0
+    # Close together, as many voxels take far less: one block and its apron.
+    near = np.argwhere(np.ones((16, 16, 16), bool))[:4096]
+    assert request_bytes(near) < request_bytes(points) / 20
+    assert syn.voxels(near).shape == (4096, 3)
+    far = np.array([[-COORD_LIMIT] * 3, [COORD_LIMIT - 1] * 3])  # a box of 2^69 voxels
+    assert request_bytes(far) == 2 * (REQUEST_BYTES_PER_VOXEL
+                                      + (3 * BLOCK) ** 3 * WORK_BYTES_PER_VOXEL)
+
+
 def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.ndarray:
     """Triples (N, 3, 2) of the start level without jitter or correction: the x exemplar's
     pixel under each voxel and that pixel's first 3D candidate, its two other coordinates

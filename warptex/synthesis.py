@@ -9,6 +9,7 @@ launches the kernels of ``kernels.synthesis``.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 from functools import cache
@@ -86,6 +87,28 @@ def box_bytes(shape: tuple[int, int, int]) -> int:
     d, h, w = shape
     work = min(MAX_WORK_VOXELS, (d + 2 * BLOCK) * (h + 2 * BLOCK) * (w + 2 * BLOCK))
     return d * h * w * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
+
+
+def request_bytes(ijk: np.ndarray) -> int:
+    """About the memory that synthesizing voxels ``ijk`` (N, 3) takes beside their results:
+    the request's host arrays and the engine's work on one part of it (:func:`box_bytes` of
+    their bounding box, or each voxel's block and apron where they lie far apart, at most
+    ``MAX_WORK_VOXELS``)."""
+    if len(ijk) == 0:
+        return 0
+    spread = ijk.max(axis=0) - ijk.min(axis=0) + 1 + 2 * BLOCK
+    box = math.prod(int(s) for s in spread)  # in Python ints: up to 2^69 voxels
+    work = min(MAX_WORK_VOXELS, len(ijk) * (3 * BLOCK) ** 3, box)
+    return len(ijk) * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
+
+
+def _check_request(ijk: np.ndarray, result_bytes: int) -> None:
+    """Refuse, before any work, a request of voxels ``ijk`` that with its results of
+    ``result_bytes`` a voxel would not fit in this machine's memory. Not asked of the
+    brick store's batches, which are bounded, as the machine's memory takes a file read."""
+    problem = memory_problem(request_bytes(ijk) + len(ijk) * result_bytes)
+    if problem is not None:
+        raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
 
 
 def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES, levels: int = 3,
@@ -423,6 +446,8 @@ class Synthesizer:
 
         Entry ``[n, k]`` is the (row, column) of the pixel of axis k's exemplar.
         """
+        ijk = check_voxels(ijk)
+        _check_request(ijk, 24)  # its triples, int32, and their rows and columns
         pix = self.pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
@@ -430,6 +455,8 @@ class Synthesizer:
     def voxels(self, ijk: np.ndarray) -> np.ndarray:
         """Colors (N, C) float32 of voxels ``ijk`` (N, 3): the average of three exemplar
         colors (section 5.1)."""
+        ijk = check_voxels(ijk)
+        _check_request(ijk, 4 * self.candidates.channels)
         return self.colors_of(self.pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
@@ -443,7 +470,8 @@ class Synthesizer:
         if problem is not None:  # before allocating: too large a box would end in swapping
             raise ValueError(f"a box of shape {shape} {problem}; synthesize it in parts")
         grid = np.indices(shape).reshape(3, -1).T + np.asarray(origin, np.int64)
-        return self.voxels(grid).reshape(*shape, self.candidates.channels)
+        colors = self.colors_of(self.pixel_triples(grid))
+        return colors.reshape(*shape, self.candidates.channels)
 
     def colors_of(self, pixels: np.ndarray) -> np.ndarray:
         """Average the three exemplar colors of finest-level triples of pixel indices."""
