@@ -236,6 +236,39 @@ def test_every_signal_held_back_during_a_query_reaches_its_handler():
             signal.signal(n, handler)
 
 
+@pytest.mark.parametrize("when", ["holding", "giving back"])
+def test_a_stop_between_two_handler_swaps_leaves_every_handler_as_it_was(monkeypatch, when):
+    """Blocking holds a signal from the calling thread only: one sent to the process comes
+    through another thread, and signal.signal runs its handler first. Raised between the
+    two swaps, it left Ctrl-C's handler swapped for good (later SIGTERMs then went unseen)."""
+    from warptex import parallel
+
+    def terminated(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = {n: signal.signal(n, terminated) for n in (signal.SIGINT, signal.SIGTERM)}
+    real = signal.signal
+    calls = []
+
+    def signal_meanwhile(number, handler):
+        calls.append(number)
+        # The second swap of the block's start, or of its end, finds a stop that came.
+        if len(calls) == (2 if when == "holding" else 4):
+            raise KeyboardInterrupt
+        return real(number, handler)
+
+    monkeypatch.setattr(parallel.signal, "signal", signal_meanwhile)
+    try:
+        with pytest.raises(KeyboardInterrupt), parallel.deferred_stops():
+            pass
+        monkeypatch.undo()
+        assert all(signal.getsignal(n) is terminated for n in previous)
+    finally:
+        monkeypatch.undo()
+        for n, handler in previous.items():
+            signal.signal(n, handler)
+
+
 def _backtracking() -> None:
     """Minutes in one C call that holds the GIL, as xatlas' unwrapping does."""
     re.fullmatch(r"(a+)+b", "a" * 64)

@@ -148,23 +148,40 @@ def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
     """Hold back ``signals`` whose handlers are Python's in the block, then let those that
     came go to their handlers as before. Handlers can only be set in the main thread, which
     is also the only one that they interrupt. The handlers are swapped with the signals
-    blocked, so that none comes between two swaps (a handler that raised there left the
-    others swapped for good), and given back before any is delivered."""
+    blocked, and given back before any is delivered; as blocking holds them from the calling
+    thread only, one sent to the process can still reach a handler between two swaps, which
+    then all complete (one that raised there left the others swapped for good)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     came: list[int] = []
-    with _blocked(signals):
-        before = {number: signal.signal(number, lambda n, _frame: came.append(n))
-                  for number in signals if signal.getsignal(number) is not None}
+    before = {number: signal.getsignal(number) for number in signals
+              if signal.getsignal(number) is not None}
     try:
+        with _blocked(signals):
+            _set_handlers(dict.fromkeys(before, lambda n, _frame: came.append(n)))
         yield
     finally:
         with _blocked(signals):  # those that came go on once all handlers are back
-            for number, handler in before.items():
-                signal.signal(number, handler)
+            _set_handlers(before)
             for number in dict.fromkeys(came):
                 signal.raise_signal(number)
+
+
+def _set_handlers(handlers: dict[int, Any]) -> None:
+    """Set every one of ``handlers`` (signal: handler), then raise what a handler raised
+    meanwhile: ``signal.signal`` first runs the handlers of signals that came, and sets
+    nothing where one raises, so it is called again."""
+    raised: BaseException | None = None
+    for number, handler in handlers.items():
+        while True:
+            try:
+                signal.signal(number, handler)
+                break
+            except BaseException as error:  # KeyboardInterrupt, the CLI's SIGTERM
+                raised = raised or error
+    if raised is not None:
+        raise raised
 
 
 @contextlib.contextmanager
