@@ -669,6 +669,12 @@ def test_a_checksummed_file_of_three_exemplars_whose_arrays_disagree_is_refused(
         write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
         with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
             CandidateSet.load(path)
+    # Precompute's shift rounds a negative sum down, as far as -PROJ_LIMIT - 1: still read.
+    lowest = arrays[f"L{last}/S0/proj"].copy()
+    lowest[0, 0] = -candidates.PROJ_LIMIT - 1
+    write_archive(tmp_path / "lowest.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                  {**arrays, f"L{last}/S0/proj": lowest})
+    CandidateSet.load(tmp_path / "lowest.wtc")
 
 
 def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_path, granite):

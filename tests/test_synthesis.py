@@ -795,6 +795,8 @@ def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candid
     # Close together, as many voxels take far less: one block and its apron.
     near = np.argwhere(np.ones((16, 16, 16), bool))[:4096]
     assert request_bytes(near) < request_bytes(points) / 20
+    # More passes read farther: a wider apron around each block.
+    assert request_bytes(points[:8], apron_blocks=2) > request_bytes(points[:8])
     assert syn.voxels(near).shape == (4096, 3)
     far = np.array([[-COORD_LIMIT] * 3, [COORD_LIMIT - 1] * 3])  # a box of 2^69 voxels
     assert request_bytes(far) == 2 * (REQUEST_BYTES_PER_VOXEL

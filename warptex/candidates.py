@@ -962,7 +962,7 @@ def _check_layout(cs: CandidateSet) -> None:
                     or s.feat.dtype != np.uint8 or s.proj.dtype != np.int16
                     or s.basis.shape[1:] != (n * n * s.feat.shape[2],)
                     or not 1 <= dims <= MAX_DIMS or s.proj.shape != (pixels, dims)
-                    or not _indices_below(np.abs(s.proj), PROJ_LIMIT + 1)
+                    or not _within(s.proj, -PROJ_LIMIT - 1, PROJ_LIMIT)
                     or not 0 <= s.shift < 32
                     or s.cand2d.ndim != 2 or s.cand2d.shape[0] != pixels
                     or s.cand2d.shape[1:2] != k2 or k2[0] < 1
@@ -977,6 +977,12 @@ def _check_layout(cs: CandidateSet) -> None:
                     or not _indices_below(role.count, role.cand.shape[1] + 1)
                     or not all(_indices_below(role.cand[..., k], others[k]) for k in (0, 1))):
                 raise ValueError(f"level {lv}, role {r}: 3D candidates that do not fit")
+
+
+def _within(a: np.ndarray, low: int, high: int) -> bool:
+    """Whether every entry of ``a`` lies in [low, high]. Projections reach -PROJ_LIMIT - 1
+    where precompute's shift rounds a negative sum down."""
+    return a.size == 0 or (int(a.min()) >= low and int(a.max()) <= high)
 
 
 def _indices_below(a: np.ndarray, limit: int) -> bool:

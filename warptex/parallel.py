@@ -163,9 +163,11 @@ def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
         yield
     finally:
         with _blocked(signals):  # those that came go on once all handlers are back
-            _set_handlers(before)
-            for number in dict.fromkeys(came):
-                signal.raise_signal(number)
+            try:
+                _set_handlers(before)
+            finally:  # a SIGTERM held back stays one, though a Ctrl-C came meanwhile
+                for number in dict.fromkeys(came):
+                    signal.raise_signal(number)
 
 
 def _set_handlers(handlers: dict[int, Any]) -> None:

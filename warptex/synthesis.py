@@ -89,24 +89,25 @@ def box_bytes(shape: tuple[int, int, int]) -> int:
     return d * h * w * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
 
 
-def request_bytes(ijk: np.ndarray) -> int:
+def request_bytes(ijk: np.ndarray, apron_blocks: int = 1) -> int:
     """About the memory that synthesizing voxels ``ijk`` (N, 3) takes beside their results:
-    the request's host arrays and the engine's work on one part of it (:func:`box_bytes` of
-    their bounding box, or each voxel's block and apron where they lie far apart, at most
-    ``MAX_WORK_VOXELS``)."""
+    the request's host arrays and the engine's work on one part of it (its bounding box
+    grown by the apron, or each voxel's block and apron where they lie far apart, at most
+    ``MAX_WORK_VOXELS``); ``apron_blocks`` is the engine's (one at the default passes)."""
     if len(ijk) == 0:
         return 0
-    spread = ijk.max(axis=0) - ijk.min(axis=0) + 1 + 2 * BLOCK
+    reach = 2 * apron_blocks * BLOCK
+    spread = ijk.max(axis=0) - ijk.min(axis=0) + 1 + reach
     box = math.prod(int(s) for s in spread)  # in Python ints: up to 2^69 voxels
-    work = min(MAX_WORK_VOXELS, len(ijk) * (3 * BLOCK) ** 3, box)
+    work = min(MAX_WORK_VOXELS, len(ijk) * (BLOCK + reach) ** 3, box)
     return len(ijk) * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
 
 
-def _check_request(ijk: np.ndarray, result_bytes: int) -> None:
+def _check_request(ijk: np.ndarray, apron_blocks: int, result_bytes: int) -> None:
     """Refuse, before any work, a request of voxels ``ijk`` that with its results of
     ``result_bytes`` a voxel would not fit in this machine's memory. Not asked of the
     brick store's batches, which are bounded, as the machine's memory takes a file read."""
-    problem = memory_problem(request_bytes(ijk) + len(ijk) * result_bytes)
+    problem = memory_problem(request_bytes(ijk, apron_blocks) + len(ijk) * result_bytes)
     if problem is not None:
         raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
 
@@ -228,7 +229,7 @@ def check_voxels(ijk: np.ndarray) -> np.ndarray:
                          f"{ijk.dtype} {ijk.shape}")
     if len(ijk) and (ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT):
         raise ValueError(f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})")
-    return ijk.astype(np.int64)
+    return ijk.astype(np.int64, copy=False)
 
 
 def _three_ints(name: str, values) -> tuple[int, int, int]:
@@ -444,19 +445,22 @@ class Synthesizer:
     def triples(self, ijk: np.ndarray) -> np.ndarray:
         """Finest-level coordinate triples (N, 3, 2) of voxels ``ijk`` (N, 3) ints.
 
-        Entry ``[n, k]`` is the (row, column) of the pixel of axis k's exemplar.
+        Entry ``[n, k]`` is the (row, column) of the pixel of axis k's exemplar. A request
+        that would not fit in memory is a ValueError, before any work.
         """
         ijk = check_voxels(ijk)
-        _check_request(ijk, 24)  # its triples, int32, and their rows and columns
+        # Its triples, and the int64 rows, columns and their stack on the way.
+        _check_request(ijk, self._apron, 136)
         pix = self.pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
 
     def voxels(self, ijk: np.ndarray) -> np.ndarray:
         """Colors (N, C) float32 of voxels ``ijk`` (N, 3): the average of three exemplar
-        colors (section 5.1)."""
+        colors (section 5.1). A request that would not fit in memory is a ValueError, before
+        any work."""
         ijk = check_voxels(ijk)
-        _check_request(ijk, 4 * self.candidates.channels)
+        _check_request(ijk, self._apron, 4 * self.candidates.channels)
         return self.colors_of(self.pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:

@@ -91,8 +91,9 @@ WORK_BYTES_PER_VOXEL = 600
 # float64 window of 64 values per feature, centred in place, beside its coefficients (at most
 # MAX_DIMS float64) and the tree over them, which are kept for the level (the coarser level's,
 # a quarter as large, still held); and, once per exemplar, the (64 F)^2 covariance with the
-# eigensolver's copies of it. Measured with tracemalloc: 1,663 bytes a pixel (rust_256, 13
-# coefficients), 2,066 (granite_64, 48), 5,528 (8 random channels at 64x64, 96).
+# eigensolver's copies of it. Measured with tracemalloc, every window kept (no seam): 1,663
+# bytes a pixel (rust_256, 13 coefficients), 2,066 (granite_64, 48), 5,528 (8 random
+# channels at 64x64, 96); BENCHMARKS.md, with seams.
 SEARCH_BYTES_PER_FEATURE = 512
 SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_DIMS + 512
 SEARCH_COVARIANCES = 3
