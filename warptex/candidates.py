@@ -987,4 +987,4 @@ def _within(a: np.ndarray, low: int, high: int) -> bool:
 
 def _indices_below(a: np.ndarray, limit: int) -> bool:
     """Whether every entry of ``a`` indexes one of ``limit`` pixels."""
-    return a.size == 0 or (int(a.min()) >= 0 and int(a.max()) < limit)
+    return _within(a, 0, limit - 1)

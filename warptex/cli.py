@@ -147,6 +147,18 @@ def _input_file(text: str) -> Path:
     return Path(text)
 
 
+def _check_input_file(path: Path, kind: str) -> None:
+    """Refuse, naming it, a ``kind`` file ("mesh", "scene") that is a folder, is missing or
+    is no regular file: a pipe would keep its reader waiting for a writer."""
+    if path.is_dir():
+        raise CliError(f"{path}: is a folder, expected a {kind} file")
+    if not path.exists():
+        raise CliError(f"{path}: {kind} file not found")
+    if not path.is_file():
+        raise CliError(f"{path}: is not a regular file (a pipe or a device), expected a {kind} "
+                       "file")
+
+
 def _count(n: int, noun: str) -> str:
     """``n`` and ``noun``, plural unless one: "1 channel", "3 channels"."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
@@ -1139,13 +1151,7 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
     with vertices of their own are not)."""
     import trimesh
 
-    if path.is_dir():
-        raise CliError(f"{path}: is a folder, expected a mesh file")
-    if not path.exists():
-        raise CliError(f"{path}: mesh file not found")
-    if not path.is_file():
-        raise CliError(f"{path}: is not a regular file (a pipe or a device), expected a mesh "
-                       "file")
+    _check_input_file(path, "mesh")
     try:
         # As the file has it first: trimesh's processing drops the faces of a NaN vertex
         # unsaid, and loses the vertex normals that keep it from welding flat faces.
@@ -1536,13 +1542,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         render_scene,
     )
 
-    if args.scene.is_dir():
-        raise CliError(f"{args.scene}: is a folder, expected a scene file")
-    if not args.scene.exists():
-        raise CliError(f"{args.scene}: scene file not found")
-    if not args.scene.is_file():
-        raise CliError(f"{args.scene}: is not a regular file (a pipe or a device), expected "
-                       "a scene file")
+    _check_input_file(args.scene, "scene")
     _check_output(args.output, IMAGE_SUFFIXES, "the image")
     given = [name for name, _ in args.parameters]
     twice = next((name for name in given if given.count(name) > 1), None)

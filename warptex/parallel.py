@@ -155,8 +155,8 @@ def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
         yield
         return
     came: list[int] = []
-    before = {number: signal.getsignal(number) for number in signals
-              if signal.getsignal(number) is not None}
+    before = {number: handler for number in signals
+              if (handler := signal.getsignal(number)) is not None}
     try:
         with _blocked(signals):
             _set_handlers(dict.fromkeys(before, lambda n, _frame: came.append(n)))

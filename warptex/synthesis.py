@@ -451,7 +451,7 @@ class Synthesizer:
         ijk = check_voxels(ijk)
         # Its triples, and the int64 rows, columns and their stack on the way.
         _check_request(ijk, self._apron, 136)
-        pix = self.pixel_triples(ijk)
+        pix = self._pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
 
@@ -461,7 +461,7 @@ class Synthesizer:
         any work."""
         ijk = check_voxels(ijk)
         _check_request(ijk, self._apron, 4 * self.candidates.channels)
-        return self.colors_of(self.pixel_triples(ijk))
+        return self.colors_of(self._pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
         """Colors of a box of voxels, (D, H, W, C) with axis 0 along x, 1 along y, 2 along z."""
@@ -474,7 +474,7 @@ class Synthesizer:
         if problem is not None:  # before allocating: too large a box would end in swapping
             raise ValueError(f"a box of shape {shape} {problem}; synthesize it in parts")
         grid = np.indices(shape).reshape(3, -1).T + np.asarray(origin, np.int64)
-        colors = self.colors_of(self.pixel_triples(grid))
+        colors = self.colors_of(self._pixel_triples(check_voxels(grid)))
         return colors.reshape(*shape, self.candidates.channels)
 
     def colors_of(self, pixels: np.ndarray) -> np.ndarray:
@@ -493,13 +493,16 @@ class Synthesizer:
         """Finest-level triples (N, 3) int32 of voxels ``ijk`` (N, 3) ints as flat pixel
         indices: entry ``[n, k]`` is ``row * width + column`` in axis k's exemplar, what the
         brick store keeps (section 6.2)."""
-        ijk = check_voxels(ijk)
+        return self._pixel_triples(check_voxels(ijk))
+
+    # -- orchestration ----------------------------------------------------------------
+
+    def _pixel_triples(self, ijk: np.ndarray) -> np.ndarray:
+        """:meth:`pixel_triples` of voxels ``ijk`` that :func:`check_voxels` gave."""
         if len(ijk) == 0:
             return np.zeros((0, 3), np.int32)
         with self._lock:  # the finest level is never cached: just the voxels asked for
             return self._in_parts(ijk)
-
-    # -- orchestration ----------------------------------------------------------------
 
     def _in_parts(self, ijk: np.ndarray) -> np.ndarray:
         """Finest pixel triples of int64 voxels ``ijk``, their blocks synthesized in parts
