@@ -70,6 +70,9 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
                                        "subpasses": 1, "shifted_tiles": False}
     assert "kopf" not in run["settings"]
     assert run["measures"]["repetition_slice"] == 256 and run["measures"]["patch"] == 5
+    # Completeness reads every slice patch, the one-way measures every second.
+    assert run["measures"]["completeness_patch_stride"] == 1
+    assert run["measures"]["patch_stride"] == 2
     assert "fresh process" in run["timing"] and "resident host memory" in run["memory"]
     assert run["scores"].startswith("Lower is better in every score. energy:")
     assert run["scores"] in (out / "table.md").read_text()  # the legend of table.md

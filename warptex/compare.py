@@ -5,8 +5,9 @@ and :func:`write_report` writes the sheet and tables.
 
 Methods: ``lazy`` (this project), ``kopf`` (Kopf et al. 2007 global optimization, plain
 weighted averages), ``kopf-meanshift`` (the same with its mean-shift clustering, section 4.1),
-``tiled`` (a 64^3 block of the lazy engine's texture repeated, the usual practice of Dong
-2008 Fig. 11, which repeats a periodic block: above 64 voxels these copies also meet at seams),
+``tiled`` (a 64^3 block of the lazy engine's texture, or its whole volume when smaller,
+repeated, the usual practice of Dong 2008 Fig. 11, which repeats a periodic block: above 64
+voxels these copies also meet at seams),
 and three
 references that are no solid texture: ``extrude`` (the z axis' exemplar stacked along z),
 ``noise`` (i.i.d. exemplar pixels) and ``flat`` (the exemplars' mean color everywhere, which
@@ -84,9 +85,10 @@ METHOD_NOTES = {
     "lazy": "this project's lazy synthesis (Dong 2008)",
     "kopf": "Kopf et al. 2007 global optimization of a periodic volume",
     "kopf-meanshift": "kopf with its mean-shift clustering (its section 4.1)",
-    "tiled": f"the lazy engine's {TILE}^3 block repeated, the usual practice (Dong 2008 "
-             f"Fig. 11), which up to {TILE} voxels (the default --size) is lazy's volume "
-             "itself, told apart by the repetition score only",
+    "tiled": f"a block of the lazy engine's volume, {TILE}^3 or the whole volume if smaller, "
+             f"repeated, the usual practice (Dong 2008 Fig. 11); up to {TILE} voxels (the "
+             "default --size) it is lazy's volume itself, told apart by the repetition score "
+             "only",
     "extrude": "the z axis' exemplar stacked along z",
     "noise": "i.i.d. exemplar pixels",
     "flat": "the exemplars' mean color everywhere",
@@ -796,6 +798,7 @@ def _measure_settings(edge: int) -> dict:
     energy = _defaults(metrics.neighborhood_energy, "size", "slices")
     swd = _defaults(metrics.sliced_wasserstein, "directions", "seed")
     return {"patch": energy["size"], "patch_stride": metrics.PATCH_STRIDE,
+            "completeness_patch_stride": metrics.COMPLETENESS_STRIDE,
             "slices": energy["slices"], "swd_directions": swd["directions"],
             "swd_seed": swd["seed"],
             "histogram_bins": _defaults(metrics.histogram_distance, "bins")["bins"],

@@ -40,6 +40,8 @@ from warptex.parallel import nearest
 from warptex.settings import check_count
 
 PATCH_STRIDE = 2  # slice patches the one-way measures read: every second one, each way
+# Completeness looks for each exemplar patch among the slices': every one, lest one be missed.
+COMPLETENESS_STRIDE = 1
 
 
 def axis_slices(volume: np.ndarray, axis: int, count: int = 8) -> list[np.ndarray]:
@@ -212,7 +214,7 @@ def completeness_energy(
     better."""
     volume, colors = _checked(volume, exemplar, axis, size)
     check_count("slices", slices, low=1)
-    slice_patches = _slice_patches(volume, axis, size, slices, stride=1)
+    slice_patches = _slice_patches(volume, axis, size, slices, stride=COMPLETENESS_STRIDE)
     nearest = _nearest_squared(slice_patches, exemplar_patches(exemplar, size, tileable))
     return float(np.mean(nearest) / (size * size * _variance(colors)))
 
