@@ -7,13 +7,21 @@ import errno
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
 import warptex
 from warptex import metrics
-from warptex.archive import write_atomically, write_together
+from warptex.archive import (
+    UNFINISHED_AGE,
+    _temporary_name,
+    dead_writes,
+    file_problem,
+    write_atomically,
+    write_together,
+)
 from warptex.candidates import CandidateSet, precompute
 from warptex.settings import MAX_JITTER, MAX_PASSES, MAX_SEED, SettingError, check_settings
 from warptex.volume_files import write_image, write_volume
@@ -150,6 +158,49 @@ def test_a_failed_write_names_the_file_asked_for(tmp_path):
         write_atomically(target, lambda tmp: tmp.write_bytes(b"x"))
     assert caught.value.filename == str(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_any_name_that_fits_is_written_and_a_longer_one_is_refused_before_the_work(tmp_path):
+    """The temporary name is longer than the name asked for: its stem is cut, so a name
+    of 255 bytes is written (it failed after the work); a longer one is refused by the
+    check that runs before the work."""
+    for name in ("s" * 251 + ".png", "é" * 125 + "s.png", "s" * 200 + "." + "x" * 54):
+        target = tmp_path / name
+        assert len(os.fsencode(target.name)) == 255 and file_problem(target) is None
+        write_atomically(target, lambda tmp: tmp.write_bytes(b"x"))
+        assert target.read_bytes() == b"x"
+        target.unlink()
+    assert not any(tmp_path.iterdir())
+    assert "file name too long" in file_problem(tmp_path / ("s" * 256 + ".png"))
+
+
+def test_writers_never_share_a_temporary_name(tmp_path):
+    """Writers in two containers sharing a folder may have the same pid and thread id:
+    the temporary names are random, so each write has its own, even from one thread."""
+    names = []
+    for _ in range(2):
+        write_atomically(tmp_path / "a.npy", lambda tmp: names.append(tmp.name)
+                         or tmp.write_bytes(b"x"))
+    assert len(set(names)) == 2 and all(n.startswith(".a.") for n in names)
+
+
+def test_dead_writes_are_a_file_s_own_temporary_files_left_over_an_hour(tmp_path):
+    target = tmp_path / "s.store"
+    old = time.time() - 2 * UNFINISHED_AGE
+    tags = ["12.0123456789ab", "7.ba9876543210"]
+    dead, young = (tmp_path / _temporary_name(target, tag) for tag in tags)
+    others = [tmp_path / _temporary_name(tmp_path / name, tags[0])
+              for name in ("s.x.store", "s.wtb", "t.store")]
+    for path in (dead, young, *others):
+        path.write_bytes(b"part")
+        if path is not young:
+            os.utime(path, (old, old))
+    assert dead_writes(target) == [dead]
+    long = tmp_path / ("s" * 251 + ".png")  # its temporary files' stems are cut
+    cut = tmp_path / _temporary_name(long, tags[0])
+    cut.write_bytes(b"part")
+    os.utime(cut, (old, old))
+    assert dead_writes(long) == [cut] and dead_writes(tmp_path / "missing" / "s.store") == []
 
 
 def test_a_write_through_a_symbolic_link_replaces_its_target_and_keeps_the_link(tmp_path):

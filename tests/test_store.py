@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
+import time
 import warnings
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import numpy as np
 import pytest
 
 from kernels.lookup import BRICK_VOXELS
+from warptex.archive import UNFINISHED_AGE, _temporary_name
 from warptex.store import (
     BrickStore,
     StoreFileError,
@@ -414,6 +417,26 @@ def test_voxels_another_thread_evicted_mid_batch_are_made_again_and_each_stored_
     assert [n for n in inserted if n] == [len(absent), len(stored_first)]
     assert store._stored(both).all()
     np.testing.assert_array_equal(sample(store, both + 0.5), store.synthesizer.voxels(both))
+
+
+def test_a_save_deletes_the_temporary_files_of_saves_killed_long_ago(candidates, tmp_path):
+    """A killed save leaves its half-written temporary file, as large as the store; the
+    next save to that file deletes those older than UNFINISHED_AGE, not a young one (a
+    writer's on a folder that cannot be locked) nor another file's."""
+    path = tmp_path / "s.wtb"
+    old = time.time() - 2 * UNFINISHED_AGE
+    dead, young = (tmp_path / _temporary_name(path, tag)
+                   for tag in ("12.0123456789ab", "7.ba9876543210"))
+    other = tmp_path / _temporary_name(tmp_path / "t.wtb", "12.0123456789ab")
+    for leftover in (dead, young, other):
+        leftover.write_bytes(b"part")
+        if leftover is not young:
+            os.utime(leftover, (old, old))
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    assert store.save(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [path.name, young.name, other.name])
 
 
 def test_save_load_keeps_the_most_recent_bricks_that_fit(candidates, tmp_path: Path):

@@ -16,9 +16,11 @@ import errno
 import hashlib
 import io
 import os
+import re
+import secrets
 import stat
 import tempfile
-import threading
+import time
 import zipfile
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
@@ -27,6 +29,10 @@ from pathlib import Path
 import numpy as np
 
 _TEMPORARY = ".tmp"  # before the suffix of a file being written
+_NAME_BYTES = 255  # the longest file name of Linux's and macOS's file systems
+# A write renames its temporary file within seconds (:func:`write_together`); one older than
+# this was left by a process that died, even on a slow shared folder.
+UNFINISHED_AGE = 3600.0
 _VERSION_BYTES = 4
 _DIGEST_BYTES = 32
 
@@ -68,6 +74,8 @@ def folder_problem(folder: str | Path) -> str | None:
 
 def file_problem(path: str | Path) -> str | None:
     """Why a file cannot be written at ``path``, or None when it can."""
+    if len(os.fsencode(Path(path).name)) > _NAME_BYTES:
+        return f"file name too long (over {_NAME_BYTES} bytes)"
     try:
         if Path(path).is_dir():
             return "is a folder, expected a file name"
@@ -104,7 +112,8 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     and no folder made for them. Only a rename that fails after an earlier one went
     through (the file's place taken by a folder between the check and the rename) can
     still leave them mixed."""
-    tag = f"{os.getpid()}.{threading.get_ident()}"
+    # Random, as the pid and thread of writers in two containers sharing a folder may agree.
+    tag = f"{os.getpid()}.{secrets.token_hex(_TOKEN_BYTES)}"
     staged = [(Path(path), write) for path, write in writes]
     targets = [written_through(path) for path, _ in staged]
     twice = one_file_twice([path for path, _ in staged])
@@ -113,7 +122,7 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
                          "write each once")
     # Beside the file replaced, for the rename; named as asked, for writers that take the
     # format from the suffix.
-    temporary = [target.with_name(f".{path.stem}.{tag}{_TEMPORARY}{path.suffix.lower()}")
+    temporary = [target.with_name(_temporary_name(path, tag))
                  for (path, _), target in zip(staged, targets, strict=True)]
     current = None  # the file being written or renamed, as the caller named it
     made: list[Path] = []  # folders made here, outermost first
@@ -149,6 +158,41 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
             for folder in reversed(made):
                 with contextlib.suppress(OSError):  # not empty: another writer's files
                     folder.rmdir()
+
+
+_TOKEN_BYTES = 6
+
+
+def _temporary_name(path: Path, tag: str) -> str:
+    """The hidden name ``path`` is written under by the writer ``tag``. The stem is cut
+    where the whole would be longer than a file name may be, so that every name that fits
+    can be written: a long one would otherwise fail only after the work."""
+    end = f".{tag}{_TEMPORARY}{path.suffix.lower()}"
+    room = _NAME_BYTES - len(os.fsencode("." + end))
+    stem = path.stem
+    while stem and len(os.fsencode(stem)) > room:
+        stem = stem[:-1]
+    return f".{stem}{end}"
+
+
+def dead_writes(path: str | Path, now: float | None = None) -> list[Path]:
+    """The temporary files of ``path`` (those :func:`write_atomically` writes it under)
+    older than :data:`UNFINISHED_AGE`: left by writers that died, as a killed process
+    cannot delete its own."""
+    path = Path(path)
+    now = time.time() if now is None else now
+    pattern = re.compile(rf"\..*\.(\d+\.[0-9a-f]{{{2 * _TOKEN_BYTES}}})"
+                         rf"{re.escape(_TEMPORARY + path.suffix.lower())}")
+    found = []
+    with contextlib.suppress(OSError):  # no folder: no leftovers
+        for entry in os.scandir(path.parent):
+            match = pattern.fullmatch(entry.name)
+            if match is None or entry.name != _temporary_name(path, match[1]):
+                continue
+            with contextlib.suppress(OSError):  # renamed into place or removed meanwhile
+                if now - entry.stat(follow_symlinks=False).st_mtime > UNFINISHED_AGE:
+                    found.append(path.parent / entry.name)
+    return found
 
 
 # Reasons a failed write gives that an image library's words may carry.

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from warptex.archive import archive_version, is_temporary
+from warptex.archive import UNFINISHED_AGE, archive_version, is_temporary
 from warptex.candidates import (
     CACHE_PREFIX,
     CACHE_SUFFIX,
@@ -42,9 +42,6 @@ UNREADABLE = "unreadable"  # cannot be read here (permissions, a folder): left a
 STATUSES = (IN_USE, OTHER_VERSION, DAMAGED, UNFINISHED, BEING_WRITTEN, UNREADABLE)
 # What ``--prune`` deletes: files no run of this warptex reads, now or later.
 NEVER_READ = (OTHER_VERSION, DAMAGED, UNFINISHED)
-# A write renames its temporary file within seconds (``archive.write_atomically``); one
-# older than this was left by a process that died, even on a slow shared folder.
-UNFINISHED_AGE = 3600.0
 
 
 @dataclass(frozen=True)
