@@ -77,6 +77,15 @@ def floor_voxel(p: Any) -> wp.vec3i:
 
 
 @wp.func
+def cell_local_index(p: wp.vec3i, shift: int) -> int:
+    """Flat index of voxel ``p`` in its cell of ``2^shift`` voxels a side, x slowest: the
+    low ``shift`` bits of each coordinate (``warptex.keysets.local_index`` on the device).
+    Shifts and masks, as ``%`` rounds negative coordinates towards zero."""
+    low = (1 << shift) - 1
+    return ((((p[0] & low) << shift) + (p[1] & low)) << shift) + (p[2] & low)
+
+
+@wp.func
 def plane_offset(axis: int, a: int, b: int) -> wp.vec3i:
     """Volume offset of pixel offset (a, b) in the plane of the exemplar of ``axis``: the
     exemplar of axis k spans volume axes (k+1, k+2) as its (first, second) coordinates."""

@@ -38,6 +38,12 @@ def voxel_index(p: wp.vec3i, n: int) -> int:
 
 
 @wp.func
+def voxel_at(row: int, n: int) -> wp.vec3i:
+    """Voxel of ``row`` of an ``n^3`` solid, x slowest: the inverse of :func:`voxel_index`."""
+    return wp.vec3i(row // (n * n), (row // n) % n, row % n)
+
+
+@wp.func
 def grid_centre(axis: int, c: int, n: int) -> wp.vec3i:
     """Voxel of centre ``c`` of the sparser search grid ``g_axis`` (section 4.2)."""
     h = n // 2
@@ -250,10 +256,7 @@ def optimize_voxels(
     read: the texels come from the exemplar, so updating in place is safe.
     """
     v = order[wp.tid() + first]
-    z = v % n
-    y = (v // n) % n
-    x = v // (n * n)
-    p = wp.vec3i(x, y, z)
+    p = voxel_at(v, n)
     texels = texel_list()
     weights = weight_list()
     count = int(0)
@@ -304,21 +307,18 @@ def upsample_trilinear(
     """Trilinear interpolation of the periodic ``n^3`` solid onto the ``(2n)^3`` solid
     (section 4, switching to a finer level)."""
     i = wp.tid()
-    m = 2 * n
-    z = i % m
-    y = (i // m) % m
-    x = i // (m * m)
+    p = voxel_at(i, 2 * n)
     # Fine voxel i sits at coarse coordinate i/2 - 1/4: even voxels weigh their lower coarse
     # neighbour 1/4 and upper 3/4, odd voxels the other way round; index = parity*2 + tap.
     taps = wp.vec4(0.25, 0.75, 0.75, 0.25)
     for f in range(fine.shape[1]):
         fine[i, f] = 0.0
     for tx in range(2):
-        ax = linear_tap(x, tx, n)
+        ax = linear_tap(p[0], tx, n)
         for ty in range(2):
-            ay = linear_tap(y, ty, n)
+            ay = linear_tap(p[1], ty, n)
             for tz in range(2):
-                az = linear_tap(z, tz, n)
+                az = linear_tap(p[2], tz, n)
                 w = taps[ax[1]] * taps[ay[1]] * taps[az[1]]
                 q = (ax[0] * n + ay[0]) * n + az[0]
                 for f in range(fine.shape[1]):

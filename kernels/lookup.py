@@ -16,7 +16,7 @@ from typing import Any
 
 import warp as wp
 
-from kernels.common import KEY_BIAS, KEY_BITS, floor_voxel
+from kernels.common import KEY_BIAS, KEY_BITS, cell_local_index, floor_voxel
 
 # No fused multiply-adds (CUDA's default): the plugin's traced lookups (Dr.Jit) repeat
 # the trilinear blend with separate roundings and must match to the bit.
@@ -30,8 +30,6 @@ MAX_CHANNELS = 4  # gray, RGB or RGBA exemplars
 EMPTY = wp.constant(wp.int64(-1))
 
 _SHIFT = wp.constant(BRICK_SHIFT)
-_LOW_BITS = wp.constant(BRICK - 1)  # a voxel's position in its brick, along one axis
-_BRICK = wp.constant(BRICK)
 _BIAS = wp.constant(wp.int64(KEY_BIAS))
 _SHIFT_Y = wp.constant(wp.int64(KEY_BITS))
 _SHIFT_X = wp.constant(wp.int64(2 * KEY_BITS))
@@ -97,13 +95,6 @@ def touch(index: BrickIndex, slot: int, tick: wp.int64):
 
 
 @wp.func
-def brick_local_index(voxel: wp.vec3i) -> int:
-    """Position of ``voxel`` in its brick, x slowest."""
-    return ((voxel[0] & _LOW_BITS) * _BRICK + (voxel[1] & _LOW_BITS)) * _BRICK + (
-        voxel[2] & _LOW_BITS)
-
-
-@wp.func
 def voxel_stored(index: BrickIndex, slot: int, local: int) -> bool:
     """Whether voxel ``local`` of the brick in pool ``slot`` (-1: absent) is stored."""
     if slot < 0:
@@ -117,7 +108,7 @@ def stored_slot(index: BrickIndex, voxel: wp.vec3i) -> int:
     """Pool slot of the brick holding ``voxel`` if the voxel is stored, else -1."""
     slot = find_slot(index, brick_key(voxel))
     if index.partial != 0:
-        stored = voxel_stored(index, slot, brick_local_index(voxel))
+        stored = voxel_stored(index, slot, cell_local_index(voxel, _SHIFT))
         if not stored:
             slot = -1
     return slot
@@ -204,7 +195,7 @@ def sample_nearest(
         flag_miss(i, missed, miss_count)
         return
     touch(index, slot, tick)
-    p = voxel_triple(index, pool, slot, brick_local_index(voxel))
+    p = voxel_triple(index, pool, slot, cell_local_index(voxel, _SHIFT))
     for c in range(colors.channels):
         out[i, c] = triple_channel(p, colors, c)
 
@@ -244,7 +235,7 @@ def sample_trilinear(
                 last_base = index.base[last_slot]
         addresses[corner] = -1
         if last_slot >= 0:
-            local = brick_local_index(voxel)
+            local = cell_local_index(voxel, _SHIFT)
             if index.partial == 0:
                 addresses[corner] = last_base + local
             elif voxel_stored(index, last_slot, local):

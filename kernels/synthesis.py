@@ -10,12 +10,20 @@ All arithmetic is on integers, so results are bit-identical on the CPU and on CU
 
 import warp as wp
 
-from kernels.common import floor_div, hash_cell, pixel_index, plane_offset, wrap
+from kernels.common import (
+    cell_local_index,
+    floor_div,
+    hash_cell,
+    pixel_index,
+    plane_offset,
+    wrap,
+)
 
 wp.set_module_options({"enable_backward": False})
 
 BLOCK = 4
 BLOCK_VOXELS = 64
+_BLOCK_SHIFT = wp.constant(2)  # BLOCK = 2^_BLOCK_SHIFT
 MAX_DIMS = 12
 PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
 TILE_SALT = 64  # hashes of tile shifts, apart from the jitter's octaves (salts 0-33)
@@ -71,13 +79,6 @@ def block_local(i: int) -> wp.vec3i:
 
 
 @wp.func
-def block_local_index(p: wp.vec3i) -> int:
-    """Flat index inside its 4^3 block of the voxel at position ``p`` (x slowest): the low
-    two bits of each coordinate, the inverse of ``block_local``."""
-    return ((p[0] & 3) << 4) + ((p[1] & 3) << 2) + (p[2] & 3)
-
-
-@wp.func
 def voxel_world(coords: wp.array(dtype=wp.vec3i), i: int) -> wp.vec3i:
     return coords[i >> 6] * BLOCK + block_local(i)
 
@@ -92,7 +93,7 @@ def neighbor_in_block(nbr: wp.array2d(dtype=wp.int32), block: int, local: wp.vec
     slot = nbr[block, b]
     if slot < 0:
         return -1
-    return (slot << 6) + block_local_index(p)
+    return (slot << 6) + cell_local_index(p, _BLOCK_SHIFT)
 
 
 @wp.func
@@ -241,7 +242,7 @@ def upsample(
         return
     p = voxel_world(coords, i)
     up = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)  # the parent voxel (section 5.1)
-    src = parent[slot * BLOCK_VOXELS + block_local_index(up)]
+    src = parent[slot * BLOCK_VOXELS + cell_local_index(up, _BLOCK_SHIFT)]
     out = wp.vec3i(0, 0, 0)
     for k in range(3):
         u = src[k] // parent_width[k]
@@ -282,7 +283,8 @@ def mark_parents(
     if need[i] != wp.uint8(0):
         p = voxel_world(coords, i)
         parent = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
-        parents[parent_block[i >> 6] * BLOCK_VOXELS + block_local_index(parent)] = wp.uint8(1)
+        local = cell_local_index(parent, _BLOCK_SHIFT)
+        parents[parent_block[i >> 6] * BLOCK_VOXELS + local] = wp.uint8(1)
 
 
 @wp.kernel

@@ -31,7 +31,6 @@ import warnings
 import weakref
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, ExitStack, contextmanager
-from numbers import Integral
 from pathlib import Path
 
 import drjit as dr
@@ -39,6 +38,7 @@ import mitsuba as mi
 
 import warptex
 from warptex.llvm import MIN_LLVM_MAJOR, configure_drjit
+from warptex.settings import is_integer
 
 # Symbolic renders of one batch before falling back to wavefront mode: each synthesizes
 # what the previous one missed; paths seldom reach new bricks after the second.
@@ -198,7 +198,7 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     """
     _check_scene(scene, whole=True)
     for name, value in (("spp", spp), ("batches", batches), ("seed", seed)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, Integral)):
+        if value is not None and not is_integer(value):
             raise TypeError(f"{name} must be an integer, got {value!r}")
     sampler = first_sensor(scene).sampler()
     shares = _batch_shares(sampler, spp, batches)

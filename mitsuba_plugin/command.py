@@ -56,7 +56,7 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return width, height
 
 
-def check_render_size(width: int, height: int, samples: int) -> None:
+def _check_render_size(width: int, height: int, samples: int) -> None:
     """Refuse, before rendering, a batch of ``samples`` per pixel that Dr.Jit's arrays
     (at most 2^32 entries) cannot hold. Memory is not estimated: a traced render keeps a
     sample's path in registers, a wavefront one in arrays, and the mode is chosen later."""
@@ -67,7 +67,7 @@ def check_render_size(width: int, height: int, samples: int) -> None:
                          "--res or --spp")
 
 
-def scene_error(text: str, scene: Path | None = None) -> str:
+def _scene_error(text: str, scene: Path | None = None) -> str:
     """Mitsuba's message for ``scene`` failing to load, as one line for a user.
 
     A plugin written in Python that raises while it is constructed (``lazy_solid`` checking
@@ -192,7 +192,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     import mitsuba_plugin
 
     if resolution is not None:  # before loading: a film this size may not even be made
-        check_render_size(*resolution, _samples_per_batch(spp or 1))
+        _check_render_size(*resolution, _samples_per_batch(spp or 1))
     try:
         variant = (mitsuba_plugin.set_best_variant() if variant is None
                    else mitsuba_plugin.use_variant(variant))
@@ -225,7 +225,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         if unused:
             raise ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
                              f"{', '.join(sorted(unused))}") from None
-        problem = scene_error(str(e), scene_path)
+        problem = _scene_error(str(e), scene_path)
         raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()
     try:
@@ -240,7 +240,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     except ValueError as e:
         raise ValueError(f"{scene_path}: {e}") from None
     total = sum(shares)
-    check_render_size(*sensor.film().crop_size(), max(shares))
+    _check_render_size(*sensor.film().crop_size(), max(shares))
     with saved_when_stopped(partial(mitsuba_plugin.save_caches, scene) if save_stores else list):
         image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
                                       seed=seed, progress=_progress)

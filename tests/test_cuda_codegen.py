@@ -17,6 +17,10 @@ import warp as wp
 import kernels
 
 MODULES = [f"kernels.{m.name}" for m in pkgutil.iter_modules(kernels.__path__)]
+# Those whose colours the CPU and a GPU must give to the bit (the brick store's lookups,
+# baked textures and surface points): no fused multiply-add, every float operation rounded
+# to nearest rather than left to ptxas to contract.
+EXACT_FLOATS = ("kernels.bake", "kernels.lookup", "kernels.surface")
 
 
 def _cuda_arch() -> int:
@@ -33,7 +37,12 @@ def test_kernels_compile_for_cuda(name, warp_device):
     if not module_kernels:
         pytest.skip(f"{name} holds only functions, built into the modules that call them")
     files = wp.compile_aot_module(module, arch=_cuda_arch(), use_ptx=True)
-    entries = re.findall(r"\.entry\s+(\w+)\(", "".join(p.read_text() for p in files))
+    ptx = "".join(p.read_text() for p in files)
+    entries = re.findall(r"\.entry\s+(\w+)\(", ptx)
+    if name in EXACT_FLOATS:
+        assert "fma" not in ptx, f"{name}: fused multiply-adds in its PTX"
+        unrounded = re.findall(r"^\s*(?:add|sub|mul)\.f(?:32|64)\b.*$", ptx, re.MULTILINE)
+        assert not unrounded, f"{name}: float arithmetic without .rn: {unrounded[0].strip()}"
     for kernel in module_kernels:
         # One forward entry per overload: a generic kernel compiles only those declared.
         count = max(1, len(kernel.overloads)) if kernel.is_generic else 1

@@ -175,12 +175,11 @@ def _temporary_name(path: Path, tag: str) -> str:
     return f".{stem}{end}"
 
 
-def dead_writes(path: str | Path, now: float | None = None) -> list[Path]:
+def dead_writes(path: str | Path) -> list[Path]:
     """The temporary files of ``path`` (those :func:`write_atomically` writes it under)
     older than :data:`UNFINISHED_AGE`: left by writers that died, as a killed process
     cannot delete its own."""
-    path = Path(path)
-    now = time.time() if now is None else now
+    path, now = Path(path), time.time()
     pattern = re.compile(rf"\..*\.(\d+\.[0-9a-f]{{{2 * _TOKEN_BYTES}}})"
                          rf"{re.escape(_TEMPORARY + path.suffix.lower())}")
     found = []

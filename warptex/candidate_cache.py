@@ -59,8 +59,7 @@ class CacheFile:
     identity: tuple[int, int, int] = (0, 0, 0)
 
 
-def cache_files(folder: Path | None = None, now: float | None = None,
-                progress: bool = False) -> list[CacheFile]:
+def cache_files(folder: Path | None = None, progress: bool = False) -> list[CacheFile]:
     """The cache files in ``folder`` (default: :func:`warptex.candidates.cache_dir`), oldest
     first; none for a folder that does not exist yet. Each file is read whole (its checksum
     tells a damaged one), seconds for a large cache: ``progress`` shows a bar then.
@@ -74,7 +73,7 @@ def cache_files(folder: Path | None = None, now: float | None = None,
         return []
     if not folder.is_dir():
         raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(folder))
-    now = time.time() if now is None else now
+    now = time.time()
     found = []
     for path in tqdm(list(folder.iterdir()), desc="reading the cache", unit="file",
                      disable=not progress, delay=1.0, leave=False):

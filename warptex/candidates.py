@@ -22,7 +22,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache, cached_property
-from numbers import Integral, Real
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +46,7 @@ from warptex.exemplar import (
 )
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
-from warptex.settings import check_file_name, check_flag, check_tileable
+from warptex.settings import check_file_name, check_flag, check_tileable, is_integer
 from warptex.warp_runtime import init_warp
 
 FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
@@ -419,7 +419,7 @@ def resolved_params(params: dict) -> dict:
     p = {**DEFAULT_PARAMS, **params}
     for name, (low, high) in _PARAM_RANGES.items():
         value = p[name]
-        if isinstance(value, bool) or not isinstance(value, Integral):
+        if not is_integer(value):
             raise TypeError(f"{name} must be an integer, got {value!r}")
         if not low <= value <= high:
             raise ValueError(f"{name} must be within [{low}, {high}], got {value}")

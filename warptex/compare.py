@@ -79,6 +79,7 @@ REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writ
 # reads the candidates that lazy computed).
 TABLE_FORMAT = 6
 TILE = 64  # edge of the periodic block of `tiled`
+_CUBE_SPP = 16
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
 # What each method is, as the command's help says it.
 METHOD_NOTES = {
@@ -395,7 +396,7 @@ _SKY = (0.5, 0.5, 0.55)  # radiance
 _SUN_DIRECTION, _SUN_IRRADIANCE = (-0.4, -1.0, -0.7), (2.2, 2.1, 2.0)
 
 
-def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarray:
+def render_cube(texture: dict, resolution: int = 128) -> np.ndarray:
     """A unit cube at [0, 1]^3 wearing ``texture`` (a Mitsuba texture dict), seen from a
     corner under sky and sun; the (H, W, 3) image sRGB-encoded, as the sheet shows it.
 
@@ -418,7 +419,7 @@ def render_cube(texture: dict, resolution: int = 128, spp: int = 16) -> np.ndarr
             "to_world": T().look_at(origin=[2.6, 2.1, 2.9], target=[0.5, 0.45, 0.5], up=[0, 1, 0]),
             "film": {"type": "hdrfilm", "width": resolution, "height": resolution,
                      "rfilter": {"type": "box"}, "pixel_format": "rgba"},
-            "sampler": {"type": "independent", "sample_count": spp},
+            "sampler": {"type": "independent", "sample_count": _CUBE_SPP},
         },
         "sun": {"type": "directional", "direction": list(_SUN_DIRECTION),
                 "irradiance": {"type": "rgb", "value": list(_SUN_IRRADIANCE)}},

@@ -289,14 +289,14 @@ def _edge_ends(keys: np.ndarray, vertex_count: int) -> np.ndarray:
     return np.stack(np.divmod(keys, vertex_count), axis=1)
 
 
-def cap_faces(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
-              tolerance: float = 1e-6) -> np.ndarray:
-    """Which faces of a cut half lie in the cut plane (the cap)."""
-    return _in_plane(half, origin, normal, tolerance)[half.faces].all(axis=1)
+def cap_faces(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Which faces of a half that :func:`cut` made lie in its cut plane (the cap), found as
+    the cut finds them."""
+    return _in_plane(half, origin, normal, _CAP_TOLERANCE)[half.faces].all(axis=1)
 
 
 def _in_plane(half: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
-              tolerance: float = 1e-6) -> np.ndarray:
+              tolerance: float) -> np.ndarray:
     """Which vertices of a cut half lie in the cut plane, within ``tolerance`` of the
     half's size."""
     normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)

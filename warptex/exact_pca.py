@@ -21,6 +21,7 @@ JACOBI_MAX_DIMS = 100
 _ITERATIONS = 300
 _SETTLED = 1e-5  # largest residual of a leading Ritz pair, relative to the top eigenvalue
 _CHECK_EVERY = 5
+_MAX_SWEEPS = 60  # a bound only: the convergence test in symmetric_eigen ends the sweeps
 
 
 def covariance(vec: np.ndarray) -> np.ndarray:
@@ -124,7 +125,7 @@ def _dot(x: np.ndarray, y: np.ndarray) -> float:
     return np.cumsum(x * y)[-1]
 
 
-def symmetric_eigen(matrix: np.ndarray, max_sweeps: int = 60) -> tuple[np.ndarray, np.ndarray]:
+def symmetric_eigen(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvalues and eigenvectors (columns) of a symmetric matrix by cyclic Jacobi
     rotations, in elementwise IEEE operations only, so the result is a function of the
     matrix's bits alone; LAPACK's depends on the BLAS kernels a CPU selects.
@@ -144,7 +145,7 @@ def symmetric_eigen(matrix: np.ndarray, max_sweeps: int = 60) -> tuple[np.ndarra
     for _ in range(m - 1):
         rounds.append((players[: m // 2], players[m // 2 :][::-1]))
         players = np.concatenate([players[:1], players[-1:], players[1:-1]])
-    for _ in range(max_sweeps):
+    for _ in range(_MAX_SWEEPS):
         diag = np.abs(np.diagonal(a)).max()
         off = np.abs(a - np.diag(np.diagonal(a))).max()
         if off <= 1e-13 * diag:  # eigenvectors far finer than the basis's 127 steps

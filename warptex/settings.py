@@ -61,10 +61,16 @@ def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
         raise SettingError("passes", f"must be within [0, {MAX_PASSES}], got {passes}")
 
 
+def is_integer(value: object) -> bool:
+    """Whether ``value`` is an integer (Python's or NumPy's) and not a bool, which Python
+    counts as one: ``size=True`` is a mistake, not 1."""
+    return isinstance(value, Integral) and not isinstance(value, bool)
+
+
 def check_count(name: str, value: object, low: int = 0) -> int:
     """``value`` as an int, after a SettingError unless it is an integer of at least ``low``
     (a count or a number of bytes; a bool or a float is refused, not truncated)."""
-    if isinstance(value, bool) or not isinstance(value, Integral):
+    if not is_integer(value):
         raise SettingError(name, f"must be an integer, got {value!r}")
     if value < low:
         raise SettingError(name, f"must be at least {low}, got {value}")
@@ -113,7 +119,7 @@ def check_max_size(max_size: int | None) -> None:
     loaded (``Exemplar.load``), is None or an integer of at least MIN_EXEMPLAR_SIZE."""
     if max_size is None:
         return
-    if isinstance(max_size, bool) or not isinstance(max_size, Integral):
+    if not is_integer(max_size):
         raise SettingError("max_size", f"must be an integer, got {max_size!r}")
     if max_size < MIN_EXEMPLAR_SIZE:
         raise SettingError("max_size", f"must be at least {MIN_EXEMPLAR_SIZE} pixels, got "

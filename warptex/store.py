@@ -91,10 +91,10 @@ def voxels_read(points: np.ndarray, filter: str) -> np.ndarray:
     """Integer voxels (M, 3) that ``filter`` reads for float64 ``points``, repeats included."""
     if filter == "nearest":
         return np.floor(points).astype(np.int64)
-    return corner_voxels(np.floor(points - 0.5).astype(np.int64))
+    return _corner_voxels(np.floor(points - 0.5).astype(np.int64))
 
 
-def corner_voxels(base: np.ndarray) -> np.ndarray:
+def _corner_voxels(base: np.ndarray) -> np.ndarray:
     """The 8 voxels (N * 8, 3) that trilinear lookups with lower corners ``base`` read."""
     return (base[:, None, :] + CORNERS[None]).reshape(-1, 3)
 

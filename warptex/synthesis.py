@@ -51,6 +51,7 @@ from warptex.warp_runtime import init_warp
 # 3: every candidate a set keeps is searched (only sets with non-default counts changed);
 # 4: shifted triples never cross the margins of exemplars that do not tile.
 ENGINE_VERSION = 4
+_LEVELS = 3  # levels above the finest synthesized: section 5.1's l_start = L - 3
 BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _TRIPLE_BYTES = 3 * 4  # a cached voxel's triple of int32 pixel indices
@@ -112,23 +113,22 @@ def _check_request(ijk: np.ndarray, apron_blocks: int, result_bytes: int) -> Non
         raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
 
 
-def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES, levels: int = 3,
-                half: int = DEFAULT_PARAMS["neighborhood"] // 2) -> int:
+def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES) -> int:
     """About how many voxel corrections synthesizing a box of ``shape`` takes, a measure of
     its time: at each level from the finest, the box grown by the apron its passes read
     (section 5.2), corrected ``passes`` times, then halved for the level above. The aprons
     grow with the passes, so a small box of many passes can take longer than a large one."""
-    apron = BLOCK * _apron_blocks(half, passes, 1)
+    apron = BLOCK * _apron_blocks(DEFAULT_PARAMS["neighborhood"] // 2, passes, 1)
     sides = np.asarray(shape, np.int64)
     work = 0
-    for _ in range(levels + 1):
+    for _ in range(_LEVELS + 1):
         sides = sides + 2 * apron
         work += max(passes, 1) * int(np.prod(sides))
         sides = -(-sides // 2)
     return work
 
 
-def neighborhood_shape(half: int) -> np.ndarray:
+def _neighborhood_shape(half: int) -> np.ndarray:
     """Voxels read by one correction: three orthogonal N x N planes (the 3-neighbourhood)."""
     n = 2 * half + 1
     shape = np.zeros((n, n, n), bool)
@@ -148,7 +148,7 @@ def dependency_mask(desired: np.ndarray, half: int, steps: list[int]) -> np.ndar
     first; a sub-pass only dilates the voxels of its own parity class, because the
     others keep their value through it.
     """
-    shape = neighborhood_shape(half)
+    shape = _neighborhood_shape(half)
     idx = np.indices(desired.shape)
     parity = (idx[0] & 1) + 2 * (idx[1] & 1) + 4 * (idx[2] & 1)
     mask = desired.copy()
@@ -169,7 +169,7 @@ def dependency_radius(half: int, passes: int, subpasses: int) -> int:
     class from step to step instead of dilating grids, whose cost grows with the fourth
     power of the steps (seconds for 2 passes of 8 sub-passes, minutes for 8 passes).
     """
-    reads = np.argwhere(neighborhood_shape(half)) - half
+    reads = np.argwhere(_neighborhood_shape(half)) - half
     flip = (reads & 1) @ np.array([1, 2, 4])  # what a read does to the parity class
     along = np.concatenate([reads, -reads], axis=1)  # each axis, each sign
     unreached = np.iinfo(np.int64).min // 4
@@ -396,7 +396,7 @@ class Synthesizer:
         seed: int = 0,
         jitter: float = DEFAULT_JITTER,
         *,
-        levels: int = 3,
+        levels: int = _LEVELS,
         passes: int = DEFAULT_PASSES,
         subpasses: int = 1,
         device: str | None = None,
@@ -432,7 +432,7 @@ class Synthesizer:
                              f"{self.passes} passes of {self.subpasses} sub-passes and "
                              f"{2 * half + 1}-voxel neighbourhoods; at most "
                              f"{_KEY_MARGIN - 2} are supported")
-        reads = np.argwhere(neighborhood_shape(half)) - half
+        reads = np.argwhere(_neighborhood_shape(half)) - half
         reads = reads[np.abs(reads).sum(axis=1) > 0]
         self._shape = wp.array(reads.astype(np.int32), dtype=wp.vec3i, device=self.device)
         self._tables = {lv: self._level_tables(lv) for lv in range(self.start, self.finest + 1)}

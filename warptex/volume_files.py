@@ -9,6 +9,7 @@ there (``srgb=True``), while ``.npy`` files keep every value as synthesized.
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,31 +29,31 @@ def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool) -> None:
     the scene scales by the sides). ``srgb``: whether the colors are sRGB-encoded, as those
     of an exemplar whose ``Exemplar.srgb`` is set: ``.exr`` and ``.vol`` get them decoded.
     Raises ValueError for another suffix and OSError when the file cannot be written."""
-    path = Path(path)
     srgb = check_flag("srgb", srgb)
-    volume = _float_array(volume, 4, "volume", "(X, Y, Z, C)")
-    writers = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
-    writer = writers.get(path.suffix.lower())
-    if writer is None:
-        raise ValueError(f"{path}: a volume file must end in {', '.join(VOLUME_FORMATS)}")
-    if writer is not _write_npy:
-        volume = reencoded(volume, srgb=srgb, to_srgb=False)
-    write_atomically(path, lambda tmp: writer(tmp, volume))
+    _write(path, _float_array(volume, 4, "volume", "(X, Y, Z, C)"), srgb, "a volume file",
+           {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol})
 
 
 def write_image(path: str | Path, image: np.ndarray, *, srgb: bool) -> None:
     """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR, which
     gets sRGB-encoded colors (``srgb``, as for :func:`write_volume`) decoded."""
-    path = Path(path)
     srgb = check_flag("srgb", srgb)
-    image = _float_array(image, 3, "image", "(H, W, C)")
-    writers = {".npy": _write_npy, ".exr": _write_exr}
+    _write(path, _float_array(image, 3, "image", "(H, W, C)"), srgb, "a lossless image file",
+           {".npy": _write_npy, ".exr": _write_exr})
+
+
+def _write(path: str | Path, data: np.ndarray, srgb: bool, kind: str,
+           writers: dict[str, Callable[[Path, np.ndarray], None]]) -> None:
+    """``data`` written atomically by the writer of ``path``'s suffix; every format but
+    ``.npy`` holds linear colors, so sRGB-encoded ones (``srgb``) are decoded for it."""
+    path = Path(path)
     writer = writers.get(path.suffix.lower())
     if writer is None:
-        raise ValueError(f"{path}: a lossless image file must end in .npy or .exr")
-    if writer is _write_exr:
-        image = reencoded(image, srgb=srgb, to_srgb=False)
-    write_atomically(path, lambda tmp: writer(tmp, image))
+        *others, last = writers
+        raise ValueError(f"{path}: {kind} must end in {', '.join(others)} or {last}")
+    if writer is not _write_npy:
+        data = reencoded(data, srgb=srgb, to_srgb=False)
+    write_atomically(path, lambda tmp: writer(tmp, data))
 
 
 def exr_sheet(volume: np.ndarray) -> np.ndarray:

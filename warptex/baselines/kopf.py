@@ -42,7 +42,6 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from numbers import Integral
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +58,7 @@ from warptex.exemplar import (
     wrapping_edges,
 )
 from warptex.parallel import launch_ranges, nearest
-from warptex.settings import check_flag, check_settings
+from warptex.settings import check_flag, check_settings, is_integer
 from warptex.warp_runtime import init_warp, launch
 
 LEVELS = 3  # "we use a three-level synthesis pyramid" (section 6)
@@ -132,7 +131,7 @@ class _Axis:
 
 def check_size(size: int) -> None:
     """Raise ValueError unless ``size`` halves evenly through the pyramid's levels."""
-    if isinstance(size, bool) or not isinstance(size, Integral):
+    if not is_integer(size):
         raise TypeError(f"size must be an integer, got {size!r}")
     if size < 1 or size % (1 << LEVELS) != 0:
         raise ValueError(f"size must be a positive multiple of {1 << LEVELS} for Kopf's method "
@@ -206,8 +205,7 @@ def synthesize(
     if on_iteration is not None and not callable(on_iteration):  # not after a level's work
         raise TypeError(f"on_iteration must be a function or None, got {on_iteration!r}")
     counts = [iterations] * LEVELS if np.ndim(iterations) == 0 else list(iterations)
-    if len(counts) != LEVELS or not all(isinstance(t, Integral) and not isinstance(t, bool)
-                                        and t >= 1 for t in counts):
+    if len(counts) != LEVELS or not all(is_integer(t) and t >= 1 for t in counts):
         raise ValueError(f"iterations must be a positive integer or {LEVELS} of them, one per "
                          f"level, got {iterations!r}")
     counts = [int(t) for t in counts]
