@@ -146,7 +146,8 @@ class RoleLevel:
 
 @dataclass
 class CandidateSet:
-    """Pre-computed candidates for three exemplars (one per axis), all pyramid levels.
+    """Pre-computed candidates for three exemplars (one per axis), all pyramid levels
+    (Dong 2008, section 4: the 3D candidates; section 4.3: the candidate slab).
 
     ``sources[j]`` are the distinct exemplars, ``axis_source[k]`` which one lies on
     axis k. ``roles[l][r]`` holds the 3D candidates; there is one role when the same

@@ -98,7 +98,8 @@ class PyramidLevel:
 
 
 class Exemplar:
-    """A validated 2D exemplar image with any number of channels.
+    """A validated 2D exemplar image with any number of channels: one of Dong 2008's
+    ``E_x``, ``E_y``, ``E_z`` (section 3), with its Gaussian pyramid.
 
     Args:
         array: ``(H, W)`` or ``(H, W, C)`` array. ``uint8``/``uint16`` are scaled to [0, 1],

@@ -411,7 +411,8 @@ def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
 
 
 class BrickStore:
-    """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch.
+    """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch
+    (Dong 2008, section 6.2: synthesis focused on the voxels a surface needs, kept as triples).
 
     ``cache_bytes`` bounds the stored voxels and their bricks' bits; least-recently-used
     bricks are evicted after each batch (a batch may exceed the bound while it is being
