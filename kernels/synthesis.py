@@ -23,7 +23,7 @@ wp.set_module_options({"enable_backward": False})
 
 BLOCK = 4
 BLOCK_VOXELS = 64
-_BLOCK_SHIFT = wp.constant(2)  # BLOCK = 2^_BLOCK_SHIFT
+_BLOCK_SHIFT = wp.constant(BLOCK.bit_length() - 1)  # BLOCK = 2^_BLOCK_SHIFT
 MAX_DIMS = 12
 PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
 TILE_SALT = 64  # hashes of tile shifts, apart from the jitter's octaves (salts 0-33)

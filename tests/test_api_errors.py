@@ -15,6 +15,7 @@ import pytest
 import warptex
 from warptex import metrics
 from warptex.archive import (
+    _TOKEN_BYTES,
     UNFINISHED_AGE,
     _temporary_name,
     dead_writes,
@@ -171,7 +172,11 @@ def test_any_name_that_fits_is_written_and_a_longer_one_is_refused_before_the_wo
         assert target.read_bytes() == b"x"
         target.unlink()
     assert not any(tmp_path.iterdir())
-    assert "file name too long" in file_problem(tmp_path / ("s" * 256 + ".png"))
+    for folder in (tmp_path, tmp_path / "not yet made"):
+        assert "file name too long" in file_problem(folder / ("s" * 256 + ".png"))
+        # A suffix too long for any temporary name, and a name no file system takes.
+        assert "suffix too long" in file_problem(folder / ("a." + "x" * 253))
+        assert "cannot be encoded" in file_problem(folder / "a\ud800.png")
 
 
 def test_writers_never_share_a_temporary_name(tmp_path):
@@ -187,7 +192,7 @@ def test_writers_never_share_a_temporary_name(tmp_path):
 def test_dead_writes_are_a_file_s_own_temporary_files_left_over_an_hour(tmp_path):
     target = tmp_path / "s.store"
     old = time.time() - 2 * UNFINISHED_AGE
-    tags = ["12.0123456789ab", "7.ba9876543210"]
+    tags = [f"12.{'0a' * _TOKEN_BYTES}", f"7.{'b9' * _TOKEN_BYTES}"]
     dead, young = (tmp_path / _temporary_name(target, tag) for tag in tags)
     others = [tmp_path / _temporary_name(tmp_path / name, tags[0])
               for name in ("s.x.store", "s.wtb", "t.store")]
@@ -196,6 +201,11 @@ def test_dead_writes_are_a_file_s_own_temporary_files_left_over_an_hour(tmp_path
         if path is not young:
             os.utime(path, (old, old))
     assert dead_writes(target) == [dead]
+    odd = tmp_path / "a\nb.store"  # any character a name may hold
+    odd_dead = tmp_path / _temporary_name(odd, tags[0])
+    odd_dead.write_bytes(b"part")
+    os.utime(odd_dead, (old, old))
+    assert dead_writes(odd) == [odd_dead]
     long = tmp_path / ("s" * 251 + ".png")  # its temporary files' stems are cut
     cut = tmp_path / _temporary_name(long, tags[0])
     cut.write_bytes(b"part")

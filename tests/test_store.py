@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from kernels.lookup import BRICK_VOXELS
-from warptex.archive import UNFINISHED_AGE, _temporary_name
+from warptex.archive import _TOKEN_BYTES, UNFINISHED_AGE, _temporary_name
 from warptex.store import (
     BrickStore,
     StoreFileError,
@@ -426,8 +426,8 @@ def test_a_save_deletes_the_temporary_files_of_saves_killed_long_ago(candidates,
     path = tmp_path / "s.wtb"
     old = time.time() - 2 * UNFINISHED_AGE
     dead, young = (tmp_path / _temporary_name(path, tag)
-                   for tag in ("12.0123456789ab", "7.ba9876543210"))
-    other = tmp_path / _temporary_name(tmp_path / "t.wtb", "12.0123456789ab")
+                   for tag in (f"12.{'0a' * _TOKEN_BYTES}", f"7.{'b9' * _TOKEN_BYTES}"))
+    other = tmp_path / _temporary_name(tmp_path / "t.wtb", f"12.{'0a' * _TOKEN_BYTES}")
     for leftover in (dead, young, other):
         leftover.write_bytes(b"part")
         if leftover is not young:

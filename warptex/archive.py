@@ -74,8 +74,17 @@ def folder_problem(folder: str | Path) -> str | None:
 
 def file_problem(path: str | Path) -> str | None:
     """Why a file cannot be written at ``path``, or None when it can."""
-    if len(os.fsencode(Path(path).name)) > _NAME_BYTES:
+    try:
+        # The longest temporary name it may be written under, whose stem is cut to fit.
+        longest = os.fsencode(_temporary_name(Path(path), _LONGEST_TAG))
+        name = os.fsencode(Path(path).name)
+    except UnicodeEncodeError as error:
+        return f"file name cannot be encoded ({error.reason})"
+    if len(name) > _NAME_BYTES:
         return f"file name too long (over {_NAME_BYTES} bytes)"
+    if len(longest) > _NAME_BYTES:
+        return (f"suffix too long: the temporary name the file is written under would pass "
+                f"{_NAME_BYTES} bytes")
     try:
         if Path(path).is_dir():
             return "is a folder, expected a file name"
@@ -161,12 +170,14 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
 
 
 _TOKEN_BYTES = 6
+_LONGEST_TAG = f"{2**22}.{'f' * 2 * _TOKEN_BYTES}"  # Linux's pids stay below 2^22
 
 
 def _temporary_name(path: Path, tag: str) -> str:
     """The hidden name ``path`` is written under by the writer ``tag``. The stem is cut
-    where the whole would be longer than a file name may be, so that every name that fits
-    can be written: a long one would otherwise fail only after the work."""
+    where the whole would be longer than a file name may be, so that a long name that fits
+    can be written (it would otherwise fail only after the work); one whose suffix alone
+    is too long for that is refused by :func:`file_problem`."""
     end = f".{tag}{_TEMPORARY}{path.suffix.lower()}"
     room = _NAME_BYTES - len(os.fsencode("." + end))
     stem = path.stem
@@ -181,7 +192,7 @@ def dead_writes(path: str | Path) -> list[Path]:
     cannot delete its own."""
     path, now = Path(path), time.time()
     pattern = re.compile(rf"\..*\.(\d+\.[0-9a-f]{{{2 * _TOKEN_BYTES}}})"
-                         rf"{re.escape(_TEMPORARY + path.suffix.lower())}")
+                         rf"{re.escape(_TEMPORARY + path.suffix.lower())}", re.DOTALL)
     found = []
     with contextlib.suppress(OSError):  # no folder: no leftovers
         for entry in os.scandir(path.parent):
