@@ -102,6 +102,51 @@ def test_tiff_16bit_grayscale_keeps_16_bits(tmp_path, rng):
                                   grey.astype(np.float32) / np.float32(65535))
 
 
+def test_16bit_color_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
+    """Pillow decodes 16-bit RGB PPM and TIFF files into 8 bits: loaded, with a warning
+    naming the file, where 8-bit ones and 16-bit grey ones load quietly."""
+    rgb16 = rng.integers(0, 65536, size=(16, 20, 3), dtype=np.uint16)
+    ppm = tmp_path / "rgb16.ppm"
+    ppm.write_bytes(b"P6\n20 16\n65535\n" + rgb16.astype(">u2").tobytes())
+    with pytest.warns(UserWarning, match=r"rgb16\.ppm: 16-bit color image read as 8 bits"):
+        exemplar = Exemplar.load(ppm)
+    np.testing.assert_allclose(exemplar.colors, rgb16 / 65535, atol=1 / 255)
+    Image.fromarray((rgb16 >> 8).astype(np.uint8)).save(tmp_path / "rgb8.ppm")
+    _load_quiet(tmp_path / "rgb8.ppm")
+    Image.fromarray(rgb16[..., 0]).save(tmp_path / "grey16.tif")
+    _load_quiet(tmp_path / "grey16.tif")
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_a_color_profile_other_than_srgb_is_said_not_to_be_applied(tmp_path, rng, bits):
+    """Values are taken as sRGB: an Adobe RGB or Display P3 profile would shift every
+    color, so it is named in a warning (8-bit PNGs go through Pillow, 16-bit ones through
+    pypng, which reads no profile); an sRGB profile says nothing new."""
+    from PIL import ImageCms
+
+    def profile(kind: str) -> bytes:
+        return ImageCms.ImageCmsProfile(ImageCms.createProfile(kind)).tobytes()
+
+    pixels = rng.integers(0, 2**bits, size=(16, 20, 3)).astype(np.uint8 if bits == 8
+                                                                 else np.uint16)
+    for kind in ("LAB", "sRGB"):
+        path = tmp_path / f"{kind}.png"
+        if bits == 8:
+            Image.fromarray(pixels).save(path, icc_profile=profile(kind))
+        else:
+            chunks = list(png.Reader(filename=_write_png16(path, pixels)).chunks())
+            iccp = (b"iCCP", b"profile\0\0" + zlib.compress(profile(kind)))
+            with path.open("wb") as file:
+                png.write_chunks(file, [chunks[0], iccp, *chunks[1:]])
+        if kind == "sRGB":
+            exemplar = _load_quiet(path)
+        else:
+            with pytest.warns(UserWarning, match=r"LAB\.png: embedded color profile 'Lab "
+                              r"identity built-in' not applied"):
+                exemplar = Exemplar.load(path)
+        np.testing.assert_array_equal(exemplar.colors, pixels / np.float32(2**bits - 1))
+
+
 def test_png_8bit_grayscale_is_one_channel(tmp_path, rng):
     pixels = rng.integers(0, 256, size=(32, 40), dtype=np.uint8)
     Image.fromarray(pixels, mode="L").save(tmp_path / "gray.png")
@@ -495,6 +540,12 @@ def test_missing_file(tmp_path):
     error = _raises(tmp_path / "nope.png", "file not found")
     assert "nope.png" in str(error)
     assert isinstance(error, ValueError)
+    (tmp_path / "dangling.png").symlink_to(tmp_path / "gone.png")
+    _raises(tmp_path / "dangling.png", r"dangling\.png: file not found \(a broken symbolic link\)")
+    # A loop of links is no missing file: the system's reason is given.
+    (tmp_path / "a.png").symlink_to(tmp_path / "b.png")
+    (tmp_path / "b.png").symlink_to(tmp_path / "a.png")
+    _raises(tmp_path / "a.png", r"a\.png: cannot look up file \(Too many levels of symbolic")
 
 
 def test_directory_is_not_an_image(tmp_path):
@@ -664,7 +715,7 @@ def test_a_file_that_cannot_be_looked_up_or_is_named_empty_is_one_error(tmp_path
     _raises(Path(""), r"\.: is a directory")  # a Path given as such names that folder
     with pytest.raises(ExemplarError, match="the exemplar's file name is empty"):
         Exemplar.load("")
-    monkeypatch.setattr(Path, "exists", unsearchable)
+    monkeypatch.setattr(Path, "stat", unsearchable)
     _raises(tmp_path / "locked" / "a.png", r"a\.png: cannot look up file \(Permission denied\)")
 
 

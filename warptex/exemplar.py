@@ -17,10 +17,13 @@ sRGB-encoded values (whatever gamma a PNG declares), float images linear ones.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import math
 import os
 import re
+import stat
 import tokenize
 import warnings
 import zlib
@@ -710,15 +713,20 @@ def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
     """Read an image file as ``(H, W[, C])`` in its stored dtype, whether it has alpha and
     whether its colors are sRGB-encoded."""
     try:
-        if not path.exists():
-            raise ExemplarError(f"{path}: file not found")
-        if path.is_dir():
-            raise ExemplarError(f"{path}: is a directory, not an image")
-        if not path.is_file():  # a pipe would keep the read below waiting for a writer
-            raise ExemplarError(f"{path}: is not a regular file (a pipe or a device), not an "
-                                "image")
-    except OSError as error:  # a folder on the way that cannot be searched
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        broken = False
+        with contextlib.suppress(OSError):
+            broken = path.is_symlink()
+        raise ExemplarError(f"{path}: file not found"
+                            + (" (a broken symbolic link)" if broken else "")) from None
+    except OSError as error:  # a folder on the way that cannot be searched, a link loop
         raise ExemplarError(f"{path}: cannot look up file ({error.strerror})") from None
+    if stat.S_ISDIR(mode):
+        raise ExemplarError(f"{path}: is a directory, not an image")
+    if not stat.S_ISREG(mode):  # a pipe would keep the read below waiting for a writer
+        raise ExemplarError(f"{path}: is not a regular file (a pipe or a device), not an "
+                            "image")
     try:
         with path.open("rb") as file:
             head = file.read(8)
@@ -751,7 +759,18 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
             return _pillow_decoded(path, upright=False)
         except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
             pass  # what Pillow refuses (over its pixel limit, a large text chunk) pypng reads
+    _warn_of_color_profile(_png_color_profile(path), path)
     return _read_png_with_pypng(path)
+
+
+def _png_color_profile(path: Path) -> bytes | None:
+    """The ICC profile of a PNG (its iCCP chunk), which pypng does not read; None without
+    one, or where Pillow cannot open the file (which pypng may still read)."""
+    with warnings.catch_warnings(), contextlib.suppress(Exception):
+        warnings.simplefilter("ignore")
+        with Image.open(path) as image:
+            return image.info.get("icc_profile")
+    return None
 
 
 def _read_png_with_pypng(path: Path) -> tuple[np.ndarray, bool]:
@@ -873,12 +892,54 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
         # words that name no file; it is the user's own photo, and max_size shrinks it.
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         with Image.open(path) as image:
+            cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
             image.load()
             # Cameras store portrait photos sideways and say so in EXIF: upright, as
             # viewers show them, since grain and layers run the way the photo shows.
             if upright:
                 ImageOps.exif_transpose(image, in_place=True)
-            return _pillow_pixels(image)
+            pixels = _pillow_pixels(image)
+    if cut_bits:
+        warnings.warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
+                      "TIFF and PPM files so); save it as a 16-bit PNG or an OpenEXR file to "
+                      "keep its precision", stacklevel=5)
+    _warn_of_color_profile(image.info.get("icc_profile"), path)
+    return pixels
+
+
+def _bits_cut_to_8(image: Image.Image) -> bool:
+    """Whether Pillow is about to decode 16-bit colors into its 8-bit RGB(A) mode: a raw
+    mode of 16-bit samples (``RGB;16L``), or a PPM of more than 255 levels."""
+    if image.mode not in ("RGB", "RGBA"):
+        return False
+    for tile in image.tile:
+        args = tile[3] if isinstance(tile[3], tuple) else (tile[3],)
+        if any(isinstance(a, str) and ";16" in a for a in args):
+            return True
+        if tile[0] == "ppm" and any(isinstance(a, int) and a > 255 for a in args):
+            return True
+    return False
+
+
+def _warn_of_color_profile(profile: bytes | None, path: Path) -> None:
+    """Warn that an embedded ICC profile other than sRGB (Adobe RGB, Display P3, a press
+    CMYK one) is not applied: its values are taken as sRGB, so colors shift. Converting
+    them would make a texture depend on the color management library's version."""
+    if not profile:
+        return
+    try:
+        from PIL import ImageCms
+
+        parsed = ImageCms.ImageCmsProfile(io.BytesIO(profile))
+        name = ImageCms.getProfileDescription(parsed).strip()
+        space = parsed.profile.xcolor_space.strip()
+    except (ImportError, OSError, ValueError, TypeError):
+        name, space = "", ""
+    if space == "GRAY" or "srgb" in name.lower():
+        return
+    warnings.warn(f"{path}: embedded color profile {name or '(unreadable)'!r} not applied: "
+                  "its values are taken as sRGB, so its colors shift; convert the image to "
+                  "sRGB first", stacklevel=5)
 
 
 def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:
