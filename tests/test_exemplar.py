@@ -147,6 +147,29 @@ def test_a_color_profile_other_than_srgb_is_said_not_to_be_applied(tmp_path, rng
         np.testing.assert_array_equal(exemplar.colors, pixels / np.float32(2**bits - 1))
 
 
+def test_what_pillow_reads_in_part_is_said_naming_the_file(tmp_path, rng):
+    """An animation's first frame is read, with a warning; Pillow's own warnings (corrupt
+    EXIF data) come again naming the file; a TIFF that Pillow cannot read is called one."""
+    frames = [Image.fromarray(rng.integers(0, 256, (16, 20, 3), dtype=np.uint8))
+              for _ in range(3)]
+    frames[0].save(tmp_path / "anim.gif", save_all=True, append_images=frames[1:])
+    with pytest.warns(UserWarning, match=r"anim\.gif: an animation of 3 frames, of which "
+                      "the first is read"):
+        Exemplar.load(tmp_path / "anim.gif")
+    frames[0].save(tmp_path / "still.gif")
+    _load_quiet(tmp_path / "still.gif")
+    jpeg = tmp_path / "exif.jpg"
+    frames[0].save(jpeg, quality=95)
+    junk = b"Exif\0\0MM\0\x2a\0\0\0\x08\xff\xff" + b"\x01" * 40
+    data = jpeg.read_bytes()
+    jpeg.write_bytes(data[:2] + b"\xff\xe1" + (len(junk) + 2).to_bytes(2, "big") + junk
+                     + data[2:])
+    with pytest.warns(UserWarning, match=r"exif\.jpg: Corrupt EXIF data"):
+        Exemplar.load(jpeg)
+    (tmp_path / "odd.tif").write_bytes(b"II*\0" + bytes(40))
+    _raises(tmp_path / "odd.tif", r"odd\.tif: a TIFF file of a kind Pillow cannot read")
+
+
 def test_png_8bit_grayscale_is_one_channel(tmp_path, rng):
     pixels = rng.integers(0, 256, size=(32, 40), dtype=np.uint8)
     Image.fromarray(pixels, mode="L").save(tmp_path / "gray.png")

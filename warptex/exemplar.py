@@ -878,6 +878,12 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
     try:
         return _pillow_decoded(path, upright=True)
     except UnidentifiedImageError:
+        tiff = False
+        with contextlib.suppress(OSError), path.open("rb") as file:
+            tiff = file.read(4) in (b"II*\0", b"MM\0*")
+        if tiff:  # Pillow reads no float RGB TIFF, among others
+            raise ExemplarError(f"{path}: a TIFF file of a kind Pillow cannot read (float "
+                                "RGB, say): save it as OpenEXR") from None
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except Image.DecompressionBombError as error:
         raise ExemplarError(f"{path}: too large to read ({error})") from None
@@ -886,19 +892,27 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
 
 
 def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
-    """Pillow's pixels of ``path``, turned ``upright`` as EXIF says; Pillow's errors."""
-    with warnings.catch_warnings():
-        # A photograph of 90 to 180 megapixels: Pillow warns of a decompression bomb in
-        # words that name no file; it is the user's own photo, and max_size shrinks it.
-        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+    """Pillow's pixels of ``path``, turned ``upright`` as EXIF says; Pillow's errors, and
+    its warnings (corrupt EXIF data) given again naming the file."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         with Image.open(path) as image:
             cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
+            frames = getattr(image, "n_frames", 1)
             image.load()
             # Cameras store portrait photos sideways and say so in EXIF: upright, as
             # viewers show them, since grain and layers run the way the photo shows.
             if upright:
                 ImageOps.exif_transpose(image, in_place=True)
             pixels = _pillow_pixels(image)
+    for warning in caught:
+        # A photograph of 90 to 180 megapixels is a decompression bomb to Pillow; it is
+        # the user's own photo, and max_size shrinks it.
+        if not issubclass(warning.category, Image.DecompressionBombWarning):
+            warnings.warn(f"{path}: {warning.message}", warning.category, stacklevel=5)
+    if frames > 1:
+        warnings.warn(f"{path}: an animation of {frames} frames, of which the first is read",
+                      stacklevel=5)
     if cut_bits:
         warnings.warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
                       "TIFF and PPM files so); save it as a 16-bit PNG or an OpenEXR file to "
