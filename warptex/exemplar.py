@@ -906,9 +906,10 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
                 ImageOps.exif_transpose(image, in_place=True)
             pixels = _pillow_pixels(image)
     for warning in caught:
-        # A photograph of 90 to 180 megapixels is a decompression bomb to Pillow; it is
-        # the user's own photo, and max_size shrinks it.
-        if not issubclass(warning.category, Image.DecompressionBombWarning):
+        # What the file holds (corrupt EXIF data), not Pillow's deprecations nor its
+        # decompression bomb (a RuntimeWarning): a photograph of 90 to 180 megapixels is the
+        # user's own photo, and max_size shrinks it.
+        if issubclass(warning.category, UserWarning):
             warnings.warn(f"{path}: {warning.message}", warning.category, stacklevel=5)
     if frames > 1:
         warnings.warn(f"{path}: an animation of {frames} frames, of which the first is read",
