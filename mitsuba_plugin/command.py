@@ -92,6 +92,16 @@ def _scene_error(text: str, scene: Path | None = None) -> str:
     return f"{file} ({place}): {message}"
 
 
+def _declared_parameters(scene_path: Path) -> tuple[str, ...]:
+    """The parameters a scene file declares with ``<default name=...>``, for the hint at a
+    misspelt ``-D``; none where it does not parse."""
+    try:
+        root = ElementTree.parse(scene_path).getroot()
+    except (ElementTree.ParseError, OSError):
+        return ()
+    return tuple(e.get("name") for e in root.iter("default") if e.get("name"))
+
+
 def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> list[Path]:
     """The files a scene names (exemplars, meshes, included scenes and what they name, brick
     stores) that exist, looked up as Mitsuba does: beside the scene, else from the working
@@ -171,6 +181,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     if resolution is not None and {"width", "height"} & set(parameters):
         raise ValueError("--res sets the parameters width and height: give them with -D or "
                          "--res, not both")
+    if spp is not None and "spp" in parameters:  # the render's count wins: -D would do nothing
+        raise ValueError("--spp sets the samples per pixel, which scenes take as the parameter "
+                         "spp: give it with -D or --spp, not both")
     reserved = sorted(set(parameters) & set(_LOAD_FILE_ARGUMENTS))
     if reserved:
         raise ValueError(f"-D {reserved[0]}: Mitsuba's load_file takes {reserved[0]} as an "
@@ -223,8 +236,12 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                              "name=\"width\" value=\"256\"/> and <integer name=\"width\" "
                              "value=\"$width\"/> in its film, the same for height") from None
         if unused:
+            from mitsuba_plugin.properties import did_you_mean
+
+            hint = (did_you_mean(next(iter(unused)), _declared_parameters(scene_path))
+                    if len(unused) == 1 else "")
             raise ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
-                             f"{', '.join(sorted(unused))}") from None
+                             f"{', '.join(sorted(unused))}{hint}") from None
         problem = _scene_error(str(e), scene_path)
         raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
     loaded = time.perf_counter()

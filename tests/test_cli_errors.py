@@ -44,13 +44,16 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
                          '</scene>')
     no_sensor = folder / "no_sensor.xml"
     no_sensor.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    declaring = folder / "declaring.xml"  # declares spp, which nothing uses
+    declaring.write_text('<scene version="3.0.0"><default name="spp" value="4"/>'
+                         '<shape type="sphere"/></scene>')
     gray = folder / "gray.npy"
     np.save(gray, _rotated(granite_32_file)[..., :1])
     five = folder / "five.npy"  # more channels than points are looked up in
     np.save(five, np.random.default_rng(0).random((32, 32, 5)).astype(np.float32))
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
-            "gray": gray, "no_sensor": no_sensor, "flat": flat,
+            "gray": gray, "no_sensor": no_sensor, "declaring": declaring, "flat": flat,
             "other_linear": other_linear, "broken_mesh": broken_mesh, "five": five}
 
 
@@ -143,8 +146,12 @@ CASES = [
      "--res sets the parameters $width and $height, which this scene does not declare"),
     (["render", "{no_sensor}", "-D", "shade=1", "-o", "{out}/r.png"],
      "-D sets parameters this scene does not use: shade"),
+    (["render", "{declaring}", "-D", "sp=1", "-o", "{out}/r.png"],
+     '-D sets parameters this scene does not use: sp; did you mean "spp"?'),
     (["render", "{no_sensor}", "--res", "16x16", "-D", "width=8", "-o", "{out}/r.png"],
      "give them with -D or --res, not both"),
+    (["render", "{declaring}", "--spp", "2", "-D", "spp=3", "-o", "{out}/r.png"],
+     "give it with -D or --spp, not both"),
     (["render", "{no_sensor}", "-D", "optimize=false", "-o", "{out}/r.png"],
      "-D optimize: Mitsuba's load_file takes optimize as an argument of its own"),
     (["render", "{no_sensor}", "--sampler-seed", "-1", "-o", "{out}/r.png"],
