@@ -742,9 +742,10 @@ def test_render_command_refuses_a_scene_mitsuba_could_not_render(tmp_path, capsy
             "-D width=0": "the film is 0x256 pixels: give --res",
             "no integrator": "the scene has no <integrator>"}[case] in err
     assert not out.exists() and not out.with_name("img.png.json").exists()
-    if case == "-D spp=0":  # --spp replaces the scene's count
+    if case == "-D spp=0":  # --spp would replace the scene's count: -D would do nothing
         assert main(["render", str(scene), "-o", str(out), *extra, "--spp", "1",
-                     "--res", "8x8"]) == 0
+                     "--res", "8x8"]) == 2
+        assert "give it with -D or --spp, not both" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("folder", "stop"), [("plain", "Ctrl-C"),
