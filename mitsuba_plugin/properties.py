@@ -86,6 +86,12 @@ def scene_path(name: str, must_exist: bool) -> Path:
     return (first / path).absolute()
 
 
+def _resolver_folders() -> list[str]:
+    """The folders Mitsuba's file resolver looks in, the scene's first while it parses one."""
+    resolver = mi.file_resolver()
+    return [str(resolver[i]) for i in range(len(resolver))]
+
+
 def existing_scene_file(name: str, key: str, plugin: str) -> Path:
     """The file to read that property ``key`` names (:func:`scene_path`), or the error
     naming that property where there is none."""
@@ -94,7 +100,10 @@ def existing_scene_file(name: str, key: str, plugin: str) -> Path:
         if path.is_dir():
             raise property_error(plugin, key, f'names a folder, not a file: "{name}"')
         if not path.exists():
-            raise property_error(plugin, key, f'names a file that does not exist: "{name}"')
+            searched = ("" if Path(name).expanduser().is_absolute() else
+                        f" (looked for in {', '.join(_resolver_folders())})")
+            raise property_error(plugin, key, f'names a file that does not exist: "{name}"'
+                                 + searched)
         if not path.is_file():
             raise property_error(plugin, key, f'names no regular file (a pipe or a device): '
                                  f'"{name}"')

@@ -39,6 +39,11 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
         '<scene version="3.0.0"><bsdf type="diffuse"><texture type="lazy_solid" '
         f'name="reflectance"><string name="exemplar" value="{granite_32_file}"/>'
         '<string name="filter" value="cubic"/></texture></bsdf></scene>')
+    missing_exemplar = folder / "missing_exemplar.xml"
+    missing_exemplar.write_text(
+        '<scene version="3.0.0"><bsdf type="diffuse"><texture type="lazy_solid" '
+        'name="reflectance"><string name="exemplar" value="textures/nope.png"/></texture>'
+        '</bsdf></scene>')
     including = folder / "including.xml"
     including.write_text('<scene version="3.0.0">\n<include filename="bad_property.xml"/>\n'
                          '</scene>')
@@ -54,7 +59,8 @@ def files(granite_32_file, tmp_path_factory) -> dict[str, Path]:
     return {"exemplar": granite_32_file, "mesh": mesh, "notes": notes, "scene": scene,
             "other": other, "bad_property": bad_property, "including": including,
             "gray": gray, "no_sensor": no_sensor, "declaring": declaring, "flat": flat,
-            "other_linear": other_linear, "broken_mesh": broken_mesh, "five": five}
+            "other_linear": other_linear, "broken_mesh": broken_mesh, "five": five,
+            "missing_exemplar": missing_exemplar, "folder": folder}
 
 
 def _rotated(path: Path) -> np.ndarray:
@@ -210,6 +216,9 @@ CASES = [
      "{five}: 5 color channels"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "64", "-o", "{out}/b.ply"],
      "--texture-size applies to a UV texture (--uv auto or mesh)"),
+    (["render", "{missing_exemplar}", "-o", "{out}/r.png"],  # the scene's folder first
+     'property "exemplar" names a file that does not exist: "textures/nope.png" (looked for '
+     "in {folder}, "),
     (["render", "{including}", "-o", "{out}/r.png"],
      '{including}: cannot load the scene: {bad_property} (line 1, col 46): lazy_solid: '
      'property "filter"'),
