@@ -30,6 +30,8 @@ import numpy as np
 
 _TEMPORARY = ".tmp"  # before the suffix of a file being written
 _NAME_BYTES = 255  # the longest file name of Linux's and macOS's file systems
+_TOKEN_BYTES = 6  # of the random part of a temporary name
+_LONGEST_TAG = f"{2**22}.{'f' * 2 * _TOKEN_BYTES}"  # Linux's pids stay below 2^22
 # A write renames its temporary file within seconds (:func:`write_together`); one older than
 # this was left by a process that died, even on a slow shared folder.
 UNFINISHED_AGE = 3600.0
@@ -167,10 +169,6 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
             for folder in reversed(made):
                 with contextlib.suppress(OSError):  # not empty: another writer's files
                     folder.rmdir()
-
-
-_TOKEN_BYTES = 6
-_LONGEST_TAG = f"{2**22}.{'f' * 2 * _TOKEN_BYTES}"  # Linux's pids stay below 2^22
 
 
 def _temporary_name(path: Path, tag: str) -> str:

@@ -739,7 +739,7 @@ def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
     if head.startswith(_NPY_MAGIC):
         pixels = _read_npy(path)
         return pixels, False, _integer(pixels)
-    pixels, has_alpha = _read_pillow(path)
+    pixels, has_alpha = _read_pillow(path, head)
     return pixels, has_alpha, _integer(pixels)
 
 
@@ -874,14 +874,12 @@ def _read_npy(path: Path) -> np.ndarray:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
 
 
-def _read_pillow(path: Path) -> tuple[np.ndarray, bool]:
+def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
+    """Pillow's pixels of ``path``, whose first bytes are ``head``; its errors in ours."""
     try:
         return _pillow_decoded(path, upright=True)
     except UnidentifiedImageError:
-        tiff = False
-        with contextlib.suppress(OSError), path.open("rb") as file:
-            tiff = file.read(4) in (b"II*\0", b"MM\0*")
-        if tiff:  # Pillow reads no float RGB TIFF, among others
+        if head[:4] in (b"II*\0", b"MM\0*"):  # Pillow reads no float RGB TIFF, among others
             raise ExemplarError(f"{path}: a TIFF file of a kind Pillow cannot read (float "
                                 "RGB, say): save it as OpenEXR") from None
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None

@@ -580,8 +580,9 @@ class BrickStore:
         copies of them (a partly filled brick grows), whichever is largest, are written, so
         every brick of ours is. Saves to
         one file take turns, so none loses the bricks of another. A damaged file or
-        another texture's is replaced, with a warning. Temporary files that saves killed
-        over :data:`~warptex.archive.UNFINISHED_AGE` ago left beside it are deleted.
+        another texture's is replaced, with a warning. A save that writes deletes the
+        temporary files that saves killed over :data:`~warptex.archive.UNFINISHED_AGE` ago
+        left beside the file.
 
         The file is left as it is, and False returned, when it is the one this store was
         loaded from or last saved to, unchanged since, and no voxel was stored since: it
@@ -597,12 +598,12 @@ class BrickStore:
             ours = _Bricks(self._keys[live], self._payload[self._ranges(live)],
                            self._valid[live])
         with _taking_turns(path):
-            for leftover in dead_writes(path):  # a killed saver's, perhaps gigabytes
-                with contextlib.suppress(OSError):
-                    leftover.unlink()
             state = file_state(path)
             if state is not None and self._synced == (state, version):
                 return False
+            for leftover in dead_writes(path):  # a killed saver's, perhaps gigabytes
+                with contextlib.suppress(OSError):
+                    leftover.unlink()
             try:
                 saved = self._read(path) if path.exists() and not _empty_file(path) else None
             except StoreFileError as e:
