@@ -17,6 +17,7 @@ from functools import partial
 from pathlib import Path
 
 from warptex.archive import (
+    endings,
     file_problem,
     iso_date,
     overwritten_input,
@@ -92,14 +93,19 @@ def _scene_error(text: str, scene: Path | None = None) -> str:
     return f"{file} ({place}): {message}"
 
 
-def _declared_parameters(scene_path: Path) -> tuple[str, ...]:
-    """The parameters a scene file declares with ``<default name=...>``, for the hint at a
-    misspelt ``-D``; none where it does not parse."""
+def _scene_root(path: Path) -> ElementTree.Element | None:
+    """A scene file's XML; None where it does not parse, which loading it reports."""
     try:
-        root = ElementTree.parse(scene_path).getroot()
+        return ElementTree.parse(path).getroot()
     except (ElementTree.ParseError, OSError):
-        return ()
-    return tuple(e.get("name") for e in root.iter("default") if e.get("name"))
+        return None
+
+
+def _declared_parameters(root: ElementTree.Element | None) -> dict[str, str]:
+    """The parameters a scene declares with ``<default name=... value=...>``, by name."""
+    if root is None:
+        return {}
+    return {e.get("name"): e.get("value", "") for e in root.iter("default") if e.get("name")}
 
 
 def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> list[Path]:
@@ -127,13 +133,11 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
         if path.resolve() in read:  # an include cycle; Mitsuba refuses it when loading
             return
         read.add(path.resolve())
-        try:
-            root = ElementTree.parse(path).getroot()
-        except (ElementTree.ParseError, OSError):
+        root = _scene_root(path)
+        if root is None:
             return
         # A default never replaces a value set already (by an including file or -D).
-        own = {e.get("name"): e.get("value", "") for e in root.iter("default")}
-        values = own | inherited | given
+        values = _declared_parameters(root) | inherited | given
         for element in root.iter():
             for value in (element.get("value"), element.get("filename")):
                 if not value:
@@ -172,7 +176,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     being written: it is entered there as ``not_saved``).
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
-        raise ValueError(f"output must end in .exr or .png, got {output.name!r}")
+        raise ValueError(f"output must end in {endings(IMAGE_SUFFIXES)}, got {output.name!r}")
     if spp is not None and spp < 1:
         raise ValueError(f"--spp must be positive, got {spp}")
     if not 0 <= seed <= MAX_SAMPLER_SEED:
@@ -238,7 +242,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         if unused:
             from mitsuba_plugin.properties import did_you_mean
 
-            hint = (did_you_mean(next(iter(unused)), _declared_parameters(scene_path))
+            hint = (did_you_mean(next(iter(unused)),
+                                 tuple(_declared_parameters(_scene_root(scene_path))))
                     if len(unused) == 1 else "")
             raise ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
                              f"{', '.join(sorted(unused))}{hint}") from None

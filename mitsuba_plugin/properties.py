@@ -3,7 +3,9 @@ error that names the plugin and the property at fault (as Mitsuba's own plugins 
 
 from __future__ import annotations
 
+import contextlib
 import difflib
+import stat
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -94,19 +96,34 @@ def _resolver_folders() -> list[str]:
 
 def existing_scene_file(name: str, key: str, plugin: str) -> Path:
     """The file to read that property ``key`` names (:func:`scene_path`), or the error
-    naming that property where there is none."""
+    naming that property where there is none: as the exemplar reader tells them apart, a
+    broken symbolic link or one that cannot be followed (a loop) is not a missing file."""
     path = scene_path(name, must_exist=True)
     try:
-        if path.is_dir():
-            raise property_error(plugin, key, f'names a folder, not a file: "{name}"')
-        if not path.exists():
-            searched = ("" if Path(name).expanduser().is_absolute() else
-                        f" (looked for in {', '.join(_resolver_folders())})")
-            raise property_error(plugin, key, f'names a file that does not exist: "{name}"'
-                                 + searched)
-        if not path.is_file():
-            raise property_error(plugin, key, f'names no regular file (a pipe or a device): '
-                                 f'"{name}"')
-    except OSError as error:  # a folder on the way that cannot be searched
-        raise property_error(plugin, key, f'cannot look up "{name}" ({error.strerror})') from None
+        mode = path.stat().st_mode
+    except OSError:
+        raise property_error(plugin, key, _missing_file(name)) from None
+    if stat.S_ISDIR(mode):
+        raise property_error(plugin, key, f'names a folder, not a file: "{name}"')
+    if not stat.S_ISREG(mode):
+        raise property_error(plugin, key, f'names no regular file (a pipe or a device): "{name}"')
     return path
+
+
+def _missing_file(name: str) -> str:
+    """Why ``name`` is no file in any folder the file resolver looks in (which takes a name
+    it cannot follow for a missing one): the first place it cannot be looked up in, else a
+    broken link, else that it exists nowhere."""
+    path = Path(name).expanduser()
+    folders = [] if path.is_absolute() else _resolver_folders()
+    for place in [Path(folder) / path for folder in folders] or [path]:
+        try:
+            place.stat()
+        except FileNotFoundError:
+            with contextlib.suppress(OSError):
+                if place.is_symlink():
+                    return f'names a broken symbolic link: "{name}" ({place})'
+        except OSError as error:  # a folder on the way that cannot be searched, a link loop
+            return f'cannot look up "{name}" ({error.strerror})'
+    searched = f" (looked for in {', '.join(folders)})" if folders else ""
+    return f'names a file that does not exist: "{name}"{searched}'

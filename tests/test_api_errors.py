@@ -20,6 +20,7 @@ from warptex.archive import (
     _temporary_name,
     dead_writes,
     file_problem,
+    is_temporary,
     write_atomically,
     write_together,
 )
@@ -187,6 +188,21 @@ def test_writers_never_share_a_temporary_name(tmp_path):
         write_atomically(tmp_path / "a.npy", lambda tmp: names.append(tmp.name)
                          or tmp.write_bytes(b"x"))
     assert len(set(names)) == 2 and all(n.startswith(".a.") for n in names)
+
+
+def test_temporary_names_are_told_alike_by_the_cache_listing_and_dead_writes(tmp_path):
+    # Earlier versions tagged temporary files with a pid and a thread id: still theirs.
+    target = tmp_path / "wtc_1.wtc"
+    old = time.time() - 2 * UNFINISHED_AGE
+    for tag in (f"12.{'0a' * _TOKEN_BYTES}", "4242.140213"):
+        name = _temporary_name(target, tag)
+        assert is_temporary(name, "wtc_", ".wtc") and not is_temporary(name, "wtb_", ".wtc")
+        (tmp_path / name).write_bytes(b"part")
+        os.utime(tmp_path / name, (old, old))
+    assert len(dead_writes(target)) == 2
+    for name in (".wtc_1.tmp.wtc", ".wtc_1.12.tmp.wtc", ".wtc_1.x.3.tmp.wtc", "wtc_1.1.2.tmp.wtc",
+                 ".wtc_1.1.2.tmp.wtb"):
+        assert not is_temporary(name, "wtc_", ".wtc"), name
 
 
 def test_dead_writes_are_a_file_s_own_temporary_files_left_over_an_hour(tmp_path):

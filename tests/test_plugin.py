@@ -91,6 +91,21 @@ def test_property_errors_name_the_property(granite_32_file, props, name):
         load(granite_32_file, **props)
 
 
+def test_a_broken_or_looping_link_is_named_as_such_not_as_a_missing_file(granite_32_file,
+                                                                           tmp_path):
+    use("scalar_rgb")
+    (tmp_path / "gone.png").symlink_to(tmp_path / "deleted.png")
+    (tmp_path / "loop.png").symlink_to(tmp_path / "loop.png")
+    expected = {"gone.png": 'names a broken symbolic link: "gone.png"',
+                "loop.png": 'cannot look up "loop.png" .Too many levels of symbolic links.'}
+    for name, message in expected.items():
+        (tmp_path / "scene.xml").write_text(
+            f'<scene version="3.0.0"><texture type="lazy_solid" id="t">'
+            f'<string name="exemplar" value="{name}"/></texture></scene>')
+        with pytest.raises(RuntimeError, match=f'property "exemplar" {message}'):
+            mi.load_file(str(tmp_path / "scene.xml"))
+
+
 def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match=r'property "exemplar" is required .*\("exemplr" is no '

@@ -107,12 +107,12 @@ def test_empty_volumes_and_images_and_a_non_bool_srgb_are_refused(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize(("write", "name", "writer"), [
-    (write_volume, "v.npy", "_write_npy"), (write_volume, "v.exr", "_write_exr"),
-    (write_volume, "v.vol", "_write_vol"), (write_image, "i.npy", "_write_npy"),
-    (write_image, "i.exr", "_write_exr")])
+@pytest.mark.parametrize(("write", "name", "writers"), [
+    (write_volume, "v.npy", "_VOLUME_WRITERS"), (write_volume, "v.exr", "_VOLUME_WRITERS"),
+    (write_volume, "v.vol", "_VOLUME_WRITERS"), (write_image, "i.npy", "_IMAGE_WRITERS"),
+    (write_image, "i.exr", "_IMAGE_WRITERS")])
 def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, monkeypatch, write, name,
-                                                        writer):
+                                                        writers):
     """A full disk in the middle of a write: the file of the same name keeps its old
     content, no temporary file is left, and the error names the file asked for."""
     import errno
@@ -128,7 +128,7 @@ def test_a_write_that_fails_half_way_leaves_the_old_file(tmp_path, monkeypatch, 
         Path(target).write_bytes(b"partial")
         raise OSError(errno.ENOSPC, "No space left on device", str(target))
 
-    monkeypatch.setattr(warptex.volume_files, writer, disk_full)
+    monkeypatch.setitem(getattr(warptex.volume_files, writers), path.suffix, disk_full)
     with pytest.raises(OSError, match="No space") as failed:
         write(path, data + 1, srgb=False)
     assert failed.value.filename == str(path)

@@ -95,6 +95,12 @@ def file_problem(path: str | Path) -> str | None:
     return folder_problem(Path(path).parent)
 
 
+def endings(suffixes: Sequence[str]) -> str:
+    """``suffixes`` as a message lists them: ".npy, .exr or .vol"."""
+    *others, last = suffixes
+    return f"{', '.join(others)} or {last}" if others else last
+
+
 def iso_date(seconds: float | None = None) -> str:
     """The date that reports and listings write: ISO 8601 in UTC, to the second, of
     ``seconds`` since the epoch (a file's modification time), else of now."""
@@ -184,18 +190,25 @@ def _temporary_name(path: Path, tag: str) -> str:
     return f".{stem}{end}"
 
 
+def _temporary_match(name: str, suffix: str) -> re.Match | None:
+    """``name`` split into stem and writer tag where it is a temporary name
+    (:func:`_temporary_name`) of a file ending in ``suffix``; None otherwise. The tag's
+    second part is any hexadecimal, as earlier versions' thread ids were, whose leftovers
+    are as dead."""
+    pattern = rf"\.(?P<stem>.*)\.(?P<tag>\d+\.[0-9a-f]+){re.escape(_TEMPORARY + suffix.lower())}"
+    return re.fullmatch(pattern, name, re.DOTALL)
+
+
 def dead_writes(path: str | Path) -> list[Path]:
     """The temporary files of ``path`` (those :func:`write_atomically` writes it under)
     older than :data:`UNFINISHED_AGE`: left by writers that died, as a killed process
     cannot delete its own."""
     path, now = Path(path), time.time()
-    pattern = re.compile(rf"\..*\.(\d+\.[0-9a-f]{{{2 * _TOKEN_BYTES}}})"
-                         rf"{re.escape(_TEMPORARY + path.suffix.lower())}", re.DOTALL)
     found = []
     with contextlib.suppress(OSError):  # no folder: no leftovers
         for entry in os.scandir(path.parent):
-            match = pattern.fullmatch(entry.name)
-            if match is None or entry.name != _temporary_name(path, match[1]):
+            match = _temporary_match(entry.name, path.suffix)
+            if match is None or entry.name != _temporary_name(path, match["tag"]):
                 continue
             with contextlib.suppress(OSError):  # renamed into place or removed meanwhile
                 if now - entry.stat(follow_symlinks=False).st_mtime > UNFINISHED_AGE:
@@ -240,7 +253,8 @@ def is_temporary(name: str, prefix: str, suffix: str) -> bool:
     """Whether ``name`` is one :func:`write_atomically` gives a file while writing it, of a
     file whose name starts with ``prefix`` and ends in ``suffix``: one a write that died
     may have left."""
-    return name.startswith("." + prefix) and name.endswith(_TEMPORARY + suffix.lower())
+    match = _temporary_match(name, suffix)
+    return match is not None and match["stem"].startswith(prefix)
 
 
 def write_archive(path: str | Path, magic: bytes, version: int,

@@ -27,6 +27,7 @@ import numpy as np
 
 from warptex import __version__
 from warptex.archive import (
+    endings,
     file_problem,
     folder_problem,
     iso_date,
@@ -89,9 +90,7 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
     if formats is not None and not suffix and path.name.lower() in formats:
         raise CliError(f"{path}: {what} needs a name before {path.name} (out{path.name}, say)")
     if formats is not None and suffix not in formats:
-        endings = " or ".join([", ".join(formats[:-1]), formats[-1]] if len(formats) > 1
-                              else formats)
-        raise CliError(f"{path}: {what} must end in {endings}")
+        raise CliError(f"{path}: {what} must end in {endings(formats)}")
     problem = file_problem(path)
     if problem is not None:
         raise CliError(f"{path}: {problem}")

@@ -14,11 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from warptex.archive import write_atomically
+from warptex.archive import endings, write_atomically
 from warptex.exemplar import reencoded
 from warptex.settings import check_flag
-
-VOLUME_FORMATS = (".npy", ".exr", ".vol")
 
 
 def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool) -> None:
@@ -31,7 +29,7 @@ def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool) -> None:
     Raises ValueError for another suffix and OSError when the file cannot be written."""
     srgb = check_flag("srgb", srgb)
     _write(path, _float_array(volume, 4, "volume", "(X, Y, Z, C)"), srgb, "a volume file",
-           {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol})
+           _VOLUME_WRITERS)
 
 
 def write_image(path: str | Path, image: np.ndarray, *, srgb: bool) -> None:
@@ -39,7 +37,7 @@ def write_image(path: str | Path, image: np.ndarray, *, srgb: bool) -> None:
     gets sRGB-encoded colors (``srgb``, as for :func:`write_volume`) decoded."""
     srgb = check_flag("srgb", srgb)
     _write(path, _float_array(image, 3, "image", "(H, W, C)"), srgb, "a lossless image file",
-           {".npy": _write_npy, ".exr": _write_exr})
+           _IMAGE_WRITERS)
 
 
 def _write(path: str | Path, data: np.ndarray, srgb: bool, kind: str,
@@ -49,8 +47,7 @@ def _write(path: str | Path, data: np.ndarray, srgb: bool, kind: str,
     path = Path(path)
     writer = writers.get(path.suffix.lower())
     if writer is None:
-        *others, last = writers
-        raise ValueError(f"{path}: {kind} must end in {', '.join(others)} or {last}")
+        raise ValueError(f"{path}: {kind} must end in {endings(list(writers))}")
     if writer is not _write_npy:
         data = reencoded(data, srgb=srgb, to_srgb=False)
     write_atomically(path, lambda tmp: writer(tmp, data))
@@ -120,3 +117,8 @@ def _write_vol(path: Path, volume: np.ndarray) -> None:
     with open(path, "wb") as file:
         file.write(header)
         file.write(data.tobytes())
+
+
+_VOLUME_WRITERS = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
+_IMAGE_WRITERS = {".npy": _write_npy, ".exr": _write_exr}
+VOLUME_FORMATS = tuple(_VOLUME_WRITERS)
