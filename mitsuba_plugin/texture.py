@@ -505,9 +505,7 @@ class LazySolidTexture(mi.Texture):
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded):
         beyond the texture's coordinate range as :func:`warptex.texture.wrap_far` moves
         them, black where a point is NaN or infinite, as Mitsuba's textures never raise."""
-        with np.errstate(invalid="ignore"):  # infinity minus infinity: NaN, filled black
-            points = wrap_far(points)
-        return _as_rgb(self.solid.query(points, filter=self.filter, fill=0.0))
+        return _as_rgb(self.solid.query(wrap_far(points), filter=self.filter, fill=0.0))
 
     def _jit_colors(self, it: mi.Interaction3f, active: mi.Bool) -> mi.Color3f:
         """RGB at the points of ``it`` where ``active``, as stored; zero elsewhere (JIT

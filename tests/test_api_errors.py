@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -96,6 +97,16 @@ def test_slice_arguments_are_checked(candidates, warp_device):
     for origin in ((0, 0), "000", (0, np.nan, 0), (1 + 2j, 0, 0)):
         with pytest.raises(ValueError, match="origin must be three finite real numbers"):
             tex.slice(origin, (1, 0, 0), (0, 1, 0), (2, 2))
+    # Finite vectors whose pixels overflow (1e308 * 2), or only reach past the range,
+    # opposite infinities making NaN of one corner: the plane is named, not query's fill=.
+    for u, v, shape in (((1e308, 0, 0), (0, 1e308, 0), (3, 3)),
+                        ((1e308, 0, 0), (-1e308, 0, 0), (3, 3)),
+                        ((0, 0, 1), (0, 1, 0), (2, 5_000_000))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match=r"the plane reaches beyond the texture's "
+                                                 r"coordinate range .*: check origin, u, v and "):
+                tex.slice((0, 0, 0), u, v, shape)
 
 
 def test_metrics_name_what_does_not_fit(granite_32):

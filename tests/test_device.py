@@ -348,3 +348,17 @@ def test_cache_command_lists_and_prunes_stale_kernel_builds(tmp_path, monkeypatc
     assert not any(made[k].exists() for k in ("other", "dead", "abandoned"))
     assert made["building"].is_dir() and made["deleting"].is_dir()
     assert all(f.is_dir() for f in made["foreign"])
+
+
+def test_an_engine_on_the_default_device_names_the_variable_not_an_argument(gpus, monkeypatch):
+    from warptex.synthesis import engine_device
+
+    gpus(0)
+    monkeypatch.setenv("WARPTEX_DEVICE", "gpu")
+    with pytest.raises(ValueError, match=r"^WARPTEX_DEVICE='gpu' is not valid"):
+        engine_device(None)
+    monkeypatch.setenv("WARPTEX_DEVICE", "cuda")
+    with pytest.raises(RuntimeError, match=r"^WARPTEX_DEVICE=cuda but Warp sees no CUDA device"):
+        engine_device(None)
+    with pytest.raises(ValueError, match=r"^device must be a Warp device .* got 'gpu'"):
+        engine_device("gpu")

@@ -4,6 +4,7 @@ space, Mitsuba's vectorization check."""
 from __future__ import annotations
 
 import re
+import warnings
 
 import drjit as dr
 import mitsuba as mi
@@ -539,6 +540,9 @@ def test_wrap_far_is_exact_and_alike_in_numpy_drjit_and_python():
     np.testing.assert_array_equal(np.array(wrap_far(mi.Float64(c), dr.select, dr.round)),
                                   wrapped)
     assert [wrap_far(float(v), _choice_of, round) for v in c] == wrapped.tolist()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isnan(wrap_far(np.array([np.inf, -np.inf, np.nan]))).all()
 
 
 @pytest.mark.filterwarnings("error")

@@ -584,6 +584,14 @@ def test_bad_requests_are_clear(candidates):
     with pytest.raises(ValueError, match="within"):
         syn.voxels(np.array([[COORD_LIMIT, 0, 0]]))
     assert syn.voxels(np.zeros((0, 3), np.int64)).shape == (0, 3)
+    # Beyond int64, and an empty box too long to be an array: the range names both.
+    for origin, shape in (((10**20, 0, 0), (1, 1, 1)), ((0, 0, 0), (0, 10**30, 10**30)),
+                          ((COORD_LIMIT - 1, 0, 0), (2, 1, 1)),
+                          ((-COORD_LIMIT - 1, 0, 0), (1, 1, 1))):
+        with pytest.raises(ValueError, match=rf"a box at origin .* of shape .* leaves the voxel "
+                                             rf"coordinates' range \[-{COORD_LIMIT}, "):
+            syn.box(origin, shape)
+    assert syn.box((COORD_LIMIT - 1, -COORD_LIMIT, 0), (1, 1, 0)).shape == (1, 1, 0, 3)
     with pytest.raises(ValueError, match="subpasses"):
         Synthesizer(candidates, subpasses=4)
     with pytest.raises(ValueError, match="jitter"):
@@ -605,10 +613,21 @@ def test_bad_requests_are_clear(candidates):
     wide = dataclasses.replace(candidates, params={**candidates.params, "neighborhood": 11})
     with pytest.raises(ValueError, match="neighbourhoods of more than 9 voxels"):
         Synthesizer(wide)
-    rng = np.random.default_rng(0)
-    many = precompute(Exemplar(rng.random((16, 16, 35), np.float32)), cache=False)
-    with pytest.raises(ValueError, match=r"35 feature channels are too many .* \(at most 34\)"):
-        Synthesizer(many)
+
+
+def test_candidates_no_synthesis_could_use_are_refused_before_they_are_computed(monkeypatch):
+    import warptex.candidates
+
+    def computed(*args):
+        raise AssertionError("pre-computed candidates the engine refuses")
+
+    monkeypatch.setattr(warptex.candidates, "_compute", computed)
+    many = Exemplar(np.random.default_rng(0).random((16, 16, 35), np.float32), name="wide")
+    with pytest.raises(ValueError, match=r"^wide: 35 feature channels are too many .* \(at most "
+                                         r"34\)"):
+        precompute(many, cache=False)
+    with pytest.raises(ValueError, match=r"35 feature channels .* \(at most 19\)"):
+        precompute(many, cache=False, neighborhood=9)
 
 
 def test_candidate_counts_reach_the_search(granite_32, candidates):

@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 
 from kernels import candidates as _k
 from kernels import common as _common
-from kernels.synthesis import BLOCK, MAX_DIMS, PROJ_LIMIT
+from kernels.synthesis import BLOCK, EXACT_ROW_TERMS, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel, warp_runtime
 from warptex.archive import ArchiveError, folder_problem, read_archive, write_archive
 from warptex.code_digest import code_digest, module_sources
@@ -216,6 +216,17 @@ class CandidateSet:
         return _unflatten(_read_file(path), path)
 
 
+def check_feature_channels(channels: int,
+                           neighborhood: int = DEFAULT_PARAMS["neighborhood"]) -> None:
+    """Refuse exemplars of more ``channels`` (colors and a feature distance) than the
+    synthesis engine's exact projections of ``neighborhood``-voxel rows add up: the
+    engine is what candidates are for, and they take minutes to pre-compute."""
+    if neighborhood * channels > EXACT_ROW_TERMS:
+        raise ValueError(f"{channels} feature channels are too many for exact projections "
+                         f"with {neighborhood}-voxel neighbourhoods (at most "
+                         f"{EXACT_ROW_TERMS // neighborhood})")
+
+
 def precompute(
     ex: Exemplar | str | Path,
     ey: Exemplar | str | Path | None = None,
@@ -241,6 +252,10 @@ def precompute(
     exemplars = [as_exemplar(e) for e in axis_triple(ex, ey, ez)]
     check_same_channels(exemplars)
     p = resolved_params(params)
+    try:
+        check_feature_channels(exemplars[0].features.shape[2], p["neighborhood"])
+    except ValueError as error:
+        raise ValueError(f"{exemplars[0].path or exemplars[0].name}: {error}") from None
     path = cache_path(exemplars, p) if cache else None
     if path is not None and cache_file_there(path):
         try:

@@ -370,8 +370,13 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_precompute(args: argparse.Namespace) -> int:
-    from warptex.candidates import cache_file_there, cache_path, precompute, resolved_params
-    from warptex.synthesis import check_feature_channels
+    from warptex.candidates import (
+        cache_file_there,
+        cache_path,
+        check_feature_channels,
+        precompute,
+        resolved_params,
+    )
 
     if args.output is not None:
         _check_output(args.output, (".wtc",), "a candidate file")
@@ -662,8 +667,8 @@ def _add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
 def _cmd_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer, box_bytes, check_feature_channels, work_voxels
+    from warptex.candidates import check_feature_channels, precompute
+    from warptex.synthesis import Synthesizer, box_bytes, work_voxels
 
     _check_output(args.output, VOLUME_FORMATS, "a volume file")
     _check_inputs_kept(args, [args.output])
@@ -972,7 +977,7 @@ def _add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def _cmd_slice(args: argparse.Namespace) -> int:
     from warptex.sheets import save_png, to_png8
-    from warptex.texture import plane_points, query_slabs
+    from warptex.texture import POINT_LIMIT, plane_points, plane_within_limit, query_slabs
 
     suffix = _check_output(args.output, (".png", ".exr", ".npy"), "the image")
     _check_inputs_kept(args, [args.output])
@@ -985,7 +990,9 @@ def _cmd_slice(args: argparse.Namespace) -> int:
                 "pixels", "use a smaller --shape, or several slices")
     for name in ("origin", "u", "v"):
         _check_finite(f"--{name}", getattr(args, name))
-    _check_plane_within_limit(args.origin, args.u, args.v, (h, w))
+    if not plane_within_limit(args.origin, args.u, args.v, (h, w)):
+        raise CliError(f"the plane reaches beyond the texture's coordinate range "
+                       f"(+-{POINT_LIMIT} voxels): check --origin, --u, --v and --shape")
     if not np.cross(args.u, args.v).any():
         warnings.warn("--u and --v are zero or parallel: the slice shows a line or a point, "
                       "not a plane", stacklevel=1)
@@ -1029,18 +1036,6 @@ def _note_png_losses(image: np.ndarray, alpha: bool) -> None:
         kept = "RGBA" if alpha else "RGB"
         warnings.warn(f"the PNG keeps 8-bit {kept}: {' and '.join(lost)}; .exr or .npy keep "
                       "all", stacklevel=1)
-
-
-def _check_plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],
-                              shape: tuple[int, int]) -> None:
-    from warptex.texture import POINT_LIMIT
-
-    h, w = shape
-    corners = [np.asarray(origin) + r * np.asarray(u) + c * np.asarray(v)
-               for r in (0, h - 1) for c in (0, w - 1)]
-    if np.abs(corners).max() >= POINT_LIMIT:
-        raise CliError(f"the plane reaches beyond the texture's coordinate range "
-                       f"(+-{POINT_LIMIT} voxels): check --origin, --u, --v and --shape")
 
 
 def _add_mesh_arguments(parser: argparse.ArgumentParser,

@@ -625,8 +625,8 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     check_count("repeats", repeats, low=1)
     axes = setup.exemplars()
     if any(m in _LAZY for m in methods):  # before any method's minutes of work
+        from warptex.candidates import check_feature_channels
         from warptex.store import check_lookup_channels
-        from warptex.synthesis import check_feature_channels
 
         try:
             check_feature_channels(axes[0].features.shape[2])

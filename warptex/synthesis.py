@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from kernels import synthesis as _k
 from kernels.common import KEY_BIAS, KEY_BITS
-from warptex.candidates import DEFAULT_PARAMS, CandidateSet
+from warptex.candidates import DEFAULT_PARAMS, CandidateSet, check_feature_channels
 from warptex.keysets import (
     cell_offsets,
     distinct_sorted,
@@ -353,24 +353,15 @@ class _LevelCache:
             np.uint64(1) << local.astype(np.uint64), starts)
 
 
-def check_feature_channels(channels: int,
-                           neighborhood: int = DEFAULT_PARAMS["neighborhood"]) -> None:
-    """Refuse exemplars of more ``channels`` (colors and a feature distance) than the
-    engine's exact projections of ``neighborhood``-voxel rows add up: callers check before
-    the candidates are pre-computed, which takes minutes for a large exemplar."""
-    if neighborhood * channels > _k.EXACT_ROW_TERMS:
-        raise ValueError(f"{channels} feature channels are too many for exact projections "
-                         f"with {neighborhood}-voxel neighbourhoods (at most "
-                         f"{_k.EXACT_ROW_TERMS // neighborhood})")
-
-
 def engine_device(device: str | None) -> str:
     """The Warp device an engine asked for ``device`` (None: :func:`warptex.device`) runs
     on, resolved once: "cuda" names whichever GPU is current on the calling thread, and
     every array and launch of an engine stays on one GPU ("cuda:0")."""
     init_warp()
+    if device is None:  # WARPTEX_DEVICE's errors name it, not an argument never given
+        return str(wp.get_device(default_device()))
     try:
-        return str(wp.get_device(device or default_device()))
+        return str(wp.get_device(device))
     except (ValueError, RuntimeError) as error:  # Warp's words name no argument
         raise ValueError(f"device must be a Warp device such as 'cpu' or 'cuda:0', got "
                          f"{device!r} ({error})") from None
@@ -469,6 +460,10 @@ class Synthesizer:
         shape = _three_ints("shape", shape)
         if min(shape) < 0:
             raise ValueError(f"shape must be three non-negative ints, got {shape}")
+        if not all(o >= -COORD_LIMIT and o + n <= COORD_LIMIT
+                   for o, n in zip(origin, shape, strict=True)):  # checked before any array
+            raise ValueError(f"a box at origin {origin} of shape {shape} leaves the voxel "
+                             f"coordinates' range [-{COORD_LIMIT}, {COORD_LIMIT})")
         need = box_bytes(shape) + 4 * self.candidates.channels * int(np.prod(shape))
         problem = memory_problem(need)
         if problem is not None:  # before allocating: too large a box would end in swapping

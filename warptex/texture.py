@@ -59,9 +59,11 @@ def wrap_far(c: Any, select: Callable = np.where, rint: Callable = np.rint) -> A
     +-POINT_LIMIT, else moved by whole periods of FAR_PERIOD voxels to within FAR_PERIOD / 2
     of the origin, so that every finite shading point has a color (the texture repeats only
     that far out). Exact in float64 at any magnitude, as the period is a power of two; NaN
-    and infinity come out NaN. ``select`` and ``rint`` (ties to even) are NumPy's by
-    default: Dr.Jit's and Python's give the same bits."""
-    return select(abs(c) < POINT_LIMIT, c, c - FAR_PERIOD * rint(c / FAR_PERIOD))
+    and infinity come out NaN, quietly (Python's ``round`` raises on them). ``select`` and
+    ``rint`` (ties to even) are NumPy's by default: Dr.Jit's and Python's give the same
+    bits."""
+    with np.errstate(invalid="ignore"):  # infinity minus infinity
+        return select(abs(c) < POINT_LIMIT, c, c - FAR_PERIOD * rint(c / FAR_PERIOD))
 
 
 # Textures of this process that have a store file, so that two of other settings are not
@@ -246,7 +248,10 @@ class SolidTexture:
         problem = memory_problem(need)
         if problem is not None:
             raise ValueError(f"a slice of shape {tuple(shape)} {problem}; take it in parts")
-        points = plane_points(np.asarray(origin), np.asarray(u), np.asarray(v), rows_cols)
+        if not plane_within_limit(origin, u, v, rows_cols):  # before its minutes of work
+            raise ValueError(f"the plane reaches beyond the texture's coordinate range "
+                             f"(+-{POINT_LIMIT} voxels): check origin, u, v and shape")
+        points = plane_points(origin, u, v, rows_cols)
         return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
     def save(self, path: str | Path | None = None) -> Path:
@@ -275,7 +280,7 @@ class SolidTexture:
         return np.broadcast_to(color, (self.channels,))
 
 
-def plane_points(origin: np.ndarray, u: np.ndarray, v: np.ndarray,
+def plane_points(origin: Sequence[float], u: Sequence[float], v: Sequence[float],
                  shape: tuple[int, int]) -> np.ndarray:
     """Points (H*W, 3) of a planar grid: pixel (r, c) lies at origin + r*u + c*v. In float64,
     as far from the origin float32 would move them by up to half a voxel."""
@@ -283,6 +288,18 @@ def plane_points(origin: np.ndarray, u: np.ndarray, v: np.ndarray,
     r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
     origin, u, v = (np.asarray(a, np.float64) for a in (origin, u, v))
     return origin + r.reshape(-1, 1) * u + c.reshape(-1, 1) * v
+
+
+def plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[float],
+                       shape: tuple[int, int]) -> bool:
+    """Whether every pixel of :func:`plane_points`' grid lies strictly within +-POINT_LIMIT,
+    as a query's points must: its corners are its extremes. Finite vectors may still
+    overflow there, and are then not within."""
+    h, w = shape
+    origin, u, v = (np.asarray(a, np.float64) for a in (origin, u, v))
+    with np.errstate(over="ignore", invalid="ignore"):
+        corners = np.array([origin + r * u + c * v for r in (0, h - 1) for c in (0, w - 1)])
+        return bool((np.abs(corners) < POINT_LIMIT).all())
 
 
 def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
