@@ -99,6 +99,7 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
 
 _INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
 _MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # trimesh's common mesh formats
+_WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are one
 
 
 def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
@@ -1138,6 +1139,14 @@ def _texture_size(args: argparse.Namespace) -> int:
     return _TEXTURE_SIZE if args.texture_size is None else args.texture_size
 
 
+def _weld_tolerance(vertices: np.ndarray) -> float:
+    """How near vertices are welded into one: trimesh's 1e-8, or less for a mesh so small
+    that this is over a millionth of its size, which would weld distinct vertices (a
+    sphere 1e-7 units across into a few dozen)."""
+    size = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    return min(_WELD_TOLERANCE, 1e-6 * size) if size > 0 else _WELD_TOLERANCE
+
+
 def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
     """The mesh of file ``path`` as trimesh processes it (vertices that coincide welded,
     unless their normals or UVs differ; unused ones dropped), or with every coincident
@@ -1152,7 +1161,13 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
         raw = trimesh.load(path, force="mesh", process=False)
         if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
             raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
-        mesh = trimesh.load(path, force="mesh")
+        # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
+        # trimesh welds at its global tolerance (its maintainer's advice is to set that).
+        saved, trimesh.tol.merge = trimesh.tol.merge, _weld_tolerance(raw.vertices)
+        try:
+            mesh = trimesh.load(path, force="mesh")
+        finally:
+            trimesh.tol.merge = saved
     except CliError:
         raise
     except NotImplementedError:  # how trimesh refuses a file type it has no reader for
@@ -1163,8 +1178,9 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
                        f"(trimesh: {error or type(error).__name__})") from None
     if len(getattr(mesh, "faces", ())) == 0:
         raise CliError(f"{path}: no triangles found")
-    if weld:
-        mesh.merge_vertices(merge_tex=True, merge_norm=True)  # whatever their normals say
+    if weld:  # whatever their normals say
+        digits = trimesh.util.decimal_to_digits(_weld_tolerance(mesh.vertices))
+        mesh.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=digits)
     if not mesh.area > 0:
         raise CliError(f"{path}: every triangle has zero area: the mesh has no surface")
     if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
