@@ -25,6 +25,7 @@ from warptex.archive import (
     write_together,
 )
 from warptex.machine import software_versions
+from warptex.parallel import deferred_stops
 from warptex.settings import MAX_SAMPLER_SEED, RENDER_BATCHES
 from warptex.store import StoreFileError, file_state, saved_when_stopped
 
@@ -204,17 +205,20 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         if problem is not None:
             beside = "" if written == output else f" (the statistics written with {output})"
             raise ValueError(f"{written}{beside}: {problem}")
-    import mitsuba as mi
-
-    import mitsuba_plugin
-
     if resolution is not None:  # before loading: a film this size may not even be made
         _check_render_size(*resolution, _samples_per_batch(spp or 1))
-    try:
-        variant = (mitsuba_plugin.set_best_variant() if variant is None
-                   else mitsuba_plugin.use_variant(variant))
-    except ValueError as e:
-        raise ValueError(f"--variant {variant}: {e}") from None
+    # A signal while Dr.Jit starts a variant's extension fails the import: it was taken for
+    # a variant this machine cannot run (a scalar render, exit 0) or crashed the process.
+    with deferred_stops():
+        import mitsuba as mi
+
+        import mitsuba_plugin
+
+        try:
+            variant = (mitsuba_plugin.set_best_variant() if variant is None
+                       else mitsuba_plugin.use_variant(variant))
+        except ValueError as e:
+            raise ValueError(f"--variant {variant}: {e}") from None
     mitsuba_plugin.register()
     params = parameters | ({} if resolution is None
                            else {"width": resolution[0], "height": resolution[1]})

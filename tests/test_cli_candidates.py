@@ -154,7 +154,7 @@ def test_tileable_overrides_what_the_photo_suggests(tmp_path, images, capsys):
 def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, private_cache,
                                                                   capsys, monkeypatch):
     """A damaged cache file that cannot be replaced (a full disk) is left as it was; the
-    summary must not call it loaded, nor written."""
+    summary must not call it loaded, nor written, and the command fails (exit 1)."""
     ex = Exemplar.load(images["a"])
     cache = cache_path([ex, ex, ex], dict(DEFAULT_PARAMS))
     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -164,14 +164,16 @@ def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, priva
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(CandidateSet, "save", disk_full)
-    assert main(["precompute", str(images["a"])]) == 0
+    # A job warming the cache failed, and exit 1 says so (it was 0: the step went green).
+    assert main(["precompute", str(images["a"])]) == 1
     captured = capsys.readouterr()
     assert "ignoring damaged candidate cache" in captured.err
     assert "candidates not cached: cannot write" in captured.err
     assert "loaded from cache" not in captured.out
     assert "(cache)" not in captured.out
-    assert ("written: nothing (the cache could not be written: see the warning above)"
-            in captured.out)
+    assert captured.err.endswith(f"warptex: error: {cache}: the candidates could not be cached "
+                                 "(the warning above says why); WARPTEX_CACHE sets the cache "
+                                 "folder\n")
     assert cache.read_bytes() == b"damaged"
 
 

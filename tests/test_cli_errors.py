@@ -684,6 +684,77 @@ def test_sigterm_is_an_interrupt_that_leaves_no_partial_file(files, tmp_path, ca
     assert signal.getsignal(signal.SIGTERM) is before
 
 
+_STOP_IN_IMPORT = """
+import os, signal, sys
+
+name, module, called_in, *argv = sys.argv[1:]
+armed, fired = [False], [False]
+
+
+class Arm:
+    def find_spec(self, spec_name, path=None, target=None):
+        armed[0] = armed[0] or spec_name == module
+
+
+def profile(frame, event, arg):
+    if armed[0] and not fired[0] and event == "call" and (
+            frame.f_code.co_filename.endswith(called_in)):
+        fired[0] = True
+        os.kill(os.getpid(), getattr(signal, name))
+
+
+from warptex.cli import main
+
+sys.meta_path.insert(0, Arm())
+sys.setprofile(profile)
+code = main(argv)
+sys.setprofile(None)
+print("fired" if fired[0] else "never fired", file=sys.stderr)
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize(("stop", "module", "called_in", "command"), [
+    # trimesh's optional imports catch every exception: the bake ran to its end, exit 0.
+    ("SIGTERM", "networkx", "", "bake"),
+    ("SIGINT", "networkx", "", "cut"),
+    # Dr.Jit's start of a variant turned it into an ImportError: a scalar render, exit 0.
+    ("SIGTERM", "mitsuba.llvm_ad_rgb", "typing.py", "render"),
+    ("SIGINT", "mitsuba.llvm_ad_rgb", "typing.py", "render"),
+])
+def test_a_stop_while_a_library_is_imported_stops_the_command(tmp_path, data_dir, stop,
+                                                              module, called_in, command):
+    """Ctrl-C or SIGTERM while a command imports a library that would lose it: the command
+    stops with 130 or 143, as at any other time, and writes nothing."""
+    import subprocess
+    import sys
+
+    import warptex
+
+    if command == "render" and warptex.best_mitsuba_variant() != "llvm_ad_rgb":
+        pytest.skip("llvm_ad_rgb needs libLLVM >= 16 (see warptex/llvm.py)")
+    root = Path(__file__).resolve().parent.parent
+    arguments = {
+        "bake": [str(root / "scenes" / "meshes" / "bunny.ply"), "--exemplar",
+                 str(data_dir / "granite_64.png"), "--resolution", "16", "-o", "out.ply"],
+        "render": [str(root / "scenes" / "bunny_wood.xml"), "--res", "16x16", "--spp", "1",
+                   "-o", "out.png"]}
+    arguments["cut"] = arguments["bake"]
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "stop.py").write_text(_STOP_IN_IMPORT)
+    kernels = os.path.abspath(os.environ.get("WARP_CACHE_PATH", root / ".cache" / "warp"))
+    run = subprocess.run([sys.executable, "stop.py", stop, module, called_in, command,
+                          *arguments[command]], cwd=work, capture_output=True, text=True,
+                         env=os.environ | {"WARPTEX_CACHE": str(tmp_path / "cache"),
+                                           "WARP_CACHE_PATH": kernels}, timeout=600)
+    assert run.stderr.endswith("fired\n") and not run.stderr.endswith("never fired\n")
+    assert run.returncode == (143 if stop == "SIGTERM" else 130), run.stderr[-2000:]
+    said = "terminated" if stop == "SIGTERM" else "interrupted"
+    assert f"\nwarptex: {said}\n" in run.stderr
+    assert sorted(p.name for p in work.iterdir()) == ["stop.py"]
+
+
 def test_first_use_of_a_kernel_cache_is_announced(tmp_path, monkeypatch, capsys, warp_device):
     import importlib
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import difflib
+import importlib
 import itertools
 import json
 import math
@@ -44,6 +45,7 @@ from warptex.exemplar import (
     srgb_encoded,
 )
 from warptex.llvm import MIN_LLVM_MAJOR
+from warptex.parallel import deferred_stops
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -405,8 +407,9 @@ def _cmd_precompute(args: argparse.Namespace) -> int:
         print(f"written: {args.output}")
     elif cache is None:
         print("written: nothing (--no-cache without -o)")
-    elif cs.cache_status == "not written":
-        print("written: nothing (the cache could not be written: see the warning above)")
+    if cs.cache_status == "not written":  # the cache is what a job warming it is run for
+        raise _WorkFailed(f"{cache}: the candidates could not be cached (the warning above "
+                          "says why); WARPTEX_CACHE sets the cache folder")
     return 0
 
 
@@ -1887,6 +1890,12 @@ def _terminated_like_interrupted() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+# Libraries whose imports would lose a Ctrl-C or SIGTERM (trimesh's optional imports catch
+# every exception), imported by the commands that use them before any work, stops held
+# back until they are in.
+_STOP_LOSING_LIBRARIES = {"bake": ("trimesh",), "cut": ("trimesh",)}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -1900,6 +1909,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.command not in ("info", "cache"):  # the two that use no device
                 _check_device()
                 _note_kernel_build()
+            with deferred_stops():
+                for library in _STOP_LOSING_LIBRARIES.get(args.command, ()):
+                    importlib.import_module(library)
             code = command(args)
             sys.stdout.flush()  # here, so that a reader gone early is handled below
             return code
