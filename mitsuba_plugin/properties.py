@@ -119,11 +119,11 @@ def _missing_file(name: str) -> str:
     for place in [Path(folder) / path for folder in folders] or [path]:
         try:
             place.stat()
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):  # a file on the way: none there either
             with contextlib.suppress(OSError):
                 if place.is_symlink():
                     return f'names a broken symbolic link: "{name}" ({place})'
         except OSError as error:  # a folder on the way that cannot be searched, a link loop
-            return f'cannot look up "{name}" ({error.strerror})'
+            return f'cannot look up "{name}" ({place}: {error.strerror})'
     searched = f" (looked for in {', '.join(folders)})" if folders else ""
     return f'names a file that does not exist: "{name}"{searched}'

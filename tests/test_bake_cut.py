@@ -734,14 +734,14 @@ def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, d
 def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path, data_dir,
                                                                         warp_device):
     """Coincident vertices were welded to 8 decimals whatever the mesh's size: a sphere
-    1e-7 units across lost all but a few dozen of its 642 vertices. The block scales any
+    2e-8 units across kept 26 of its 642 vertices. The block scales any
     mesh to its voxels, so the tiny one now gets the same colors, and its cut halves are
     as closed."""
     from warptex.cli import _weld_tolerance, main
 
     exemplar = str(data_dir / "granite_64.png")
     baked, halves = {}, {}
-    for scale in (1.0, 1e-7):
+    for scale in (1.0, 1e-8):  # a radius
         sphere = trimesh.creation.icosphere(subdivisions=3)
         sphere.apply_scale(scale)
         sphere.export(tmp_path / f"s{scale}.ply")
@@ -756,9 +756,9 @@ def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path,
             digits = trimesh.util.decimal_to_digits(_weld_tolerance(half.vertices))
             half.merge_vertices(digits_vertex=digits)
             halves[scale].append((len(half.vertices), half.is_watertight))
-    assert len(baked[1e-7].vertices) == 642
-    np.testing.assert_array_equal(baked[1e-7].visual.vertex_colors, baked[1.0].visual.vertex_colors)
-    assert halves[1e-7] == halves[1.0] and all(closed for _, closed in halves[1.0])
+    assert len(baked[1e-8].vertices) == 642
+    np.testing.assert_array_equal(baked[1e-8].visual.vertex_colors, baked[1.0].visual.vertex_colors)
+    assert halves[1e-8] == halves[1.0] and all(closed for _, closed in halves[1.0])
 
 
 def test_bake_refuses_nan_uvs_of_the_mesh(tmp_path, data_dir, warp_device, capsys):

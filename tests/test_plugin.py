@@ -97,8 +97,11 @@ def test_a_broken_or_looping_link_is_named_as_such_not_as_a_missing_file(granite
     use("scalar_rgb")
     (tmp_path / "gone.png").symlink_to(tmp_path / "deleted.png")
     (tmp_path / "loop.png").symlink_to(tmp_path / "loop.png")
+    (tmp_path / "f.png").write_bytes(b"")  # a file where a folder would be: no such file
     expected = {"gone.png": 'names a broken symbolic link: "gone.png"',
-                "loop.png": 'cannot look up "loop.png" .Too many levels of symbolic links.'}
+                "loop.png": f'cannot look up "loop.png" .{tmp_path / "loop.png"}: Too many levels '
+                            "of symbolic links.",
+                "f.png/y.png": 'names a file that does not exist: "f.png/y.png" .looked for in '}
     for name, message in expected.items():
         (tmp_path / "scene.xml").write_text(
             f'<scene version="3.0.0"><texture type="lazy_solid" id="t">'

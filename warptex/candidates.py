@@ -252,10 +252,10 @@ def precompute(
     exemplars = [as_exemplar(e) for e in axis_triple(ex, ey, ez)]
     check_same_channels(exemplars)
     p = resolved_params(params)
-    try:
+    try:  # before the cache folder is looked at, as for any exemplar that cannot be used
         check_feature_channels(exemplars[0].features.shape[2], p["neighborhood"])
     except ValueError as error:
-        raise ValueError(f"{exemplars[0].path or exemplars[0].name}: {error}") from None
+        raise ExemplarError(f"{exemplars[0].path or exemplars[0].name}: {error}") from None
     path = cache_path(exemplars, p) if cache else None
     if path is not None and cache_file_there(path):
         try:
