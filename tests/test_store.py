@@ -699,6 +699,33 @@ def test_saves_to_one_file_merge_rather_than_replace(candidates, tmp_path: Path)
     assert BrickStore.load(path, synthesizer(candidates, seed=3)).stats()["voxels"] == 1
 
 
+def test_a_store_file_that_cannot_be_used_is_reported_once(candidates, tmp_path: Path):
+    """Loading reports a damaged or another texture's file, and saving replaces it without
+    saying so again (a stale store after an upgrade was reported twice in one render);
+    a file that changed since loading is reported anew."""
+    import warnings
+
+    path = tmp_path / "s.wtb"
+    syn = synthesizer(candidates)
+    other = BrickStore(synthesizer(candidates, seed=3), whole_bricks=False)
+    other.prefetch(np.array([[0, 0, 0]]))
+    other.save(path)
+    with pytest.warns(UserWarning, match="ignoring brick store file.*another texture") as said:
+        store = BrickStore.load(path, syn, whole_bricks=False)
+    assert len(said) == 1
+    store.prefetch(np.array([[1, 0, 0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert store.save(path)
+    assert BrickStore.load(path, syn).stats()["voxels"] == 1
+    with pytest.warns(UserWarning, match="ignoring brick store file"):
+        again = BrickStore.load(path, synthesizer(candidates, seed=3), whole_bricks=False)
+    path.write_bytes(path.read_bytes()[:100])  # damaged since it was loaded
+    again.prefetch(np.array([[2, 0, 0]]))
+    with pytest.warns(UserWarning, match="replacing brick store file"):
+        again.save(path)
+
+
 def test_a_store_saved_through_a_symbolic_link_merges_into_its_target(candidates,
                                                                     tmp_path: Path):
     """Saving through a link writes the file it points to, in turns with saves to that

@@ -451,6 +451,8 @@ class BrickStore:
         self._version = 0
         # The store file last loaded from or written (file_state) and the version then.
         self._synced: tuple | None = None
+        # The store file that loading reported and ignored (file_state): replaced unsaid.
+        self._ignored: tuple | None = None
         self._seconds = 0.0
 
     # -- public API -------------------------------------------------------------------
@@ -578,11 +580,10 @@ class BrickStore:
         bricks count as older than ours, and the most recent that fit ``cache_bytes``, the
         memory that the file's bricks take, or that ours take once merged with the file's
         copies of them (a partly filled brick grows), whichever is largest, are written, so
-        every brick of ours is. Saves to
-        one file take turns, so none loses the bricks of another. A damaged file or
-        another texture's is replaced, with a warning. A save that writes deletes the
-        temporary files that saves killed over :data:`~warptex.archive.UNFINISHED_AGE` ago
-        left beside the file.
+        every brick of ours is. Saves to one file take turns, so none loses the bricks of
+        another. A damaged file or another texture's is replaced, with a warning unless
+        loading gave one for it. A save that writes deletes the temporary files that saves
+        killed over :data:`~warptex.archive.UNFINISHED_AGE` ago left beside the file.
 
         The file is left as it is, and False returned, when it is the one this store was
         loaded from or last saved to, unchanged since, and no voxel was stored since: it
@@ -607,7 +608,8 @@ class BrickStore:
             try:
                 saved = self._read(path) if path.exists() and not _empty_file(path) else None
             except StoreFileError as e:
-                warnings.warn(f"replacing brick store file: {e}", stacklevel=2)
+                if state != self._ignored:  # reported once, when it was loaded
+                    warnings.warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None
             budget = self.cache_bytes
             if saved is not None:  # a store of less room does not shrink a shared file
@@ -645,6 +647,7 @@ class BrickStore:
             kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
             warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
+            store._ignored = state
             return store
         with store._changing():
             store._fill(kept)
