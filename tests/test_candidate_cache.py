@@ -106,6 +106,10 @@ def test_cache_files_tell_each_kind_apart(folder, computed, image):
         f".{current.stem}.789.1.tmp.wtc": cc.BEING_WRITTEN,
     }
     assert files[current.name].names == (image.name,) * 3
+    # What another format's file was for, where it recorded it as this one does (the
+    # listing called it "(not recorded)"); nothing of a damaged one.
+    assert files[f"candidates-{'0' * 40}.wtc"].names == (image.name,) * 3
+    assert files[f"candidates-{'1' * 40}.wtc"].names == ()
     assert files[current.name].size == current.stat().st_size
     assert [f.modified for f in files.values()] == sorted(f.modified for f in files.values())
     assert cc.cache_files(folder / "not yet made") == []

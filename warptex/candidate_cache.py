@@ -134,7 +134,11 @@ def _status(path: Path) -> tuple[str, dict]:
     if version is None:
         return DAMAGED, {}
     if version != FORMAT_VERSION:
-        return OTHER_VERSION, {}
+        try:  # what it was computed for, where that version recorded it as this one does
+            names = read_cache_meta(path, version).get("names")
+        except CandidateCacheError:
+            names = None
+        return OTHER_VERSION, {"names": names} if isinstance(names, list) else {}
     try:
         meta = read_cache_meta(path)
     except CandidateCacheError:

@@ -303,17 +303,18 @@ def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[
     return arrays
 
 
-def read_cache_meta(path: Path) -> dict:
-    """What a whole (checksummed) candidate file of this format version says it holds:
-    ``digests`` and ``params``, which name it (:func:`cache_file_name`), and ``names``
-    where recorded; CandidateCacheError otherwise."""
-    return _meta(_read_file(path), path)
+def read_cache_meta(path: Path, version: int = FORMAT_VERSION) -> dict:
+    """What a whole (checksummed) candidate file of this format version (or of
+    ``version``, where its record reads alike) says it holds: ``digests`` and ``params``,
+    which name it (:func:`cache_file_name`), and ``names`` where recorded;
+    CandidateCacheError otherwise."""
+    return _meta(_read_file(path, version), path)
 
 
-def _read_file(path: str | Path) -> dict[str, np.ndarray]:
-    """The arrays of a whole candidate file of this format version (CandidateCacheError
-    otherwise), before its contents are checked."""
-    return read_archive(path, FILE_MAGIC, FORMAT_VERSION, "candidate", CandidateCacheError)
+def _read_file(path: str | Path, version: int = FORMAT_VERSION) -> dict[str, np.ndarray]:
+    """The arrays of a whole candidate file of this format version, or of ``version``
+    (CandidateCacheError otherwise), before its contents are checked."""
+    return read_archive(path, FILE_MAGIC, version, "candidate", CandidateCacheError)
 
 
 def _meta(arrays: dict[str, np.ndarray], path: Path) -> dict:
