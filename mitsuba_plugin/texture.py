@@ -366,8 +366,10 @@ class LazySolidTexture(mi.Texture):
         self._stand_in = tuple(float(c) for c in np.mean([a.mean(axis=0) for a in axes], 0))
         # What eval gives on average (the mean channel; luminance in a monochrome variant)
         # and at most (spectra may exceed a color's largest channel, but never 1).
-        mean_rgb, max_rgb = _voxel_color_range(axes, self._decode_srgb)
+        mean_rgb, min_rgb, max_rgb = _voxel_color_range(axes, self._decode_srgb)
         self._mean = float(mean_rgb.mean())
+        # No color of it is lower: a medium refuses an extinction that may be negative.
+        self.lowest = float(min_rgb.min())
         if mi.is_monochromatic:
             self._mean = float(np.ravel(luminance(mi.Color3f(*map(float, mean_rgb))))[0])
         self._max = 1.0 if mi.is_spectral else float(max_rgb.max())
@@ -684,19 +686,23 @@ def _axis_colors(candidates: CandidateSet) -> list[np.ndarray]:
             for k in candidates.axis_source]
 
 
-def _voxel_color_range(axes: list[np.ndarray], decode: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The mean RGB of the voxels of exemplars ``axes`` (:func:`_axis_colors`) and a bound
-    on their channels, as eval gives them (decoded from sRGB where ``decode``): each axis
-    weighs the same, whatever its size, and a voxel's three pixels are averaged before they
-    are decoded. The mean is estimated on a fixed sample of pixel triples; the bound is
-    exact, since a voxel averages its pixels in the same float32 order."""
-    bound = (axes[0].max(axis=0) + axes[1].max(axis=0) + axes[2].max(axis=0)) / np.float32(3)
+def _voxel_color_range(axes: list[np.ndarray],
+                       decode: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean RGB of the voxels of exemplars ``axes`` (:func:`_axis_colors`) and bounds
+    below and above on their channels, as eval gives them (decoded from sRGB where
+    ``decode``): each axis weighs the same, whatever its size, and a voxel's three pixels
+    are averaged before they are decoded. The mean is estimated on a fixed sample of pixel
+    triples; the bounds are exact, since a voxel averages its pixels in the same float32
+    order, and filtering only mixes voxels."""
+    low, high = ((f(axes[0], axis=0) + f(axes[1], axis=0) + f(axes[2], axis=0)) / np.float32(3)
+                 for f in (np.min, np.max))
     if not decode:
-        return np.mean([a.mean(axis=0, dtype=np.float64) for a in axes], axis=0), bound
+        return np.mean([a.mean(axis=0, dtype=np.float64) for a in axes], axis=0), low, high
     rng = np.random.default_rng(0)
     triples = [a[rng.integers(len(a), size=_MEAN_SAMPLES)] for a in axes]
     voxels = (triples[0] + triples[1] + triples[2]) / np.float32(3)
-    return srgb_to_linear(voxels).mean(axis=0, dtype=np.float64), srgb_to_linear(bound)
+    return (srgb_to_linear(voxels).mean(axis=0, dtype=np.float64), srgb_to_linear(low),
+            srgb_to_linear(high))
 
 
 def _as_rgb(colors: np.ndarray) -> np.ndarray:

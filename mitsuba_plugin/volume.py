@@ -31,6 +31,11 @@ from mitsuba_plugin.properties import (
 from mitsuba_plugin.spectrum import luminance, spectrum
 
 MEDIUM = "lazy_solid_medium"
+# Mitsuba's heterogeneous medium exists only within its sigma_t volume's bounding box, the
+# unit cube [0, 1]^3 unless the volume's to_world places it: the volumes made here span
+# this far each way (world units), so that the medium fills the shape it is the inside of,
+# as the unbounded texture does and as a homogeneous medium would.
+_REACH = 1e7
 # Besides these, a nested phase function, which may go by any name (unnamed, the parser's
 # "_arg_0"); "phase" is in _PROPERTIES for the typos of it.
 _VALUES = ("albedo", "sigma_t", "scale", "sample_emitters")
@@ -42,7 +47,9 @@ class LazySolidVolume(mi.Volume):
     spectrum (``eval``) or as RGB (``eval_3``)."""
 
     def __init__(self, texture: mi.Texture) -> None:
-        super().__init__(mi.Properties())
+        props = mi.Properties()
+        props["to_world"] = _everywhere()
+        super().__init__(props)
         self.texture = texture
         self._max = texture.max()
 
@@ -66,6 +73,12 @@ class LazySolidVolume(mi.Volume):
 
     def to_string(self) -> str:
         return f"LazySolidVolume[texture={self.texture.to_string()}]"
+
+
+def _everywhere() -> mi.ScalarTransform4f:
+    """The unit cube made the cube of +-_REACH."""
+    return (mi.ScalarTransform4f().translate([-_REACH] * 3)
+            @ mi.ScalarTransform4f().scale(2 * _REACH))
 
 
 def _check_world_space(name: str, texture: mi.Texture) -> None:
@@ -103,6 +116,10 @@ def lazy_solid_medium(props: mi.Properties,
     sigma_t = props.get("sigma_t", 1.0)
     if hasattr(sigma_t, "colors_at"):  # a lazy_solid: read at each point, as the albedo
         _check_world_space("sigma_t", sigma_t)
+        if sigma_t.lowest < 0:
+            raise property_error(MEDIUM, "sigma_t", "is a lazy_solid whose exemplar holds "
+                                 f"negative values (down to {sigma_t.lowest:.3g}); an "
+                                 "extinction is never negative")
         sigma_t = volume_type(sigma_t)
     elif isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
         sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too
@@ -120,6 +137,9 @@ def lazy_solid_medium(props: mi.Properties,
     scale = get_property(props, "scale", float, 1.0, MEDIUM)
     if not (math.isfinite(scale) and scale >= 0):
         raise property_error(MEDIUM, "scale", f"must be finite and not negative, got {scale}")
+    if not isinstance(sigma_t, mi.Volume):  # a number or a colour: everywhere, as textures
+        sigma_t = mi.load_dict({"type": "constvolume", "value": sigma_t,
+                                "to_world": _everywhere()})
     medium = {"type": "heterogeneous", "albedo": volume_type(albedo), "sigma_t": sigma_t,
               "scale": scale,
               "sample_emitters": get_property(props, "sample_emitters", bool, True, MEDIUM)}

@@ -176,6 +176,55 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     assert mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo}).use_emitter_sampling()
 
 
+def _medium_cube_scene(medium: dict, spp: int = 2, depth: int = 8) -> mi.Scene:
+    """The cube [-1, 1]^3 filled with ``medium``, seen from +z under a white sky."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "volpath", "max_depth": depth},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "sampler": {"type": "independent", "sample_count": spp},
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8,
+                            "rfilter": {"type": "box"}}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+        "cube": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium}})
+
+
+@pytest.mark.filterwarnings("ignore:lazy_solid.*image is constant")
+def test_the_medium_fills_its_shape_as_a_homogeneous_one(tmp_path):
+    """Mitsuba's heterogeneous medium exists only within its sigma_t volume's box, the unit
+    cube [0, 1]^3 unless placed: lazy_solid_medium filled an eighth of a cube [-1, 1]^3
+    (and of the bundled scene's block). Of one colour everywhere, it now renders as
+    Mitsuba's homogeneous medium of that colour, the same samples giving the same pixels.
+    (The box is Mitsuba's C++ in every variant; the scalar ones render this slowly.)"""
+    from PIL import Image
+
+    use(LLVM)
+    flat = tmp_path / "flat.png"
+    Image.fromarray(np.full((32, 32, 3), (200, 120, 60), np.uint8)).save(flat)
+    albedo = mi.ScalarColor3f(warptex.exemplar.srgb_to_linear(
+        np.array([200, 120, 60], np.float32) / 255))
+    lazy_texture = {"type": "lazy_solid", "exemplar": str(flat)}
+    homogeneous = rgb(mitsuba_plugin.render(_medium_cube_scene(
+        {"type": "homogeneous", "albedo": {"type": "rgb", "value": albedo}, "sigma_t": 2.0})))
+    for sigma_t in (2.0, {"type": "rgb", "value": [2.0, 2.0, 2.0]}):
+        lazy_medium = {"type": "lazy_solid_medium", "albedo": lazy_texture, "sigma_t": sigma_t}
+        np.testing.assert_allclose(rgb(mitsuba_plugin.render(_medium_cube_scene(lazy_medium))),
+                                   homogeneous, rtol=1e-5, atol=1e-6)
+
+
+def test_a_lazy_solid_sigma_t_of_negative_values_is_refused(tmp_path):
+    use("scalar_rgb")
+    values = np.random.default_rng(0).uniform(-0.7, 3.0, (32, 32, 3)).astype(np.float32)
+    np.save(tmp_path / "signed.npy", values)
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    with pytest.raises(RuntimeError, match='lazy_solid_medium: property "sigma_t" is a lazy_solid '
+                       r"whose exemplar holds negative values \(down to -0\.6"):
+        mi.load_dict({"type": "lazy_solid_medium",
+                      "albedo": {"type": "lazy_solid", "exemplar": str(wood)},
+                      "sigma_t": {"type": "lazy_solid", "exemplar": str(tmp_path / "signed.npy")}})
+
+
 def test_a_lazy_solid_sigma_t_varies_with_the_point_as_the_texture_does():
     """Mitsuba's texture-to-volume conversion reads a texture at p = 0 only: a lazy_solid
     sigma_t was the texture's colour at the origin everywhere."""
