@@ -131,7 +131,14 @@ def lazy_solid_medium(props: mi.Properties,
         raise property_error(MEDIUM, "sigma_t", f"is a {kind} texture, which Mitsuba's media "
                              "read at one point only: give a lazy_solid texture, a <float ...>, "
                              "a colour or a nested volume")
-    elif isinstance(sigma_t, str | bool):  # colours, spectra and volumes Mitsuba checks
+    elif "sigma_t" in props and props.type("sigma_t") == mi.Properties.Type.Color:
+        # As Mitsuba's media take an <rgb>: a reflectance-like colour, scale multiplying it.
+        rgb = [float(c) for c in sigma_t]
+        if not all(math.isfinite(c) and 0 <= c <= 1 for c in rgb):
+            raise property_error(MEDIUM, "sigma_t", "must be a colour of channels within "
+                                 "[0, 1], as Mitsuba's media take one (scale multiplies it), "
+                                 f"got {', '.join(f'{c:g}' for c in rgb)}")
+    elif isinstance(sigma_t, str | bool):  # spectra and volumes Mitsuba checks
         raise property_error(MEDIUM, "sigma_t", f"must be a <float ...>, a colour or a nested "
                              f"volume, got {sigma_t!r}")
     scale = get_property(props, "scale", float, 1.0, MEDIUM)

@@ -172,6 +172,11 @@ def test_bundled_medium_scene_renders_its_wood_albedo():
     coloured = mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
                              "sigma_t": {"type": "rgb", "value": [0.5, 0.4, 0.3]}})
     assert "sigma_t" in str(coloured)  # an <rgb> sigma_t, as Mitsuba's heterogeneous takes
+    for value, shown in (([1.0, 2.0, 3.0], "1, 2, 3"), ([float("nan"), 1.0, 1.0], "nan, 1, 1")):
+        with pytest.raises(RuntimeError, match=r'lazy_solid_medium: property "sigma_t" must be a '
+                           rf"colour of channels within \[0, 1\].*got {shown}"):
+            mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo,
+                          "sigma_t": {"type": "rgb", "value": value}})
     assert not quiet.use_emitter_sampling()
     assert mi.load_dict({"type": "lazy_solid_medium", "albedo": albedo}).use_emitter_sampling()
 
@@ -207,8 +212,9 @@ def test_the_medium_fills_its_shape_as_a_homogeneous_one(tmp_path):
     lazy_texture = {"type": "lazy_solid", "exemplar": str(flat)}
     homogeneous = rgb(mitsuba_plugin.render(_medium_cube_scene(
         {"type": "homogeneous", "albedo": {"type": "rgb", "value": albedo}, "sigma_t": 2.0})))
-    for sigma_t in (2.0, {"type": "rgb", "value": [2.0, 2.0, 2.0]}):
-        lazy_medium = {"type": "lazy_solid_medium", "albedo": lazy_texture, "sigma_t": sigma_t}
+    for sigma_t, scale in ((2.0, 1.0), ({"type": "rgb", "value": [0.5, 0.5, 0.5]}, 4.0)):
+        lazy_medium = {"type": "lazy_solid_medium", "albedo": lazy_texture, "sigma_t": sigma_t,
+                       "scale": scale}
         np.testing.assert_allclose(rgb(mitsuba_plugin.render(_medium_cube_scene(lazy_medium))),
                                    homogeneous, rtol=1e-5, atol=1e-6)
 
