@@ -202,7 +202,12 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
     loaded: dict[Path, Exemplar] = {}
     mask = features.get("feature_mask")
     for key, path in named:
-        if path not in loaded:
+        if path in loaded:
+            continue
+        # Warnings' hooks are the process's, not a thread's, and Mitsuba builds a scene's
+        # textures on several threads: captures that overlapped lost or doubled warnings
+        # (and could leave a dead capture in place for every later one).
+        with _CAPTURING_WARNINGS:
             try:
                 with warnings.catch_warnings(record=True) as said:
                     warnings.simplefilter("always")
@@ -215,6 +220,9 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
             for warning in said:
                 _rewarn(warning, path)
     return [loaded[path] for _, path in named]
+
+
+_CAPTURING_WARNINGS = threading.Lock()
 
 
 def _rewarn(warning: warnings.WarningMessage, path: Path) -> None:

@@ -110,6 +110,46 @@ def test_a_broken_or_looping_link_is_named_as_such_not_as_a_missing_file(granite
             mi.load_file(str(tmp_path / "scene.xml"))
 
 
+_PARALLEL_WARNINGS = """
+import sys, warnings
+import warptex, mitsuba as mi, mitsuba_plugin
+
+mi.set_variant("scalar_rgb")
+mitsuba_plugin.register()
+textures = "".join(f'<texture type="lazy_solid" id="t{i}"><string name="exemplar" '
+                   f'value="{name}"/></texture>' for i, name in enumerate(sys.argv[1:]))
+with warnings.catch_warnings(record=True) as said:
+    warnings.simplefilter("always")
+    mi.load_string(f'<scene version="3.0.0">{textures}</scene>')
+print("\\n".join(sorted(str(w.message) for w in said)))
+"""
+
+
+def test_each_texture_s_exemplar_warning_comes_once_when_mitsuba_loads_them_in_parallel(
+        tmp_path):
+    """Mitsuba builds a scene's textures on several threads, and warnings' hooks are the
+    process's: captures that overlapped lost warnings or gave them twice the plugin's
+    prefix (and could leave a dead capture swallowing every later warning). In a process
+    of its own, as `warptex render` loads scenes."""
+    import os
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    names = [tmp_path / f"flat_{i}.png" for i in range(6)]
+    for i, name in enumerate(names):
+        Image.fromarray(np.full((32, 32, 3), 100 + i, np.uint8)).save(name)
+    kernels = os.path.abspath(os.environ.get("WARP_CACHE_PATH", ".cache/warp"))
+    run = subprocess.run([sys.executable, "-c", _PARALLEL_WARNINGS, *map(str, names)],
+                         capture_output=True, text=True, timeout=300,
+                         env=os.environ | {"WARP_CACHE_PATH": kernels,
+                                           "WARPTEX_CACHE": str(tmp_path / "cache")})
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.splitlines() == [
+        f"lazy_solid: {name}: image is constant; nothing to synthesize" for name in names]
+
+
 def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match=r'property "exemplar" is required .*\("exemplr" is no '
