@@ -62,8 +62,16 @@ def wrap_far(c: Any, select: Callable = np.where, rint: Callable = np.rint) -> A
     and infinity come out NaN, quietly (Python's ``round`` raises on them). ``select`` and
     ``rint`` (ties to even) are NumPy's by default: Dr.Jit's and Python's give the same
     bits."""
+    if not isinstance(c, np.ndarray | np.generic):
+        # Python floats, per coordinate of each shading point of the scalar variants, or
+        # Dr.Jit arrays: no NumPy warning to mute, which would cost 5x the work.
+        return _moved_by_periods(c, select, rint)
     with np.errstate(invalid="ignore"):  # infinity minus infinity
-        return select(abs(c) < POINT_LIMIT, c, c - FAR_PERIOD * rint(c / FAR_PERIOD))
+        return _moved_by_periods(c, select, rint)
+
+
+def _moved_by_periods(c: Any, select: Callable, rint: Callable) -> Any:
+    return select(abs(c) < POINT_LIMIT, c, c - FAR_PERIOD * rint(c / FAR_PERIOD))
 
 
 # Textures of this process that have a store file, so that two of other settings are not
