@@ -138,6 +138,7 @@ from warptex.settings import (
 )
 from warptex.store import StoreFileError, check_lookup_channels
 from warptex.texture import SolidTexture, wrap_far
+from warptex.thread_warnings import Warned, captured
 
 PLUGIN = "lazy_solid"
 _SPACES = ("world", "object")
@@ -204,28 +205,21 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
     for key, path in named:
         if path in loaded:
             continue
-        # Warnings' hooks are the process's, not a thread's, and Mitsuba builds a scene's
-        # textures on several threads: captures that overlapped lost or doubled warnings
-        # (and could leave a dead capture in place for every later one).
-        with _CAPTURING_WARNINGS:
-            try:
-                with warnings.catch_warnings(record=True) as said:
-                    warnings.simplefilter("always")
-                    loaded[path] = Exemplar.load(path, max_size=max_size, **features)
-            except (ValueError, OSError) as e:
-                # Exemplar.load's errors begin with the file at fault.
-                at_fault = ("feature_mask" if mask is not None and str(e).startswith(f"{mask}: ")
-                            else key)
-                raise property_error(PLUGIN, at_fault, f"cannot be used: {e}") from e
-            for warning in said:
-                _rewarn(warning, path)
+        try:
+            # Of this thread only: Mitsuba builds a scene's textures on several threads.
+            with captured() as said:
+                loaded[path] = Exemplar.load(path, max_size=max_size, **features)
+        except (ValueError, OSError) as e:
+            # Exemplar.load's errors begin with the file at fault.
+            at_fault = ("feature_mask" if mask is not None and str(e).startswith(f"{mask}: ")
+                        else key)
+            raise property_error(PLUGIN, at_fault, f"cannot be used: {e}") from e
+        for warning in said:
+            _rewarn(warning, path)
     return [loaded[path] for _, path in named]
 
 
-_CAPTURING_WARNINGS = threading.Lock()
-
-
-def _rewarn(warning: warnings.WarningMessage, path: Path) -> None:
+def _rewarn(warning: Warned, path: Path) -> None:
     """A warning of Exemplar.load as a scene's author reads it: the plugin has no alpha
     property to keep the channel with, as the API and the command line have."""
     message = str(warning.message)
@@ -359,8 +353,7 @@ class LazySolidTexture(mi.Texture):
         except ValueError as e:  # the exemplars do not go together
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
-            with warnings.catch_warnings(record=True) as said:  # a store file ignored
-                warnings.simplefilter("always")
+            with captured() as said:  # a store file ignored
                 self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                           passes=self.passes, cache_bytes=cache_bytes,
                                           store=store, shifted_tiles=self.shifted_tiles)

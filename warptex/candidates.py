@@ -18,7 +18,6 @@ import hashlib
 import json
 import os
 import sys
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache, cached_property
@@ -47,6 +46,7 @@ from warptex.exemplar import (
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 from warptex.settings import check_file_name, check_flag, check_tileable, is_integer
+from warptex.thread_warnings import warn
 from warptex.warp_runtime import init_warp
 
 FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
@@ -263,7 +263,7 @@ def precompute(
             loaded.cache_status = "loaded"
             return loaded
         except CandidateCacheError as e:
-            warnings.warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
+            warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     _check_size(exemplars)
     result = _compute(exemplars, p, progress)
     if path is not None:
@@ -276,8 +276,8 @@ def precompute(
             problem = folder_problem(path.parent)
             why = (f"{path.parent}: {problem}" if problem is not None
                    else f"cannot write {path} ({e.strerror or e})")
-            warnings.warn(f"candidates not cached: {why}; WARPTEX_CACHE sets the cache folder",
-                          stacklevel=2)
+            warn(f"candidates not cached: {why}; WARPTEX_CACHE sets the cache folder",
+                 stacklevel=2)
     return result
 
 
@@ -347,9 +347,9 @@ def _check_size(exemplars: list[Exemplar]) -> None:
     if problem is not None:
         raise ExemplarError(f"{what}; pre-computing its candidates {problem}; {_SHRINK_ADVICE}")
     if h * w > LARGE_PIXELS:
-        warnings.warn(f"{what}, a large exemplar: pre-computing its candidates takes minutes "
-                      "to hours (5 minutes at 512x512 on 2 CPU cores), once, as they are "
-                      f"cached; to {_SHRINK_ADVICE}", stacklevel=3)
+        warn(f"{what}, a large exemplar: pre-computing its candidates takes minutes "
+             "to hours (5 minutes at 512x512 on 2 CPU cores), once, as they are "
+             f"cached; to {_SHRINK_ADVICE}", stacklevel=3)
 
 
 def cache_dir() -> Path:

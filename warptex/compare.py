@@ -70,6 +70,7 @@ from warptex.settings import (
     check_tileable,
     tileable_word,
 )
+from warptex.thread_warnings import captured
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes
 # Of table.json; 2: format, axes, passes, exemplar max size and digest; 3: pre-computation
@@ -227,8 +228,7 @@ def _read_axes(setup: Setup) -> Axes:
     paths = setup.paths()
     files = {}
     for path in dict.fromkeys(paths):
-        with warnings.catch_warnings(record=True) as said:
-            warnings.simplefilter("always")
+        with captured() as said:
             files[path] = Exemplar.load(path, **setup.load_options())
         for warning in said:  # the loader's advice names an option compare does not have
             text = (f"{path}: alpha channel dropped (compare measures colors only)"
@@ -461,8 +461,7 @@ def _check_unchanged(setup: Setup) -> None:
     ``setup`` read: the lazy cube's plugin reads the files again, and would otherwise show
     an image the scores never saw."""
     for path, e in dict(zip(setup.paths(), setup.exemplars(), strict=True)).items():
-        with warnings.catch_warnings():  # said when first read
-            warnings.simplefilter("ignore")
+        with captured():  # said when first read
             now = Exemplar.load(path, **setup.load_options())
         if now.digest() != e.digest():  # of the features too: a changed mask shows here
             raise ExemplarError(f"{path}: changed while the comparison ran; run it again")

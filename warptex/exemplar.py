@@ -25,7 +25,6 @@ import os
 import re
 import stat
 import tokenize
-import warnings
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -45,6 +44,7 @@ from warptex.settings import (
     check_max_size,
     check_tileable,
 )
+from warptex.thread_warnings import library_warnings, warn
 
 MAX_CHANNELS = 64
 # Above this, an exemplar's wrap differs so much more than its neighbouring pixels that it
@@ -145,7 +145,7 @@ class Exemplar:
             self.features = np.concatenate([self.colors, distance[..., None]], axis=2)
             self.features.setflags(write=False)
         if self.constant:
-            warnings.warn(f"{name}: image is constant; nothing to synthesize", stacklevel=2)
+            warn(f"{name}: image is constant; nothing to synthesize", stacklevel=2)
 
     @classmethod
     def load(
@@ -206,7 +206,7 @@ class Exemplar:
                 raise ExemplarError(f"{path}: image holds only an alpha channel (alpha='keep' "
                                     "reads it as one color channel; --alpha keep in the CLI)")
             if not _opaque(array[..., -1]):  # an alpha that is opaque everywhere says nothing
-                warnings.warn(
+                warn(
                     f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in "
                     "the CLI)", AlphaDropped, stacklevel=2,
                 )
@@ -695,7 +695,7 @@ def _warn_unless_binary(image: np.ndarray, name: str) -> None:
     grey = float(np.mean((values > 0.1 * top) & (values < 0.9 * top))) if top > 0 else 0.0
     if grey > _MASK_GREY_SHARE:
         channel = "its first channel" if image.ndim == 3 else "it"
-        warnings.warn(f"{name}: not a black-and-white feature mask ({grey:.0%} of its pixels "
+        warn(f"{name}: not a black-and-white feature mask ({grey:.0%} of its pixels "
                       f"are grey); features are marked where {channel} exceeds half its "
                       "maximum", stacklevel=3)
 
@@ -766,10 +766,8 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
 def _png_color_profile(path: Path) -> bytes | None:
     """The ICC profile of a PNG (its iCCP chunk), which pypng does not read; None without
     one, or where Pillow cannot open the file (which pypng may still read)."""
-    with warnings.catch_warnings(), contextlib.suppress(Exception):
-        warnings.simplefilter("ignore")
-        with Image.open(path) as image:
-            return image.info.get("icc_profile")
+    with library_warnings("PIL"), contextlib.suppress(Exception), Image.open(path) as image:
+        return image.info.get("icc_profile")
     return None
 
 
@@ -856,7 +854,7 @@ def _exr_channel_order(names: list[str], path: Path) -> tuple[list[str], bool]:
     rest = sorted((n for n in bases.values() if n not in color and n != alpha), key=_numbered)
     left_out = sorted(set(names) - set(bases.values()))
     if left_out:
-        warnings.warn(f"{path}: OpenEXR layer {colored[0] or '(default)'} read, channels of "
+        warn(f"{path}: OpenEXR layer {colored[0] or '(default)'} read, channels of "
                       f"other layers left out: {', '.join(left_out)}", stacklevel=5)
     return color + rest + ([alpha] if alpha else []), alpha is not None
 
@@ -892,28 +890,26 @@ def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
 def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
     """Pillow's pixels of ``path``, turned ``upright`` as EXIF says; Pillow's errors, and
     its warnings (corrupt EXIF data) given again naming the file."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        with Image.open(path) as image:
-            cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
-            frames = getattr(image, "n_frames", 1)
-            image.load()
-            # Cameras store portrait photos sideways and say so in EXIF: upright, as
-            # viewers show them, since grain and layers run the way the photo shows.
-            if upright:
-                ImageOps.exif_transpose(image, in_place=True)
-            pixels = _pillow_pixels(image)
+    with library_warnings("PIL") as caught, Image.open(path) as image:
+        cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
+        frames = getattr(image, "n_frames", 1)
+        image.load()
+        # Cameras store portrait photos sideways and say so in EXIF: upright, as
+        # viewers show them, since grain and layers run the way the photo shows.
+        if upright:
+            ImageOps.exif_transpose(image, in_place=True)
+        pixels = _pillow_pixels(image)
     for warning in caught:
         # What the file holds (corrupt EXIF data), not Pillow's deprecations nor its
         # decompression bomb (a RuntimeWarning): a photograph of 90 to 180 megapixels is the
         # user's own photo, and max_size shrinks it.
         if issubclass(warning.category, UserWarning):
-            warnings.warn(f"{path}: {warning.message}", warning.category, stacklevel=5)
+            warn(f"{path}: {warning.message}", warning.category, stacklevel=5)
     if frames > 1:
-        warnings.warn(f"{path}: an animation of {frames} frames, of which the first is read",
+        warn(f"{path}: an animation of {frames} frames, of which the first is read",
                       stacklevel=5)
     if cut_bits:
-        warnings.warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
+        warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
                       "TIFF and PPM files so); save it as a 16-bit PNG or an OpenEXR file to "
                       "keep its precision", stacklevel=5)
     _warn_of_color_profile(image.info.get("icc_profile"), path)
@@ -950,7 +946,7 @@ def _warn_of_color_profile(profile: bytes | None, path: Path) -> None:
         name, space = "", ""
     if space == "GRAY" or "srgb" in name.lower():
         return
-    warnings.warn(f"{path}: embedded color profile {name or '(unreadable)'!r} not applied: "
+    warn(f"{path}: embedded color profile {name or '(unreadable)'!r} not applied: "
                   "its values are taken as sRGB, so its colors shift; convert the image to "
                   "sRGB first", stacklevel=5)
 

@@ -31,7 +31,6 @@ import os
 import sys
 import threading
 import time
-import warnings
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -55,6 +54,7 @@ from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unp
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
 from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer, check_voxels
+from warptex.thread_warnings import warn
 from warptex.warp_runtime import launch
 
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
@@ -609,7 +609,7 @@ class BrickStore:
                 saved = self._read(path) if path.exists() and not _empty_file(path) else None
             except StoreFileError as e:
                 if state != self._ignored:  # reported once, when it was loaded
-                    warnings.warn(f"replacing brick store file: {e}", stacklevel=2)
+                    warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None
             budget = self.cache_bytes
             if saved is not None:  # a store of less room does not shrink a shared file
@@ -646,7 +646,7 @@ class BrickStore:
         try:
             kept = store._recent_that_fit(store._read(Path(path)))
         except StoreFileError as e:
-            warnings.warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
+            warn(f"ignoring brick store file, starting empty: {e}", stacklevel=2)
             store._ignored = state
             return store
         with store._changing():

@@ -1,0 +1,100 @@
+"""Warnings captured per thread (warptex.thread_warnings)."""
+
+import threading
+import warnings
+
+import pytest
+
+from warptex.thread_warnings import Warned, captured, library_warnings, warn
+
+
+def _library(name: str):
+    """A function that warns as code of the module ``name`` does."""
+    scope = {"__name__": name, "warnings": warnings}
+    exec("def say(words):\n    warnings.warn(words)\n", scope)
+    return scope["say"]
+
+
+def test_a_capture_takes_this_thread_s_warnings_and_no_other_thread_s():
+    with pytest.warns(UserWarning, match="from elsewhere") as shown:
+        with captured() as said:
+            warn("here", RuntimeWarning)
+            other = threading.Thread(target=warn, args=("from elsewhere",))
+            other.start()
+            other.join()
+    assert said == [Warned("here", RuntimeWarning)]
+    assert [str(w.message) for w in shown] == ["from elsewhere"]
+
+
+def test_captures_that_overlap_on_two_threads_each_keep_their_own():
+    """The order that lost warnings with catch_warnings: the second capture opened after
+    the first and closed before it, while the first one's thread warned."""
+    steps = [threading.Event() for _ in range(3)]
+    got = {}
+
+    def second():
+        steps[0].wait()
+        with captured() as said:
+            steps[1].set()
+            steps[2].wait()
+            warn("second")
+        got["second"] = said
+
+    thread = threading.Thread(target=second)
+    thread.start()
+    with captured() as said:
+        steps[0].set()
+        steps[1].wait()
+        warn("first, while the other is open")
+        steps[2].set()
+        thread.join()
+        warn("first, after it closed")
+    assert [w.message for w in said] == ["first, while the other is open",
+                                         "first, after it closed"]
+    assert got["second"] == [Warned("second", UserWarning)]
+    with pytest.warns(UserWarning, match="none open"):  # no capture left behind
+        warn("none open")
+
+
+def test_captures_nest_and_the_innermost_takes_them():
+    with captured() as outer:
+        warn("outer")
+        with captured() as inner:
+            warn("inner")
+        warn("outer again")
+    assert [w.message for w in outer] == ["outer", "outer again"]
+    assert [w.message for w in inner] == ["inner"]
+
+
+def test_warn_points_where_warnings_warn_would():
+    def caller():
+        warn("said", stacklevel=2)
+
+    with pytest.warns(UserWarning, match="said") as shown:
+        caller()
+    assert shown[0].filename == __file__
+
+
+def test_a_library_s_warnings_are_each_taken_on_this_thread_and_others_passed_on():
+    say = _library("somelib.exif")
+    outside = _library("elsewhere")
+    with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
+        warnings.simplefilter("default")  # Python's: the same words are said once
+        say("corrupt data")
+        with library_warnings("somelib") as said:
+            say("corrupt data")  # of another file: no repeat
+            say("corrupt data")
+            other = threading.Thread(target=outside, args=("another thread's",))
+            other.start()
+            other.join()
+        say("after")
+    assert said == [Warned("corrupt data", UserWarning)] * 2
+    assert [str(w.message) for w in shown] == ["corrupt data", "another thread's", "after"]
+
+
+def test_a_library_capture_leaves_the_process_s_hook_and_filters_as_it_found_them():
+    hook, filters = warnings.showwarning, list(warnings.filters)
+    with library_warnings("somelib"):
+        assert warnings.showwarning is not hook
+    assert warnings.showwarning is hook
+    assert warnings.filters == filters
