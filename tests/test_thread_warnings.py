@@ -16,12 +16,11 @@ def _library(name: str):
 
 
 def test_a_capture_takes_this_thread_s_warnings_and_no_other_thread_s():
-    with pytest.warns(UserWarning, match="from elsewhere") as shown:
-        with captured() as said:
-            warn("here", RuntimeWarning)
-            other = threading.Thread(target=warn, args=("from elsewhere",))
-            other.start()
-            other.join()
+    with pytest.warns(UserWarning, match="from elsewhere") as shown, captured() as said:
+        warn("here", RuntimeWarning)
+        other = threading.Thread(target=warn, args=("from elsewhere",))
+        other.start()
+        other.join()
     assert said == [Warned("here", RuntimeWarning)]
     assert [str(w.message) for w in shown] == ["from elsewhere"]
 
@@ -98,3 +97,60 @@ def test_a_library_capture_leaves_the_process_s_hook_and_filters_as_it_found_the
         assert warnings.showwarning is not hook
     assert warnings.showwarning is hook
     assert warnings.filters == filters
+
+
+def test_library_captures_nest_and_the_inner_one_leaves_the_outer_one_whole():
+    say = _library("somelib")
+    with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
+        warnings.simplefilter("default")
+        with library_warnings("somelib") as outer:
+            with library_warnings("somelib") as inner:
+                say("corrupt data")
+            say("corrupt data")
+            say("corrupt data")
+        say("after")
+    assert inner == [Warned("corrupt data", UserWarning)]
+    assert outer == [Warned("corrupt data", UserWarning)] * 2
+    assert [str(w.message) for w in shown] == ["after"]
+
+
+def test_library_captures_that_overlap_on_two_threads_each_keep_their_own():
+    say = _library("somelib")
+    steps = [threading.Event() for _ in range(3)]
+    got = {}
+
+    def second():
+        with library_warnings("somelib") as said:
+            steps[0].set()
+            steps[1].wait()  # the first one closed
+            say("second")
+        got["second"] = said
+        steps[2].set()
+
+    hook = warnings.showwarning
+    thread = threading.Thread(target=second, daemon=True)  # not waited for where it hangs
+    with library_warnings("somelib") as said:
+        thread.start()
+        assert steps[0].wait(60), "the second capture did not open while the first was"
+        say("first")
+    steps[1].set()
+    assert steps[2].wait(60), "the second capture did not close"
+    thread.join()
+    assert said == [Warned("first", UserWarning)]
+    assert got["second"] == [Warned("second", UserWarning)]
+    assert warnings.showwarning is hook
+
+
+def test_another_s_capture_that_closes_last_leaves_no_dead_capture_behind():
+    """Warp's logger, say, on another thread: its capture opens while a library capture
+    is open, and puts back the hook it found after that one closed."""
+    say = _library("somelib")
+    with pytest.warns(UserWarning, match="later") as shown:
+        ours = library_warnings("somelib")
+        ours.__enter__()
+        theirs = warnings.catch_warnings()
+        theirs.__enter__()
+        ours.__exit__(None, None, None)
+        theirs.__exit__(None, None, None)
+        say("later")
+    assert [str(w.message) for w in shown] == ["later"]

@@ -5,7 +5,9 @@ scene's textures on several threads: captures that overlapped lost warnings, gav
 the wrong texture, or left a dead capture swallowing every later one. warptex's own
 warnings therefore go through :func:`warn`, which hands them to the capture this thread
 opened with :func:`captured` (no hook involved), and the few a library gives (Pillow's
-corrupt EXIF data) are taken by :func:`library_warnings`, one thread at a time.
+corrupt EXIF data) are taken by :func:`library_warnings` through one shared hook that
+tells threads apart. (A capture of another library's that overlaps it still swaps the
+process's hook for a while: what it takes meanwhile is its own.)
 """
 
 from __future__ import annotations
@@ -52,33 +54,67 @@ def captured() -> Iterator[list[Warned]]:
 
 @contextlib.contextmanager
 def library_warnings(module: str) -> Iterator[list[Warned]]:
-    """The warnings the library ``module`` (``"PIL"``) gives on this thread while open,
-    each one: the same words said of two files are no repeat. They pass through the
-    process's hook, which only one thread swaps at a time; other threads' warnings are
-    passed on to the hook found, under the process's filters as before."""
-    mine = threading.get_ident()
+    """The warnings this thread gives while open, a library ``module``'s (``"PIL"``) each
+    one: the same words said of two files are no repeat. They pass through the process's
+    hook, which one shared dispatcher holds while any thread has such a capture open; other
+    threads' warnings are passed on to the hook it found, under the process's filters."""
     said: list[Warned] = []
-    with _SWAPPING_HOOK:
-        found = warnings.showwarning
+    _hold_hook(module)
+    captures = _THIS_THREAD.__dict__.setdefault("library", [])
+    captures.append(said)
+    try:
+        yield said
+    finally:
+        captures.pop()
+        _release_hook(module)
 
-        def show(message, category, filename, lineno, file=None, line=None):
-            if threading.get_ident() == mine:
-                said.append(Warned(str(message), category))
-            else:
-                found(message, category, filename, lineno, file, line)
 
-        warnings.filterwarnings("always", module=rf"{re.escape(module)}(\..*)?")
-        each_one = warnings.filters[0]
-        warnings.showwarning = show
-        try:
-            yield said
-        finally:
-            warnings.showwarning = found
-            # An "always" filter leaves no registry entry behind to invalidate; it is gone
-            # already where a capture of another thread put back the filters it found.
-            with contextlib.suppress(ValueError):
-                warnings.filters.remove(each_one)
+def _dispatch(message, category, filename, lineno, file=None, line=None) -> None:
+    """The process's ``showwarning`` while library captures are open (and, harmlessly,
+    where another's capture put it back later): to this thread's capture, else on."""
+    captures = getattr(_THIS_THREAD, "library", None)
+    if captures:
+        captures[-1].append(Warned(str(message), category))
+    else:
+        _found_hook(message, category, filename, lineno, file, line)
+
+
+def _hold_hook(module: str) -> None:
+    global _found_hook
+    with _HOOK:
+        # Also where it is held already: a capture of another's (pytest's, Warp's logger)
+        # may have put its own hook in meanwhile.
+        if warnings.showwarning is not _dispatch:
+            _found_hook = warnings.showwarning
+            warnings.showwarning = _dispatch
+        if _holders.get(module, 0) == 0:
+            pattern = rf"{re.escape(module)}(\..*)?\Z"
+            each_one = ("always", None, Warning, re.compile(pattern), 0)
+            if each_one not in warnings.filters:  # else one of the user's, to be kept
+                # filterwarnings also forgets the words already said, which would
+                # otherwise not be said again.
+                warnings.filterwarnings("always", module=pattern)
+                _added_filters[module] = each_one
+        _holders[module] = _holders.get(module, 0) + 1
+
+
+def _release_hook(module: str) -> None:
+    with _HOOK:
+        _holders[module] -= 1
+        if _holders[module] == 0:
+            del _holders[module]
+            added = _added_filters.pop(module, None)
+            # An "always" filter leaves no said words behind to forget; it is gone already
+            # where another's capture put back the filters it found.
+            if added is not None:
+                with contextlib.suppress(ValueError):
+                    warnings.filters.remove(added)
+        if not _holders and warnings.showwarning is _dispatch:
+            warnings.showwarning = _found_hook
 
 
 _THIS_THREAD = threading.local()
-_SWAPPING_HOOK = threading.RLock()
+_HOOK = threading.Lock()
+_found_hook = warnings.showwarning
+_holders: dict[str, int] = {}  # open library captures, by module
+_added_filters: dict[str, tuple] = {}
