@@ -1,6 +1,8 @@
 """Warnings captured per thread (warptex.thread_warnings)."""
 
+import sys
 import threading
+import types
 import warnings
 
 import pytest
@@ -9,10 +11,10 @@ from warptex.thread_warnings import Warned, captured, library_warnings, warn
 
 
 def _library(name: str):
-    """A function that warns as code of the module ``name`` does."""
-    scope = {"__name__": name, "warnings": warnings}
-    exec("def say(words):\n    warnings.warn(words)\n", scope)
-    return scope["say"]
+    """A function that warns as code of the imported module ``name`` does."""
+    module = sys.modules.setdefault(name, types.ModuleType(name))
+    exec("import warnings\ndef say(words):\n    warnings.warn(words)\n", module.__dict__)
+    return module.say
 
 
 def test_a_capture_takes_this_thread_s_warnings_and_no_other_thread_s():
@@ -154,3 +156,16 @@ def test_another_s_capture_that_closes_last_leaves_no_dead_capture_behind():
         theirs.__exit__(None, None, None)
         say("later")
     assert [str(w.message) for w in shown] == ["later"]
+
+
+def test_a_library_capture_leaves_other_modules_words_said_once_said():
+    """The plugin says an exemplar's warning once for two textures of one file: a library
+    capture opened in between must not make it forget it said so."""
+    plugin = _library("someplugin")
+    with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
+        warnings.simplefilter("default")
+        plugin("alpha dropped")
+        with library_warnings("somelib"):
+            pass
+        plugin("alpha dropped")
+    assert [str(w.message) for w in shown] == ["alpha dropped"]

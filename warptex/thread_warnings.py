@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import re
+import sys
 import threading
 import warnings
 from collections.abc import Iterator
@@ -91,10 +92,12 @@ def _hold_hook(module: str) -> None:
             pattern = rf"{re.escape(module)}(\..*)?\Z"
             each_one = ("always", None, Warning, re.compile(pattern), 0)
             if each_one not in warnings.filters:  # else one of the user's, to be kept
-                # filterwarnings also forgets the words already said, which would
-                # otherwise not be said again.
-                warnings.filterwarnings("always", module=pattern)
+                # Not through filterwarnings, which makes every module forget the words it
+                # said: the plugin's words of two textures of one file would be said twice
+                # or once as threads met. The library's own are forgotten, to be said again.
+                warnings.filters.insert(0, each_one)
                 _added_filters[module] = each_one
+                _forget_said(module)
         _holders[module] = _holders.get(module, 0) + 1
 
 
@@ -111,6 +114,16 @@ def _release_hook(module: str) -> None:
                     warnings.filters.remove(added)
         if not _holders and warnings.showwarning is _dispatch:
             warnings.showwarning = _found_hook
+
+
+def _forget_said(module: str) -> None:
+    """Empty the records of words said once (``__warningregistry__``) of ``module`` and
+    its submodules, which the "default" action keeps and an "always" filter never reads."""
+    for name, loaded in list(sys.modules.items()):
+        if name == module or name.startswith(f"{module}."):
+            registry = getattr(loaded, "__warningregistry__", None)
+            if isinstance(registry, dict):
+                registry.clear()
 
 
 _THIS_THREAD = threading.local()
