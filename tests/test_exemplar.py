@@ -166,6 +166,18 @@ def test_what_pillow_reads_in_part_is_said_naming_the_file(tmp_path, rng):
                      + data[2:])
     with pytest.warns(UserWarning, match=r"exif\.jpg: Corrupt EXIF data"):
         Exemplar.load(jpeg)
+    twin = tmp_path / "twin.jpg"
+    twin.write_bytes(jpeg.read_bytes())
+    with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
+        warnings.simplefilter("default")  # Python's: the same words are said once
+        Exemplar.load(jpeg)
+        Exemplar.load(twin)  # Pillow says the same words of another file
+    assert [str(w.message).partition(": Corrupt EXIF data")[0] for w in shown] == [
+        str(jpeg), str(twin)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(UserWarning, match=r"exif\.jpg: Corrupt EXIF data"):
+            Exemplar.load(jpeg)
     (tmp_path / "odd.tif").write_bytes(b"II*\0" + bytes(40))
     _raises(tmp_path / "odd.tif", r"odd\.tif: a TIFF file of a kind Pillow cannot read")
 
@@ -696,13 +708,21 @@ def test_damaged_files_of_valid_checksums_are_unreadable(tmp_path, rng):
 
 def test_a_photograph_larger_than_pillow_decodes_is_named(tmp_path, rng, monkeypatch):
     """Over Pillow's decompression-bomb limit: one error naming the file; between half of
-    it and it, no warning in Pillow's words, which name no file."""
+    it and it, no warning in Pillow's words, which name no file (an error naming it where
+    warnings are errors)."""
     from PIL import Image
 
     Image.fromarray(rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)).save(
         tmp_path / "a.bmp")
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 200)  # 256 pixels: warned
-    assert _load_quiet(tmp_path / "a.bmp").shape == (16, 16)
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        assert Exemplar.load(tmp_path / "a.bmp").shape == (16, 16)
+    assert shown == []
+    with warnings.catch_warnings():  # where warnings are errors, Pillow's names the file
+        warnings.simplefilter("error")
+        with pytest.raises(Image.DecompressionBombWarning, match=r"a\.bmp: Image size"):
+            Exemplar.load(tmp_path / "a.bmp")
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # over twice the limit: refused
     _raises(tmp_path / "a.bmp", r"a\.bmp: too large to read")
 

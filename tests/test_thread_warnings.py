@@ -1,5 +1,6 @@
 """Warnings captured per thread (warptex.thread_warnings)."""
 
+import os
 import sys
 import threading
 import types
@@ -11,9 +12,17 @@ from warptex.thread_warnings import Warned, captured, library_warnings, warn
 
 
 def _library(name: str):
-    """A function that warns as code of the imported module ``name`` does."""
-    module = sys.modules.setdefault(name, types.ModuleType(name))
-    exec("import warnings\ndef say(words):\n    warnings.warn(words)\n", module.__dict__)
+    """A function that warns as code of the imported module ``name``, a package's file
+    (beside its ``__init__.py``) or a top-level module's, does."""
+    top = name.partition(".")[0]
+    folder = os.path.join(os.path.abspath("nowhere"), top)
+    for each in dict.fromkeys((top, name)):
+        module = sys.modules.setdefault(each, types.ModuleType(each))
+        module.__file__ = os.path.join(folder, "__init__.py" if each == top else
+                                       f"{each.rpartition('.')[2]}.py")
+    code = compile("import warnings\ndef say(words):\n    warnings.warn(words)\n",
+                   module.__file__, "exec")
+    exec(code, module.__dict__)
     return module.say
 
 
@@ -76,21 +85,37 @@ def test_warn_points_where_warnings_warn_would():
     assert shown[0].filename == __file__
 
 
-def test_a_library_s_warnings_are_each_taken_on_this_thread_and_others_passed_on():
+def test_a_library_s_warnings_are_taken_on_this_thread_and_others_passed_on():
     say = _library("somelib.exif")
     outside = _library("elsewhere")
     with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
         warnings.simplefilter("default")  # Python's: the same words are said once
         say("corrupt data")
         with library_warnings("somelib") as said:
-            say("corrupt data")  # of another file: no repeat
+            say("corrupt data")  # of this file: no repeat
             say("corrupt data")
-            other = threading.Thread(target=outside, args=("another thread's",))
+            outside("this thread's, not the library's")
+            other = threading.Thread(target=say, args=("another thread's",))
             other.start()
             other.join()
+        with library_warnings("somelib") as said_of_another_file:
+            say("corrupt data")
         say("after")
-    assert said == [Warned("corrupt data", UserWarning)] * 2
-    assert [str(w.message) for w in shown] == ["corrupt data", "another thread's", "after"]
+    assert said == said_of_another_file == [Warned("corrupt data", UserWarning)]
+    assert [str(w.message) for w in shown] == [
+        "corrupt data", "this thread's, not the library's", "another thread's", "after"]
+
+
+def test_a_library_s_warnings_keep_the_process_s_filters():
+    say = _library("somelib")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with library_warnings("somelib") as said:
+            say("corrupt data")
+        assert said == []
+        warnings.simplefilter("error")
+        with pytest.raises(UserWarning, match="corrupt data"), library_warnings("somelib"):
+            say("corrupt data")
 
 
 def test_a_library_capture_leaves_the_process_s_hook_and_filters_as_it_found_them():
@@ -101,19 +126,14 @@ def test_a_library_capture_leaves_the_process_s_hook_and_filters_as_it_found_the
     assert warnings.filters == filters
 
 
-def test_library_captures_nest_and_the_inner_one_leaves_the_outer_one_whole():
+def test_library_captures_nest_and_the_innermost_takes_them():
     say = _library("somelib")
-    with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
-        warnings.simplefilter("default")
-        with library_warnings("somelib") as outer:
-            with library_warnings("somelib") as inner:
-                say("corrupt data")
-            say("corrupt data")
-            say("corrupt data")
-        say("after")
-    assert inner == [Warned("corrupt data", UserWarning)]
-    assert outer == [Warned("corrupt data", UserWarning)] * 2
-    assert [str(w.message) for w in shown] == ["after"]
+    with library_warnings("somelib") as outer:
+        with library_warnings("somelib") as inner:
+            say("inner")
+        say("outer")
+    assert inner == [Warned("inner", UserWarning)]
+    assert outer == [Warned("outer", UserWarning)]
 
 
 def test_library_captures_that_overlap_on_two_threads_each_keep_their_own():
@@ -143,19 +163,52 @@ def test_library_captures_that_overlap_on_two_threads_each_keep_their_own():
     assert warnings.showwarning is hook
 
 
-def test_another_s_capture_that_closes_last_leaves_no_dead_capture_behind():
-    """Warp's logger, say, on another thread: its capture opens while a library capture
-    is open, and puts back the hook it found after that one closed."""
+def _show_elsewhere(message, category, filename, lineno, file=None, line=None):
+    """Another's hook, for a while."""
+
+
+def test_another_s_capture_that_overlaps_library_captures_leaves_the_hook_found():
+    """Warp's logger, say, on another thread: its capture puts its own hook in for a while,
+    meanwhile library captures open and close, and it puts back the hook it found."""
     say = _library("somelib")
     with pytest.warns(UserWarning, match="later") as shown:
-        ours = library_warnings("somelib")
-        ours.__enter__()
+        hook = warnings.showwarning
+        first = library_warnings("somelib")
+        first.__enter__()
         theirs = warnings.catch_warnings()
         theirs.__enter__()
-        ours.__exit__(None, None, None)
+        warnings.showwarning = _show_elsewhere
+        second = library_warnings("somelib")
+        second.__enter__()
+        first.__exit__(None, None, None)
+        theirs.__exit__(None, None, None)  # puts back the dispatcher
+        second.__exit__(None, None, None)
+        assert warnings.showwarning is hook
+        theirs = warnings.catch_warnings()  # and once more, closing after the captures
+        theirs.__enter__()
+        with library_warnings("somelib"):
+            pass
         theirs.__exit__(None, None, None)
         say("later")
     assert [str(w.message) for w in shown] == ["later"]
+
+
+def test_a_hook_that_passes_warnings_back_to_the_dispatcher_does_not_loop():
+    """logging.captureWarnings put in while a library capture is open passes warnings
+    with a file on to the dispatcher, and the next capture finds it."""
+    import io
+    import logging
+
+    shown = io.StringIO()
+    with warnings.catch_warnings():
+        with library_warnings("somelib"):
+            logging.captureWarnings(True)
+        try:
+            with library_warnings("somelib"):
+                warnings.showwarning("words", UserWarning, "where.py", 3, shown)
+        finally:
+            logging.captureWarnings(False)
+    assert "where.py:3: UserWarning: words" in shown.getvalue()
 
 
 def test_a_library_capture_leaves_other_modules_words_said_once_said():

@@ -696,8 +696,8 @@ def _warn_unless_binary(image: np.ndarray, name: str) -> None:
     if grey > _MASK_GREY_SHARE:
         channel = "its first channel" if image.ndim == 3 else "it"
         warn(f"{name}: not a black-and-white feature mask ({grey:.0%} of its pixels "
-                      f"are grey); features are marked where {channel} exceeds half its "
-                      "maximum", stacklevel=3)
+             f"are grey); features are marked where {channel} exceeds half its "
+             "maximum", stacklevel=3)
 
 
 def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:
@@ -855,7 +855,7 @@ def _exr_channel_order(names: list[str], path: Path) -> tuple[list[str], bool]:
     left_out = sorted(set(names) - set(bases.values()))
     if left_out:
         warn(f"{path}: OpenEXR layer {colored[0] or '(default)'} read, channels of "
-                      f"other layers left out: {', '.join(left_out)}", stacklevel=5)
+             f"other layers left out: {', '.join(left_out)}", stacklevel=5)
     return color + rest + ([alpha] if alpha else []), alpha is not None
 
 
@@ -890,15 +890,18 @@ def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
 def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
     """Pillow's pixels of ``path``, turned ``upright`` as EXIF says; Pillow's errors, and
     its warnings (corrupt EXIF data) given again naming the file."""
-    with library_warnings("PIL") as caught, Image.open(path) as image:
-        cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
-        frames = getattr(image, "n_frames", 1)
-        image.load()
-        # Cameras store portrait photos sideways and say so in EXIF: upright, as
-        # viewers show them, since grain and layers run the way the photo shows.
-        if upright:
-            ImageOps.exif_transpose(image, in_place=True)
-        pixels = _pillow_pixels(image)
+    try:
+        with library_warnings("PIL") as caught, Image.open(path) as image:
+            cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
+            frames = getattr(image, "n_frames", 1)
+            image.load()
+            # Cameras store portrait photos sideways and say so in EXIF: upright, as
+            # viewers show them, since grain and layers run the way the photo shows.
+            if upright:
+                ImageOps.exif_transpose(image, in_place=True)
+            pixels = _pillow_pixels(image)
+    except Warning as made_an_error:  # by the process's filters (python -W error)
+        raise type(made_an_error)(f"{path}: {made_an_error}") from None
     for warning in caught:
         # What the file holds (corrupt EXIF data), not Pillow's deprecations nor its
         # decompression bomb (a RuntimeWarning): a photograph of 90 to 180 megapixels is the
@@ -907,11 +910,11 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
             warn(f"{path}: {warning.message}", warning.category, stacklevel=5)
     if frames > 1:
         warn(f"{path}: an animation of {frames} frames, of which the first is read",
-                      stacklevel=5)
+             stacklevel=5)
     if cut_bits:
         warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
-                      "TIFF and PPM files so); save it as a 16-bit PNG or an OpenEXR file to "
-                      "keep its precision", stacklevel=5)
+             "TIFF and PPM files so); save it as a 16-bit PNG or an OpenEXR file to "
+             "keep its precision", stacklevel=5)
     _warn_of_color_profile(image.info.get("icc_profile"), path)
     return pixels
 
@@ -947,8 +950,8 @@ def _warn_of_color_profile(profile: bytes | None, path: Path) -> None:
     if space == "GRAY" or "srgb" in name.lower():
         return
     warn(f"{path}: embedded color profile {name or '(unreadable)'!r} not applied: "
-                  "its values are taken as sRGB, so its colors shift; convert the image to "
-                  "sRGB first", stacklevel=5)
+         "its values are taken as sRGB, so its colors shift; convert the image to "
+         "sRGB first", stacklevel=5)
 
 
 def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:

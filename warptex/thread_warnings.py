@@ -4,16 +4,17 @@
 scene's textures on several threads: captures that overlapped lost warnings, gave them to
 the wrong texture, or left a dead capture swallowing every later one. warptex's own
 warnings therefore go through :func:`warn`, which hands them to the capture this thread
-opened with :func:`captured` (no hook involved), and the few a library gives (Pillow's
-corrupt EXIF data) are taken by :func:`library_warnings` through one shared hook that
-tells threads apart. (A capture of another library's that overlaps it still swaps the
-process's hook for a while: what it takes meanwhile is its own.)
+opened with :func:`captured` (no hook involved). The few a library gives (Pillow's
+corrupt EXIF data) can only be taken through the process's hook: :func:`library_warnings`
+shares one that tells threads apart, put in by the first capture and taken out by the last,
+so that captures of several threads and another's capture that overlaps them (Warp's
+logger swaps the hook for a while) leave the hook as they found it.
 """
 
 from __future__ import annotations
 
 import contextlib
-import re
+import os
 import sys
 import threading
 import warnings
@@ -55,70 +56,68 @@ def captured() -> Iterator[list[Warned]]:
 
 @contextlib.contextmanager
 def library_warnings(module: str) -> Iterator[list[Warned]]:
-    """The warnings this thread gives while open, a library ``module``'s (``"PIL"``) each
-    one: the same words said of two files are no repeat. They pass through the process's
-    hook, which one shared dispatcher holds while any thread has such a capture open; other
-    threads' warnings are passed on to the hook it found, under the process's filters."""
+    """The warnings the library ``module`` (``"PIL"``) gives on this thread while open,
+    under the process's filters, with the words it said before forgotten: the same words
+    said of two files are no repeat. They pass through the process's hook, which a shared
+    dispatcher holds while any thread has such a capture open; it passes other warnings on
+    to the hook it found."""
     said: list[Warned] = []
-    _hold_hook(module)
     captures = _THIS_THREAD.__dict__.setdefault("library", [])
-    captures.append(said)
+    captures.append((_source_folder(module), said))
+    held = False
     try:
+        _hold_hook(module)
+        held = True
         yield said
     finally:
         captures.pop()
-        _release_hook(module)
+        if held:
+            _release_hook()
 
 
 def _dispatch(message, category, filename, lineno, file=None, line=None) -> None:
     """The process's ``showwarning`` while library captures are open (and, harmlessly,
-    where another's capture put it back later): to this thread's capture, else on."""
+    where another's capture put it back later): a library's warning to this thread's
+    capture of it, others on."""
     captures = getattr(_THIS_THREAD, "library", None)
-    if captures:
-        captures[-1].append(Warned(str(message), category))
+    if captures and captures[-1][0] and str(filename).startswith(captures[-1][0]):
+        captures[-1][1].append(Warned(str(message), category))
+    elif getattr(_THIS_THREAD, "passing_on", False):
+        # Back from a hook that passes warnings on to the one it found, this one (as
+        # logging.captureWarnings does): shown as Python shows them, not passed on again.
+        (file or sys.stderr).write(warnings.formatwarning(message, category, filename,
+                                                          lineno, line))
     else:
-        _found_hook(message, category, filename, lineno, file, line)
+        _THIS_THREAD.passing_on = True
+        try:
+            _found_hook(message, category, filename, lineno, file, line)
+        finally:
+            _THIS_THREAD.passing_on = False
 
 
 def _hold_hook(module: str) -> None:
-    global _found_hook
+    global _found_hook, _holders
     with _HOOK:
-        # Also where it is held already: a capture of another's (pytest's, Warp's logger)
-        # may have put its own hook in meanwhile.
-        if warnings.showwarning is not _dispatch:
+        # Put in by the first capture only: where another's capture (Warp's logger) swapped
+        # it for a while since, the hook in place now is that one's, not to be restored.
+        if _holders == 0 and warnings.showwarning is not _dispatch:
             _found_hook = warnings.showwarning
             warnings.showwarning = _dispatch
-        if _holders.get(module, 0) == 0:
-            pattern = rf"{re.escape(module)}(\..*)?\Z"
-            each_one = ("always", None, Warning, re.compile(pattern), 0)
-            if each_one not in warnings.filters:  # else one of the user's, to be kept
-                # Not through filterwarnings, which makes every module forget the words it
-                # said: the plugin's words of two textures of one file would be said twice
-                # or once as threads met. The library's own are forgotten, to be said again.
-                warnings.filters.insert(0, each_one)
-                _added_filters[module] = each_one
-                _forget_said(module)
-        _holders[module] = _holders.get(module, 0) + 1
+        _holders += 1
+        _forget_said(module)
 
 
-def _release_hook(module: str) -> None:
+def _release_hook() -> None:
+    global _holders
     with _HOOK:
-        _holders[module] -= 1
-        if _holders[module] == 0:
-            del _holders[module]
-            added = _added_filters.pop(module, None)
-            # An "always" filter leaves no said words behind to forget; it is gone already
-            # where another's capture put back the filters it found.
-            if added is not None:
-                with contextlib.suppress(ValueError):
-                    warnings.filters.remove(added)
-        if not _holders and warnings.showwarning is _dispatch:
+        _holders -= 1
+        if _holders == 0 and warnings.showwarning is _dispatch:
             warnings.showwarning = _found_hook
 
 
 def _forget_said(module: str) -> None:
-    """Empty the records of words said once (``__warningregistry__``) of ``module`` and
-    its submodules, which the "default" action keeps and an "always" filter never reads."""
+    """Empty the records of words said once (``__warningregistry__``, which the "default"
+    action keeps) of ``module`` and its submodules."""
     for name, loaded in list(sys.modules.items()):
         if name == module or name.startswith(f"{module}."):
             registry = getattr(loaded, "__warningregistry__", None)
@@ -126,8 +125,14 @@ def _forget_said(module: str) -> None:
                 registry.clear()
 
 
+def _source_folder(module: str) -> str | None:
+    """The folder of the imported package ``module``'s files, with a trailing separator;
+    None where it is not imported from files."""
+    file = getattr(sys.modules.get(module), "__file__", None)
+    return None if file is None else os.path.join(os.path.dirname(file), "")
+
+
 _THIS_THREAD = threading.local()
 _HOOK = threading.Lock()
 _found_hook = warnings.showwarning
-_holders: dict[str, int] = {}  # open library captures, by module
-_added_filters: dict[str, tuple] = {}
+_holders = 0  # library captures open, on all threads
