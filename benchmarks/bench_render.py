@@ -104,8 +104,9 @@ def main() -> None:
 
     mi.file_resolver().prepend(str(SCENES))
     xml = diffuse_xml(path.read_text())
-    # Warm-up on a throw-away scene so that the cold figure is synthesis, not compilation.
-    timed(render(mi.load_string(xml, width=8, height=8)))
+    # Warm-up on a throw-away scene of the same size, its own empty store, so that the cold
+    # figure is synthesis, not compilation: Dr.Jit compiles a program per image size.
+    timed(render(mi.load_string(xml, **size)))
     scene = mi.load_string(xml, **size)
     texture = next(t for t in mitsuba_plugin.textures()
                    if t.solid.store.stats()["bricks"] == 0)

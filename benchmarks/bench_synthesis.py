@@ -88,20 +88,21 @@ def passes_sweep(folder: Path) -> None:
 
 # One box in a fresh process: its peak memory growth (RSS) and time, engine set up and
 # kernels warm before; argv: exemplar, cap of finest work voxels per call, box shape.
+# The peak is the box's own (PeakMemory resets it), not one the pre-computation set before.
 _BOX_IN_A_PROCESS = textwrap.dedent("""
-    import json, resource, sys, time
+    import json, sys, time
     from warptex import synthesis
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar
+    from warptex.machine import PeakMemory
     synthesis.MAX_WORK_VOXELS = int(sys.argv[2])
     syn = synthesis.Synthesizer(precompute(Exemplar.load(sys.argv[1])), seed=1)
     syn.box((0, 0, 0), (8, 8, 8))
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     start = time.perf_counter()
-    syn.box((0, 0, 0), tuple(int(a) for a in sys.argv[3:6]))
+    with PeakMemory() as peak:
+        syn.box((0, 0, 0), tuple(int(a) for a in sys.argv[3:6]))
     seconds = time.perf_counter() - start
-    grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
-    print(json.dumps({"seconds": seconds, "mib": grown / 1024}))
+    print(json.dumps({"seconds": seconds, "mib": peak.growth / 2**20}))
 """)
 
 
