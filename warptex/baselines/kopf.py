@@ -92,10 +92,14 @@ WORK_BYTES_PER_VOXEL = 600
 # a quarter as large, still held); and, once per exemplar, the (64 F)^2 covariance with the
 # eigensolver's copies of it. Measured with tracemalloc, every window kept (no seam): 1,663
 # bytes a pixel (rust_256, 13 coefficients), 2,066 (granite_64, 48), 5,528 (8 random
-# channels at 64x64, 96); BENCHMARKS.md, with seams.
+# channels at 64x64, 96); BENCHMARKS.md, with seams. On top, once: what tracemalloc does
+# not see (the allocator's and BLAS's own memory, the tree's C++ nodes), 3 to 6 MiB of the
+# resident peak of a fresh process at 16^2 to 128^2 pixels (benchmarks/
+# bench_kopf_search_memory.py).
 SEARCH_BYTES_PER_FEATURE = 512
 SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_DIMS + 512
 SEARCH_COVARIANCES = 3
+SEARCH_BYTES_UNTRACED = 8 << 20
 
 
 @dataclass(frozen=True)
@@ -150,7 +154,7 @@ def search_bytes(exemplars: Sequence[Exemplar | None]) -> int:
     for a free one) take, at the finest level, where they are largest: it grows with the
     exemplars' pixels, not with the solid's size."""
     distinct = {id(e): e for e in exemplars if e is not None}.values()
-    total = 0
+    total = SEARCH_BYTES_UNTRACED if distinct else 0
     for e in distinct:
         features = e.features.shape[2]
         total += (e.shape[0] * e.shape[1] * (SEARCH_BYTES_PER_FEATURE * features
