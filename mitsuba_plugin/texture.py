@@ -209,7 +209,7 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
             # Of this thread only: Mitsuba builds a scene's textures on several threads.
             with captured() as said:
                 loaded[path] = Exemplar.load(path, max_size=max_size, **features)
-        except (ValueError, OSError) as e:
+        except (ValueError, OSError, Warning) as e:  # a warning of Pillow's made an error
             # Exemplar.load's errors begin with the file at fault.
             at_fault = ("feature_mask" if mask is not None and str(e).startswith(f"{mask}: ")
                         else key)

@@ -150,6 +150,20 @@ def test_each_texture_s_exemplar_warning_comes_once_when_mitsuba_loads_them_in_p
         f"lazy_solid: {name}: image is constant; nothing to synthesize" for name in names]
 
 
+def test_a_pillow_warning_made_an_error_is_the_exemplar_property_s(tmp_path, monkeypatch):
+    from PIL import Image
+
+    path = tmp_path / "photo.bmp"
+    Image.fromarray(np.full((16, 16, 3), 90, np.uint8)).save(path)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 200)  # 256 pixels: Pillow warns
+    use("scalar_rgb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RuntimeError, match=r'lazy_solid: property "exemplar" cannot be '
+                                               r"used: .*photo\.bmp: Image size"):
+            load(path)
+
+
 def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
     use("scalar_rgb")
     with pytest.raises(RuntimeError, match=r'property "exemplar" is required .*\("exemplr" is no '

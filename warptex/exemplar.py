@@ -764,10 +764,18 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
 
 
 def _png_color_profile(path: Path) -> bytes | None:
-    """The ICC profile of a PNG (its iCCP chunk), which pypng does not read; None without
-    one, or where Pillow cannot open the file (which pypng may still read)."""
-    with library_warnings("PIL"), contextlib.suppress(Exception), Image.open(path) as image:
-        return image.info.get("icc_profile")
+    """The ICC profile of a PNG: its iCCP chunk (a name, a compression method byte, then
+    the profile, zlib-compressed), which pypng gives as a chunk but does not decode; None
+    without one, or where the chunks cannot be read (pypng's decoding then says why)."""
+    try:
+        with open(path, "rb") as file:
+            for kind, data in png.Reader(file=file).chunks():
+                if kind == b"iCCP":
+                    return zlib.decompress(data.partition(b"\0")[2][1:])
+                if kind == b"IDAT":  # a profile comes before the pixels
+                    return None
+    except (png.Error, OSError, ValueError, zlib.error):
+        pass
     return None
 
 

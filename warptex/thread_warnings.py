@@ -6,9 +6,9 @@ the wrong texture, or left a dead capture swallowing every later one. warptex's 
 warnings therefore go through :func:`warn`, which hands them to the capture this thread
 opened with :func:`captured` (no hook involved). The few a library gives (Pillow's
 corrupt EXIF data) can only be taken through the process's hook: :func:`library_warnings`
-shares one that tells threads apart, put in by the first capture and taken out by the last,
-so that captures of several threads and another's capture that overlaps them (Warp's
-logger swaps the hook for a while) leave the hook as they found it.
+puts in a dispatcher that tells threads apart while its captures, which take turns, are
+open, so that another's capture that overlaps them (Warp's logger swaps the hook for a
+while) leaves the hook as it found it.
 """
 
 from __future__ import annotations
@@ -58,21 +58,23 @@ def captured() -> Iterator[list[Warned]]:
 def library_warnings(module: str) -> Iterator[list[Warned]]:
     """The warnings the library ``module`` (``"PIL"``) gives on this thread while open,
     under the process's filters, with the words it said before forgotten: the same words
-    said of two files are no repeat. They pass through the process's hook, which a shared
-    dispatcher holds while any thread has such a capture open; it passes other warnings on
-    to the hook it found."""
+    said of two files are no repeat. Such captures take turns (the library's record of
+    words said is one for all threads: another's would be hidden by it). The warnings pass
+    through the process's hook, which a dispatcher holds while a capture is open; it passes
+    other threads' warnings, and other modules', on to the hook it found."""
     said: list[Warned] = []
-    captures = _THIS_THREAD.__dict__.setdefault("library", [])
-    captures.append((_source_folder(module), said))
-    held = False
-    try:
-        _hold_hook(module)
-        held = True
-        yield said
-    finally:
-        captures.pop()
-        if held:
-            _release_hook()
+    with _TAKING_TURNS:
+        captures = _THIS_THREAD.__dict__.setdefault("library", [])
+        captures.append((_source_folder(module), said))
+        held = False
+        try:
+            _hold_hook(module)
+            held = True
+            yield said
+        finally:
+            captures.pop()
+            if held:
+                _release_hook()
 
 
 def _dispatch(message, category, filename, lineno, file=None, line=None) -> None:
@@ -97,22 +99,20 @@ def _dispatch(message, category, filename, lineno, file=None, line=None) -> None
 
 def _hold_hook(module: str) -> None:
     global _found_hook, _holders
-    with _HOOK:
-        # Put in by the first capture only: where another's capture (Warp's logger) swapped
-        # it for a while since, the hook in place now is that one's, not to be restored.
-        if _holders == 0 and warnings.showwarning is not _dispatch:
-            _found_hook = warnings.showwarning
-            warnings.showwarning = _dispatch
-        _holders += 1
-        _forget_said(module)
+    # Put in by the outermost capture only: where another's capture (Warp's logger) swapped
+    # it for a while since, the hook in place now is that one's, not to be restored.
+    if _holders == 0 and warnings.showwarning is not _dispatch:
+        _found_hook = warnings.showwarning
+        warnings.showwarning = _dispatch
+    _holders += 1
+    _forget_said(module)
 
 
 def _release_hook() -> None:
     global _holders
-    with _HOOK:
-        _holders -= 1
-        if _holders == 0 and warnings.showwarning is _dispatch:
-            warnings.showwarning = _found_hook
+    _holders -= 1
+    if _holders == 0 and warnings.showwarning is _dispatch:
+        warnings.showwarning = _found_hook
 
 
 def _forget_said(module: str) -> None:
@@ -133,6 +133,6 @@ def _source_folder(module: str) -> str | None:
 
 
 _THIS_THREAD = threading.local()
-_HOOK = threading.Lock()
+_TAKING_TURNS = threading.RLock()  # of library captures; one thread's may nest
 _found_hook = warnings.showwarning
-_holders = 0  # library captures open, on all threads
+_holders = 0  # library captures open

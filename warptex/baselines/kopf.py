@@ -92,10 +92,10 @@ WORK_BYTES_PER_VOXEL = 600
 # a quarter as large, still held); and, once per exemplar, the (64 F)^2 covariance with the
 # eigensolver's copies of it. Measured with tracemalloc, every window kept (no seam): 1,663
 # bytes a pixel (rust_256, 13 coefficients), 2,066 (granite_64, 48), 5,528 (8 random
-# channels at 64x64, 96); BENCHMARKS.md, with seams. On top, once: what tracemalloc does
-# not see (the allocator's and BLAS's own memory, the tree's C++ nodes), 3 to 6 MiB of the
-# resident peak of a fresh process at 16^2 to 128^2 pixels (benchmarks/
-# bench_kopf_search_memory.py).
+# channels at 64x64, 96); BENCHMARKS.md, with seams. What tracemalloc does not see (the
+# allocator's and BLAS's own memory, the tree's C++ nodes) grows with the pixels too, and
+# the resident peak of a fresh process exceeded the count by 3.0 to 6.3 MiB at 16^2 to
+# 128^2 pixels (benchmarks/bench_kopf_search_memory.py): 8 MiB on top, once.
 SEARCH_BYTES_PER_FEATURE = 512
 SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_DIMS + 512
 SEARCH_COVARIANCES = 3
