@@ -489,6 +489,26 @@ def test_a_filling_bar_in_a_log_is_its_first_and_last_line():
         assert len(lines) == 2 and "100%" in lines[-1], (options, lines)
 
 
+def test_bars_of_two_threads_in_a_log_are_lines_without_cursor_moves():
+    """Mitsuba pre-computes two textures' candidates at once: tqdm draws the second bar on
+    the line below and moves the cursor back up, which a log shows as escape codes."""
+    from tqdm import tqdm
+
+    log = io.StringIO()
+    lines = cli._LogLines(log)
+    first = tqdm(total=4, file=lines, mininterval=0, desc="first")
+    second = tqdm(total=4, file=lines, mininterval=0, desc="second")
+    for _ in range(4):
+        first.update(1)
+        second.update(1)
+    second.close()
+    first.close()
+    written = log.getvalue()
+    assert "\x1b" not in written
+    assert all(line.startswith(("first: ", "second: ")) for line in written.splitlines())
+    assert "first: 100%" in written and "second: 100%" in written
+
+
 def test_progress_bars_in_a_log_are_lines_at_most_every_few_seconds(monkeypatch):
     """A bar's first redraw, then one every ``_LOG_SECONDS`` at most, and its last, each a
     line; other text passes as it is."""

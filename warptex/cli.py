@@ -1766,6 +1766,9 @@ def _negative_values(argv: list[str], parser: argparse.ArgumentParser | None = N
     return out
 
 
+_CURSOR_UP = "\x1b[A"  # what tqdm writes to go back to a bar above
+
+
 class _LogLines:
     """stderr where it is no terminal (a log): a progress bar's redraws ("\\r" and the bar)
     become lines of their own instead of one line of carriage returns: its first, then at
@@ -1781,14 +1784,18 @@ class _LogLines:
         self._doing = ""  # what it said it was doing (see _activity)
 
     def write(self, text: str) -> int:
+        given = len(text)
+        # Bars of several threads at once are drawn on lines of their own, reached by moving
+        # the cursor up: a log has no cursor, and the lines follow one another.
+        text = text.replace(_CURSOR_UP, "")
         if not text:  # tqdm writes nothing at times, which must not end a bar
-            return 0
+            return given
         if text.startswith("\r"):
             line = text[1:].rstrip(" ")
             now = time.monotonic()
             if not line:  # a bar cleared, as one that is not to be left: it has ended
                 self._pending, self._bar = None, False
-                return len(text)
+                return given
             if (not self._bar or now - self._written >= _LOG_SECONDS
                     or _activity(line) != self._doing):
                 self._write_line(line)
@@ -1796,7 +1803,7 @@ class _LogLines:
             else:
                 self._pending = line
             self._bar = True
-            return len(text)
+            return given
         if self._pending is not None:
             # A bar's closing redraw repeats its last update, if written, but for the rate.
             if _without_times(self._pending) != self._shown:
@@ -1805,7 +1812,7 @@ class _LogLines:
         if not (self._bar and text == "\n"):  # not the newline that ends a finished bar
             self._stream.write(text)
         self._bar = False
-        return len(text)
+        return given
 
     def _write_line(self, line: str) -> None:
         self._stream.write(line + "\n")
