@@ -85,5 +85,6 @@ def main() -> None:
               f"{peak['resident'] / pixels:.0f} | {peak['python'] / 2**20:.1f} | "
               f"{kopf.search_bytes([exemplar]) / 2**20:.1f} |", flush=True)
 
+
 if __name__ == "__main__":
     main()

@@ -222,7 +222,7 @@ def _load_exemplars(named: list[tuple[str, Path]], max_size: int | None,
 def _rewarn(warning: Warned, path: Path) -> None:
     """A warning of Exemplar.load as a scene's author reads it: the plugin has no alpha
     property to keep the channel with, as the API and the command line have."""
-    message = str(warning.message)
+    message = warning.message
     if issubclass(warning.category, AlphaDropped):
         message = f"{path}: alpha channel dropped ({PLUGIN} gives colors only)"
     warnings.warn(f"{PLUGIN}: {message}", warning.category, stacklevel=3)

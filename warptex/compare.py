@@ -232,7 +232,7 @@ def _read_axes(setup: Setup) -> Axes:
             files[path] = Exemplar.load(path, **setup.load_options())
         for warning in said:  # the loader's advice names an option compare does not have
             text = (f"{path}: alpha channel dropped (compare measures colors only)"
-                    if issubclass(warning.category, AlphaDropped) else str(warning.message))
+                    if issubclass(warning.category, AlphaDropped) else warning.message)
             warnings.warn(text, warning.category, stacklevel=3)  # the caller of exemplars()
     for path, exemplar in files.items():
         if exemplar.constant:  # its warning said so already
