@@ -3,7 +3,10 @@
 (a) Warm: a 64^3 voxel region is synthesized and stored, then 10M random points inside it
 are queried with ``nearest`` and ``trilinear``; points per second, and the ratio to a plain
 NumPy gather (and a NumPy trilinear blend) from a dense array of the same voxels.
-Targets: >= 5M points/s and <= 3x the dense gather.
+Targets: >= 5M points/s and <= 3x the dense gather. The store's queries split over the
+usable cores (up to 8, ``warptex.parallel``) and NumPy's gather runs on one, so the line
+before the figures says how many the store used; ``taskset -c 0`` compares one core with
+one.
 
 (b) Cold: points of a Fibonacci sphere of radius 200 voxels, dense enough to touch every
 brick the surface crosses, on a fresh texture; voxels synthesized per level divided by the
@@ -27,6 +30,7 @@ import numpy as np  # noqa: E402
 from timing import best_of, run_record  # noqa: E402
 
 from warptex.candidates import precompute  # noqa: E402
+from warptex.parallel import THREADS  # noqa: E402
 from warptex.texture import SolidTexture  # noqa: E402
 
 REGION = 64
@@ -59,6 +63,7 @@ def warm(candidates) -> None:
     pts = rng.uniform(0.5, REGION - 0.51, (POINTS, 3)).astype(np.float32)
     tex.query(pts[:100_000], filter="trilinear")  # compile and load every kernel first
     misses = tex.store.stats()["misses"]
+    print(f"store queries on {THREADS} thread{'s' * (THREADS > 1)}, NumPy on one")
 
     def gather() -> np.ndarray:
         v = np.floor(pts).astype(np.intp)

@@ -47,7 +47,8 @@ def run_record() -> str:
         commit = "unknown (not a git checkout)"
     memory = physical_memory()
     gib = "memory unknown" if memory is None else f"{memory / 2**30:.0f} GiB"
+    cores = usable_cores()
     return (f"commit {commit}, {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; "
-            f"{cpu_model()}, {usable_cores()} cores, {gib}; "
+            f"{cpu_model()}, {cores} core{'s' * (cores > 1)}, {gib}; "
             f"Warp {wp.__version__} on {device()}, NumPy {np.__version__}, "
             f"Python {platform.python_version()}")
