@@ -48,6 +48,7 @@ class BrickIndex:
     valid: wp.array(dtype=wp.uint32)  # per slot, VALID_WORDS words of stored-voxel bits
     base: wp.array(dtype=wp.int32)  # per slot, pool position of the brick's first voxel
     partial: int  # 0 when every stored brick is whole, so the bits need no reading
+    reach: wp.float64  # points lie strictly within +-reach, where brick keys do not wrap
 
 
 @wp.func
@@ -84,6 +85,14 @@ def find_slot(index: BrickIndex, key: wp.int64) -> int:
             probing = False
         at = (at + wp.int64(1)) & index.mask
     return found
+
+
+@wp.func
+def within_reach(index: BrickIndex, p: wp.vec3d) -> bool:
+    """Whether point ``p`` lies strictly within the table's reach (False for NaN): beyond
+    it a brick key would wrap onto another brick, so the point is left to the host."""
+    r = index.reach
+    return wp.abs(p[0]) < r and wp.abs(p[1]) < r and wp.abs(p[2]) < r
 
 
 @wp.func
@@ -187,8 +196,12 @@ def sample_nearest(
     missed: wp.array(dtype=wp.int32),
     miss_count: wp.array(dtype=wp.int32),
 ):
-    """Color of the voxel containing each point; points whose voxel is absent are flagged."""
+    """Color of the voxel containing each point; points whose voxel is absent, or out of
+    reach, are flagged."""
     i = offset + wp.tid()
+    if not within_reach(index, points[i]):
+        flag_miss(i, missed, miss_count)
+        return
     voxel = floor_voxel(points[i])
     slot = stored_slot(index, voxel)
     if slot < 0:
@@ -214,8 +227,11 @@ def sample_trilinear(
 ):
     """Trilinear blend of the 8 voxel centers around each point. Corners may lie in
     different bricks, so each corner finds its own brick: borders are seamless. Points
-    with a corner not stored are flagged."""
+    with a corner not stored, or out of reach, are flagged."""
     i = offset + wp.tid()
+    if not within_reach(index, points[i]):
+        flag_miss(i, missed, miss_count)
+        return
     q = points[i] - wp.vec3d(0.5, 0.5, 0.5)
     base = floor_voxel(q)
     t = q - wp.vec3d(wp.float64(base[0]), wp.float64(base[1]), wp.float64(base[2]))

@@ -760,6 +760,26 @@ def test_prefetch_refuses_voxels_the_engine_refuses(candidates):
     assert store.stats()["voxels"] == 0
 
 
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+def test_sample_refuses_points_whose_brick_keys_would_wrap_onto_stored_voxels(candidates,
+                                                                             filter):
+    """2^24 voxels out along z, a brick key's z field overflows into y: the point would
+    read voxel (0, 8, 0), stored, without a miss. NaN and infinite points are refused too,
+    and nothing is synthesized for any of them."""
+    from warptex.store import POINT_LIMIT
+
+    store = BrickStore(synthesizer(candidates))
+    near = sample(store, [[0.5, 8.5, 0.5]], filter)
+    stored = store.stats()["voxels"]
+    for point in ([0.5, 8.5, 2.0**24 + 0.5], [0.5, 8.5, POINT_LIMIT], [np.nan, 8.5, 0.5],
+                  [0.5, -np.inf, 0.5]):
+        with pytest.raises(ValueError, match=f"1 of 2 points are NaN, infinite or beyond "
+                                             f"\\+-{POINT_LIMIT} voxels"):
+            sample(store, [[0.5, 8.5, 0.5], point], filter)
+    assert store.stats()["voxels"] == stored
+    np.testing.assert_array_equal(sample(store, [[0.5, 8.5, 0.5]], filter), near)
+
+
 def test_a_store_that_stored_nothing_since_leaves_its_file_as_it_is(candidates,
                                                                       tmp_path: Path):
     """Saving to the file a store was loaded from, or last saved to, rewrites it only when

@@ -67,6 +67,8 @@ _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits
 _LOCAL = cell_offsets(_k.BRICK)
 _T = TypeVar("_T")
 _MAX_BRICK = (COORD_LIMIT >> _k.BRICK_SHIFT) + 1  # farthest brick any voxel lies in
+# Points lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
+POINT_LIMIT = COORD_LIMIT - 2
 CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 """Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
 corner c is ((c >> 2) & 1, (c >> 1) & 1, c & 1)."""
@@ -444,6 +446,7 @@ class BrickStore:
         self._counts = threading.Lock()
         self._tick = itertools.count(1)
         self._index = _k.BrickIndex()
+        self._index.reach = float(POINT_LIMIT)
         self._empty()
         # Set while the bricks change: still set afterwards where the change was cut short.
         self._torn = False
@@ -722,7 +725,14 @@ class BrickStore:
 
     def _finish(self, kernel, points: np.ndarray, filter: str, out: np.ndarray,
                 rows: np.ndarray) -> None:
-        """Second half of a batch: the points whose voxels were missing."""
+        """Second half of a batch: the points whose voxels were missing, or that lie out
+        of the table's reach (NaN, infinite or far), which the kernels count as missing
+        rather than let their brick keys wrap onto other voxels."""
+        inside = (np.abs(points) < POINT_LIMIT).all(axis=1)  # False for NaN too
+        if not inside.all():
+            raise ValueError(f"{int((~inside).sum())} of {len(rows)} points are NaN, "
+                             f"infinite or beyond +-{POINT_LIMIT} voxels; points must lie "
+                             "within it")
         sub = np.empty((len(points), self.channels), np.float32)
         pts, res, missed, count = self._lookup_arrays(np.ascontiguousarray(points), sub)
         misses = self._with_voxels(self._to_store(voxels_read(points, filter)),

@@ -32,6 +32,7 @@ from warptex.settings import (
     names_folder,
 )
 from warptex.store import (
+    POINT_LIMIT,
     BrickStore,
     StoreFileError,
     check_lookup_channels,
@@ -40,7 +41,6 @@ from warptex.store import (
     settings_differences,
 )
 from warptex.synthesis import (
-    COORD_LIMIT,
     REQUEST_BYTES_PER_VOXEL,
     Synthesizer,
     engine_device,
@@ -48,8 +48,6 @@ from warptex.synthesis import (
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
-# Queries lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
-POINT_LIMIT = COORD_LIMIT - 2
 # Beyond it, a renderer's points are moved by whole periods of this many voxels (wrap_far).
 FAR_PERIOD = 1 << 22
 
