@@ -250,21 +250,21 @@ def _to_world(props: mi.Properties) -> np.ndarray:
     except (AttributeError, TypeError, ValueError):
         raise property_error(PLUGIN, "to_world",
                              f"must be a <transform ...>, got {value!r}") from None
-    # The texture keeps it as an affine transform, which would drop a projective last row.
-    if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
-        row = " ".join(f"{c:g}" for c in matrix[3])
-        raise property_error(PLUGIN, "to_world", f"must be affine: its last row is {row}, "
-                             "not 0 0 0 1")
     _inverse(matrix)
     return matrix
 
 
 def _inverse(to_world: np.ndarray) -> np.ndarray:
     """The inverse of a ``to_world`` matrix, as loaded or as a parameter update sets it,
-    after the property's error unless it is finite and invertible."""
+    after the property's error unless it is finite, affine and invertible."""
     if not np.isfinite(to_world).all():
         raise property_error(PLUGIN, "to_world", "must be finite: it has NaN or infinite "
                              "entries")
+    # Shading points are mapped by the first three rows, which would drop a projective last.
+    if not np.array_equal(to_world[3], [0.0, 0.0, 0.0, 1.0]):
+        row = " ".join(f"{c:g}" for c in to_world[3])
+        raise property_error(PLUGIN, "to_world", f"must be affine: its last row is {row}, "
+                             "not 0 0 0 1")
     inverse = _finite_inverse(to_world)
     if inverse is None:
         raise property_error(PLUGIN, "to_world", "must be invertible: a scale of zero "
@@ -452,7 +452,13 @@ class LazySolidTexture(mi.Texture):
         callback.put("to_world", self.to_world, mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys: list[str] | None = None) -> None:
-        self._update_transform()
+        try:
+            self._update_transform()
+        except ValueError:
+            # Refused: back to the matrix eval still uses, for properties() to report; in
+            # place, as mi.traverse holds this object.
+            self.to_world.assign(mi.AffineTransform4f(self._placed))
+            raise
 
     def properties(self) -> dict:
         """Every property that sets what a point shows, as read from the scene (the
@@ -655,9 +661,17 @@ class LazySolidTexture(mi.Texture):
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
-        inverse = _inverse(_affine_matrix(self.to_world))
+        placed = _affine_matrix(self.to_world)
+        inverse = _inverse(placed)
+        with np.errstate(over="ignore", invalid="ignore"):
+            world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ inverse
+        if not np.isfinite(world_to_texture).all():  # else every point would be black
+            raise property_error(PLUGIN, "scale", f"{self.scale:g} times the inverse of "
+                                 "to_world is beyond float64's range: lower scale or "
+                                 "widen to_world")
         # Rows of plain floats: _apply_affine runs on single points in scalar variants.
-        self._world_to_texture = (np.diag([self.scale] * 3 + [1.0]) @ inverse).tolist()
+        self._world_to_texture = world_to_texture.tolist()
+        self._placed = placed.astype(np.float32)
 
 
 def _choice_of(condition: bool, if_true: float, if_false: float) -> float:

@@ -205,6 +205,10 @@ def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_fi
         load(granite_32_file, to_world=mi.ScalarTransform4f(np.diag([2.0, 2.0, 2.0, 2.0])))
     with pytest.raises(RuntimeError, match="must be affine: its last row is 0 0 0 0"):
         load(granite_32_file, to_world=mi.ScalarTransform4f(np.diag([1.0, 1.0, 1.0, 0.0])))
+    # Each finite and invertible, together beyond float64: every point would be black.
+    with pytest.raises(RuntimeError, match='lazy_solid: property "scale" 1e\\+300 times the '
+                       "inverse of to_world is beyond float64's range"):
+        load(granite_32_file, scale=1e300, to_world=mi.ScalarTransform4f().scale(1e-10))
 
 
 def test_an_axis_exemplar_unlike_the_others_is_the_property_named(granite_32_file, tmp_path):
@@ -636,11 +640,19 @@ def test_traverse_updates_to_world(granite_32_file):
     after = np.array(tex.eval(interaction(np.array([[0.4, 0.6, 0.8]], np.float32))))
     np.testing.assert_allclose(after, before, atol=1e-6)
     # An update is checked as the scene's property is (a bare LinAlgError, or NaN colours).
+    # A refused one leaves the matrix that eval goes on using, which properties() reports.
+    placed = tex.properties()["to_world"]
+    projective = mi.AffineTransform4f(np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                [0, 0, 0.5, 1]], np.float32))
     for matrix, problem in ((mi.AffineTransform4f().scale([1, 0, 1]), "invertible"),
-                            (mi.AffineTransform4f().scale([1, float("nan"), 1]), "finite")):
+                            (mi.AffineTransform4f().scale([1, float("nan"), 1]), "finite"),
+                            (projective, "affine: its last row is 0 0 0.5 1")):
         params["to_world"] = matrix
         with pytest.raises(ValueError, match=f'lazy_solid: property "to_world" must be {problem}'):
             params.update()
+        assert tex.properties()["to_world"] == placed
+        again = np.array(tex.eval(interaction(np.array([[0.4, 0.6, 0.8]], np.float32))))
+        np.testing.assert_array_equal(again, after)
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
