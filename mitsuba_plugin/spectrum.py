@@ -40,6 +40,19 @@ def spectrum(rgb: mi.Color3f, wavelengths: mi.UnpolarizedSpectrum) -> mi.Unpolar
     return rgb
 
 
+def extinction_spectrum(rgb: mi.Color3f,
+                        wavelengths: mi.UnpolarizedSpectrum) -> mi.UnpolarizedSpectrum:
+    """Extinctions ``rgb`` (not negative, unbounded) as the current variant's spectrum, as
+    Mitsuba's ``gridvolume`` upsamples three channels: in a spectral variant, the
+    reflectance model of ``rgb / s`` times ``s``, twice the largest channel, so that values
+    above 1 are kept rather than clipped; as :func:`spectrum` in the others."""
+    if not mi.is_spectral:
+        return spectrum(rgb, wavelengths)
+    scale = 2.0 * dr.maximum(dr.maximum(rgb[0], rgb[1]), rgb[2])
+    unit = mi.Color3f(rgb) / dr.maximum(1e-8, scale)
+    return scale * mi.srgb_model_eval(srgb_coefficients(unit), wavelengths)
+
+
 def luminance(rgb: mi.Color3f) -> mi.Float:
     """``mi.luminance`` of ``rgb`` in float64 in one order of operations, rounded to float32
     once: Mitsuba's scalar and LLVM builds compile theirs differently, a float32 ulp apart

@@ -369,11 +369,12 @@ class LazySolidTexture(mi.Texture):
         # and at most (spectra may exceed a color's largest channel, but never 1).
         mean_rgb, min_rgb, max_rgb = _voxel_color_range(axes, self._decode_srgb)
         self._mean = float(mean_rgb.mean())
-        # No color of it is lower: a medium refuses an extinction that may be negative.
-        self.lowest = float(min_rgb.min())
+        # No channel of it is lower (a medium refuses an extinction that may be negative)
+        # or higher (the bound of an extinction upsampled unbounded).
+        self.lowest, self.largest = float(min_rgb.min()), float(max_rgb.max())
         if mi.is_monochromatic:
             self._mean = float(np.ravel(luminance(mi.Color3f(*map(float, mean_rgb))))[0])
-        self._max = 1.0 if mi.is_spectral else float(max_rgb.max())
+        self._max = 1.0 if mi.is_spectral else self.largest
         self._traced: TracedLookup | None = None
         # The scalar variants' copies of bricks, as large as the store may be.
         self._scalar = (None if dr.is_jit_v(mi.Float)

@@ -28,14 +28,16 @@ from mitsuba_plugin.properties import (
     property_error,
     unknown_property,
 )
-from mitsuba_plugin.spectrum import luminance, spectrum
+from mitsuba_plugin.spectrum import extinction_spectrum, luminance, spectrum
 
 MEDIUM = "lazy_solid_medium"
 # Mitsuba's heterogeneous medium exists only within its sigma_t volume's bounding box, the
 # unit cube [0, 1]^3 unless the volume's to_world places it: the volumes made here span
 # this far each way (world units), so that the medium fills the shape it is the inside of,
-# as the unbounded texture does and as a homogeneous medium would.
-_REACH = 1e7
+# as the unbounded texture does and as a homogeneous medium would: far past any scene
+# float32 positions can hold (a unit apart at 1e7), while the box's float32 volume stays
+# finite.
+_REACH = 1e12
 # Besides these, a nested phase function, which may go by any name (unnamed, the parser's
 # "_arg_0"); "phase" is in _PROPERTIES for the typos of it.
 _VALUES = ("albedo", "sigma_t", "scale", "sample_emitters")
@@ -44,17 +46,21 @@ _PROPERTIES = (*_VALUES, "phase")
 
 class LazySolidVolume(mi.Volume):
     """The color of a ``lazy_solid`` texture at each medium point, as the variant's
-    spectrum (``eval``) or as RGB (``eval_3``)."""
+    spectrum (``eval``) or as RGB (``eval_3``): a reflectance for an albedo, an unbounded
+    spectrum for an ``extinction`` (:func:`~mitsuba_plugin.spectrum.extinction_spectrum`)."""
 
-    def __init__(self, texture: mi.Texture) -> None:
+    def __init__(self, texture: mi.Texture, extinction: bool = False) -> None:
         props = mi.Properties()
         props["to_world"] = _everywhere()
         super().__init__(props)
         self.texture = texture
-        self._max = texture.max()
+        self._upsampled = extinction_spectrum if extinction else spectrum
+        # The medium's majorant: an extinction's spectrum stays below twice its largest
+        # channel, as Mitsuba's gridvolume bounds its own.
+        self._max = 2.0 * texture.largest if extinction and mi.is_spectral else texture.max()
 
     def eval(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.UnpolarizedSpectrum:
-        return spectrum(self.texture.colors_at(it, active), it.wavelengths)
+        return self._upsampled(self.texture.colors_at(it, active), it.wavelengths)
 
     def eval_3(self, it: mi.Interaction3f, active: mi.Bool = True) -> mi.Vector3f:
         return mi.Vector3f(self.texture.colors_at(it, active))
@@ -120,7 +126,7 @@ def lazy_solid_medium(props: mi.Properties,
             raise property_error(MEDIUM, "sigma_t", "is a lazy_solid whose exemplar holds "
                                  f"negative values (down to {sigma_t.lowest:.3g}); an "
                                  "extinction is never negative")
-        sigma_t = volume_type(sigma_t)
+        sigma_t = volume_type(sigma_t, extinction=True)
     elif isinstance(sigma_t, int | float) and not isinstance(sigma_t, bool):
         sigma_t = float(sigma_t)  # as Mitsuba's own media take an <integer> too
         if not (math.isfinite(sigma_t) and sigma_t >= 0):

@@ -219,6 +219,20 @@ def test_the_medium_fills_its_shape_as_a_homogeneous_one(tmp_path):
                                    homogeneous, rtol=1e-5, atol=1e-6)
 
 
+def test_the_medium_is_there_far_from_the_origin_as_a_homogeneous_one_is():
+    """Its volumes spanned +-1e7 units: a ray starting further out found no medium."""
+    use("scalar_rgb")
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    lazy = mi.load_dict({"type": "lazy_solid_medium", "sigma_t": 1.0,
+                         "albedo": {"type": "lazy_solid", "exemplar": str(wood)}})
+    homogeneous = mi.load_dict({"type": "homogeneous", "albedo": 0.5, "sigma_t": 1.0})
+    for x in (0.0, 1.01e7, -3e8, 1e11):
+        ray = mi.Ray3f(mi.Point3f(x, 0.0, 0.0), mi.Vector3f(1.0, 0.0, 0.0))
+        ray.maxt = 100.0
+        found = [medium.sample_interaction(ray, 0.5, 0, True) for medium in (lazy, homogeneous)]
+        assert [(bool(m.is_valid()), float(m.t)) for m in found] == [(True, found[1].t)] * 2
+
+
 def test_a_lazy_solid_sigma_t_of_negative_values_is_refused(tmp_path):
     use("scalar_rgb")
     values = np.random.default_rng(0).uniform(-0.7, 3.0, (32, 32, 3)).astype(np.float32)

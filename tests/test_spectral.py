@@ -141,6 +141,30 @@ def test_the_medium_albedo_is_upsampled_like_the_texture(granite_32_file):
     np.testing.assert_array_equal(np.array(albedo), np.array(surface))
 
 
+def test_a_lazy_sigma_t_is_upsampled_unbounded_as_mitsubas_gridvolume(tmp_path):
+    """Extinctions above 1 keep their size in a spectral variant (the reflectance model
+    clipped them to 1: a medium 5x thinner than in RGB), as Mitsuba's gridvolume of the same
+    values gives them, below the medium's majorant."""
+    use(SPECTRAL)
+    extinctions = np.random.default_rng(0).uniform(2.0, 8.0, (32, 32, 3)).astype(np.float32)
+    np.save(tmp_path / "sigma_t.npy", extinctions)
+    sigma_t = load(tmp_path / "sigma_t.npy", raw=True)
+    medium = mi.load_dict({"type": "lazy_solid_medium", "albedo": sigma_t,
+                           "sigma_t": sigma_t})
+    points, wavelengths = _points_and_wavelengths()
+    it = _interactions(points, wavelengths, mi.MediumInteraction3f)
+    got = np.array(medium.get_scattering_coefficients(it)[2])
+    rgb = sigma_t.solid.query(points * 8.0)[:, :3]
+    for i, color in enumerate(rgb):
+        grid = mi.load_dict({"type": "gridvolume", "filter_type": "nearest",
+                             "grid": mi.VolumeGrid(np.full((1, 1, 1, 3), color, np.float32))})
+        at = _interactions(np.full((1, 3), 0.5, np.float32), wavelengths[i:i + 1],
+                           mi.MediumInteraction3f)
+        np.testing.assert_allclose(got[:, i], np.array(grid.eval(at)).ravel(), rtol=1e-5)
+    assert got.max() > 2.0  # clipped, none passed 1
+    assert (got <= np.array(medium.get_majorant(it))).all()
+
+
 def test_a_mitsuba_that_upsamples_otherwise_is_refused(granite_32_file, monkeypatch):
     """Another Mitsuba release's lookup would show colors Mitsuba itself would not give:
     the texture is refused when it loads, naming the color that differs."""
