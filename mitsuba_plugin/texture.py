@@ -541,7 +541,7 @@ class LazySolidTexture(mi.Texture):
             finite = dr.isfinite(p[0]) & dr.isfinite(p[1]) & dr.isfinite(p[2])
             p = [dr.select(finite, c, 0.0) for c in p]
             rgb = self._traced.colors(p, active & finite)
-            return dr.select(finite, rgb, mi.Color3f(0.0))
+            return dr.select(active & finite, rgb, mi.Color3f(0.0))
         width = dr.width(it.p)
         # One kernel interleaves the points; in the LLVM variants NumPy then views Dr.Jit's
         # memory (DLPack). NumPy cannot view GPU memory: the CUDA variants copy the points.

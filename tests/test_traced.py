@@ -224,6 +224,16 @@ def test_non_finite_points_are_black_in_traced_lookups_as_in_wavefront_ones(gran
     assert (wavefront[:, [0, 3]] > 0).all()
     np.testing.assert_array_equal(wavefront[:, 1:3], 0.0)
     np.testing.assert_array_equal(traced, wavefront)
+    # Lanes masked off by ``active`` are black too, as colors_at says, not the stand-in.
+    active = mi.Bool([True, True, True, False])
+    wavefront = np.array(texture.eval(si, active))
+    with mitsuba_plugin.traced_renders(scene):
+        traced = np.array(dr.if_stmt(args=(si, active), cond=dr.opaque(mi.Bool, True, 4),
+                                     true_fn=texture.eval,
+                                     false_fn=lambda si, active: dr.zeros(mi.Color3f, 4),
+                                     mode="symbolic"))
+    np.testing.assert_array_equal(wavefront[:, 3], 0.0)
+    np.testing.assert_array_equal(traced, wavefront)
 
 
 def test_object_space_is_traced_and_agrees_with_wavefront_mode(granite_32_file):
