@@ -373,9 +373,14 @@ def _check_scene(scene: object, whole: bool = False) -> None:
     """Refuse what is not a loaded Mitsuba object (a scene's file name, say), or, where a
     ``whole`` scene is needed (to render it), not a scene: Mitsuba would answer either with
     an error of its own internals."""
-    if not isinstance(scene, mi.Scene if whole else mi.Object):
-        raise TypeError(f"scene must be a loaded Mitsuba scene (mi.load_file, mi.load_dict), "
-                        f"got {scene!r}")
+    if isinstance(scene, mi.Scene if whole else mi.Object):
+        return
+    if type(scene).__name__ == "Scene" and type(scene).__module__ == "mitsuba":
+        raise TypeError(f"scene was loaded under another Mitsuba variant than the current "
+                        f"one, {mi.variant()}: load it again after mi.set_variant, or set "
+                        "its variant back")
+    raise TypeError(f"scene must be a loaded Mitsuba scene (mi.load_file, mi.load_dict), "
+                    f"got {scene!r}")
 
 
 def save_caches(scene: mi.Object | None = None) -> list[Path]:

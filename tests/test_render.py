@@ -305,6 +305,12 @@ def test_render_refuses_arguments_mitsuba_would_fail_on_deep_inside():
     with pytest.raises(TypeError, match="scene must be a loaded Mitsuba scene"):
         mitsuba_plugin.render(texture)
     assert mitsuba_plugin.render(scene, spp=2, batches=2, seed=2**31 - 1).shape == (4, 4, 3)
+    other = warptex.best_mitsuba_variant()
+    if other != "scalar_rgb":  # a scene of the variant set before: its variant is the fault
+        use(other)
+        with pytest.raises(TypeError, match="scene was loaded under another Mitsuba variant "
+                           f"than the current one, {other}: load it again"):
+            mitsuba_plugin.render(scene)
 
 
 def test_render_keeps_the_samplers_count_and_its_stratification(tmp_path, capsys):
