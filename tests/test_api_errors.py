@@ -87,6 +87,19 @@ def test_texture_arguments_of_the_wrong_kind_are_named(candidates, warp_device):
         tex.query(np.array([[np.nan, 0.0, 0.0]]), fill="red")
 
 
+def test_a_store_file_named_by_a_loop_of_links_is_refused(candidates, warp_device, tmp_path):
+    """It was a RuntimeError ("Symlink loop") from deep inside, and save's the same."""
+    from warptex.store import StoreFileError
+    from warptex.texture import SolidTexture
+
+    (tmp_path / "loop.wts").symlink_to("loop.wts")
+    problem = "a brick store could not be saved there: cannot look up"
+    with pytest.raises(StoreFileError, match=problem):
+        SolidTexture(candidates, store=tmp_path / "loop.wts")
+    with pytest.raises(StoreFileError, match=problem):
+        SolidTexture(candidates).save(tmp_path / "loop.wts")
+
+
 def test_slice_arguments_are_checked(candidates, warp_device):
     from warptex.texture import SolidTexture
 

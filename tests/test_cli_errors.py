@@ -548,6 +548,40 @@ def test_a_second_half_named_by_a_link_to_the_first_is_refused_before_the_cut(
         "(through a link); each file of a cut is written once: choose another output name\n")
 
 
+def test_outputs_behind_links_that_lead_nowhere_are_refused_before_the_work(
+        files, tmp_path, capsys, monkeypatch):
+    """A loop of links as a file or folder name was a RuntimeError's traceback (bake's and
+    cut's --store); a folder that is a link to a missing target (an unmounted disk) was
+    found only after the work, as "cannot write (File exists)"."""
+    import warptex.surface
+
+    def never(*args, **kwargs):
+        raise AssertionError("shell synthesized before its outputs were checked")
+
+    monkeypatch.setattr(warptex.surface, "shell", never)
+    (tmp_path / "loop.wts").symlink_to("loop.wts")
+    (tmp_path / "out").symlink_to(tmp_path / "unmounted" / "out")
+    mesh = ["bake", str(files["mesh"]), "--exemplar", str(files["exemplar"]), "--resolution",
+            "16"]
+    for args, problem in (
+            ([*mesh, "-o", str(tmp_path / "a.ply"), "--store", str(tmp_path / "loop.wts")],
+             f"{tmp_path / 'loop.wts'}: cannot look up (Too many levels of symbolic links)"),
+            ([*mesh, "-o", str(tmp_path / "out" / "a.ply")],
+             f"{tmp_path / 'out' / 'a.ply'}: cannot write in {tmp_path / 'out'}, a symbolic "
+             f"link to {tmp_path / 'unmounted' / 'out'}, which leads to no folder"),
+            (["volume", str(files["exemplar"]), "--size", "8", "-o",
+              str(tmp_path / "out" / "v.npy")],
+             f"{tmp_path / 'out' / 'v.npy'}: cannot write in {tmp_path / 'out'}")):
+        assert main(args) == 2
+        assert capsys.readouterr().err.startswith(f"warptex: error: {problem}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loop.wts", "out"]
+    (tmp_path / "loop.ply").symlink_to("loop.ply")  # an input: not "not found" either
+    assert main(["bake", str(tmp_path / "loop.ply"), "--exemplar", str(files["exemplar"]),
+                 "-o", str(tmp_path / "a.ply")]) == 2
+    assert capsys.readouterr().err == (f"warptex: error: {tmp_path / 'loop.ply'}: cannot look "
+                                       "up mesh file (Too many levels of symbolic links)\n")
+
+
 def test_texture_settings_reach_volume_and_slice(files, tmp_path):
     """--ey gives the y (and so z) axis its own exemplar, and --passes the engine its
     passes, in volume and slice alike."""

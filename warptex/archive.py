@@ -62,6 +62,9 @@ def folder_problem(folder: str | Path) -> str | None:
     existing = Path(folder).absolute()
     try:
         while not existing.exists():
+            if existing.is_symlink():  # to nowhere, or a loop: no folder can be made there
+                return (f"cannot write in {existing}, a symbolic link to "
+                        f"{os.readlink(existing)}, which leads to no folder")
             existing = existing.parent
     except OSError as error:
         return f"cannot look up {existing} ({error.strerror or error})"
@@ -90,8 +93,13 @@ def file_problem(path: str | Path) -> str | None:
     try:
         if Path(path).is_dir():
             return "is a folder, expected a file name"
+        os.stat(path)
+    except FileNotFoundError:  # to be made, through a link to nowhere too
+        pass
     except OSError as error:
-        return f"cannot look up ({error.strerror or error})"
+        # A loop of links, which is_dir takes for a missing file: no file can be made there.
+        if isinstance(error, PermissionError) or error.errno == errno.ELOOP:
+            return f"cannot look up ({error.strerror or error})"
     return folder_problem(Path(path).parent)
 
 

@@ -152,10 +152,16 @@ def _input_file(text: str) -> Path:
 def _check_input_file(path: Path, kind: str) -> None:
     """Refuse, naming it, a ``kind`` file ("mesh", "scene") that is a folder, is missing or
     is no regular file: a pipe would keep its reader waiting for a writer."""
+    try:
+        path.stat()
+    except FileNotFoundError:
+        broken = path.is_symlink()
+        raise CliError(f"{path}: {kind} file not found"
+                       + (" (a broken symbolic link)" if broken else "")) from None
+    except OSError as error:  # a folder on the way that cannot be searched, a link loop
+        raise CliError(f"{path}: cannot look up {kind} file ({error.strerror})") from None
     if path.is_dir():
         raise CliError(f"{path}: is a folder, expected a {kind} file")
-    if not path.exists():
-        raise CliError(f"{path}: {kind} file not found")
     if not path.is_file():
         raise CliError(f"{path}: is not a regular file (a pipe or a device), expected a {kind} "
                        "file")
