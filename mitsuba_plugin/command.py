@@ -290,15 +290,17 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "textures": textures,
     }
     text = json.dumps(report, indent=2) + "\n"
-    try:
-        # Synchronously: the default asynchronous write would race the rename.
-        write_together([
-            (output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False)),
-            (statistics, lambda tmp: tmp.write_text(text)),
-        ])
-    except OSError as error:
-        raise OutputError(_write_failure(error, output)) from None
-    _print_report(report)
+    # A stop meanwhile comes once the files are written and said to be, not between.
+    with deferred_stops():
+        try:
+            # Synchronously: the default asynchronous write would race the rename.
+            write_together([
+                (output, lambda tmp: mi.util.write_bitmap(str(tmp), image, write_async=False)),
+                (statistics, lambda tmp: tmp.write_text(text)),
+            ])
+        except OSError as error:
+            raise OutputError(_write_failure(error, output)) from None
+        _print_report(report)
     failed = [t["not_saved"] for t in textures if "not_saved" in t]
     if failed:  # the image is kept: a store is a cache, which the next render rebuilds
         raise OutputError("; ".join(failed))

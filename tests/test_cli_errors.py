@@ -687,6 +687,30 @@ def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
     assert len(np.unique(opacity)) > 1  # not a constant alpha that any writer might add
 
 
+def test_a_stop_during_the_outputs_write_waits_for_it_and_says_so(files, tmp_path, capsys,
+                                                                  monkeypatch):
+    """Ctrl-C while the volume was written lost the finished work, and one right after its
+    rename left the new file in place while the command said only that it had stopped."""
+    import signal
+
+    import warptex.cli
+
+    write = warptex.cli.write_volume
+
+    def stopped_half_way(*args, **kwargs):
+        signal.raise_signal(signal.SIGINT)
+        write(*args, **kwargs)
+
+    monkeypatch.setattr(warptex.cli, "write_volume", stopped_half_way)
+    out = tmp_path / "v.npy"
+    np.save(out, np.zeros(1))
+    assert main(["volume", str(files["exemplar"]), "--size", "8", "-o", str(out)]) == 130
+    assert np.load(out).shape == (8, 8, 8, 3)
+    captured = capsys.readouterr()
+    assert captured.err.endswith(f"\nwarptex: interrupted after writing {out}\n")
+    assert "written:" not in captured.out
+
+
 def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
     import warptex.cli
 
@@ -700,21 +724,24 @@ def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
 
 def test_sigterm_is_an_interrupt_that_leaves_no_partial_file(files, tmp_path, capsys,
                                                               monkeypatch):
-    """A scheduler's SIGTERM in the middle of writing the output: exit 143 with one line, no
-    output file and no temporary one; the process's own SIGTERM handling is restored."""
+    """A scheduler's SIGTERM in the middle of writing the output: the write is finished
+    first, whole, then exit 143 with one line naming it, no temporary file left; the
+    process's own SIGTERM handling is restored."""
     before = signal.getsignal(signal.SIGTERM)
+    header = np.lib.format.write_array_header_1_0
 
-    def write_then_terminated(file, header) -> None:
-        file.write(b"\x93NUMPY, the first bytes of it")
+    def header_then_terminated(file, fields) -> None:
+        header(file, fields)
         os.kill(os.getpid(), signal.SIGTERM)
 
-    monkeypatch.setattr(np.lib.format, "write_array_header_1_0", write_then_terminated)
+    monkeypatch.setattr(np.lib.format, "write_array_header_1_0", header_then_terminated)
     out = tmp_path / "out"
     out.mkdir()
     assert main(["volume", str(files["exemplar"]), "--size", "8", "--passes", "0",
                  "-o", str(out / "v.npy")]) == 143
-    assert capsys.readouterr().err.endswith("\nwarptex: terminated\n")
-    assert list(out.iterdir()) == []
+    assert capsys.readouterr().err.endswith(f"\nwarptex: terminated after writing "
+                                            f"{out / 'v.npy'}\n")
+    assert list(out.iterdir()) == [out / "v.npy"] and np.load(out / "v.npy").shape[:3] == (8,) * 3
     assert signal.getsignal(signal.SIGTERM) is before
 
 

@@ -423,6 +423,32 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert "rendering: batch 0/1\nrendering: batch 1/1\n" in capsys.readouterr().err
 
 
+def test_a_stop_while_the_render_is_written_comes_after_it_is_written_and_said(
+        tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the image was written lost the render, or, right after the rename,
+    left it in place while the command said only that it had stopped."""
+    import signal
+
+    import mitsuba_plugin.command
+    from warptex import archive
+    from warptex.cli import main
+
+    write = archive.write_together
+
+    def stopped_half_way(writes):
+        signal.raise_signal(signal.SIGINT)
+        write(writes)
+
+    monkeypatch.setattr(mitsuba_plugin.command, "write_together", stopped_half_way)
+    out = tmp_path / "b.png"
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
+                 "--spp", "1", "--res", "8x8"]) == 130
+    assert list(mi.Bitmap(str(out)).size()) == [8, 8]
+    captured = capsys.readouterr()
+    assert f"written: {out} (8x8" in captured.out
+    assert captured.err.endswith("\nwarptex: interrupted\n")
+
+
 def test_render_progress_in_a_log_is_its_first_and_last_line(tmp_path, capsys, monkeypatch):
     """In a log, a render's batches are lines as a bar's redraws are: the first, at most
     one every _LOG_SECONDS (made longer than any render here), and the last."""

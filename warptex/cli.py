@@ -835,13 +835,22 @@ def _ticking(bar: tqdm) -> Iterator[None]:
         ticker.join()
 
 
+# The outputs of this run renamed into place so far, for a stop's report.
+_WRITTEN: list[Path] = []
+
+
 @contextlib.contextmanager
 def _writing(path: Path, *written_with: Path) -> Iterator[None]:
     """A failed write of the output ``path`` (a full disk, a lost mount) as one error that
     names it, or the file ``written_with`` it that failed; the writers are atomic, so the
-    files are left as they were."""
+    files are left as they were. A stop meanwhile waits until the files are written and
+    noted (:data:`_WRITTEN`), so that the stop's report says they were replaced."""
     try:
-        yield
+        with deferred_stops():
+            yield
+            _WRITTEN.extend((path, *written_with))
+    except BrokenPipeError:  # stdout's reader gone, not this file's failure
+        raise
     except OSError as error:
         # A failed rename names its target second (os.replace's filename2).
         failed = {error.filename, error.filename2}
@@ -1603,7 +1612,8 @@ def _parser() -> argparse.ArgumentParser:
         "Warp's kernel cache (built on first use).\n\n"
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
         "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
-        "(render, bake and cut save their brick stores first), 141 the reader of its "
+        "(render, bake and cut save their brick stores first; an output being written is "
+        "finished and named), 141 the reader of its "
         "output closed it (`| head`).\n\n"
         + "\n".join([_EXAMPLES_HEADING, *(e for name in ("slice", "render", "compare")
                                            for e in _EXAMPLES[name][:1])]),
@@ -1898,6 +1908,7 @@ _STOP_LOSING_LIBRARIES = {"bake": ("trimesh",), "cut": ("trimesh",)}
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    _WRITTEN.clear()
     args = _parse(_parser(), argv)
     _, command = _SUBCOMMANDS[args.command]
     with warnings.catch_warnings(), _terminated_like_interrupted(), _bars_as_log_lines():
@@ -1922,5 +1933,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return error.exit_code if isinstance(error, CliError) else 2
         except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
             terminated = isinstance(stop, _Terminated) or _terminated.is_set()
-            print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}", file=sys.stderr)
+            after = ("" if not _WRITTEN else
+                     " after writing " + ", ".join(str(f) for f in dict.fromkeys(_WRITTEN)))
+            print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}{after}",
+                  file=sys.stderr)
             return 143 if terminated else 130  # as for a command that the signal ends
