@@ -1,8 +1,9 @@
 """Digests of the code that decides what a cache holds: a cache written by other code, even
 under the same format version, is keyed otherwise and never served (caches are never
-silently wrong), at the price of recomputing it after each change to that code. Warp's
-version is part of that code: another Warp compiles the same kernels to other instructions,
-which may round otherwise."""
+silently wrong), at the price of recomputing it after each change to that code. The
+versions of Warp, NumPy and SciPy are part of that code: another Warp compiles the same
+kernels to other instructions, and another NumPy or SciPy may sum, filter or decompose in
+another order (the pyramid's filters, the PCA), either of which may round otherwise."""
 
 from __future__ import annotations
 
@@ -20,9 +21,9 @@ def module_sources(modules: Iterable[ModuleType]) -> list[Path] | None:
 
 def code_digest(sources: Sequence[Path] | None, constants: str) -> str:
     """SHA-256 of the ``sources``' bytes, of ``constants`` (values set outside them) and of
-    Warp's version; of those constants and warptex's version where the sources cannot be
-    read."""
-    return _digest(sources, f"{constants} warp {_warp_version()}")
+    the versions of Warp, NumPy and SciPy; of those and warptex's version where the sources
+    cannot be read."""
+    return _digest(sources, f"{constants} {_library_versions()}")
 
 
 def _digest(sources: Sequence[Path] | None, constants: str) -> str:
@@ -42,10 +43,12 @@ def sources_digest(paths: Sequence[Path], constants: str) -> str:
     return digest.hexdigest()
 
 
-def _warp_version() -> str:
+def _library_versions() -> str:
+    import numpy as np
+    import scipy
     import warp as wp
 
-    return wp.config.version
+    return f"warp {wp.config.version} numpy {np.__version__} scipy {scipy.__version__}"
 
 
 def _package_version() -> str:
