@@ -260,6 +260,21 @@ def test_a_cache_folder_that_is_a_file_is_one_clear_error(tmp_path, monkeypatch,
     assert "Traceback" not in err and path.read_text() == "a file"
 
 
+def test_a_cache_folder_that_is_a_link_to_nowhere_is_named_not_listed_empty(
+        tmp_path, monkeypatch, capsys):
+    """A link to a missing folder (an unmounted disk) or a loop of links was listed as
+    "no candidate files", though nothing could be cached there."""
+    (tmp_path / "unmounted").symlink_to(tmp_path / "disk" / "cache")
+    (tmp_path / "loop").symlink_to("loop")
+    for name, why in (("unmounted", "a symbolic link to a missing folder"),
+                      ("loop", "Too many levels of symbolic links")):
+        monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / name))
+        assert main(["cache"]) == 2
+        assert capsys.readouterr().err == (
+            f"warptex: error: {tmp_path / name}: cannot list the candidate cache ({why}); "
+            "WARPTEX_CACHE sets its folder\n")
+
+
 def test_a_file_that_cannot_be_deleted_is_named(folder, monkeypatch, capsys):
     real_unlink = Path.unlink
 

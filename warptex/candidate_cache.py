@@ -66,10 +66,16 @@ def cache_files(folder: Path | None = None, progress: bool = False) -> list[Cach
 
     Raises:
         NotADirectoryError: ``folder`` is a file.
-        OSError: the folder or one of its cache files cannot be read.
+        OSError: the folder or one of its cache files cannot be read, or it is a link that
+            leads nowhere (to a missing folder, or a loop), where no file can be cached.
     """
     folder = cache_dir() if folder is None else Path(folder)
-    if not folder.exists():
+    try:
+        folder.stat()
+    except FileNotFoundError:
+        if folder.is_symlink():
+            raise FileNotFoundError(errno.ENOENT, "a symbolic link to a missing folder",
+                                    str(folder)) from None
         return []
     if not folder.is_dir():
         raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(folder))
