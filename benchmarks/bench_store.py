@@ -32,6 +32,7 @@ from timing import best_of, run_record  # noqa: E402
 from warptex.candidates import precompute  # noqa: E402
 from warptex.parallel import THREADS  # noqa: E402
 from warptex.texture import SolidTexture  # noqa: E402
+from warptex.warp_runtime import device  # noqa: E402
 
 REGION = 64
 POINTS = 10_000_000
@@ -63,7 +64,8 @@ def warm(candidates) -> None:
     pts = rng.uniform(0.5, REGION - 0.51, (POINTS, 3)).astype(np.float32)
     tex.query(pts[:100_000], filter="trilinear")  # compile and load every kernel first
     misses = tex.store.stats()["misses"]
-    print(f"store queries on {THREADS} thread{'s' * (THREADS > 1)}, NumPy on one")
+    lookups = "the GPU" if device() == "cuda" else f"{THREADS} thread{'s' * (THREADS > 1)}"
+    print(f"store queries on {lookups}, NumPy on one thread")
 
     def gather() -> np.ndarray:
         v = np.floor(pts).astype(np.intp)

@@ -266,12 +266,14 @@ def test_a_cache_folder_that_is_a_link_to_nowhere_is_named_not_listed_empty(
     "no candidate files", though nothing could be cached there."""
     (tmp_path / "unmounted").symlink_to(tmp_path / "disk" / "cache")
     (tmp_path / "loop").symlink_to("loop")
-    for name, why in (("unmounted", "a symbolic link to a missing folder"),
-                      ("loop", "Too many levels of symbolic links")):
-        monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / name))
+    for folder, link, target in (("unmounted", "unmounted", tmp_path / "disk" / "cache"),
+                                 ("unmounted/warptex", "unmounted", tmp_path / "disk" / "cache"),
+                                 ("loop", "loop", "loop")):
+        monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / folder))
         assert main(["cache"]) == 2
         assert capsys.readouterr().err == (
-            f"warptex: error: {tmp_path / name}: cannot list the candidate cache ({why}); "
+            f"warptex: error: {tmp_path / folder}: cannot list the candidate cache "
+            f"({tmp_path / link} is a symbolic link to {target}, which leads nowhere); "
             "WARPTEX_CACHE sets its folder\n")
 
 

@@ -561,20 +561,28 @@ def test_outputs_behind_links_that_lead_nowhere_are_refused_before_the_work(
     monkeypatch.setattr(warptex.surface, "shell", never)
     (tmp_path / "loop.wts").symlink_to("loop.wts")
     (tmp_path / "out").symlink_to(tmp_path / "unmounted" / "out")
+    (tmp_path / "notes.txt").write_text("a file")
+    (tmp_path / "to_below_a_file.npy").symlink_to(tmp_path / "notes.txt" / "v.npy")
     mesh = ["bake", str(files["mesh"]), "--exemplar", str(files["exemplar"]), "--resolution",
             "16"]
     for args, problem in (
             ([*mesh, "-o", str(tmp_path / "a.ply"), "--store", str(tmp_path / "loop.wts")],
              f"{tmp_path / 'loop.wts'}: cannot look up (Too many levels of symbolic links)"),
             ([*mesh, "-o", str(tmp_path / "out" / "a.ply")],
-             f"{tmp_path / 'out' / 'a.ply'}: cannot write in {tmp_path / 'out'}, a symbolic "
-             f"link to {tmp_path / 'unmounted' / 'out'}, which leads to no folder"),
+             f"{tmp_path / 'out' / 'a.ply'}: cannot write there: {tmp_path / 'out'} is a "
+             f"symbolic link to {tmp_path / 'unmounted' / 'out'}, which leads nowhere"),
             (["volume", str(files["exemplar"]), "--size", "8", "-o",
               str(tmp_path / "out" / "v.npy")],
-             f"{tmp_path / 'out' / 'v.npy'}: cannot write in {tmp_path / 'out'}")):
+             f"{tmp_path / 'out' / 'v.npy'}: cannot write there: {tmp_path / 'out'} is"),
+            # A link written through to a file that no folder can hold (below a file).
+            (["volume", str(files["exemplar"]), "--size", "8", "-o",
+              str(tmp_path / "to_below_a_file.npy")],
+             f"{tmp_path / 'to_below_a_file.npy'}: cannot write, {tmp_path / 'notes.txt'} is "
+             "a file, not a folder")):
         assert main(args) == 2
         assert capsys.readouterr().err.startswith(f"warptex: error: {problem}")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["loop.wts", "out"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loop.wts", "notes.txt", "out",
+                                                          "to_below_a_file.npy"]
     (tmp_path / "loop.ply").symlink_to("loop.ply")  # an input: not "not found" either
     assert main(["bake", str(tmp_path / "loop.ply"), "--exemplar", str(files["exemplar"]),
                  "-o", str(tmp_path / "a.ply")]) == 2
@@ -687,28 +695,36 @@ def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
     assert len(np.unique(opacity)) > 1  # not a constant alpha that any writer might add
 
 
-def test_a_stop_during_the_outputs_write_waits_for_it_and_says_so(files, tmp_path, capsys,
-                                                                  monkeypatch):
-    """Ctrl-C while the volume was written lost the finished work, and one right after its
-    rename left the new file in place while the command said only that it had stopped."""
+def test_a_stop_right_after_the_outputs_rename_names_it(files, tmp_path, capsys,
+                                                        monkeypatch):
+    """A stop after the new volume replaced the old, before the command said so, left it
+    in place unmentioned: the stop's line names it. One during the write keeps the old."""
     import signal
 
     import warptex.cli
 
     write = warptex.cli.write_volume
-
-    def stopped_half_way(*args, **kwargs):
-        signal.raise_signal(signal.SIGINT)
-        write(*args, **kwargs)
-
-    monkeypatch.setattr(warptex.cli, "write_volume", stopped_half_way)
     out = tmp_path / "v.npy"
-    np.save(out, np.zeros(1))
-    assert main(["volume", str(files["exemplar"]), "--size", "8", "-o", str(out)]) == 130
-    assert np.load(out).shape == (8, 8, 8, 3)
-    captured = capsys.readouterr()
-    assert captured.err.endswith(f"\nwarptex: interrupted after writing {out}\n")
-    assert "written:" not in captured.out
+    for stop_first in (False, True):
+
+        def stopped(*args, stop_first=stop_first, **kwargs):
+            if stop_first:
+                signal.raise_signal(signal.SIGINT)
+            write(*args, **kwargs)
+            signal.raise_signal(signal.SIGINT)
+
+        monkeypatch.setattr(warptex.cli, "write_volume", stopped)
+        np.save(out, np.zeros(1))
+        assert main(["volume", str(files["exemplar"]), "--size", "8", "-o", str(out)]) == 130
+        captured = capsys.readouterr()
+        assert "written:" not in captured.out
+        if stop_first:
+            assert np.load(out).shape == (1,)
+            assert captured.err.endswith("\nwarptex: interrupted\n")
+        else:
+            assert np.load(out).shape == (8, 8, 8, 3)
+            assert captured.err.endswith(f"\nwarptex: interrupted after writing {out}\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.npy"]
 
 
 def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
@@ -724,24 +740,21 @@ def test_an_interrupt_is_one_line_and_exit_130(files, capsys, monkeypatch):
 
 def test_sigterm_is_an_interrupt_that_leaves_no_partial_file(files, tmp_path, capsys,
                                                               monkeypatch):
-    """A scheduler's SIGTERM in the middle of writing the output: the write is finished
-    first, whole, then exit 143 with one line naming it, no temporary file left; the
-    process's own SIGTERM handling is restored."""
+    """A scheduler's SIGTERM in the middle of writing the output: exit 143 with one line, no
+    output file and no temporary one; the process's own SIGTERM handling is restored."""
     before = signal.getsignal(signal.SIGTERM)
-    header = np.lib.format.write_array_header_1_0
 
-    def header_then_terminated(file, fields) -> None:
-        header(file, fields)
+    def write_then_terminated(file, header) -> None:
+        file.write(b"\x93NUMPY, the first bytes of it")
         os.kill(os.getpid(), signal.SIGTERM)
 
-    monkeypatch.setattr(np.lib.format, "write_array_header_1_0", header_then_terminated)
+    monkeypatch.setattr(np.lib.format, "write_array_header_1_0", write_then_terminated)
     out = tmp_path / "out"
     out.mkdir()
     assert main(["volume", str(files["exemplar"]), "--size", "8", "--passes", "0",
                  "-o", str(out / "v.npy")]) == 143
-    assert capsys.readouterr().err.endswith(f"\nwarptex: terminated after writing "
-                                            f"{out / 'v.npy'}\n")
-    assert list(out.iterdir()) == [out / "v.npy"] and np.load(out / "v.npy").shape[:3] == (8,) * 3
+    assert capsys.readouterr().err.endswith("\nwarptex: terminated\n")
+    assert list(out.iterdir()) == []
     assert signal.getsignal(signal.SIGTERM) is before
 
 

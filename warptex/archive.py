@@ -56,15 +56,27 @@ def overwritten_input(outputs: Sequence[str | Path],
     return None
 
 
+def dead_link(folder: str | Path) -> str | None:
+    """What is wrong where ``folder``, or a folder above it that does not exist either, is
+    a symbolic link that leads nowhere (to a missing target, an unmounted disk, or round a
+    loop), so that no folder can be made there; None where none is."""
+    existing = Path(folder).absolute()
+    while not existing.exists():
+        if existing.is_symlink():
+            return f"{existing} is a symbolic link to {os.readlink(existing)}, which leads nowhere"
+        existing = existing.parent
+    return None
+
+
 def folder_problem(folder: str | Path) -> str | None:
     """Why files cannot be written in ``folder`` (which need not exist yet:
     :func:`write_atomically` makes it), or None when they can."""
     existing = Path(folder).absolute()
     try:
+        dead = dead_link(existing)
+        if dead is not None:
+            return f"cannot write there: {dead}"
         while not existing.exists():
-            if existing.is_symlink():  # to nowhere, or a loop: no folder can be made there
-                return (f"cannot write in {existing}, a symbolic link to "
-                        f"{os.readlink(existing)}, which leads to no folder")
             existing = existing.parent
     except OSError as error:
         return f"cannot look up {existing} ({error.strerror or error})"
@@ -100,7 +112,8 @@ def file_problem(path: str | Path) -> str | None:
         # A loop of links, which is_dir takes for a missing file: no file can be made there.
         if isinstance(error, PermissionError) or error.errno == errno.ELOOP:
             return f"cannot look up ({error.strerror or error})"
-    return folder_problem(Path(path).parent)
+    # Where a link points, the file is written: in its target's folder, made if missing.
+    return folder_problem(written_through(Path(path)).parent)
 
 
 def endings(suffixes: Sequence[str]) -> str:

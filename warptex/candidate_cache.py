@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from warptex.archive import UNFINISHED_AGE, archive_version, is_temporary
+from warptex.archive import UNFINISHED_AGE, archive_version, dead_link, is_temporary
 from warptex.candidates import (
     CACHE_PREFIX,
     CACHE_SUFFIX,
@@ -70,12 +70,10 @@ def cache_files(folder: Path | None = None, progress: bool = False) -> list[Cach
             leads nowhere (to a missing folder, or a loop), where no file can be cached.
     """
     folder = cache_dir() if folder is None else Path(folder)
-    try:
-        folder.stat()
-    except FileNotFoundError:
-        if folder.is_symlink():
-            raise FileNotFoundError(errno.ENOENT, "a symbolic link to a missing folder",
-                                    str(folder)) from None
+    if not folder.exists():
+        dead = dead_link(folder)
+        if dead is not None:
+            raise FileNotFoundError(errno.ENOENT, dead, str(folder))
         return []
     if not folder.is_dir():
         raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(folder))

@@ -843,19 +843,22 @@ _WRITTEN: list[Path] = []
 def _writing(path: Path, *written_with: Path) -> Iterator[None]:
     """A failed write of the output ``path`` (a full disk, a lost mount) as one error that
     names it, or the file ``written_with`` it that failed; the writers are atomic, so the
-    files are left as they were. A stop meanwhile waits until the files are written and
-    noted (:data:`_WRITTEN`), so that the stop's report says they were replaced."""
+    files are left as they were. The files renamed into place are noted (:data:`_WRITTEN`),
+    also where a stop came right after the rename, so that the stop's report names them."""
+    from warptex.store import file_state
+
+    before = {p: file_state(p) for p in (path, *written_with)}
     try:
-        with deferred_stops():
-            yield
-            _WRITTEN.extend((path, *written_with))
-    except BrokenPipeError:  # stdout's reader gone, not this file's failure
-        raise
+        yield
     except OSError as error:
         # A failed rename names its target second (os.replace's filename2).
         failed = {error.filename, error.filename2}
         where = next((p for p in written_with if str(p) in failed), path)
         raise _WorkFailed(write_failure(where, error)) from None
+    finally:
+        with deferred_stops():  # noted whole: a stop meanwhile comes after
+            _WRITTEN.extend(p for p, state in before.items()
+                            if p.is_file() and file_state(p) != state)
 
 
 def _add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
@@ -1612,8 +1615,8 @@ def _parser() -> argparse.ArgumentParser:
         "Warp's kernel cache (built on first use).\n\n"
         "Exit codes: 0 done, 1 a file could not be written or deleted during the work (a "
         "full disk, say), 2 input refused before any work, 130 interrupted, 143 terminated "
-        "(render, bake and cut save their brick stores first; an output being written is "
-        "finished and named), 141 the reader of its "
+        "(render, bake and cut save their brick stores first; an output written just before "
+        "is named), 141 the reader of its "
         "output closed it (`| head`).\n\n"
         + "\n".join([_EXAMPLES_HEADING, *(e for name in ("slice", "render", "compare")
                                            for e in _EXAMPLES[name][:1])]),
