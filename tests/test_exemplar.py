@@ -288,6 +288,21 @@ def test_jpeg_camera_orientation_is_applied(tmp_path, orientation, turns):
     assert np.abs(exemplar.colors - upright).mean() < 0.01
 
 
+@pytest.mark.parametrize("compression", [None, "tiff_lzw"])
+@pytest.mark.parametrize(("orientation", "turns"), [(6, -1), (8, 1)])
+def test_tiff_camera_orientation_is_applied_compressed_or_not(tmp_path, rng, compression,
+                                                             orientation, turns):
+    """An uncompressed one-strip TIFF turned a quarter came out scrambled: Pillow 13
+    memory-mapped its strip at the turned size."""
+    pixels = rng.integers(0, 256, size=(48, 64), dtype=np.uint8)
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(pixels).save(tmp_path / "camera.tif", exif=exif,
+                                 **({"compression": compression} if compression else {}))
+    np.testing.assert_array_equal(_load_quiet(tmp_path / "camera.tif").colors[..., 0],
+                                  np.rot90(pixels, k=turns) / np.float32(255))
+
+
 def test_png_orientation_is_not_applied(tmp_path, rng):
     """PNGs are read as stored whatever their eXIf chunk says, as pypng reads those it
     decodes (16-bit, transparent color) and as Mitsuba's bitmap reads them."""

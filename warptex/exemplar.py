@@ -899,7 +899,11 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
     """Pillow's pixels of ``path``, turned ``upright`` as EXIF says; Pillow's errors, and
     its warnings (corrupt EXIF data) given again naming the file."""
     try:
-        with library_warnings("PIL") as caught, Image.open(path) as image:
+        # From a file, not a path, which Pillow 13 memory-maps where a TIFF is one
+        # uncompressed strip: read at the size its EXIF orientation turns it to, a portrait
+        # (orientations 5 to 8) came out scrambled.
+        with (library_warnings("PIL") as caught, path.open("rb") as file,
+              Image.open(file) as image):
             cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
             frames = getattr(image, "n_frames", 1)
             image.load()
