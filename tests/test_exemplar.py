@@ -794,6 +794,16 @@ def test_corrupt_npy_is_unreadable(tmp_path):
     _raises(tmp_path / "bad.npy", r"bad\.npy: unreadable \.npy")
 
 
+def test_an_npy_header_larger_than_memory_is_one_clear_error(tmp_path):
+    """np.load allocates the size its header declares first: a damaged header's 3.5 TiB
+    was a MemoryError's traceback."""
+    header = "{'descr': '<f8', 'fortran_order': False, 'shape': (400000, 400000, 3), }"
+    header = header.ljust(117) + "\n"
+    (tmp_path / "liar.npy").write_bytes(b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little")
+                                        + header.encode() + bytes(4096))
+    _raises(tmp_path / "liar.npy", r"liar\.npy: too large to load")
+
+
 def test_unreadable_file(tmp_path):
     path = tmp_path / "locked.png"
     Image.fromarray(np.zeros((16, 16), dtype=np.uint8)).save(path)

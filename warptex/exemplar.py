@@ -878,6 +878,8 @@ def _read_npy(path: Path) -> np.ndarray:
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError, SyntaxError, tokenize.TokenError) as error:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
+    except MemoryError as error:  # its header's size is allocated before anything is read
+        raise ExemplarError(f"{path}: too large to load ({error})") from None
 
 
 def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
