@@ -165,6 +165,14 @@ def test_what_pillow_reads_in_part_is_said_naming_the_file(tmp_path, rng):
         Exemplar.load(tmp_path / "anim.gif")
     frames[0].save(tmp_path / "still.gif")
     _load_quiet(tmp_path / "still.gif")
+    # APNGs that pypng decodes (16-bit, a transparent color) were read without the warning.
+    gray16 = [Image.fromarray(np.asarray(f)[..., 0].astype(np.uint16) * 257) for f in frames]
+    gray16[0].save(tmp_path / "anim16.png", save_all=True, append_images=gray16[1:])
+    frames[0].save(tmp_path / "trns.png", save_all=True, append_images=frames[1:],
+                   transparency=(1, 2, 3))
+    for name in ("anim16.png", "trns.png"):
+        with pytest.warns(UserWarning, match=rf"{name[:-4]}\.png: an animation of 3 frames"):
+            Exemplar.load(tmp_path / name)
     jpeg = tmp_path / "exif.jpg"
     frames[0].save(jpeg, quality=95)
     junk = b"Exif\0\0MM\0\x2a\0\0\0\x08\xff\xff" + b"\x01" * 40

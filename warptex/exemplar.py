@@ -759,24 +759,41 @@ def _read_png(path: Path) -> tuple[np.ndarray, bool]:
             return _pillow_decoded(path, upright=False)
         except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
             pass  # what Pillow refuses (over its pixel limit, a large text chunk) pypng reads
-    _warn_of_color_profile(_png_color_profile(path), path)
+    chunks = _png_chunks_before_pixels(path)
+    _warn_of_color_profile(_png_color_profile(chunks.get(b"iCCP")), path)
+    frames = int.from_bytes(chunks.get(b"acTL", b"")[:4], "big")  # an APNG's frame count
+    if frames > 1:
+        warn(f"{path}: an animation of {frames} frames, of which the first is read",
+             stacklevel=4)
     return _read_png_with_pypng(path)
 
 
-def _png_color_profile(path: Path) -> bytes | None:
-    """The ICC profile of a PNG: its iCCP chunk (a name, a compression method byte, then
-    the profile, zlib-compressed), which pypng gives as a chunk but does not decode; None
-    without one, or where the chunks cannot be read (pypng's decoding then says why)."""
+def _png_chunks_before_pixels(path: Path) -> dict[bytes, bytes]:
+    """The chunks of a PNG that come before its pixels (IDAT), by kind, the first of each:
+    where a color profile (iCCP) and an animation's frame count (acTL) are, which pypng
+    gives as chunks but does not decode; none where the chunks cannot be read (pypng's
+    decoding then says why)."""
+    found: dict[bytes, bytes] = {}
     try:
         with open(path, "rb") as file:
             for kind, data in png.Reader(file=file).chunks():
-                if kind == b"iCCP":
-                    return zlib.decompress(data.partition(b"\0")[2][1:])
-                if kind == b"IDAT":  # a profile comes before the pixels
-                    return None
+                if kind == b"IDAT":
+                    break
+                found.setdefault(kind, data)
     except (png.Error, OSError, ValueError, zlib.error):
         pass
-    return None
+    return found
+
+
+def _png_color_profile(chunk: bytes | None) -> bytes | None:
+    """The ICC profile of a PNG's iCCP ``chunk`` (a name, a compression method byte, then
+    the profile, zlib-compressed); None without one or where it cannot be decompressed."""
+    if chunk is None:
+        return None
+    try:
+        return zlib.decompress(chunk.partition(b"\0")[2][1:])
+    except zlib.error:
+        return None
 
 
 def _read_png_with_pypng(path: Path) -> tuple[np.ndarray, bool]:
