@@ -416,6 +416,22 @@ def test_exr_of_layers_reads_the_one_that_holds_colors(tmp_path, rng):
             Exemplar.load(_write_exr(tmp_path / "default.exr", default)).colors, rgba[..., :3])
 
 
+def test_exr_of_parts_reads_the_one_that_holds_colors_as_of_layers(tmp_path, rng):
+    """A multi-part file (render passes, one part each): only the first part was read,
+    without a word, so a depth pass written first became a one-channel exemplar."""
+    import OpenEXR
+
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    depth = OpenEXR.Part(header, {"Z": rgb[..., 0].copy()}, "depth")
+    beauty = OpenEXR.Part(dict(header), {c: rgb[..., i].copy() for i, c in enumerate("RGB")},
+                          "beauty")
+    OpenEXR.File([depth, beauty]).write(str(tmp_path / "passes.exr"))
+    with pytest.warns(UserWarning, match=r"passes\.exr: OpenEXR layer beauty read, channels "
+                      r"of other layers left out: depth\.Z"):
+        np.testing.assert_array_equal(Exemplar.load(tmp_path / "passes.exr").colors, rgb)
+
+
 def test_exr_layer_choice_prefers_colors_and_refuses_channels_told_apart_by_case(tmp_path,
                                                                                  rng):
     rgb = rng.random(size=(16, 16, 3)).astype(np.float32)

@@ -825,7 +825,10 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
 
     try:
         with OpenEXR.File(str(path), separate_channels=True) as file:
-            channels = {name: channel.pixels for name, channel in file.channels().items()}
+            # The parts of a multi-part file (a renderer's passes) are told apart as layers.
+            parts = file.parts
+            channels = {(f"{part.name()}.{name}" if len(parts) > 1 else name): channel.pixels
+                        for part in parts for name, channel in part.channels.items()}
     except (RuntimeError, OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None
     order, alpha = _exr_channel_order(list(channels), path)
