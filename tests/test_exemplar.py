@@ -311,6 +311,24 @@ def test_tiff_camera_orientation_is_applied_compressed_or_not(tmp_path, rng, com
                                   np.rot90(pixels, k=turns) / np.float32(255))
 
 
+def test_tiff_premultiplied_alpha_is_undone_and_signed_pixels_refused_in_words(tmp_path, rng):
+    """Gray with associated (premultiplied) alpha was refused as "conversion from La to L
+    not supported"; signed 16-bit pixels were called 32-bit ones."""
+    gray = rng.integers(0, 128, (16, 16), dtype=np.uint8)
+    Image.fromarray(np.stack([gray, np.full_like(gray, 128)], axis=2), "LA").save(
+        tmp_path / "la.tif")
+    unassociated = b"\x52\x01\x03\x00\x01\x00\x00\x00\x02\x00"  # ExtraSamples = 2
+    data = (tmp_path / "la.tif").read_bytes()
+    assert data.count(unassociated) == 1
+    (tmp_path / "la.tif").write_bytes(data.replace(unassociated, unassociated[:8] + b"\1\0"))
+    kept = _load_quiet(tmp_path / "la.tif", alpha="keep")
+    np.testing.assert_allclose(kept.colors[..., 0], np.minimum(gray * 2, 255) / 255, atol=1 / 255)
+    signed = np.zeros((16, 16), np.int32)
+    signed[0, 0] = -3000
+    Image.fromarray(signed, "I").save(tmp_path / "signed.tif")
+    _raises(tmp_path / "signed.tif", r"integer pixels outside 0 to 65535 \(signed or 32-bit\)")
+
+
 def test_png_orientation_is_not_applied(tmp_path, rng):
     """PNGs are read as stored whatever their eXIf chunk says, as pypng reads those it
     decodes (16-bit, transparent color) and as Mitsuba's bitmap reads them."""

@@ -909,7 +909,8 @@ def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
     except UnidentifiedImageError:
         if head[:4] in (b"II*\0", b"MM\0*"):  # Pillow reads no float RGB TIFF, among others
             raise ExemplarError(f"{path}: a TIFF file of a kind Pillow cannot read (float "
-                                "RGB, say): save it as OpenEXR") from None
+                                "RGB or 16-bit gray with alpha, say): save it as OpenEXR"
+                                ) from None
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except Image.DecompressionBombError as error:
         raise ExemplarError(f"{path}: too large to read ({error})") from None
@@ -998,12 +999,15 @@ def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:
         # Pillow widens 16-bit grayscale to 32 bits in some formats; wider data has no [0, 1] scale.
         data = np.asarray(image)
         if data.min() < 0 or data.max() > 65535:
-            raise ValueError("32-bit integer pixels are not supported")
+            raise ValueError("integer pixels outside 0 to 65535 (signed or 32-bit) are not "
+                             "supported: save them as float OpenEXR")
         return data.astype(np.uint16), False
     if mode in ("L", "RGB"):
         return np.asarray(image), False
     if mode in ("LA", "RGBA"):
         return np.asarray(image), True
+    if mode in ("La", "RGBa"):  # premultiplied alpha (a TIFF's associated one), undone
+        return np.asarray(image.convert(mode.upper())), True
     if mode in ("P", "PA"):
         has_alpha = mode == "PA" or "transparency" in image.info
         return np.asarray(image.convert("RGBA" if has_alpha else "RGB")), has_alpha
