@@ -761,6 +761,48 @@ def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path,
     assert halves[1e-8] == halves[1.0] and all(closed for _, closed in halves[1.0])
 
 
+def test_a_mesh_of_huge_coordinates_keeps_its_vertices(tmp_path, data_dir, warp_device):
+    """Welding rounds coordinates to integers of the tolerance: from 1e11 units on they
+    overflowed int64, and a sphere of radius 1e12 kept 31 of its 642 vertices."""
+    from warptex.cli import _weld_tolerance, main
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    sphere.apply_scale(1e12)
+    sphere.export(tmp_path / "huge.ply")
+    arguments = ["--exemplar", str(data_dir / "granite_64.png"), "--resolution", "16",
+                 "--uv", "none"]
+    assert main(["bake", str(tmp_path / "huge.ply"), *arguments, "-o",
+                 str(tmp_path / "bake.ply")]) == 0
+    assert len(trimesh.load(tmp_path / "bake.ply", process=False).vertices) == 642
+    assert main(["cut", str(tmp_path / "huge.ply"), *arguments, "-o",
+                 str(tmp_path / "cut.ply")]) == 0
+    for name in ("cut.ply", "cut_b.ply"):
+        half = trimesh.load(tmp_path / name, process=False)
+        half.merge_vertices(digits_vertex=trimesh.util.decimal_to_digits(
+            _weld_tolerance(half.vertices)))
+        assert half.is_watertight
+
+
+def test_a_ply_or_glb_that_float32_would_flatten_is_refused_before_the_work(
+        tmp_path, data_dir, warp_device, capsys):
+    """A 10 cm sphere at map coordinates (5e5, 4.4e6): .ply and .glb hold vertices as
+    float32, a unit apart there, and the sphere came out flat; .obj keeps it."""
+    from warptex.cli import main
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    sphere.apply_translation([5e5, 4.4e6, 100.0])
+    (tmp_path / "far.obj").write_text(trimesh.exchange.obj.export_obj(sphere, digits=10))
+    arguments = [str(tmp_path / "far.obj"), "--exemplar", str(data_dir / "granite_64.png"),
+                 "--resolution", "16"]
+    for command, output in (("bake", "far.ply"), ("bake", "far.glb"), ("cut", "cut.ply")):
+        assert main([command, *arguments, "--uv", "none", "-o", str(tmp_path / output)]) == 2
+        assert capsys.readouterr().err.startswith(
+            f"warptex: error: {tmp_path / output}: .ply and .glb files hold vertices as float32")
+    assert main(["bake", *arguments, "--uv", "auto", "-o", str(tmp_path / "far_baked.obj")]) == 0
+    kept = trimesh.load(tmp_path / "far_baked.obj", force="mesh")
+    np.testing.assert_allclose(kept.extents, sphere.extents, rtol=1e-6)
+
+
 def test_bake_refuses_nan_uvs_of_the_mesh(tmp_path, data_dir, warp_device, capsys):
     """A triangle with a NaN UV claimed no texel: its surface showed its neighbours'
     colours, with a NumPy warning about a cast, and the file got the NaN UVs."""

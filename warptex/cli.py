@@ -102,6 +102,12 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
 _INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
 _MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # trimesh's common mesh formats
 _WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are one
+# trimesh welds vertices rounded to integers of the tolerance: kept above this share of their
+# largest coordinate, so that those integers fit in int64 (beyond 1e11 units they overflowed).
+_WELD_PRECISION = 1e-15
+# .ply and .glb files hold vertices as float32 (glTF has no other; trimesh writes PLY so): a
+# mesh whose vertices that would move by more than this share of its size is refused.
+_FLOAT32_SHIFT = 1e-4
 
 
 def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
@@ -1150,8 +1156,26 @@ def _weld_tolerance(vertices: np.ndarray) -> float:
     """How near vertices are welded into one: trimesh's 1e-8, or less for a mesh so small
     that this is over a millionth of its size, which would weld distinct vertices (a
     sphere 2e-8 units across, of 642 vertices, into 26)."""
-    size = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
-    return min(_WELD_TOLERANCE, 1e-6 * size) if size > 0 else _WELD_TOLERANCE
+    if not len(vertices):
+        return _WELD_TOLERANCE
+    size = float(np.ptp(vertices, axis=0).max())
+    tolerance = min(_WELD_TOLERANCE, 1e-6 * size) if size > 0 else _WELD_TOLERANCE
+    return max(tolerance, _WELD_PRECISION * float(np.abs(vertices).max()))
+
+
+def _check_float32_outputs(mesh, outputs: Sequence[Path]) -> None:
+    """Refuse, before any work, a .ply or .glb output of a mesh that float32 cannot hold:
+    one far from the origin for its size (a building at map coordinates) came out flattened.
+    """
+    narrow = [o for o in outputs if o.suffix.lower() in (".ply", ".glb")]
+    vertices = mesh.vertices
+    size = float(np.ptp(vertices, axis=0).max())
+    shift = float(np.abs(vertices.astype(np.float32) - vertices).max())
+    if narrow and shift > _FLOAT32_SHIFT * size:
+        raise CliError(f"{narrow[0]}: .ply and .glb files hold vertices as float32, which "
+                       f"would move this mesh's by up to {shift:.3g}, {shift / size:.2g} of "
+                       f"its size (it lies {float(np.abs(vertices).max()):.3g} from the "
+                       "origin): write .obj, or move the mesh nearer the origin")
 
 
 def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
@@ -1350,6 +1374,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
 
     _check_mesh_arguments(args)
     mesh = _load_mesh(args.mesh, args.uv)
+    _check_float32_outputs(mesh, [args.output])
     transform = block_transform(mesh, args.resolution)
     _check_shell(mesh, transform, args.resolution)
     exemplars, srgb = _lookup_exemplars(args, mesh=True)
@@ -1394,6 +1419,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
     if args.origin is not None:
         _check_finite("--origin", args.origin)
     mesh = _load_mesh(args.mesh, weld=True)
+    _check_float32_outputs(mesh, outputs)
     exemplars, srgb = _lookup_exemplars(args, mesh=True)  # before the cut's work
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:
