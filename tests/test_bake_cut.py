@@ -148,6 +148,28 @@ def test_cutting_an_open_mesh_where_it_has_no_inside():
     assert all(len(half.faces) > 0 for half in halves)
 
 
+def test_halves_whose_caps_differ_or_are_missing_are_warned_of():
+    """README promises one colour on either half at a point of the cut face. A plane along
+    one of the mesh's faces (the inner face of an L) gave the halves caps of other
+    triangles, and boxes glued face to face (a wall inside) no cap at all, unsaid."""
+    import shapely
+
+    ell = trimesh.creation.extrude_polygon(
+        shapely.Polygon([(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)]), 1.0)
+    with pytest.warns(UserWarning, match=r"the two halves' caps differ \(\d+ of \d+ and \d+ "
+                      "triangles shared"):
+        cut(ell, np.array([0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    glued = trimesh.util.concatenate([
+        trimesh.creation.box(bounds=[[-1, -0.5, -0.5], [0, 0.5, 0.5]]),
+        trimesh.creation.box(bounds=[[0, -0.5, -0.5], [1, 0.5, 0.5]])])
+    glued.merge_vertices()
+    with pytest.warns(UserWarning, match="the cut left both halves of a closed mesh open"):
+        cut(glued, np.array([0.3, 0.0, 0.1]), np.array([0.0, 0.0, 1.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # across the wall, each box's section is a cap
+        cut(glued, np.array([0.3, 0.0, 0.1]), np.array([0.0, 1.0, 0.0]))
+
+
 def test_a_cap_across_an_open_mesh_s_opening_is_refined():
     """trimesh closes the section of a tube open at the top across its opening, with cap
     edges that no face of the tube holds: the refined cap keeps them."""

@@ -22,7 +22,8 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     :func:`_refined_cap`) to twice the median length of the mesh's edges that cross the
     plane, so that vertex colours resolve the texture on it about as on the surface around
     it, and it still meets the outer surface vertex for vertex. Both halves' caps are the
-    same triangles, so a point of the cut face shows one colour on either. A plane that
+    same triangles, so a point of the cut face shows one colour on either; where they are
+    not, or a closed mesh got no cap, a UserWarning says so. A plane that
     passes within 1e-7 of the mesh's size of a vertex, not through it, is moved off it by
     about that much. ``progress`` shows a bar over the two halves (seconds each for a mesh
     of a few hundred thousand faces).
@@ -58,13 +59,34 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     if any(half is None or len(half.faces) == 0 for half in sliced):
         raise ValueError("the plane does not cut the mesh")
     _share_section(*sliced, origin, normal)
-    halves = []
-    for half, side in tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
-                           disable=not progress):
-        half = _refined_cap(half, origin, side, spacing)
-        halves.append(trimesh.Trimesh(half.vertices / scale + centre, half.faces,
-                                      process=False))
-    return halves[0], halves[1]
+    refined = [_refined_cap(half, origin, side, spacing) for half, side in
+               tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
+                    disable=not progress)]
+    closed = len(trimesh.grouping.group_rows(unit.edges_sorted, require_count=1)) == 0
+    _warn_of_unshared_caps(refined, origin, normal, closed)
+    first, second = (trimesh.Trimesh(half.vertices / scale + centre, half.faces, process=False)
+                     for half in refined)
+    return first, second
+
+
+def _warn_of_unshared_caps(halves: list[trimesh.Trimesh], origin: np.ndarray,
+                           normal: np.ndarray, closed: bool) -> None:
+    """Warn where the two halves' caps are not the same triangles, so that a point of the
+    cut face may show another colour on either half (a cap left unrefined, a plane along one
+    of the mesh's faces, a self-intersecting mesh), or where a ``closed`` mesh (every edge
+    held by two faces or more) was left without one (walls inside it)."""
+    caps = [{frozenset(map(bytes, triangle))
+             for triangle in half.vertices[half.faces[cap_faces(half, origin, normal)]]}
+            for half in halves]
+    if closed and not caps[0] and not caps[1]:
+        warnings.warn("the cut left both halves of a closed mesh open: no outline in the "
+                      "plane bounds a cap (walls inside the mesh?)", stacklevel=3)
+    elif caps[0] != caps[1]:
+        shared = len(caps[0] & caps[1])
+        warnings.warn(f"the two halves' caps differ ({shared} of {len(caps[0])} and "
+                      f"{len(caps[1])} triangles shared: a plane along one of the mesh's "
+                      "faces, through its opening or a self-intersection): a point of the "
+                      "cut face may show another colour on either half", stacklevel=3)
 
 
 def _unit_frame(vertices: np.ndarray) -> tuple[np.ndarray, float]:
