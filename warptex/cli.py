@@ -106,7 +106,7 @@ _WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are 
 # largest coordinate, so that those integers fit in int64 (beyond 1e11 units they overflowed).
 _WELD_PRECISION = 1e-15
 # .ply and .glb files hold vertices as float32 (glTF has no other; trimesh writes PLY so): a
-# mesh whose vertices that would move by more than this share of its size is refused.
+# mesh whose vertices float32 would move by more than this share of its size is refused.
 _FLOAT32_SHIFT = 1e-4
 
 
@@ -1168,10 +1168,12 @@ def _check_float32_outputs(mesh, outputs: Sequence[Path]) -> None:
     one far from the origin for its size (a building at map coordinates) came out flattened.
     """
     narrow = [o for o in outputs if o.suffix.lower() in (".ply", ".glb")]
+    if not narrow:
+        return
     vertices = mesh.vertices
     size = float(np.ptp(vertices, axis=0).max())
     shift = float(np.abs(vertices.astype(np.float32) - vertices).max())
-    if narrow and shift > _FLOAT32_SHIFT * size:
+    if shift > _FLOAT32_SHIFT * size:
         raise CliError(f"{narrow[0]}: .ply and .glb files hold vertices as float32, which "
                        f"would move this mesh's by up to {shift:.3g}, {shift / size:.2g} of "
                        f"its size (it lies {float(np.abs(vertices).max()):.3g} from the "
