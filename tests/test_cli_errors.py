@@ -193,7 +193,11 @@ CASES = [
     (["bake", "{out}", "--exemplar", "{exemplar}", "-o", "{out}/b.ply"],
      "{out}: is a folder, expected a mesh file"),
     (["render", "{out}", "-o", "{out}/r.png"], "{out}: is a folder, expected a scene file"),
-    (["compare", "{exemplar}", "--methods", " ", "-o", "{out}/cmp"], "no method given"),
+    (["compare", "{exemplar}", "--methods", " ", "-o", "{out}/cmp"],
+     "--methods: no method given"),
+    # Not blamed on --size, whose check is Kopf's ("kopf-ms" names a docs column).
+    (["compare", "{exemplar}", "--size", "12", "--methods", "lazy,kopf-ms", "-o", "{out}/cmp"],
+     "--methods: unknown method(s) kopf-ms; choose from"),
     (["compare", "{exemplar}", "--methods", "noise,extrude,noise", "-o", "{out}/cmp"],
      "method(s) given more than once: noise"),
     (["compare", "{exemplar}", "-o", "{notes}"],

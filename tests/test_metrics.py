@@ -131,6 +131,10 @@ def test_energy_and_swd_do_not_depend_on_the_unit_of_the_colors():
     vol = metrics.iid_noise(ex, (16, 16, 16))
     for metric in (metrics.neighborhood_energy, metrics.sliced_wasserstein):
         assert metric(4 * vol, 4 * ex, 0) == pytest.approx(metric(vol, ex, 0), rel=1e-4)
+        # The unit, the exemplar's variance, over- and underflowed float32 at these.
+        for unit in (np.float32(1e19), np.float32(1e-22)):
+            assert metric(unit * vol, unit * ex, 0) == pytest.approx(metric(vol, ex, 0),
+                                                                       rel=1e-3)
 
 
 def test_histogram_distance_of_a_constant_volume_is_known():

@@ -1490,6 +1490,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         MIN_SIZE,
         REPORT_FILES,
         Setup,
+        check_methods,
         compare,
         table_markdown,
         write_report,
@@ -1514,7 +1515,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             raise CliError(f"{path}: {problem}")
     _check_inputs_kept(args, report)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    try:  # before the checks of the methods named (Kopf's sizes)
+        methods = check_methods(m.strip() for m in args.methods.split(",") if m.strip())
+    except ValueError as error:
+        raise CliError(f"--methods: {error}") from None
     if any(m.startswith("kopf") for m in methods):
         _check_kopf_size(args.size)
         _check_kopf_memory(args.size, setup.exemplars())

@@ -37,7 +37,7 @@ import queue
 import threading
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import KW_ONLY, asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -599,14 +599,10 @@ def run_line(run: dict) -> str:
             f"Warp {run['warp']}; {run['date']}")
 
 
-def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = True,
-            repeats: int = 1) -> Comparison:
-    """Score every method of ``methods`` on the exemplars of ``setup``, each in a fresh
-    process (started by ``spawn``: a script calling this needs an ``if __name__ ==
-    "__main__":`` guard), with the median of ``repeats`` timed runs as its seconds. A bad
-    exemplar is refused before any method runs."""
-    if not isinstance(setup, Setup):
-        raise TypeError(f"setup must be a warptex.compare.Setup, got {setup!r}")
+
+def check_methods(methods: Iterable[str]) -> list[str]:
+    """``methods`` as a list, refused (ValueError, TypeError) unless they are known
+    methods, each given once: before any work, which :func:`compare` and the command do."""
     if isinstance(methods, str):  # its letters would be taken for methods
         raise TypeError(f"methods must be a sequence of method names, such as "
                         f"[{methods!r}], got the string {methods!r}")
@@ -621,6 +617,18 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     repeated = sorted({m for m in methods if methods.count(m) > 1})
     if repeated:
         raise ValueError(f"method(s) given more than once: {', '.join(repeated)}")
+    return methods
+
+
+def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = True,
+            repeats: int = 1) -> Comparison:
+    """Score every method of ``methods`` on the exemplars of ``setup``, each in a fresh
+    process (started by ``spawn``: a script calling this needs an ``if __name__ ==
+    "__main__":`` guard), with the median of ``repeats`` timed runs as its seconds. A bad
+    exemplar is refused before any method runs."""
+    if not isinstance(setup, Setup):
+        raise TypeError(f"setup must be a warptex.compare.Setup, got {setup!r}")
+    methods = check_methods(methods)
     check_count("repeats", repeats, low=1)
     axes = setup.exemplars()
     if any(m in _LAZY for m in methods):  # before any method's minutes of work

@@ -162,8 +162,10 @@ def _check_axis(axis: object) -> None:
 
 
 def _variance(exemplar: np.ndarray) -> float:
-    """The exemplar's variance summed over channels: the unit of the distances measured."""
-    return float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0).sum())
+    """The exemplar's variance summed over channels: the unit of the distances measured.
+    In float64: float32's overflowed for colors of 1e19 (every score 0) and underflowed
+    for colors of 1e-22 (every score infinite)."""
+    return float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0, dtype=np.float64).sum())
 
 
 def neighborhood_energy(
@@ -314,7 +316,9 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     the overlap repeats. Only peaks count: the correlation of large features falls off
     slowly around shift 0, which is their size, not a repetition (Dong 2008, Fig. 11). A
     shift at the end of the range counts where no shift inside it correlates more: a
-    period a little longer than half the slice shows there as a rising correlation."""
+    period a little longer than half the slice shows there as a rising correlation. A
+    constant slice (the ``flat`` reference) scores 0: it has no pattern, and no energy to
+    normalize by, so this score cannot tell it from one where nothing repeats."""
     image = np.asarray(image, dtype=np.float64)
     image = image[:, :, None] if image.ndim == 2 else image
     if image.ndim != 3:
@@ -374,7 +378,9 @@ def iid_noise(exemplar: np.ndarray | Exemplar, shape: tuple[int, int, int],
 
 
 def extrusion(exemplar: np.ndarray | Exemplar, depth: int, axis: int = 2) -> np.ndarray:
-    """The exemplar stacked along ``axis``: perfect on that axis' slices, streaks elsewhere."""
+    """The exemplar stacked along ``axis``: perfect on that axis' slices, streaks elsewhere.
+    A volume larger than the exemplar across ``axis`` tiles it there, across its seam where
+    it does not tile, which the measures then see on that axis too."""
     exemplar = _image(_colors(exemplar))
     depth = check_count("depth", depth, low=1)
     _check_axis(axis)
