@@ -869,6 +869,12 @@ def test_a_setup_holds_plain_values_that_table_json_can_write(tmp_path, data_dir
     with pytest.raises(TypeError, match=r"must be a warptex\.compare\.Comparison"):
         compare.write_report(compare.Comparison(str(granite), [row]), tmp_path / "bad")
     assert not (tmp_path / "bad").exists()
+    # A file in the folder's place was a FileExistsError naming sheet.png below it.
+    (tmp_path / "a_file").write_text("kept")
+    with pytest.raises(ValueError, match=r"a_file/sheet\.png: cannot write, .*a_file is a file, "
+                       "not a folder"):
+        compare.write_report(compare.Comparison(setup, [row]), tmp_path / "a_file")
+    assert (tmp_path / "a_file").read_text() == "kept"
 
 
 def _json_disk_full(monkeypatch) -> None:

@@ -46,7 +46,7 @@ from tqdm import std
 from tqdm.auto import tqdm
 
 from warptex import metrics
-from warptex.archive import iso_date, write_together
+from warptex.archive import file_problem, iso_date, write_together
 from warptex.exemplar import (
     AlphaDropped,
     Exemplar,
@@ -829,6 +829,10 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     setup, results = comparison.setup, comparison.results
     out = Path(out_dir)
     sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
+    for path in files:  # a file in the folder's place, say: not an OSError from deep inside
+        problem = file_problem(path)
+        if problem is not None:
+            raise ValueError(f"{path}: {problem}")
     paths = setup.paths()
     axes = setup.exemplars()
     ex = axes[0]
