@@ -803,6 +803,11 @@ def test_a_mesh_of_huge_coordinates_keeps_its_vertices(tmp_path, data_dir, warp_
         half.merge_vertices(digits_vertex=trimesh.util.decimal_to_digits(
             _weld_tolerance(half.vertices)))
         assert half.is_watertight
+    # Beyond 1e15 float64 vertices are an eighth of a unit apart: refused, not welded wrong.
+    sphere.apply_scale(1e4)
+    sphere.export(tmp_path / "beyond.ply")
+    assert main(["bake", str(tmp_path / "beyond.ply"), *arguments, "-o",
+                 str(tmp_path / "beyond_baked.ply")]) == 2
 
 
 def test_a_ply_or_glb_that_float32_would_flatten_is_refused_before_the_work(
@@ -820,6 +825,13 @@ def test_a_ply_or_glb_that_float32_would_flatten_is_refused_before_the_work(
         assert main([command, *arguments, "--uv", "none", "-o", str(tmp_path / output)]) == 2
         assert capsys.readouterr().err.startswith(
             f"warptex: error: {tmp_path / output}: .ply and .glb files hold vertices as float32")
+    # A part of a few units a few thousand units out (millimetres, an assembly) moves by a
+    # fraction of a micrometre: written.
+    part = trimesh.creation.icosphere(subdivisions=2)
+    part.apply_translation([5000.0, 0.0, 0.0])
+    (tmp_path / "part.obj").write_text(trimesh.exchange.obj.export_obj(part, digits=10))
+    assert main(["bake", str(tmp_path / "part.obj"), *arguments[1:], "--uv", "none", "-o",
+                 str(tmp_path / "part.ply")]) == 0
     assert main(["bake", *arguments, "--uv", "auto", "-o", str(tmp_path / "far_baked.obj")]) == 0
     kept = trimesh.load(tmp_path / "far_baked.obj", force="mesh")
     np.testing.assert_allclose(kept.extents, sphere.extents, rtol=1e-6)

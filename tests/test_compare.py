@@ -877,6 +877,28 @@ def test_a_setup_holds_plain_values_that_table_json_can_write(tmp_path, data_dir
     assert (tmp_path / "a_file").read_text() == "kept"
 
 
+def test_a_folder_lost_during_the_comparison_is_a_write_failure_not_a_traceback(
+        tmp_path, data_dir, monkeypatch, capsys):
+    """write_report's check of its folder raised a ValueError that the command did not
+    take: a file put in the output folder's place meanwhile ended in a traceback."""
+    from warptex.cli import main
+
+    out = tmp_path / "out"
+    made = compare.compare
+
+    def then_a_file_in_its_place(*args, **kwargs):
+        comparison = made(*args, **kwargs)
+        out.write_text("someone's file")
+        return comparison
+
+    monkeypatch.setattr(compare, "compare", then_a_file_in_its_place)
+    assert main(["compare", str(data_dir / "granite_64.png"), "--size", "16", "--methods",
+                 "flat", "-o", str(out)]) == 1
+    assert capsys.readouterr().err.endswith(f"\nwarptex: error: {out / 'sheet.png'}: cannot "
+                                            f"write, {out} is a file, not a folder\n")
+    assert out.read_text() == "someone's file"
+
+
 def _json_disk_full(monkeypatch) -> None:
     """Writes of .json files fail as on a full disk; the others succeed."""
     write_text = Path.write_text

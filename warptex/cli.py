@@ -105,9 +105,13 @@ _WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are 
 # trimesh welds vertices rounded to integers of the tolerance: kept above this share of their
 # largest coordinate, so that those integers fit in int64 (beyond 1e11 units they overflowed).
 _WELD_PRECISION = 1e-15
+# Coordinates beyond this many units are refused: float64 vertices there lie an eighth of a
+# unit apart or more, and welding's integers (at _WELD_PRECISION) would overflow int64.
+_COORDINATE_LIMIT = 1e15
 # .ply and .glb files hold vertices as float32 (glTF has no other; trimesh writes PLY so): a
-# mesh whose vertices float32 would move by more than this share of its size is refused.
-_FLOAT32_SHIFT = 1e-4
+# mesh whose vertices float32 would move by more than this share of its size, visibly, is
+# refused.
+_FLOAT32_SHIFT = 1e-2
 
 
 def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
@@ -1194,6 +1198,10 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
         raw = trimesh.load(path, force="mesh", process=False)
         if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
             raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
+        if len(getattr(raw, "faces", ())) and np.abs(raw.vertices).max() > _COORDINATE_LIMIT:
+            raise CliError(f"{path}: vertex coordinates reach {np.abs(raw.vertices).max():.3g} "
+                           f"units, beyond {_COORDINATE_LIMIT:.0e}: move the mesh nearer the "
+                           "origin")
         # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
         # trimesh welds at its global tolerance (its maintainer's advice is to set that).
         saved, trimesh.tol.merge = trimesh.tol.merge, _weld_tolerance(raw.vertices)
@@ -1527,7 +1535,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output, *report):
-        files = write_report(comparison, args.output)
+        try:
+            files = write_report(comparison, args.output)
+        except ValueError as error:  # the folder became unwritable during the work
+            raise _WorkFailed(str(error)) from None
     print(table_markdown(comparison.results))
     print("written: " + ", ".join(str(f) for f in files))
     return 0

@@ -602,7 +602,8 @@ def run_line(run: dict) -> str:
 
 def check_methods(methods: Iterable[str]) -> list[str]:
     """``methods`` as a list, refused (ValueError, TypeError) unless they are known
-    methods, each given once: before any work, which :func:`compare` and the command do."""
+    methods, each given once: what :func:`compare` checks first, for callers that check
+    before work of their own (the command, Kopf's sizes)."""
     if isinstance(methods, str):  # its letters would be taken for methods
         raise TypeError(f"methods must be a sequence of method names, such as "
                         f"[{methods!r}], got the string {methods!r}")

@@ -62,23 +62,24 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     refined = [_refined_cap(half, origin, side, spacing) for half, side in
                tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
                     disable=not progress)]
-    closed = len(trimesh.grouping.group_rows(unit.edges_sorted, require_count=1)) == 0
-    _warn_of_unshared_caps(refined, origin, normal, closed)
+    _warn_of_unshared_caps(refined, origin, normal, unit)
     first, second = (trimesh.Trimesh(half.vertices / scale + centre, half.faces, process=False)
                      for half in refined)
     return first, second
 
 
 def _warn_of_unshared_caps(halves: list[trimesh.Trimesh], origin: np.ndarray,
-                           normal: np.ndarray, closed: bool) -> None:
+                           normal: np.ndarray, mesh: trimesh.Trimesh) -> None:
     """Warn where the two halves' caps are not the same triangles, so that a point of the
     cut face may show another colour on either half (a cap left unrefined, a plane along one
-    of the mesh's faces, a self-intersecting mesh), or where a ``closed`` mesh (every edge
-    held by two faces or more) was left without one (walls inside it)."""
+    of the mesh's faces, a self-intersecting mesh), or where the ``mesh`` they were cut from,
+    closed (every edge held by two faces or more), was left without one (walls inside it)."""
     caps = [{frozenset(map(bytes, triangle))
              for triangle in half.vertices[half.faces[cap_faces(half, origin, normal)]]}
             for half in halves]
-    if closed and not caps[0] and not caps[1]:
+    if not caps[0] and not caps[1]:
+        if len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)):
+            return  # open: cut where it has no inside
         warnings.warn("the cut left both halves of a closed mesh open: no outline in the "
                       "plane bounds a cap (walls inside the mesh?)", stacklevel=3)
     elif caps[0] != caps[1]:

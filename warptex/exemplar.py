@@ -825,10 +825,7 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
 
     try:
         with OpenEXR.File(str(path), separate_channels=True) as file:
-            # The parts of a multi-part file (a renderer's passes) are told apart as layers.
-            parts = file.parts
-            channels = {(f"{part.name()}.{name}" if len(parts) > 1 else name): channel.pixels
-                        for part in parts for name, channel in part.channels.items()}
+            channels = _exr_part_channels(file.parts, path)
     except (RuntimeError, OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None
     order, alpha = _exr_channel_order(list(channels), path)
@@ -847,6 +844,23 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
     except ValueError:
         raise ExemplarError(f"{path}: OpenEXR channels have different sizes") from None
     return pixels, alpha
+
+
+def _exr_part_channels(parts: list, path: Path) -> dict[str, np.ndarray]:
+    """The channels of an OpenEXR file's parts (a renderer's passes) by name, each part
+    after the first told apart as a layer (``diffuse.R``), the first as the default layer,
+    which viewers show; a part's channels already named after it (Nuke's) keep their names.
+    """
+    channels: dict[str, np.ndarray] = {}
+    for n, part in enumerate(parts):
+        for name, channel in part.channels.items():
+            layered = n == 0 or name.startswith(f"{part.name()}.")
+            full = name if layered else f"{part.name()}.{name}"
+            if full in channels:
+                raise ExemplarError(f"{path}: OpenEXR channel {full} is in two parts: save "
+                                    "the part to use alone")
+            channels[full] = channel.pixels
+    return channels
 
 
 def _exr_channel_order(names: list[str], path: Path) -> tuple[list[str], bool]:
@@ -895,10 +909,12 @@ def _numbered(name: str) -> list[str | int]:
 
 def _read_npy(path: Path) -> np.ndarray:
     try:
-        return np.load(path, allow_pickle=False)
+        # Mapped first: a header that declares more than the file holds (damaged) is refused
+        # before its size is allocated, which may fail or, overcommitted, not.
+        return np.array(np.load(path, mmap_mode="r", allow_pickle=False))
     except (OSError, ValueError, SyntaxError, tokenize.TokenError) as error:
         raise ExemplarError(f"{path}: unreadable .npy file ({error})") from None
-    except MemoryError as error:  # its header's size is allocated before anything is read
+    except MemoryError as error:
         raise ExemplarError(f"{path}: too large to load ({error})") from None
 
 

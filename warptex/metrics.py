@@ -163,8 +163,8 @@ def _check_axis(axis: object) -> None:
 
 def _variance(exemplar: np.ndarray) -> float:
     """The exemplar's variance summed over channels: the unit of the distances measured.
-    In float64: float32's overflowed for colors of 1e19 (every score 0) and underflowed
-    for colors of 1e-22 (every score infinite)."""
+    In float64: float32's overflowed for colors of 1e19 (every score 0) and lost precision
+    for colors of 1e-22 (wrong scores)."""
     return float(exemplar.reshape(-1, exemplar.shape[2]).var(axis=0, dtype=np.float64).sum())
 
 
