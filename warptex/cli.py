@@ -1582,8 +1582,9 @@ def _add_render_parser(subparsers: argparse._SubParsersAction) -> None:
                         "value=\"...\"/>, used as $NAME), as Mitsuba's -D; repeatable")
     parser.add_argument("--sampler-seed", type=int, default=0, metavar="N",
                         help="seed of the render's samples, not of the texture (lazy_solid's "
-                        f"seed), 0 to {MAX_SAMPLER_SEED}; renders of other seeds can be averaged "
-                        "(default 0)")
+                        f"seed), 0 to {MAX_SAMPLER_SEED}; renders of other seeds at the same "
+                        "--spp can be averaged (at other counts their batches may share seeds; "
+                        "the scene's own sampler seed adds to it) (default 0)")
 
 
 def _scene_parameter(text: str) -> tuple[str, str]:
