@@ -19,6 +19,7 @@ from pathlib import Path
 from warptex.archive import (
     endings,
     file_problem,
+    file_state,
     iso_date,
     overwritten_input,
     write_failure,
@@ -27,7 +28,7 @@ from warptex.archive import (
 from warptex.machine import software_versions
 from warptex.parallel import deferred_stops
 from warptex.settings import MAX_SAMPLER_SEED, RENDER_BATCHES
-from warptex.store import StoreFileError, file_state, saved_when_stopped
+from warptex.store import StoreFileError, saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,

@@ -103,13 +103,12 @@ def file_problem(path: str | Path) -> str | None:
         return (f"suffix too long: the temporary name the file is written under would pass "
                 f"{_NAME_BYTES} bytes")
     try:
-        if Path(path).is_dir():
+        if stat.S_ISDIR(os.stat(path).st_mode):
             return "is a folder, expected a file name"
-        os.stat(path)
     except FileNotFoundError:  # to be made, through a link to nowhere too
         pass
     except OSError as error:
-        # A loop of links, which is_dir takes for a missing file: no file can be made there.
+        # A loop of links: no file can be made there. (A file on the way: folder_problem.)
         if isinstance(error, PermissionError) or error.errno == errno.ELOOP:
             return f"cannot look up ({error.strerror or error})"
     # Where a link points, the file is written: in its target's folder, made if missing.
@@ -133,6 +132,16 @@ def write_failure(where: str | Path, error: OSError) -> str:
     """How a write that failed once the work was under way (a full disk, a lost mount) is
     reported: the file ``where`` it failed, and why."""
     return f"{where}: cannot write ({error.strerror or error})"
+
+
+def file_state(path: Path) -> tuple | None:
+    """What tells a file apart from one renamed to its name since (as every save does):
+    its device, inode, size and modification time; None when there is none."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def write_atomically(path: str | Path, write: Callable[[Path], None]) -> None:

@@ -16,6 +16,7 @@ import math
 import os
 import re
 import signal
+import stat
 import sys
 import threading
 import time
@@ -30,6 +31,7 @@ from warptex import __version__
 from warptex.archive import (
     endings,
     file_problem,
+    file_state,
     folder_problem,
     iso_date,
     one_file_twice,
@@ -163,16 +165,16 @@ def _check_input_file(path: Path, kind: str) -> None:
     """Refuse, naming it, a ``kind`` file ("mesh", "scene") that is a folder, is missing or
     is no regular file: a pipe would keep its reader waiting for a writer."""
     try:
-        path.stat()
+        mode = path.stat().st_mode
     except FileNotFoundError:
         broken = path.is_symlink()
         raise CliError(f"{path}: {kind} file not found"
                        + (" (a broken symbolic link)" if broken else "")) from None
     except OSError as error:  # a folder on the way that cannot be searched, a link loop
         raise CliError(f"{path}: cannot look up {kind} file ({error.strerror})") from None
-    if path.is_dir():
+    if stat.S_ISDIR(mode):
         raise CliError(f"{path}: is a folder, expected a {kind} file")
-    if not path.is_file():
+    if not stat.S_ISREG(mode):
         raise CliError(f"{path}: is not a regular file (a pipe or a device), expected a {kind} "
                        "file")
 
@@ -855,8 +857,6 @@ def _writing(path: Path, *written_with: Path) -> Iterator[None]:
     names it, or the file ``written_with`` it that failed; the writers are atomic, so the
     files are left as they were. The files renamed into place are noted (:data:`_WRITTEN`),
     also where a stop came right after the rename, so that the stop's report names them."""
-    from warptex.store import file_state
-
     before = {p: file_state(p) for p in (path, *written_with)}
     try:
         yield
@@ -1198,10 +1198,10 @@ def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
         raw = trimesh.load(path, force="mesh", process=False)
         if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
             raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
-        if len(getattr(raw, "faces", ())) and np.abs(raw.vertices).max() > _COORDINATE_LIMIT:
-            raise CliError(f"{path}: vertex coordinates reach {np.abs(raw.vertices).max():.3g} "
-                           f"units, beyond {_COORDINATE_LIMIT:.0e}: move the mesh nearer the "
-                           "origin")
+        farthest = float(np.abs(raw.vertices).max()) if len(getattr(raw, "faces", ())) else 0.0
+        if farthest > _COORDINATE_LIMIT:
+            raise CliError(f"{path}: vertex coordinates reach {farthest:.3g} units, beyond "
+                           f"{_COORDINATE_LIMIT:.0e}: move the mesh nearer the origin")
         # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
         # trimesh welds at its global tolerance (its maintainer's advice is to set that).
         saved, trimesh.tol.merge = trimesh.tol.merge, _weld_tolerance(raw.vertices)
@@ -1287,8 +1287,6 @@ def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.Abstr
 def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:
     """What `bake` and `cut` end with: the store's report, the store saved if asked, and
     the files written."""
-    from warptex.store import file_state
-
     _report_store(tex, args.resolution, time.perf_counter() - start)
     unchanged = ""
     if args.store is not None:

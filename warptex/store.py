@@ -43,6 +43,7 @@ from kernels import lookup as _k
 from warptex.archive import (
     ArchiveError,
     dead_writes,
+    file_state,
     is_foreign,
     read_archive,
     write_archive,
@@ -200,16 +201,6 @@ def _empty_file(path: Path) -> bool:
     """Whether ``path`` is an empty file (made by mktemp, say): a place to save a store to,
     not a damaged one."""
     return path.is_file() and path.stat().st_size == 0
-
-
-def file_state(path: Path) -> tuple | None:
-    """What tells a file apart from one renamed to its name since (as every save does):
-    its device, inode, size and modification time; None when there is none."""
-    try:
-        st = path.stat()
-    except OSError:
-        return None
-    return (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 @contextmanager
