@@ -85,6 +85,63 @@ def test_texture_arguments_of_the_wrong_kind_are_named(candidates, warp_device):
     tex = SolidTexture(candidates)
     with pytest.raises(ValueError, match="fill must be one finite value or 3 of them, got 'red'"):
         tex.query(np.array([[np.nan, 0.0, 0.0]]), fill="red")
+    # np.float32 reads both as numbers, the bool as 1.
+    for fill in (True, "0.25", np.array([True, False, True])):
+        with pytest.raises(ValueError, match="fill must be one finite value or 3 of them"):
+            tex.query(np.array([[np.nan, 0.0, 0.0]]), fill=fill)
+    np.testing.assert_array_equal(tex.query(np.array([[np.nan, 0.0, 0.0]]), fill=np.int64(1)),
+                                  [[1.0, 1.0, 1.0]])
+    for subpasses in (8.0, True, 2):
+        with pytest.raises(ValueError, match="subpasses must be 1 or 8"):
+            warptex.Synthesizer(candidates, subpasses=subpasses)
+
+
+def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_device):
+    """A short ``uv`` was read past its end by the kernels: a different bake each call."""
+    import trimesh
+
+    from warptex.bake import bake_uv_texture, texel_points, vertex_colors
+    from warptex.cut import cut
+    from warptex.surface import block_transform, shell
+
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    m = block_transform(mesh, 16)
+    uv = np.random.default_rng(0).uniform(0, 1, (len(mesh.vertices), 2))
+    for bad, why in ((uv[:10], r"one \(u, v\) row per mesh vertex, \(42, 2\), got shape \(10, 2\)"),
+                     (uv[:, :1], "got shape"), (np.where(uv > 0.5, np.nan, uv), "NaN"),
+                     ("uv", "array of numbers")):
+        with pytest.raises(ValueError, match=why):
+            texel_points(mesh, bad, m, (8, 8))
+    for size in (0, 8.0, True):
+        with pytest.raises(SettingError, match=r"^size must be"):
+            bake_uv_texture(None, mesh, uv, m, size=size)
+    broken = trimesh.Trimesh(mesh.vertices, np.where(mesh.faces == 5, -1, mesh.faces),
+                             process=False)
+    for call in (lambda: texel_points(broken, uv, m, (8, 8)), lambda: shell(broken, 16)):
+        with pytest.raises(ValueError, match=r"faces index vertices outside \[0, 42\)"):
+            call()
+    for transform, why in ((m[:3], "4x4 matrix, got shape"), (np.full((4, 4), np.nan), "NaN")):
+        with pytest.raises(ValueError, match=f"transform .*{why}"):
+            shell(mesh, transform=transform)
+    # A list is a matrix too: its translation was indexed as the list, a TypeError.
+    np.testing.assert_array_equal(vertex_colors(_Positions(), mesh, m.tolist()),
+                                  vertex_colors(_Positions(), mesh, m))
+    for resolution in (0, 16.0):
+        with pytest.raises(SettingError, match=r"^resolution must be"):
+            block_transform(mesh, resolution)
+    for origin, normal, name in (((0, 0), (0, 0, 1), "origin"), ((0, 0, 0), (0, 1), "normal"),
+                                 ((0, 0, np.inf), (0, 0, 1), "origin")):
+        with pytest.raises(ValueError, match=f"plane's {name} must be three finite numbers"):
+            cut(mesh, origin, normal)
+
+
+class _Positions:
+    """A texture whose color at a point is the point."""
+
+    channels = 3
+
+    def query(self, points: np.ndarray, filter: str = "trilinear") -> np.ndarray:
+        return np.asarray(points, np.float32)
 
 
 def test_a_store_file_named_by_a_loop_of_links_is_refused(candidates, warp_device, tmp_path):
@@ -122,6 +179,59 @@ def test_slice_arguments_are_checked(candidates, warp_device):
                 tex.slice((0, 0, 0), u, v, shape)
 
 
+def test_colors_are_reencoded_only_by_flags():
+    """``srgb=None``, a texture's "not recorded", decoded one way and encoded the other."""
+    from warptex.exemplar import reencoded
+
+    values = np.full((2, 3), 0.5, np.float32)
+    np.testing.assert_array_equal(reencoded(values, srgb=True, to_srgb=True), values)
+    for srgb, to_srgb, name in ((None, False, "srgb"), ("no", True, "srgb"), (True, 1, "to_srgb")):
+        with pytest.raises(SettingError, match=f"^{name} must be True or False"):
+            reencoded(values, srgb=srgb, to_srgb=to_srgb)
+
+
+def test_exemplar_features_are_asked_for_in_one_way(granite_32_file, tmp_path):
+    """True stood for "auto" but was dropped beside a mask; 1 passed for True."""
+    from warptex.exemplar import Exemplar
+
+    mask = tmp_path / "mask.npy"
+    np.save(mask, (np.arange(32 * 32).reshape(32, 32) % 7 == 0).astype(np.float32))
+    for distance in ("auto", True, np.True_):
+        with pytest.raises(ValueError, match="give either feature_mask or feature_distance"):
+            Exemplar.load(granite_32_file, feature_mask=mask, feature_distance=distance)
+    for distance in (1, 0.0, "yes", None):
+        with pytest.raises(ValueError, match="feature_distance must be False, True or 'auto'"):
+            Exemplar.load(granite_32_file, feature_distance=distance)
+    with pytest.raises(TypeError, match="feature_mask must be a file name"):
+        Exemplar.load(granite_32_file, feature_mask=5)
+    automatic = Exemplar.load(granite_32_file, feature_distance=True)
+    np.testing.assert_array_equal(
+        automatic.features, Exemplar.load(granite_32_file, feature_distance="auto").features)
+    assert automatic.features.shape[2] == 4
+    assert Exemplar.load(granite_32_file, feature_mask=mask).features_from == "mask.npy"
+
+
+def test_candidates_are_saved_where_nothing_else_is_lost(candidates, tmp_path):
+    """``save("dir/")`` wrote a file named ``dir``, and a save over a photo destroyed it."""
+    photo = tmp_path / "granite.png"
+    photo.write_bytes(b"\x89PNG\r\n\x1a\n not candidates")
+    (tmp_path / "folder").mkdir()
+    for path, problem in ((f"{tmp_path}/cands/", "names a folder, not a file"),
+                          (photo, "exists and is not a warptex candidate file"),
+                          (tmp_path / "folder", "is a folder")):
+        with pytest.raises(warptex.candidates.CandidateCacheError, match=problem):
+            candidates.save(path)
+    assert photo.read_bytes().endswith(b"not candidates")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "granite.png"]
+    candidates.save(tmp_path / "c.wtc")
+    candidates.save(tmp_path / "c.wtc")  # its own file, written again
+    loaded = CandidateSet.load(tmp_path / "c.wtc")
+    assert loaded == candidates and loaded is not candidates
+    assert loaded != precompute(warptex.Exemplar(candidates.colors[0][::-1].copy()), cache=False)
+    # The fields' arrays made thousands of lines of it.
+    assert repr(loaded).count("\n") == 0 and "levels" in repr(loaded)
+
+
 def test_metrics_name_what_does_not_fit(granite_32):
     volume = np.zeros((16, 16, 16, 3), np.float32)
     colors = granite_32.colors
@@ -151,6 +261,9 @@ def test_reference_volumes_and_patches_name_the_argument_at_fault(granite_32):
         with pytest.raises(ValueError, match="shape must be"):
             metrics.iid_noise(colors, shape)
     assert metrics.iid_noise(granite_32, (2, 3, 4)).shape == (2, 3, 4, 3)
+    for seed, problem in ((1.5, "an integer"), (True, "an integer"), (-1, "at least 0")):
+        with pytest.raises(SettingError, match=f"^seed must be {problem}"):
+            metrics.iid_noise(colors, (2, 2, 2), seed=seed)
     for depth, problem in ((1.5, "depth must be an integer"), (0, "depth must be at least 1")):
         with pytest.raises(ValueError, match=problem):
             metrics.extrusion(colors, depth)

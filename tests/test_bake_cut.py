@@ -216,7 +216,7 @@ def test_a_normal_of_any_finite_length_cuts_as_its_direction():
                                   strict=True):
                 np.testing.assert_array_equal(half.vertices, same.vertices)
                 np.testing.assert_array_equal(half.faces, same.faces)
-    with pytest.raises(ValueError, match="finite, non-zero normal"):
+    with pytest.raises(ValueError, match="normal must be three finite numbers"):
         cut(box, origin, np.array([np.inf, 0.0, 0.0]))
 
 

@@ -316,6 +316,21 @@ def is_foreign(path: str | Path, magic: bytes) -> bool:
     return not magic.startswith(head)
 
 
+def overwrite_problem(path: str | Path, magic: bytes, kind: str) -> str | None:
+    """Why writing a ``magic`` archive, a ``kind`` file, to ``path`` would destroy what is
+    there (a folder, or a file of another kind), or why that cannot be told; None where it
+    is missing or such a file already."""
+    try:
+        foreign = is_foreign(path, magic)
+    except OSError as e:
+        return f"cannot read ({e.strerror or e})"
+    if foreign and Path(path).is_dir():
+        return f"is a folder, expected a {kind} file"
+    if foreign:
+        return f"exists and is not a warptex {kind} file; it would be overwritten"
+    return None
+
+
 def archive_version(path: str | Path, magic: bytes) -> int | None:
     """The format version in the header of a ``magic`` archive; None for a file too short to
     hold a header or one that starts otherwise. Only the header is read, so a whole file

@@ -15,7 +15,8 @@ import warp as wp
 from scipy import ndimage
 
 from kernels import bake as _k
-from warptex.surface import to_voxel_space
+from warptex.settings import check_count
+from warptex.surface import checked_faces, to_voxel_space
 from warptex.texture import SolidTexture, query_slabs
 from warptex.warp_runtime import device as default_device
 from warptex.warp_runtime import init_warp, launch
@@ -40,11 +41,12 @@ def texel_points(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Surface points (H*W, 3) float64 in voxel space shown by each texel, and which texels
     any triangle covers. ``size`` is (width, height)."""
+    width, height = (check_count("size", side, 1) for side in size)
+    uv = _checked_uv(mesh, uv)
     init_warp()
     dev = device or default_device()
-    width, height = size
-    faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
-    uv_wp = wp.array(np.asarray(uv, np.float32), dtype=wp.vec2, device=dev)
+    faces = wp.array(checked_faces(mesh), dtype=wp.vec3i, device=dev)
+    uv_wp = wp.array(uv, dtype=wp.vec2, device=dev)
     owner = wp.full(width * height, _k.NO_TRIANGLE, dtype=wp.int32, device=dev)
     launch(_k.claim_texels, len(mesh.faces), [uv_wp, faces, width, height], [owner],
            device=dev)
@@ -53,6 +55,21 @@ def texel_points(
     launch(_k.texel_points, width * height, [uv_wp, positions, faces, owner, width, height],
            [points], device=dev)
     return points.numpy(), owner.numpy() != _k.NO_TRIANGLE
+
+
+def _checked_uv(mesh: trimesh.Trimesh, uv: object) -> np.ndarray:
+    """``uv`` as float32 (V, 2), one finite row per vertex of ``mesh``, else a ValueError:
+    the kernels read it at the faces' vertex indices, unchecked."""
+    try:
+        uv = np.asarray(uv, np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"uv must be an array of numbers, got {type(uv).__name__}") from error
+    if uv.shape != (len(mesh.vertices), 2):
+        raise ValueError(f"uv must hold one (u, v) row per mesh vertex, ({len(mesh.vertices)}, "
+                         f"2), got shape {uv.shape}")
+    if not np.isfinite(uv).all():
+        raise ValueError("uv holds NaN or infinite coordinates")
+    return uv.astype(np.float32)
 
 
 # Share of the UV area that may differ from the texels covered without overlap: texel
@@ -90,6 +107,7 @@ def bake_uv_texture(
     """A (size, size, C) image: each covered texel shows the solid texture at its surface
     point; uncovered texels take the nearest covered color so filtering does not bleed
     background into the seams. Also returns the coverage mask."""
+    size = check_count("size", size, 1)
     points, covered = texel_points(mesh, uv, transform, (size, size))
     colors = texture.query(points[covered], filter=filter)
     image = np.zeros((size * size, colors.shape[1]), np.float32)

@@ -33,7 +33,13 @@ from kernels import candidates as _k
 from kernels import common as _common
 from kernels.synthesis import BLOCK, EXACT_ROW_TERMS, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel, warp_runtime
-from warptex.archive import ArchiveError, folder_problem, read_archive, write_archive
+from warptex.archive import (
+    ArchiveError,
+    folder_problem,
+    overwrite_problem,
+    read_archive,
+    write_archive,
+)
 from warptex.code_digest import code_digest, module_sources
 from warptex.exemplar import (
     Exemplar,
@@ -45,7 +51,13 @@ from warptex.exemplar import (
 )
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
-from warptex.settings import check_file_name, check_flag, check_tileable, is_integer
+from warptex.settings import (
+    check_file_name,
+    check_flag,
+    check_tileable,
+    is_integer,
+    names_folder,
+)
 from warptex.thread_warnings import warn
 from warptex.warp_runtime import init_warp
 
@@ -144,7 +156,7 @@ class RoleLevel:
     fallback: np.ndarray  # (h*w,) bool: no coherent candidate was found, best one kept
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class CandidateSet:
     """Pre-computed candidates for three exemplars (one per axis), all pyramid levels
     (Dong 2008, section 4: the 3D candidates; section 4.3: the candidate slab).
@@ -171,6 +183,18 @@ class CandidateSet:
     # Digest of the code that computed them (``warptex.code_digest``), which the cache
     # compares with its own; "" where not recorded.
     code: str = field(default="", compare=False, repr=False)
+
+    def __repr__(self) -> str:
+        # Not the fields': their arrays run to thousands of lines in a notebook.
+        names = ", ".join(dict.fromkeys(self.names or [d[:12] for d in self.digests]))
+        return (f"CandidateSet({names}; {self.num_levels} levels, {self.channels} channels, "
+                f"{self.nbytes() / 2**20:.1f} MiB)")
+
+    def __eq__(self, other: object) -> bool:
+        """The same candidates: the same parameters and everything synthesis reads."""
+        if not isinstance(other, CandidateSet):
+            return NotImplemented
+        return self.params == other.params and self.content_digest == other.content_digest
 
     @property
     def num_levels(self) -> int:
@@ -206,8 +230,19 @@ class CandidateSet:
         return digest.hexdigest()
 
     def save(self, path: str | Path) -> None:
-        """Write a versioned, checksummed file atomically (temporary name, then rename)."""
-        write_archive(check_file_name("path", path), FILE_MAGIC, FORMAT_VERSION, _flatten(self))
+        """Write a versioned, checksummed file atomically (temporary name, then rename).
+        A path that names a folder or holds a file of another kind, which the write would
+        destroy, is refused (CandidateCacheError)."""
+        target = check_file_name("path", path)
+        problem = ("names a folder, not a file" if isinstance(path, str) and names_folder(path)
+                   else overwrite_problem(target, FILE_MAGIC, "candidate"))
+        if problem is not None:
+            raise CandidateCacheError(f"{path}: {problem}")
+        self._write(target)
+
+    def _write(self, path: Path) -> None:
+        """:meth:`save` unchecked: the cache overwrites its damaged files."""
+        write_archive(path, FILE_MAGIC, FORMAT_VERSION, _flatten(self))
 
     @classmethod
     def load(cls, path: str | Path) -> CandidateSet:
@@ -268,7 +303,7 @@ def precompute(
     result = _compute(exemplars, p, progress)
     if path is not None:
         try:
-            result.save(path)
+            result._write(path)
             result.cache_status = "written"
         except OSError as e:
             result.cache_status = "not written"

@@ -28,13 +28,12 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     about that much. ``progress`` shows a bar over the two halves (seconds each for a mesh
     of a few hundred thousand faces).
     """
-    normal = np.asarray(normal, np.float64)
-    if not np.isfinite(normal).all() or not np.abs(normal).max() > 0:
-        raise ValueError("the cut plane needs a finite, non-zero normal")
+    normal, origin = _plane_vector("normal", normal), _plane_vector("origin", origin)
+    if not np.abs(normal).max() > 0:
+        raise ValueError("the cut plane needs a non-zero normal")
     # Scaled by its largest component first: its length alone overflows beyond 1e154.
     normal = normal / np.abs(normal).max()
     normal /= np.linalg.norm(normal)
-    origin = np.asarray(origin, np.float64)
     # Triangles of zero area bound nothing, and the cap's triangulation fails on them.
     kept = mesh.area_faces > 0
     if not kept.any():
@@ -66,6 +65,17 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     first, second = (trimesh.Trimesh(half.vertices / scale + centre, half.faces, process=False)
                      for half in refined)
     return first, second
+
+
+def _plane_vector(name: str, value: object) -> np.ndarray:
+    """``value`` as a finite float64 3-vector, else a ValueError naming the argument."""
+    try:
+        vector = np.asarray(value, np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"the cut plane's {name} must be three numbers, got {value!r}") from error
+    if vector.shape != (3,) or not np.isfinite(vector).all():
+        raise ValueError(f"the cut plane's {name} must be three finite numbers, got {value!r}")
+    return vector
 
 
 def _warn_of_unshared_caps(halves: list[trimesh.Trimesh], origin: np.ndarray,

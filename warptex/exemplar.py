@@ -171,7 +171,7 @@ class Exemplar:
                 pixels is used so with a warning. Adds the feature-distance channel computed
                 from it.
             feature_distance: ``"auto"`` (or True) adds a feature-distance channel from an
-                automatic (Otsu) threshold of the luminance when no ``feature_mask`` is given.
+                automatic (Otsu) threshold of the luminance; not with a ``feature_mask``.
             max_size: shrink a larger image, and its feature mask, by area averaging until its
                 larger side is ``max_size`` pixels, keeping its aspect ratio: photographs are
                 often far larger than the pre-computation of candidates affords (a voxel is
@@ -188,12 +188,16 @@ class Exemplar:
         """
         if alpha not in ("drop", "keep"):
             raise ValueError(f"alpha must be 'drop' or 'keep', not {alpha!r}")
-        if feature_distance not in (False, True, "auto"):
+        # Not ``in (False, True, "auto")``: 1 and 0.0 equal the bools and would pass.
+        if not (feature_distance == "auto" if isinstance(feature_distance, str)
+                else isinstance(feature_distance, bool | np.bool_)):
             raise ValueError(
                 f"feature_distance must be False, True or 'auto', not {feature_distance!r}"
             )
-        if feature_mask is not None and feature_distance == "auto":
-            raise ValueError("give either feature_mask or feature_distance='auto', not both")
+        feature_distance = bool(feature_distance)
+        if feature_mask is not None and feature_distance:
+            raise ValueError("give either feature_mask or feature_distance ('auto' or True), "
+                             "not both")
         check_max_size(max_size)
         if srgb is not None:
             check_flag("srgb", srgb)
@@ -217,7 +221,7 @@ class Exemplar:
 
         distance = None
         if feature_mask is not None:
-            mask_path = Path(feature_mask)
+            mask_path = check_file_name("feature_mask", feature_mask)
             mask_image = _read(mask_path)[0]
             if mask_image.shape[:2] != read_shape[:2]:
                 raise ExemplarError(
@@ -491,7 +495,7 @@ def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool) -> np.ndarray:
     Colors are the leading channels, three of RGB(A) and more, one of gray (with alpha); the
     rest are data, kept as they are."""
     out = np.array(values, np.float32)
-    if srgb != to_srgb:
+    if check_flag("srgb", srgb) != check_flag("to_srgb", to_srgb):
         color = 3 if out.shape[-1] >= 3 else 1
         out[..., :color] = (linear_to_srgb if to_srgb else srgb_to_linear)(out[..., :color])
     return out

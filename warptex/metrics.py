@@ -373,6 +373,7 @@ def iid_noise(exemplar: np.ndarray | Exemplar, shape: tuple[int, int, int],
         raise ValueError(f"shape must be three positive ints, got {shape!r}")
     shape = tuple(check_count("shape", n, low=1) for n in sides)
     flat = exemplar.reshape(-1, exemplar.shape[2])
+    seed = check_count("seed", seed)
     idx = np.random.default_rng(seed).integers(0, len(flat), size=int(np.prod(shape)))
     return flat[idx].reshape(*shape, exemplar.shape[2])
 

@@ -44,7 +44,7 @@ from warptex.archive import (
     ArchiveError,
     dead_writes,
     file_state,
-    is_foreign,
+    overwrite_problem,
     read_archive,
     write_archive,
     write_failure,
@@ -367,15 +367,10 @@ def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
 def check_store_path(path: str | Path) -> None:
     """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
     saving a store there would destroy; a missing file or any brick store file is fine."""
-    try:
-        foreign = is_foreign(path, _MAGIC)
-    except OSError as e:
-        raise StoreFileError(f"{path}: cannot read ({e.strerror or e})") from None
-    if foreign and Path(path).is_dir():
-        raise StoreFileError(f"{path}: is a folder, expected a brick store file")
-    if foreign:
-        raise StoreFileError(f"{path}: exists and is not a warptex brick store file; "
-                             "it would be overwritten, choose another store path")
+    problem = overwrite_problem(path, _MAGIC, "brick store")
+    if problem is not None:
+        advice = ", choose another store path" if problem.startswith("exists") else ""
+        raise StoreFileError(f"{path}: {problem}{advice}")
 
 
 @contextmanager

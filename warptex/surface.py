@@ -14,6 +14,7 @@ import warp as wp
 from kernels import surface as _k
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
+from warptex.settings import check_count
 from warptex.warp_runtime import device as default_device
 from warptex.warp_runtime import init_warp
 
@@ -24,6 +25,7 @@ MAX_SHELL = 1 << 28
 
 def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
     """4x4 matrix fitting the mesh's bounding box, centred, into [0, resolution)^3."""
+    resolution = check_count("resolution", resolution, 1)
     lo, hi = mesh.bounds
     extent = float(np.max(hi - lo))
     if extent <= 0:
@@ -40,7 +42,32 @@ def to_voxel_space(mesh: trimesh.Trimesh, transform: np.ndarray) -> np.ndarray:
     by up to half a voxel, so a baked vertex would not show the color a query of the same
     point gets."""
     v = np.asarray(mesh.vertices, np.float64)
-    return v @ np.asarray(transform, np.float64)[:3, :3].T + transform[:3, 3]
+    m = _checked_transform(transform)
+    return v @ m[:3, :3].T + m[:3, 3]
+
+
+def _checked_transform(transform: object) -> np.ndarray:
+    """``transform`` as a float64 4x4 matrix, else a ValueError naming it."""
+    try:
+        m = np.asarray(transform, np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"transform must be a 4x4 matrix of numbers, got "
+                         f"{type(transform).__name__}") from error
+    if m.shape != (4, 4):
+        raise ValueError(f"transform must be a 4x4 matrix, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise ValueError("transform holds NaN or infinite entries")
+    return m
+
+
+def checked_faces(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The mesh's faces as int32 (F, 3), after a ValueError unless each names one of its
+    vertices: Warp's kernels read vertex arrays at them unchecked."""
+    faces = np.asarray(mesh.faces)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(mesh.vertices)):
+        raise ValueError(f"the mesh's faces index vertices outside [0, {len(mesh.vertices)}), "
+                         "the vertices it has")
+    return faces.astype(np.int32).reshape(-1, 3)
 
 
 def shell_size(mesh: trimesh.Trimesh, transform: np.ndarray) -> int:
@@ -73,14 +100,15 @@ def shell(
     ``transform`` maps mesh coordinates to voxel space; by default
     :func:`block_transform` for ``resolution``.
     """
-    m = block_transform(mesh, resolution) if transform is None else np.asarray(transform)
+    m = block_transform(mesh, resolution) if transform is None else _checked_transform(transform)
+    faces_np = checked_faces(mesh)
     checked_shell_size(mesh, m)
     init_warp()
     dev = device or default_device()
     # The shell only decides which voxels are synthesized ahead of the queries, so float32
     # suffices: a voxel it misses at extreme resolutions is synthesized when first read.
     vertices = wp.array(to_voxel_space(mesh, m).astype(np.float32), dtype=wp.vec3, device=dev)
-    faces = wp.array(np.asarray(mesh.faces, np.int32), dtype=wp.vec3i, device=dev)
+    faces = wp.array(faces_np, dtype=wp.vec3i, device=dev)
     nfaces = len(mesh.faces)
     counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
     none = wp.empty(0, dtype=wp.vec3i, device=dev)

@@ -42,6 +42,7 @@ from warptex.settings import (
     check_count,
     check_flag,
     check_settings,
+    is_integer,
 )
 from warptex.warp_runtime import device as default_device
 from warptex.warp_runtime import init_warp
@@ -397,7 +398,7 @@ class Synthesizer:
         if not isinstance(candidates, CandidateSet):
             raise TypeError(f"candidates must be a CandidateSet (warptex.precompute makes one), "
                             f"got {type(candidates).__name__}")
-        if isinstance(subpasses, bool) or subpasses not in (1, 8):
+        if not is_integer(subpasses) or subpasses not in (1, 8):
             raise ValueError(f"subpasses must be 1 or 8, got {subpasses}")
         check_settings(jitter, passes, seed)
         levels = check_count("levels", levels)

@@ -277,8 +277,12 @@ class SolidTexture:
 
     def _fill_color(self, fill: float | Sequence[float]) -> np.ndarray:
         try:
-            color = np.asarray(fill, np.float32)
+            given = np.asarray(fill)
+            # Numbers only: np.float32 reads True as 1 and "0.25" as 0.25.
+            color = given.astype(np.float32) if given.dtype.kind in "iuf" else None
         except (TypeError, ValueError):
+            color = None
+        if color is None:
             color = np.full(1, np.nan, np.float32)  # refused below, in words of its own
         if color.shape not in ((), (self.channels,)) or not np.isfinite(color).all():
             raise ValueError(f"fill must be one finite value or {self.channels} of them, "
