@@ -157,6 +157,19 @@ def test_a_store_file_named_by_a_loop_of_links_is_refused(candidates, warp_devic
         SolidTexture(candidates).save(tmp_path / "loop.wts")
 
 
+def test_a_relative_store_path_stays_where_it_was_given(candidates, warp_device, tmp_path,
+                                                       monkeypatch):
+    from warptex.texture import SolidTexture
+
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path)
+    tex = SolidTexture(candidates, store="rel.wts")
+    tex.query(np.zeros((1, 3)))
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert tex.save() == tmp_path / "rel.wts"
+    assert (tmp_path / "rel.wts").is_file() and not (tmp_path / "elsewhere" / "rel.wts").exists()
+
+
 def test_slice_arguments_are_checked(candidates, warp_device):
     from warptex.texture import SolidTexture
 

@@ -631,6 +631,7 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
         raise TypeError(f"setup must be a warptex.compare.Setup, got {setup!r}")
     methods = check_methods(methods)
     check_count("repeats", repeats, low=1)
+    check_flag("progress", progress)
     axes = setup.exemplars()
     if any(m in _LAZY for m in methods):  # before any method's minutes of work
         from warptex.candidates import check_feature_channels

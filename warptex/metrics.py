@@ -281,7 +281,7 @@ def _projected(rows: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return out
 
 
-def histogram_distance(volume: np.ndarray, exemplar: np.ndarray, axis: int,
+def histogram_distance(volume: np.ndarray, exemplar: np.ndarray | Exemplar, axis: int,
                        bins: int = 16) -> float:
     """Mean over channels of the L1 distance between normalized ``bins``-bin histograms of
     8 slices perpendicular to ``axis`` and of the exemplar, over the exemplar's range of

@@ -153,7 +153,8 @@ class SolidTexture:
     ) -> None:
         # Everything refusable is refused before pre-computing, which takes minutes for a
         # large exemplar.
-        self.path = None if store is None else _store_file(store)
+        # Absolute: a later change of the working folder does not move where it is saved.
+        self.path = None if store is None else _store_file(store).absolute()
         check_settings(jitter, passes, seed)
         check_flag("shifted_tiles", shifted_tiles)
         check_store_settings(cache_bytes, whole_bricks)
