@@ -216,6 +216,47 @@ def test_prune_deletes_what_no_run_reads_and_keeps_the_rest(folder, computed, im
     assert again.names == (image.name,) * 3
 
 
+def test_a_kernel_cache_that_cannot_be_listed_is_refused_before_anything_is_deleted(
+        folder, monkeypatch, capsys):
+    """It was looked up after the candidates were deleted: exit 2, "refused before any
+    work", with the files gone and no line saying so."""
+    from warptex import warp_runtime
+
+    def unlistable():
+        raise NotADirectoryError(20, "Not a directory", "bad.png")
+
+    monkeypatch.setattr(warp_runtime, "stale_kernel_builds", unlistable)
+    before = _statuses(folder)
+    assert main(["cache", "--prune"]) == 2
+    assert capsys.readouterr().err.endswith(
+        "warptex: error: bad.png: cannot list Warp's kernel cache (Not a directory); "
+        "WARP_CACHE_PATH sets its folder\n")
+    assert _statuses(folder) == before
+
+
+def test_a_kernel_build_that_cannot_be_deleted_fails_the_prune(folder, tmp_path, monkeypatch,
+                                                               capsys):
+    """A read-only kernel cache: its builds were skipped, "deleted: 0", exit 0."""
+    import warp as wp
+
+    kernels = tmp_path / "kernels"
+    build = kernels / "wp_kernels.synthesis_0000000"
+    build.mkdir(parents=True)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(kernels))
+    rename = Path.rename
+
+    def read_only(self, target):
+        if self == build:
+            raise PermissionError(13, "Permission denied", str(self))
+        return rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", read_only)
+    assert main(["cache", "--prune"]) == 1
+    assert capsys.readouterr().err.endswith(
+        f"warptex: error: {build}: cannot delete (Permission denied)\n")
+    assert build.is_dir()
+
+
 def test_cache_json_lists_the_same_files_and_what_was_deleted(folder, computed, capsys):
     current, _ = computed
     assert main(["cache", "--json"]) == 0

@@ -163,7 +163,7 @@ def test_precompute_says_when_it_could_not_replace_a_damaged_cache(images, priva
     def disk_full(self, path):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(CandidateSet, "save", disk_full)
+    monkeypatch.setattr(CandidateSet, "_write", disk_full)
     # A job warming the cache failed, and exit 1 says so (it was 0: the step went green).
     assert main(["precompute", str(images["a"])]) == 1
     captured = capsys.readouterr()
@@ -250,6 +250,19 @@ def test_precompute_errors(images, tmp_path, capsys):
     (tmp_path / "file").write_text("not a folder")
     assert main(["precompute", str(images["a"]), "-o", str(tmp_path / "file" / "c.wtc")]) == 2
     assert f"{tmp_path / 'file' / 'c.wtc'}: cannot write" in capsys.readouterr().err
+    # Refused before the work, not a traceback after it: a file of another kind, and the
+    # exemplar itself (a copy named .wtc), which it silently replaced.
+    other = tmp_path / "other.wtc"
+    other.write_text("hello")
+    assert main(["precompute", str(images["a"]), "--no-cache", "-o", str(other)]) == 2
+    assert capsys.readouterr().err.endswith(
+        f"warptex: error: {other}: exists and is not a warptex candidate file; it would be "
+        "overwritten\n")
+    photo = tmp_path / "photo.wtc"
+    photo.write_bytes(images["a"].read_bytes())
+    assert main(["precompute", str(photo), "--no-cache", "-o", str(photo)]) == 2
+    assert f"{photo}: would overwrite the input {photo}" in capsys.readouterr().err
+    assert other.read_text() == "hello" and photo.read_bytes() == images["a"].read_bytes()
 
 
 # -- volume -------------------------------------------------------------------------------

@@ -283,8 +283,8 @@ def test_an_output_that_cannot_be_written_is_one_clear_error(files, tmp_path, ca
         coarser = [("4" if a == "8" and b == "--resolution" else a)
                    for b, a in zip(["", *argv], argv, strict=False)]
         assert main(coarser) == 0
-    else:
-        target.write_bytes(b"old")
+    else:  # a candidate file cut short: -o refuses to overwrite a file of another kind
+        target.write_bytes(b"WARPTEXC" if target.suffix == ".wtc" else b"old")
     before = target.read_bytes()
     disk_full_at(target)
     capsys.readouterr()

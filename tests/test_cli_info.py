@@ -104,6 +104,7 @@ def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
 
     fake = types.ModuleType("warptex.candidates")
     fake.cached_candidate_path = cached_candidate_path
+    fake.check_feature_channels = lambda channels: None
     fake.precompute_bytes = lambda exemplars: 3 << 30
     fake.LARGE_PIXELS = 64 * 64
     monkeypatch.setitem(sys.modules, "warptex.candidates", fake)
@@ -123,6 +124,30 @@ def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
     assert main(["info", str(data_dir / "granite_64.png")]) == 0
     assert ("candidates: not cached; pre-computing them needs about 3 GiB, this machine has "
             "2 GiB: shrink it with --exemplar-max-size" in capsys.readouterr().out)
+
+
+def test_info_and_slice_say_which_exemplars_no_command_synthesizes(tmp_path, capsys):
+    """35 channels: info quoted the memory to pre-compute them, which every command then
+    refused, and slice sent such an exemplar to `warptex volume`, which refuses it too."""
+    from warptex.candidates import check_feature_channels
+
+    rng = np.random.default_rng(0)
+    for channels in (5, 35):
+        path = tmp_path / f"c{channels}.npy"
+        np.save(path, rng.random((16, 16, channels), np.float32))
+        assert main(["info", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert main(["slice", str(path), "-o", str(tmp_path / "s.npy")]) == 2
+        err = capsys.readouterr().err
+        if channels == 35:
+            with pytest.raises(ValueError) as refusal:
+                check_feature_channels(channels)
+            assert f"candidates: cannot be pre-computed: {refusal.value}\n" in out
+            assert err.endswith("(gray, RGB or RGBA)\n")
+        else:
+            assert "candidates: not cached; pre-computing them takes about" in out
+            assert err.endswith("(gray, RGB or RGBA); `warptex volume` synthesizes them\n")
+    assert not (tmp_path / "s.npy").exists()
 
 
 def test_info_alpha_keep(tmp_path, capsys, no_candidates):

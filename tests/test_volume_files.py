@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from warptex.exemplar import Exemplar
 from warptex.volume_files import exr_sheet, write_image, write_volume
 
 
@@ -30,14 +31,19 @@ def test_vol_header_and_data_of_a_non_cubic_volume(tmp_path, channels):
     np.testing.assert_array_equal(values.reshape(4, 3, 2, channels), vol.transpose(2, 1, 0, 3))
 
 
-@pytest.mark.parametrize(("channels", "names"),
-                         [(1, ["Y"]), (2, ["Y", "A"]), (3, list("RGB")), (4, list("RGBA")),
-                          (5, ["C0", "C1", "C2", "C3", "C4"])])
-def test_exr_channel_names_and_layout(tmp_path, channels, names):
+@pytest.mark.parametrize(("channels", "alpha", "names"),
+                         [(1, False, ["Y"]), (2, True, ["Y", "A"]), (2, False, ["Y", "C1"]),
+                          (3, False, list("RGB")), (4, True, list("RGBA")),
+                          (4, False, ["R", "G", "B", "C3"]),
+                          (5, False, ["R", "G", "B", "C3", "C4"]),
+                          (5, True, ["R", "G", "B", "C3", "A"])])
+def test_exr_channel_names_and_layout(tmp_path, channels, alpha, names):
+    """A last channel is named A only where it is an alpha: a .npy exemplar's is data,
+    which readers would take for coverage."""
     import OpenEXR
 
     vol = _volume(channels)
-    write_volume(tmp_path / "v.exr", vol, srgb=False)
+    write_volume(tmp_path / "v.exr", vol, srgb=False, alpha=alpha)
     with OpenEXR.File(str(tmp_path / "v.exr"), separate_channels=True) as file:
         got = {name: ch.pixels for name, ch in file.channels().items()}
         layout = file.header()["warptexLayout"]
@@ -48,9 +54,14 @@ def test_exr_channel_names_and_layout(tmp_path, channels, names):
         np.testing.assert_array_equal(sheet[y, z * 2 + x], vol[x, y, z])
     np.testing.assert_array_equal(sheet, exr_sheet(vol))
     assert "2x3x4" in layout
-    write_image(tmp_path / "i.exr", vol[0], srgb=False)
+    write_image(tmp_path / "i.exr", vol[0], srgb=False, alpha=alpha)
     with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
         assert sorted(file.channels()) == sorted(names)
+    image = np.random.default_rng(channels).random((16, 16, channels), np.float32)
+    write_image(tmp_path / "back.exr", image, srgb=False, alpha=alpha)
+    back = Exemplar.load(tmp_path / "back.exr", alpha="keep")
+    np.testing.assert_array_equal(back.colors, image)
+    assert back.kept_alpha == alpha
 
 
 def test_a_gray_and_alpha_exr_reads_back_as_gray_and_alpha(tmp_path):
@@ -59,7 +70,7 @@ def test_a_gray_and_alpha_exr_reads_back_as_gray_and_alpha(tmp_path):
     from warptex.exemplar import Exemplar
 
     image = np.random.default_rng(3).random((16, 16, 2), np.float32)
-    write_image(tmp_path / "la.exr", image, srgb=False)
+    write_image(tmp_path / "la.exr", image, srgb=False, alpha=True)
     back = Exemplar.load(tmp_path / "la.exr", alpha="keep")
     np.testing.assert_array_equal(back.colors, image)
     assert back.kept_alpha
@@ -80,7 +91,7 @@ def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, s
     values = np.frombuffer((tmp_path / "v.vol").read_bytes()[48:], "<f4")
     np.testing.assert_allclose(values.reshape(4, 3, 2, channels), linear.transpose(2, 1, 0, 3),
                                rtol=1e-5)
-    write_image(tmp_path / "i.exr", vol[0], srgb=True)
+    write_image(tmp_path / "i.exr", vol[0], srgb=True, alpha=channels in (2, 4))
     with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
         got = file.channels()
         names = sorted(got, key=lambda n: ["R", "G", "B", "Y", "A"].index(n))

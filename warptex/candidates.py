@@ -233,12 +233,7 @@ class CandidateSet:
         """Write a versioned, checksummed file atomically (temporary name, then rename).
         A path that names a folder or holds a file of another kind, which the write would
         destroy, is refused (CandidateCacheError)."""
-        target = check_file_name("path", path)
-        problem = ("names a folder, not a file" if isinstance(path, str) and names_folder(path)
-                   else overwrite_problem(target, FILE_MAGIC, "candidate"))
-        if problem is not None:
-            raise CandidateCacheError(f"{path}: {problem}")
-        self._write(target)
+        self._write(check_candidate_path(path))
 
     def _write(self, path: Path) -> None:
         """:meth:`save` unchecked: the cache overwrites its damaged files."""
@@ -887,6 +882,17 @@ def _source_layout(cs: CandidateSet) -> dict[str, list]:
     the content digest record them."""
     return {"shifts": [[s.shift for s in lvl] for lvl in cs.sources],
             "margins": [[list(s.margins) for s in lvl] for lvl in cs.sources]}
+
+
+def check_candidate_path(path: str | Path) -> Path:
+    """``path`` as a Path, after a CandidateCacheError where it names a folder or holds a
+    file of another kind, which saving candidates there would destroy."""
+    target = check_file_name("path", path)
+    problem = ("names a folder, not a file" if isinstance(path, str) and names_folder(path)
+               else overwrite_problem(target, FILE_MAGIC, "candidate"))
+    if problem is not None:
+        raise CandidateCacheError(f"{path}: {problem}")
+    return target
 
 
 def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:

@@ -352,13 +352,22 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _candidate_status(exemplar: Exemplar, tileable: bool | str) -> str:
     """Where the candidates are cached, or what pre-computing them will cost here."""
     try:
-        from warptex.candidates import LARGE_PIXELS, cached_candidate_path, precompute_bytes
+        from warptex.candidates import (
+            LARGE_PIXELS,
+            cached_candidate_path,
+            check_feature_channels,
+            precompute_bytes,
+        )
     except ModuleNotFoundError as error:
         if error.name != "warptex.candidates":
             raise
         return "not available"
     from warptex.machine import byte_size, memory_problem
 
+    try:  # refused by every command that pre-computes, whatever the memory
+        check_feature_channels(exemplar.features.shape[2])
+    except ValueError as error:
+        return f"cannot be pre-computed: {error}"
     cached = cached_candidate_path(exemplar, tileable)
     if cached is not None:
         return f"cached at {cached}"
@@ -391,10 +400,22 @@ def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _cmd_precompute(args: argparse.Namespace) -> int:
-    from warptex.candidates import cache_file_there, cache_path, precompute, resolved_params
+    from warptex.candidates import (
+        CandidateCacheError,
+        cache_file_there,
+        cache_path,
+        check_candidate_path,
+        precompute,
+        resolved_params,
+    )
 
     if args.output is not None:
         _check_output(args.output, (".wtc",), "a candidate file")
+        _check_inputs_kept(args, [args.output])
+        try:
+            check_candidate_path(args.output)
+        except CandidateCacheError as error:
+            raise CliError(str(error)) from None
     exemplars = _load_axis_exemplars(args, _load_exemplar(args, args.path))
     params = _candidate_params(args)
     cache = None if args.no_cache else cache_path(exemplars, resolved_params(params))
@@ -492,7 +513,7 @@ def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) 
 
 def _add_cache_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "cache", help="list the candidate cache; prune the files no run will read again",
+        "cache", help="list the candidate cache; prune the files this version never reads",
         description="List the candidate cache (WARPTEX_CACHE, default $XDG_CACHE_HOME/warptex "
         "where that is an absolute path, else ~/.cache/warptex): "
         "each file's date, size, exemplars and status. 'in use': read whenever its "
@@ -529,14 +550,16 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     never = [f for f in files if f.status in cc.NEVER_READ]
     kept = (cc.BEING_WRITTEN, cc.UNREADABLE)
     doomed = [f for f in files if f.status not in kept] if args.clear else never
+    kernels = _kernel_cache()  # refused here, before anything is deleted
     deleted = None
     if args.prune or args.clear:
         try:
             deleted = cc.remove(doomed)
+            kernels["deleted"] = _deleted_kernel_builds(kernels["other_builds"])
+            kernels["bytes"] -= kernels["deleted"]["bytes"]
         except OSError as error:
             raise _WorkFailed(f"{error.filename}: cannot delete ({error.strerror or error})"
-                           ) from None
-    kernels = _kernel_cache(delete=args.prune or args.clear)
+                              ) from None
     if args.json:
         print(json.dumps(_cache_report(folder, files, deleted, kernels), indent=2))
         return 0
@@ -605,10 +628,10 @@ def _mib_tenths(n: int) -> str:
     return f"{n / 2**20:.1f} MiB"
 
 
-def _kernel_cache(delete: bool) -> dict:
+def _kernel_cache() -> dict:
     """Where Warp keeps the built kernels and how much they take, and the builds of
     warptex's kernels that no run of this version loads (every version builds its own, and
-    Warp never deletes old ones), deleted when ``delete``."""
+    Warp never deletes old ones); "deleted" is None until they are."""
     import warp as wp
 
     from warptex import warp_runtime
@@ -618,12 +641,19 @@ def _kernel_cache(delete: bool) -> dict:
     except OSError as error:
         raise CliError(f"{error.filename}: cannot list Warp's kernel cache "
                        f"({error.strerror or error}); WARP_CACHE_PATH sets its folder") from None
-    other = sum(warp_runtime.folder_bytes(f) for f in stale)
-    deleted = warp_runtime.delete_kernel_builds(stale) if delete else None
     folder = Path(wp.config.kernel_cache_dir)
     return {"folder": str(folder), "bytes": warp_runtime.folder_bytes(folder),
-            "other_builds": [str(f) for f in stale], "other_bytes": other,
-            "deleted": None if deleted is None else {"builds": deleted[0], "bytes": deleted[1]}}
+            "other_builds": [str(f) for f in stale],
+            "other_bytes": sum(warp_runtime.folder_bytes(f) for f in stale), "deleted": None}
+
+
+def _deleted_kernel_builds(builds: list[str]) -> dict:
+    """Delete the kernel builds :func:`_kernel_cache` found; how many and their bytes.
+    Raises OSError for one that cannot be deleted (a read-only cache)."""
+    from warptex import warp_runtime
+
+    count, freed = warp_runtime.delete_kernel_builds([Path(b) for b in builds])
+    return {"builds": count, "bytes": freed}
 
 
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
@@ -732,10 +762,16 @@ def _cmd_volume(args: argparse.Namespace) -> int:
             bar.update()
     volume = np.concatenate(slabs, axis=0)
     with _writing(args.output):
-        write_volume(args.output, volume, srgb=srgb)
+        write_volume(args.output, volume, srgb=srgb, alpha=_alpha_kept(exemplars))
     print(f"volume: {size}^3 voxels, {_count(volume.shape[3], 'channel')}, seed {args.seed}")
     print(f"written: {args.output}")
     return 0
+
+
+def _alpha_kept(exemplars: Sequence[Exemplar]) -> bool:
+    """Whether the last channel is an alpha: kept on every axis, as another axis' exemplar
+    (a .npy file) may hold data there."""
+    return all(e.kept_alpha for e in exemplars)
 
 
 def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar], srgb: bool) -> int:
@@ -750,7 +786,7 @@ def _volume_kopf(args: argparse.Namespace, exemplars: list[Exemplar], srgb: bool
     except ValueError as error:
         raise CliError(str(error)) from None
     with _writing(args.output):
-        write_volume(args.output, volume, srgb=srgb)
+        write_volume(args.output, volume, srgb=srgb, alpha=_alpha_kept(exemplars))
     clustering = ", mean-shift clustering" if args.mean_shift else ""
     clustering += f", {args.free_axis} free" if args.free_axis else ""
     print(f"volume (Kopf 2007{clustering}): {args.size}^3 voxels, "
@@ -932,8 +968,14 @@ def _lookup_exemplars(args: argparse.Namespace,
     try:  # before pre-computing: the channels are the same on every axis, or it says which
         check_lookup_channels(exemplars[0].channels)
     except ValueError as error:
-        raise CliError(f"{args.exemplar}: {error}; `warptex volume` synthesizes any "
-                       "number") from None
+        from warptex.candidates import check_feature_channels
+
+        try:
+            check_feature_channels(exemplars[0].features.shape[2])
+            advice = "; `warptex volume` synthesizes them"
+        except ValueError:
+            advice = ""
+        raise CliError(f"{args.exemplar}: {error}{advice}") from None
     channels = exemplars[0].channels
     if mesh and channels not in (1, 3):  # mesh files hold RGB (gray repeated)
         lost = channels - 1 if channels == 2 else channels - 3
@@ -1022,7 +1064,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     image = query_slabs(tex, points, args.filter, progress="slice").reshape(h, w, -1)
     elapsed = time.perf_counter() - start
     if suffix == ".png":
-        alpha = all(e.kept_alpha for e in exemplars)  # another axis' may hold data there
+        alpha = _alpha_kept(exemplars)
         _note_png_losses(image, alpha)
         if srgb is not None:
             image = reencoded(image, srgb=srgb, to_srgb=True)
@@ -1030,7 +1072,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
             save_png(to_png8(image, alpha), args.output)
     else:
         with _writing(args.output):
-            write_image(args.output, image, srgb=bool(srgb))
+            write_image(args.output, image, srgb=bool(srgb), alpha=_alpha_kept(exemplars))
     print(f"slice: {h} rows x {w} columns in {elapsed:.2f} s; written: {args.output}")
     return 0
 

@@ -19,29 +19,31 @@ from warptex.exemplar import reencoded
 from warptex.settings import check_flag
 
 
-def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool) -> None:
+def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool,
+                 alpha: bool = False) -> None:
     """Write an (X, Y, Z, C) float volume by the file's suffix: ``.npy`` as it is, ``.exr``
     as its z-slices side by side (:func:`exr_sheet`), ``.vol`` as a Mitsuba 3 grid volume
     over the unit box (Mitsuba maps it to [0, 1]^3: a scene places and scales it with the
     volume's ``to_world``, so voxels of a box whose sides differ come out stretched unless
     the scene scales by the sides). ``srgb``: whether the colors are sRGB-encoded, as those
     of an exemplar whose ``Exemplar.srgb`` is set: ``.exr`` and ``.vol`` get them decoded.
+    ``alpha``: whether the last channel is an alpha (``Exemplar.kept_alpha``), which
+    ``.exr`` names A; other channels past the colors are data, named by number.
     Raises ValueError for another suffix and OSError when the file cannot be written."""
-    srgb = check_flag("srgb", srgb)
-    _write(path, _float_array(volume, 4, "volume", "(X, Y, Z, C)"), srgb, "a volume file",
-           _VOLUME_WRITERS)
+    _write(path, _float_array(volume, 4, "volume", "(X, Y, Z, C)"), check_flag("srgb", srgb),
+           check_flag("alpha", alpha), "a volume file", _VOLUME_WRITERS)
 
 
-def write_image(path: str | Path, image: np.ndarray, *, srgb: bool) -> None:
+def write_image(path: str | Path, image: np.ndarray, *, srgb: bool,
+                alpha: bool = False) -> None:
     """Write an (H, W, C) float image without loss: ``.npy`` or single-part OpenEXR, which
-    gets sRGB-encoded colors (``srgb``, as for :func:`write_volume`) decoded."""
-    srgb = check_flag("srgb", srgb)
-    _write(path, _float_array(image, 3, "image", "(H, W, C)"), srgb, "a lossless image file",
-           _IMAGE_WRITERS)
+    gets sRGB-encoded colors decoded (``srgb`` and ``alpha`` as for :func:`write_volume`)."""
+    _write(path, _float_array(image, 3, "image", "(H, W, C)"), check_flag("srgb", srgb),
+           check_flag("alpha", alpha), "a lossless image file", _IMAGE_WRITERS)
 
 
-def _write(path: str | Path, data: np.ndarray, srgb: bool, kind: str,
-           writers: dict[str, Callable[[Path, np.ndarray], None]]) -> None:
+def _write(path: str | Path, data: np.ndarray, srgb: bool, alpha: bool, kind: str,
+           writers: dict[str, Callable[[Path, np.ndarray, bool], None]]) -> None:
     """``data`` written atomically by the writer of ``path``'s suffix; every format but
     ``.npy`` holds linear colors, so sRGB-encoded ones (``srgb``) are decoded for it."""
     path = Path(path)
@@ -50,7 +52,7 @@ def _write(path: str | Path, data: np.ndarray, srgb: bool, kind: str,
         raise ValueError(f"{path}: {kind} must end in {endings(list(writers))}")
     if writer is not _write_npy:
         data = reencoded(data, srgb=srgb, to_srgb=False)
-    write_atomically(path, lambda tmp: writer(tmp, data))
+    write_atomically(path, lambda tmp: writer(tmp, data, alpha))
 
 
 def exr_sheet(volume: np.ndarray) -> np.ndarray:
@@ -73,7 +75,7 @@ def _float_array(data, ndim: int, name: str, layout: str) -> np.ndarray:
     return array
 
 
-def _write_npy(path: Path, array: np.ndarray) -> None:
+def _write_npy(path: Path, array: np.ndarray, alpha: bool = False) -> None:
     """NumPy's ``.npy`` format, its data written by Python: NumPy's own writer says only
     that a write fell short ("98304 requested and 6112 written"), Python why (a full disk)."""
     array = np.ascontiguousarray(array)
@@ -82,24 +84,26 @@ def _write_npy(path: Path, array: np.ndarray) -> None:
         file.write(memoryview(array).cast("B"))
 
 
-def _exr_channel_names(channels: int) -> list[str]:
-    """Named as the exemplars' channels are read (gray, gray and alpha, RGB, RGBA), so
-    that OpenEXR's and Mitsuba's readers know them; numbered past four."""
-    known = {1: ["Y"], 2: ["Y", "A"], 3: list("RGB"), 4: list("RGBA")}
-    return known.get(channels, [f"C{c}" for c in range(channels)])
+def _exr_channel_names(channels: int, alpha: bool) -> list[str]:
+    """Named as the exemplars' channels are read, so that OpenEXR's and Mitsuba's readers
+    know them: colors (three of RGB and more, one of gray) R, G, B or Y, an ``alpha`` last
+    A, data channels between by number (C1, C3, ...)."""
+    color = list("RGB") if channels - alpha >= 3 else ["Y"]
+    data = [f"C{c}" for c in range(len(color), channels - alpha)]
+    return color + data + ["A"] * alpha
 
 
-def _write_exr_volume(path: Path, volume: np.ndarray) -> None:
+def _write_exr_volume(path: Path, volume: np.ndarray, alpha: bool) -> None:
     x, y, z, _ = volume.shape
     layout = f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)"
-    _write_exr(path, exr_sheet(volume), {"warptexLayout": layout})
+    _write_exr(path, exr_sheet(volume), alpha, {"warptexLayout": layout})
 
 
-def _write_exr(path: Path, image: np.ndarray, extra: dict | None = None) -> None:
+def _write_exr(path: Path, image: np.ndarray, alpha: bool, extra: dict | None = None) -> None:
     """An (H, W, C) image as a single-part scanline OpenEXR file, float32."""
     import OpenEXR
 
-    names = _exr_channel_names(image.shape[2])
+    names = _exr_channel_names(image.shape[2], alpha)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(extra or {})
     pixels = {name: np.ascontiguousarray(image[..., c], np.float32) for c, name in enumerate(names)}
@@ -107,7 +111,7 @@ def _write_exr(path: Path, image: np.ndarray, extra: dict | None = None) -> None
         file.write(str(path))
 
 
-def _write_vol(path: Path, volume: np.ndarray) -> None:
+def _write_vol(path: Path, volume: np.ndarray, alpha: bool = False) -> None:
     """Mitsuba 3 grid volume: b'VOL', version 3, float32 encoding, x fastest, the unit box
     as its bounds."""
     x, y, z, c = volume.shape

@@ -168,8 +168,10 @@ def _drop_builds(module: Any) -> list[str]:
         # Not another module whose name continues this one's, nor a build in progress.
         build = _BUILD_FOLDER.fullmatch(folder.name)
         ours = build and build["module"] == module.name and not build["building"]
-        if ours and _delete_build(folder):
-            dropped.append(str(folder))
+        # One that cannot be deleted is named by the error of loading it again.
+        with contextlib.suppress(OSError):
+            if ours and _delete_build(folder):
+                dropped.append(str(folder))
     return dropped
 
 
@@ -189,18 +191,32 @@ _DOOMED_FOLDER = re.compile(r"\.deleting-(?P<build>wp_.+)-\d+")
 
 def _delete_build(folder: Path) -> bool:
     """Delete a build folder, renamed first so that no other process loads it half-deleted;
-    False when it was gone or cannot be renamed."""
+    False when it was gone (deleted by another process).
+
+    Raises:
+        OSError: it cannot be renamed or deleted (a read-only cache).
+    """
     doomed = folder
     if not _DOOMED_FOLDER.fullmatch(folder.name):
         doomed = folder.with_name(f".deleting-{folder.name}-{os.getpid()}")
         try:
             folder.rename(doomed)
-        except OSError:
+        except FileNotFoundError:
             return False
     elif not folder.exists():
         return False
-    shutil.rmtree(doomed, ignore_errors=True)
+    # Python 3.12 renamed the handler's argument, deprecating the old name.
+    handler = "onexc" if sys.version_info >= (3, 12) else "onerror"
+    shutil.rmtree(doomed, **{handler: _unless_gone})
     return True
+
+
+def _unless_gone(function: Any, path: str, error: BaseException | tuple) -> None:
+    """rmtree's error handler: what another process deleted meanwhile is no error.
+    ``error`` is the exception (``onexc``) or its ``sys.exc_info()`` (``onerror``)."""
+    error = error[1] if isinstance(error, tuple) else error
+    if not isinstance(error, FileNotFoundError):
+        raise error
 
 
 def kernel_modules() -> list[str]:
@@ -278,7 +294,11 @@ def _other_version_folders(cache: Path) -> list[Path]:
 
 
 def delete_kernel_builds(folders: Sequence[Path]) -> tuple[int, int]:
-    """Delete build folders of Warp's kernel cache; the number deleted and their bytes."""
+    """Delete build folders of Warp's kernel cache; the number deleted and their bytes.
+
+    Raises:
+        OSError: one cannot be deleted; those before it are.
+    """
     count = freed = 0
     for folder in folders:
         size = folder_bytes(folder)
