@@ -9,7 +9,8 @@ are compiled and candidates pre-computed before anything is timed.
                                          [--jitter-sweep [--shifted-tiles] [--seeds S ...]
                                           [--sheet PNG]
                                           | --passes-sweep
-                                          | --memory [--boxes DxHxW ...] [--part-voxels N]]
+                                          | --memory [--boxes DxHxW ...] [--part-voxels N]
+                                          | --cold-kernels [--names NAME ...]]
 """
 
 from __future__ import annotations
@@ -108,6 +109,46 @@ _BOX_IN_A_PROCESS = textwrap.dedent("""
 
 MEMORY_BOXES = ((64, 256, 256), (128, 256, 256), (256, 256, 256))
 
+# Two 64^3 boxes of a fresh engine in a fresh process whose kernel cache is empty; argv:
+# exemplar. Its candidates come from the candidate cache, filled by the caller, so the
+# first box's time holds the engine's kernel builds and nothing of the pre-computation's.
+_COLD_BOXES = textwrap.dedent("""
+    import json, sys, time
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.synthesis import Synthesizer
+    cs = precompute(Exemplar.load(sys.argv[1]))
+    assert cs.cache_status == "loaded", cs.cache_status
+    seconds = []
+    syn = Synthesizer(cs, seed=1)
+    for x in (0, 64):
+        start = time.perf_counter()
+        syn.box((x, 0, 0), (64, 64, 64))
+        seconds.append(time.perf_counter() - start)
+    print(json.dumps(seconds))
+""")
+
+
+def cold_kernels(folder: Path, names: list[str]) -> None:
+    """The first use on a machine: two 64^3 boxes of a fresh engine, the first building
+    Warp's kernels (an empty WARP_CACHE_PATH of its own), the second not."""
+    import os
+    import tempfile
+
+    print("| exemplar | first 64^3 box, kernels built inside | second box |")
+    print("|---|---|---|")
+    for name in names:
+        exemplar = str(folder / f"{name}.png")
+        precompute(Exemplar.load(exemplar))  # into the candidate cache the process reads
+        with tempfile.TemporaryDirectory() as kernels:
+            run = subprocess.run([sys.executable, "-c", _COLD_BOXES, exemplar],
+                                 capture_output=True, text=True,
+                                 env={**os.environ, "WARP_CACHE_PATH": kernels})
+        if run.returncode:
+            sys.exit(f"{name} failed in its process:\n{run.stderr}")
+        first, second = json.loads(run.stdout.strip().splitlines()[-1])
+        print(f"| {name} | {first:.1f} s | {second:.2f} s |")
+
 
 def memory(folder: Path, boxes: list[tuple[int, int, int]], part_cap: int) -> None:
     """Requests beyond one engine call are synthesized in parts (MAX_WORK_VOXELS): the peak
@@ -146,7 +187,8 @@ def main() -> None:
                         "jitter strength")
     parser.add_argument("--names", nargs="+", default=["granite_64", "bricks_red_64",
                                                        "rocks_in_sand_64", "dry_mud_64"],
-                        help="exemplars of the jitter sweep (file names without .png)")
+                        help="exemplars of the jitter sweep and of --cold-kernels (file names "
+                        "without .png)")
     parser.add_argument("--jitters", type=float, nargs="+", default=[0.0, 0.25, 0.5, 1.0, 2.0],
                         help="jitter strengths of the jitter sweep")
     parser.add_argument("--slice", type=int, default=160,
@@ -165,6 +207,9 @@ def main() -> None:
     parser.add_argument("--memory", action="store_true",
                         help="only print the peak memory and time of large boxes, in parts "
                         "and in one engine call")
+    parser.add_argument("--cold-kernels", action="store_true",
+                        help="only print the first and second 64^3 box of a fresh engine on "
+                        "an empty kernel cache, for each of --names")
     parser.add_argument("--boxes", type=_box, nargs="+", default=list(MEMORY_BOXES),
                         metavar="DxHxW", help="the boxes of --memory (default "
                         + " ".join("x".join(map(str, b)) for b in MEMORY_BOXES) + ")")
@@ -175,6 +220,9 @@ def main() -> None:
     print(run_record(), flush=True)
     if args.memory:
         memory(args.exemplars, args.boxes, args.part_voxels)
+        return
+    if args.cold_kernels:
+        cold_kernels(args.exemplars, args.names)
         return
     if args.jitter_sweep:
         jitter_sweep(args.exemplars, args.names, args.jitters, args.slice, args.shifted_tiles,
