@@ -7,8 +7,6 @@ voxel); a 4x4 transform places the mesh in the block of matter (see
 
 from __future__ import annotations
 
-from typing import Protocol
-
 import numpy as np
 import trimesh
 import warp as wp
@@ -17,18 +15,12 @@ from scipy import ndimage
 from kernels import bake as _k
 from warptex.settings import check_count
 from warptex.surface import checked_faces, to_voxel_space
-from warptex.texture import SolidTexture, query_slabs
+from warptex.texture import PointTexture, query_slabs
 from warptex.warp_runtime import device as default_device
 from warptex.warp_runtime import init_warp, launch
 
 
-class PointTexture(Protocol):
-    """Anything with a :meth:`SolidTexture.query`: a texture, or a stand-in in tests."""
-
-    def query(self, points: np.ndarray, filter: str = ...) -> np.ndarray: ...
-
-
-def vertex_colors(texture: SolidTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
+def vertex_colors(texture: PointTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
                   filter: str = "trilinear", progress: str | None = None) -> np.ndarray:
     """Colors (V, C) of the solid texture at each vertex, under a progress bar named
     ``progress`` if given."""

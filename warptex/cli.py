@@ -482,7 +482,7 @@ def _check_cache_folder(folder: Path) -> None:
 
 
 def _print_summary(cs: CandidateSet, exemplars: list[Exemplar], elapsed: float) -> None:
-    """Levels, candidates per pixel (4.2), fallback pixels, time and bytes (issue 3)."""
+    """Levels, candidates per pixel (section 4.2), fallback pixels, time and bytes."""
     names = [e.name for e in exemplars]
     if cs.shared:
         print(f"exemplar: {names[0]} on all three axes (candidates shared)")
@@ -948,8 +948,7 @@ def _colors_srgb(args: argparse.Namespace, exemplars: list[Exemplar]) -> bool | 
     return None if args.output.suffix.lower() == ".npy" else srgb
 
 
-def _check_synthesis_arguments(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
-                               seed: int = 0) -> None:
+def _check_synthesis_arguments(jitter: float, passes: int, seed: int) -> None:
     try:
         check_settings(jitter, passes, seed)
     except SettingError as error:

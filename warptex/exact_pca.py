@@ -25,13 +25,10 @@ _MAX_SWEEPS = 60  # a bound only: the convergence test in symmetric_eigen ends t
 
 
 def covariance(vec: np.ndarray) -> np.ndarray:
-    """Covariance of integer neighbourhood vectors, the same bits on every machine.
-
-    A BLAS sums in an order of its own CPU kernel's, and a last-bit difference is enough to
-    turn the eigenvectors of nearly equal eigenvalues (isotropic or gray exemplars have many)
-    into another quantized basis, hence other candidates and another texture. Products of
-    features below 2^10 summed over fewer than 2^33 pixels are integers below 2^53, exact in
-    float64 in any order; the centring is done in Python integers.
+    """Covariance of integer neighbourhood vectors, the same bits on every machine (see the
+    module's documentation): products of features below 2^10 summed over fewer than 2^33
+    pixels are integers below 2^53, exact in float64 in any order; the centring is done in
+    Python integers.
     """
     rows = len(vec)
     values = vec.astype(np.float64)

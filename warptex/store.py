@@ -892,8 +892,8 @@ class BrickStore:
         self._keys = np.full(0, _EMPTY, np.int64)  # brick key of each slot
         self._valid = np.zeros((0, _k.VALID_WORDS), np.uint32)  # stored-voxel bits per slot
         self._base = np.zeros(0, np.int64)  # pool position of each slot's first voxel
-        self._payload = np.zeros((0, 3), self._dtype)  # the pool; the device's views it on the
-        # CPU and copies it on CUDA
+        # The pool; the device's array shows it on the CPU and is a copy of it on CUDA.
+        self._payload = np.zeros((0, 3), self._dtype)
         self._used = 0  # pool voxels handed out, live or left behind by repacked bricks
         self._garbage = 0  # of those, voxels of repacked or evicted bricks
         self._index.stamps = wp.zeros(0, dtype=wp.int64, device=self._device)

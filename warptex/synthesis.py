@@ -539,8 +539,8 @@ class Synthesizer:
         sorted) of the blocks ``keys``: from the coarse cache where it holds them, the
         others synthesized in one call."""
         out = _Level(keys, np.zeros((len(keys) * _BLOCK_VOXELS, 3), np.int32))
-        cache = self._cache.get(level)
-        found = cache.find(keys, flat) if cache is not None else np.full(len(flat), -1)
+        cache = self._cache[level]
+        found = cache.find(keys, flat)
         hit = found >= 0
         if hit.any():
             out.triples[flat[hit]] = cache.triples[found[hit]]
@@ -549,8 +549,7 @@ class Synthesizer:
             voxel_keys = keys[missing // _BLOCK_VOXELS]
             out.triples[missing] = self._synthesize(level, distinct_sorted(voxel_keys),
                                                     voxel_keys, missing % _BLOCK_VOXELS)
-            if cache is not None:
-                cache.insert(keys, missing, out.triples[missing])
+            cache.insert(keys, missing, out.triples[missing])
         return out
 
     def _synthesize(self, level: int, keys: np.ndarray, voxel_keys: np.ndarray,

@@ -12,7 +12,7 @@ import weakref
 from collections.abc import Callable, Sequence
 from numbers import Integral
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import warp as wp
@@ -331,7 +331,16 @@ def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
     return points
 
 
-def query_slabs(texture: SolidTexture, points: np.ndarray, filter: str = "trilinear",
+class PointTexture(Protocol):
+    """Anything with a :meth:`SolidTexture.query` and its ``channels``: a texture, or a
+    stand-in in tests."""
+
+    channels: int
+
+    def query(self, points: np.ndarray, filter: str = ...) -> np.ndarray: ...
+
+
+def query_slabs(texture: PointTexture, points: np.ndarray, filter: str = "trilinear",
                 progress: str | None = None) -> np.ndarray:
     """``texture.query(points, filter)`` in slabs along x, under a progress bar named
     ``progress`` (none if None): the same colours as one query, as every point's color

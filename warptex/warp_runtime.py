@@ -22,6 +22,8 @@ from typing import Any
 
 import warp as wp
 
+from warptex.archive import UNFINISHED_AGE
+
 _ENV = "WARPTEX_DEVICE"
 _CHOICES = ("cpu", "cuda")
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
@@ -180,8 +182,6 @@ def _drop_builds(module: Any) -> list[str]:
 _BUILD_FOLDER = re.compile(r"wp_(?P<module>[\w.]+)_[0-9a-f]{7}(?P<building>_p\d+_t\d+)?")
 # The folder Warp keeps one version's builds in, inside WARP_CACHE_PATH.
 _VERSION_FOLDER = re.compile(r"\d+\.\d+\.\d+[\w.+-]*")
-# A build folder in progress this long ago was left by a process that died.
-_UNFINISHED_SECONDS = 3600
 
 
 # A build folder being deleted, named so by _delete_build; one left over an hour ago was
@@ -270,7 +270,7 @@ def stale_kernel_builds() -> list[Path]:
                 age = time.time() - folder.stat().st_mtime
             except OSError:  # renamed into place meanwhile
                 continue
-            if age < _UNFINISHED_SECONDS:
+            if age < UNFINISHED_AGE:  # else left by a process that died
                 continue
         stale.append(folder)
     return stale
