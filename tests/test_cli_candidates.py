@@ -243,7 +243,7 @@ def test_precompute_errors(images, tmp_path, capsys):
     assert main(args) == 2
     assert "--feature-mask marks one image" in capsys.readouterr().err
     assert main(["precompute", str(tmp_path / "missing.png")]) == 2
-    assert "missing.png: file not found" in capsys.readouterr().err
+    assert "missing.png: image file not found" in capsys.readouterr().err
     target = tmp_path / "no" / "such" / "dir" / "c.wtc"
     assert main(["precompute", str(images["a"]), "-o", str(target)]) == 0
     assert CandidateSet.load(target).num_levels == 3  # missing folders are made

@@ -164,7 +164,7 @@ def test_info_alpha_keep(tmp_path, capsys, no_candidates):
 def test_info_missing_file_is_exit_2_without_traceback(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.png")]) == 2
     captured = capsys.readouterr()
-    assert captured.err == f"warptex: error: {tmp_path / 'missing.png'}: file not found\n"
+    assert captured.err == f"warptex: error: {tmp_path / 'missing.png'}: image file not found\n"
     assert captured.out == ""
 
 

@@ -644,19 +644,20 @@ def _raises(path_or_array, match: str, **kwargs) -> ExemplarError:
 
 
 def test_missing_file(tmp_path):
-    error = _raises(tmp_path / "nope.png", "file not found")
+    error = _raises(tmp_path / "nope.png", "image file not found")
     assert "nope.png" in str(error)
     assert isinstance(error, ValueError)
     (tmp_path / "dangling.png").symlink_to(tmp_path / "gone.png")
-    _raises(tmp_path / "dangling.png", r"dangling\.png: file not found \(a broken symbolic link\)")
+    _raises(tmp_path / "dangling.png",
+            r"dangling\.png: image file not found \(a broken symbolic link\)")
     # A loop of links is no missing file: the system's reason is given.
     (tmp_path / "a.png").symlink_to(tmp_path / "b.png")
     (tmp_path / "b.png").symlink_to(tmp_path / "a.png")
-    _raises(tmp_path / "a.png", r"a\.png: cannot look up file \(Too many levels of symbolic")
+    _raises(tmp_path / "a.png", r"a\.png: cannot look up image file \(Too many levels of symbolic")
 
 
 def test_directory_is_not_an_image(tmp_path):
-    _raises(tmp_path, "is a directory")
+    _raises(tmp_path, "is a folder, expected an image file")
 
 
 def test_text_file_is_not_an_image(tmp_path):
@@ -827,11 +828,12 @@ def test_a_file_that_cannot_be_looked_up_or_is_named_empty_is_one_error(tmp_path
     def unsearchable(self, *args, **kwargs):
         raise PermissionError(13, "Permission denied", str(self))
 
-    _raises(Path(""), r"\.: is a directory")  # a Path given as such names that folder
+    _raises(Path(""), r"\.: is a folder")  # a Path given as such names that folder
     with pytest.raises(ExemplarError, match="the exemplar's file name is empty"):
         Exemplar.load("")
     monkeypatch.setattr(Path, "stat", unsearchable)
-    _raises(tmp_path / "locked" / "a.png", r"a\.png: cannot look up file \(Permission denied\)")
+    _raises(tmp_path / "locked" / "a.png",
+            r"a\.png: cannot look up image file \(Permission denied\)")
 
 
 def test_corrupt_exr_is_unreadable(tmp_path):

@@ -343,6 +343,31 @@ def archive_version(path: str | Path, magic: bytes) -> int | None:
         return _header_version(file.read(_header_bytes(magic)), magic)
 
 
+def input_file_problem(path: Path, kind: str) -> str | None:
+    """Why ``path`` cannot be read as a ``kind`` ("image file", "mesh file"), in words that follow
+    it: missing (a broken link said so), not to be looked up (a folder on the way that
+    cannot be searched, a link loop), a folder, or no regular file, whose reading would wait
+    for a writer (a pipe); None for a regular file."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        broken = False
+        with contextlib.suppress(OSError):
+            broken = path.is_symlink()
+        return f"{kind} not found" + (" (a broken symbolic link)" if broken else "")
+    except OSError as error:
+        return f"cannot look up {kind} ({error.strerror or error})"
+    if stat.S_ISDIR(mode):
+        return f"is a folder, expected {_with_article(kind)}"
+    if not stat.S_ISREG(mode):
+        return f"is not a regular file (a pipe or a device), expected {_with_article(kind)}"
+    return None
+
+
+def _with_article(noun: str) -> str:
+    return f"{'an' if noun[0] in 'aeiou' else 'a'} {noun}"
+
+
 def _regular_file(path: str | Path) -> Path:
     """``path``, or an OSError where it is no regular file: reading a pipe named like a
     cache file would wait for a writer for ever."""

@@ -16,7 +16,6 @@ import math
 import os
 import re
 import signal
-import stat
 import sys
 import threading
 import time
@@ -33,6 +32,7 @@ from warptex.archive import (
     file_problem,
     file_state,
     folder_problem,
+    input_file_problem,
     iso_date,
     one_file_twice,
     overwritten_input,
@@ -162,21 +162,11 @@ def _input_file(text: str) -> Path:
 
 
 def _check_input_file(path: Path, kind: str) -> None:
-    """Refuse, naming it, a ``kind`` file ("mesh", "scene") that is a folder, is missing or
-    is no regular file: a pipe would keep its reader waiting for a writer."""
-    try:
-        mode = path.stat().st_mode
-    except FileNotFoundError:
-        broken = path.is_symlink()
-        raise CliError(f"{path}: {kind} file not found"
-                       + (" (a broken symbolic link)" if broken else "")) from None
-    except OSError as error:  # a folder on the way that cannot be searched, a link loop
-        raise CliError(f"{path}: cannot look up {kind} file ({error.strerror})") from None
-    if stat.S_ISDIR(mode):
-        raise CliError(f"{path}: is a folder, expected a {kind} file")
-    if not stat.S_ISREG(mode):
-        raise CliError(f"{path}: is not a regular file (a pipe or a device), expected a {kind} "
-                       "file")
+    """Refuse, naming it, a ``kind`` file ("mesh", "scene") that cannot be read
+    (:func:`~warptex.archive.input_file_problem`)."""
+    problem = input_file_problem(path, f"{kind} file")
+    if problem is not None:
+        raise CliError(f"{path}: {problem}")
 
 
 def _count(n: int, noun: str) -> str:

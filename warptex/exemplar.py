@@ -17,13 +17,11 @@ sRGB-encoded values (whatever gamma a PNG declares), float images linear ones.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import io
 import math
 import os
 import re
-import stat
 import tokenize
 import zlib
 from collections.abc import Callable, Sequence
@@ -36,6 +34,7 @@ import png
 from PIL import Image, ImageOps, UnidentifiedImageError
 from scipy import ndimage
 
+from warptex.archive import input_file_problem
 from warptex.settings import (
     MIN_EXEMPLAR_SIZE,
     check_count,
@@ -716,21 +715,9 @@ def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:
 def _read(path: Path) -> tuple[np.ndarray, bool, bool]:
     """Read an image file as ``(H, W[, C])`` in its stored dtype, whether it has alpha and
     whether its colors are sRGB-encoded."""
-    try:
-        mode = path.stat().st_mode
-    except FileNotFoundError:
-        broken = False
-        with contextlib.suppress(OSError):
-            broken = path.is_symlink()
-        raise ExemplarError(f"{path}: file not found"
-                            + (" (a broken symbolic link)" if broken else "")) from None
-    except OSError as error:  # a folder on the way that cannot be searched, a link loop
-        raise ExemplarError(f"{path}: cannot look up file ({error.strerror})") from None
-    if stat.S_ISDIR(mode):
-        raise ExemplarError(f"{path}: is a directory, not an image")
-    if not stat.S_ISREG(mode):  # a pipe would keep the read below waiting for a writer
-        raise ExemplarError(f"{path}: is not a regular file (a pipe or a device), not an "
-                            "image")
+    problem = input_file_problem(path, "image file")
+    if problem is not None:
+        raise ExemplarError(f"{path}: {problem}")
     try:
         with path.open("rb") as file:
             head = file.read(8)
