@@ -7,6 +7,7 @@ Small exemplars (crops of ``tests/data/granite_64.png``) keep the file fast.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import platform
@@ -706,6 +707,41 @@ def test_content_digest_is_kept_through_a_file_and_sees_one_coefficient(tmp_path
     loaded = CandidateSet.load(tmp_path / "g.wtc")
     loaded.sources[1][0].basis[0, 0] += 1
     assert loaded.content_digest != granite.content_digest
+
+
+def _changed(value):
+    """``value`` with one entry (or the value itself) changed."""
+    if isinstance(value, tuple):
+        return (value[0] + 1, *value[1:])
+    if not isinstance(value, np.ndarray):
+        return value + 1
+    changed = value.copy()
+    flat = changed.reshape(-1)
+    flat[len(flat) // 2] = not flat[len(flat) // 2] if changed.dtype == bool else flat[0] + 1
+    return changed
+
+
+@pytest.mark.parametrize("field", ["feat", "basis", "shift", "proj", "cand2d", "margins",
+                                   "cand", "count", "fallback", "colors"])
+def test_content_digest_sees_every_field_synthesis_reads(granite, field):
+    """A digest leaving one out (the candidate counts, the margins) would let a brick store
+    of other candidates pass for this one's under the same exemplars and parameters."""
+    level = granite.num_levels - 1
+    sources = [list(lvl) for lvl in granite.sources]
+    roles = [list(lvl) for lvl in granite.roles]
+    colors = list(granite.colors)
+    if field == "colors":
+        colors[0] = _changed(colors[0])
+    elif field in ("cand", "count", "fallback"):
+        role = roles[level][0]
+        roles[level][0] = dataclasses.replace(role, **{field: _changed(getattr(role, field))})
+    else:
+        source = sources[level][0]
+        sources[level][0] = dataclasses.replace(source,
+                                                **{field: _changed(getattr(source, field))})
+    other = dataclasses.replace(granite, sources=sources, roles=roles, colors=colors)
+    assert other.content_digest != granite.content_digest
+    assert dataclasses.replace(granite).content_digest == granite.content_digest
 
 
 def _valid_header(payload: bytes, version: int = FORMAT_VERSION) -> bytes:

@@ -413,7 +413,7 @@ def test_concurrent_queries_match_serial_ones(candidates, whole_bricks, monkeypa
     """Threads querying one store, with room for everything or for a few bricks only
     (evictions; with partly filled bricks also repacking and pool compaction). A race
     this machine's timing may not show is caught by its rule: the store changes only
-    under its exclusive lock, with no lookup running."""
+    under its exclusive lock, with no lookup running, and looks up under its shared one."""
     from warptex.store import BrickStore
 
     def exclusive_only(name: str):
@@ -425,8 +425,16 @@ def test_concurrent_queries_match_serial_ones(candidates, whole_bricks, monkeypa
 
         return held
 
+    def shared_at_least(launch):
+        def held(self, *args):  # a lookup beside a change reads a reused slot's voxels
+            assert self._lock._readers or self._lock._writing, "lookup outside the lock"
+            return launch(self, *args)
+
+        return held
+
     for name in ("_insert", "_evict"):
         monkeypatch.setattr(BrickStore, name, exclusive_only(name))
+    monkeypatch.setattr(BrickStore, "_launch", shared_at_least(BrickStore._launch))
     sets = [points_near_origin(150, 10 + i) * (1 + 0.3 * i) for i in range(4)]
     serial = [texture(candidates).query(p, filter=f) for p, f in
               zip(sets, ["trilinear", "nearest"] * 2, strict=True)]
