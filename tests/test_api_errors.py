@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -300,6 +301,34 @@ def test_files_refuse_what_their_formats_cannot_hold(tmp_path):
     with pytest.raises(ValueError, match=r"must end in \.npy or \.exr"):
         write_image(tmp_path / "i.png", np.zeros((2, 2, 3), np.float32), srgb=False)
     assert not any(tmp_path.iterdir())
+
+
+def test_files_reach_the_disk_before_they_replace_the_old_ones(tmp_path, monkeypatch):
+    """Renamed unsynced, a file can be found empty under its name after a power cut, the
+    old one gone: each is synced before the renames, and their folders after."""
+    events = []
+    sync, replace = os.fsync, os.replace
+
+    def fsync(fd):
+        events.append(("sync", os.readlink(f"/proc/self/fd/{fd}")))
+        sync(fd)
+
+    def renamed(source, target):
+        events.append(("rename", str(target)))
+        replace(source, target)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", renamed)
+    first, second = tmp_path / "a" / "image.png", tmp_path / "image.png.json"
+    write_together([(first, lambda tmp: tmp.write_bytes(b"png")),
+                    (second, lambda tmp: tmp.write_bytes(b"{}"))])
+    kinds = [kind for kind, _ in events]
+    assert kinds[:2] == ["sync", "sync"] and kinds[2:4] == ["rename", "rename"]
+    assert [is_temporary(Path(synced).name, target.stem, target.suffix)
+            for (_, synced), target in zip(events[:2], (first, second), strict=True)] == [True] * 2
+    assert {name for kind, name in events[4:] if kind == "sync"} == {str(tmp_path),
+                                                                      str(tmp_path / "a")}
+    assert first.read_bytes() == b"png" and second.read_bytes() == b"{}"
 
 
 def test_a_failed_write_names_the_file_asked_for(tmp_path):

@@ -184,6 +184,7 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
                 write(tmp)
             except RuntimeError as error:
                 raise _library_failure(error, tmp, path) from error
+            _synced(tmp)
         for (path, _), target in zip(staged, targets, strict=True):
             if target.is_dir():  # refused before any file is replaced, not half way
                 current = path
@@ -192,6 +193,10 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
             current = path
             os.replace(tmp, target)
         done = True
+        for folder in {target.parent for target in targets}:
+            # The renames are kept over a power cut too; the files are written by then.
+            with contextlib.suppress(OSError):
+                _synced(folder)
     except OSError as error:
         if error.errno is None:
             raise
@@ -205,6 +210,17 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
             for folder in reversed(made):
                 with contextlib.suppress(OSError):  # not empty: another writer's files
                     folder.rmdir()
+
+
+def _synced(path: Path) -> None:
+    """Have the system write ``path``'s data (a file's, or a folder's entries) to its disk:
+    renamed unsynced, a file may be found empty or cut short under its name after a power
+    cut, the old one gone."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _temporary_name(path: Path, tag: str) -> str:
