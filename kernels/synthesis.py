@@ -21,8 +21,11 @@ from kernels.common import (
 
 wp.set_module_options({"enable_backward": False})
 
+# The voxel indexing below is spelled out for blocks of 4^3 (shifts by 2, 4 and 6, masks of
+# 3, 3 x 3 x 3 neighbour blocks): another block size means rewriting it, not this constant.
 BLOCK = 4
 BLOCK_VOXELS = 64
+assert BLOCK_VOXELS == BLOCK**3 == 64
 _BLOCK_SHIFT = wp.constant(BLOCK.bit_length() - 1)  # BLOCK = 2^_BLOCK_SHIFT
 MAX_DIMS = 12
 PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
