@@ -10,7 +10,10 @@
 #     plugin's cuda_ad_rgb lookups equal SolidTexture.query (tests/test_plugin.py), and its
 #     cuda_* variants register, evaluate and upsample spectra as Mitsuba does
 #     (tests/test_spectral.py);
-#   - the engine's own figures (benchmarks/bench_synthesis.py).
+#   - the engine's own figures (benchmarks/bench_synthesis.py);
+#   - not by default (STEPS=hostpaths, when time is left): the point queries and the
+#     plugin's LLVM lookups with the engine and store on the GPU, warptex's default on such
+#     a machine (tests/test_texture.py, tests/test_plugin.py), which no step above runs.
 # Each step has its time limit, so that the whole ends within about 585 s (unpacking
 # included) and what finished comes back. PARTS is the folder holding the staged parts
 # carried by the earlier calls (the last part travels in .gpu/data); results go to $OUT (or
@@ -60,6 +63,10 @@ if [[ $steps == *" tests "* ]]; then
     timeout 180 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py \
         tests/test_synthesis.py tests/test_plugin.py tests/test_spectral.py -k cuda -rs 2>&1 \
         | tee "$out/pytest_cuda.txt"
+fi
+if [[ $steps == *" hostpaths "* ]]; then
+    WARPTEX_DEVICE=cuda timeout 150 python3 -m pytest -q -p no:cacheprovider \
+        tests/test_texture.py tests/test_plugin.py -rs 2>&1 | tee "$out/pytest_hostpaths.txt"
 fi
 if [[ $steps == *" synthesis "* ]]; then
     timeout 90 python3 benchmarks/bench_synthesis.py --exemplars "$data/exemplars" --repeat 2 \

@@ -25,7 +25,10 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 
 @pytest.fixture(scope="session")
 def warp_device() -> str:
-    """Warp initialised once per session, with CPU as the default device."""
+    """Warp initialised once per session, with CPU as Warp's default device. warptex's
+    own default (``warptex.device()``) is left as it is: a GPU where Warp sees one, so on
+    such a machine the engine and store run there unless a test names the device
+    (WARPTEX_DEVICE=cpu keeps them on the CPU)."""
     import warp as wp
 
     from warptex.warp_runtime import init_warp

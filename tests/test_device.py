@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -204,11 +205,39 @@ def test_an_unloadable_kernel_build_is_a_clear_error(tmp_path, monkeypatch, warp
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     from kernels import lookup
 
+    monkeypatch.setattr(device_module, "_REBUILT", set())
     refusal = f"kernels of kernels.lookup.*{tmp_path}.*WARP_CACHE_PATH"
     with (pytest.warns(UserWarning, match="damaged build of kernels.lookup"),
           pytest.raises(RuntimeError, match=refusal)):
         device_module.launch(lookup.insert_keys, 1, [], [])
     assert len(calls) == 2
+
+
+def test_a_module_is_built_again_once_per_process(tmp_path, monkeypatch, warp_device):
+    """On CUDA a full GPU memory or an old driver fails the load too: every launch deleted
+    the module's builds (other processes' too) and built it again, for tens of seconds."""
+    calls, dropped = [], []
+
+    def failing_launch(kernel, *args, **kwargs):
+        calls.append(kernel)
+        raise Exception("Failed to load CUDA module 'kernels.lookup' (device='cuda:0')")
+
+    monkeypatch.setattr(wp, "launch", failing_launch)
+    monkeypatch.setattr(device_module, "_REBUILT", set())
+    monkeypatch.setattr(device_module, "_drop_builds",
+                        lambda module: dropped.append(module) or [])
+    from kernels import lookup
+
+    refusal = "WARP_CACHE_PATH to another folder; the CUDA driver may also refuse it"
+    with pytest.warns(UserWarning, match="damaged build"), pytest.raises(RuntimeError,
+                                                                         match=refusal):
+        device_module.launch(lookup.insert_keys, 1, [], [])
+    for _ in range(2):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(RuntimeError, match=refusal):
+                device_module.launch(lookup.insert_keys, 1, [], [])
+    assert len(calls) == 4 and len(dropped) == 1
 
 
 _DELETED_WHILE_LOADED = """

@@ -129,6 +129,10 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     A build that vanishes while Warp loads it, deleted so by another process, is built
     again too, quietly.
 
+    A module is built again once per process: a failure after that is no damaged file but
+    the machine's (a full disk; on CUDA also a full GPU memory or an older driver), and
+    deleting builds then would cost every launch a rebuild and other processes theirs.
+
     Raises:
         RuntimeError: the module built again cannot be loaded either.
     """
@@ -140,6 +144,9 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     except Exception as error:
         if not _unloadable(error):
             raise
+        if kernel.module.name in _REBUILT:
+            raise _load_failure(kernel.module.name, error) from None
+        _REBUILT.add(kernel.module.name)
         folders = _drop_builds(kernel.module)
         warnings.warn(f"Warp's kernel cache held a damaged build of {kernel.module.name} "
                       f"({error}); deleted {', '.join(folders) or 'nothing'}, building it "
@@ -149,10 +156,21 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     except Exception as error:
         if not _unloadable(error):
             raise
-        raise RuntimeError(
-            f"Warp cannot load the kernels of {kernel.module.name} that it builds in "
-            f"{wp.config.kernel_cache_dir} ({error}); check that the folder is writable and "
-            "its disk not full, or set WARP_CACHE_PATH to another folder") from None
+        raise _load_failure(kernel.module.name, error) from None
+
+
+# Warp modules built again by :func:`launch` in this process.
+_REBUILT: set[str] = set()
+
+
+def _load_failure(module: str, error: Exception) -> RuntimeError:
+    """The error of a module that Warp cannot load though built afresh."""
+    cuda = ("; the CUDA driver may also refuse it for a full GPU memory or for being older "
+            "than the CUDA compiler Warp builds with" if "CUDA" in str(error) else "")
+    return RuntimeError(
+        f"Warp cannot load the kernels of {module} that it builds in "
+        f"{wp.config.kernel_cache_dir} ({error}); check that the folder is writable and "
+        f"its disk not full, or set WARP_CACHE_PATH to another folder{cuda}")
 
 
 def _unloadable(error: Exception) -> bool:
