@@ -85,6 +85,18 @@ def test_batch_size_and_order_do_not_matter(candidates):
     assert np.array_equal(whole, reverse)
 
 
+def test_a_gpu_too_small_for_the_largest_part_gets_smaller_ones(monkeypatch):
+    """A part of MAX_WORK_VOXELS takes about 4.7 GB: a 4 GB GPU failed half-way through
+    a large box (Warp's "Failed to allocate"); the CPU's parts are bounded by the request's
+    memory check instead."""
+    monkeypatch.setattr(synthesis, "_device_memory", lambda device: 4 << 30)
+    assert synthesis.work_voxel_cap("cuda:0") == (4 << 30) // (2 * synthesis.WORK_BYTES_PER_VOXEL)
+    assert synthesis.work_voxel_cap("cuda:0") < synthesis.MAX_WORK_VOXELS
+    monkeypatch.setattr(synthesis, "_device_memory", lambda device: 80 << 30)
+    assert synthesis.work_voxel_cap("cuda") == synthesis.MAX_WORK_VOXELS
+    assert synthesis.work_voxel_cap("cpu") == synthesis.MAX_WORK_VOXELS
+
+
 def test_requests_beyond_one_call_are_split_into_parts_with_the_same_result(candidates,
                                                                            monkeypatch):
     rng = np.random.default_rng(3)

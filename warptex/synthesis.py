@@ -114,6 +114,20 @@ def _check_request(ijk: np.ndarray, apron_blocks: int, result_bytes: int) -> Non
         raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
 
 
+def work_voxel_cap(device: str) -> int:
+    """Work voxels of one engine call on ``device``: ``MAX_WORK_VOXELS``, fewer on a GPU of
+    which that many would take more than half (a 4 GB one), leaving the rest to the brick
+    store, a renderer and other processes. Parts change no voxel (section 5.2)."""
+    if not device.startswith("cuda"):
+        return MAX_WORK_VOXELS
+    return max(1, min(MAX_WORK_VOXELS, _device_memory(device) // (2 * WORK_BYTES_PER_VOXEL)))
+
+
+@cache
+def _device_memory(device: str) -> int:
+    return int(wp.get_device(device).total_memory)
+
+
 def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES) -> int:
     """About how many voxel corrections synthesizing a box of ``shape`` takes, a measure of
     its time: at each level from the finest, the box grown by the apron its passes read
@@ -502,7 +516,7 @@ class Synthesizer:
 
     def _in_parts(self, ijk: np.ndarray) -> np.ndarray:
         """Finest pixel triples of int64 voxels ``ijk``, their blocks synthesized in parts
-        of at most ``MAX_WORK_VOXELS`` work voxels. A voxel's triple does not depend on what
+        of at most :func:`work_voxel_cap` work voxels. A voxel's triple does not depend on what
         else is requested (section 5.2), so the parts give what one call would."""
         keys = pack(ijk // BLOCK)
         local = local_index(ijk, BLOCK)
@@ -522,11 +536,11 @@ class Synthesizer:
 
     def _parts(self, keys: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """The sorted block ``keys`` in parts, each with its work region (its blocks grown
-        by the apron) of at most ``MAX_WORK_VOXELS`` finest voxels unless a single block's
+        by the apron) of at most :func:`work_voxel_cap` finest voxels unless a single block's
         is larger: halved across the longest side of their bounding box, so that parts stay
         compact and their aprons small."""
         work = _dilate(keys, self._apron)
-        if len(work) * _BLOCK_VOXELS <= MAX_WORK_VOXELS or len(keys) == 1:
+        if len(work) * _BLOCK_VOXELS <= work_voxel_cap(self.device) or len(keys) == 1:
             return [(keys, work)]
         blocks = unpack(keys)
         low, high = blocks.min(axis=0), blocks.max(axis=0)
