@@ -136,6 +136,25 @@ def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_de
             cut(mesh, origin, normal)
 
 
+def test_meshes_are_read_by_the_library_as_the_commands_read_them(tmp_path):
+    from warptex.mesh_files import MeshFileError, load_mesh
+
+    for path, problem in ((tmp_path / "missing.ply", "mesh file not found"),
+                          (tmp_path, "is a folder, expected a mesh file")):
+        with pytest.raises(MeshFileError, match=problem):
+            load_mesh(path)
+    with pytest.raises(ValueError, match="uv must be 'none', 'auto' or 'mesh'"):
+        load_mesh(tmp_path / "missing.ply", uv="yes")
+    import trimesh
+
+    far = trimesh.creation.box()
+    far.apply_translation((1e9, 0, 0))
+    far.export(tmp_path / "far.obj")
+    assert len(load_mesh(tmp_path / "far.obj", outputs=["out.obj"]).faces) == 12
+    with pytest.raises(MeshFileError, match=r"out\.glb: \.ply and \.glb files hold vertices as"):
+        load_mesh(tmp_path / "far.obj", outputs=["out.obj", "out.glb"])
+
+
 class _Positions:
     """A texture whose color at a point is the point."""
 

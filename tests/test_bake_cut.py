@@ -759,7 +759,8 @@ def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path,
     2e-8 units across kept 26 of its 642 vertices. The block scales any
     mesh to its voxels, so the tiny one now gets the same colors, and its cut halves are
     as closed."""
-    from warptex.cli import _weld_tolerance, main
+    from warptex.cli import main
+    from warptex.mesh_files import weld_tolerance
 
     exemplar = str(data_dir / "granite_64.png")
     baked, halves = {}, {}
@@ -775,7 +776,7 @@ def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path,
         halves[scale] = []
         for name in (f"cut{scale}.ply", f"cut{scale}_b.ply"):
             half = trimesh.load(tmp_path / name, process=False)
-            digits = trimesh.util.decimal_to_digits(_weld_tolerance(half.vertices))
+            digits = trimesh.util.decimal_to_digits(weld_tolerance(half.vertices))
             half.merge_vertices(digits_vertex=digits)
             halves[scale].append((len(half.vertices), half.is_watertight))
     assert len(baked[1e-8].vertices) == 642
@@ -786,7 +787,8 @@ def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path,
 def test_a_mesh_of_huge_coordinates_keeps_its_vertices(tmp_path, data_dir, warp_device):
     """Welding rounds coordinates to integers of the tolerance: from 1e11 units on they
     overflowed int64, and a sphere of radius 1e12 kept 31 of its 642 vertices."""
-    from warptex.cli import _weld_tolerance, main
+    from warptex.cli import main
+    from warptex.mesh_files import weld_tolerance
 
     sphere = trimesh.creation.icosphere(subdivisions=3)
     sphere.apply_scale(1e12)
@@ -801,7 +803,7 @@ def test_a_mesh_of_huge_coordinates_keeps_its_vertices(tmp_path, data_dir, warp_
     for name in ("cut.ply", "cut_b.ply"):
         half = trimesh.load(tmp_path / name, process=False)
         half.merge_vertices(digits_vertex=trimesh.util.decimal_to_digits(
-            _weld_tolerance(half.vertices)))
+            weld_tolerance(half.vertices)))
         assert half.is_watertight
     # Beyond 1e15 float64 vertices are an eighth of a unit apart: refused, not welded wrong.
     sphere.apply_scale(1e4)

@@ -102,18 +102,6 @@ def _check_output(path: Path, formats: Sequence[str] | None = None, what: str = 
 
 
 _INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
-_MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # trimesh's common mesh formats
-_WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are one
-# trimesh welds vertices rounded to integers of the tolerance: kept above this share of their
-# largest coordinate, so that those integers fit in int64 (beyond 1e11 units they overflowed).
-_WELD_PRECISION = 1e-15
-# Coordinates beyond this many units are refused: float64 vertices there lie an eighth of a
-# unit apart or more, and welding's integers (at _WELD_PRECISION) would overflow int64.
-_COORDINATE_LIMIT = 1e15
-# .ply and .glb files hold vertices as float32 (glTF has no other; trimesh writes PLY so): a
-# mesh whose vertices float32 would move by more than this share of its size, visibly, is
-# refused.
-_FLOAT32_SHIFT = 1e-2
 
 
 def _check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
@@ -1187,81 +1175,15 @@ def _texture_size(args: argparse.Namespace) -> int:
     return _TEXTURE_SIZE if args.texture_size is None else args.texture_size
 
 
-def _weld_tolerance(vertices: np.ndarray) -> float:
-    """How near vertices are welded into one: trimesh's 1e-8, or less for a mesh so small
-    that this is over a millionth of its size, which would weld distinct vertices (a
-    sphere 2e-8 units across, of 642 vertices, into 26)."""
-    if not len(vertices):
-        return _WELD_TOLERANCE
-    size = float(np.ptp(vertices, axis=0).max())
-    tolerance = min(_WELD_TOLERANCE, 1e-6 * size) if size > 0 else _WELD_TOLERANCE
-    return max(tolerance, _WELD_PRECISION * float(np.abs(vertices).max()))
+def _load_mesh(path: Path, uv: str = "none", weld: bool = False,
+               outputs: Sequence[Path] = ()):
+    """:func:`warptex.mesh_files.load_mesh`, its refusal the command's."""
+    from warptex.mesh_files import MeshFileError, load_mesh
 
-
-def _check_float32_outputs(mesh, outputs: Sequence[Path]) -> None:
-    """Refuse, before any work, a .ply or .glb output of a mesh that float32 cannot hold:
-    one far from the origin for its size (a building at map coordinates) came out flattened.
-    """
-    narrow = [o for o in outputs if o.suffix.lower() in (".ply", ".glb")]
-    if not narrow:
-        return
-    vertices = mesh.vertices
-    size = float(np.ptp(vertices, axis=0).max())
-    shift = float(np.abs(vertices.astype(np.float32) - vertices).max())
-    if shift > _FLOAT32_SHIFT * size:
-        raise CliError(f"{narrow[0]}: .ply and .glb files hold vertices as float32, which "
-                       f"would move this mesh's by up to {shift:.3g}, {shift / size:.2g} of "
-                       f"its size (it lies {float(np.abs(vertices).max()):.3g} from the "
-                       "origin): write .obj, or move the mesh nearer the origin")
-
-
-def _load_mesh(path: Path, uv: str = "none", weld: bool = False):
-    """The mesh of file ``path`` as trimesh processes it (vertices that coincide welded,
-    unless their normals or UVs differ; unused ones dropped), or with every coincident
-    vertex welded (``weld``: a cut's caps need a closed surface, which flat-shaded faces
-    with vertices of their own are not)."""
-    import trimesh
-
-    _check_input_file(path, "mesh")
     try:
-        # As the file has it first: trimesh's processing drops the faces of a NaN vertex
-        # unsaid, and loses the vertex normals that keep it from welding flat faces.
-        raw = trimesh.load(path, force="mesh", process=False)
-        if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
-            raise CliError(f"{path}: vertex coordinates hold NaN or infinite values")
-        farthest = float(np.abs(raw.vertices).max()) if len(getattr(raw, "faces", ())) else 0.0
-        if farthest > _COORDINATE_LIMIT:
-            raise CliError(f"{path}: vertex coordinates reach {farthest:.3g} units, beyond "
-                           f"{_COORDINATE_LIMIT:.0e}: move the mesh nearer the origin")
-        # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
-        # trimesh welds at its global tolerance (its maintainer's advice is to set that).
-        saved, trimesh.tol.merge = trimesh.tol.merge, _weld_tolerance(raw.vertices)
-        try:
-            mesh = trimesh.load(path, force="mesh")
-        finally:
-            trimesh.tol.merge = saved
-    except CliError:
-        raise
-    except NotImplementedError:  # how trimesh refuses a file type it has no reader for
-        raise CliError(f"{path}: not a mesh format warptex reads (.{', .'.join(_MESH_FORMATS)}, "
-                       "and the others trimesh reads)") from None
-    except Exception as error:  # trimesh raises many kinds on a bad or unknown file
-        raise CliError(f"{path}: cannot read the mesh: damaged, or not what its name says "
-                       f"(trimesh: {error or type(error).__name__})") from None
-    if len(getattr(mesh, "faces", ())) == 0:
-        raise CliError(f"{path}: no triangles found")
-    if weld:  # whatever their normals say
-        digits = trimesh.util.decimal_to_digits(_weld_tolerance(mesh.vertices))
-        mesh.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=digits)
-    if not mesh.area > 0:
-        raise CliError(f"{path}: every triangle has zero area: the mesh has no surface")
-    if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
-        raise CliError(f"{path}: the mesh has no UVs; use --uv auto to make them")
-    # A triangle with a NaN UV holds no texel: its surface would show its neighbours' colors.
-    if uv == "mesh" and not np.isfinite(mesh.visual.uv[mesh.faces]).all():
-        raise CliError(f"{path}: UV coordinates hold NaN or infinite values; use --uv auto "
-                       "to make UVs")
-    return mesh
+        return load_mesh(path, uv=uv, weld=weld, outputs=outputs)
+    except MeshFileError as error:
+        raise CliError(str(error)) from None
 
 
 def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str) -> dict:
@@ -1412,8 +1334,7 @@ def _cmd_bake(args: argparse.Namespace) -> int:
     from warptex.surface import block_transform
 
     _check_mesh_arguments(args)
-    mesh = _load_mesh(args.mesh, args.uv)
-    _check_float32_outputs(mesh, [args.output])
+    mesh = _load_mesh(args.mesh, args.uv, outputs=[args.output])
     transform = block_transform(mesh, args.resolution)
     _check_shell(mesh, transform, args.resolution)
     exemplars, srgb = _lookup_exemplars(args, mesh=True)
@@ -1457,8 +1378,7 @@ def _cmd_cut(args: argparse.Namespace) -> int:
         raise CliError("--normal must not be 0 0 0: it is the direction across the cut")
     if args.origin is not None:
         _check_finite("--origin", args.origin)
-    mesh = _load_mesh(args.mesh, weld=True)
-    _check_float32_outputs(mesh, outputs)
+    mesh = _load_mesh(args.mesh, weld=True, outputs=outputs)
     exemplars, srgb = _lookup_exemplars(args, mesh=True)  # before the cut's work
     origin = np.asarray(args.origin if args.origin else mesh.bounds.mean(axis=0))
     try:

@@ -1,22 +1,131 @@
-"""Textured meshes for other tools: vertex colors in PLY or glTF, UV textures in glTF or
-OBJ (+ MTL + PNG), each in the color encoding its readers assume (Dong 2008, 6.2: the
-baked results of ``warptex.bake``)."""
+"""Mesh files: meshes read as the commands read them (:func:`load_mesh`), and textured
+meshes for other tools: vertex colors in PLY or glTF, UV textures in glTF or OBJ (+ MTL +
+PNG), each in the color encoding its readers assume (Dong 2008, 6.2: the baked results of
+``warptex.bake``)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from PIL import Image
 
-from warptex.archive import write_together
+from warptex.archive import input_file_problem, write_together
 from warptex.exemplar import reencoded
 from warptex.sheets import to_rgb, to_rgb8
 
+MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # trimesh's common mesh formats
+_WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are one
+# trimesh welds vertices rounded to integers of the tolerance: kept above this share of their
+# largest coordinate, so that those integers fit in int64 (beyond 1e11 units they overflowed).
+_WELD_PRECISION = 1e-15
+# Coordinates beyond this many units are refused: float64 vertices there lie an eighth of a
+# unit apart or more, and welding's integers (at _WELD_PRECISION) would overflow int64.
+_COORDINATE_LIMIT = 1e15
+# .ply and .glb files hold vertices as float32 (glTF has no other; trimesh writes PLY so): a
+# mesh whose vertices float32 would move by more than this share of its size, visibly, is
+# refused.
+_FLOAT32_SHIFT = 1e-2
 VERTEX_COLOR_FORMATS = (".ply", ".glb")
 _GLB_COLOR = "_linear_color"  # a mesh attribute trimesh writes as it is: float, VEC3
 UV_TEXTURE_FORMATS = (".glb", ".obj")
+
+
+class MeshFileError(ValueError):
+    """A mesh file that cannot be read, or a mesh that cannot be written as asked; the
+    message names the file."""
+
+
+def weld_tolerance(vertices: np.ndarray) -> float:
+    """How near vertices are welded into one: trimesh's 1e-8, or less for a mesh so small
+    that this is over a millionth of its size, which would weld distinct vertices (a
+    sphere 2e-8 units across, of 642 vertices, into 26)."""
+    if not len(vertices):
+        return _WELD_TOLERANCE
+    size = float(np.ptp(vertices, axis=0).max())
+    tolerance = min(_WELD_TOLERANCE, 1e-6 * size) if size > 0 else _WELD_TOLERANCE
+    return max(tolerance, _WELD_PRECISION * float(np.abs(vertices).max()))
+
+
+def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
+              outputs: Sequence[str | Path] = ()) -> trimesh.Trimesh:
+    """The mesh of file ``path`` as trimesh processes it (vertices that coincide welded,
+    unless their normals or UVs differ; unused ones dropped), or with every coincident
+    vertex welded (``weld``: a cut's caps need a closed surface, which flat-shaded faces
+    with vertices of their own are not). ``uv="mesh"`` requires finite UVs of the file's;
+    ``outputs`` are the files it is to be written to, of which a .ply or .glb is refused
+    where float32 would move its vertices visibly.
+
+    Raises:
+        MeshFileError: anything of the above, or a file that is missing, unreadable, not a
+            mesh, without triangles or area, or with NaN or far (beyond 1e15) vertices.
+    """
+    if uv not in ("none", "auto", "mesh"):
+        raise ValueError(f"uv must be 'none', 'auto' or 'mesh', got {uv!r}")
+    path = Path(path)
+    problem = input_file_problem(path, "mesh file")
+    if problem is not None:
+        raise MeshFileError(f"{path}: {problem}")
+    try:
+        # As the file has it first: trimesh's processing drops the faces of a NaN vertex
+        # unsaid, and loses the vertex normals that keep it from welding flat faces.
+        raw = trimesh.load(path, force="mesh", process=False)
+        if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
+            raise MeshFileError(f"{path}: vertex coordinates hold NaN or infinite values")
+        farthest = float(np.abs(raw.vertices).max()) if len(getattr(raw, "faces", ())) else 0.0
+        if farthest > _COORDINATE_LIMIT:
+            raise MeshFileError(f"{path}: vertex coordinates reach {farthest:.3g} units, "
+                                f"beyond {_COORDINATE_LIMIT:.0e}: move the mesh nearer the "
+                                "origin")
+        # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
+        # trimesh welds at its global tolerance (its maintainer's advice is to set that).
+        saved, trimesh.tol.merge = trimesh.tol.merge, weld_tolerance(raw.vertices)
+        try:
+            mesh = trimesh.load(path, force="mesh")
+        finally:
+            trimesh.tol.merge = saved
+    except MeshFileError:
+        raise
+    except NotImplementedError:  # how trimesh refuses a file type it has no reader for
+        raise MeshFileError(f"{path}: not a mesh format warptex reads "
+                            f"(.{', .'.join(MESH_FORMATS)}, and the others trimesh reads)"
+                            ) from None
+    except Exception as error:  # trimesh raises many kinds on a bad or unknown file
+        raise MeshFileError(f"{path}: cannot read the mesh: damaged, or not what its name "
+                            f"says (trimesh: {error or type(error).__name__})") from None
+    if len(getattr(mesh, "faces", ())) == 0:
+        raise MeshFileError(f"{path}: no triangles found")
+    if weld:  # whatever their normals say
+        digits = trimesh.util.decimal_to_digits(weld_tolerance(mesh.vertices))
+        mesh.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=digits)
+    if not mesh.area > 0:
+        raise MeshFileError(f"{path}: every triangle has zero area: the mesh has no surface")
+    if uv == "mesh" and getattr(mesh.visual, "uv", None) is None:
+        raise MeshFileError(f"{path}: the mesh has no UVs; use --uv auto to make them")
+    # A triangle with a NaN UV holds no texel: its surface would show its neighbours' colors.
+    if uv == "mesh" and not np.isfinite(mesh.visual.uv[mesh.faces]).all():
+        raise MeshFileError(f"{path}: UV coordinates hold NaN or infinite values; use --uv "
+                            "auto to make UVs")
+    _check_float32_outputs(mesh, [Path(o) for o in outputs])
+    return mesh
+
+
+def _check_float32_outputs(mesh: trimesh.Trimesh, outputs: Sequence[Path]) -> None:
+    """Refuse a .ply or .glb output of a mesh that float32 cannot hold: one far from the
+    origin for its size (a building at map coordinates) came out flattened."""
+    narrow = [o for o in outputs if o.suffix.lower() in (".ply", ".glb")]
+    if not narrow:
+        return
+    vertices = mesh.vertices
+    size = float(np.ptp(vertices, axis=0).max())
+    shift = float(np.abs(vertices.astype(np.float32) - vertices).max())
+    if shift > _FLOAT32_SHIFT * size:
+        raise MeshFileError(f"{narrow[0]}: .ply and .glb files hold vertices as float32, which "
+                            f"would move this mesh's by up to {shift:.3g}, {shift / size:.2g} "
+                            f"of its size (it lies {float(np.abs(vertices).max()):.3g} from "
+                            "the origin): write .obj, or move the mesh nearer the origin")
 
 
 def _matte(suffix: str, image: Image.Image | None,
