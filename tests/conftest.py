@@ -1,4 +1,5 @@
-"""Shared fixtures. Tests run on Warp's CPU device with a project-local kernel cache."""
+"""Shared fixtures. Tests run Warp on the CPU (and on a GPU where the machine has one:
+see ``warp_device``) with a project-local kernel cache."""
 
 from __future__ import annotations
 
@@ -14,6 +15,13 @@ REPO = Path(__file__).resolve().parent.parent
 
 # Before anything imports Warp, so compiled kernels land in one known, reusable folder.
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
+
+import warp as wp  # noqa: E402
+
+# Every array of a launch on the launch's device, as Warp had it before its relaxed default:
+# on a GPU machine a host array in a CUDA launch then raises, where it would be read across
+# the bus or crash. On the CPU alone, every array is there.
+wp.config.launch_array_access_mode = wp.config.LaunchArrayAccessMode.STRICT
 
 # A shell without job control starts a background job with Ctrl-C ignored, and Python then
 # raises no KeyboardInterrupt, nor do the commands the tests start (they inherit the
