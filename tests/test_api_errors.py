@@ -113,6 +113,12 @@ def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_de
                      ("uv", "array of numbers")):
         with pytest.raises(ValueError, match=why):
             texel_points(mesh, bad, m, (8, 8))
+    # A vertex no face holds is never read: its UV may be anything.
+    unused = trimesh.Trimesh(np.vstack([mesh.vertices, [[9.0, 9.0, 9.0]]]), mesh.faces,
+                             process=False)
+    loose = np.vstack([uv, [[np.nan, np.nan]]])
+    np.testing.assert_array_equal(texel_points(unused, loose, m, (8, 8))[1],
+                                  texel_points(mesh, uv, m, (8, 8))[1])
     for size in (0, 8.0, True):
         with pytest.raises(SettingError, match=r"^size must be"):
             bake_uv_texture(None, mesh, uv, m, size=size)
@@ -153,6 +159,45 @@ def test_meshes_are_read_by_the_library_as_the_commands_read_them(tmp_path):
     assert len(load_mesh(tmp_path / "far.obj", outputs=["out.obj"]).faces) == 12
     with pytest.raises(MeshFileError, match=r"out\.glb: \.ply and \.glb files hold vertices as"):
         load_mesh(tmp_path / "far.obj", outputs=["out.obj", "out.glb"])
+
+
+def test_meshes_loaded_at_once_weld_each_at_its_own_tolerance(tmp_path, monkeypatch):
+    """trimesh welds at a global tolerance, which each load sets for its mesh: two threads
+    loading at once welded one mesh at the other's, and left the global changed."""
+    import threading
+
+    import trimesh
+
+    from warptex import mesh_files
+
+    small, large = trimesh.creation.box(extents=(1e-6,) * 3), trimesh.creation.box()
+    small.export(tmp_path / "small.ply")
+    large.export(tmp_path / "large.ply")
+    load, seen, original = trimesh.load, {}, trimesh.tol.merge
+
+    def slow_load(path, **kwargs):
+        if kwargs.get("process", True):  # the welding load: hold it while the other starts
+            seen[Path(path).name] = trimesh.tol.merge
+            time.sleep(0.2)
+            assert trimesh.tol.merge == seen[Path(path).name]
+        return load(path, **kwargs)
+
+    monkeypatch.setattr(trimesh, "load", slow_load)
+    errors = []
+
+    def read(name):
+        try:
+            mesh_files.load_mesh(tmp_path / name)
+        except BaseException as error:  # re-raised below, in the test's thread
+            errors.append(error)
+
+    threads = [threading.Thread(target=read, args=(n,)) for n in ("small.ply", "large.ply")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert seen["small.ply"] < seen["large.ply"] and trimesh.tol.merge == original
 
 
 class _Positions:

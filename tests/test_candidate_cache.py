@@ -242,6 +242,8 @@ def test_a_kernel_build_that_cannot_be_deleted_fails_the_prune(folder, tmp_path,
     kernels = tmp_path / "kernels"
     build = kernels / "wp_kernels.synthesis_0000000"
     build.mkdir(parents=True)
+    after = kernels / "wp_kernels.synthesis_1111111"  # tried too: its deletion is no other's
+    after.mkdir()
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(kernels))
     rename = Path.rename
 
@@ -252,9 +254,29 @@ def test_a_kernel_build_that_cannot_be_deleted_fails_the_prune(folder, tmp_path,
 
     monkeypatch.setattr(Path, "rename", read_only)
     assert main(["cache", "--prune"]) == 1
-    assert capsys.readouterr().err.endswith(
-        f"warptex: error: {build}: cannot delete (Permission denied)\n")
-    assert build.is_dir()
+    out, err = capsys.readouterr()
+    assert err.endswith(f"warptex: error: {build}: cannot delete (Permission denied)\n")
+    assert "deleted: 1 kernel builds" in out
+    assert build.is_dir() and not after.exists()
+
+
+def test_the_kernel_cache_s_size_after_a_prune_is_what_its_folder_holds(folder, tmp_path,
+                                                                          monkeypatch, capsys):
+    """Builds of another Warp version lie beside Warp's folder, whose size their deletion
+    was taken from: -0.3 MiB."""
+    import warp as wp
+
+    kernels = tmp_path / "warp" / wp.config.version
+    kernels.mkdir(parents=True)
+    (kernels / "kept.bin").write_bytes(b"k" * 1000)
+    old = tmp_path / "warp" / "1.18.0" / "wp_kernels.bake_1234567"
+    old.mkdir(parents=True)
+    (old / "kernels.o").write_bytes(b"o" * 300_000)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(kernels))
+    assert main(["cache", "--prune", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)["kernel_cache"]
+    assert report["deleted"] == {"builds": 1, "bytes": 300_000}
+    assert report["bytes"] == 1000 and not old.exists()
 
 
 def test_cache_json_lists_the_same_files_and_what_was_deleted(folder, computed, capsys):

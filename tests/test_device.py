@@ -321,7 +321,7 @@ def test_stale_kernel_builds_are_other_code_and_dead_builds(granite_32, tmp_path
     made = _kernel_cache(tmp_path, loaded)
     stale = [made["abandoned"], made["dead"], made["other"]]
     assert device_module.stale_kernel_builds() == stale
-    assert device_module.delete_kernel_builds(stale) == (3, 150)
+    assert device_module.delete_kernel_builds(stale) == (3, 150, [])
     kept = ({tmp_path / name for name in loaded}
             | {made["building"], made["deleting"], *made["foreign"]})
     assert set(tmp_path.iterdir()) == kept

@@ -184,7 +184,7 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
                 write(tmp)
             except RuntimeError as error:
                 raise _library_failure(error, tmp, path) from error
-            _synced(tmp)
+            _synced(tmp, os.O_RDWR)  # writable: Windows syncs no file opened for reading
         for (path, _), target in zip(staged, targets, strict=True):
             if target.is_dir():  # refused before any file is replaced, not half way
                 current = path
@@ -195,8 +195,8 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
         done = True
         for folder in {target.parent for target in targets}:
             # The renames are kept over a power cut too; the files are written by then.
-            with contextlib.suppress(OSError):
-                _synced(folder)
+            with contextlib.suppress(OSError):  # where folders cannot be opened (Windows)
+                _synced(folder, os.O_RDONLY)
     except OSError as error:
         if error.errno is None:
             raise
@@ -212,11 +212,11 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
                     folder.rmdir()
 
 
-def _synced(path: Path) -> None:
-    """Have the system write ``path``'s data (a file's, or a folder's entries) to its disk:
-    renamed unsynced, a file may be found empty or cut short under its name after a power
-    cut, the old one gone."""
-    fd = os.open(path, os.O_RDONLY)
+def _synced(path: Path, mode: int) -> None:
+    """Have the system write ``path``'s data (a file's, or a folder's entries) to its disk,
+    opened in ``mode``: renamed unsynced, a file may be found empty or cut short under its
+    name after a power cut, the old one gone."""
+    fd = os.open(path, mode)
     try:
         os.fsync(fd)
     finally:

@@ -59,7 +59,7 @@ def _checked_uv(mesh: trimesh.Trimesh, uv: object) -> np.ndarray:
     if uv.shape != (len(mesh.vertices), 2):
         raise ValueError(f"uv must hold one (u, v) row per mesh vertex, ({len(mesh.vertices)}, "
                          f"2), got shape {uv.shape}")
-    if not np.isfinite(uv).all():
+    if not np.isfinite(uv[checked_faces(mesh)]).all():  # unused vertices' are never read
         raise ValueError("uv holds NaN or infinite coordinates")
     return uv.astype(np.float32)
 

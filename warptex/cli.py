@@ -530,17 +530,31 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     doomed = [f for f in files if f.status not in kept] if args.clear else never
     kernels = _kernel_cache()  # refused here, before anything is deleted
     deleted = None
+    undeleted: list[OSError] = []
     if args.prune or args.clear:
         try:
             deleted = cc.remove(doomed)
-            kernels["deleted"] = _deleted_kernel_builds(kernels["other_builds"])
-            kernels["bytes"] -= kernels["deleted"]["bytes"]
         except OSError as error:
             raise _WorkFailed(f"{error.filename}: cannot delete ({error.strerror or error})"
                               ) from None
+        undeleted = _delete_kernel_builds(kernels)
     if args.json:
         print(json.dumps(_cache_report(folder, files, deleted, kernels), indent=2))
-        return 0
+    else:
+        _print_cache(folder, files, never, deleted, kernels)
+    if undeleted:
+        first = undeleted[0]
+        others = f", and {len(undeleted) - 1} other kernel builds" if len(undeleted) > 1 else ""
+        raise _WorkFailed(f"{first.filename}: cannot delete ({first.strerror or first})"
+                          f"{others}")
+    return 0
+
+
+def _print_cache(folder: Path, files: list, never: list, deleted: tuple[int, int] | None,
+                 kernels: dict) -> None:
+    """``warptex cache``'s listing, and what it deleted."""
+    from warptex import candidate_cache as cc
+
     print(f"candidate cache: {folder} (WARPTEX_CACHE sets it)")
     if files:
         print(f"  {'written':<16}  {'size':>9}  {'status':<13}  {'file':<55}  exemplars")
@@ -571,7 +585,6 @@ def _cmd_cache(args: argparse.Namespace) -> int:
         print(f"  of which {len(stale)} kernel builds of other warptex or Warp versions or left "
               f"unfinished, {_mib_tenths(kernels['other_bytes'])}: warptex cache --prune "
               "deletes them")
-    return 0
 
 
 def _cache_report(folder: Path, files: list, deleted: tuple[int, int] | None,
@@ -625,13 +638,16 @@ def _kernel_cache() -> dict:
             "other_bytes": sum(warp_runtime.folder_bytes(f) for f in stale), "deleted": None}
 
 
-def _deleted_kernel_builds(builds: list[str]) -> dict:
-    """Delete the kernel builds :func:`_kernel_cache` found; how many and their bytes.
-    Raises OSError for one that cannot be deleted (a read-only cache)."""
+def _delete_kernel_builds(kernels: dict) -> list[OSError]:
+    """Delete the kernel builds :func:`_kernel_cache` found, entering how many and their
+    bytes in ``kernels``, and the cache's size after; the errors of those left."""
     from warptex import warp_runtime
 
-    count, freed = warp_runtime.delete_kernel_builds([Path(b) for b in builds])
-    return {"builds": count, "bytes": freed}
+    count, freed, failed = warp_runtime.delete_kernel_builds(
+        [Path(b) for b in kernels["other_builds"]])
+    kernels["deleted"] = {"builds": count, "bytes": freed}
+    kernels["bytes"] = warp_runtime.folder_bytes(Path(kernels["folder"]))
+    return failed
 
 
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
@@ -1253,9 +1269,9 @@ def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start
             raise
         # A store that held every voxel already is left as it was (BrickStore.save).
         if before is not None and file_state(saved) == before:
-            unchanged = f"; {saved} unchanged (it held every voxel already)"
+            unchanged = f"; {args.store} unchanged (it held every voxel already)"
         else:
-            files.append(saved)
+            files.append(args.store)  # as given, like the meshes: saved is absolute
     print("written: " + ", ".join(str(f) for f in files) + unchanged)
     return 0
 

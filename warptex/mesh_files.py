@@ -5,6 +5,7 @@ PNG), each in the color encoding its readers assume (Dong 2008, 6.2: the baked r
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -28,6 +29,7 @@ _COORDINATE_LIMIT = 1e15
 # mesh whose vertices float32 would move by more than this share of its size, visibly, is
 # refused.
 _FLOAT32_SHIFT = 1e-2
+_TOLERANCE_LOCK = threading.Lock()
 VERTEX_COLOR_FORMATS = (".ply", ".glb")
 _GLB_COLOR = "_linear_color"  # a mesh attribute trimesh writes as it is: float, VEC3
 UV_TEXTURE_FORMATS = (".glb", ".obj")
@@ -81,11 +83,12 @@ def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
                                 "origin")
         # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
         # trimesh welds at its global tolerance (its maintainer's advice is to set that).
-        saved, trimesh.tol.merge = trimesh.tol.merge, weld_tolerance(raw.vertices)
-        try:
-            mesh = trimesh.load(path, force="mesh")
-        finally:
-            trimesh.tol.merge = saved
+        with _TOLERANCE_LOCK:  # a global of trimesh's: one load sets it at a time
+            saved, trimesh.tol.merge = trimesh.tol.merge, weld_tolerance(raw.vertices)
+            try:
+                mesh = trimesh.load(path, force="mesh")
+            finally:
+                trimesh.tol.merge = saved
     except MeshFileError:
         raise
     except NotImplementedError:  # how trimesh refuses a file type it has no reader for

@@ -88,6 +88,7 @@ def _exr_channel_names(channels: int, alpha: bool) -> list[str]:
     """Named as the exemplars' channels are read, so that OpenEXR's and Mitsuba's readers
     know them: colors (three of RGB and more, one of gray) R, G, B or Y, an ``alpha`` last
     A, data channels between by number (C1, C3, ...)."""
+    alpha = alpha and channels > 1  # a kept alpha alone is read as one color channel
     color = list("RGB") if channels - alpha >= 3 else ["Y"]
     data = [f"C{c}" for c in range(len(color), channels - alpha)]
     return color + data + ["A"] * alpha

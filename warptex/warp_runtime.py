@@ -129,9 +129,10 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     A build that vanishes while Warp loads it, deleted so by another process, is built
     again too, quietly.
 
-    A module is built again once per process: a failure after that is no damaged file but
-    the machine's (a full disk; on CUDA also a full GPU memory or an older driver), and
-    deleting builds then would cost every launch a rebuild and other processes theirs.
+    A module is built again once per process and device: a failure after that is no
+    damaged file but the machine's (a full disk; on CUDA also a full GPU memory or an older
+    driver), and deleting builds then would cost every launch a rebuild and other processes
+    theirs.
 
     Raises:
         RuntimeError: the module built again cannot be loaded either.
@@ -144,9 +145,9 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     except Exception as error:
         if not _unloadable(error):
             raise
-        if kernel.module.name in _REBUILT:
+        if (kernel.module.name, str(device)) in _REBUILT:
             raise _load_failure(kernel.module.name, error) from None
-        _REBUILT.add(kernel.module.name)
+        _REBUILT.add((kernel.module.name, str(device)))
         folders = _drop_builds(kernel.module)
         warnings.warn(f"Warp's kernel cache held a damaged build of {kernel.module.name} "
                       f"({error}); deleted {', '.join(folders) or 'nothing'}, building it "
@@ -159,8 +160,8 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
         raise _load_failure(kernel.module.name, error) from None
 
 
-# Warp modules built again by :func:`launch` in this process.
-_REBUILT: set[str] = set()
+# Warp modules built again by :func:`launch` in this process, and for which device.
+_REBUILT: set[tuple[str, str]] = set()
 
 
 def _load_failure(module: str, error: Exception) -> RuntimeError:
@@ -311,18 +312,20 @@ def _other_version_folders(cache: Path) -> list[Path]:
     return found
 
 
-def delete_kernel_builds(folders: Sequence[Path]) -> tuple[int, int]:
-    """Delete build folders of Warp's kernel cache; the number deleted and their bytes.
-
-    Raises:
-        OSError: one cannot be deleted; those before it are.
-    """
+def delete_kernel_builds(folders: Sequence[Path]) -> tuple[int, int, list[OSError]]:
+    """Delete build folders of Warp's kernel cache: the number deleted, their bytes, and
+    the errors of those that could not be (another user's read-only folder, say), each
+    tried whatever the others did."""
     count = freed = 0
+    failed = []
     for folder in folders:
         size = folder_bytes(folder)
-        if _delete_build(folder):
-            count, freed = count + 1, freed + size
-    return count, freed
+        try:
+            if _delete_build(folder):
+                count, freed = count + 1, freed + size
+        except OSError as error:
+            failed.append(error)
+    return count, freed, failed
 
 
 def folder_bytes(folder: Path) -> int:
