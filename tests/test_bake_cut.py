@@ -444,7 +444,8 @@ def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_
     with monkeypatch.context() as patch:
         patch.setattr(warptex.cli, "_baked", stopped_on_the_last)
         assert main(argv) == 130
-    assert f"brick store saved to {store} before stopping" in capsys.readouterr().err
+    assert (f"brick store {store} holds the voxels synthesized before stopping"
+            in capsys.readouterr().err)
     assert set(tmp_path.iterdir()) == before | {store}
     assert main(argv) == 0
     warm = int(re.search(r"voxels synthesized: (\d+) \(", capsys.readouterr().out).group(1))

@@ -619,7 +619,7 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
     if stop == "read-only":
         assert not store.exists() and "brick store" not in err
         return
-    assert f"brick store saved to {store} before stopping" in err
+    assert f"brick store {store} holds the voxels synthesized before stopping" in err
     mitsuba_plugin.live_textures.clear()  # as a new process would start
     # The first of two batches is the render of one sample with the sampler's seed 0.
     assert main([*argv, "--spp", "1", "-o", str(tmp_path / "next.exr")]) == 0

@@ -352,7 +352,8 @@ def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
     assert saves == []
     with pytest.raises(KeyboardInterrupt), saved_when_stopped(lambda: [tmp_path / "a.wtb"]):
         raise KeyboardInterrupt
-    assert f"brick store saved to {tmp_path / 'a.wtb'} before stopping" in capsys.readouterr().err
+    assert (f"brick store {tmp_path / 'a.wtb'} holds the voxels synthesized before stopping"
+            in capsys.readouterr().err)
 
     def full_disk():
         raise OSError(28, "No space left on device", str(tmp_path / "a.wtb"))

@@ -393,8 +393,9 @@ def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
                   file=sys.stderr)
         else:
             for path in saved:
-                print(f"warptex: brick store saved to {path} before stopping: the next run "
-                      "starts from its voxels", file=sys.stderr)
+                # Not "saved": a file that held every voxel already is left as it was.
+                print(f"warptex: brick store {path} holds the voxels synthesized before "
+                      "stopping: the next run starts from them", file=sys.stderr)
         raise
 
 
