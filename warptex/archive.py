@@ -332,10 +332,11 @@ def is_foreign(path: str | Path, magic: bytes) -> bool:
     return not magic.startswith(head)
 
 
-def overwrite_problem(path: str | Path, magic: bytes, kind: str) -> str | None:
+def overwrite_problem(path: str | Path, magic: bytes, kind: str,
+                      advice: str = "") -> str | None:
     """Why writing a ``magic`` archive, a ``kind`` file, to ``path`` would destroy what is
-    there (a folder, or a file of another kind), or why that cannot be told; None where it
-    is missing or such a file already."""
+    there (a folder, or a file of another kind, followed by ``advice``), or why that cannot
+    be told; None where it is missing or such a file already."""
     try:
         foreign = is_foreign(path, magic)
     except OSError as e:
@@ -343,7 +344,7 @@ def overwrite_problem(path: str | Path, magic: bytes, kind: str) -> str | None:
     if foreign and Path(path).is_dir():
         return f"is a folder, expected a {kind} file"
     if foreign:
-        return f"exists and is not a warptex {kind} file; it would be overwritten"
+        return f"exists and is not a warptex {kind} file; it would be overwritten{advice}"
     return None
 
 

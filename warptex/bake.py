@@ -34,10 +34,11 @@ def texel_points(
     """Surface points (H*W, 3) float64 in voxel space shown by each texel, and which texels
     any triangle covers. ``size`` is (width, height)."""
     width, height = (check_count("size", side, 1) for side in size)
-    uv = _checked_uv(mesh, uv)
+    faces_np = checked_faces(mesh)
+    uv = _checked_uv(uv, len(mesh.vertices), faces_np)
     init_warp()
     dev = device or default_device()
-    faces = wp.array(checked_faces(mesh), dtype=wp.vec3i, device=dev)
+    faces = wp.array(faces_np, dtype=wp.vec3i, device=dev)
     uv_wp = wp.array(uv, dtype=wp.vec2, device=dev)
     owner = wp.full(width * height, _k.NO_TRIANGLE, dtype=wp.int32, device=dev)
     launch(_k.claim_texels, len(mesh.faces), [uv_wp, faces, width, height], [owner],
@@ -49,17 +50,17 @@ def texel_points(
     return points.numpy(), owner.numpy() != _k.NO_TRIANGLE
 
 
-def _checked_uv(mesh: trimesh.Trimesh, uv: object) -> np.ndarray:
-    """``uv`` as float32 (V, 2), one finite row per vertex of ``mesh``, else a ValueError:
-    the kernels read it at the faces' vertex indices, unchecked."""
+def _checked_uv(uv: object, vertices: int, faces: np.ndarray) -> np.ndarray:
+    """``uv`` as float32 (V, 2), a row per one of the mesh's ``vertices``, finite where its
+    ``faces`` read it, else a ValueError: the kernels read it at them, unchecked."""
     try:
         uv = np.asarray(uv, np.float64)
     except (TypeError, ValueError) as error:
         raise ValueError(f"uv must be an array of numbers, got {type(uv).__name__}") from error
-    if uv.shape != (len(mesh.vertices), 2):
-        raise ValueError(f"uv must hold one (u, v) row per mesh vertex, ({len(mesh.vertices)}, "
-                         f"2), got shape {uv.shape}")
-    if not np.isfinite(uv[checked_faces(mesh)]).all():  # unused vertices' are never read
+    if uv.shape != (vertices, 2):
+        raise ValueError(f"uv must hold one (u, v) row per mesh vertex, ({vertices}, 2), got "
+                         f"shape {uv.shape}")
+    if not np.isfinite(uv[faces]).all():  # unused vertices' are never read
         raise ValueError("uv holds NaN or infinite coordinates")
     return uv.astype(np.float32)
 

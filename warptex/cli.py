@@ -330,22 +330,16 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _candidate_status(exemplar: Exemplar, tileable: bool | str) -> str:
     """Where the candidates are cached, or what pre-computing them will cost here."""
     try:
-        from warptex.candidates import (
-            LARGE_PIXELS,
-            cached_candidate_path,
-            check_feature_channels,
-            precompute_bytes,
-        )
+        from warptex.candidates import LARGE_PIXELS, cached_candidate_path, precompute_bytes
     except ModuleNotFoundError as error:
         if error.name != "warptex.candidates":
             raise
         return "not available"
     from warptex.machine import byte_size, memory_problem
 
-    try:  # refused by every command that pre-computes, whatever the memory
-        check_feature_channels(exemplar.features.shape[2])
-    except ValueError as error:
-        return f"cannot be pre-computed: {error}"
+    refusal = _precompute_refusal(exemplar)
+    if refusal is not None:  # refused by every command that pre-computes, whatever the memory
+        return f"cannot be pre-computed: {refusal}"
     cached = cached_candidate_path(exemplar, tileable)
     if cached is not None:
         return f"cached at {cached}"
@@ -357,6 +351,18 @@ def _candidate_status(exemplar: Exemplar, tileable: bool | str) -> str:
     side = math.isqrt(LARGE_PIXELS)
     slow = f" and minutes (over {side}x{side} pixels)" if height * width > LARGE_PIXELS else ""
     return f"not cached; pre-computing them takes about {byte_size(need)} of memory{slow}"
+
+
+def _precompute_refusal(exemplar: Exemplar) -> str | None:
+    """Why no command pre-computes the candidates of ``exemplar`` (too many channels), or
+    None."""
+    from warptex.candidates import check_feature_channels
+
+    try:
+        check_feature_channels(exemplar.features.shape[2])
+    except ValueError as error:
+        return str(error)
+    return None
 
 
 def _add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -961,13 +967,7 @@ def _lookup_exemplars(args: argparse.Namespace,
     try:  # before pre-computing: the channels are the same on every axis, or it says which
         check_lookup_channels(exemplars[0].channels)
     except ValueError as error:
-        from warptex.candidates import check_feature_channels
-
-        try:
-            check_feature_channels(exemplars[0].features.shape[2])
-            advice = "; `warptex volume` synthesizes them"
-        except ValueError:
-            advice = ""
+        advice = "" if _precompute_refusal(exemplars[0]) else "; `warptex volume` synthesizes them"
         raise CliError(f"{args.exemplar}: {error}{advice}") from None
     channels = exemplars[0].channels
     if mesh and channels not in (1, 3):  # mesh files hold RGB (gray repeated)
@@ -1461,10 +1461,10 @@ def _add_compare_parser(subparsers: argparse._SubParsersAction) -> None:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from warptex.compare import (
         MIN_SIZE,
-        REPORT_FILES,
         Setup,
         check_methods,
         compare,
+        report_files,
         table_markdown,
         write_report,
     )
@@ -1481,11 +1481,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     # One clear error for a bad image before any work.
     exemplar = setup.exemplars()[0]
     _check_writable_folder(args.output, args.output)
-    report = [args.output / name for name in REPORT_FILES]
-    for path in report:  # a folder in a report file's place: before minutes of work
-        problem = file_problem(path)
-        if problem is not None:
-            raise CliError(f"{path}: {problem}")
+    try:  # a folder in a report file's place: before minutes of work
+        report = report_files(args.output)
+    except ValueError as error:
+        raise CliError(str(error)) from None
     _check_inputs_kept(args, report)
     _check_memory(args.size, exemplar.features.shape[2])  # each method holds its volume
     try:  # before the checks of the methods named (Kopf's sizes)

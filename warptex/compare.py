@@ -816,6 +816,18 @@ def _measure_settings(edge: int) -> dict:
             "repetition_slice": edge}
 
 
+def report_files(out_dir: str | Path) -> list[Path]:
+    """The files :func:`write_report` writes into ``out_dir``, after a ValueError naming the
+    first that cannot be written there (a file in the folder's place, say): refused so,
+    not by an OSError from deep inside the writers."""
+    files = [Path(out_dir) / name for name in REPORT_FILES]
+    for path in files:
+        problem = file_problem(path)
+        if problem is not None:
+            raise ValueError(f"{path}: {problem}")
+    return files
+
+
 def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
     """Write :data:`REPORT_FILES` (``sheet.png``, ``table.md``, ``table.json``) of a
     :func:`compare` into ``out_dir`` atomically, with the :func:`run_summary` of this
@@ -829,12 +841,7 @@ def write_report(comparison: Comparison, out_dir: str | Path) -> list[Path]:
         raise TypeError(f"comparison must be a warptex.compare.Comparison (what compare "
                         f"returns) of a Setup, got {comparison!r}")
     setup, results = comparison.setup, comparison.results
-    out = Path(out_dir)
-    sheet_file, markdown_file, json_file = files = [out / name for name in REPORT_FILES]
-    for path in files:  # a file in the folder's place, say: not an OSError from deep inside
-        problem = file_problem(path)
-        if problem is not None:
-            raise ValueError(f"{path}: {problem}")
+    sheet_file, markdown_file, json_file = files = report_files(out_dir)
     paths = setup.paths()
     axes = setup.exemplars()
     ex = axes[0]

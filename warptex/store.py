@@ -367,10 +367,9 @@ def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
 def check_store_path(path: str | Path) -> None:
     """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
     saving a store there would destroy; a missing file or any brick store file is fine."""
-    problem = overwrite_problem(path, _MAGIC, "brick store")
+    problem = overwrite_problem(path, _MAGIC, "brick store", ", choose another store path")
     if problem is not None:
-        advice = ", choose another store path" if problem.startswith("exists") else ""
-        raise StoreFileError(f"{path}: {problem}{advice}")
+        raise StoreFileError(f"{path}: {problem}")
 
 
 @contextmanager

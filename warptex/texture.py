@@ -279,12 +279,12 @@ class SolidTexture:
     def _fill_color(self, fill: float | Sequence[float]) -> np.ndarray:
         try:
             given = np.asarray(fill)
-            # Numbers only: np.float32 reads True as 1 and "0.25" as 0.25.
-            color = given.astype(np.float32) if given.dtype.kind in "iuf" else None
-        except (TypeError, ValueError):
-            color = None
-        if color is None:
-            color = np.full(1, np.nan, np.float32)  # refused below, in words of its own
+        except (TypeError, ValueError):  # ragged lists
+            given = np.asarray(None)
+        # Numbers only (np.float32 reads True as 1 and "0.25" as 0.25); the rest is refused
+        # below, in words of its own.
+        color = (given.astype(np.float32) if given.dtype.kind in "iuf"
+                 else np.full(1, np.nan, np.float32))
         if color.shape not in ((), (self.channels,)) or not np.isfinite(color).all():
             raise ValueError(f"fill must be one finite value or {self.channels} of them, "
                              f"got {fill!r}")
