@@ -236,7 +236,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         # ends.
         if isinstance(e.__cause__, KeyboardInterrupt):
             raise e.__cause__ from None
-        if re.search(r"^(?:[\w.]+\.)?(?:KeyboardInterrupt|_Terminated)\b", str(e), re.MULTILINE):
+        stop = r"^(?:[\w.]+\.)?(?:KeyboardInterrupt|SigtermInterrupt)\b"
+        if re.search(stop, str(e), re.MULTILINE):
             raise KeyboardInterrupt from None
         unused = set(re.findall(r"^\s*- \$(\w+)=", str(e), re.MULTILINE))
         if resolution is not None and unused & {"width", "height"}:

@@ -431,7 +431,7 @@ def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_
             "--resolution", "24", "--store", str(store), "-o", str(tmp_path / "m.ply")]
     assert main([*argv[:-4], "-o", str(tmp_path / "cold.ply")]) == 0
     cold = int(re.search(r"voxels synthesized: (\d+) \(", capsys.readouterr().out).group(1))
-    baked = warptex.cli._baked
+    baked = warptex.cli.meshes._baked
     made = []
 
     def stopped_on_the_last(tex, mesh, *args):
@@ -442,7 +442,7 @@ def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_
 
     before = set(tmp_path.iterdir())
     with monkeypatch.context() as patch:
-        patch.setattr(warptex.cli, "_baked", stopped_on_the_last)
+        patch.setattr(warptex.cli.meshes, "_baked", stopped_on_the_last)
         assert main(argv) == 130
     assert (f"brick store {store} holds the voxels synthesized before stopping"
             in capsys.readouterr().err)
@@ -704,7 +704,7 @@ def test_the_uv_bar_ticks_while_the_mesh_is_unwrapped(texture, sphere, capsys, m
     import argparse
 
     import warptex.parallel
-    from warptex.cli import _baked
+    from warptex.cli.meshes import _baked
 
     monkeypatch.setattr(warptex.parallel, "WAIT_SECONDS", 0.02)
     args = argparse.Namespace(uv="auto", texture_size=8, mesh=Path("sphere.ply"))

@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from warptex import cli
 from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
-from warptex.cli import main
+from warptex.cli import console, main, volumes
 from warptex.exemplar import Exemplar
 from warptex.volume_files import write_volume
 
@@ -187,9 +186,9 @@ def test_precompute_reads_a_cache_it_could_not_write(images, private_cache, caps
     capsys.readouterr()
 
     def read_only(folder, *args):
-        raise warptex.cli.CliError(f"{folder}: cannot write (Read-only file system)")
+        raise warptex.cli.common.CliError(f"{folder}: cannot write (Read-only file system)")
 
-    monkeypatch.setattr(warptex.cli, "_check_writable_folder", read_only)
+    monkeypatch.setattr(warptex.cli.exemplars, "check_writable_folder", read_only)
     assert main(["precompute", str(images["a"])]) == 0
     assert "loaded from cache" in capsys.readouterr().out
     assert main(["precompute", str(images["b"])]) == 2  # not there: it would be written
@@ -285,15 +284,15 @@ def _volume(images, out: Path, *extra: str) -> int:
 
 
 def test_volume_slabs():
-    assert cli._slab_edges(8) == [0, 8]
-    assert cli._slab_edges(128) == [0, 64, 128]
-    assert cli._slab_edges(150) == [0, 36, 76, 112, 150]  # 37.5 voxels rounded to blocks
-    assert cli._slab_edges(300) == [0, 32, 60, 88, 120, 152, 180, 208, 240, 272, 300]
+    assert volumes._slab_edges(8) == [0, 8]
+    assert volumes._slab_edges(128) == [0, 64, 128]
+    assert volumes._slab_edges(150) == [0, 36, 76, 112, 150]  # 37.5 voxels rounded to blocks
+    assert volumes._slab_edges(300) == [0, 32, 60, 88, 120, 152, 180, 208, 240, 272, 300]
     # Two slabs over half a million voxels, so the bar moves; none of one voxel (a whole
     # apron's work for it: 101 was 100 and 1).
-    assert cli._slab_edges(80) == [0, 80]
-    assert cli._slab_edges(100) == [0, 48, 100]
-    assert cli._slab_edges(101) == [0, 52, 101]
+    assert volumes._slab_edges(80) == [0, 80]
+    assert volumes._slab_edges(100) == [0, 48, 100]
+    assert volumes._slab_edges(101) == [0, 52, 101]
 
 
 def test_work_voxels_counts_the_aprons_of_many_passes():
@@ -351,9 +350,9 @@ def test_ticking_redraws_a_bar_until_the_block_ends(monkeypatch):
             if self.refreshed == 3:
                 self.third.set()
 
-    monkeypatch.setattr(cli, "_TICK_SECONDS", 0.01)
+    monkeypatch.setattr(console, "_TICK_SECONDS", 0.01)
     bar = Bar()
-    with cli._ticking(bar):
+    with console.ticking(bar):
         assert bar.third.wait(timeout=60)  # a bound against hanging, not a timing
     assert not any(t.name == "warptex-bar" for t in threading.enumerate())
     assert bar.refreshed >= 3
@@ -361,7 +360,7 @@ def test_ticking_redraws_a_bar_until_the_block_ends(monkeypatch):
 
 def test_volume_npy_equals_box(images, expected, tmp_path, capsys, monkeypatch):
     out = tmp_path / "v.npy"
-    monkeypatch.setattr(cli, "_slab_edges", lambda size: [0, 3, 4, size])
+    monkeypatch.setattr(volumes, "_slab_edges", lambda size: [0, 3, 4, size])
     assert _volume(images, out) == 0
     captured = capsys.readouterr()
     assert f"written: {out}" in captured.out
@@ -494,7 +493,7 @@ def test_a_filling_bar_in_a_log_is_its_first_and_last_line():
     for options in ({"unit": "slab"}, {"unit": "px", "unit_scale": True},
                     {"ascii": True, "ncols": 200}, {"postfix": "lazy"}):
         log = io.StringIO()
-        with tqdm(total=2_000_000, file=cli._LogLines(log), mininterval=0, desc="bar",
+        with tqdm(total=2_000_000, file=console._LogLines(log), mininterval=0, desc="bar",
                   **options) as bar:
             for _ in range(1000):
                 bar.update(2000)
@@ -508,7 +507,7 @@ def test_bars_of_two_threads_in_a_log_are_lines_without_cursor_moves():
     from tqdm import tqdm
 
     log = io.StringIO()
-    lines = cli._LogLines(log)
+    lines = console._LogLines(log)
     first = tqdm(total=4, file=lines, mininterval=0, desc="first")
     second = tqdm(total=4, file=lines, mininterval=0, desc="second")
     for _ in range(4):
@@ -532,8 +531,8 @@ def test_progress_bars_in_a_log_are_lines_at_most_every_few_seconds(monkeypatch)
             written.append(text)
 
     clock = iter([0.0, 1.0, 2.0, 11.0, 12.0, 13.0, 14.0])
-    monkeypatch.setattr(cli.time, "monotonic", lambda: next(clock))
-    log = cli._LogLines(Log())
+    monkeypatch.setattr(console.time, "monotonic", lambda: next(clock))
+    log = console._LogLines(Log())
     for text in ("\rbar: 0%", "\rbar: 10%", "\rbar: 20%  ", "\rbar: 90%", "\rbar: 100%",
                  "", "\n", "warning\n", "\r", "\rnext: 0%"):
         log.write(text)

@@ -648,7 +648,7 @@ def test_negative_numbers_in_any_notation_are_values(files, tmp_path, capsys):
     """argparse reads "-1e3" (or "-32x32") as an unknown option; warptex takes it as the
     value, only where an option of numbers expects one (a file may be called -5), so that
     the option's own check says what is wrong with it."""
-    from warptex.cli import _negative_values
+    from warptex.cli.parsing import _negative_values
 
     assert _negative_values(["precompute", "-5"]) == ["precompute", "-5"]
     assert _negative_values(["x", "--normal", "-1e3", "0", "-2E-1", "-4e1"]) == [
@@ -707,7 +707,7 @@ def test_a_stop_right_after_the_outputs_rename_names_it(files, tmp_path, capsys,
 
     import warptex.cli
 
-    write = warptex.cli.write_volume
+    write = warptex.cli.volumes.write_volume
     out = tmp_path / "v.npy"
     for stop_first in (False, True):
 
@@ -717,7 +717,7 @@ def test_a_stop_right_after_the_outputs_rename_names_it(files, tmp_path, capsys,
             write(*args, **kwargs)
             signal.raise_signal(signal.SIGINT)
 
-        monkeypatch.setattr(warptex.cli, "write_volume", stopped)
+        monkeypatch.setattr(warptex.cli.volumes, "write_volume", stopped)
         np.save(out, np.zeros(1))
         assert main(["volume", str(files["exemplar"]), "--size", "8", "-o", str(out)]) == 130
         captured = capsys.readouterr()
@@ -950,15 +950,15 @@ def test_every_command_s_help_ends_with_examples_that_parse(capsys):
     the parser takes, naming files that the checkout has: help that does not go stale."""
     import shlex
 
-    from warptex import cli
+    from warptex.cli import parsing
 
     repo = Path(__file__).resolve().parent.parent
-    parser = cli._parser()
-    for name in cli._SUBCOMMANDS:
+    parser = parsing.build_parser()
+    for name in parsing.SUBCOMMANDS:
         with pytest.raises(SystemExit):
             main([name, "--help"])
         text = capsys.readouterr().out
-        examples = cli._EXAMPLES[name]
+        examples = parsing._EXAMPLES[name]
         assert text.rstrip().endswith("\n".join(f"  {e}" for e in examples))
         if name == "cache":  # an epilog of its own comes first, wrapped as argparse does
             assert "Deleted candidates are computed again when next needed" in text
@@ -977,14 +977,14 @@ def test_the_help_examples_write_no_file_of_another(capsys):
     statistics go beside it (and `make demo` is the render example)."""
     import shlex
 
-    from warptex import cli
+    from warptex.cli import parsing
     from warptex.compare import REPORT_FILES
     from warptex.mesh_files import exported_files
 
-    parser = cli._parser()
+    parser = parsing.build_parser()
     written: dict[Path, str] = {}
-    for name in cli._SUBCOMMANDS:
-        for example in cli._EXAMPLES[name]:
+    for name in parsing.SUBCOMMANDS:
+        for example in parsing._EXAMPLES[name]:
             args = parser.parse_args(shlex.split(example)[1:])
             output = getattr(args, "output", None)
             if output is None:

@@ -186,7 +186,7 @@ def test_info_constant_image_warns(tmp_path, capsys, no_candidates):
 def test_console_script_error_has_no_traceback(tmp_path):
     (tmp_path / "tiny.png").write_bytes(b"")
     script = Path(sys.executable).with_name("warptex")
-    command = [str(script)] if script.exists() else [sys.executable, "-m", "warptex.cli"]
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "warptex"]
     result = subprocess.run(
         [*command, "info", str(tmp_path / "tiny.png")], capture_output=True, text=True
     )

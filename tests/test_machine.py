@@ -7,7 +7,8 @@ import pytest
 
 
 def test_volume_memory_counts_the_join_and_the_working_bytes(monkeypatch):
-    from warptex import cli, machine
+    from warptex import machine
+    from warptex.cli import common
 
     size, channels = 64, 3
     one_copy = 4 * channels * size**3
@@ -19,10 +20,10 @@ def test_volume_memory_counts_the_join_and_the_working_bytes(monkeypatch):
     ]:
         monkeypatch.setattr(machine, "physical_memory", lambda m=memory: int(m))
         if refused:
-            with pytest.raises(cli.CliError, match=f"--size {size}: a {size}\\^3 volume needs"):
-                cli._check_memory(size, channels, working)
+            with pytest.raises(common.CliError, match=f"--size {size}: a {size}\\^3 volume needs"):
+                common.check_memory(size, channels, working)
         else:
-            cli._check_memory(size, channels, working)
+            common.check_memory(size, channels, working)
 
 
 @pytest.mark.parametrize(("groups", "files", "expected"), [

@@ -454,7 +454,7 @@ def test_render_progress_in_a_log_is_its_first_and_last_line(tmp_path, capsys, m
     one every _LOG_SECONDS (made longer than any render here), and the last."""
     from warptex import cli
 
-    monkeypatch.setattr(cli, "_LOG_SECONDS", 1e9)
+    monkeypatch.setattr(cli.console, "_LOG_SECONDS", 1e9)
     assert cli.main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o",
                      str(tmp_path / "b.png"), "--spp", "4", "--res", "8x8"]) == 0
     lines = [line for line in capsys.readouterr().err.splitlines() if "rendering" in line]
@@ -587,12 +587,13 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
     exit status 1 and nothing saved."""
     import mitsuba_plugin.command
     import mitsuba_plugin.traced
-    from warptex.cli import _Terminated, main
+    from warptex.cli import main
+    from warptex.cli.console import SigtermInterrupt
 
     scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
     store = scene.parent / "bricks" / "bunny.wtb"
     argv = ["render", str(scene), "--res", "16x16"]
-    signal = _Terminated if stop.startswith("SIGTERM") else KeyboardInterrupt
+    signal = SigtermInterrupt if stop.startswith("SIGTERM") else KeyboardInterrupt
     in_render = stop.endswith("in mi.render")
     batches = []
     colors = mitsuba_plugin.traced.TracedLookup.colors

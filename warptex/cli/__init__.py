@@ -1,0 +1,107 @@
+"""The ``warptex`` command line: :func:`main` runs a command.
+
+The package reads like the commands: ``exemplars`` (info, precompute), ``cache``, ``volumes``
+(volume, slice), ``meshes`` (bake, cut), ``compare`` and ``render`` each declare their
+commands' arguments (``add_NAME_parser``) and run them (``run_NAME``); ``options`` holds the
+options several commands share and what they load, ``common`` the refusals before any work and
+the writing of outputs, ``parsing`` the parser and its help, ``console`` progress bars in logs
+and stops by Ctrl-C or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import warnings
+from collections.abc import Sequence
+
+from warptex.cli.common import WRITTEN, CliError
+from warptex.cli.console import (
+    SIGTERM_RECEIVED,
+    SigtermInterrupt,
+    bars_as_log_lines,
+    show_warning,
+    terminated_like_interrupted,
+)
+from warptex.cli.options import check_max_size_option
+from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
+from warptex.exemplar import ExemplarError
+from warptex.parallel import deferred_stops
+
+# Modules nearly every command builds, and whether they run on the CPU whatever the device
+# (a CPU launch builds the block_dim 1 variant; CUDA launches the default one).
+_KERNEL_MODULES = (("kernels.candidates", True), ("kernels.synthesis", False))
+
+
+def _check_device() -> None:
+    """A device asked for through the environment that cannot be had, or a kernel cache
+    folder (WARP_CACHE_PATH) that Warp cannot make as it starts, is a user error."""
+    from warptex.warp_runtime import device, init_warp
+
+    try:
+        init_warp()
+    except OSError as error:
+        where = error.filename or os.environ.get("WARP_CACHE_PATH", "Warp's kernel cache")
+        raise CliError(f"{where}: Warp cannot make its kernel cache there "
+                       f"({error.strerror or error}); WARP_CACHE_PATH sets its folder") from None
+    if os.environ.get("WARPTEX_DEVICE", "").strip():
+        try:
+            device()
+        except (ValueError, RuntimeError) as error:
+            raise CliError(str(error)) from None
+
+
+def _note_kernel_build() -> None:
+    """Say why a machine's first command pauses: Warp builds the kernels into its kernel
+    cache, once (README, "first use"), and until then no bar moves. The candidate and
+    synthesis modules are what nearly every command builds; each is looked up under the
+    name Warp gives its current code, so a new version of either is noticed too."""
+    from warptex.warp_runtime import build_folder, device
+
+    on_cpu = device() == "cpu"
+    folders = [build_folder(name, on_cpu or cpu_only) for name, cpu_only in _KERNEL_MODULES]
+    if None not in folders and not all(f.is_dir() for f in folders):
+        print(f"warptex: Warp is building the kernels into {folders[0].parent} (once for this "
+              "version, about half a minute)", file=sys.stderr)
+
+
+# Libraries whose imports would lose a Ctrl-C or SIGTERM (trimesh's optional imports catch
+# every exception), imported by the commands that use them before any work, stops held
+# back until they are in.
+_STOP_LOSING_LIBRARIES = {"bake": ("trimesh",), "cut": ("trimesh",)}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    WRITTEN.clear()
+    args = parse_arguments(build_parser(), argv)
+    _, command = SUBCOMMANDS[args.command]
+    with warnings.catch_warnings(), terminated_like_interrupted(), bars_as_log_lines():
+        warnings.showwarning = show_warning
+        try:
+            if "exemplar_max_size" in args:  # before any work, a mesh's loading included
+                check_max_size_option(args)
+            if args.command not in ("info", "cache"):  # the two that use no device
+                _check_device()
+                _note_kernel_build()
+            with deferred_stops():
+                for library in _STOP_LOSING_LIBRARIES.get(args.command, ()):
+                    importlib.import_module(library)
+            code = command(args)
+            sys.stdout.flush()  # here, so that a reader gone early is handled below
+            return code
+        except BrokenPipeError:  # `warptex info ... | head -1`: the reader has all it wants
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 141  # as for a command that SIGPIPE ends
+        except (ExemplarError, CliError) as error:
+            print(f"warptex: error: {error}", file=sys.stderr)
+            return error.exit_code if isinstance(error, CliError) else 2
+        except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
+            terminated = isinstance(stop, SigtermInterrupt) or SIGTERM_RECEIVED.is_set()
+            after = ("" if not WRITTEN else
+                     " after writing " + ", ".join(str(f) for f in dict.fromkeys(WRITTEN)))
+            print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}{after}",
+                  file=sys.stderr)
+            return 143 if terminated else 130  # as for a command that the signal ends
