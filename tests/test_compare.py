@@ -1065,3 +1065,35 @@ def test_the_tiled_volume_is_lazy_s_own_up_to_its_block_as_its_note_says(monkeyp
         same = np.array_equal(compare._tiled(None, size), compare._lazy(None, size))
         assert same == (size <= compare.TILE)
     assert f"up to {compare.TILE} voxels" in compare.METHOD_NOTES["tiled"]
+
+
+def test_a_two_channel_exemplar_renders_its_cubes_in_gray(tmp_path, data_dir):
+    """Mitsuba's grid volume takes 1, 3 or 6 channels: a 2-channel exemplar's cubes failed
+    after every method had run, and the report was lost. They show the first channel in gray,
+    as the plugin shows the lazy one."""
+    from warptex.exemplar import Exemplar
+
+    colors = Exemplar.load(data_dir / "granite_64.png").colors
+    path = tmp_path / "two.npy"
+    np.save(path, np.ascontiguousarray(colors[..., :2]))
+    comparison = compare.compare(compare.Setup(path, 8), ["noise", "flat"], progress=False)
+    files = compare.write_report(comparison, tmp_path / "out")
+    assert {f.name for f in files} == {"sheet.png", "table.md", "table.json"}
+    volume = np.repeat(colors[None, :8, :8, :2], 8, axis=0)
+    job = compare._Job(compare.Setup(path, 8), (Exemplar.load(path),) * 3)
+    grid = compare._cube_texture("noise", job, volume)["volume"]["data"]
+    assert np.asarray(grid).shape == (8, 8, 8, 1)
+
+
+def test_method_names_and_cube_arguments_that_are_no_such_things_are_refused(data_dir):
+    """Non-string method names failed inside str.join or a dict lookup, and render_cube(None)
+    ended the interpreter in Mitsuba: each is now one error naming the argument."""
+    for methods, match in ((None, "methods must be a sequence"), ([1], "got 1"),
+                           (["noise", ["flat"]], r"got \['flat'\]"), ([b"noise"], "got b'noise'")):
+        with pytest.raises(TypeError, match=match):
+            compare.check_methods(methods)
+    with pytest.raises(TypeError, match="texture must be a Mitsuba texture dict"):
+        compare.render_cube(None, 8)
+    for resolution in (0, -5, 1.5):
+        with pytest.raises(ValueError, match="resolution"):
+            compare.render_cube({"type": "rgb", "value": 0.5}, resolution)

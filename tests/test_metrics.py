@@ -430,3 +430,17 @@ def test_bidirectional_energy_is_the_largest_sum_over_the_axes(monkeypatch):
     assert metrics.bidirectional_energy(None, None, tileable=False) == pytest.approx(0.7)
     assert metrics.worst_axis_energy(None, None, tileable=False) == 0.3
     assert told == [False] * 9
+
+
+def test_repetition_and_patches_refuse_images_they_cannot_measure():
+    """An empty image failed in NumPy's FFT or scored 0.0, a complex one was scored on its
+    real part, and patches larger than the image failed in NumPy without naming size."""
+    for shape in ((0, 40), (40, 40, 0)):
+        with pytest.raises(ValueError, match="image must be"):
+            metrics.repetition_score(np.zeros(shape))
+    with pytest.raises(TypeError, match="real numbers, got complex128"):
+        metrics.repetition_score(np.ones((40, 40), complex))
+    assert metrics.repetition_score(np.eye(40, dtype=bool)) >= 0.0
+    with pytest.raises(ValueError, match=r"size \(of the patches\) 20 exceeds the image's 16 x 16"):
+        metrics.patches(np.zeros((16, 16, 3)), 20)
+    assert metrics.patches(np.zeros((16, 16, 3)), 20, wrap=True).shape == (256, 1200)

@@ -408,6 +408,9 @@ def render_cube(texture: dict, resolution: int = 128) -> np.ndarray:
     """
     import mitsuba_plugin
 
+    if not isinstance(texture, dict) or not isinstance(texture.get("type"), str):
+        raise TypeError(f"texture must be a Mitsuba texture dict with a 'type', got {texture!r}")
+    resolution = check_count("resolution", resolution, low=1)
     mi = _mitsuba()
     T = mi.ScalarTransform4f
     scene = mi.load_dict({
@@ -450,7 +453,10 @@ def _cube_texture(method: str, job: _Job, volume: np.ndarray) -> dict:
         return {"type": "lazy_solid", **exemplars, "seed": s.seed, "jitter": s.jitter,
                 "shifted_tiles": s.shifted_tiles, "passes": s.passes,
                 "tileable": tileable_word(s.tileable), "scale": float(size)} | loading
-    colors = reencoded(volume[..., :3], srgb=axes[0].srgb, to_srgb=False)
+    # Gray where there are fewer than three channels, as the plugin shows them: Mitsuba's
+    # grid volume takes 1, 3 or 6 channels.
+    shown = volume[..., :3] if volume.shape[3] >= 3 else volume[..., :1]
+    colors = reencoded(shown, srgb=axes[0].srgb, to_srgb=False)
     data = _mitsuba().TensorXf(np.ascontiguousarray(colors.transpose(2, 1, 0, 3)))
     return {"type": "volume", "volume": {"type": "gridvolume", "data": data,
                                          "filter_type": "trilinear"}}
@@ -607,7 +613,13 @@ def check_methods(methods: Iterable[str]) -> list[str]:
     if isinstance(methods, str):  # its letters would be taken for methods
         raise TypeError(f"methods must be a sequence of method names, such as "
                         f"[{methods!r}], got the string {methods!r}")
-    methods = list(methods)  # an iterator is read more than once below
+    try:
+        methods = list(methods)  # an iterator is read more than once below
+    except TypeError:
+        raise TypeError(f"methods must be a sequence of method names, got {methods!r}") from None
+    named = [m for m in methods if not isinstance(m, str)]
+    if named:
+        raise TypeError(f"methods must be method names (strings), got {named[0]!r}")
     unknown = [m for m in methods if m not in _RUN]
     if unknown:
         raise ValueError(

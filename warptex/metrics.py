@@ -74,6 +74,8 @@ def patches(image: np.ndarray, size: int, stride: int = 1,
     stride = check_count("stride", stride, low=1)
     wrap_rows, wrap_cols = (wrap, wrap) if np.ndim(wrap) == 0 else wrap
     h, w, c = image.shape
+    if (size > h and not wrap_rows) or (size > w and not wrap_cols):
+        raise ValueError(f"size (of the patches) {size} exceeds the image's {h} x {w} pixels")
     image = np.pad(image, ((0, size - 1 if wrap_rows else 0), (0, size - 1 if wrap_cols else 0),
                            (0, 0)), mode="wrap")
     h2, w2 = (h if wrap_rows else h - size + 1), (w if wrap_cols else w - size + 1)
@@ -319,10 +321,13 @@ def repetition_score(image: np.ndarray, exclude: int = 8) -> float:
     period a little longer than half the slice shows there as a rising correlation. A
     constant slice (the ``flat`` reference) scores 0: it has no pattern, and no energy to
     normalize by, so this score cannot tell it from one where nothing repeats."""
-    image = np.asarray(image, dtype=np.float64)
+    image = np.asarray(image)
+    if image.dtype.kind not in "biuf":  # a complex one's imaginary part would be dropped
+        raise TypeError(f"image must hold real numbers, got {image.dtype}")
     image = image[:, :, None] if image.ndim == 2 else image
-    if image.ndim != 3:
+    if image.ndim != 3 or 0 in image.shape:
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
+    image = image.astype(np.float64)
     if not np.isfinite(image).all():
         raise ValueError("image holds NaN or infinite values")
     check_count("exclude", exclude)  # shift 0 always matches itself
