@@ -38,7 +38,7 @@ import mitsuba as mi
 
 import warptex
 from warptex.llvm import MIN_LLVM_MAJOR, configure_drjit
-from warptex.settings import is_integer
+from warptex.settings import MAX_SPP, is_integer
 
 # Symbolic renders of one batch before falling back to wavefront mode: each synthesizes
 # what the previous one missed; paths seldom reach new bricks after the second.
@@ -197,6 +197,7 @@ def render(scene: mi.Scene, spp: int | None = None, batches: int = 1, seed: int 
     bits. The scene's sampler keeps its sample count.
     """
     _check_scene(scene, whole=True)
+    _check_texture_places(scene)
     for name, value in (("spp", spp), ("batches", batches), ("seed", seed)):
         if value is not None and not is_integer(value):
             raise TypeError(f"{name} must be an integer, got {value!r}")
@@ -236,6 +237,9 @@ def _batch_shares(sampler: mi.Sampler, spp: int | None, batches: int) -> list[in
     if total < 1:
         raise ValueError(f"spp must be positive, got {total}" if spp is not None else
                          "the scene's sampler takes no samples per pixel: give spp")
+    if total > MAX_SPP:
+        raise ValueError(f"spp must be at most {MAX_SPP} (Mitsuba counts samples per pixel "
+                         f"in 32 bits), got {total}")
     if batches < 1:
         raise ValueError(f"batches must be positive, got {batches}")
     kind = str(sampler).split("[", 1)[0]
@@ -367,6 +371,20 @@ def textures(scene: mi.Object | None = None) -> list:
     found = {id(entry[2]): entry[2] for entry in mi.traverse(scene).properties.values()
              if entry[2] in live_textures}
     return list(found.values())
+
+
+def _check_texture_places(scene: mi.Scene) -> None:
+    """Refuse a ``lazy_solid`` that a constant volume of Mitsuba's own holds, as its own
+    media (homogeneous, heterogeneous) hold a texture given for a volume: that volume reads
+    the texture at p = 0 only (mitsuba_plugin.volume), so the medium would render one color
+    without a word. Such a texture is the ``value`` of its volume in the scene's parameters."""
+    for key, entry in mi.traverse(scene).properties.items():
+        if entry[2] in live_textures and key.endswith(".value.to_world"):
+            where = ".".join(p for p in key.split(".")[:-2] if not p.startswith("object_"))
+            raise ValueError(f"a lazy_solid texture is the constant volume {where} of a medium "
+                             "of Mitsuba's own, which reads it at one point only: the medium "
+                             "would show one color; use a lazy_solid_medium for its albedo or "
+                             "sigma_t (README, The Mitsuba plugin)")
 
 
 def _check_scene(scene: object, whole: bool = False) -> None:

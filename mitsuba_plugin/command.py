@@ -27,7 +27,7 @@ from warptex.archive import (
 )
 from warptex.machine import software_versions
 from warptex.parallel import deferred_stops
-from warptex.settings import MAX_SAMPLER_SEED, RENDER_BATCHES
+from warptex.settings import MAX_SAMPLER_SEED, MAX_SPP, RENDER_BATCHES
 from warptex.store import StoreFileError, saved_when_stopped
 
 IMAGE_SUFFIXES = (".exr", ".png")
@@ -93,6 +93,17 @@ def _scene_error(text: str, scene: Path | None = None) -> str:
     if scene is not None and Path(file).resolve() == scene.resolve():
         return f"{place}: {message}"
     return f"{file} ({place}): {message}"
+
+
+def _render_error(error: BaseException) -> str:
+    """Mitsuba's own message for a render that failed: the first in the chain of ``error``
+    that does not point elsewhere (Dr.Jit's wrapper says "see above"), without the tag of
+    the class that raised it ("[Endpoint] ")."""
+    chain = [error]
+    while (cause := chain[-1].__cause__ or chain[-1].__context__) is not None:
+        chain.append(cause)
+    own = next((str(e) for e in reversed(chain) if "(see above)" not in str(e)), str(error))
+    return re.sub(r"^\[[\w.:]+\] ", "", own.strip())
 
 
 def _scene_root(path: Path) -> ElementTree.Element | None:
@@ -179,8 +190,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
         raise ValueError(f"output must end in {endings(IMAGE_SUFFIXES)}, got {output.name!r}")
-    if spp is not None and spp < 1:
-        raise ValueError(f"--spp must be positive, got {spp}")
+    if spp is not None and not 1 <= spp <= MAX_SPP:
+        raise ValueError(f"--spp must be 1 to {MAX_SPP} (Mitsuba counts samples per pixel in "
+                         f"32 bits), got {spp}")
     if not 0 <= seed <= MAX_SAMPLER_SEED:
         raise ValueError(f"--sampler-seed must be 0 to {MAX_SAMPLER_SEED}, got {seed}")
     parameters = dict(parameters or {})
@@ -248,9 +260,13 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         if unused:
             from mitsuba_plugin.properties import did_you_mean
 
-            hint = (did_you_mean(next(iter(unused)),
-                                 tuple(_declared_parameters(_scene_root(scene_path))))
-                    if len(unused) == 1 else "")
+            declared = _declared_parameters(_scene_root(scene_path))
+            if len(unused) > 1:
+                hint = ""
+            elif unused <= set(declared):  # no typo to point at: the name is the scene's own
+                hint = f" (declared by a <default>, but no value reads ${next(iter(unused))})"
+            else:
+                hint = did_you_mean(next(iter(unused)), tuple(declared))
             raise ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
                              f"{', '.join(sorted(unused))}{hint}") from None
         problem = _scene_error(str(e), scene_path)
@@ -259,6 +275,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     try:
         sensor = mitsuba_plugin.first_sensor(scene)
         _check_renderable(scene, sensor, spp, output)
+        mitsuba_plugin._check_texture_places(scene)
         for texture in mitsuba_plugin.textures(scene):
             _check_texture_files(texture, [output, statistics], save_stores)
     except ValueError as e:
@@ -270,8 +287,12 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     total = sum(shares)
     _check_render_size(*sensor.film().crop_size(), max(shares))
     with saved_when_stopped(partial(mitsuba_plugin.save_caches, scene) if save_stores else list):
-        image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
-                                      seed=seed, progress=_progress)
+        try:
+            image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
+                                          seed=seed, progress=_progress)
+        except RuntimeError as e:  # what the scene asks of Mitsuba that it cannot do
+            raise ValueError(f"{scene_path}: Mitsuba cannot render the scene: "
+                             f"{_render_error(e)}") from None
         rendered = time.perf_counter()
         # Before the image: a stop while the stores are written (the longest of the writes)
         # leaves the image and its statistics as they were, never one beside the other's.

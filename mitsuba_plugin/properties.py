@@ -125,5 +125,6 @@ def _missing_file(name: str) -> str:
                     return f'names a broken symbolic link: "{name}" ({place})'
         except OSError as error:  # a folder on the way that cannot be searched, a link loop
             return f'cannot look up "{name}" ({place}: {error.strerror})'
-    searched = f" (looked for in {', '.join(folders)})" if folders else ""
+    # The folder of a scene given by a bare file name is "", the working folder.
+    searched = f" (looked for in {', '.join(f or '.' for f in folders)})" if folders else ""
     return f'names a file that does not exist: "{name}"{searched}'

@@ -136,7 +136,7 @@ from warptex.settings import (
     check_settings,
     names_folder,
 )
-from warptex.store import StoreFileError, check_lookup_channels
+from warptex.store import StoreFileError, check_lookup_channels, check_store_path
 from warptex.texture import SolidTexture, wrap_far
 from warptex.thread_warnings import Warned, captured
 
@@ -239,6 +239,14 @@ def _affine_matrix(transform: Any) -> np.ndarray:
     """The 4x4 float64 matrix of a Mitsuba transform (scalar or width-1 JIT)."""
     matrix = np.array(transform.matrix, np.float64)
     return matrix.reshape(4, 4)
+
+
+def _recorded_matrix(transform: Any) -> list[list[float]]:
+    """The 4x4 matrix of a Mitsuba transform as a report records it: each entry the shortest
+    decimal that reads back as the value held (float32 in most variants), so that the
+    recorded texture places the block exactly where the render did, however small its scale."""
+    matrix = np.array(transform.matrix).reshape(4, 4)
+    return [[float(np.format_float_positional(v, unique=True)) for v in row] for row in matrix]
 
 
 def _to_world(props: mi.Properties) -> np.ndarray:
@@ -353,6 +361,8 @@ class LazySolidTexture(mi.Texture):
         except ValueError as e:  # the exemplars do not go together
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
         try:
+            if self._read_only and store is not None:  # read, never saved: said as such
+                check_store_path(store, saving=False)
             with captured() as said:  # a store file ignored
                 self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
                                           passes=self.passes, cache_bytes=cache_bytes,
@@ -471,7 +481,7 @@ class LazySolidTexture(mi.Texture):
                 "seed": self.seed, "jitter": self.jitter,
                 "shifted_tiles": self.shifted_tiles, "tileable": self.tileable,
                 "passes": self.passes, "scale": self.scale,
-                "to_world": np.round(_affine_matrix(self.to_world), 6).tolist(),
+                "to_world": _recorded_matrix(self.to_world),
                 "space": self.space, "filter": self.filter, "raw": self.raw,
                 "cache": None if self.cache is None else str(self.cache),
                 "cache_bytes": self.cache_bytes}

@@ -949,3 +949,15 @@ def test_a_store_file_ignored_is_said_of_the_cache_property(granite_32_file, tmp
     with pytest.warns(UserWarning, match=r'^lazy_solid: property "cache": ignoring brick '
                                          r"store file, starting empty: .*bricks\.wtb"):
         load(granite_32_file, cache=str(store))
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_the_recorded_to_world_is_the_one_rendered(granite_32_file, variant):
+    """properties() rounded to_world to 6 decimals: a block scaled by 4e-7 was recorded as a
+    zero matrix, and a rotation only nearly. Each entry now reads back as the value held."""
+    use(variant)
+    rotation = mi.ScalarTransform4f().rotate([0.3, 0.5, 0.8], 30.0).scale(4e-7)
+    tex = load(granite_32_file, to_world=rotation)
+    recorded = np.array(tex.properties()["to_world"], np.float32)
+    np.testing.assert_array_equal(recorded, np.array(rotation.matrix, np.float32).reshape(4, 4))
+    assert recorded[0, 0] != 0.0

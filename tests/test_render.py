@@ -291,6 +291,7 @@ def test_render_refuses_arguments_mitsuba_would_fail_on_deep_inside():
     scene = mi.load_file(str(REPO / "scenes" / "bunny_wood.xml"), width=4, height=4)
     for kwargs, error, words in (
             ({"spp": 0}, ValueError, "spp must be positive, got 0"),
+            ({"spp": 2**32}, ValueError, "spp must be at most 4294967295 (Mitsuba counts"),
             ({"spp": 2.5}, TypeError, "spp must be an integer, got 2.5"),
             ({"batches": 0}, ValueError, "batches must be positive, got 0"),
             ({"seed": -1}, ValueError, "seed must be 0 to 4294967295 for 1 batch, got -1"),
@@ -904,3 +905,65 @@ def test_medium_scatters_with_the_texture_at_each_point(granite_32_file, srgb_de
     np.testing.assert_allclose(np.array(sigma_t).T, 6.0, rtol=1e-6)
     np.testing.assert_allclose(albedo, srgb_decoded(texture.solid.query(points * 8.0)),
                                rtol=1e-5, atol=1e-6)
+
+
+def test_render_command_messages_say_what_is_so(tmp_path, capsys, monkeypatch):
+    """A scene Mitsuba cannot render (ptracer through an orthographic camera) gave a
+    traceback and exit 1, as for a file that could not be written; -D of a parameter the
+    scene declares but never reads was asked whether it meant itself; a store file of
+    another kind, only to be read, was said to be overwritten; a scene given by a bare
+    file name listed "" among the folders an exemplar was looked for in."""
+    from warptex.cli import main
+
+    scene = _scene_with_cache(tmp_path, "notes.wtb")
+    (scene.parent / "notes.wtb").write_text("someone's notes")
+    text = scene.read_text()
+    argv = ["render", str(scene), "--spp", "1", "--res", "8x8", "-o", str(tmp_path / "o.exr")]
+    assert main([*argv, "--read-only-stores"]) == 2
+    err = capsys.readouterr().err
+    assert "exists and is not a warptex brick store file" in err and "overwritten" not in err
+    assert main(argv) == 2
+    assert "it would be overwritten" in capsys.readouterr().err
+    mitsuba_plugin.live_textures.clear()
+
+    plain = scene.with_name("plain.xml")
+    plain.write_text(text.replace('<string name="cache" value="notes.wtb"/>', "")
+                     .replace('<default name="spp"', '<default name="unread" value="1"/>'
+                              '<default name="spp"'))
+    assert main([*argv[:1], str(plain), *argv[2:], "-D", "unread=2"]) == 2
+    err = capsys.readouterr().err
+    assert "does not use: unread (declared by a <default>, but no value reads $unread)" in err
+    assert "did you mean" not in err
+
+    ortho = scene.with_name("ortho.xml")
+    integrator = re.search(r'<integrator type="\w+"', text).group(0)
+    sensor = re.search(r'<sensor type="\w+"', text).group(0)
+    ortho.write_text(re.sub(r'<float name="fov"[^>]*/>', "", text)
+                     .replace('<string name="cache" value="notes.wtb"/>', "")
+                     .replace(integrator, '<integrator type="ptracer"')
+                     .replace(sensor, '<sensor type="orthographic"'))
+    assert main([*argv[:1], str(ortho), *argv[2:]]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().endswith(f"{ortho}: Mitsuba cannot render the scene: "
+                                "Endpoint::sample_direction(): not implemented!")
+    assert "Traceback" not in err
+
+    missing = scene.with_name("missing.xml")
+    missing.write_text(text.replace("wood_rosewood_64.png", "nowhere.png"))
+    monkeypatch.chdir(scene.parent)
+    assert main(["render", missing.name, "--spp", "1", "--res", "8x8", "-o", "o.exr"]) == 2
+    assert '"textures/nowhere.png" (looked for in ., ' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("medium", ["homogeneous", "heterogeneous"])
+def test_a_texture_in_a_medium_of_mitsubas_own_is_refused(granite_32_file, medium):
+    """Mitsuba's media hold a texture as a constant volume, read at p = 0 only: the medium
+    rendered one color without a word. Refused, naming lazy_solid_medium; in it, rendered."""
+    use("scalar_rgb")
+    texture = lazy(granite_32_file)
+    own = _medium_cube_scene({"type": medium, "albedo": texture, "sigma_t": 2.0})
+    with pytest.raises(ValueError, match="a lazy_solid texture is the constant volume "
+                       r"\S*albedo of a medium of Mitsuba's own.*use a lazy_solid_medium"):
+        mitsuba_plugin.render(own, spp=1)
+    ours = _medium_cube_scene({"type": "lazy_solid_medium", "albedo": texture, "sigma_t": 2.0})
+    assert rgb(mitsuba_plugin.render(ours, spp=1)).std() > 0

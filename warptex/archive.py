@@ -333,10 +333,12 @@ def is_foreign(path: str | Path, magic: bytes) -> bool:
 
 
 def overwrite_problem(path: str | Path, magic: bytes, kind: str,
-                      advice: str = "") -> str | None:
+                      advice: str = "", written: bool = True) -> str | None:
     """Why writing a ``magic`` archive, a ``kind`` file, to ``path`` would destroy what is
     there (a folder, or a file of another kind, followed by ``advice``), or why that cannot
-    be told; None where it is missing or such a file already."""
+    be told; None where it is missing or such a file already. Where the file is only to be
+    read (not ``written``), a file of another kind is refused as such, without the
+    overwriting that does not happen."""
     try:
         foreign = is_foreign(path, magic)
     except OSError as e:
@@ -344,7 +346,8 @@ def overwrite_problem(path: str | Path, magic: bytes, kind: str,
     if foreign and Path(path).is_dir():
         return f"is a folder, expected a {kind} file"
     if foreign:
-        return f"exists and is not a warptex {kind} file; it would be overwritten{advice}"
+        overwritten = "; it would be overwritten" if written else ""
+        return f"exists and is not a warptex {kind} file{overwritten}{advice}"
     return None
 
 

@@ -20,6 +20,7 @@ MAX_SEED = 2**31 - 1  # the kernels hash seeds as 31-bit integers
 RENDER_BATCHES = 8  # renders of one image at most (`warptex render`): each a step of its bar
 # Batches take the sampler seeds seed * batches + i, which Mitsuba keeps as 32-bit integers.
 MAX_SAMPLER_SEED = 2**32 // RENDER_BATCHES - 1
+MAX_SPP = 2**32 - 1  # Mitsuba's samplers count samples per pixel in 32 bits
 FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered
 DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
 DEFAULT_COARSE_CACHE_BYTES = 256 << 20  # coarse-level blocks the engine keeps per level

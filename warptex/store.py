@@ -364,10 +364,12 @@ def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
     return "" if theirs == mine else _differences(theirs, mine, "in the other texture")
 
 
-def check_store_path(path: str | Path) -> None:
+def check_store_path(path: str | Path, saving: bool = True) -> None:
     """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
-    saving a store there would destroy; a missing file or any brick store file is fine."""
-    problem = overwrite_problem(path, _MAGIC, "brick store", ", choose another store path")
+    saving a store there would destroy (or, not ``saving``, which is no store to read); a
+    missing file or any brick store file is fine."""
+    problem = overwrite_problem(path, _MAGIC, "brick store", ", choose another store path",
+                                written=saving)
     if problem is not None:
         raise StoreFileError(f"{path}: {problem}")
 
