@@ -6,8 +6,8 @@ then the time of 256^2 planar cuts through the interior, three planes per filter
 filter its own), cold and again through the warm coarse-level cache (bricks dropped, so
 the finest level is synthesized again).
 
-    python benchmarks/bench_surface.py [--resolution 1024] [--mesh PATH] [--exemplar PATH]
-                                       [--passes 2]
+    python benchmarks/bench_surface.py [--resolution 1024] [--mesh PATH | --rod]
+                                       [--exemplar PATH] [--passes 2]
 """
 
 from __future__ import annotations
@@ -29,10 +29,20 @@ from warptex.texture import SolidTexture
 SHARED = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
+def _rod() -> trimesh.Trimesh:
+    rod = trimesh.creation.cylinder(radius=0.01, height=1.0, sections=16)
+    rod.apply_transform(trimesh.geometry.align_vectors([0, 0, 1], [1, 1, 1]))
+    return rod
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--resolution", type=int, default=1024)
-    parser.add_argument("--mesh", type=Path, default=SHARED / "meshes" / "stanford_bunny.ply")
+    meshes = parser.add_mutually_exclusive_group()
+    meshes.add_argument("--mesh", type=Path, default=SHARED / "meshes" / "stanford_bunny.ply")
+    meshes.add_argument("--rod", action="store_true",
+                        help="instead of a mesh file, a 64-face rod of radius 0.01 and length 1 "
+                        "along the block's diagonal: long slivers, as CAD exports have")
     parser.add_argument("--exemplar", type=Path,
                         default=SHARED / "exemplars" / "marble_black_64.png")
     parser.add_argument("--passes", type=int, default=2,
@@ -40,7 +50,7 @@ def main() -> None:
     args = parser.parse_args()
     print(run_record(), flush=True)
     res = args.resolution
-    mesh = trimesh.load(args.mesh, force="mesh")
+    mesh = _rod() if args.rod else trimesh.load(args.mesh, force="mesh")
     tex = SolidTexture(Exemplar.load(args.exemplar), seed=1, cache_bytes=8 << 30,
                        whole_bricks=False, passes=args.passes)  # as `warptex bake` does
     # Kernels compiled outside the timings: the engine's and lookups', and the shell's.
@@ -58,8 +68,8 @@ def main() -> None:
     done = {lv: n - warm[lv] for lv, n in stats["voxels_synthesized"].items()}
     finest = tex.synthesizer.finest
     full_bytes = res**3 * stats["bytes_per_voxel"]
-    print(f"mesh {args.mesh.name}, block {res}^3, exemplar {args.exemplar.name}, "
-          f"{args.passes} correction passes per level")
+    print(f"mesh {'rod' if args.rod else args.mesh.name}, block {res}^3, exemplar "
+          f"{args.exemplar.name}, {args.passes} correction passes per level")
     print(f"surface shell: {len(voxels)} voxels ({100 * len(voxels) / res**3:.3f}% of the "
           f"block), found in {shell_seconds:.2f} s")
     print("voxels corrected per level (finest last): "

@@ -557,14 +557,24 @@ def test_uv_layouts_that_bake_wrong_colors_are_told(texture, sphere):
     mirrored = np.array([[0.1, 0.1], [0.9, 0.1], [0.1, 0.9], [0.1, 0.9]])
     mesh = trimesh.Trimesh(v, faces, process=False)
     _, covered = bake_uv_texture(_Constant(), mesh, mirrored, np.eye(4), size=64)
-    (overlap,) = uv_layout_problems(mirrored, faces, covered)
+    # The third triangle's UVs run along a line: collapsed, they show no texel.
+    collapsed, overlap = uv_layout_problems(mirrored, faces, covered)
+    assert collapsed.startswith("the UVs of 1 of 3 triangles have no area (collapsed")
     share, said = overlap.split("% ", 1)  # two of the three triangles alike: about half
     assert 45 <= int(share) <= 55 and said.startswith("of the UV area lies over other")
     tiled = mirrored * np.array([3.0, 1.0])
     _, covered = bake_uv_texture(_Constant(), mesh, tiled, np.eye(4), size=64)
-    assert uv_layout_problems(tiled, faces, covered)[0] == (
+    assert uv_layout_problems(tiled, faces, covered)[1] == (
         "the UVs of 2 of 3 triangles reach outside [0, 1] (tiled UVs), where no texel holds "
         "their colors")
+    # Unmapped faces exported at one UV: all collapsed, but not a degenerate face, which
+    # has no surface to show.
+    flat = np.zeros((4, 2))
+    _, covered = bake_uv_texture(_Constant(), mesh, flat, np.eye(4), size=64)
+    assert uv_layout_problems(flat, faces, covered, mesh.area_faces)[0].startswith(
+        "the UVs of 3 of 3 triangles have no area")
+    assert uv_layout_problems(flat, faces, covered, np.array([1.0, 0.0, 1.0]))[0].startswith(
+        "the UVs of 2 of 3 triangles have no area")
 
 
 def test_vertex_colors_use_the_filter_asked_for(texture):
@@ -938,3 +948,82 @@ def test_cap_ties_are_broken_by_position_not_numbering():
     segments = vertices[edges][:, :, :2]
     shuffled = segments[rng.permutation(len(segments))][:, ::-1]
     np.testing.assert_array_equal(_in_order(shuffled), _in_order(segments))
+
+
+def test_meshes_far_out_or_tiny_unwrap_as_at_unit_size():
+    """xatlas works in float32: a sphere at map coordinates got faces of no UV area (a
+    scrambled texture, exit 0), one of 2 mm NaN UVs (a traceback after the synthesis).
+    Unwrapped at unit size, each gets the UVs of the sphere at the origin, its own
+    vertices kept."""
+    from warptex.bake import unwrapped
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    reference = unwrapped(sphere)
+    for scale, offset in ((10.0, [4.5e5, 5.4e6, 120.0]), (1e-3, [0.0, 0.0, 0.0])):
+        placed = trimesh.Trimesh(sphere.vertices * scale + offset, sphere.faces, process=False)
+        mesh = unwrapped(placed)
+        np.testing.assert_array_equal(mesh.faces, reference.faces)
+        np.testing.assert_allclose(mesh.visual.uv, reference.visual.uv, atol=1e-5)
+        corners = mesh.visual.uv[mesh.faces]
+        edges = corners[:, 1:] - corners[:, :1]
+        area = edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0]
+        assert (np.abs(area) > 1e-9).all()
+        np.testing.assert_array_equal(mesh.vertices, placed.vertices[_vertex_map(mesh, placed)])
+
+
+def _vertex_map(split: trimesh.Trimesh, whole: trimesh.Trimesh) -> np.ndarray:
+    """For each vertex of ``split`` (an unwrapped ``whole``), the vertex of ``whole`` that
+    its faces put in its place."""
+    vmap = np.zeros(len(split.vertices), int)
+    vmap[split.faces.ravel()] = whole.faces.ravel()
+    return vmap
+
+
+def test_outputs_keep_what_the_input_mesh_reads_and_what_they_are_given(tmp_path, data_dir,
+                                                                         capsys):
+    """An .obj's material library was replaced by an output of its name (the input then
+    showed the baked texture); colors or UVs of another length were written gray or not at
+    all; a mesh 2e-9 across came out of an .obj as one point."""
+    from warptex.cli import main
+    from warptex.mesh_files import export, referenced_files
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    uv = (sphere.vertices[:, :2] + 1) / 2
+    export(sphere, folder / "ball.obj", image=np.full((8, 8, 3), 0.5, np.float32), uv=uv)
+    (folder / "ball.obj").rename(folder / "input.obj")
+    assert referenced_files(folder / "input.obj") == [folder / "ball.mtl", folder / "ball.png"]
+    before = (folder / "ball.mtl").read_bytes()
+    assert main(["bake", str(folder / "input.obj"), "--exemplar", str(data_dir / "granite_64.png"),
+                 "--resolution", "16", "--uv", "mesh", "--texture-size", "8",
+                 "-o", str(folder / "ball.obj")]) == 2
+    assert capsys.readouterr().err == (f"warptex: error: {folder / 'ball.mtl'}: "
+                                       f"{folder / 'input.obj'} reads this file; choose another "
+                                       "output name\n")
+    assert (folder / "ball.mtl").read_bytes() == before
+    for name, given in (("colors", {"colors": np.zeros((10, 3), np.float32)}),
+                        ("uv", {"uv": uv[:10], "image": np.zeros((8, 8, 3), np.float32)})):
+        for suffix in (".ply", ".glb") if name == "colors" else (".glb", ".obj"):
+            with pytest.raises(ValueError, match=f"{name} holds 10 rows, one per vertex of the "
+                               f"mesh's {len(sphere.vertices)}"):
+                export(sphere, tmp_path / f"bad{suffix}", **given)
+    tiny = trimesh.Trimesh(sphere.vertices * 1e-9, sphere.faces, process=False)
+    export(tiny, tmp_path / "tiny.obj", image=np.zeros((8, 8, 3), np.float32), uv=uv)
+    read = trimesh.load(tmp_path / "tiny.obj", force="mesh", process=False)
+    np.testing.assert_allclose(read.vertices, tiny.vertices, rtol=1e-6, atol=1e-18)
+
+
+def test_a_ply_whose_small_faces_float32_would_bend_is_refused(tmp_path, data_dir, capsys):
+    """A 40 m sphere of 5 cm faces at map coordinates moves by a small part of its size in
+    float32 (0.6 %), which the check let through, but by a large part of its edges: faces
+    collapsed and turned. The median edge is the measure now."""
+    from warptex.cli import main
+
+    statue = trimesh.creation.icosphere(subdivisions=7, radius=20.0)
+    statue.apply_translation([4.5e5, 5.4e6, 120.0])
+    (tmp_path / "statue.obj").write_text(trimesh.exchange.obj.export_obj(statue, digits=10))
+    assert main(["bake", str(tmp_path / "statue.obj"), "--exemplar",
+                 str(data_dir / "granite_64.png"), "--resolution", "16",
+                 "-o", str(tmp_path / "statue.ply")]) == 2
+    assert "of its median edge" in capsys.readouterr().err

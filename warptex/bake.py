@@ -69,16 +69,46 @@ def _checked_uv(uv: object, vertices: int, faces: np.ndarray) -> np.ndarray:
 # centres sample each triangle's area, more or less by a row along the layout's outlines.
 _OVERLAP_SLACK = 0.05
 _UV_SLACK = 1e-4  # of the texture's side: far below one texel of any texture baked
+_COLLAPSED_AREA = 1e-12  # of the texture's: a millionth of a texel of a 1024^2 texture
 
 
-def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray) -> list[str]:
+def unwrapped(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` with UVs made by xatlas, its vertices split along the UV seams, as
+    ``Trimesh.unwrap`` gives it, but unwrapped at unit size around the origin: xatlas works
+    in float32, in which a mesh at map coordinates (1e5 units out) collapsed to faces of no
+    UV area and one a few millimetres across to NaN UVs. The vertices are the mesh's own."""
+    import xatlas
+    from trimesh.visual import TextureVisuals
+
+    vertices = np.asarray(mesh.vertices, np.float64)
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    extent = float((high - low).max()) or 1.0
+    vmap, faces, uv = xatlas.parametrize((vertices - (low + high) / 2) / extent,
+                                         checked_faces(mesh))
+    return trimesh.Trimesh(vertices=vertices[vmap], faces=faces,
+                           visual=TextureVisuals(uv=uv), process=False)
+
+
+def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray,
+                       areas: np.ndarray | None = None) -> list[str]:
     """What makes a mesh's own UVs bake colors that are not its surface's: triangles reaching
-    outside [0, 1] (tiled UVs), whose parts outside no texel holds, and triangles whose UV
+    outside [0, 1] (tiled UVs), whose parts outside no texel holds, triangles whose UV
     images overlap (mirrored or shared UVs), whose surface points share texels that show one
-    of them. ``covered`` is :func:`bake_uv_texture`'s coverage mask."""
+    of them, and triangles whose UVs have no area (collapsed, as exporters leave faces they
+    did not map), which no texel shows. ``covered`` is :func:`bake_uv_texture`'s coverage
+    mask; ``areas``, the faces' surface areas where given, leaves out faces of none."""
     uv = np.asarray(uv, np.float64)
     corners = uv[np.asarray(faces)]
     problems = []
+    sides = corners[:, 1:] - corners[:, :1]
+    uv_area = 0.5 * np.abs(sides[:, 0, 0] * sides[:, 1, 1] - sides[:, 0, 1] * sides[:, 1, 0])
+    collapsed = uv_area <= _COLLAPSED_AREA
+    if areas is not None:
+        collapsed &= np.asarray(areas) > 0
+    if collapsed.any():
+        problems.append(f"the UVs of {collapsed.sum()} of {len(faces)} triangles have no area "
+                        "(collapsed, as for faces an exporter did not map): no texel shows "
+                        "their surface")
     # Exporters' float32 rounding leaves UVs of a layout in [0, 1] a hair outside it.
     outside = ((corners < -_UV_SLACK) | (corners > 1.0 + _UV_SLACK)).any(axis=(1, 2))
     if outside.any():

@@ -5,9 +5,12 @@ PNG), each in the color encoding its readers assume (Dong 2008, 6.2: the baked r
 
 from __future__ import annotations
 
+import json
+import math
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import trimesh
@@ -26,10 +29,13 @@ _WELD_PRECISION = 1e-15
 # unit apart or more, and welding's integers (at _WELD_PRECISION) would overflow int64.
 _COORDINATE_LIMIT = 1e15
 # .ply and .glb files hold vertices as float32 (glTF has no other; trimesh writes PLY so): a
-# mesh whose vertices float32 would move by more than this share of its size, visibly, is
-# refused.
+# mesh whose vertices float32 would move by more than this share of its median edge, which
+# bends and collapses its faces, is refused.
 _FLOAT32_SHIFT = 1e-2
 _TOLERANCE_LOCK = threading.Lock()
+# MTL statements naming texture files (the file name last, after any options).
+_MATERIAL_MAPS = ("map_ka", "map_kd", "map_ks", "map_ns", "map_d", "map_bump", "bump",
+                  "disp", "decal", "refl", "norm", "map_pr", "map_pm", "map_ps", "map_ke")
 VERTEX_COLOR_FORMATS = (".ply", ".glb")
 _GLB_COLOR = "_linear_color"  # a mesh attribute trimesh writes as it is: float, VEC3
 UV_TEXTURE_FORMATS = (".glb", ".obj")
@@ -117,18 +123,21 @@ def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
 
 def _check_float32_outputs(mesh: trimesh.Trimesh, outputs: Sequence[Path]) -> None:
     """Refuse a .ply or .glb output of a mesh that float32 cannot hold: one far from the
-    origin for its size (a building at map coordinates) came out flattened."""
+    origin for its edges (a building at map coordinates) came out flattened, or with its
+    small faces collapsed and turned, though it moved by a small part of its size."""
     narrow = [o for o in outputs if o.suffix.lower() in (".ply", ".glb")]
     if not narrow:
         return
     vertices = mesh.vertices
-    size = float(np.ptp(vertices, axis=0).max())
+    corners = vertices[mesh.faces]
+    lengths = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)
+    edge = float(np.median(lengths[lengths > 0])) if (lengths > 0).any() else 0.0
     shift = float(np.abs(vertices.astype(np.float32) - vertices).max())
-    if shift > _FLOAT32_SHIFT * size:
+    if shift > _FLOAT32_SHIFT * edge:
         raise MeshFileError(f"{narrow[0]}: .ply and .glb files hold vertices as float32, which "
-                            f"would move this mesh's by up to {shift:.3g}, {shift / size:.2g} "
-                            f"of its size (it lies {float(np.abs(vertices).max()):.3g} from "
-                            "the origin): write .obj, or move the mesh nearer the origin")
+                            f"would move this mesh's by up to {shift:.3g}, {shift / edge:.2g} "
+                            f"of its median edge (it lies {float(np.abs(vertices).max()):.3g} "
+                            "from the origin): write .obj, or move the mesh nearer the origin")
 
 
 def _matte(suffix: str, image: Image.Image | None,
@@ -153,6 +162,41 @@ def _float_color_0(tree: dict) -> None:
                 attributes["COLOR_0"] = attributes.pop(_GLB_COLOR)
 
 
+def referenced_files(path: str | Path) -> list[Path]:
+    """The files a mesh file names that exist, which its readers load with it: an OBJ's
+    material libraries and the textures they name, a .gltf's buffers and images. None where
+    the file cannot be read as such (loading it says why)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    named: list[Path] = []
+    try:
+        if suffix == ".obj":
+            for library in _statements(path, ("mtllib",)):
+                named.append(path.parent / library)
+                if named[-1].is_file():
+                    named += [named[-1].parent / name.split()[-1] for name in
+                              _statements(named[-1], _MATERIAL_MAPS) if name.split()]
+        elif suffix == ".gltf":
+            tree = json.loads(path.read_text(encoding="utf-8"))
+            named += [path.parent / unquote(item["uri"]) for kind in ("buffers", "images")
+                      for item in tree.get(kind, []) if isinstance(item, dict)
+                      and isinstance(item.get("uri"), str)
+                      and not item["uri"].startswith("data:")]
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [p for p in named if p.exists()]
+
+
+def _statements(path: Path, keywords: tuple[str, ...]) -> list[str]:
+    """What follows each line of ``path`` that starts with one of ``keywords``."""
+    found = []
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        word, _, rest = line.strip().partition(" ")
+        if word.lower() in keywords and rest.strip():
+            found.append(rest.strip())
+    return found
+
+
 def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
     """The files :func:`export` writes for ``path``: an OBJ with a UV texture comes with its
     material library and its PNG texture, named after it."""
@@ -171,6 +215,13 @@ def check_obj_name(path: str | Path) -> None:
         raise ValueError(f"{path}: an .obj names its .mtl and texture after itself on lines "
                          "that readers split at spaces; choose a name without spaces "
                          "(or .glb)")
+
+
+def _obj_digits(vertices: np.ndarray) -> int:
+    """Decimals an OBJ's numbers are written with: trimesh's 8, or more for a mesh under
+    a unit across, to keep a billionth of its size (one 2e-9 across came out as a point)."""
+    size = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    return 8 if size <= 0.0 else max(8, 9 - math.floor(math.log10(size)))
 
 
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
@@ -204,6 +255,11 @@ def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | 
     suffix = path.suffix.lower()
     options: dict = {}
     attributes: dict[str, np.ndarray] = {}
+    # trimesh writes arrays of another length without a word: gray, or no colors at all.
+    for name, per_vertex in (("colors", colors), ("uv", uv)):
+        if per_vertex is not None and len(per_vertex) != len(mesh.vertices):
+            raise ValueError(f"{name} holds {len(per_vertex)} rows, one per vertex of the "
+                             f"mesh's {len(mesh.vertices)}")
     if image is not None:
         if suffix not in UV_TEXTURE_FORMATS:
             raise ValueError(f"{path}: a UV texture needs a .glb or .obj file")
@@ -233,6 +289,7 @@ def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | 
         return [(path, out.export(file_type=suffix[1:], **options))]
     check_obj_name(path)
     text, companions = trimesh.exchange.obj.export_obj(out, mtl_name=f"{path.stem}.mtl",
-                                                        return_texture=True)
+                                                        return_texture=True,
+                                                        digits=_obj_digits(out.vertices))
     return [*((path.parent / name, companions[name]) for name in sorted(companions)),
             (path, text.encode())]

@@ -21,6 +21,10 @@ from warptex.warp_runtime import init_warp
 # Voxels a shell may hold: faces count the voxels they share each, which the int32 offsets
 # of the touched voxels must hold too (a few times the shell on fine meshes).
 MAX_SHELL = 1 << 28
+# The kernel tests every voxel of a triangle's bounding box: a triangle whose box holds this
+# many times more voxels than it can touch (a long sliver across the block, as CAD exports
+# have) is halved first. One along the block's diagonal cost the cube of the resolution.
+_BOX_WASTE = 64
 
 
 def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
@@ -105,11 +109,12 @@ def shell(
     checked_shell_size(mesh, m)
     init_warp()
     dev = device or default_device()
+    vertices_np, faces_np = _slivers_halved(to_voxel_space(mesh, m), faces_np)
     # The shell only decides which voxels are synthesized ahead of the queries, so float32
     # suffices: a voxel it misses at extreme resolutions is synthesized when first read.
-    vertices = wp.array(to_voxel_space(mesh, m).astype(np.float32), dtype=wp.vec3, device=dev)
+    vertices = wp.array(vertices_np.astype(np.float32), dtype=wp.vec3, device=dev)
     faces = wp.array(faces_np, dtype=wp.vec3i, device=dev)
-    nfaces = len(mesh.faces)
+    nfaces = len(faces_np)
     counts = wp.zeros(nfaces, dtype=wp.int32, device=dev)
     none = wp.empty(0, dtype=wp.vec3i, device=dev)
     # The counting pass: ``counts`` stands in for the offsets it does not read.
@@ -130,6 +135,46 @@ def shell(
         device=dev,
     )
     return _unique_rows(voxels.numpy())
+
+
+def _slivers_halved(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles of ``faces`` in voxel space, those whose bounding box the kernel would
+    search mostly in vain halved across their longest edge until none is (appended with
+    vertices of their own): together they cover the same surface, so they touch the same
+    voxels. The arrays as given where no triangle needs it, as on meshes of even ones."""
+    corners = vertices[faces]
+    wasteful = _box_waste(corners)
+    if not wasteful.any():
+        return vertices, faces
+    kept, pieces = [faces[~wasteful]], []
+    corners = corners[wasteful]
+    while len(corners):
+        # Each triangle turned so that its longest edge runs from corner 0 to corner 1.
+        lengths = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2)
+        turn = (np.arange(3) + lengths.argmax(axis=1)[:, None]) % 3
+        a, b, c = np.moveaxis(np.take_along_axis(corners, turn[:, :, None], axis=1), 1, 0)
+        middle = (a + b) / 2
+        corners = np.concatenate([np.stack([a, middle, c], axis=1),
+                                  np.stack([middle, b, c], axis=1)])
+        wasteful = _box_waste(corners)
+        pieces.append(corners[~wasteful])
+        corners = corners[wasteful]
+    pieces = np.concatenate(pieces)
+    first = len(vertices)
+    added = first + np.arange(3 * len(pieces), dtype=np.int32).reshape(-1, 3)
+    return (np.concatenate([vertices, pieces.reshape(-1, 3)]),
+            np.concatenate([*kept, added]).astype(np.int32))
+
+
+def _box_waste(corners: np.ndarray) -> np.ndarray:
+    """Which triangles' (T, 3, 3) bounding boxes hold over ``_BOX_WASTE`` times the voxels
+    they can touch: about their area projected on the three axis planes and their edges'
+    lengths, a voxel or more each."""
+    boxes = np.prod(np.floor(corners.max(axis=1)) - np.floor(corners.min(axis=1)) + 1, axis=1)
+    edges = corners - np.roll(corners, -1, axis=1)
+    touched = (np.abs(np.cross(edges[:, 0], edges[:, 1])).sum(axis=1) / 2
+               + np.abs(edges).sum(axis=(1, 2)) + 1)
+    return boxes > _BOX_WASTE * touched
 
 
 def _unique_rows(voxels: np.ndarray) -> np.ndarray:

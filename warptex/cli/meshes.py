@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warptex.archive import file_problem, file_state, one_file_twice
+from warptex.archive import file_problem, file_state, one_file_twice, overwritten_input
 from warptex.cli.common import (
     CliError,
     WorkFailed,
@@ -94,6 +94,7 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
         VERTEX_COLOR_FORMATS,
         check_obj_name,
         exported_files,
+        referenced_files,
     )
     from warptex.synthesis import COORD_LIMIT
 
@@ -133,6 +134,12 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
             if problem is not None:
                 raise CliError(f"{side} (written with {output}): {problem}")
     written = [f for o in outputs for f in exported_files(o, uv_texture=args.uv != "none")]
+    clash = overwritten_input(written, referenced_files(args.mesh))
+    if clash is not None:  # an OBJ's material library or texture, say
+        output, source = clash
+        alias = "" if output == source else f" (as {source})"
+        raise CliError(f"{output}: {args.mesh} reads this file{alias}; choose another output "
+                       "name")
     twice = one_file_twice(written)  # links: the second half's name to the first's file, say
     if twice is not None:
         raise CliError(f"{twice[0]} and {twice[1]} are one file (through a link); each file "
@@ -170,7 +177,7 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
     warptex.mesh_files.export, nothing written yet."""
     from tqdm.auto import tqdm
 
-    from warptex.bake import bake_uv_texture, uv_layout_problems, vertex_colors
+    from warptex.bake import bake_uv_texture, unwrapped, uv_layout_problems, vertex_colors
     from warptex.parallel import in_child_process
 
     if args.uv == "none":
@@ -182,15 +189,17 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
         if args.uv == "auto":
             bar.set_postfix_str("unwrapping (xatlas)")
             # Its clock ticks while the child unwraps, so a slow unwrap does not look hung.
-            mesh = in_child_process(type(mesh).unwrap, mesh, while_waiting=bar.refresh)
+            mesh = in_child_process(unwrapped, mesh, while_waiting=bar.refresh)
         bar.update()
         uv = mesh.visual.uv  # _load_mesh checked --uv mesh; cut does not offer it
         size = _texture_size(args)
         bar.set_postfix_str(f"baking {size}^2 texels")
         image, covered = bake_uv_texture(tex, mesh, uv, transform, size=size)
         bar.update()
-    for problem in uv_layout_problems(uv, mesh.faces, covered) if args.uv == "mesh" else ():
-        warnings.warn(f"{args.mesh}: {problem}; --uv auto makes UVs of its own", stacklevel=1)
+    if args.uv == "mesh":  # xatlas' own are laid out as they should be
+        for problem in uv_layout_problems(uv, mesh.faces, covered, mesh.area_faces):
+            warnings.warn(f"{args.mesh}: {problem}; --uv auto makes UVs of its own",
+                          stacklevel=1)
     return {"mesh": mesh, "image": image, "uv": uv}
 
 
