@@ -98,7 +98,11 @@ CASES = [
     (["volume", "{exemplar}", "--passes", "9", "-o", "{out}/v.npy"],
      "--passes must be within [0, 8], got 9"),
     (["volume", "{exemplar}", "--method", "kopf", "--passes", "3", "-o", "{out}/v.npy"],
-     "apply to lazy synthesis only"),
+     "--passes: for lazy synthesis only, not --method kopf"),
+    # The default given, as a script may: still no setting Kopf takes.
+    (["volume", "{exemplar}", "--method", "kopf", "--jitter", "1", "--passes", "2",
+      "--shifted-tiles", "-o", "{out}/v.npy"],
+     "--passes, --jitter, --shifted-tiles: for lazy synthesis only, not --method kopf"),
     (["cut", "{mesh}", "--exemplar", "{exemplar}", "--passes", "-1", "-o", "{out}/c.ply"],
      "--passes must be"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "0", "-o", "{out}/b.ply"],

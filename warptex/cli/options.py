@@ -161,28 +161,42 @@ def alpha_kept(exemplars: Sequence[Exemplar]) -> bool:
     return all(e.kept_alpha for e in exemplars)
 
 
-def add_texture_arguments(parser: argparse.ArgumentParser, first: str) -> None:
+def add_texture_arguments(parser: argparse.ArgumentParser, first: str,
+                          unset: bool = False) -> None:
     """The settings of lazy synthesis: every command given the same ones gets the same
-    voxels."""
+    voxels. ``unset``: --passes and --jitter are None where not given, so that a command
+    with another method can tell them given (:func:`lazy_settings_given`)."""
     add_axis_exemplar_arguments(parser, first)
     parser.add_argument("--seed", type=int, default=0,
                         help="texture variation, 0 to 2147483647 (default 0)")
-    add_tiling_arguments(parser)
-    parser.add_argument("--passes", type=int, default=DEFAULT_PASSES,
+    add_tiling_arguments(parser, unset=unset)
+    parser.add_argument("--passes", type=int, default=None if unset else DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
                         "closer to the exemplar at about twice the time (the repository's "
                         "docs/comparisons)")
 
 
-def add_tiling_arguments(parser: argparse.ArgumentParser, advice: str = "") -> None:
+def add_tiling_arguments(parser: argparse.ArgumentParser, advice: str = "",
+                         unset: bool = False) -> None:
     """How lazy synthesis varies the tiling it starts from (Dong 2008, section 5.1)."""
-    parser.add_argument("--jitter", type=float, default=DEFAULT_JITTER,
+    parser.add_argument("--jitter", type=float, default=None if unset else DEFAULT_JITTER,
                         help="strength of the random warp that varies the tiling, 0 to 64 "
                         f"(default 1){advice}")
     parser.add_argument("--shifted-tiles", action="store_true",
                         help="shift each tile of the initial tiling by its own offset: "
                         "structured exemplars (rust, cells) then show no bands every exemplar "
                         f"width, but follow their photo less closely (BENCHMARKS.md){advice}")
+
+
+def lazy_settings_given(args: argparse.Namespace) -> list[str]:
+    """The options of lazy synthesis given on the command line of a parser made with
+    ``unset``, whose defaults are then filled in."""
+    given = [flag for flag, value in (("--passes", args.passes), ("--jitter", args.jitter),
+                                      ("--shifted-tiles", args.shifted_tiles or None))
+             if value is not None]
+    args.passes = DEFAULT_PASSES if args.passes is None else args.passes
+    args.jitter = DEFAULT_JITTER if args.jitter is None else args.jitter
+    return given
 
 
 def add_raw_argument(parser: argparse.ArgumentParser, formats: str) -> None:

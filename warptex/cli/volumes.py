@@ -37,13 +37,14 @@ from warptex.cli.options import (
     candidate_params,
     check_synthesis_arguments,
     colors_srgb,
+    lazy_settings_given,
     load_axis_exemplars,
     load_exemplar,
     lookup_exemplars,
     solid_texture,
 )
 from warptex.exemplar import Exemplar, reencoded
-from warptex.settings import DEFAULT_JITTER, DEFAULT_PASSES, FILTERS, TILEABLE
+from warptex.settings import FILTERS, TILEABLE
 from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
 
 
@@ -56,7 +57,7 @@ def add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         "runs the Kopf 2007 baseline instead.",
     )
     add_exemplar_arguments(parser)
-    add_texture_arguments(parser, "EXEMPLAR")
+    add_texture_arguments(parser, "EXEMPLAR", unset=True)  # Kopf takes none
     parser.add_argument("--size", type=int, default=64,
                         help="edge of the cube in voxels (default 64; a multiple of 8 with "
                         "--method kopf)")
@@ -95,6 +96,7 @@ def run_volume(args: argparse.Namespace) -> int:
     check_output(args.output, VOLUME_FORMATS, "a volume file")
     check_inputs_kept(args, [args.output])
     check_at_least("--size", args.size, 1)
+    lazy_given = lazy_settings_given(args)
     check_synthesis_arguments(args.jitter, args.passes, args.seed)
     for flag, given in (("--mean-shift", args.mean_shift), ("--free-axis", args.free_axis)):
         if given and args.method != "kopf":
@@ -105,10 +107,8 @@ def run_volume(args: argparse.Namespace) -> int:
     if args.free_axis == "x" and args.ey is not None:  # EXEMPLAR would be read for nothing
         raise CliError("--free-axis x leaves EXEMPLAR's axis free: give the y axis' exemplar "
                        "as EXEMPLAR, not --ey")
-    lazy_only = (args.passes, args.jitter, args.shifted_tiles)
-    if args.method == "kopf" and lazy_only != (DEFAULT_PASSES, DEFAULT_JITTER, False):
-        raise CliError("--passes, --jitter and --shifted-tiles apply to lazy synthesis only, "
-                       "not --method kopf")
+    if args.method == "kopf" and lazy_given:
+        raise CliError(f"{', '.join(lazy_given)}: for lazy synthesis only, not --method kopf")
     if args.method == "kopf":
         check_kopf_size(args.size)
     exemplars = load_axis_exemplars(args, load_exemplar(args, args.path))
