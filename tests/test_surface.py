@@ -83,9 +83,19 @@ def test_long_slivers_are_halved_and_touch_the_same_voxels(monkeypatch, warp_dev
     halved_vertices, halved_faces = surface._slivers_halved(vertices, np.asarray(rod.faces))
     assert len(halved_faces) > 10 * len(rod.faces)
     assert not surface._box_waste(halved_vertices[halved_faces]).any()
+    halving = surface._slivers_halved
+    searched = []
+
+    def spy(vertices, faces):
+        searched.append(len(halving(vertices, faces)[1]))
+        return halving(vertices, faces)
+
+    monkeypatch.setattr(surface, "_slivers_halved", spy)
     voxels = shell(rod, 96, device=warp_device)
+    assert searched == [len(halved_faces)]  # what the kernel searched: the halves
     monkeypatch.setattr(surface, "_BOX_WASTE", float("inf"))  # every triangle as it is
     np.testing.assert_array_equal(voxels, shell(rod, 96, device=warp_device))
+    assert searched[-1] == len(rod.faces)
     sphere = trimesh.creation.icosphere(subdivisions=3)
     even = to_voxel_space(sphere, block_transform(sphere, 256))
     assert surface._slivers_halved(even, np.asarray(sphere.faces))[0] is even

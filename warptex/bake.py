@@ -70,6 +70,7 @@ def _checked_uv(uv: object, vertices: int, faces: np.ndarray) -> np.ndarray:
 _OVERLAP_SLACK = 0.05
 _UV_SLACK = 1e-4  # of the texture's side: far below one texel of any texture baked
 _COLLAPSED_AREA = 1e-12  # of the texture's: a millionth of a texel of a 1024^2 texture
+_DEGENERATE_SHARE = 1e-6  # of the median face's area: a face of less has no surface to show
 
 
 def unwrapped(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -103,8 +104,10 @@ def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray,
     sides = corners[:, 1:] - corners[:, :1]
     uv_area = 0.5 * np.abs(sides[:, 0, 0] * sides[:, 1, 1] - sides[:, 0, 1] * sides[:, 1, 0])
     collapsed = uv_area <= _COLLAPSED_AREA
-    if areas is not None:
-        collapsed &= np.asarray(areas) > 0
+    if areas is not None:  # float rounding leaves a collinear face a hair of area
+        areas = np.asarray(areas, np.float64)
+        typical = np.median(areas[areas > 0]) if (areas > 0).any() else np.inf
+        collapsed &= areas > _DEGENERATE_SHARE * typical
     if collapsed.any():
         problems.append(f"the UVs of {collapsed.sum()} of {len(faces)} triangles have no area "
                         "(collapsed, as for faces an exporter did not map): no texel shows "

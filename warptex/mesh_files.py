@@ -171,16 +171,20 @@ def referenced_files(path: str | Path) -> list[Path]:
     named: list[Path] = []
     try:
         if suffix == ".obj":
-            for library in _statements(path, ("mtllib",)):
-                named.append(path.parent / library)
-                if named[-1].is_file():
-                    named += [named[-1].parent / name.split()[-1] for name in
-                              _statements(named[-1], _MATERIAL_MAPS) if name.split()]
+            # Several libraries to a line, as OBJ has it, or one name with spaces, as
+            # trimesh reads it: whichever exist.
+            for libraries in _statements(path, ("mtllib",)):
+                for library in {libraries, *libraries.split()}:
+                    named.append(path.parent / library)
+                    if named[-1].is_file():
+                        named += [named[-1].parent / _map_file(m)
+                                  for m in _statements(named[-1], _MATERIAL_MAPS)]
         elif suffix == ".gltf":
             tree = json.loads(path.read_text(encoding="utf-8"))
-            named += [path.parent / unquote(item["uri"]) for kind in ("buffers", "images")
-                      for item in tree.get(kind, []) if isinstance(item, dict)
-                      and isinstance(item.get("uri"), str)
+            items = [item for kind in ("buffers", "images")
+                     if isinstance(tree.get(kind), list) for item in tree[kind]]
+            named += [path.parent / unquote(item["uri"]) for item in items
+                      if isinstance(item, dict) and isinstance(item.get("uri"), str)
                       and not item["uri"].startswith("data:")]
     except (OSError, ValueError, AttributeError):
         return []
@@ -188,13 +192,20 @@ def referenced_files(path: str | Path) -> list[Path]:
 
 
 def _statements(path: Path, keywords: tuple[str, ...]) -> list[str]:
-    """What follows each line of ``path`` that starts with one of ``keywords``."""
+    """What follows each line of ``path`` that starts with one of ``keywords``, after any
+    whitespace."""
     found = []
     for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-        word, _, rest = line.strip().partition(" ")
-        if word.lower() in keywords and rest.strip():
-            found.append(rest.strip())
+        word, *rest = line.split(None, 1)[:2] or [""]
+        if word.lower() in keywords and rest and rest[0].strip():
+            found.append(rest[0].strip())
     return found
+
+
+def _map_file(statement: str) -> str:
+    """The file an MTL texture statement names: the rest of its line, or its last word
+    after options (``-s 2 2 1 wood.png``)."""
+    return statement.split()[-1] if statement.startswith("-") else statement
 
 
 def exported_files(path: str | Path, *, uv_texture: bool) -> list[Path]:
@@ -218,10 +229,11 @@ def check_obj_name(path: str | Path) -> None:
 
 
 def _obj_digits(vertices: np.ndarray) -> int:
-    """Decimals an OBJ's numbers are written with: trimesh's 8, or more for a mesh under
-    a unit across, to keep a billionth of its size (one 2e-9 across came out as a point)."""
+    """Decimals an OBJ's numbers are written with: trimesh's 8 for a mesh a unit across or
+    more, and one more per power of ten below, keeping a hundred-millionth of its size (one
+    2e-9 across came out as a point)."""
     size = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
-    return 8 if size <= 0.0 else max(8, 9 - math.floor(math.log10(size)))
+    return 8 if size <= 0.0 else max(8, 8 - math.floor(math.log10(size)))
 
 
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,

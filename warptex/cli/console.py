@@ -41,9 +41,11 @@ def ticking(bar: tqdm) -> Iterator[None]:
         ticker.join()
 
 
-def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    # A user of the command needs the message, not the source line that raised it; a
-    # message that names warptex for Python's users is not prefixed twice.
+def show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                 file: TextIO | None = None, line: str | None = None) -> None:
+    """``warnings.showwarning`` for the commands: a user of the command needs the message,
+    not the source line that raised it; a message that names warptex for Python's users is
+    not prefixed twice."""
     print(f"warptex: warning: {str(message).removeprefix('warptex: ')}", file=sys.stderr)
 
 

@@ -8,8 +8,12 @@ import argparse
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from warptex.cli.common import CliError, input_file, plural
+
+if TYPE_CHECKING:
+    from warptex.texture import SolidTexture
 from warptex.exemplar import Exemplar, axis_triple, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -246,7 +250,7 @@ def lookup_exemplars(args: argparse.Namespace,
     return exemplars, colors_srgb(args, exemplars)
 
 
-def solid_texture(args: argparse.Namespace, exemplars: list[Exemplar]):
+def solid_texture(args: argparse.Namespace, exemplars: list[Exemplar]) -> SolidTexture:
     """The texture of the command's ``exemplars`` (:func:`lookup_exemplars`), their
     candidates pre-computed."""
     from warptex.candidates import precompute
