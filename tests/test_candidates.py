@@ -888,24 +888,32 @@ def test_features_of_all_exemplars_are_quantized_over_one_range(granite_32, warp
     images = [colors, 1.0 - colors, 0.5 * colors[:, :24]]
     cs = precompute(*[Exemplar(np.ascontiguousarray(c, np.float32), name=str(i))
                       for i, c in enumerate(images)], cache=False)
+    # One range for all three colour channels too: distances are the L2 norm on colour
+    # differences (Dong 2008, section 5.2), not each channel's over its own range.
     flat = np.concatenate([c.reshape(-1, 3) for c in images]).astype(np.float64)
-    lo, hi = flat.min(0), flat.max(0)
+    lo, hi = flat.min(), flat.max()
     for j, image in enumerate(images):
         expected = np.rint((image.astype(np.float32).astype(np.float64) - lo) / (hi - lo) * 255)
         np.testing.assert_array_equal(cs.sources[-1][j].feat, expected.astype(np.uint8))
 
 
-def test_a_constant_channel_quantizes_to_zero_without_warnings(warp_device):
-    """A channel of one value (a flat blue, a feature channel of nothing) has no range to
-    quantize over: it becomes 0, with no division by zero on the way."""
+def test_a_constant_channel_quantizes_without_warnings(warp_device):
+    """A colour channel of one value (a flat blue) keeps that value on the colours' range; a
+    feature channel of nothing has no range of its own to quantize over: it becomes 0, with
+    no division by zero on the way."""
     colors = np.array(_granite()[:32, :32])
     colors[..., 2] = 0.5
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        cs = precompute(Exemplar(colors, name="flat blue"), cache=False)
+        cs = precompute(Exemplar(colors, name="flat blue",
+                                 feature_distance=np.zeros(colors.shape[:2], np.float32)),
+                        cache=False)
+    lo, hi = colors.min(), colors.max()
+    blue = np.rint((np.float64(np.float32(0.5)) - lo) / (hi - lo) * 255)
     for lv, level in enumerate(cs.sources):
-        assert not level[0].feat[..., 2].any(), lv
-        assert level[0].feat[..., :2].any(), lv
+        assert (level[0].feat[..., 2] == blue).all(), lv
+        assert not level[0].feat[..., 3].any(), lv
+        assert level[0].feat[..., :2].std() > 0, lv
 
 
 def test_pca_keeps_the_fewest_dimensions_that_hold_the_variance(granite_32, warp_device):

@@ -61,9 +61,10 @@ from warptex.settings import (
 from warptex.thread_warnings import warn
 from warptex.warp_runtime import init_warp
 
-FORMAT_VERSION = 5  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
+FORMAT_VERSION = 6  # 3: nearest neighbours tie-broken by index, whatever SciPy's k-d tree does;
 # 4: the PCA basis the same on every CPU (no LAPACK; BLAS only where its sums are exact);
-# 5: margins that candidates keep from the edges of exemplars that do not tile
+# 5: margins that candidates keep from the edges of exemplars that do not tile;
+# 6: one quantization range for all color channels (section 5.2's L2 norm on colors)
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
 FILE_MAGIC = b"WARPTEXC"
 CACHE_PREFIX, CACHE_SUFFIX = "candidates-", ".wtc"
@@ -564,10 +565,16 @@ def _exemplar_label(ex: Exemplar) -> str:
 
 
 def _feature_range(srcs: list[Exemplar]) -> tuple[np.ndarray, np.ndarray]:
-    """Common per-channel range, so quantized features of all exemplars are comparable."""
+    """The range features are quantized over, the same for all exemplars so that their
+    quantized features compare: one for all color channels, so that every distance is
+    section 5.2's "L2 norm on color differences" (a range per channel weighted each by its
+    inverse square: wood_rosewood's blue 13 times its red), and one of its own for a
+    feature-distance channel, which is no color."""
     stacked = np.concatenate([s.features.reshape(-1, s.features.shape[2]) for s in srcs])
     lo = stacked.min(axis=0).astype(np.float64)
     hi = stacked.max(axis=0).astype(np.float64)
+    colors = srcs[0].channels
+    lo[:colors], hi[:colors] = lo[:colors].min(), hi[:colors].max()
     return lo, np.where(hi > lo, hi, lo + 1.0)
 
 
