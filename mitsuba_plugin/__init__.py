@@ -367,10 +367,15 @@ def textures(scene: mi.Object | None = None) -> list:
     if scene is None:
         return list(live_textures)
     _check_scene(scene)
-    # Found as the objects owning parameters: each lazy_solid exposes its to_world.
-    found = {id(entry[2]): entry[2] for entry in mi.traverse(scene).properties.values()
-             if entry[2] in live_textures}
+    found = {id(texture): texture for _, texture in _texture_parameters(scene)}
     return list(found.values())
+
+
+def _texture_parameters(scene: mi.Object) -> list[tuple[str, mi.Texture]]:
+    """The parameters of ``scene`` that its ``lazy_solid`` textures own, by key, with
+    their texture: each exposes its to_world, which finds it where it is nested."""
+    return [(key, entry[2]) for key, entry in mi.traverse(scene).properties.items()
+            if entry[2] in live_textures]
 
 
 def _check_texture_places(scene: mi.Scene) -> None:
@@ -378,8 +383,8 @@ def _check_texture_places(scene: mi.Scene) -> None:
     media (homogeneous, heterogeneous) hold a texture given for a volume: that volume reads
     the texture at p = 0 only (mitsuba_plugin.volume), so the medium would render one color
     without a word. Such a texture is the ``value`` of its volume in the scene's parameters."""
-    for key, entry in mi.traverse(scene).properties.items():
-        if entry[2] in live_textures and key.endswith(".value.to_world"):
+    for key, _ in _texture_parameters(scene):
+        if key.endswith(".value.to_world"):
             where = ".".join(p for p in key.split(".")[:-2] if not p.startswith("object_"))
             raise ValueError(f"a lazy_solid texture is the constant volume {where} of a medium "
                              "of Mitsuba's own, which reads it at one point only: the medium "

@@ -52,9 +52,14 @@ def weld_tolerance(vertices: np.ndarray) -> float:
     sphere 2e-8 units across, of 642 vertices, into 26)."""
     if not len(vertices):
         return _WELD_TOLERANCE
-    size = float(np.ptp(vertices, axis=0).max())
+    size = _extent(vertices)
     tolerance = min(_WELD_TOLERANCE, 1e-6 * size) if size > 0 else _WELD_TOLERANCE
     return max(tolerance, _WELD_PRECISION * float(np.abs(vertices).max()))
+
+
+def _extent(vertices: np.ndarray) -> float:
+    """A mesh's size: the longest side of its bounding box, 0 without vertices."""
+    return float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
 
 
 def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
@@ -174,7 +179,7 @@ def referenced_files(path: str | Path) -> list[Path]:
             # Several libraries to a line, as OBJ has it, or one name with spaces, as
             # trimesh reads it: whichever exist.
             for libraries in _statements(path, ("mtllib",)):
-                for library in {libraries, *libraries.split()}:
+                for library in dict.fromkeys([libraries, *libraries.split()]):
                     named.append(path.parent / library)
                     if named[-1].is_file():
                         named += [named[-1].parent / _map_file(m)
@@ -232,7 +237,7 @@ def _obj_digits(vertices: np.ndarray) -> int:
     """Decimals an OBJ's numbers are written with: trimesh's 8 for a mesh a unit across or
     more, and one more per power of ten below, keeping a hundred-millionth of its size (one
     2e-9 across came out as a point)."""
-    size = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    size = _extent(vertices)
     return 8 if size <= 0.0 else max(8, 8 - math.floor(math.log10(size)))
 
 
