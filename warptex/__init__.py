@@ -56,8 +56,8 @@ _LAZY = {
     "StoreFileError": "warptex.store",
 }
 # Submodules the README names as ``warptex.<module>.<name>``, imported on first access too.
-_SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "metrics", "sheets",
-               "store", "surface", "synthesis", "texture", "volume_files")
+_SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "mesh_files", "metrics",
+               "sheets", "store", "surface", "synthesis", "texture", "volume_files")
 
 __all__ = [
     "CandidateSet",
