@@ -254,8 +254,9 @@ def test_voxels_an_insertion_leaves_unstored_raise_rather_than_synthesize_for_ev
 
 
 def _cut_short(store: BrickStore, monkeypatch, step: str, after: bool) -> None:
-    """Stop the store's next call of ``step`` with Ctrl-C's KeyboardInterrupt, before the
-    step or right ``after`` it."""
+    """Stop the store's next call of ``step`` with an exception raised there (a
+    KeyboardInterrupt, which no signal handler defers), before the step or right ``after``
+    it."""
     original = getattr(store, step)
 
     def stopped(*args, **kwargs):
@@ -271,9 +272,9 @@ def _cut_short(store: BrickStore, monkeypatch, step: str, after: bool) -> None:
     ("_upload_slots", False), ("_evict", False)])
 def test_a_change_cut_short_drops_the_bricks_rather_than_read_or_save_them_torn(
         candidates, tmp_path: Path, monkeypatch, step, after):
-    """Ctrl-C or SIGTERM anywhere in an insertion may leave the bricks half changed (keys
-    entered, bits set, voxels not yet placed or uploaded): the store then holds no brick,
-    so every later lookup and the file it saves give the engine's colors."""
+    """An error anywhere in an insertion may leave the bricks half changed (keys entered,
+    bits set, voxels not yet placed or uploaded): the store then holds no brick, so every
+    later lookup and the file it saves give the engine's colors."""
     syn = synthesizer(candidates)
     store = BrickStore(syn)
     before = np.array([[8 * i + 1, 2, 3] for i in range(4)])
@@ -293,9 +294,47 @@ def test_a_change_cut_short_drops_the_bricks_rather_than_read_or_save_them_torn(
     assert loaded.stats()["misses"] == 0
 
 
+@pytest.mark.parametrize("step", ["_insert", "_upload_slots", "_evict"])
+def test_ctrl_c_during_a_change_keeps_its_voxels_and_they_are_saved(
+        candidates, tmp_path: Path, monkeypatch, step):
+    """A Ctrl-C that comes while the bricks change waits for the change to end: the voxels
+    synthesized before it stay stored and saved_when_stopped saves them (before, the store
+    dropped every brick and then said it held the voxels synthesized before stopping)."""
+    import signal
+
+    from warptex.store import saved_when_stopped
+
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    before = np.array([[8 * i + 1, 2, 3] for i in range(4)])
+    sample(store, before + 0.5)
+    new = np.array([[8 * i + 1, 2, 3] for i in range(4, 7)])
+    original = getattr(store, step)
+
+    def signalled(*args, **kwargs):
+        signal.raise_signal(signal.SIGINT)  # as a user's Ctrl-C would, mid-change
+        return original(*args, **kwargs)
+
+    path = tmp_path / "s.wtb"
+
+    def save():
+        store.save(path)
+        return [path]
+
+    with monkeypatch.context() as patch:
+        patch.setattr(store, step, signalled)
+        with pytest.raises(KeyboardInterrupt), saved_when_stopped(save):
+            sample(store, new + 0.5)
+    assert store.stats()["bricks"] == len(before) + len(new)
+    loaded = BrickStore.load(path, syn)
+    both = np.concatenate([before, new])
+    np.testing.assert_array_equal(sample(loaded, both + 0.5), syn.voxels(both))
+    assert loaded.stats()["misses"] == 0
+
+
 def test_a_store_whose_emptying_was_cut_short_too_is_emptied_when_next_used(
         candidates, tmp_path: Path, monkeypatch):
-    """A second Ctrl-C during the emptying that follows a change cut short leaves the store
+    """A second error during the emptying that follows a change cut short leaves the store
     torn; its next lookup or save empties it first."""
     syn = synthesizer(candidates)
     voxels = np.array([[8 * i + 5, 0, 7] for i in range(3)])

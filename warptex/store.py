@@ -52,7 +52,7 @@ from warptex.archive import (
 )
 from warptex.code_digest import code_digest, module_sources
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
-from warptex.parallel import launch_ranges
+from warptex.parallel import deferred_stops, launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
 from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer, check_voxels
 from warptex.thread_warnings import warn
@@ -378,8 +378,8 @@ def check_store_path(path: str | Path, saving: bool = True) -> None:
 def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
     """Ctrl-C or SIGTERM (a KeyboardInterrupt) in the block first writes brick stores to
     their files with ``save``, then stops as asked: the voxels synthesized so far are kept,
-    so the next run starts from them (section 6.2's synthesize-once, across runs). A store
-    whose change was cut short keeps none of that change (:class:`BrickStore`). What was
+    so the next run starts from them (section 6.2's synthesize-once, across runs); a stop
+    waits for a change of the bricks under way to end (:class:`BrickStore`). What was
     saved, or why nothing was, is said on stderr."""
     try:
         yield
@@ -649,10 +649,12 @@ class BrickStore:
 
     @contextmanager
     def _changing(self) -> Iterator[None]:
-        """The exclusive lock, for changing the bricks. A change cut short (Ctrl-C, SIGTERM,
-        an error) may leave them half made, so the store then drops every brick instead:
-        their voxels can only be synthesized again, never read wrong or saved torn."""
-        with self._lock.exclusive():
+        """The exclusive lock, for changing the bricks. Ctrl-C or SIGTERM waits for the
+        change to end, so the voxels synthesized before it are kept and saved. A change cut
+        short by an error may leave the bricks half made, so the store then drops every
+        brick instead: their voxels can only be synthesized again, never read wrong or saved
+        torn."""
+        with deferred_stops(), self._lock.exclusive():
             if self._torn:  # a change cut short, and the emptying after it too
                 self._empty_again()
             self._torn = True  # first: whatever is cut short after this, the flag shows it
