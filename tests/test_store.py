@@ -403,6 +403,25 @@ def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
             "device)") in capsys.readouterr().err
 
 
+def test_the_pool_grows_up_to_its_limit_and_refuses_only_what_exceeds_it(candidates,
+                                                                         monkeypatch):
+    """The pool doubles as it grows, but up to the limit of its int32 indices: voxels that
+    fit under it are stored (before, a doubling past the limit was refused though they fit),
+    and a batch that does not fit is refused with the voxels it needs."""
+    import warptex.store as store_module
+
+    monkeypatch.setattr(store_module, "_MAX_POOL_VOXELS", 6000)
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)  # whole bricks of 512 voxels, a first pool of 4096
+    bricks = np.array([brick_center((i, 0, 0)) for i in range(12)])
+    for batch in (bricks[:8], bricks[8:11]):  # 4096 voxels, then 1536 more
+        np.testing.assert_array_equal(sample(store, batch),
+                                      syn.voxels(np.floor(batch).astype(int)))
+    assert store.stats()["bricks"] == 11 and len(store._payload) == 6000  # not 8192
+    with pytest.raises(MemoryError, match="brick store pool of 6144 voxels exceeds"):
+        sample(store, bricks[11:])
+
+
 def test_zero_cache_still_answers(candidates):
     syn = synthesizer(candidates)
     store = BrickStore(syn, cache_bytes=0)

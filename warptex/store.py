@@ -62,6 +62,7 @@ FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are 
 _MAGIC = b"WTXBRICK"
 _EMPTY = int(_k.EMPTY)  # the key of a free slot, as the hash table marks free entries
 _MIN_BRICKS = 64
+_MAX_POOL_VOXELS = ((1 << 31) - 1) // 3  # the kernels index the pool's entries in int32
 # Exemplars of up to this many pixels each: pixel indices fit uint16, 6 bytes a voxel.
 _COMPACT_PIXELS = 1 << 16
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
@@ -937,10 +938,12 @@ class BrickStore:
         """Pool position of ``voxels`` new consecutive voxels; compacts or grows the pool."""
         if self._used + voxels > len(self._payload) and 2 * self._garbage > self._used:
             self._compact()
-        if self._used + voxels > len(self._payload):
-            size = max(self._used + voxels, 2 * len(self._payload), _MIN_BRICKS * 64)
-            if size * 3 >= 1 << 31:
-                raise MemoryError(f"brick store pool of {size} voxels exceeds 2^31 entries")
+        needed = self._used + voxels
+        if needed > len(self._payload):
+            if needed > _MAX_POOL_VOXELS:
+                raise MemoryError(f"brick store pool of {needed} voxels exceeds 2^31 entries")
+            # Doubling, but up to the limit: a pool that fits is never refused for its growth.
+            size = min(max(needed, 2 * len(self._payload), _MIN_BRICKS * 64), _MAX_POOL_VOXELS)
             payload = np.zeros((size, 3), self._dtype)
             payload[: self._used] = self._payload[: self._used]
             self._payload = payload
