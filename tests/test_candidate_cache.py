@@ -187,7 +187,8 @@ def test_unreadable_and_replaced_files_are_left_alone(folder, computed):
     shutil.copy(current, replaced)
     os.replace(replaced, damaged)  # as write_atomically puts a recomputed file in place
     never = [f for f in listed.values() if f.status in cc.NEVER_READ]
-    count, _ = cc.remove(never)
+    count, _, failed = cc.remove(never)
+    assert failed == []
     assert count == len(never) - 1
     assert damaged.read_bytes() == current.read_bytes() and odd.is_dir()
     assert main(["cache", "--clear"]) == 0
@@ -340,7 +341,15 @@ def test_a_cache_folder_that_is_a_link_to_nowhere_is_named_not_listed_empty(
             "WARPTEX_CACHE sets its folder\n")
 
 
-def test_a_file_that_cannot_be_deleted_is_named(folder, monkeypatch, capsys):
+def test_a_file_that_cannot_be_deleted_is_named_and_the_others_are_deleted(
+        folder, tmp_path, monkeypatch, capsys):
+    """The first file that could not be deleted stopped the prune: the files after it and
+    Warp's old kernel builds were left, and nothing was listed."""
+    import warp as wp
+
+    build = tmp_path / "kernels" / "wp_kernels.synthesis_0000000"
+    build.mkdir(parents=True)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(build.parent))
     real_unlink = Path.unlink
 
     def refuse(self, missing_ok=False):
@@ -350,8 +359,13 @@ def test_a_file_that_cannot_be_deleted_is_named(folder, monkeypatch, capsys):
 
     monkeypatch.setattr(Path, "unlink", refuse)
     assert main(["cache", "--prune"]) == 1  # a failure in the work, not bad input
-    err = capsys.readouterr().err
-    assert f"{'1' * 40}.wtc: cannot delete (Permission denied)" in err
+    out, err = capsys.readouterr()
+    assert err.endswith(f"{'1' * 40}.wtc: cannot delete (Permission denied)\n")
+    left = _statuses(folder)
+    assert left.pop(f"candidates-{'1' * 40}.wtc") == cc.DAMAGED
+    assert sorted(left.values()) == sorted([cc.IN_USE, cc.BEING_WRITTEN])
+    assert "deleted: 4 files" in out and "deleted: 1 kernel builds" in out
+    assert not build.exists()
 
 
 def test_names_are_kept_in_candidate_files(computed, image, tmp_path):

@@ -102,14 +102,12 @@ def cache_files(folder: Path | None = None, progress: bool = False) -> list[Cach
     return sorted(found, key=lambda f: (f.modified, f.path.name))
 
 
-def remove(files: Iterable[CacheFile]) -> tuple[int, int]:
-    """Delete ``files`` that are still as listed (those gone or replaced since are left);
-    returns how many were deleted and their bytes.
-
-    Raises:
-        OSError: a file cannot be deleted, named in the error.
-    """
+def remove(files: Iterable[CacheFile]) -> tuple[int, int, list[OSError]]:
+    """Delete ``files`` that are still as listed (those gone or replaced since are left):
+    how many were deleted, their bytes, and the errors of those that could not be (another
+    user's file, say), each tried whatever the others did."""
     count = freed = 0
+    failed = []
     for file in files:
         try:
             if _identity(file.path.stat()) != file.identity:
@@ -117,9 +115,12 @@ def remove(files: Iterable[CacheFile]) -> tuple[int, int]:
             file.path.unlink()
         except FileNotFoundError:  # pruned by another run meanwhile
             continue
+        except OSError as error:
+            failed.append(error)
+            continue
         count += 1
         freed += file.size
-    return count, freed
+    return count, freed, failed
 
 
 def _identity(info: os.stat_result) -> tuple[int, int, int]:

@@ -53,20 +53,17 @@ def run_cache(args: argparse.Namespace) -> int:
     kernels = _kernel_cache()  # refused here, before anything is deleted
     deleted = None
     undeleted: list[OSError] = []
-    if args.prune or args.clear:
-        try:
-            deleted = cc.remove(doomed)
-        except OSError as error:
-            raise WorkFailed(f"{error.filename}: cannot delete ({error.strerror or error})"
-                              ) from None
-        undeleted = _delete_kernel_builds(kernels)
+    if args.prune or args.clear:  # each file and build tried, whatever the others did
+        count, freed, undeleted = cc.remove(doomed)
+        deleted = (count, freed)
+        undeleted += _delete_kernel_builds(kernels)
     if args.json:
         print(json.dumps(_cache_report(folder, files, deleted, kernels), indent=2))
     else:
         _print_cache(folder, files, never, deleted, kernels)
     if undeleted:
         first = undeleted[0]
-        others = f", and {len(undeleted) - 1} other kernel builds" if len(undeleted) > 1 else ""
+        others = f", and {len(undeleted) - 1} others" if len(undeleted) > 1 else ""
         raise WorkFailed(f"{first.filename}: cannot delete ({first.strerror or first})"
                          f"{others}")
     return 0
