@@ -684,6 +684,30 @@ def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_
             "--alpha keep) synthesized but not written") in capsys.readouterr().err
 
 
+def test_bake_writes_the_gray_of_gray_data_and_alpha(tmp_path, data_dir, sphere, warp_device,
+                                                     capsys):
+    """Gray, a data channel and a kept alpha (an EXR's Y, C1, A): the mesh's colors are the
+    gray, and the command says two channels are not written (the three were written as
+    RGB, without a word)."""
+    import trimesh
+    from PIL import Image
+
+    from warptex.cli import main
+    from warptex.volume_files import write_image
+
+    granite = np.asarray(Image.open(data_dir / "granite_64.png"))[:32, :32, :3]
+    write_image(tmp_path / "yca.exr", granite.astype(np.float32) / 255, srgb=False, alpha=True)
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    assert main(["bake", str(mesh_path), "--exemplar", str(tmp_path / "yca.exr"),
+                 "--alpha", "keep", "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
+    assert ("warptex: warning: mesh files hold RGB colors: 2 channels of 3 (an alpha kept by "
+            "--alpha keep) synthesized but not written") in capsys.readouterr().err
+    colors = trimesh.load(tmp_path / "b.ply", process=False).visual.vertex_colors
+    assert np.ptp(colors[:, 0]) > 0
+    assert (colors[:, 0] == colors[:, 1]).all() and (colors[:, 1] == colors[:, 2]).all()
+
+
 def test_bake_names_finding_the_shell_before_that_long_call(tmp_path, granite_32_file,
                                                             sphere, warp_device, capsys,
                                                             monkeypatch):

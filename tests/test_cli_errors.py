@@ -703,6 +703,27 @@ def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
     assert len(np.unique(opacity)) > 1  # not a constant alpha that any writer might add
 
 
+def test_a_slice_of_gray_data_and_alpha_keeps_its_alpha_as_stored(files, tmp_path, capsys):
+    """Gray, a data channel and a kept alpha (an EXR's Y, C1, A): the PNG shows the gray and
+    the alpha as stored (the alpha was sRGB-encoded as a third color), and says the data
+    channel is dropped."""
+    from warptex.volume_files import write_image
+
+    exr = tmp_path / "yca.exr"
+    color = _rotated(files["exemplar"]).astype(np.float32) / 255
+    write_image(exr, color, srgb=False, alpha=True)  # R as gray, G as data, B as alpha
+    common = ["slice", str(exr), "--alpha", "keep", "--shape", "4", "4", "--passes", "0"]
+    assert main([*common, "-o", str(tmp_path / "s.npy")]) == 0
+    assert main([*common, "-o", str(tmp_path / "s.png")]) == 0
+    assert "the PNG keeps 8-bit RGBA: 1 channel of 3 dropped" in capsys.readouterr().err
+    synthesized = np.load(tmp_path / "s.npy")
+    with Image.open(tmp_path / "s.png") as written:
+        assert written.mode == "RGBA"
+        shown = np.asarray(written)
+    np.testing.assert_array_equal(shown[..., 3], np.round(synthesized[..., 2] * 255))
+    assert (shown[..., 0] == shown[..., 1]).all() and (shown[..., 1] == shown[..., 2]).all()
+
+
 def test_a_stop_right_after_the_outputs_rename_names_it(files, tmp_path, capsys,
                                                         monkeypatch):
     """A stop after the new volume replaced the old, before the command said so, left it

@@ -104,6 +104,21 @@ def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, s
         np.testing.assert_array_equal(np.load(tmp_path / name), data)
 
 
+def test_a_kept_alpha_after_gray_and_data_is_no_color(tmp_path, srgb_decoded):
+    """Gray, a data channel and a kept alpha: only the gray is decoded, and the channels
+    are named Y, C1, A (the three were decoded as RGB, though named as gray, data, alpha)."""
+    import OpenEXR
+
+    image = _volume(3)[0]
+    write_image(tmp_path / "i.exr", image, srgb=True, alpha=True)
+    with OpenEXR.File(str(tmp_path / "i.exr"), separate_channels=True) as file:
+        got = {name: channel.pixels for name, channel in file.channels().items()}
+    assert sorted(got) == ["A", "C1", "Y"]
+    np.testing.assert_allclose(got["Y"], srgb_decoded(image[..., 0]), rtol=1e-5)
+    np.testing.assert_array_equal(got["C1"], image[..., 1])
+    np.testing.assert_array_equal(got["A"], image[..., 2])
+
+
 def test_empty_volumes_and_images_and_a_non_bool_srgb_are_refused(tmp_path):
     """An empty volume once failed inside OpenEXR naming a temporary file, or was written
     as a 48-byte grid; srgb="no" counted as true."""

@@ -474,14 +474,22 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
                     1.055 * values ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
-def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool) -> np.ndarray:
+def color_channels(channels: int, alpha: bool = False) -> int:
+    """How many of an image's ``channels`` are colors, the leading ones: three (RGB) where
+    at least three come before a kept ``alpha`` (the last channel), else one (gray). Those
+    between are data, as the exemplars' files name them (README, Exemplars)."""
+    return 3 if channels - (alpha and channels > 1) >= 3 else 1
+
+
+def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool,
+              alpha: bool = False) -> np.ndarray:
     """``values`` (..., C), whose colors are sRGB-encoded if ``srgb``, as float32 with the
     colors sRGB-encoded if ``to_srgb``, else linear: what a file format's readers assume.
-    Colors are the leading channels, three of RGB(A) and more, one of gray (with alpha); the
-    rest are data, kept as they are."""
+    Colors are the leading channels (:func:`color_channels`; ``alpha``: the last channel is
+    a kept alpha); data and alpha are kept as they are."""
     out = np.array(values, np.float32)
     if check_flag("srgb", srgb) != check_flag("to_srgb", to_srgb):
-        color = 3 if out.shape[-1] >= 3 else 1
+        color = color_channels(out.shape[-1], check_flag("alpha", alpha))
         out[..., :color] = (linear_to_srgb if to_srgb else srgb_to_linear)(out[..., :color])
     return out
 

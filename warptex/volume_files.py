@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from warptex.archive import endings, write_atomically
-from warptex.exemplar import reencoded
+from warptex.exemplar import color_channels, reencoded
 from warptex.settings import check_flag
 
 
@@ -51,7 +51,7 @@ def _write(path: str | Path, data: np.ndarray, srgb: bool, alpha: bool, kind: st
     if writer is None:
         raise ValueError(f"{path}: {kind} must end in {endings(list(writers))}")
     if writer is not _write_npy:
-        data = reencoded(data, srgb=srgb, to_srgb=False)
+        data = reencoded(data, srgb=srgb, to_srgb=False, alpha=alpha)
     write_atomically(path, lambda tmp: writer(tmp, data, alpha))
 
 
@@ -89,7 +89,7 @@ def _exr_channel_names(channels: int, alpha: bool) -> list[str]:
     know them: colors (three of RGB and more, one of gray) R, G, B or Y, an ``alpha`` last
     A, data channels between by number (C1, C3, ...)."""
     alpha = alpha and channels > 1  # a kept alpha alone is read as one color channel
-    color = list("RGB") if channels - alpha >= 3 else ["Y"]
+    color = list("RGB") if color_channels(channels, alpha) == 3 else ["Y"]
     data = [f"C{c}" for c in range(len(color), channels - alpha)]
     return color + data + ["A"] * alpha
 

@@ -32,10 +32,12 @@ from warptex.cli.options import (
     add_loading_arguments,
     add_raw_argument,
     add_texture_arguments,
+    alpha_kept,
     check_synthesis_arguments,
     lookup_exemplars,
     solid_texture,
 )
+from warptex.exemplar import Exemplar, color_channels
 
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
 # up to 4 float32 channels three times over (colors, image, filled image), and the
@@ -203,17 +205,27 @@ def _baked(tex, mesh, transform: np.ndarray, args: argparse.Namespace, name: str
     return {"mesh": mesh, "image": image, "uv": uv}
 
 
-def _export_baked(baked: list[dict], outputs: list[Path], srgb: bool | None) -> list[Path]:
+def _export_baked(baked: list[dict], outputs: list[Path], srgb: bool | None,
+                  exemplars: Sequence[Exemplar]) -> list[Path]:
     """Write what :func:`_baked` made for each output, together (a cut's two halves: both
     or, where a write fails, neither), its colors in each format's encoding (``srgb``: see
-    warptex.mesh_files.export); returns the files written."""
+    warptex.mesh_files.export); returns the files written. Mesh files hold colors only:
+    data channels and a kept alpha are left out here, where they are told apart."""
     from warptex.mesh_files import mesh_files, write_files
 
+    colors = color_channels(exemplars[0].channels, alpha_kept(exemplars))
     files = [f for b, output in zip(baked, outputs, strict=True)
-             for f in mesh_files(path=output, srgb=srgb, **b)]
+             for f in mesh_files(path=output, srgb=srgb, **_colors_only(b, colors))]
     with writing(outputs[0], *(f for f, _ in files)):
         write_files(files)
     return [f for f, _ in files]
+
+
+def _colors_only(baked: dict, colors: int) -> dict:
+    """What :func:`_baked` made, its vertex colors or UV texture cut to the first
+    ``colors`` channels."""
+    return {name: value[..., :colors] if name in ("colors", "image") and value is not None
+            else value for name, value in baked.items()}
 
 
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
@@ -331,7 +343,7 @@ def run_bake(args: argparse.Namespace) -> int:
     with _store_saved_when_stopped(tex, args):
         count = _synthesize_shell(tex, mesh, args.resolution, transform)
         files = _export_baked([_baked(tex, mesh, transform, args, args.output.name)],
-                              [args.output], srgb)
+                              [args.output], srgb, exemplars)
         print(f"surface shell: {count} voxels")
         return _finish_mesh_command(tex, args, files, start)
 
@@ -380,4 +392,5 @@ def run_cut(args: argparse.Namespace) -> int:
         # Both halves baked before either is written: a cut stopped half way writes neither.
         baked = [_baked(tex, half, transform, args, output.name)
                  for half, output in zip(halves, outputs, strict=True)]
-        return _finish_mesh_command(tex, args, _export_baked(baked, outputs, srgb), start)
+        return _finish_mesh_command(tex, args, _export_baked(baked, outputs, srgb, exemplars),
+                                    start)

@@ -14,7 +14,7 @@ from warptex.cli.common import CliError, input_file, plural
 
 if TYPE_CHECKING:
     from warptex.texture import SolidTexture
-from warptex.exemplar import Exemplar, axis_triple, srgb_encoded
+from warptex.exemplar import Exemplar, axis_triple, color_channels, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -241,10 +241,10 @@ def lookup_exemplars(args: argparse.Namespace,
     except ValueError as error:
         advice = "" if precompute_refusal(exemplars[0]) else "; `warptex volume` synthesizes them"
         raise CliError(f"{args.exemplar}: {error}{advice}") from None
-    channels = exemplars[0].channels
-    if mesh and channels not in (1, 3):  # mesh files hold RGB (gray repeated)
-        lost = channels - 1 if channels == 2 else channels - 3
-        what = " (an alpha kept by --alpha keep)" if args.alpha == "keep" else ""
+    channels, alpha = exemplars[0].channels, alpha_kept(exemplars)
+    lost = channels - color_channels(channels, alpha)  # mesh files hold RGB (gray repeated)
+    if mesh and lost:
+        what = " (an alpha kept by --alpha keep)" if alpha else ""
         warnings.warn(f"mesh files hold RGB colors: {plural(lost, 'channel')} of {channels}"
                       f"{what} synthesized but not written", stacklevel=1)
     return exemplars, colors_srgb(args, exemplars)

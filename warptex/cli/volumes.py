@@ -43,7 +43,7 @@ from warptex.cli.options import (
     lookup_exemplars,
     solid_texture,
 )
-from warptex.exemplar import Exemplar, reencoded
+from warptex.exemplar import Exemplar, color_channels, reencoded
 from warptex.settings import FILTERS, TILEABLE
 from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
 
@@ -254,7 +254,7 @@ def run_slice(args: argparse.Namespace) -> int:
         alpha = alpha_kept(exemplars)
         _note_png_losses(image, alpha)
         if srgb is not None:
-            image = reencoded(image, srgb=srgb, to_srgb=True)
+            image = reencoded(image, srgb=srgb, to_srgb=True, alpha=alpha)
         with writing(args.output):
             save_png(to_png8(image, alpha), args.output)
     else:
@@ -274,8 +274,7 @@ def _note_png_losses(image: np.ndarray, alpha: bool) -> None:
     lost = []
     if image.min() < -_PNG_SLACK or image.max() > 1.0 + _PNG_SLACK:
         lost.append("values outside [0, 1] are clipped")
-    colors = image.shape[2] - alpha
-    shown = (1 if colors < 3 else 3) + alpha
+    shown = color_channels(image.shape[2], alpha) + alpha
     if image.shape[2] > shown:
         lost.append(f"{plural(image.shape[2] - shown, 'channel')} of {image.shape[2]} "
                     "dropped")
