@@ -256,6 +256,25 @@ def test_slice_arguments_are_checked(candidates, warp_device):
             with pytest.raises(ValueError, match=r"the plane reaches beyond the texture's "
                                                  r"coordinate range .*: check origin, u, v and "):
                 tex.slice((0, 0, 0), u, v, shape)
+    # NumPy integers: their product wrapped around, and the slice met NumPy's MemoryError.
+    for shape in ((np.int64(2**32),) * 2, np.array([2**32, 2**32])):
+        with pytest.raises(ValueError, match="take it in parts"):
+            tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), shape)
+
+
+def test_a_slices_filter_is_checked_before_its_points_are_made(candidates, warp_device,
+                                                              monkeypatch):
+    """A filter the texture has not was refused by its query, once the plane's points had
+    taken seconds and gigabytes to make (6000 x 6000: 7.7 s)."""
+    import warptex.texture
+    from warptex.texture import SolidTexture
+
+    def not_now(*args):
+        raise AssertionError("the plane's points were made")
+
+    monkeypatch.setattr(warptex.texture, "plane_points", not_now)
+    with pytest.raises(ValueError, match="filter must be one of"):
+        SolidTexture(candidates).slice((0, 0, 0), (1, 0, 0), (0, 1, 0), (4, 4), filter="linear")
 
 
 def test_colors_are_reencoded_only_by_flags():

@@ -328,8 +328,8 @@ def test_an_image_library_that_cannot_write_is_one_clear_error(files, tmp_path, 
         raise RuntimeError(f'Failed to write pixel data to image file "{path}". No space '
                            "left on device.")
 
-    monkeypatch.setattr(warptex.volume_files, "_write_exr", full)  # volumes write through it
-    monkeypatch.setitem(warptex.volume_files._IMAGE_WRITERS, ".exr", full)
+    # Images and volumes write through it.
+    monkeypatch.setattr(warptex.volume_files, "_write_exr_planes", full)
     monkeypatch.setattr(mi.util, "write_bitmap", full)
     out = tmp_path / "out"
     out.mkdir()

@@ -6,24 +6,45 @@ from pathlib import Path
 import pytest
 
 
-def test_volume_memory_counts_the_join_and_the_working_bytes(monkeypatch):
+def test_volume_memory_counts_its_copies_and_the_working_bytes(monkeypatch):
     from warptex import machine
     from warptex.cli import common
 
     size, channels = 64, 3
     one_copy = 4 * channels * size**3
-    for memory, working, refused in [
-        (3 * one_copy, 0, False),        # two copies fit
-        (1.5 * one_copy, 0, True),       # one copy fits, the joined second does not
-        (2 * one_copy + 10, 100, True),  # the working bytes tip it over
-        (2 * one_copy + 100, 100, False),
+    for memory, working, copies, refused in [
+        (3 * one_copy, 0, 2, False),        # two copies fit
+        (1.5 * one_copy, 0, 2, True),       # one copy fits, the second does not
+        (2 * one_copy + 10, 100, 2, True),  # the working bytes tip it over
+        (2 * one_copy + 100, 100, 2, False),
+        (3 * one_copy, 0, 4, True),         # a writer's copies do not fit
     ]:
         monkeypatch.setattr(machine, "physical_memory", lambda m=memory: int(m))
         if refused:
             with pytest.raises(common.CliError, match=f"--size {size}: a {size}\\^3 volume needs"):
-                common.check_memory(size, channels, working)
+                common.check_memory(size, channels, working, copies)
         else:
-            common.check_memory(size, channels, working)
+            common.check_memory(size, channels, working, copies)
+
+
+@pytest.mark.parametrize(("suffix", "copies"), [(".npy", 1), (".vol", 3), (".exr", 4)])
+def test_the_volume_command_counts_what_writing_its_file_holds(tmp_path, granite_32_file,
+                                                                monkeypatch, suffix, copies):
+    """The volume and the copies its file's writer holds besides it (decoded colors, an
+    EXR's sheets): only two were counted, so a large .exr or .vol ran out of memory once
+    all its voxels were synthesized."""
+    from warptex.cli import main, volumes
+
+    counted = []
+
+    def stop_at_the_check(size, channels, working=0, copies=2):
+        counted.append(copies)
+        raise volumes.CliError("checked")
+
+    monkeypatch.setattr(volumes, "check_memory", stop_at_the_check)
+    assert main(["volume", str(granite_32_file), "--size", "16", "-o",
+                 str(tmp_path / f"v{suffix}")]) == 2
+    assert counted == [copies]
 
 
 @pytest.mark.parametrize(("groups", "files", "expected"), [

@@ -119,6 +119,29 @@ def test_a_kept_alpha_after_gray_and_data_is_no_color(tmp_path, srgb_decoded):
     np.testing.assert_array_equal(got["A"], image[..., 2])
 
 
+def test_colors_are_decoded_alike_in_parts(tmp_path, monkeypatch):
+    """Large volumes are decoded a part at a time (the float64 of a whole volume's decoding
+    took nine copies of it): parts of a few rows give the same file."""
+    import warptex.exemplar
+
+    vol = _volume(4)
+    write_volume(tmp_path / "whole.vol", vol, srgb=True, alpha=True)
+    monkeypatch.setattr(warptex.exemplar, "_REENCODED_ROWS", 5)
+    write_volume(tmp_path / "parts.vol", vol, srgb=True, alpha=True)
+    assert (tmp_path / "parts.vol").read_bytes() == (tmp_path / "whole.vol").read_bytes()
+
+
+def test_a_path_that_names_a_folder_or_is_no_file_name_is_refused(tmp_path):
+    """A trailing slash was dropped (a file written under the name of the folder meant),
+    and a number met pathlib's error, which names no argument."""
+    vol = _volume(3)
+    with pytest.raises(ValueError, match=r"v\.npy/: names a folder, not a file"):
+        write_volume(f"{tmp_path}/v.npy/", vol, srgb=False)
+    assert not (tmp_path / "v.npy").exists()
+    with pytest.raises(TypeError, match="path must be a file name"):
+        write_image(3, vol[0], srgb=False)
+
+
 def test_empty_volumes_and_images_and_a_non_bool_srgb_are_refused(tmp_path):
     """An empty volume once failed inside OpenEXR naming a temporary file, or was written
     as a 48-byte grid; srgb="no" counted as true."""

@@ -13,7 +13,7 @@ import warp as wp
 from scipy import ndimage
 
 from kernels import bake as _k
-from warptex.settings import check_count
+from warptex.settings import Filter, check_count
 from warptex.surface import checked_faces, to_voxel_space
 from warptex.texture import PointTexture, query_slabs
 from warptex.warp_runtime import device as default_device
@@ -21,7 +21,7 @@ from warptex.warp_runtime import init_warp, launch
 
 
 def vertex_colors(texture: PointTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
-                  filter: str = "trilinear", progress: str | None = None) -> np.ndarray:
+                  filter: Filter = "trilinear", progress: str | None = None) -> np.ndarray:
     """Colors (V, C) of the solid texture at each vertex, under a progress bar named
     ``progress`` if given."""
     return query_slabs(texture, to_voxel_space(mesh, transform), filter, progress)
@@ -127,7 +127,7 @@ def uv_layout_problems(uv: np.ndarray, faces: np.ndarray, covered: np.ndarray,
 
 def bake_uv_texture(
     texture: PointTexture, mesh: trimesh.Trimesh, uv: np.ndarray, transform: np.ndarray,
-    size: int = 1024, filter: str = "trilinear",
+    size: int = 1024, filter: Filter = "trilinear",
 ) -> tuple[np.ndarray, np.ndarray]:
     """A (size, size, C) image: each covered texel shows the solid texture at its surface
     point; uncovered texels take the nearest covered color so filtering does not bleed

@@ -474,6 +474,9 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
                     1.055 * values ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
+_REENCODED_ROWS = 1 << 18
+
+
 def color_channels(channels: int, alpha: bool = False) -> int:
     """How many of an image's ``channels`` are colors, the leading ones: three (RGB) where
     at least three come before a kept ``alpha`` (the last channel), else one (gray). Those
@@ -487,10 +490,15 @@ def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool,
     colors sRGB-encoded if ``to_srgb``, else linear: what a file format's readers assume.
     Colors are the leading channels (:func:`color_channels`; ``alpha``: the last channel is
     a kept alpha); data and alpha are kept as they are."""
-    out = np.array(values, np.float32)
+    out = np.array(values, np.float32, order="C")
     if check_flag("srgb", srgb) != check_flag("to_srgb", to_srgb):
         color = color_channels(out.shape[-1], check_flag("alpha", alpha))
-        out[..., :color] = (linear_to_srgb if to_srgb else srgb_to_linear)(out[..., :color])
+        convert = linear_to_srgb if to_srgb else srgb_to_linear
+        rows = out.reshape(-1, out.shape[-1])  # a view of ``out``
+        # In parts: the float64 the conversion works in would take several volumes' memory.
+        for start in range(0, len(rows), _REENCODED_ROWS):
+            part = rows[start : start + _REENCODED_ROWS, :color]
+            part[...] = convert(part)
     return out
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from numbers import Integral, Real
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -22,6 +23,7 @@ RENDER_BATCHES = 8  # renders of one image at most (`warptex render`): each a st
 MAX_SAMPLER_SEED = 2**32 // RENDER_BATCHES - 1
 MAX_SPP = 2**32 - 1  # Mitsuba's samplers count samples per pixel in 32 bits
 FILTERS = ("trilinear", "nearest")  # point lookups; the first is the default where one is offered
+Filter = Literal["trilinear", "nearest"]
 DEFAULT_CACHE_BYTES = 256 << 20  # synthesized voxels a brick store keeps in memory
 DEFAULT_COARSE_CACHE_BYTES = 256 << 20  # coarse-level blocks the engine keeps per level
 MIN_EXEMPLAR_SIZE = 16  # pixels a side: a pyramid of at least two levels of 5 x 5 patches

@@ -12,7 +12,7 @@ import weakref
 from collections.abc import Callable, Sequence
 from numbers import Integral
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import warp as wp
@@ -26,6 +26,7 @@ from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
     FILTERS,
+    Filter,
     check_file_name,
     check_flag,
     check_settings,
@@ -189,7 +190,7 @@ class SolidTexture:
     def query(
         self,
         points: np.ndarray | wp.array,
-        filter: Literal["trilinear", "nearest"] = "trilinear",
+        filter: Filter = "trilinear",
         fill: float | Sequence[float] | None = None,
     ) -> np.ndarray:
         """Colors (N, C) float32 at ``points`` (N, 3) float32 or float64, in texture space:
@@ -202,8 +203,7 @@ class SolidTexture:
         in a NumPy masked array, raise ValueError unless ``fill`` gives their color.
         """
         pts = _as_points(points)
-        if filter not in FILTERS:
-            raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
+        _check_filter(filter)
         fill_color = None if fill is None else self._fill_color(fill)
         finite = np.isfinite(pts).all(axis=1)
         if fill_color is None and not finite.all():
@@ -235,10 +235,11 @@ class SolidTexture:
         u: Sequence[float],
         v: Sequence[float],
         shape: tuple[int, int],
-        filter: Literal["trilinear", "nearest"] = "trilinear",
+        filter: Filter = "trilinear",
     ) -> np.ndarray:
         """Colors (H, W, C) on any plane (Dong 2008, 6.4): pixel (r, c) shows the point
         ``origin + r*u + c*v``; the plane need not be axis-aligned."""
+        _check_filter(filter)  # before the plane's points are made, which may take seconds
         for name, vector in (("origin", origin), ("u", u), ("v", v)):
             a = np.asarray(vector)
             real = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
@@ -250,7 +251,7 @@ class SolidTexture:
             raise ValueError(f"shape must be two positive ints (rows, columns), got {shape!r}")
         # Its points (float64, and their grid while made) and colors, and one query batch's
         # request arrays (queries run BATCH points at a time).
-        count = rows_cols[0] * rows_cols[1]
+        count = int(rows_cols[0]) * int(rows_cols[1])  # NumPy integers would wrap around
         need = count * (40 + 4 * self.channels) + min(count, BATCH) * REQUEST_BYTES_PER_VOXEL
         problem = memory_problem(need)
         if problem is not None:
@@ -335,12 +336,18 @@ class PointTexture(Protocol):
     """Anything with a :meth:`SolidTexture.query` and its ``channels``: a texture, or a
     stand-in in tests."""
 
-    channels: int
+    @property
+    def channels(self) -> int: ...
 
-    def query(self, points: np.ndarray, filter: str = ...) -> np.ndarray: ...
+    def query(self, points: np.ndarray, filter: Filter = ...) -> np.ndarray: ...
 
 
-def query_slabs(texture: PointTexture, points: np.ndarray, filter: str = "trilinear",
+def _check_filter(filter: object) -> None:
+    if filter not in FILTERS:
+        raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
+
+
+def query_slabs(texture: PointTexture, points: np.ndarray, filter: Filter = "trilinear",
                 progress: str | None = None) -> np.ndarray:
     """``texture.query(points, filter)`` in slabs along x, under a progress bar named
     ``progress`` (none if None): the same colours as one query, as every point's color

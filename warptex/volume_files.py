@@ -16,7 +16,7 @@ import numpy as np
 
 from warptex.archive import endings, write_atomically
 from warptex.exemplar import color_channels, reencoded
-from warptex.settings import check_flag
+from warptex.settings import check_file_name, check_flag, names_folder
 
 
 def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool,
@@ -28,8 +28,10 @@ def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool,
     the scene scales by the sides). ``srgb``: whether the colors are sRGB-encoded, as those
     of an exemplar whose ``Exemplar.srgb`` is set: ``.exr`` and ``.vol`` get them decoded.
     ``alpha``: whether the last channel is an alpha (``Exemplar.kept_alpha``), which
-    ``.exr`` names A; other channels past the colors are data, named by number.
-    Raises ValueError for another suffix and OSError when the file cannot be written."""
+    ``.exr`` names A; other channels past the colors are data, named by number. Besides
+    ``volume`` the write holds up to :data:`WRITE_COPIES` copies of it, by format.
+    Raises ValueError for another suffix or a folder's name, and OSError when the file
+    cannot be written."""
     _write(path, _float_array(volume, 4, "volume", "(X, Y, Z, C)"), check_flag("srgb", srgb),
            check_flag("alpha", alpha), "a volume file", _VOLUME_WRITERS)
 
@@ -46,7 +48,10 @@ def _write(path: str | Path, data: np.ndarray, srgb: bool, alpha: bool, kind: st
            writers: dict[str, Callable[[Path, np.ndarray, bool], None]]) -> None:
     """``data`` written atomically by the writer of ``path``'s suffix; every format but
     ``.npy`` holds linear colors, so sRGB-encoded ones (``srgb``) are decoded for it."""
-    path = Path(path)
+    given = path
+    path = check_file_name("path", path)
+    if isinstance(given, str) and names_folder(given):
+        raise ValueError(f"{given}: names a folder, not a file")
     writer = writers.get(path.suffix.lower())
     if writer is None:
         raise ValueError(f"{path}: {kind} must end in {endings(list(writers))}")
@@ -95,19 +100,27 @@ def _exr_channel_names(channels: int, alpha: bool) -> list[str]:
 
 
 def _write_exr_volume(path: Path, volume: np.ndarray, alpha: bool) -> None:
-    x, y, z, _ = volume.shape
+    x, y, z, channels = volume.shape
     layout = f"z-slices side by side, {x}x{y}x{z} voxels (x, y, z)"
-    _write_exr(path, exr_sheet(volume), alpha, {"warptexLayout": layout})
+    # A sheet per channel: one copy of the volume in all, not the whole sheet then its planes.
+    planes = [exr_sheet(volume[..., c : c + 1])[..., 0] for c in range(channels)]
+    _write_exr_planes(path, planes, alpha, {"warptexLayout": layout})
 
 
-def _write_exr(path: Path, image: np.ndarray, alpha: bool, extra: dict | None = None) -> None:
-    """An (H, W, C) image as a single-part scanline OpenEXR file, float32."""
+def _write_exr(path: Path, image: np.ndarray, alpha: bool) -> None:
+    _write_exr_planes(path, [image[..., c] for c in range(image.shape[2])], alpha)
+
+
+def _write_exr_planes(path: Path, planes: list[np.ndarray], alpha: bool,
+                      extra: dict | None = None) -> None:
+    """An image's (H, W) channel ``planes`` as a single-part scanline OpenEXR file, float32."""
     import OpenEXR
 
-    names = _exr_channel_names(image.shape[2], alpha)
+    names = _exr_channel_names(len(planes), alpha)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(extra or {})
-    pixels = {name: np.ascontiguousarray(image[..., c], np.float32) for c, name in enumerate(names)}
+    pixels = {name: np.ascontiguousarray(plane, np.float32)
+              for name, plane in zip(names, planes, strict=True)}
     with OpenEXR.File(header, pixels) as file:
         file.write(str(path))
 
@@ -117,13 +130,17 @@ def _write_vol(path: Path, volume: np.ndarray, alpha: bool = False) -> None:
     as its bounds."""
     x, y, z, c = volume.shape
     header = b"VOL" + struct.pack("<B4i", 3, 1, x, y, z) + struct.pack("<i6f", c, 0, 0, 0, 1, 1, 1)
-    # Data index ((z * Y + y) * X + x) * C + c: transpose (x, y, z, c) to (z, y, x, c).
-    data = np.ascontiguousarray(volume.transpose(2, 1, 0, 3), dtype="<f4")
+    # Data index ((z * Y + y) * X + x) * C + c: each z-slice transposed to (y, x, c), one at
+    # a time, so the write holds one slice's copy, not the volume's.
     with open(path, "wb") as file:
         file.write(header)
-        file.write(data.tobytes())
+        for k in range(z):
+            file.write(np.ascontiguousarray(volume[:, :, k].transpose(1, 0, 2), dtype="<f4"))
 
 
 _VOLUME_WRITERS = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
+# Copies of a volume that its write holds besides it, rounded up from what
+# benchmarks/bench_write_memory.py measures (sRGB-decoded: .npy 0, .vol 1.5, .exr 2.4).
+WRITE_COPIES = {".npy": 0, ".exr": 3, ".vol": 2}
 _IMAGE_WRITERS = {".npy": _write_npy, ".exr": _write_exr}
 VOLUME_FORMATS = tuple(_VOLUME_WRITERS)

@@ -135,32 +135,35 @@ def check_kopf_size(size: int) -> None:
         raise CliError(f"--{error}") from None
 
 
-def check_kopf_memory(size: int, exemplars: Sequence[Exemplar | None]) -> None:
+def check_kopf_memory(size: int, exemplars: Sequence[Exemplar | None], copies: int = 2) -> None:
     """Refuse, before any work, a Kopf volume whose exemplars' search structures, or these
-    with the volume, would not fit in this machine's memory."""
+    with ``copies`` of the volume (two as Kopf works; a file's writer may hold more), would
+    not fit in this machine's memory."""
     from warptex.baselines.kopf import search_bytes, working_bytes
 
     search = search_bytes(exemplars)
     given = [e for e in exemplars if e is not None]
     channels = given[0].features.shape[2]
-    cube = _volume_bytes(size, channels) + working_bytes(size)
+    cube = copies * _volume_bytes(size, channels) + working_bytes(size)
     if search >= cube:  # the photo's windows, more than the cube, are what does not fit
         check_fits(search + cube, f"{file_names(given)}: Kopf's search over its windows "
                    f"(with the {size}^3 volume)",
                    "shrink the exemplar with --exemplar-max-size")
-    check_memory(size, channels, working_bytes(size) + search)
+    check_memory(size, channels, working_bytes(size) + search, copies)
 
 
-def check_memory(size: int, channels: int, working: int = 0) -> None:
-    """Refuse a cube whose float32 ``channels`` (held twice while the slabs are joined),
-    with ``working`` bytes besides, would not fit in this machine's memory."""
-    check_fits(_volume_bytes(size, channels) + working, f"--size {size}: a {size}^3 volume",
+def check_memory(size: int, channels: int, working: int = 0, copies: int = 2) -> None:
+    """Refuse a cube of float32 ``channels`` held ``copies`` times (the volume and what
+    is made of it: another method's, a file's), with ``working`` bytes besides, that would
+    not fit in this machine's memory."""
+    check_fits(copies * _volume_bytes(size, channels) + working,
+               f"--size {size}: a {size}^3 volume",
                "use a smaller --size, or `warptex slice` and the Python API for parts of it")
 
 
 def _volume_bytes(size: int, channels: int) -> int:
-    """A float32 cube of ``channels``, held twice while its slabs are joined."""
-    return 2 * 4 * channels * size**3
+    """A float32 cube of ``channels``."""
+    return 4 * channels * size**3
 
 
 def check_fits(need: int, what: str, advice: str) -> None:

@@ -45,7 +45,7 @@ from warptex.cli.options import (
 )
 from warptex.exemplar import Exemplar, color_channels, reencoded
 from warptex.settings import FILTERS, TILEABLE
-from warptex.volume_files import VOLUME_FORMATS, write_image, write_volume
+from warptex.volume_files import VOLUME_FORMATS, WRITE_COPIES, write_image, write_volume
 
 
 def add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -53,7 +53,8 @@ def add_volume_parser(subparsers: argparse._SubParsersAction) -> None:
         "volume", help="synthesize a cube of solid texture (Dong 2008, section 5)",
         description="Synthesize the cube of voxels [0, SIZE)^3 of the exemplar's solid texture "
         "and write it to a file. Lazy synthesis gives the same voxels as every other command "
-        "with the same seed, jitter, passes, --shifted-tiles and --tileable; --method kopf "
+        "with the same exemplars, loading options (--alpha, --feature-*, --exemplar-max-size), "
+        "seed, jitter, passes, --shifted-tiles and --tileable; --method kopf "
         "runs the Kopf 2007 baseline instead.",
     )
     add_exemplar_arguments(parser)
@@ -113,15 +114,18 @@ def run_volume(args: argparse.Namespace) -> int:
         check_kopf_size(args.size)
     exemplars = load_axis_exemplars(args, load_exemplar(args, args.path))
     srgb = bool(colors_srgb(args, exemplars))
+    # The volume, and what writing it holds besides (decoded colors, an EXR's sheets).
+    copies = 1 + WRITE_COPIES[args.output.suffix.lower()]
     if args.method == "kopf":
-        check_kopf_memory(args.size, exemplars)
+        check_kopf_memory(args.size, exemplars, max(2, copies))
         return _volume_kopf(args, exemplars, srgb)
     # Before the slabs are planned: a size far too large would keep that busy.
-    check_memory(args.size, exemplars[0].features.shape[2])
+    channels = exemplars[0].features.shape[2]
+    check_memory(args.size, channels, copies=copies)
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
-    check_memory(args.size, exemplars[0].features.shape[2],
-                 box_bytes((thickness, args.size, args.size)))  # one slab at a time
+    check_memory(args.size, channels, box_bytes((thickness, args.size, args.size)),
+                 copies)  # one slab at a time, written into the volume
     cs = precompute(*exemplars, progress=True, **candidate_params(args))
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes,
@@ -133,14 +137,13 @@ def run_volume(args: argparse.Namespace) -> int:
     # ticking: its time grows with the aprons of its passes, which thinner slabs would repeat.
     slow = work_voxels((size,) * 3, args.passes) > work_voxels((_SECONDS_OF_WORK,) * 3)
     shown = slow or len(edges) > 2
+    volume = np.empty((size, size, size, cs.channels), np.float32)
     with tqdm(total=len(edges) - 1, desc="volume", unit="slab", disable=not shown) as bar:
-        slabs = []
         for x0, x1 in itertools.pairwise(edges):
             with ticking(bar):
-                # Results depend on position only, so slabs along x concatenate to the box.
-                slabs.append(synth.box((x0, 0, 0), (x1 - x0, size, size)))
+                # Results depend on position only, so slabs along x make up the box.
+                volume[x0:x1] = synth.box((x0, 0, 0), (x1 - x0, size, size))
             bar.update()
-    volume = np.concatenate(slabs, axis=0)
     with writing(args.output):
         write_volume(args.output, volume, srgb=srgb, alpha=alpha_kept(exemplars))
     print(f"volume: {size}^3 voxels, {plural(volume.shape[3], 'channel')}, seed {args.seed}")
