@@ -38,7 +38,8 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=256, help="edge of the volume in voxels")
     args = parser.parse_args()
     print(run_record(), flush=True)
-    print(f"| format | colors | copies held (measured) | WRITE_COPIES |  ({args.size}^3 x 3)")
+    print(f"a {args.size}^3 RGB volume, {args.size**3 * 12 / 2**20:.0f} MiB")
+    print("| format | colors | copies held (measured) | WRITE_COPIES |")
     print("|---|---|---|---|")
     context = multiprocessing.get_context("spawn")  # a fresh peak for each write
     with tempfile.TemporaryDirectory() as folder:
