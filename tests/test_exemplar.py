@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 import warnings
 import zlib
 from collections.abc import Callable
@@ -49,6 +50,36 @@ def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
     # OpenEXR reads an array's memory as if contiguous: a channel sliced off writes garbage.
     channels = {name: np.ascontiguousarray(data) for name, data in channels.items()}
     OpenEXR.File(header, channels).write(str(path))
+    return path
+
+
+def _write_tiff(path: Path, samples: np.ndarray, photometric: int, signed: bool = False) -> Path:
+    """An uncompressed little-endian TIFF of (H, W, S) integer ``samples`` in one strip, of
+    kinds Pillow does not write (16-bit CMYK, 16-bit signed gray)."""
+    h, w, count = samples.shape
+    data = samples.astype(samples.dtype.newbyteorder("<")).tobytes()
+    short, long = 3, 4
+    tags = {256: (long, [w]), 257: (long, [h]), 258: (short, [samples.dtype.itemsize * 8] * count),
+            259: (short, [1]), 262: (short, [photometric]), 273: (long, [0]),
+            277: (short, [count]), 278: (long, [h]), 279: (long, [len(data)]),
+            284: (short, [1]), 339: (short, [2 if signed else 1] * count)}
+
+    def packed(kind: int, values: list[int]) -> bytes:
+        return struct.pack("<" + ("H" if kind == short else "I") * len(values), *values)
+
+    ifd_end = 8 + 2 + 12 * len(tags) + 4
+    outside = [packed(*tags[t]) for t in sorted(tags) if len(packed(*tags[t])) > 4]
+    tags[273] = (long, [ifd_end + sum(map(len, outside))])  # the strip, after all else
+    entries, offset = b"", ifd_end
+    for tag, (kind, values) in sorted(tags.items()):
+        value = packed(kind, values)
+        if len(value) > 4:  # stored after the IFD, in the order of the tags
+            entries += struct.pack("<HHII", tag, kind, len(values), offset)
+            offset += len(value)
+        else:
+            entries += struct.pack("<HHI", tag, kind, len(values)) + value.ljust(4, b"\0")
+    path.write_bytes(b"II*\0" + struct.pack("<IH", 8, len(tags)) + entries
+                     + struct.pack("<I", 0) + b"".join(outside) + data)
     return path
 
 
@@ -160,8 +191,8 @@ def test_what_pillow_reads_in_part_is_said_naming_the_file(tmp_path, rng):
     frames = [Image.fromarray(rng.integers(0, 256, (16, 20, 3), dtype=np.uint8))
               for _ in range(3)]
     frames[0].save(tmp_path / "anim.gif", save_all=True, append_images=frames[1:])
-    with pytest.warns(UserWarning, match=r"anim\.gif: an animation of 3 frames, of which "
-                      "the first is read"):
+    with pytest.warns(UserWarning, match=r"anim\.gif: an animation of 3 frames \(or pages\), "
+                      "of which the first is read"):
         Exemplar.load(tmp_path / "anim.gif")
     frames[0].save(tmp_path / "still.gif")
     _load_quiet(tmp_path / "still.gif")
@@ -326,7 +357,46 @@ def test_tiff_premultiplied_alpha_is_undone_and_signed_pixels_refused_in_words(t
     signed = np.zeros((16, 16), np.int32)
     signed[0, 0] = -3000
     Image.fromarray(signed, "I").save(tmp_path / "signed.tif")
-    _raises(tmp_path / "signed.tif", r"integer pixels outside 0 to 65535 \(signed or 32-bit\)")
+    _raises(tmp_path / "signed.tif", r"signed or 32-bit integer pixels are not supported")
+
+
+def test_integer_tiffs_are_told_by_their_kind_not_their_values(tmp_path, rng):
+    """Signed 16-bit and 32-bit gray were read as unsigned 16-bit wherever their values
+    fitted it (a signed image at half its brightness); they are refused whatever their
+    values, and unsigned 16-bit gray is read as before."""
+    values = rng.integers(0, 300, (16, 18, 1))
+    _raises(_write_tiff(tmp_path / "signed16.tif", values.astype(np.int16), 1, signed=True),
+            "signed or 32-bit integer pixels are not supported")
+    Image.fromarray(values[..., 0].astype(np.int32), "I").save(tmp_path / "wide32.tif")
+    _raises(tmp_path / "wide32.tif", "signed or 32-bit integer pixels are not supported")
+    unsigned = _load_quiet(_write_tiff(tmp_path / "gray16.tif", values.astype(np.uint16), 1))
+    np.testing.assert_array_equal(unsigned.colors[..., 0],
+                                  values[..., 0].astype(np.float32) / np.float32(65535))
+
+
+def test_16bit_cmyk_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
+    cmyk = rng.integers(0, 65536, (16, 18, 4)).astype(np.uint16)
+    with pytest.warns(UserWarning, match=r"cmyk16\.tif: 16-bit color image read as 8 bits"):
+        Exemplar.load(_write_tiff(tmp_path / "cmyk16.tif", cmyk, photometric=5))
+
+
+def test_damaged_files_are_refused_in_one_error_naming_them(tmp_path):
+    """A TIFF whose second page has no size met Pillow's TypeError (a traceback), and an
+    OpenEXR file cut short was said to have zero channels."""
+    Image.fromarray(np.zeros((16, 16), np.uint8)).save(tmp_path / "pages.tif")
+    data = bytearray((tmp_path / "pages.tif").read_bytes())
+    ifd = struct.unpack_from("<I", data, 4)[0]
+    entries = struct.unpack_from("<H", data, ifd)[0]
+    struct.pack_into("<I", data, ifd + 2 + 12 * entries, len(data))  # a next page, appended
+    data += struct.pack("<HHHII", 1, 259, 3, 1, 1) + struct.pack("<I", 0)  # no width, height
+    (tmp_path / "pages.tif").write_bytes(bytes(data))
+    _raises(tmp_path / "pages.tif", r"pages\.tif: unreadable image")
+    header = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"RGB": np.zeros((32, 32, 3), np.float32)}).write(
+        str(tmp_path / "whole.exr"))
+    whole = (tmp_path / "whole.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(whole[: len(whole) // 2])  # within the pixels
+    _raises(tmp_path / "cut.exr", r"cut\.exr: damaged or truncated OpenEXR file")
 
 
 def test_png_orientation_is_not_applied(tmp_path, rng):
@@ -1049,6 +1119,18 @@ def test_feature_mask_problems(tmp_path, data_dir):
         Exemplar.load(path, feature_mask=tmp_path / "empty_mask.png")
     with pytest.raises(ExemplarError, match="file not found"):
         Exemplar.load(path, feature_mask=tmp_path / "missing_mask.png")
+
+
+def test_a_feature_mask_with_nan_or_inf_is_refused(tmp_path, data_dir):
+    """A NaN made its maximum NaN: the mask was thresholded at zero instead of half its
+    maximum, without a word; an Inf was said to leave the mask without edges."""
+    mask = np.zeros((64, 64), np.float32)
+    mask[8:40, 8:40] = 1.0
+    for bad in (np.nan, np.inf):
+        mask[63, 63] = bad
+        np.save(tmp_path / "mask.npy", mask)
+        with pytest.raises(ExemplarError, match=r"mask\.npy: feature mask contains NaN or Inf"):
+            Exemplar.load(data_dir / "granite_64.png", feature_mask=tmp_path / "mask.npy")
 
 
 def test_a_photo_given_as_feature_mask_is_used_with_a_warning(tmp_path, data_dir):

@@ -213,6 +213,10 @@ class Exemplar:
                     f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
                     f"{path} is {_size(read_shape)}"
                 )
+            first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
+            if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
+                # Half its maximum, the threshold, would be NaN or infinite.
+                raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
             _warn_unless_binary(mask_image, str(mask_path))
             if array.shape[:2] != read_shape[:2]:
                 mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import re
+import struct
 import tokenize
 import zlib
 from pathlib import Path
@@ -147,9 +148,9 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
             channels = _exr_part_channels(file.parts, path)
     except (RuntimeError, OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None
+    if not channels:  # OpenEXR reads no part of a file cut short, saying so on stderr
+        raise ExemplarError(f"{path}: damaged or truncated OpenEXR file (no part readable)")
     order, alpha = _exr_channel_order(list(channels), path)
-    if not order:
-        raise ExemplarError(f"{path}: OpenEXR file has zero channels")
     for name in order:
         if np.issubdtype(channels[name].dtype, np.integer):
             raise ExemplarError(f"{path}: OpenEXR channel {name} holds integers (object or "
@@ -249,8 +250,12 @@ def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
         raise ExemplarError(f"{path}: not an image (unrecognised file format)") from None
     except Image.DecompressionBombError as error:
         raise ExemplarError(f"{path}: too large to read ({error})") from None
-    except (OSError, ValueError, SyntaxError) as error:
-        raise ExemplarError(f"{path}: unreadable image ({error})") from None
+    # Pillow's decoders meet damaged files (a TIFF's page without a size, say) with
+    # whichever error their parsing raised.
+    except (OSError, ValueError, SyntaxError, TypeError, KeyError, IndexError, EOFError,
+            struct.error) as error:
+        raise ExemplarError(f"{path}: unreadable image ({error or type(error).__name__})"
+                            ) from None
 
 
 def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
@@ -262,14 +267,15 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
         # (orientations 5 to 8) came out scrambled.
         with (library_warnings("PIL") as caught, path.open("rb") as file,
               Image.open(file) as image):
-            cut_bits = _bits_cut_to_8(image)  # told by the decoder's settings, gone once loaded
+            # Told by the decoder's settings, gone once loaded.
+            cut_bits, widened = _bits_cut_to_8(image), _widened_16_bit(image)
             frames = getattr(image, "n_frames", 1)
             image.load()
             # Cameras store portrait photos sideways and say so in EXIF: upright, as
             # viewers show them, since grain and layers run the way the photo shows.
             if upright:
                 ImageOps.exif_transpose(image, in_place=True)
-            pixels = _pillow_pixels(image)
+            pixels = _pillow_pixels(image, widened)
     except Warning as made_an_error:  # by the process's filters (python -W error)
         raise type(made_an_error)(f"{path}: {made_an_error}") from None
     for warning in caught:
@@ -279,7 +285,7 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
         if issubclass(warning.category, UserWarning):
             warn(f"{path}: {warning.message}", warning.category, stacklevel=5)
     if frames > 1:
-        warn(f"{path}: an animation of {frames} frames, of which the first is read",
+        warn(f"{path}: an animation of {frames} frames (or pages), of which the first is read",
              stacklevel=5)
     if cut_bits:
         warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
@@ -290,17 +296,31 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
 
 
 def _bits_cut_to_8(image: Image.Image) -> bool:
-    """Whether Pillow is about to decode 16-bit colors into its 8-bit RGB(A) mode: a raw
-    mode of 16-bit samples (``RGB;16L``), or a PPM of more than 255 levels."""
-    if image.mode not in ("RGB", "RGBA"):
+    """Whether Pillow is about to decode 16-bit colors into its 8-bit RGB(A) or CMYK mode:
+    a raw mode of 16-bit samples (``RGB;16L``), or a PPM of more than 255 levels."""
+    if image.mode not in ("RGB", "RGBA", "CMYK"):
         return False
-    for tile in image.tile:
-        args = tile[3] if isinstance(tile[3], tuple) else (tile[3],)
-        if any(isinstance(a, str) and ";16" in a for a in args):
-            return True
-        if tile[0] == "ppm" and any(isinstance(a, int) and a > 255 for a in args):
+    for codec, raw, args in _decoders(image):
+        if ";16" in raw or (codec == "ppm" and any(isinstance(a, int) and a > 255
+                                                   for a in args)):
             return True
     return False
+
+
+def _widened_16_bit(image: Image.Image) -> bool:
+    """Whether a 32-bit integer (``I``) image is unsigned 16-bit gray that Pillow widened
+    (a 16-bit PGM), not signed or 32-bit samples, which have no [0, 1] scale."""
+    return all(codec == "ppm" or (raw.startswith("I;16") and not raw.startswith("I;16S"))
+               for codec, raw, _ in _decoders(image))
+
+
+def _decoders(image: Image.Image) -> list[tuple[str, str, tuple]]:
+    """Each tile's codec, raw mode (the first text of its arguments) and arguments."""
+    found = []
+    for tile in image.tile:
+        args = tile[3] if isinstance(tile[3], tuple) else (tile[3],)
+        found.append((tile[0], next((a for a in args if isinstance(a, str)), ""), args))
+    return found
 
 
 def _warn_of_color_profile(profile: bytes | None, path: Path) -> None:
@@ -324,19 +344,19 @@ def _warn_of_color_profile(profile: bytes | None, path: Path) -> None:
          "sRGB first", stacklevel=5)
 
 
-def _pillow_pixels(image: Image.Image) -> tuple[np.ndarray, bool]:
+def _pillow_pixels(image: Image.Image, widened: bool) -> tuple[np.ndarray, bool]:
     mode = image.mode
-    if mode.startswith("I;16"):
+    if mode.startswith("I;16") and not mode.startswith("I;16S"):
         return np.asarray(image).astype(np.uint16), False
     if mode == "F":
         return np.asarray(image), False
-    if mode == "I":
-        # Pillow widens 16-bit grayscale to 32 bits in some formats; wider data has no [0, 1] scale.
+    if mode == "I" and widened:  # Pillow widens 16-bit gray to 32 bits in some formats
         data = np.asarray(image)
-        if data.min() < 0 or data.max() > 65535:
-            raise ValueError("integer pixels outside 0 to 65535 (signed or 32-bit) are not "
-                             "supported: save them as float OpenEXR")
-        return data.astype(np.uint16), False
+        if data.min() >= 0 and data.max() <= 65535:
+            return data.astype(np.uint16), False
+    if mode.startswith("I"):  # their values, whatever they are, have no [0, 1] scale
+        raise ValueError("signed or 32-bit integer pixels are not supported (unsigned 8 or "
+                         "16 bits are): save them as float OpenEXR")
     if mode in ("L", "RGB"):
         return np.asarray(image), False
     if mode in ("LA", "RGBA"):
