@@ -595,6 +595,12 @@ def test_bad_requests_are_clear(candidates):
         syn.voxels(np.zeros((3, 2), np.int64))
     with pytest.raises(ValueError, match="within"):
         syn.voxels(np.array([[COORD_LIMIT, 0, 0]]))
+    # Python ints past int64 became objects or floats, and the error spoke of their type.
+    for far in ([[2**64, 0, 0]], [[2**63, 0, 0]], [(0, -(2**70), 1)]):
+        with pytest.raises(ValueError, match=r"must lie within \["):
+            syn.voxels(far)
+    with pytest.raises(ValueError, match="integer array, got float64"):
+        syn.voxels([[0.5, 0, 0]])
     assert syn.voxels(np.zeros((0, 3), np.int64)).shape == (0, 3)
     # Beyond int64, and an empty box too long to be an array: the range names both.
     for origin, shape in (((10**20, 0, 0), (1, 1, 1)), ((0, 0, 0), (0, 10**30, 10**30)),
@@ -801,6 +807,23 @@ def test_a_box_larger_than_the_memory_is_refused_before_any_work(candidates, mon
     tex = SolidTexture(candidates, device="cpu")
     with pytest.raises(ValueError, match=r"a slice of shape \(40000, 40000\) needs about"):
         tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), (40000, 40000))
+
+
+def test_a_boxs_memory_counts_the_apron_of_its_passes(candidates, monkeypatch):
+    """A box's estimate took the apron of the default passes, whatever the engine's: with 8
+    passes of 8 sub-passes a box that voxels() refused ran."""
+    import warptex.machine
+    from warptex.synthesis import box_bytes
+
+    syn = Synthesizer(candidates, passes=8, subpasses=8)
+    shape = (64, 64, 64)
+    colors = 4 * candidates.channels * 64**3
+    memory = (box_bytes(shape) + box_bytes(shape, syn._apron)) // 2 + colors
+    assert box_bytes(shape) + colors < memory < box_bytes(shape, syn._apron) + colors
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: memory)
+    monkeypatch.setattr(syn, "_pixel_triples", lambda voxels: pytest.fail("the box ran"))
+    with pytest.raises(ValueError, match=r"a box of shape \(64, 64, 64\) needs about"):
+        syn.box((0, 0, 0), shape)
 
 
 def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candidates,

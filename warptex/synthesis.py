@@ -82,13 +82,14 @@ _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (sec
 _LOCAL = cell_offsets(BLOCK)
 
 
-def box_bytes(shape: tuple[int, int, int]) -> int:
+def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1) -> int:
     """About the memory that synthesizing a box of ``shape`` takes beside its colors: its
     request's host arrays and the engine's work on one part of it (the box and its apron,
-    a block at the default passes, at most ``MAX_WORK_VOXELS``)."""
-    d, h, w = shape
-    work = min(MAX_WORK_VOXELS, (d + 2 * BLOCK) * (h + 2 * BLOCK) * (w + 2 * BLOCK))
-    return d * h * w * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
+    at most ``MAX_WORK_VOXELS``); ``apron_blocks`` is the engine's (one at the default
+    passes), as for :func:`request_bytes`."""
+    reach = 2 * apron_blocks * BLOCK
+    work = min(MAX_WORK_VOXELS, math.prod(n + reach for n in shape))
+    return math.prod(shape) * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
 
 
 def request_bytes(ijk: np.ndarray, apron_blocks: int = 1) -> int:
@@ -128,12 +129,18 @@ def _device_memory(device: str) -> int:
     return int(wp.get_device(device).total_memory)
 
 
+def default_apron_blocks(passes: int = DEFAULT_PASSES) -> int:
+    """The blocks of apron that ``passes`` of one sub-pass read around a request, with the
+    default neighbourhood (section 5.2)."""
+    return _apron_blocks(DEFAULT_PARAMS["neighborhood"] // 2, passes, 1)
+
+
 def work_voxels(shape: tuple[int, int, int], passes: int = DEFAULT_PASSES) -> int:
     """About how many voxel corrections synthesizing a box of ``shape`` takes, a measure of
     its time: at each level from the finest, the box grown by the apron its passes read
     (section 5.2), corrected ``passes`` times, then halved for the level above. The aprons
     grow with the passes, so a small box of many passes can take longer than a large one."""
-    apron = BLOCK * _apron_blocks(DEFAULT_PARAMS["neighborhood"] // 2, passes, 1)
+    apron = BLOCK * default_apron_blocks(passes)
     sides = np.asarray(shape, np.int64)
     work = 0
     for _ in range(_LEVELS + 1):
@@ -238,13 +245,28 @@ def check_voxels(ijk: np.ndarray) -> np.ndarray:
     """Voxel coordinates ``ijk`` as an (N, 3) int64 array, or a ValueError: they must be
     integers (a fraction names no voxel) within [-COORD_LIMIT, COORD_LIMIT), where block
     keys hold them without wrapping onto another voxel."""
-    ijk = np.asarray(ijk)
+    outside = f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})"
+    given, ijk = ijk, np.asarray(ijk)
     if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
+        if _python_ints(given):  # beyond int64, which NumPy made objects or floats of
+            raise ValueError(outside)
         raise ValueError(f"voxel coordinates must be an (N, 3) integer array, got "
                          f"{ijk.dtype} {ijk.shape}")
     if len(ijk) and (ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT):
-        raise ValueError(f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})")
+        raise ValueError(outside)
     return ijk.astype(np.int64, copy=False)
+
+
+def _python_ints(values: object) -> bool:
+    """Whether ``values``, not a NumPy array, are rows of three Python ints."""
+    if isinstance(values, np.ndarray):
+        return False
+    try:
+        rows = np.asarray(values, dtype=object)
+    except ValueError:  # ragged
+        return False
+    return (rows.ndim == 2 and rows.shape[1] == 3 and rows.size > 0
+            and all(isinstance(v, Integral) and not isinstance(v, bool) for v in rows.flat))
 
 
 def _three_ints(name: str, values) -> tuple[int, int, int]:
@@ -479,7 +501,7 @@ class Synthesizer:
                    for o, n in zip(origin, shape, strict=True)):  # checked before any array
             raise ValueError(f"a box at origin {origin} of shape {shape} leaves the voxel "
                              f"coordinates' range [-{COORD_LIMIT}, {COORD_LIMIT})")
-        need = box_bytes(shape) + 4 * self.candidates.channels * int(np.prod(shape))
+        need = box_bytes(shape, self._apron) + 4 * self.candidates.channels * math.prod(shape)
         problem = memory_problem(need)
         if problem is not None:  # before allocating: too large a box would end in swapping
             raise ValueError(f"a box of shape {shape} {problem}; synthesize it in parts")

@@ -92,7 +92,7 @@ def run_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer, box_bytes, work_voxels
+    from warptex.synthesis import Synthesizer, box_bytes, default_apron_blocks, work_voxels
 
     check_output(args.output, VOLUME_FORMATS, "a volume file")
     check_inputs_kept(args, [args.output])
@@ -124,8 +124,8 @@ def run_volume(args: argparse.Namespace) -> int:
     check_memory(args.size, channels, copies=copies)
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
-    check_memory(args.size, channels, box_bytes((thickness, args.size, args.size)),
-                 copies)  # one slab at a time, written into the volume
+    slab = box_bytes((thickness, args.size, args.size), default_apron_blocks(args.passes))
+    check_memory(args.size, channels, slab, copies)  # one slab at a time, into the volume
     cs = precompute(*exemplars, progress=True, **candidate_params(args))
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes,
