@@ -30,9 +30,10 @@ _BLOCK_SHIFT = wp.constant(BLOCK.bit_length() - 1)  # BLOCK = 2^_BLOCK_SHIFT
 MAX_DIMS = 12
 PROJ_LIMIT = 2047  # projections are 12-bit, so a 3-plane distance fits in int32
 TILE_SALT = 64  # hashes of tile shifts, apart from the jitter's octaves (salts 0-33)
+BASIS_LIMIT = 127  # |basis| of the int8 PCA bases (warptex.candidates)
 # Terms a float32 sum adds exactly in any order: |basis| <= 127 times features <= 3 * 255
 # stay below 2^24 (see project_neighborhoods).
-EXACT_ROW_TERMS = (1 << 24) // (127 * 3 * 255)
+EXACT_ROW_TERMS = (1 << 24) // (BASIS_LIMIT * 3 * 255)
 
 appearance_vector = wp.types.vector(length=MAX_DIMS, dtype=wp.int32)
 """A PCA-projected neighbourhood; unused trailing dimensions are zero."""

@@ -700,6 +700,21 @@ def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_pat
             CandidateSet.load(path)
 
 
+def test_a_file_whose_basis_reaches_past_127_is_refused(tmp_path, granite):
+    """A basis coefficient of -128 (int8 holds it) makes the projections' float32 sums
+    depend on their order of adding, so a CPU and a GPU could differ."""
+    granite.save(tmp_path / "g.wtc")
+    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    name = next(k for k in arrays if k.endswith("/basis"))
+    basis = arrays[name].copy()
+    basis.flat[0] = -128
+    write_archive(tmp_path / "wide.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                  {**arrays, name: basis})
+    with pytest.raises(CandidateCacheError, match=r"wide\.wtc: unreadable candidate data"):
+        CandidateSet.load(tmp_path / "wide.wtc")
+
+
 def test_content_digest_is_kept_through_a_file_and_sees_one_coefficient(tmp_path, granite):
     granite.save(tmp_path / "g.wtc")
     assert CandidateSet.load(tmp_path / "g.wtc").content_digest == granite.content_digest

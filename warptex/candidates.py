@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from kernels import candidates as _k
 from kernels import common as _common
-from kernels.synthesis import BLOCK, EXACT_ROW_TERMS, MAX_DIMS, PROJ_LIMIT
+from kernels.synthesis import BASIS_LIMIT, BLOCK, EXACT_ROW_TERMS, MAX_DIMS, PROJ_LIMIT
 from warptex import exact_pca, parallel, warp_runtime
 from warptex.archive import (
     ArchiveError,
@@ -635,7 +635,7 @@ def _source_level(feat: np.ndarray, p: dict, k2: int, margins: tuple[int, int]) 
     # Fix each component's sign, which an eigensolver leaves free.
     signs = np.sign(basis_f[np.arange(dims), np.argmax(np.abs(basis_f), axis=1)])
     basis_f *= signs[:, None]
-    scale = 127.0 / max(np.abs(basis_f).max(), 1e-12)
+    scale = BASIS_LIMIT / max(np.abs(basis_f).max(), 1e-12)
     basis = np.rint(basis_f * scale).astype(np.int64)
     acc = vec @ basis.T
     shift = max(0, int(np.abs(acc).max()).bit_length() - PROJ_BITS)
@@ -1026,6 +1026,9 @@ def _check_layout(cs: CandidateSet) -> None:
             if (s.feat.ndim != 3 or s.feat.shape[2] != cs.sources[0][0].feat.shape[2]
                     or s.feat.dtype != np.uint8 or s.proj.dtype != np.int16
                     or s.basis.shape[1:] != (n * n * s.feat.shape[2],)
+                    # Projections are exact sums only of basis terms within +-127 (the
+                    # kernels' EXACT_ROW_TERMS): any order of adding gives them, CPU or GPU.
+                    or not _within(s.basis, -BASIS_LIMIT, BASIS_LIMIT)
                     or not 1 <= dims <= MAX_DIMS or s.proj.shape != (pixels, dims)
                     or not _within(s.proj, -PROJ_LIMIT - 1, PROJ_LIMIT)
                     or not 0 <= s.shift < 32
