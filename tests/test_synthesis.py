@@ -74,14 +74,18 @@ def test_voxel_independent_of_what_else_is_requested(candidates):
     assert np.array_equal(alone, in_scattered[: len(probe)])
 
 
-def test_batch_size_and_order_do_not_matter(candidates):
+@pytest.mark.parametrize("subpasses", [1, 8])
+def test_batch_size_and_order_do_not_matter(candidates, subpasses):
+    """Also with 8 interleaved sub-passes, whose dependencies chain from sub-pass to
+    sub-pass (fewer voxels, closer together: each reaches 19 voxels further a level)."""
     rng = np.random.default_rng(2)
-    pts = _random_voxels(rng, 200)
-    whole = Synthesizer(candidates, seed=9).voxels(pts)
-    syn = Synthesizer(candidates, seed=9)
-    pieces = [syn.voxels(pts[i : i + 37]) for i in range(0, len(pts), 37)]
+    count, step = (200, 37) if subpasses == 1 else (24, 7)
+    pts = _random_voxels(rng, count) if subpasses == 1 else _random_voxels(rng, count, -24, 24)
+    whole = Synthesizer(candidates, seed=9, subpasses=subpasses).voxels(pts)
+    syn = Synthesizer(candidates, seed=9, subpasses=subpasses)
+    pieces = [syn.voxels(pts[i : i + step]) for i in range(0, len(pts), step)]
     assert np.array_equal(whole, np.concatenate(pieces))
-    reverse = Synthesizer(candidates, seed=9).voxels(pts[::-1])[::-1]
+    reverse = Synthesizer(candidates, seed=9, subpasses=subpasses).voxels(pts[::-1])[::-1]
     assert np.array_equal(whole, reverse)
 
 
@@ -129,13 +133,26 @@ def test_triples_identical_and_colors_are_their_average(candidates):
     assert np.array_equal(syn.voxels(pts), expected.astype(np.float32))
 
 
-def test_coarse_cache_never_changes_a_result(candidates):
+def test_coarse_cache_never_changes_a_result(candidates, monkeypatch):
+    """The warm engine's second request reads coarse voxels the first one cached (asserted:
+    without hits this would compare two cold engines)."""
     rng = np.random.default_rng(3)
     first, second = _random_voxels(rng, 150), _random_voxels(rng, 150, -60, 20)
     warm = Synthesizer(candidates, seed=4)
     warm.voxels(first)
+    hits = []
+    find = synthesis._LevelCache.find
+
+    def counted(self, keys, flat):
+        rows = find(self, keys, flat)
+        hits.append(int(np.count_nonzero(rows >= 0)))
+        return rows
+
+    monkeypatch.setattr(synthesis._LevelCache, "find", counted)
+    warmed = warm.voxels(second)
+    assert sum(hits) > 0
     cold = Synthesizer(candidates, seed=4, coarse_cache_bytes=0)
-    assert np.array_equal(warm.voxels(second), cold.voxels(second))
+    assert np.array_equal(warmed, cold.voxels(second))
 
 
 def test_a_full_coarse_cache_starts_over_without_changing_results(candidates):
@@ -150,28 +167,38 @@ def test_a_full_coarse_cache_starts_over_without_changing_results(candidates):
     assert any(b < a for a, b in pairwise(held))  # the cache filled up and started over
 
 
-class _StoppedAtTheCacheBits:
-    """numpy, but Ctrl-C where the coarse cache joins its blocks' bits (uint64)."""
+class _StoppedInTheCache:
+    """numpy, but Ctrl-C where the coarse cache joins its blocks' bits (a uint64
+    concatenation), or where it sets the bits of voxels whose triples it has written
+    (``np.bitwise_or``, which only that step uses)."""
+
+    def __init__(self, where: str) -> None:
+        self.stop = where  # not .where: np.where is looked up here too
 
     def __getattr__(self, name: str):
+        if self.stop == "before the bits" and name == "bitwise_or":
+            raise KeyboardInterrupt
         return getattr(np, name)
 
-    @staticmethod
-    def concatenate(arrays, *args, **kwargs):
-        if arrays[0].dtype == np.uint64:
+    def concatenate(self, arrays, *args, **kwargs):
+        if self.stop == "joining blocks" and arrays[0].dtype == np.uint64:
             raise KeyboardInterrupt
         return np.concatenate(arrays, *args, **kwargs)
 
 
-def test_a_request_stopped_while_caching_leaves_no_wrong_coarse_voxel(candidates, monkeypatch):
-    """Ctrl-C while a request enters coarse blocks in the cache: later requests still get
-    what an engine without a cache gives (the cache changes in one step or not at all)."""
+@pytest.mark.parametrize("where", ["joining blocks", "before the bits"])
+def test_a_request_stopped_while_caching_leaves_no_wrong_coarse_voxel(candidates, monkeypatch,
+                                                                     where):
+    """Ctrl-C while a request enters coarse blocks in the cache, as it joins their bits or
+    once it has written their voxels' triples and not yet the bits that mark them cached:
+    later requests still get what an engine without a cache gives (the blocks change in
+    one step, and triples without their bits are never read)."""
     rng = np.random.default_rng(6)
     first, second = _random_voxels(rng, 150), _random_voxels(rng, 150, -60, 20)
     engine = Synthesizer(candidates, seed=4)
     engine.voxels(first)
     with monkeypatch.context() as patch:
-        patch.setattr(synthesis, "np", _StoppedAtTheCacheBits())
+        patch.setattr(synthesis, "np", _StoppedInTheCache(where))
         with pytest.raises(KeyboardInterrupt):
             engine.voxels(second)
     both = np.concatenate([first, second])
@@ -179,22 +206,48 @@ def test_a_request_stopped_while_caching_leaves_no_wrong_coarse_voxel(candidates
     assert np.array_equal(engine.voxels(both), cold.voxels(both))
 
 
-@pytest.mark.parametrize("cache_blocks", [200, None])
-def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates, cache_blocks):
+@pytest.mark.parametrize("cache_blocks", [1500, None])
+def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates, monkeypatch,
+                                                                 cache_blocks):
     """Also with a coarse cache small enough to be filled and cleared while the threads
-    race (200 blocks of 64 voxels, 12 bytes a voxel), which the engine's lock orders."""
+    race (1500 blocks of 64 voxels, 12 bytes a voxel): every use of it is under the
+    engine's lock, checked as it happens, since a race need not show in the results (200
+    blocks, fewer than one request adds, left the cache unused)."""
     rng = np.random.default_rng(8)
     requests = [_random_voxels(rng, 60 if cache_blocks else 100, -80, 80)
                 for _ in range(24 if cache_blocks else 12)]
     serial = Synthesizer(candidates, seed=5, coarse_cache_bytes=0)
     expected = [serial.voxels(r) for r in requests]
     cache = {} if cache_blocks is None else {"coarse_cache_bytes": cache_blocks * 64 * 12}
+    racing: list[Synthesizer] = []  # the engine the threads share, while they race
+    seen = {"clear": 0, "hits": 0}
+
+    def under_lock(name: str):
+        use = getattr(synthesis._LevelCache, name)
+
+        def checked(self, *args):
+            if racing:
+                assert racing[0]._lock.locked(), f"coarse cache {name} without the lock"
+                seen["clear"] += name == "clear"
+            found = use(self, *args)
+            if racing and name == "find":
+                seen["hits"] += int(np.count_nonzero(found >= 0))
+            return found
+        return checked
+
+    for name in ("find", "insert", "clear"):
+        monkeypatch.setattr(synthesis._LevelCache, name, under_lock(name))
     for _ in range(2):
         shared = Synthesizer(candidates, seed=5, **cache)
+        racing.append(shared)
         with ThreadPoolExecutor(8 if cache_blocks else 4) as pool:
             got = list(pool.map(shared.voxels, requests))
+        racing.clear()
         for g, e in zip(got, expected, strict=True):
             assert np.array_equal(g, e)
+    assert seen["hits"] > 0
+    if cache_blocks is not None:
+        assert seen["clear"] > 0
 
 
 @pytest.mark.parametrize(("threads", "halo_chunk"), [(2, 256), (3, 1), (8, 3)])

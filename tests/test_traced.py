@@ -172,7 +172,9 @@ def lit_plane(path, space: str = "world", filter: str = "trilinear", integrator:
 def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file, filter):
     """Determinism at the renderer: a cold store (traced renders that miss, synthesis,
     render again), a warm one (one traced render) and wavefront mode give one image, with
-    either filter (a traced program that ignored it would not)."""
+    either filter (a traced program that ignored it would not). The wavefront image is
+    another texture's, its store empty, so it does not read the voxels the traced renders
+    stored: those must be what lookups alone synthesize."""
     scene, texture = lit_plane(granite_32_file, filter=filter)
     cold = np.array(mitsuba_plugin.render(scene, spp=4))
     first = texture.traced_stats()
@@ -181,8 +183,11 @@ def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file, filter):
     warm = np.array(mitsuba_plugin.render(scene, spp=4))
     assert texture.traced_stats() == {"renders": first["renders"] + 1,
                                       "renders_with_misses": first["renders_with_misses"]}
+    apart, other = lit_plane(granite_32_file, filter=filter)
+    assert other is not texture and other.solid.store.stats()["bricks"] == 0
     with mitsuba_plugin.wavefront():
-        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+        wavefront = np.array(mi.render(apart, spp=4, seed=0))
+    assert other.solid.store.stats()["voxels_added"] > 0
     assert warm.mean() > 0.05
     # Mitsuba adds samples into the film with atomics, in an order that varies from run
     # to run, so even a texture-free scene differs in the last bits between renders; a
