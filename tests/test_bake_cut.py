@@ -665,30 +665,15 @@ def test_cli_slice_shows_the_z_exemplar_as_its_photo_is_oriented(tmp_path, data_
     assert along_columns > 4 * along_rows
 
 
-def test_bake_says_a_kept_alpha_is_not_written(tmp_path, data_dir, sphere, warp_device,
-                                              capsys):
+@pytest.mark.parametrize(("exemplar", "dropped"), [("rgba.png", "1 channel of 4"),
+                                                  ("yca.exr", "2 channels of 3")])
+def test_bake_writes_colors_only_and_says_what_it_drops(tmp_path, data_dir, sphere,
+                                                        warp_device, capsys, exemplar,
+                                                        dropped):
     """Mesh files hold RGB: an alpha kept with --alpha keep is synthesized (it takes part in
-    the matching) but not written, which the command says before its work."""
-    from PIL import Image
-
-    from warptex.cli import main
-
-    granite = np.asarray(Image.open(data_dir / "granite_64.png"))[:32, :32]
-    rgba = np.dstack([granite, np.arange(32 * 32, dtype=np.uint8).reshape(32, 32)])
-    Image.fromarray(rgba).save(tmp_path / "rgba.png")
-    mesh_path = tmp_path / "sphere.ply"
-    sphere.export(mesh_path)
-    assert main(["bake", str(mesh_path), "--exemplar", str(tmp_path / "rgba.png"),
-                 "--alpha", "keep", "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
-    assert ("warptex: warning: mesh files hold RGB colors: 1 channel of 4 (an alpha kept by "
-            "--alpha keep) synthesized but not written") in capsys.readouterr().err
-
-
-def test_bake_writes_the_gray_of_gray_data_and_alpha(tmp_path, data_dir, sphere, warp_device,
-                                                     capsys):
-    """Gray, a data channel and a kept alpha (an EXR's Y, C1, A): the mesh's colors are the
-    gray, and the command says two channels are not written (the three were written as
-    RGB, without a word)."""
+    the matching) but not written, which the command says before its work. Of gray, a data
+    channel and a kept alpha (an EXR's Y, C1, A) the mesh gets the gray (the three were
+    written as RGB, without a word)."""
     import trimesh
     from PIL import Image
 
@@ -696,16 +681,22 @@ def test_bake_writes_the_gray_of_gray_data_and_alpha(tmp_path, data_dir, sphere,
     from warptex.volume_files import write_image
 
     granite = np.asarray(Image.open(data_dir / "granite_64.png"))[:32, :32, :3]
-    write_image(tmp_path / "yca.exr", granite.astype(np.float32) / 255, srgb=False, alpha=True)
+    if exemplar == "rgba.png":
+        alpha = np.arange(32 * 32, dtype=np.uint8).reshape(32, 32)
+        Image.fromarray(np.dstack([granite, alpha])).save(tmp_path / exemplar)
+    else:
+        write_image(tmp_path / exemplar, granite.astype(np.float32) / 255, srgb=False,
+                    alpha=True)
     mesh_path = tmp_path / "sphere.ply"
     sphere.export(mesh_path)
-    assert main(["bake", str(mesh_path), "--exemplar", str(tmp_path / "yca.exr"),
+    assert main(["bake", str(mesh_path), "--exemplar", str(tmp_path / exemplar),
                  "--alpha", "keep", "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
-    assert ("warptex: warning: mesh files hold RGB colors: 2 channels of 3 (an alpha kept by "
+    assert (f"warptex: warning: mesh files hold RGB colors: {dropped} (an alpha kept by "
             "--alpha keep) synthesized but not written") in capsys.readouterr().err
     colors = trimesh.load(tmp_path / "b.ply", process=False).visual.vertex_colors
     assert np.ptp(colors[:, 0]) > 0
-    assert (colors[:, 0] == colors[:, 1]).all() and (colors[:, 1] == colors[:, 2]).all()
+    gray = (colors[:, 0] == colors[:, 1]).all() and (colors[:, 1] == colors[:, 2]).all()
+    assert gray == (exemplar == "yca.exr")
 
 
 def test_bake_names_finding_the_shell_before_that_long_call(tmp_path, granite_32_file,
