@@ -53,11 +53,13 @@ def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
     return path
 
 
-def _write_tiff(path: Path, samples: np.ndarray, photometric: int, signed: bool = False) -> Path:
-    """An uncompressed little-endian TIFF of (H, W, S) integer ``samples`` in one strip, of
-    kinds Pillow does not write (16-bit CMYK, 16-bit signed gray)."""
+def _write_tiff(path: Path, samples: np.ndarray, photometric: int, signed: bool = False,
+                order: str = "<") -> Path:
+    """An uncompressed TIFF of (H, W, S) integer ``samples`` in one strip, little-endian
+    or (``order`` ">") big-endian, of kinds Pillow does not write (16-bit CMYK, 16-bit
+    signed gray)."""
     h, w, count = samples.shape
-    data = samples.astype(samples.dtype.newbyteorder("<")).tobytes()
+    data = samples.astype(samples.dtype.newbyteorder(order)).tobytes()
     short, long = 3, 4
     tags = {256: (long, [w]), 257: (long, [h]), 258: (short, [samples.dtype.itemsize * 8] * count),
             259: (short, [1]), 262: (short, [photometric]), 273: (long, [0]),
@@ -65,7 +67,7 @@ def _write_tiff(path: Path, samples: np.ndarray, photometric: int, signed: bool 
             284: (short, [1]), 339: (short, [2 if signed else 1] * count)}
 
     def packed(kind: int, values: list[int]) -> bytes:
-        return struct.pack("<" + ("H" if kind == short else "I") * len(values), *values)
+        return struct.pack(order + ("H" if kind == short else "I") * len(values), *values)
 
     ifd_end = 8 + 2 + 12 * len(tags) + 4
     outside = [packed(*tags[t]) for t in sorted(tags) if len(packed(*tags[t])) > 4]
@@ -74,12 +76,13 @@ def _write_tiff(path: Path, samples: np.ndarray, photometric: int, signed: bool 
     for tag, (kind, values) in sorted(tags.items()):
         value = packed(kind, values)
         if len(value) > 4:  # stored after the IFD, in the order of the tags
-            entries += struct.pack("<HHII", tag, kind, len(values), offset)
+            entries += struct.pack(order + "HHII", tag, kind, len(values), offset)
             offset += len(value)
         else:
-            entries += struct.pack("<HHI", tag, kind, len(values)) + value.ljust(4, b"\0")
-    path.write_bytes(b"II*\0" + struct.pack("<IH", 8, len(tags)) + entries
-                     + struct.pack("<I", 0) + b"".join(outside) + data)
+            entries += struct.pack(order + "HHI", tag, kind, len(values)) + value.ljust(4, b"\0")
+    magic = b"II*\0" if order == "<" else b"MM\0*"
+    path.write_bytes(magic + struct.pack(order + "IH", 8, len(tags)) + entries
+                     + struct.pack(order + "I", 0) + b"".join(outside) + data)
     return path
 
 
@@ -365,13 +368,18 @@ def test_integer_tiffs_are_told_by_their_kind_not_their_values(tmp_path, rng):
     fitted it (a signed image at half its brightness); they are refused whatever their
     values, and unsigned 16-bit gray is read as before."""
     values = rng.integers(0, 300, (16, 18, 1))
-    _raises(_write_tiff(tmp_path / "signed16.tif", values.astype(np.int16), 1, signed=True),
-            "signed or 32-bit integer pixels are not supported")
+    expected = values[..., 0].astype(np.float32) / np.float32(65535)
+    for order in "<>":  # Pillow's raw modes I;16S and I;16BS
+        _raises(_write_tiff(tmp_path / "signed16.tif", values.astype(np.int16), 1, signed=True,
+                            order=order), "signed or 32-bit integer pixels are not supported")
+        unsigned = _write_tiff(tmp_path / "gray16.tif", values.astype(np.uint16), 1, order=order)
+        np.testing.assert_array_equal(_load_quiet(unsigned).colors[..., 0], expected)
     Image.fromarray(values[..., 0].astype(np.int32), "I").save(tmp_path / "wide32.tif")
     _raises(tmp_path / "wide32.tif", "signed or 32-bit integer pixels are not supported")
-    unsigned = _load_quiet(_write_tiff(tmp_path / "gray16.tif", values.astype(np.uint16), 1))
-    np.testing.assert_array_equal(unsigned.colors[..., 0],
-                                  values[..., 0].astype(np.float32) / np.float32(65535))
+    # A plain-text (P2) 16-bit PGM, which Pillow widens to 32 bits as it does a binary one.
+    pgm = tmp_path / "plain16.pgm"
+    pgm.write_text("P2\n18 16\n65535\n" + " ".join(map(str, values.ravel())) + "\n")
+    np.testing.assert_array_equal(_load_quiet(pgm).colors[..., 0], expected)
 
 
 def test_16bit_cmyk_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
@@ -380,7 +388,7 @@ def test_16bit_cmyk_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
         Exemplar.load(_write_tiff(tmp_path / "cmyk16.tif", cmyk, photometric=5))
 
 
-def test_damaged_files_are_refused_in_one_error_naming_them(tmp_path):
+def test_damaged_files_are_refused_in_one_error_naming_them(tmp_path, monkeypatch):
     """A TIFF whose second page has no size met Pillow's TypeError (a traceback), and an
     OpenEXR file cut short was said to have zero channels."""
     Image.fromarray(np.zeros((16, 16), np.uint8)).save(tmp_path / "pages.tif")
@@ -397,6 +405,15 @@ def test_damaged_files_are_refused_in_one_error_naming_them(tmp_path):
     whole = (tmp_path / "whole.exr").read_bytes()
     (tmp_path / "cut.exr").write_bytes(whole[: len(whole) // 2])  # within the pixels
     _raises(tmp_path / "cut.exr", r"cut\.exr: damaged or truncated OpenEXR file")
+    # An error without a message is named by its kind, not shown as "()".
+    import warptex.exemplar_files
+
+    def cut_short(*args, **kwargs):
+        raise EOFError
+
+    monkeypatch.setattr(warptex.exemplar_files, "_pillow_decoded", cut_short)
+    Image.fromarray(np.zeros((16, 16), np.uint8)).save(tmp_path / "short.tif")
+    _raises(tmp_path / "short.tif", r"short\.tif: unreadable image \(EOFError\)")
 
 
 def test_png_orientation_is_not_applied(tmp_path, rng):

@@ -254,7 +254,7 @@ def _read_pillow(path: Path, head: bytes) -> tuple[np.ndarray, bool]:
     # whichever error their parsing raised.
     except (OSError, ValueError, SyntaxError, TypeError, KeyError, IndexError, EOFError,
             struct.error) as error:
-        raise ExemplarError(f"{path}: unreadable image ({error or type(error).__name__})"
+        raise ExemplarError(f"{path}: unreadable image ({str(error) or type(error).__name__})"
                             ) from None
 
 
@@ -288,11 +288,16 @@ def _pillow_decoded(path: Path, upright: bool) -> tuple[np.ndarray, bool]:
         warn(f"{path}: an animation of {frames} frames (or pages), of which the first is read",
              stacklevel=5)
     if cut_bits:
-        warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB "
-             "TIFF and PPM files so); save it as a 16-bit PNG or an OpenEXR file to "
-             "keep its precision", stacklevel=5)
+        warn(f"{path}: 16-bit color image read as 8 bits (Pillow reads 16-bit RGB and "
+             "CMYK TIFF and PPM files so); save it in RGB as a 16-bit PNG or an OpenEXR "
+             "file to keep its precision", stacklevel=5)
     _warn_of_color_profile(image.info.get("icc_profile"), path)
     return pixels
+
+
+# Pillow's decoders of binary and plain-text PNM (PGM, PPM) files, whose levels run to 65535.
+_PNM_CODECS = ("ppm", "ppm_plain")
+_UNSIGNED_16 = ("I;16", "I;16B", "I;16L", "I;16N")  # raw modes of unsigned 16-bit gray
 
 
 def _bits_cut_to_8(image: Image.Image) -> bool:
@@ -301,16 +306,17 @@ def _bits_cut_to_8(image: Image.Image) -> bool:
     if image.mode not in ("RGB", "RGBA", "CMYK"):
         return False
     for codec, raw, args in _decoders(image):
-        if ";16" in raw or (codec == "ppm" and any(isinstance(a, int) and a > 255
-                                                   for a in args)):
+        if ";16" in raw or (codec in _PNM_CODECS and any(isinstance(a, int) and a > 255
+                                                          for a in args)):
             return True
     return False
 
 
 def _widened_16_bit(image: Image.Image) -> bool:
     """Whether a 32-bit integer (``I``) image is unsigned 16-bit gray that Pillow widened
-    (a 16-bit PGM), not signed or 32-bit samples, which have no [0, 1] scale."""
-    return all(codec == "ppm" or (raw.startswith("I;16") and not raw.startswith("I;16S"))
+    (a 16-bit PGM or TIFF), not signed (``I;16S``, ``I;16BS``) or 32-bit samples, which have
+    no [0, 1] scale."""
+    return all(codec in _PNM_CODECS or raw in _UNSIGNED_16
                for codec, raw, _ in _decoders(image))
 
 
