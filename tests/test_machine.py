@@ -32,19 +32,27 @@ def test_the_volume_command_counts_what_writing_its_file_holds(tmp_path, granite
                                                                 monkeypatch, suffix, copies):
     """The volume and the copies its file's writer holds besides it (decoded colors, an
     EXR's sheets): only two were counted, so a large .exr or .vol ran out of memory once
-    all its voxels were synthesized."""
+    all its voxels were synthesized. Once the slabs are planned, the volume and the larger
+    of a slab's work and the writer's copies, which never coexist, are counted."""
     from warptex.cli import main, volumes
+    from warptex.cli.common import volume_bytes
 
     counted = []
 
-    def stop_at_the_check(size, channels, working=0, copies=2):
-        counted.append(copies)
-        raise volumes.CliError("checked")
+    def stop_at_the_second_check(size, channels, working=0, copies=2):
+        counted.append((copies, working))
+        if len(counted) == 2:
+            raise volumes.CliError("checked")
 
-    monkeypatch.setattr(volumes, "check_memory", stop_at_the_check)
+    monkeypatch.setattr(volumes, "check_memory", stop_at_the_second_check)
     assert main(["volume", str(granite_32_file), "--size", "16", "-o",
                  str(tmp_path / f"v{suffix}")]) == 2
-    assert counted == [copies]
+    from warptex.synthesis import box_bytes, default_apron_blocks
+
+    (first, none), (one, working) = counted
+    assert (first, none, one) == (copies, 0, 1)
+    slab = box_bytes((16, 16, 16), default_apron_blocks(2)) + volume_bytes(16, 3)  # one slab
+    assert working == max(slab, (copies - 1) * volume_bytes(16, 3))  # not their sum
 
 
 @pytest.mark.parametrize(("groups", "files", "expected"), [

@@ -7,6 +7,7 @@ import itertools
 import subprocess
 import sys
 import textwrap
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
 
@@ -206,6 +207,24 @@ def test_a_request_stopped_while_caching_leaves_no_wrong_coarse_voxel(candidates
     assert np.array_equal(engine.voxels(both), cold.voxels(both))
 
 
+class _OwnedLock:
+    """A lock that says which thread holds it (``threading.Lock.locked`` says only that one
+    does, which another thread's holding would satisfy)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.owner: int | None = None
+
+    def __enter__(self) -> _OwnedLock:
+        self._lock.acquire()
+        self.owner = threading.get_ident()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.owner = None
+        self._lock.release()
+
+
 @pytest.mark.parametrize("cache_blocks", [1500, None])
 def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates, monkeypatch,
                                                                  cache_blocks):
@@ -227,7 +246,8 @@ def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates, mon
 
         def checked(self, *args):
             if racing:
-                assert racing[0]._lock.locked(), f"coarse cache {name} without the lock"
+                assert racing[0]._lock.owner == threading.get_ident(), (
+                    f"coarse cache {name} without the lock")
                 seen["clear"] += name == "clear"
             found = use(self, *args)
             if racing and name == "find":
@@ -239,6 +259,7 @@ def test_threads_sharing_one_engine_get_what_serial_requests_get(candidates, mon
         monkeypatch.setattr(synthesis._LevelCache, name, under_lock(name))
     for _ in range(2):
         shared = Synthesizer(candidates, seed=5, **cache)
+        shared._lock = _OwnedLock()
         racing.append(shared)
         with ThreadPoolExecutor(8 if cache_blocks else 4) as pool:
             got = list(pool.map(shared.voxels, requests))

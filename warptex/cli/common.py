@@ -144,7 +144,7 @@ def check_kopf_memory(size: int, exemplars: Sequence[Exemplar | None], copies: i
     search = search_bytes(exemplars)
     given = [e for e in exemplars if e is not None]
     channels = given[0].features.shape[2]
-    cube = copies * _volume_bytes(size, channels) + working_bytes(size)
+    cube = copies * volume_bytes(size, channels) + working_bytes(size)
     if search >= cube:  # the photo's windows, more than the cube, are what does not fit
         check_fits(search + cube, f"{file_names(given)}: Kopf's search over its windows "
                    f"(with the {size}^3 volume)",
@@ -156,12 +156,12 @@ def check_memory(size: int, channels: int, working: int = 0, copies: int = 2) ->
     """Refuse a cube of float32 ``channels`` held ``copies`` times (the volume and what
     is made of it: another method's, a file's), with ``working`` bytes besides, that would
     not fit in this machine's memory."""
-    check_fits(copies * _volume_bytes(size, channels) + working,
+    check_fits(copies * volume_bytes(size, channels) + working,
                f"--size {size}: a {size}^3 volume",
                "use a smaller --size, or `warptex slice` and the Python API for parts of it")
 
 
-def _volume_bytes(size: int, channels: int) -> int:
+def volume_bytes(size: int, channels: int) -> int:
     """A float32 cube of ``channels``."""
     return 4 * channels * size**3
 

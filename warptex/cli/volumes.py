@@ -23,6 +23,7 @@ from warptex.cli.common import (
     file_name,
     input_file,
     plural,
+    volume_bytes,
     writing,
 )
 from warptex.cli.console import ticking
@@ -124,8 +125,11 @@ def run_volume(args: argparse.Namespace) -> int:
     check_memory(args.size, channels, copies=copies)
     edges = _slab_edges(args.size)
     thickness = max(b - a for a, b in itertools.pairwise(edges))
-    slab = box_bytes((thickness, args.size, args.size), default_apron_blocks(args.passes))
-    check_memory(args.size, channels, slab, copies)  # one slab at a time, into the volume
+    # One slab at a time, its work and colors, gone before the write's copies are made.
+    slab = (box_bytes((thickness, args.size, args.size), default_apron_blocks(args.passes))
+            + 4 * channels * thickness * args.size**2)
+    check_memory(args.size, channels, max(slab, (copies - 1) * volume_bytes(args.size, channels)),
+                 copies=1)
     cs = precompute(*exemplars, progress=True, **candidate_params(args))
     try:
         synth = Synthesizer(cs, seed=args.seed, jitter=args.jitter, passes=args.passes,
