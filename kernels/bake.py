@@ -48,8 +48,10 @@ def claim_texels(
     a = uv[faces[f][0]]
     b = uv[faces[f][1]]
     c = uv[faces[f][2]]
-    lo = wp.min(a, wp.min(b, c))
-    hi = wp.max(a, wp.max(b, c))
+    # Clamped to just beyond [0, 1] before int(): a float beyond int32 has no int (C leaves
+    # it undefined; a CPU gave INT_MIN, and such a triangle claimed no texel).
+    lo = wp.max(wp.min(a, wp.min(b, c)), wp.vec2(-1.0, -1.0))
+    hi = wp.min(wp.max(a, wp.max(b, c)), wp.vec2(2.0, 2.0))
     x0 = wp.max(int(wp.floor(lo[0] * float(width))) - 1, 0)
     x1 = wp.min(int(wp.floor(hi[0] * float(width))) + 1, width - 1)
     y0 = wp.max(int(wp.floor((1.0 - hi[1]) * float(height))) - 1, 0)

@@ -509,6 +509,16 @@ def test_texel_centres_on_a_triangle_s_edge_are_covered(first, warp_device):
                                atol=1e-6)
 
 
+@pytest.mark.parametrize("reach", [10.0, 1e6, 1e10])
+def test_a_triangle_whose_uvs_reach_far_claims_the_texels_it_covers(reach, warp_device):
+    """UVs beyond int32 once scaled by the texture's width (an exporter's garbage vertex):
+    the float-to-int conversion of its bounds is undefined, and such a triangle, covering
+    the whole texture, claimed no texel."""
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False)
+    uv = np.float32([[-reach, -reach], [reach, -reach], [0, reach]])
+    assert texel_points(flat, uv, np.eye(4), (8, 8))[1].all()
+
+
 def test_overlapping_triangles_resolve_to_the_lowest_numbered(warp_device):
     """Two charts on the same UVs: the texels show triangle 0's surface everywhere."""
     low, uv = _square(0.0)
