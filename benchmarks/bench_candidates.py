@@ -21,7 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
-from timing import run_record  # noqa: E402
+from timing import positive_int, run_record  # noqa: E402
 
 import warptex.candidates as candidates  # noqa: E402
 from warptex.exemplar import Exemplar  # noqa: E402
@@ -111,8 +111,9 @@ def main() -> None:
     parser.add_argument(
         "--names", nargs="+", default=["granite", "marble_black", "rust", "bricks_red"]
     )
-    parser.add_argument("--sizes", nargs="+", type=int, default=[64, 128])
-    parser.add_argument("--repeat", type=int, default=1, help="runs per exemplar; best kept")
+    parser.add_argument("--sizes", nargs="+", type=positive_int, default=[64, 128])
+    parser.add_argument("--repeat", type=positive_int, default=1,
+                        help="runs per exemplar; best kept")
     args = parser.parse_args()
     print(run_record(), flush=True)
 

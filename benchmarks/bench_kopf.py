@@ -29,7 +29,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from timing import run_record, timed_runs
+from timing import exemplar_files, positive_int, run_record, timed_runs
 
 from warptex import metrics
 from warptex.baselines import kopf
@@ -79,12 +79,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
     parser.add_argument("--names", nargs="+", default=["granite_64", "rocks_in_sand_64"])
-    parser.add_argument("--sizes", nargs="+", type=int, default=[64, 128])
+    parser.add_argument("--sizes", nargs="+", type=positive_int, default=[64, 128])
     parser.add_argument("--budget", type=float, default=900.0,
                         help="skip (and extrapolate) a size predicted to take longer")
     parser.add_argument("--mean-shift", action="store_true",
                         help="Kopf with mean-shift clustering (section 4.1)")
     args = parser.parse_args()
+    for size in args.sizes:  # Kopf's size rule, before minutes of other sizes' work
+        try:
+            kopf.check_size(size)
+        except ValueError as error:
+            parser.error(f"--sizes: {error}")
+    exemplar_files(parser, args.exemplars, args.names)
     print(run_record(), flush=True)
 
     warm = Exemplar(np.random.default_rng(0).random((16, 16, 3), dtype=np.float32))

@@ -32,7 +32,7 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from timing import run_record
+from timing import positive_int, run_record
 
 import mitsuba_plugin
 import warptex  # noqa: F401  (before Mitsuba: points Dr.Jit at libLLVM)
@@ -82,9 +82,9 @@ def diffuse_xml(xml: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
-    parser.add_argument("--res", type=int, default=256)
-    parser.add_argument("--spp", type=int, default=16)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--res", type=positive_int, default=256)
+    parser.add_argument("--spp", type=positive_int, default=16)
+    parser.add_argument("--repeat", type=positive_int, default=3)
     parser.add_argument("--variant", help="Mitsuba variant (default: the best RGB one)")
     parser.add_argument("--space", choices=("world", "object"), default="world",
                         help="the texture's space property (default world)")

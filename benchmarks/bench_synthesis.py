@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import best_of, run_record
+from timing import best_of, positive_int, run_record
 
 from warptex import metrics
 from warptex.candidates import precompute
@@ -181,7 +181,7 @@ def _box(text: str) -> tuple[int, int, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--repeat", type=positive_int, default=3)
     parser.add_argument("--jitter-sweep", action="store_true",
                         help="only print energy (48^3) and repetition (a slice) against the "
                         "jitter strength")

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import run_record
+from timing import exemplar_files, run_record
 from tqdm import tqdm
 
 from warptex import metrics
@@ -103,6 +103,10 @@ def main() -> None:
     print(run_record(), flush=True)
     names = args.names or sorted(p.stem.removesuffix("_64")
                                  for p in args.exemplars.glob("*_64.png"))
+    if not names:
+        parser.error(f"{args.exemplars} holds no *_64.png exemplars: give their folder with "
+                     "--exemplars")
+    exemplar_files(parser, args.exemplars, names, "_64.png")
     targets = kopf_targets()
     r = args.radius
     variants = ["average (Dong)", "plain vote", *[f"bilateral {s}" for s in SIGMAS]]

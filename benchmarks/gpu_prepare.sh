@@ -8,8 +8,10 @@
 # downloads their wheels at the versions of .venv and unpacks them into one site folder,
 # packed with xz (220 MB of wheels become about 141 MB) and cut into parts of 52 MiB: .gpu/1,
 # .gpu/2, one to carry per call, and the last, smaller one in .gpu/data with the 64 px
-# exemplars, the 128 px rosewood and their cached candidates (so the GPU run measures
-# synthesis, not pre-computation), which the checks' call carries. .gpu/ is git-ignored.
+# exemplars, the 128 px rosewood and their cached candidates, which the checks' call carries
+# (their cache keys hold NumPy's and SciPy's versions: where the GPU machine's differ, the
+# checks' first step computes them again there, before anything is timed). .gpu/ is
+# git-ignored.
 # Packing took six minutes on a 2-core machine.
 #
 #     make setup && benchmarks/gpu_prepare.sh
@@ -63,6 +65,6 @@ for png in sorted(Path(".gpu/data/exemplars").glob("*.png")):
         path = cached_candidate_path(ex)
     shutil.copy(path, Path(".gpu/data/cache") / path.name)
 PY
-git rev-parse --short HEAD > .gpu/data/commit
+git describe --always --dirty > .gpu/data/commit  # the working tree is what runs there
 echo "staged: $(ls -d .gpu/[0-9]* | tr '\n' ' ')and .gpu/data ($(du -sh .gpu/data | cut -f1)," \
      "the last part included); warp-lang $warp_version, $pinned, commit $(cat .gpu/data/commit)"

@@ -12,9 +12,10 @@ per-function time is summed by where it is spent:
 - warptex: the engine's own Python lines, NumPy's operators (``a // b``, ``a[idx]``)
   among them, which cProfile does not count apart.
 
-On a CUDA device, the second run also records the device's activity (``wp.timing_begin``):
-the time of each kernel and copy, summed by name; and the box is timed once more with the
-memory pool giving its free memory back at every synchronization, as CUDA's default does.
+On a CUDA device, the profiled run also records the device's activity
+(``wp.timing_begin``): the time of each kernel and copy, summed by name; and the box is
+timed again (a median of fresh engines) with the memory pool giving its free memory back
+at every synchronization, as CUDA's default does.
 Kernels are compiled and candidates pre-computed before anything is timed.
 
     python benchmarks/profile_synthesis.py [--exemplars DIR] [--names granite_64 ...]
@@ -34,7 +35,7 @@ from pathlib import Path
 from unittest import mock
 
 import warp as wp
-from timing import run_record, timed_runs
+from timing import exemplar_files, positive_int, run_record, timed_runs
 
 import warptex.synthesis
 from warptex.candidates import precompute
@@ -170,10 +171,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--exemplars", type=Path, default=DEFAULT_DIR)
     parser.add_argument("--names", nargs="+", default=["granite_64"])
-    parser.add_argument("--sizes", nargs="+", type=int, default=[64, 128])
+    parser.add_argument("--sizes", nargs="+", type=positive_int, default=[64, 128])
     parser.add_argument("--device", default=None,
                         help="Warp device (default: a GPU when there is one, else the CPU)")
     args = parser.parse_args()
+    exemplar_files(parser, args.exemplars, args.names)
     print(run_record(), flush=True)
     device = str(wp.get_device(args.device)) if args.device else None
 

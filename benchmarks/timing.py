@@ -2,16 +2,37 @@
 
 from __future__ import annotations
 
+import argparse
 import platform
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer of at least 1 (a count of runs, pixels, samples), refused
+    before any work rather than failing in ``min()`` after it."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def exemplar_files(parser: argparse.ArgumentParser, folder: Path, names: Iterable[str],
+                   suffix: str = ".png") -> list[Path]:
+    """The files ``folder / (name + suffix)`` of ``names``, or the parser's error naming
+    those missing, before any work (not when the run reaches them, minutes later)."""
+    files = [folder / f"{name}{suffix}" for name in names]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        parser.error(f"no such exemplar: {', '.join(missing)}")
+    return files
 
 
 def timed_runs(run: Callable[[T], object], repeat: int, prepare: Callable[[], T]) -> list[float]:
