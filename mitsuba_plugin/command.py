@@ -167,6 +167,17 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
     return list(found)
 
 
+def _saved_at_a_stop(scene) -> list[Path]:
+    """The ``cache`` files of ``scene``'s textures, saved as a stop ends the render, but
+    for stores that synthesized nothing and have no file yet: an empty one keeps no work."""
+    import mitsuba_plugin
+
+    return [path for texture in mitsuba_plugin.textures(scene)
+            if (texture.solid.store.stats()["voxels"]
+                or (texture.cache is not None and texture.cache.exists()))
+            and (path := texture.save()) is not None]
+
+
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                  resolution: tuple[int, int] | None = None,
                  variant: str | None = None, save_stores: bool = True,
@@ -286,7 +297,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         raise ValueError(f"{scene_path}: {e}") from None
     total = sum(shares)
     _check_render_size(*sensor.film().crop_size(), max(shares))
-    with saved_when_stopped(partial(mitsuba_plugin.save_caches, scene) if save_stores else list):
+    with saved_when_stopped(partial(_saved_at_a_stop, scene) if save_stores else list):
         try:
             image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
                                           seed=seed, progress=_progress)

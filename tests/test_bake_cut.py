@@ -452,6 +452,28 @@ def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_
     assert warm < cold
 
 
+def test_a_bake_stopped_before_any_synthesis_writes_no_empty_store(tmp_path, data_dir,
+                                                                    sphere, warp_device,
+                                                                    capsys, monkeypatch):
+    """A Ctrl-C before the first voxel: no --store file is made (an empty one was, and the
+    stop said it held the voxels synthesized before stopping)."""
+    import warptex.cli
+    from warptex.cli import main
+
+    def stopped(*args):
+        raise KeyboardInterrupt
+
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    store = tmp_path / "s.wtb"
+    monkeypatch.setattr(warptex.cli.meshes, "_synthesize_shell", stopped)
+    assert main(["bake", str(mesh_path), "--exemplar", str(data_dir / "granite_64.png"),
+                 "--resolution", "24", "--store", str(store),
+                 "-o", str(tmp_path / "m.ply")]) == 130
+    assert "brick store" not in capsys.readouterr().err
+    assert sorted(tmp_path.iterdir()) == [mesh_path]
+
+
 def _square(z=0.0):
     """The unit square in z = ``z`` as two triangles, its UVs its (x, y)."""
     v = np.array([[0, 0, z], [1, 0, z], [1, 1, z], [0, 1, z]], float)

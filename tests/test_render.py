@@ -577,6 +577,24 @@ def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path, capsys
     np.testing.assert_allclose(images[1], images[0], rtol=1e-5, atol=1e-6)
 
 
+
+def test_a_render_stopped_before_its_first_batch_writes_no_empty_store(tmp_path, capsys,
+                                                                       monkeypatch):
+    """A Ctrl-C before anything was synthesized: no cache file is made (an empty one was,
+    said to hold the voxels synthesized before stopping)."""
+    import mitsuba_plugin.command
+    from warptex.cli import main
+
+    def stopped(done: int, total: int) -> None:
+        raise KeyboardInterrupt
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    monkeypatch.setattr(mitsuba_plugin.command, "_progress", stopped)
+    assert main(["render", str(scene), "--res", "16x16", "--spp", "2",
+                 "-o", str(tmp_path / "stopped.exr")]) == 130
+    assert "brick store" not in capsys.readouterr().err
+    assert not (scene.parent / "bricks" / "bunny.wtb").exists()
+
 @pytest.mark.parametrize("stop", ["Ctrl-C", "Ctrl-C in mi.render", "SIGTERM",
                                   "SIGTERM in mi.render", "read-only"])
 def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, capsys,

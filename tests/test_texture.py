@@ -342,9 +342,10 @@ def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(cand
         elsewhere.save(path)
     assert path.read_bytes() == saved
     del tex, twin
-    with pytest.warns(UserWarning, match="replacing brick store file: .*another texture"):
+    with pytest.warns(UserWarning, match="replacing brick store file: .*another texture") as w:
         elsewhere.save(path)
     assert path.read_bytes() != saved
+    assert w[0].filename == __file__  # the line that saved, not warptex's own
 
 
 def test_textures_built_at_once_on_threads_get_no_shared_store_file(candidates, tmp_path,
@@ -402,8 +403,9 @@ def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, d
     else:
         arrays["valid"] = arrays["valid"].astype(np.uint64)
     write_archive(path, store._MAGIC, store.FORMAT_VERSION, arrays)
-    with pytest.warns(UserWarning, match="ignoring brick store file"):
+    with pytest.warns(UserWarning, match="ignoring brick store file") as w:
         loaded = texture(candidates, store=path)
+    assert w[0].filename == __file__  # the line that made the texture, not warptex's own
     assert loaded.store.stats()["voxels"] == 0
     np.testing.assert_array_equal(loaded.query(pts), expected)
 

@@ -7,9 +7,10 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from numbers import Integral
 from pathlib import Path
 from typing import Any, Protocol
@@ -46,6 +47,7 @@ from warptex.synthesis import (
     Synthesizer,
     engine_device,
 )
+from warptex.thread_warnings import captured, warn
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
@@ -97,6 +99,20 @@ def _check_unshared(path: Path, synthesizer: Synthesizer,
                         "give each texture its own file")
         if joining is not None:
             _WITH_STORE_FILES.add(joining)
+
+
+@contextlib.contextmanager
+def _warnings_of(stacklevel: int) -> Iterator[None]:
+    """The store's warnings in the block given again, also where it raises, at the line
+    ``stacklevel`` frames above the method using this (the store's name that method)."""
+    caught: list = []
+    try:
+        with captured() as caught:
+            yield
+    finally:
+        for warned in caught:
+            # Two frames more: this generator and contextlib's __exit__ that runs it.
+            warn(warned.message, warned.category, stacklevel=stacklevel + 2)
 
 
 def _store_file(store: object, name: str = "store") -> Path:
@@ -172,8 +188,10 @@ class SolidTexture:
             _check_unshared(self.path, self.synthesizer, joining=self)
         try:
             if self.path is not None and self.path.exists():
-                self.store = BrickStore.load(self.path, self.synthesizer,
-                                             cache_bytes=cache_bytes, whole_bricks=whole_bricks)
+                with _warnings_of(2):  # at the line that made the texture, not this one
+                    self.store = BrickStore.load(self.path, self.synthesizer,
+                                                 cache_bytes=cache_bytes,
+                                                 whole_bricks=whole_bricks)
             else:
                 self.store = BrickStore(self.synthesizer, cache_bytes=cache_bytes,
                                         whole_bricks=whole_bricks)
@@ -271,7 +289,8 @@ class SolidTexture:
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
         _check_unshared(target, self.synthesizer)
-        self.store.save(target)
+        with _warnings_of(2):  # at the caller's line, not this one
+            self.store.save(target)
         return target
 
     def _sample(self, points: np.ndarray, filter: str, out: np.ndarray) -> None:

@@ -229,12 +229,14 @@ def _colors_only(baked: dict, colors: int) -> dict:
 
 
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
-    """A `bake` or `cut` stopped by Ctrl-C or SIGTERM saves its ``--store`` first."""
+    """A `bake` or `cut` stopped by Ctrl-C or SIGTERM saves its ``--store`` first, unless
+    nothing was synthesized and there is no file yet: an empty one would keep no work."""
     if args.store is None:
         return contextlib.nullcontext()
     from warptex.store import saved_when_stopped
 
-    return saved_when_stopped(lambda: [tex.save()])
+    return saved_when_stopped(
+        lambda: [tex.save()] if tex.store.stats()["voxels"] or args.store.exists() else [])
 
 
 def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:
