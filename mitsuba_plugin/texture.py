@@ -250,16 +250,22 @@ def _recorded_matrix(transform: Any) -> list[list[float]]:
 
 
 def _to_world(props: mi.Properties) -> np.ndarray:
-    """The ``to_world`` property's matrix: a transform that can be inverted, since shading
-    points are taken into the block of matter it places."""
+    """The ``to_world`` property's matrix in float32, as the texture keeps it: a transform
+    that can be inverted, since shading points are taken into the block of matter it
+    places."""
     value = props.get("to_world", mi.ScalarTransform4f())
     try:
         matrix = _affine_matrix(value)
     except (AttributeError, TypeError, ValueError):
         raise property_error(PLUGIN, "to_world",
                              f"must be a <transform ...>, got {value!r}") from None
-    _inverse(matrix)
-    return matrix
+    with np.errstate(over="ignore"):  # said below, in words, not as NumPy's warning
+        single = matrix.astype(np.float32)
+    if np.isfinite(matrix).all() and not np.isfinite(single).all():
+        raise property_error(PLUGIN, "to_world", "is beyond float32's range, in which the "
+                             "texture keeps it (entries up to 3.4e38)")
+    _inverse(single.astype(np.float64))
+    return single
 
 
 def _inverse(to_world: np.ndarray) -> np.ndarray:
@@ -348,7 +354,7 @@ class LazySolidTexture(mi.Texture):
             if self._read_only:
                 store = None  # nothing to read, and nothing will be saved
         # A JIT-typed transform, so mi.traverse can update it in place.
-        self.to_world = mi.AffineTransform4f(_to_world(props).astype(np.float32))
+        self.to_world = mi.AffineTransform4f(_to_world(props))
         exemplars = _load_exemplars(named, self.max_size, **features)
         try:
             self._decode_srgb = not self.raw and srgb_encoded(exemplars)

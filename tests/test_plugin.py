@@ -199,6 +199,13 @@ def test_a_to_world_that_collapses_the_block_is_the_property_named(granite_32_fi
         load(granite_32_file, to_world=mi.ScalarTransform4f().scale([1, 0, 1]))
     with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be finite'):
         load(granite_32_file, to_world=mi.ScalarTransform4f().scale([1, float("nan"), 1]))
+    # Finite as the scene gives it (in float64), but not in float32, as the texture keeps it:
+    # that was called NaN or infinite, after NumPy's warning of an overflow.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" is beyond '
+                                               "float32's range"):
+            load(granite_32_file, to_world=mi.ScalarTransform4d().scale(3.5e38))
     # Kept as an affine transform, a projective one acted as a scale of 2.
     with pytest.raises(RuntimeError, match='lazy_solid: property "to_world" must be affine: '
                        "its last row is 0 0 0 2, not 0 0 0 1"):
