@@ -434,18 +434,25 @@ class LazySolidTexture(mi.Texture):
         """Gradient of ``eval_1`` with respect to the surface's (u, v), as ``bumpmap`` reads
         it: forward differences half a voxel long along ``dp_du`` and ``dp_dv`` (a solid
         texture has no UV parametrization of its own), voxels as ``scale`` and ``to_world``
-        size them (not an object-space shape's own ``to_world``). In float64, each result
-        rounded to float32 once, in one order of operations: Mitsuba's scalar and LLVM builds
-        compute ``dr.norm`` an ulp apart, and the variants' gradients must agree as their
-        colors do."""
+        size them, and in object space the shape's or instance's own frame too. In float64,
+        each result rounded to float32 once, in one order of operations: Mitsuba's scalar and
+        LLVM builds compute ``dr.norm`` an ulp apart, and the variants' gradients must agree
+        as their colors do."""
         wide = dr.float64_array_t(mi.Float)
         base = wide(self.eval_1(si, active))
         p = [wide(c) for c in si.p]
         slopes = []
         for dp in (si.dp_du, si.dp_dv):
             d = [wide(c) for c in dp]
-            # Voxels along dp, per unit of u: a to_world that scales the texture scales them.
-            t = [row[0] * d[0] + row[1] * d[1] + row[2] * d[2]
+            # Voxels along dp, per unit of u: a to_world that scales the texture, or the
+            # object's frame in object space, scales them.
+            e = d
+            if self.space == "object":
+                ahead = self._in_object_frames(si, [c + k for c, k in zip(p, d, strict=True)],
+                                               active)
+                e = [b - a for a, b in zip(self._in_object_frames(si, p, active), ahead,
+                                           strict=True)]
+            t = [row[0] * e[0] + row[1] * e[1] + row[2] * e[2]
                  for row in self._world_to_texture[:3]]
             voxels = dr.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
             # A degenerate parametrization (dp = 0) stays in place and has no slope.
@@ -455,6 +462,22 @@ class LazySolidTexture(mi.Texture):
             rise = wide(self.eval_1(moved, active)) - base
             slopes.append(mi.Float(rise * (2.0 * voxels)))
         return mi.Vector2f(*slopes)
+
+    def _in_object_frames(self, it: mi.Interaction3f, p: list, active: mi.Bool) -> list:
+        """World points ``p`` (float64, a lane each) of ``it`` in the frame of the object
+        each lane was found on, as the lookups of the mode at hand take them."""
+        if dr.flag(dr.JitFlag.SymbolicScope):
+            return self._frames.to_object(it, p)
+        if not dr.is_jit_v(mi.Float):  # the scalar variants: one point
+            point = np.array([[float(c) for c in p]])
+            return [float(c) for c in _to_object_space(point, it, None, self._emitter)[0]]
+        width = dr.width(it.p)
+        keep = (mi.Bool(active) | dr.zeros(mi.Bool, width)).numpy()
+        points = np.stack([np.broadcast_to(c.numpy(), width) for c in p], axis=1)
+        out = points.copy()
+        if keep.any():
+            out[keep] = _to_object_space(points[keep], it, keep, self._emitter)
+        return [mi.Float64(out[:, k]) for k in range(3)]
 
     def mean(self) -> mi.Float:
         return mi.Float(self._mean)

@@ -946,6 +946,33 @@ def test_eval_1_grad_is_the_slope_along_the_surface(granite_32_file, variant):
     np.testing.assert_allclose(slope, (ahead - here) / (2.0 / 8.0), rtol=1e-3)
 
 
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_object_space_bumps_do_not_change_with_the_shapes_size(granite_32_file, variant):
+    """In object space the texture scales with the shape, and so must eval_1_grad's steps:
+    they were sized without the shape's to_world, so a sphere of radius 0.05 stepped over
+    ten of its voxels where one of radius 1 stepped over half of one (4.4 % of a bump image
+    changed with the scene's scale)."""
+    use(variant)
+    rays = np.array([[0.1, 0.2, 5.0], [-0.3, 0.05, 5.0], [0.4, -0.4, 5.0]])
+    found = {}
+    for radius in (1.0, 0.05):
+        before = set(mitsuba_plugin.live_textures)
+        scene = mi.load_dict({"type": "scene", "ball": {
+            "type": "sphere", "radius": radius, "bsdf": {"type": "diffuse", "reflectance": {
+                "type": "lazy_solid", "exemplar": str(granite_32_file), "space": "object",
+                "scale": 16.0}}}})
+        (tex,) = [t for t in mitsuba_plugin.live_textures if t not in before]
+        grads = []
+        with mitsuba_plugin.wavefront():
+            for o in rays * radius:
+                ray = mi.Ray3f(mi.Point3f(*map(float, o)), mi.Vector3f(0, 0, -1))
+                si = scene.ray_intersect(ray)
+                grads.append(np.ravel(np.array(tex.eval_1_grad(si))))
+        found[radius] = np.array(grads)
+    assert np.abs(found[1.0]).max() > 0
+    np.testing.assert_allclose(found[0.05], found[1.0], rtol=1e-3, atol=1e-4)
+
+
 def test_a_store_file_ignored_is_said_of_the_cache_property(granite_32_file, tmp_path):
     """The brick store's warning named neither the plugin nor its property, and Python
     pointed at warptex's own line."""

@@ -197,6 +197,30 @@ def test_renders_agree_cold_warm_and_in_wavefront_mode(granite_32_file, filter):
     np.testing.assert_allclose(warm, wavefront, rtol=1e-5, atol=1e-6)
 
 
+def test_object_space_bumps_render_as_in_wavefront_mode(granite_32_file):
+    """bumpmap's slopes in object space take each hit's object frame in the traced program
+    as in wavefront mode (a scaled sphere, whose frame sizes the steps)."""
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 3},
+        "sensor": {"type": "perspective", "fov": 40, "near_clip": 0.001,
+                   "to_world": T().look_at(origin=[0, 0, 0.2], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "ball": {"type": "sphere", "radius": 0.05, "bsdf": {
+            "type": "bumpmap", "bsdf": {"type": "diffuse"},
+            "arg0": {"type": "lazy_solid", "exemplar": str(granite_32_file),
+                     "space": "object", "scale": 16.0}}},
+        "light": {"type": "directional", "direction": [0.3, -0.2, -1], "irradiance": 3.0},
+    })
+    traced = np.array(mitsuba_plugin.render(scene, spp=4))
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+    assert traced.mean() > 0.02
+    np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
+
+
 def test_a_block_placed_beyond_the_texture_range_renders_as_in_wavefront_mode(granite_32_file):
     """Shading points a million scene units out (6 million voxels, beyond POINT_LIMIT) are
     moved by whole periods (wrap_far) in the traced program as in wavefront mode: a render,
