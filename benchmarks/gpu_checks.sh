@@ -20,11 +20,11 @@
 # within about 585 s (unpacking included) and what finished comes back; each step's exit
 # status goes to $OUT/steps.txt (124: cut off by its limit), and the script fails if any
 # step did, or if Warp finds no CUDA device (the CUDA tests would skip, and the benchmarks
-# run on the CPU). PARTS is the folder holding the staged parts
-# carried by the earlier calls (the last part travels in .gpu/data); results go to $OUT (or
-# out/gpu). NAMES limits bench_kopf's exemplars (names without .png; default every
-# *_64.png); STEPS picks steps by name (default "precompute kopf profile tests synthesis"), for a rerun
-# of what did not finish. Stage from the commit to be measured: .gpu/data/commit labels the
+# run on the CPU). PARTS is the folder holding the staged parts carried by the earlier calls
+# (the last part travels in .gpu/data); results go to $OUT (or out/gpu). NAMES limits
+# bench_kopf's exemplars (names without .png; default every *_64.png); STEPS picks steps by
+# name (default "precompute kopf profile tests synthesis"), for a rerun of what did not
+# finish. Stage from the commit to be measured: .gpu/data/commit labels the
 # results.
 #
 #     benchmarks/gpu_checks.sh PARTS

@@ -28,7 +28,7 @@ from warptex.archive import (
 from warptex.machine import software_versions
 from warptex.parallel import deferred_stops
 from warptex.settings import MAX_SAMPLER_SEED, MAX_SPP, RENDER_BATCHES
-from warptex.store import StoreFileError, saved_when_stopped
+from warptex.store import StoreFileError, saved_when_stopped, worth_saving
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
@@ -173,8 +173,7 @@ def _saved_at_a_stop(scene) -> list[Path]:
     import mitsuba_plugin
 
     return [path for texture in mitsuba_plugin.textures(scene)
-            if (texture.solid.store.stats()["voxels"]
-                or (texture.cache is not None and texture.cache.exists()))
+            if worth_saving(texture.solid.store, texture.cache)
             and (path := texture.save()) is not None]
 
 

@@ -441,17 +441,17 @@ class LazySolidTexture(mi.Texture):
         wide = dr.float64_array_t(mi.Float)
         base = wide(self.eval_1(si, active))
         p = [wide(c) for c in si.p]
+        here = self._in_object_frames(si, p, active) if self.space == "object" else None
         slopes = []
         for dp in (si.dp_du, si.dp_dv):
             d = [wide(c) for c in dp]
             # Voxels along dp, per unit of u: a to_world that scales the texture, or the
             # object's frame in object space, scales them.
             e = d
-            if self.space == "object":
+            if here is not None:
                 ahead = self._in_object_frames(si, [c + k for c, k in zip(p, d, strict=True)],
                                                active)
-                e = [b - a for a, b in zip(self._in_object_frames(si, p, active), ahead,
-                                           strict=True)]
+                e = [b - a for a, b in zip(here, ahead, strict=True)]
             t = [row[0] * e[0] + row[1] * e[1] + row[2] * e[2]
                  for row in self._world_to_texture[:3]]
             voxels = dr.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])

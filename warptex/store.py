@@ -375,6 +375,13 @@ def check_store_path(path: str | Path, saving: bool = True) -> None:
         raise StoreFileError(f"{path}: {problem}")
 
 
+def worth_saving(store: BrickStore, path: Path | None) -> bool:
+    """Whether a stop's save of ``store`` to ``path`` keeps any work: it holds voxels, or
+    there is a file to merge with. A new file of an empty store would keep none, and be
+    said to hold the voxels synthesized before stopping (:func:`saved_when_stopped`)."""
+    return path is not None and (store.stats()["voxels"] > 0 or path.exists())
+
+
 @contextmanager
 def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
     """Ctrl-C or SIGTERM (a KeyboardInterrupt) in the block first writes brick stores to

@@ -233,10 +233,9 @@ def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.Abstr
     nothing was synthesized and there is no file yet: an empty one would keep no work."""
     if args.store is None:
         return contextlib.nullcontext()
-    from warptex.store import saved_when_stopped
+    from warptex.store import saved_when_stopped, worth_saving
 
-    return saved_when_stopped(
-        lambda: [tex.save()] if tex.store.stats()["voxels"] or args.store.exists() else [])
+    return saved_when_stopped(lambda: [tex.save()] if worth_saving(tex.store, args.store) else [])
 
 
 def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:

@@ -11,9 +11,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from warptex.cli.common import CliError, input_file, plural
-
-if TYPE_CHECKING:
-    from warptex.texture import SolidTexture
 from warptex.exemplar import Exemplar, axis_triple, color_channels, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
@@ -24,6 +21,9 @@ from warptex.settings import (
     check_max_size,
     check_settings,
 )
+
+if TYPE_CHECKING:  # imported when first used, not as the command line starts
+    from warptex.texture import SolidTexture
 
 EXEMPLAR_HELP = ("exemplar image: PNG, JPEG or another format Pillow reads, OpenEXR or .npy "
                  "(README, Exemplars: how channels and alpha are read)")
