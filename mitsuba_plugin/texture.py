@@ -574,7 +574,7 @@ class LazySolidTexture(mi.Texture):
                 return dr.zeros(mi.Color3f, dr.width(it.p))
             p = [mi.Float64(c) for c in it.p]
             if self.space == "object":
-                p = self._frames.to_object(it, p)
+                p = self._in_object_frames(it, p, active)
             p = [wrap_far(c, dr.select, dr.round)
                  for c in _apply_affine(self._world_to_texture, *p)]
             finite = dr.isfinite(p[0]) & dr.isfinite(p[1]) & dr.isfinite(p[2])
@@ -679,7 +679,7 @@ class LazySolidTexture(mi.Texture):
         bricks (:mod:`mitsuba_plugin.scalar`), else from the store, which synthesizes."""
         p = [float(c) for c in it.p]
         if self.space == "object":
-            p = _to_object_space(np.array([p]), it, None, self._emitter)[0].tolist()
+            p = self._in_object_frames(it, p, True)
         point = _apply_affine(self._world_to_texture, *p)
         if not all(map(math.isfinite, point)):  # before round(), which raises on them
             return [0.0, 0.0, 0.0]

@@ -173,6 +173,55 @@ def test_a_pipe_named_like_a_cache_file_is_listed_unreadable_not_waited_on(folde
         signal.signal(signal.SIGALRM, before)
 
 
+def test_a_link_in_a_loop_named_like_a_cache_file_is_listed_unreadable(folder, computed):
+    """Its stat() fails with ELOOP, which stopped the whole listing and --prune."""
+    current, _ = computed
+    loop = folder / f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc"
+    loop.symlink_to(loop.name)
+    statuses = _statuses(folder)
+    assert statuses[loop.name] == cc.UNREADABLE and statuses[current.name] == cc.IN_USE
+    assert main(["cache", "--prune"]) == 0
+    assert loop.is_symlink() and current.exists()
+
+
+def _rewritten(source: Path, target: Path, meta: dict | None = None, **arrays) -> None:
+    """``source``'s candidate file written, checksummed, at ``target`` with ``meta`` and
+    ``arrays`` changed: a file made by other means, which the checksum does not tell."""
+    from warptex.archive import read_archive, write_archive
+
+    stored = read_archive(source, candidates.FILE_MAGIC, candidates.FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    if meta is not None:
+        record = json.loads(bytes(stored["meta"]).decode())
+        stored["meta"] = np.frombuffer(json.dumps({**record, **meta}).encode(), np.uint8)
+    write_archive(target, candidates.FILE_MAGIC, candidates.FORMAT_VERSION,
+                  {**stored, **arrays})
+
+
+def test_a_file_that_runs_refuse_is_listed_damaged_not_in_use(folder, computed, image,
+                                                              capsys):
+    """The listing and ``info`` read the checksum, the key and the code, not whether the
+    arrays fit together: a file every run refused as damaged was listed "in use" and never
+    pruned. A record's names of another type stopped the listing with a TypeError."""
+    from warptex.candidates import cached_candidate_path
+
+    current, _ = computed
+    arrays = CandidateSet.load(current)
+    finest = arrays.num_levels - 1
+    cand = arrays.roles[finest][0].cand.astype(np.int64) + 60000
+    _rewritten(current, current.with_name("beyond"), **{f"L{finest}/R0/cand": cand})
+    os.replace(current.with_name("beyond"), folder / current.name)
+    names = folder / f"{candidates.CACHE_PREFIX}{'6' * 40}.wtc"
+    _rewritten(current, names, meta={"names": 5})
+    statuses = _statuses(folder)
+    assert statuses[current.name] == statuses[names.name] == cc.DAMAGED
+    assert cached_candidate_path(Exemplar.load(image)) is None
+    assert main(["cache"]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    assert main(["cache", "--prune"]) == 0
+    assert not (folder / current.name).exists() and not names.exists()
+
+
 def test_unreadable_and_replaced_files_are_left_alone(folder, computed):
     """A folder named like a cache file is listed, never deleted; a damaged file that another
     run replaced after the listing (recomputed candidates) is not the file judged."""

@@ -700,6 +700,45 @@ def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_pat
             CandidateSet.load(path)
 
 
+def test_a_checksummed_file_of_numbers_that_narrow_into_range_is_refused(tmp_path, granite):
+    """Arrays were narrowed to int32 before their bounds were checked: a candidate of 2^32
+    read as 0, a count of 2^32 + 1 as 1; a float shift was truncated, NaN colors and too
+    few packed fallback flags (padded with zeros) loaded."""
+    import json
+
+    granite.save(tmp_path / "g.wtc")
+    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    last = granite.num_levels - 1
+
+    def wrapped(name, at=0):
+        a = arrays[name].astype(np.int64)
+        a.flat[at] += 2**32
+        return a
+
+    shifts = [list(level) for level in meta["shifts"]]
+    shifts[last][0] = float(shifts[last][0]) + 0.5
+    colors = arrays["colors/0"].copy()
+    colors[0, 0, 0] = np.nan
+    changes = {
+        "cand": {f"L{last}/R0/cand": wrapped(f"L{last}/R0/cand")},
+        "cand2d": {f"L{last}/S0/cand2d": wrapped(f"L{last}/S0/cand2d")},
+        "count": {f"L{last}/R0/count": wrapped(f"L{last}/R0/count")},
+        "basis": {f"L{last}/S0/basis": wrapped(f"L{last}/S0/basis")},
+        "fallback": {f"L{last}/R0/fallback": arrays[f"L{last}/R0/fallback"][:-1]},
+        "nan": {"colors/0": colors},
+        "wide_colors": {"colors/0": arrays["colors/0"].astype(np.float64)},
+        "shift": {"meta": np.frombuffer(json.dumps({**meta, "shifts": shifts}).encode(),
+                                        np.uint8)},
+    }
+    for name, change in changes.items():
+        path = tmp_path / f"{name}.wtc"
+        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
+        with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
+            CandidateSet.load(path)
+
+
 def test_a_file_whose_basis_reaches_past_127_is_refused(tmp_path, granite):
     """A basis coefficient of -128 (int8 holds it) makes the projections' float32 sums
     depend on their order of adding, so a CPU and a GPU could differ."""
@@ -844,6 +883,19 @@ def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):
     files[1].write_text("x = 2\n")
     assert sources_digest(files, "12 127") != first
     assert sources_digest(files, "12 127") != sources_digest(files, "8 127")
+
+
+def test_cache_key_reads_the_constants_that_decide_candidates(monkeypatch):
+    """The PCA's dimensions, the projections' range and the bases' range each change the
+    candidates; the bases' range was left out of the key."""
+    from warptex.candidates import _code_digest
+
+    current = _code_digest.__wrapped__()
+    for name in ("MAX_DIMS", "PROJ_LIMIT", "BASIS_LIMIT"):
+        with monkeypatch.context() as patch:
+            patch.setattr(candidates, name, getattr(candidates, name) - 1)
+            assert _code_digest.__wrapped__() != current, name
+    assert _code_digest.__wrapped__() == current
 
 
 def test_unknown_or_bad_parameters_are_rejected():

@@ -93,6 +93,14 @@ def cache_files(folder: Path | None = None, progress: bool = False) -> list[Cach
                 status, meta = (UNFINISHED if old else BEING_WRITTEN), {}
         except FileNotFoundError:  # renamed into place or pruned by another run meanwhile
             continue
+        except OSError as error:
+            if error.errno != errno.ELOOP:  # a folder that cannot be searched: none can
+                raise
+            try:  # a link in a loop, which no run can read either: this one is listed
+                info = path.lstat()
+            except FileNotFoundError:
+                continue
+            status, meta = UNREADABLE, {}
         names = tuple(str(n) for n in meta.get("names", ()))
         params = meta.get("params")
         settings = ({k: v for k, v in params.items() if DEFAULT_PARAMS.get(k) != v}

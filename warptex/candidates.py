@@ -314,11 +314,12 @@ def precompute(
 
 def _cached(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet:
     """The candidates cached at ``path``, if they are those of ``exemplars`` and ``params``."""
-    return _unflatten(_cached_arrays(path, exemplars, params), path)
+    return _with_crossbar_errors(_cached_set(path, exemplars, params))
 
 
-def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[str, np.ndarray]:
-    """The arrays of the cache file ``path``, whole (checksummed) and of ``exemplars`` and
+def _cached_set(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet:
+    """The candidates of the cache file ``path`` (crossbar errors not yet derived), whole
+    (checksummed), laid out as the kernels index them, and of ``exemplars`` and
     ``params``; CandidateCacheError otherwise."""
     arrays = _read_file(path)
     meta = _meta(arrays, path)
@@ -331,15 +332,19 @@ def _cached_arrays(path: Path, exemplars: list[Exemplar], params: dict) -> dict[
     if not computed_here(meta):
         raise CandidateCacheError(f"{path}: holds candidates another version of warptex "
                                   "computed (a copied or renamed cache file)")
-    return arrays
+    return _laid_out(arrays, path)
 
 
 def read_cache_meta(path: Path, version: int = FORMAT_VERSION) -> dict:
     """What a whole (checksummed) candidate file of this format version (or of
     ``version``, where its record reads alike) says it holds: ``digests`` and ``params``,
     which name it (:func:`cache_file_name`), and ``names`` where recorded;
-    CandidateCacheError otherwise."""
-    return _meta(_read_file(path, version), path)
+    CandidateCacheError otherwise, and, for this version, where its arrays do not fit
+    together (a file :func:`precompute` would refuse is no file in use)."""
+    arrays = _read_file(path, version)
+    if version == FORMAT_VERSION:
+        _laid_out(arrays, path)
+    return _meta(arrays, path)
 
 
 def _read_file(path: str | Path, version: int = FORMAT_VERSION) -> dict[str, np.ndarray]:
@@ -353,9 +358,17 @@ def _meta(arrays: dict[str, np.ndarray], path: Path) -> dict:
         meta = json.loads(bytes(arrays["meta"]).decode())
         if not isinstance(meta, dict) or not {"digests", "params"} <= meta.keys():
             raise KeyError("digests, params")
+        # Listings read these as they come: a hand-made record must not fail them.
+        if not (_strings(meta["digests"]) and isinstance(meta["params"], dict)
+                and _strings(meta.get("names", []))):
+            raise ValueError("digests, params or names of another type")
     except (ValueError, KeyError) as e:
         raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
     return meta
+
+
+def _strings(value: object) -> bool:
+    return isinstance(value, list) and all(isinstance(v, str) for v in value)
 
 
 def precompute_bytes(exemplars: Sequence[Exemplar]) -> int:
@@ -422,7 +435,7 @@ def cache_file_name(digests: Sequence[str], params: dict) -> str:
 @cache
 def _code_digest() -> str:
     """Digest of the code that decides the candidates (``warptex.code_digest``)."""
-    return code_digest(_deciding_sources(), f"{MAX_DIMS} {PROJ_LIMIT}")
+    return code_digest(_deciding_sources(), f"{MAX_DIMS} {PROJ_LIMIT} {BASIS_LIMIT}")
 
 
 def _deciding_sources() -> list[Path] | None:
@@ -451,7 +464,7 @@ def cached_candidate_path(ex: Exemplar, tileable: bool | str = "auto") -> Path |
     if not cache_file_there(path):
         return None
     try:
-        _cached_arrays(path, exemplars, params)
+        _cached_set(path, exemplars, params)
     except CandidateCacheError:
         return None
     return path
@@ -931,6 +944,30 @@ def _flatten(cs: CandidateSet) -> dict[str, np.ndarray]:
     return out
 
 
+def _stored_int32(a: np.ndarray) -> np.ndarray:
+    """A file's integer array as int32, after ValueError where it holds other numbers:
+    narrowed unchecked, 2^32 + 5 would read as 5 and pass the layout's bounds."""
+    if a.dtype.kind not in "iu" or not _within(a, -(2**31), 2**31 - 1):
+        raise ValueError(f"integers within int32 expected, got {a.dtype}")
+    return a.astype(np.int32)
+
+
+def _stored_int(value: object) -> int:
+    """A file's recorded integer, after ValueError where it is another kind of number,
+    which int() would truncate."""
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise ValueError(f"an integer expected, got {value!r}")
+    return value
+
+
+def _stored_flags(packed: np.ndarray, count: int) -> np.ndarray:
+    """``count`` flags packed 8 to a byte, after ValueError where there are other than
+    enough bytes (unpackbits pads a short array with zeros)."""
+    if packed.dtype != np.uint8 or packed.shape != (-(-count // 8),):
+        raise ValueError(f"{count} packed flags expected, got {packed.dtype} {packed.shape}")
+    return np.unpackbits(packed, count=count).astype(bool)
+
+
 def _stored_margins(margins: object) -> tuple[int, int]:
     """A source level's margins as a file holds them: two non-negative integers."""
     if not (isinstance(margins, list) and len(margins) == 2
@@ -944,12 +981,23 @@ def _compact_index(a: np.ndarray) -> np.ndarray:
 
 
 def _unflatten(d: dict[str, np.ndarray], path: str | Path) -> CandidateSet:
+    return _with_crossbar_errors(_laid_out(d, path))
+
+
+def _laid_out(d: dict[str, np.ndarray], path: str | Path) -> CandidateSet:
+    """The candidates of a file's arrays ``d``, after CandidateCacheError where they do not
+    fit together as the kernels index them."""
     # A checksummed file's layout may still be another's: a newer warptex's parameter, a
     # list too short or a number of another type fail as TypeError or IndexError.
     try:
-        cs = _from_arrays(d)
+        return _from_arrays(d)
     except (ValueError, LookupError, TypeError) as e:
         raise CandidateCacheError(f"{path}: unreadable candidate data ({e})") from None
+
+
+def _with_crossbar_errors(cs: CandidateSet) -> CandidateSet:
+    """``cs`` with each role's crossbar errors, which files leave out as the triples
+    decide them."""
     half = int(cs.params["neighborhood"]) // 2
     for lv in range(cs.num_levels):
         for r, role in enumerate(cs.roles[lv]):
@@ -968,10 +1016,10 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
             lvl_src.append(
                 SourceLevel(
                     feat=d[f"L{lv}/S{j}/feat"],
-                    basis=d[f"L{lv}/S{j}/basis"].astype(np.int32),
-                    shift=int(meta["shifts"][lv][j]),
+                    basis=_stored_int32(d[f"L{lv}/S{j}/basis"]),
+                    shift=_stored_int(meta["shifts"][lv][j]),
                     proj=d[f"L{lv}/S{j}/proj"],
-                    cand2d=d[f"L{lv}/S{j}/cand2d"].astype(np.int32),
+                    cand2d=_stored_int32(d[f"L{lv}/S{j}/cand2d"]),
                     margins=_stored_margins(meta["margins"][lv][j]),
                 )
             )
@@ -980,10 +1028,10 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
             npix = d[f"L{lv}/R{r}/count"].shape[0]
             lvl_roles.append(
                 RoleLevel(
-                    cand=d[f"L{lv}/R{r}/cand"].astype(np.int32),
+                    cand=_stored_int32(d[f"L{lv}/R{r}/cand"]),
                     cb=np.zeros(0, np.int32),  # derived from the triples by _unflatten
-                    count=d[f"L{lv}/R{r}/count"].astype(np.int32),
-                    fallback=np.unpackbits(d[f"L{lv}/R{r}/fallback"], count=npix).astype(bool),
+                    count=_stored_int32(d[f"L{lv}/R{r}/count"]),
+                    fallback=_stored_flags(d[f"L{lv}/R{r}/fallback"], npix),
                 )
             )
         sources.append(lvl_src)
@@ -1015,8 +1063,9 @@ def _check_layout(cs: CandidateSet) -> None:
         raise ValueError(f"axes {cs.axis_source} of {sources} exemplars, {len(cs.roles[0])} roles")
     for j, colors in enumerate(cs.colors):
         if (colors.ndim != 3 or colors.shape[:2] != cs.sources[-1][j].size
-                or colors.shape[2] != cs.colors[0].shape[2]):
-            raise ValueError(f"colors of exemplar {j}: shape {colors.shape}")
+                or colors.shape[2] != cs.colors[0].shape[2] or colors.dtype != np.float32
+                or not np.isfinite(colors).all()):
+            raise ValueError(f"colors of exemplar {j}: {colors.dtype} {colors.shape}")
     for lv in range(cs.num_levels):
         # The kernels take one row width for every exemplar's 2D candidates and every
         # role's 3D ones: the first's.
