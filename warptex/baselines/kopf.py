@@ -38,7 +38,6 @@ may be left unconstrained.
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
@@ -59,6 +58,7 @@ from warptex.exemplar import (
 )
 from warptex.parallel import launch_ranges, nearest
 from warptex.settings import check_flag, check_settings, is_integer
+from warptex.thread_warnings import warn
 from warptex.warp_runtime import init_warp, launch
 
 LEVELS = 3  # "we use a three-level synthesis pyramid" (section 6)
@@ -131,6 +131,8 @@ class _Axis:
     basis: np.ndarray  # (64 F, MAX_DIMS) PCA basis, zero past the kept coefficients
     dims: int
     tree: cKDTree
+    needed: int  # coefficients that hold VARIANCE_KEPT of the variance; more than dims where
+    kept: float  # the kernels hold fewer, and then the share that dims hold
 
 
 def check_size(size: int) -> None:
@@ -202,6 +204,7 @@ def synthesize(
         have one, is synthesized along but not returned.
     """
     check_size(size)
+    size = int(size)  # a NumPy integer's n**3 would wrap
     check_settings(seed=seed)
     for name, flag in (("progress", progress), ("histogram_matching", histogram_matching),
                        ("mean_shift", mean_shift)):
@@ -222,6 +225,7 @@ def synthesize(
     pyramids = {k: e.pyramid(min_size=1, seams=seams[k])[-LEVELS:] for k, e in distinct.items()}
     rng = np.random.default_rng(seed)
     solid = None
+    short: dict[str, str] = {}  # what each level's PCA kept where it held less than the paper's
     with tqdm(total=sum(counts), desc="kopf", unit="it", disable=not progress) as bar:
         for level in range(LEVELS):
             n = size >> (LEVELS - 1 - level)
@@ -230,6 +234,11 @@ def synthesize(
             feats = [None if e is None else level_feats[id(e)] for e in axes]
             solid = _random_solid(feats, n, rng) if solid is None else _upsample(solid, n // 2)
             optimizer = _LevelOptimizer(feats, axis_seams, solid, histogram_matching)
+            for e, ax in zip(axes, optimizer.axes, strict=True):
+                if ax is not None and ax.needed > ax.dims:
+                    short[f"{e.path or e.name} at level {level}"] = (
+                        f"{ax.dims} dimensions, {ax.kept:.1%} of the variance; "
+                        f"{VARIANCE_KEPT:.0%} needs {ax.needed}")
             bandwidths = _bandwidths(optimizer.spread, counts[level]) if mean_shift else None
             for it in range(counts[level]):
                 start = time.perf_counter()
@@ -239,6 +248,10 @@ def synthesize(
                 bar.update()
                 if on_iteration is not None:
                     on_iteration(Iteration(level, it, energy, time.perf_counter() - start))
+    if short:  # a baseline that keeps less than the paper's share says so, once
+        warn("Kopf's PCA keeps fewer coefficients than section 4.2 asks of the exemplars' "
+             "windows: " + "; ".join(f"{where}: {kept}" for where, kept in short.items()),
+             stacklevel=2)
     channels = next(e for e in axes if e is not None).channels
     return solid.numpy().reshape(size, size, size, -1)[..., :channels].copy()
 
@@ -344,14 +357,11 @@ def _search_structure(features: np.ndarray, seams: tuple[bool, bool]) -> _Axis:
     explained = np.cumsum(variance) / total if total > 0 else np.ones(len(variance))
     needed = int(np.searchsorted(explained, VARIANCE_KEPT)) + 1
     dims = min(needed, _k.MAX_DIMS)
-    if needed > dims:  # a baseline that keeps less than the paper's share says so
-        warnings.warn(f"Kopf's PCA keeps {dims} dimensions, {explained[dims - 1]:.1%} of the "
-                      f"variance of the exemplar's windows; {VARIANCE_KEPT:.0%} needs {needed}",
-                      stacklevel=2)
     basis = np.zeros((centred.shape[1], _k.MAX_DIMS), np.float32)
     basis[:, :dims] = vectors[:, :dims]
     tree = cKDTree(centred @ vectors[:, :dims])
-    return _Axis(features, pixels, mean.astype(np.float32), basis, dims, tree)
+    return _Axis(features, pixels, mean.astype(np.float32), basis, dims, tree, needed,
+                 float(explained[dims - 1]))
 
 
 def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray:
