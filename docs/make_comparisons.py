@@ -21,6 +21,7 @@ from warptex.compare import (
     REPORT_FILES,
     Setup,
     compare,
+    large_edge,
     run_line,
     run_summary,
     write_report,
@@ -59,7 +60,9 @@ def main() -> None:
         "each exemplar patch's distance to the nearest slice patch, which blur does not win;",
         "`warptex.metrics`),",
         "time (one run in a fresh process; the lazy engine's pre-computation of candidates,",
-        "computed afresh, apart) and the repetition score over a 256-voxel slice; `kopf`",
+        "computed afresh, apart) and the repetition score over a slice at least "
+        f"{large_edge(args.size)} voxels wide (twice a larger exemplar's edge: each "
+        "table.json's `repetition_slice`); `kopf`",
         "averages plainly, `kopf-ms` is Kopf with mean-shift clustering (`kopf-meanshift` in",
         f"the sheets); `lazy-{MORE_PASSES}` is lazy synthesis with {MORE_PASSES} correction "
         f"passes per level (`--passes {MORE_PASSES}`, not in the sheets). Measured on {run}:",

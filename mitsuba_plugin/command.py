@@ -26,8 +26,8 @@ from warptex.archive import (
     write_together,
 )
 from warptex.machine import software_versions
-from warptex.parallel import deferred_stops
 from warptex.settings import MAX_SAMPLER_SEED, MAX_SPP, RENDER_BATCHES
+from warptex.stops import deferred_stops
 from warptex.store import StoreFileError, saved_when_stopped, worth_saving
 
 IMAGE_SUFFIXES = (".exr", ".png")

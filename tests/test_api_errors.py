@@ -573,6 +573,35 @@ def test_files_written_together_are_all_left_as_they_were_when_one_fails(tmp_pat
     assert (first.read_bytes(), second.read_text()) == (b"new image", "new figures")
 
 
+def test_a_ctrl_c_between_the_renames_of_files_written_together_comes_after_the_last(
+        tmp_path, monkeypatch):
+    """A stop right after the first rename left a new image beside old figures (a
+    comparison's new sheet beside its old tables)."""
+    import signal
+
+    import warptex.archive
+
+    first, second = tmp_path / "image.png", tmp_path / "image.png.json"
+    first.write_bytes(b"old image")
+    second.write_text("old figures")
+    replace = os.replace
+    renamed = []
+
+    def replace_then_stop(source, target):
+        replace(source, target)
+        renamed.append(Path(target).name)
+        if len(renamed) == 1:
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(warptex.archive.os, "replace", replace_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        write_together([(first, lambda tmp: tmp.write_bytes(b"new image")),
+                        (second, lambda tmp: tmp.write_text("new figures"))])
+    assert renamed == ["image.png", "image.png.json"]
+    assert (first.read_bytes(), second.read_text()) == (b"new image", "new figures")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["image.png", "image.png.json"]
+
+
 def test_the_ends_of_every_range_are_accepted_and_one_step_beyond_refused():
     for jitter, passes, seed in ((0.0, 0, 0), (MAX_JITTER, MAX_PASSES, MAX_SEED)):
         check_settings(jitter=jitter, passes=passes, seed=seed)

@@ -1052,6 +1052,12 @@ def test_a_report_file_s_place_taken_is_named_before_any_method_and_after(tmp_pa
     assert f"{out / 'table.md'}: is a folder, expected a file name" in capsys.readouterr().err
 
     (out / "table.md").rmdir()
+    # Two report files that are one (a link): found only once every method had run.
+    (out / "table.md").symlink_to("table.json")
+    assert main(args) == 2 and not ran
+    assert (f"{out / 'table.md'} and {out / 'table.json'} are one file"
+            in capsys.readouterr().err)
+    (out / "table.md").unlink()
     _json_disk_full(monkeypatch)
     assert main(args) == 1 and ran
     assert f"{out / 'table.json'}: cannot write (No space left on device)" in (

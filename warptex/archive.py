@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from warptex.stops import deferred_stops
+
 _TEMPORARY = ".tmp"  # before the suffix of a file being written
 _NAME_BYTES = 255  # the longest file name of Linux's and macOS's file systems
 _TOKEN_BYTES = 6  # of the random part of a temporary name
@@ -156,9 +158,9 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
     """:func:`write_atomically` for files that belong together (an image and its
     statistics): every temporary file is written before any is renamed, so a write that
     fails (a full disk) leaves all of them as they were, never a new one beside an old,
-    and no folder made for them. Only a rename that fails after an earlier one went
-    through (the file's place taken by a folder between the check and the rename) can
-    still leave them mixed."""
+    and no folder made for them; Ctrl-C or SIGTERM during the renames comes after the
+    last. Only a rename that fails after an earlier one went through (the file's place
+    taken by a folder between the check and the rename) can still leave them mixed."""
     # Random, as the pid and thread of writers in two containers sharing a folder may agree.
     tag = f"{os.getpid()}.{secrets.token_hex(_TOKEN_BYTES)}"
     staged = [(Path(path), write) for path, write in writes]
@@ -189,9 +191,10 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
             if target.is_dir():  # refused before any file is replaced, not half way
                 current = path
                 raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))
-        for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
-            current = path
-            os.replace(tmp, target)
+        with deferred_stops():  # a stop between two renames would leave them mixed
+            for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
+                current = path
+                os.replace(tmp, target)
         done = True
         for folder in {target.parent for target in targets}:
             # The renames are kept over a power cut too; the files are written by then.

@@ -46,7 +46,7 @@ from tqdm import std
 from tqdm.auto import tqdm
 
 from warptex import metrics
-from warptex.archive import file_problem, iso_date, write_together
+from warptex.archive import file_problem, iso_date, one_file_twice, write_together
 from warptex.exemplar import (
     AlphaDropped,
     Exemplar,
@@ -79,7 +79,7 @@ REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writ
 # counts peaks of the autocorrelation only; 6: tiled's pre-computation seconds are null (it
 # reads the candidates that lazy computed).
 TABLE_FORMAT = 6
-TILE = 64  # edge of the periodic block of `tiled`
+TILE = 64  # edge of the block that `tiled` repeats
 _CUBE_SPP = 16
 METHODS = ("lazy", "kopf", "kopf-meanshift", "tiled", "extrude", "noise", "flat")
 # What each method is, as the command's help says it.
@@ -328,7 +328,7 @@ def _tiled(job: _Job, size: int) -> np.ndarray:
 
 
 def _tiled_large(job: _Job, volume: np.ndarray) -> np.ndarray:
-    """The periodic block's z-slice repeated over the large slice: the tiled volume's own
+    """The repeated block's z-slice repeated over the large slice: the tiled volume's own
     period, not that of a volume cut to a size the block does not divide."""
     period = min(volume.shape[0], TILE)
     return _tile_slice(volume[:period, :period, volume.shape[2] // 2],
@@ -837,6 +837,10 @@ def report_files(out_dir: str | Path) -> list[Path]:
         problem = file_problem(path)
         if problem is not None:
             raise ValueError(f"{path}: {problem}")
+    twice = one_file_twice(files)
+    if twice is not None:
+        raise ValueError(f"{twice[0]} and {twice[1]} are one file (a link to the other); "
+                         "each report file is written once: remove the link")
     return files
 
 

@@ -2,9 +2,8 @@
 
 Kernels written for this take the index of their first item as their first argument, so a
 launch over items [start, stop) can be cut into contiguous ranges launched from several
-threads. Items of such kernels are independent, so the result equals one launch. Work that
-Ctrl-C or SIGTERM must not cut short is run to its end (:func:`deferred_stops`); one long
-call into C code that would keep them waiting runs in a process of its own
+threads. Items of such kernels are independent, so the result equals one launch. One long
+call into C code that would keep Ctrl-C and SIGTERM waiting runs in a process of its own
 (:func:`in_child_process`).
 """
 
@@ -14,8 +13,7 @@ import contextlib
 import functools
 import multiprocessing
 import signal
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
 from itertools import pairwise
 from typing import Any
@@ -24,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from warptex.machine import usable_cores
+from warptex.stops import blocked, deferred_stops
 from warptex.warp_runtime import launch
 
 THREADS = min(usable_cores(), 8)
@@ -114,7 +113,7 @@ def in_child_process(function: Callable[..., Any], *args: Any,
             # Started with Ctrl-C blocked, which the child keeps: a terminal's Ctrl-C reaches
             # the whole group, and the child, cut short while starting, printed a traceback;
             # this process stops it instead.
-            with _blocked((signal.SIGINT,)):
+            with blocked((signal.SIGINT,)):
                 job = pool.submit(function, *args)
             # Waited for apart from its result: a TimeoutError that the function raised
             # would pass for the wait's own (the builtin, from 3.11) and loop forever.
@@ -135,65 +134,3 @@ def stop_workers(pool: ProcessPoolExecutor) -> None:
         for process in list((pool._processes or {}).values()):
             process.terminate()
         pool.shutdown(wait=True, cancel_futures=True)
-
-
-def deferred_stops() -> contextlib.AbstractContextManager[None]:
-    """The block run to its end when Ctrl-C or SIGTERM comes meanwhile, which then goes
-    on (see :func:`_signals_deferred`)."""
-    return _signals_deferred((signal.SIGINT, signal.SIGTERM))
-
-
-@contextlib.contextmanager
-def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
-    """Hold back ``signals`` whose handlers are Python's in the block, then let those that
-    came go to their handlers as before. Handlers can only be set in the main thread, which
-    is also the only one that they interrupt. The handlers are swapped with the signals
-    blocked, and given back before any is delivered; as blocking holds them from the calling
-    thread only, one sent to the process can still reach a handler between two swaps, which
-    then all complete (one that raised there left the others swapped for good)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    came: list[int] = []
-    before = {number: handler for number in signals
-              if (handler := signal.getsignal(number)) is not None}
-    try:
-        with _blocked(signals):
-            _set_handlers(dict.fromkeys(before, lambda n, _frame: came.append(n)))
-        yield
-    finally:
-        with _blocked(signals):  # those that came go on once all handlers are back
-            try:
-                _set_handlers(before)
-            finally:  # a SIGTERM held back stays one, though a Ctrl-C came meanwhile
-                for number in dict.fromkeys(came):
-                    signal.raise_signal(number)
-
-
-def _set_handlers(handlers: dict[int, Any]) -> None:
-    """Set every one of ``handlers`` (signal: handler), then raise what a handler raised
-    meanwhile: ``signal.signal`` first runs the handlers of signals that came, and sets
-    nothing where one raises, so it is called again."""
-    raised: BaseException | None = None
-    for number, handler in handlers.items():
-        while True:
-            try:
-                signal.signal(number, handler)
-                break
-            except BaseException as error:  # KeyboardInterrupt, the CLI's SIGTERM
-                raised = raised or error
-    if raised is not None:
-        raise raised
-
-
-@contextlib.contextmanager
-def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
-    """The block with ``signals`` held pending by the system, where it can."""
-    if not hasattr(signal, "pthread_sigmask"):  # Windows
-        yield
-        return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)

@@ -52,8 +52,9 @@ from warptex.archive import (
 )
 from warptex.code_digest import code_digest, module_sources
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
-from warptex.parallel import deferred_stops, launch_ranges
+from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
+from warptex.stops import deferred_stops
 from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer, check_voxels
 from warptex.thread_warnings import warn
 from warptex.warp_runtime import launch

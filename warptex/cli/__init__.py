@@ -27,7 +27,7 @@ from warptex.cli.console import (
 from warptex.cli.options import check_max_size_option
 from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
 from warptex.exemplar import ExemplarError
-from warptex.parallel import deferred_stops
+from warptex.stops import deferred_stops
 
 # Modules nearly every command builds, and whether they run on the CPU whatever the device
 # (a CPU launch builds the block_dim 1 variant; CUDA launches the default one).

@@ -19,8 +19,8 @@ from warptex.archive import (
     write_failure,
 )
 from warptex.exemplar import Exemplar, file_names
-from warptex.parallel import deferred_stops
 from warptex.settings import names_folder
+from warptex.stops import deferred_stops
 
 
 class CliError(Exception):
