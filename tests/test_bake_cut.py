@@ -811,6 +811,28 @@ def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, d
     assert len(trimesh.load(tmp_path / "s.ply", process=False).vertices) == len(box.vertices)
 
 
+def test_unused_vertices_decide_neither_refusal_nor_welding(tmp_path):
+    """Only the faces' vertices are checked and measured: an unused vertex at 1e14 set the
+    weld tolerance to 0.1 units (a unit sphere of 642 vertices kept 26), an unused NaN one
+    let a sphere of radius 1e-8 weld at trimesh's 1e-8 (26 kept), one at 1e30 refused the
+    mesh. A negative face index, which NumPy wraps to the last vertex, is refused."""
+    from warptex.mesh_files import MeshFileError, load_mesh
+
+    for name, radius, stray in (("far", 1.0, 1e14), ("farther", 1.0, 1e30),
+                                ("nan", 1e-8, np.nan)):
+        sphere = trimesh.creation.icosphere(subdivisions=3)
+        sphere.apply_scale(radius)
+        trimesh.Trimesh(np.vstack([sphere.vertices, [[stray, 0.0, 0.0]]]), sphere.faces,
+                        process=False).export(tmp_path / f"{name}.ply")
+        assert len(load_mesh(tmp_path / f"{name}.ply").vertices) == 642, name
+    (tmp_path / "negative.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+        "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 -1\n")
+    with pytest.raises(MeshFileError, match=r"negative\.ply: a face refers to vertex -1"):
+        load_mesh(tmp_path / "negative.ply")
+
+
 def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path, data_dir,
                                                                         warp_device):
     """Coincident vertices were welded to 8 decimals whatever the mesh's size: a sphere

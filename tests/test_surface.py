@@ -99,3 +99,31 @@ def test_long_slivers_are_halved_and_touch_the_same_voxels(monkeypatch, warp_dev
     sphere = trimesh.creation.icosphere(subdivisions=3)
     even = to_voxel_space(sphere, block_transform(sphere, 256))
     assert surface._slivers_halved(even, np.asarray(sphere.faces))[0] is even
+
+
+def test_a_transform_beyond_the_texture_s_range_is_refused_in_words(warp_device):
+    """Points past int32 were floored to undefined voxels (a triangle at 3e9 voxels touched
+    none on this CPU; a GPU saturates), and a transform of 1e200 failed in NumPy."""
+    from warptex.synthesis import COORD_LIMIT
+
+    tri = trimesh.Trimesh(vertices=[[0.5, 0.5, 0.5], [3.5, 0.5, 0.5], [0.5, 2.5, 0.5]],
+                          faces=[[0, 1, 2]], process=False)
+    shifted = np.eye(4)
+    shifted[0, 3] = 3e9
+    for m in (shifted, np.diag([1e200, 1.0, 1.0, 1.0])):
+        with pytest.raises(ValueError, match=rf"beyond the texture's \+-{COORD_LIMIT}"):
+            shell(tri, transform=m)
+    m = np.eye(4)
+    m[0, 3] = COORD_LIMIT - 8  # the last voxels within the range are still found (float32
+    voxels = shell(tri, transform=m)  # rounds the corners there: some of 11, not all)
+    assert len(voxels) and (voxels[:, 0] >= COORD_LIMIT - 8).all()
+
+
+def test_shell_rows_of_a_box_wider_than_int64_s_numbering_stay_apart():
+    """Rows are numbered within their bounding box: one 2.2e6 voxels on each side wrapped
+    int64, and the rows came back as other voxels."""
+    from warptex.surface import _unique_rows
+
+    rows = np.array([[0, 0, 2200000], [2200000, 0, 0], [0, 2200000, 0], [0, 0, 0],
+                     [0, 0, 0]], np.int32)
+    assert np.array_equal(_unique_rows(rows), np.unique(rows, axis=0))

@@ -135,11 +135,14 @@ def bake_uv_texture(
     size = check_count("size", size, 1)
     points, covered = texel_points(mesh, uv, transform, (size, size))
     colors = texture.query(points[covered], filter=filter)
+    del points  # 24 bytes a texel, not to be held through the filling below
     image = np.zeros((size * size, colors.shape[1]), np.float32)
     image[covered] = colors
     image = image.reshape(size, size, -1)
     mask = covered.reshape(size, size)
     if mask.any() and not mask.all():
-        _, (iy, ix) = ndimage.distance_transform_edt(~mask, return_indices=True)
+        # The distances, float64 and unused, would double the fill's memory.
+        iy, ix = ndimage.distance_transform_edt(~mask, return_distances=False,
+                                                return_indices=True)
         image = image[iy, ix]
     return image, mask

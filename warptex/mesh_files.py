@@ -85,9 +85,10 @@ def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
         # As the file has it first: trimesh's processing drops the faces of a NaN vertex
         # unsaid, and loses the vertex normals that keep it from welding flat faces.
         raw = trimesh.load(path, force="mesh", process=False)
-        if len(getattr(raw, "faces", ())) and not np.isfinite(raw.vertices[raw.faces]).all():
+        used = _used_vertices(raw, path)
+        if not np.isfinite(used).all():
             raise MeshFileError(f"{path}: vertex coordinates hold NaN or infinite values")
-        farthest = float(np.abs(raw.vertices).max()) if len(getattr(raw, "faces", ())) else 0.0
+        farthest = float(np.abs(used).max()) if len(used) else 0.0
         if farthest > _COORDINATE_LIMIT:
             raise MeshFileError(f"{path}: vertex coordinates reach {farthest:.3g} units, "
                                 f"beyond {_COORDINATE_LIMIT:.0e}: move the mesh nearer the "
@@ -95,13 +96,18 @@ def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
         # Loading processed keeps the file's normals and UVs apart as merging alone cannot;
         # trimesh welds at its global tolerance (its maintainer's advice is to set that).
         with _TOLERANCE_LOCK:  # a global of trimesh's: one load sets it at a time
-            saved, trimesh.tol.merge = trimesh.tol.merge, weld_tolerance(raw.vertices)
+            saved, trimesh.tol.merge = trimesh.tol.merge, weld_tolerance(used)
             try:
-                mesh = trimesh.load(path, force="mesh")
+                # An unused NaN vertex, which processing drops, warns in its rounding first.
+                with np.errstate(invalid="ignore"):
+                    mesh = trimesh.load(path, force="mesh")
             finally:
                 trimesh.tol.merge = saved
     except MeshFileError:
         raise
+    except ImportError as error:  # a reader's optional library: the file may be sound
+        raise MeshFileError(f"{path}: reading this format needs a library that is not "
+                            f"installed ({error})") from None
     except NotImplementedError:  # how trimesh refuses a file type it has no reader for
         raise MeshFileError(f"{path}: not a mesh format warptex reads "
                             f"(.{', .'.join(MESH_FORMATS)}, and the others trimesh reads)"
@@ -124,6 +130,19 @@ def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
                             "auto to make UVs")
     _check_float32_outputs(mesh, [Path(o) for o in outputs])
     return mesh
+
+
+def _used_vertices(raw: trimesh.Trimesh, path: Path) -> np.ndarray:
+    """The vertices of the file's faces, as trimesh's processing keeps them: an unused
+    vertex (far away, or NaN) must decide neither what is refused nor how near the used
+    ones are welded. A negative index, which NumPy would wrap to the last vertices, is
+    refused."""
+    faces = np.asarray(getattr(raw, "faces", np.zeros((0, 3), np.int64)))
+    if not len(faces):
+        return np.zeros((0, 3))
+    if faces.min() < 0:
+        raise MeshFileError(f"{path}: a face refers to vertex {int(faces.min())}: damaged")
+    return np.asarray(raw.vertices)[np.unique(faces)]
 
 
 def _check_float32_outputs(mesh: trimesh.Trimesh, outputs: Sequence[Path]) -> None:

@@ -7,6 +7,8 @@ space (one unit = one finest voxel). By default its bounding box is fitted into 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import trimesh
 import warp as wp
@@ -15,6 +17,7 @@ from kernels import surface as _k
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
 from warptex.settings import check_count
+from warptex.synthesis import COORD_LIMIT
 from warptex.warp_runtime import device as default_device
 from warptex.warp_runtime import init_warp
 
@@ -106,10 +109,17 @@ def shell(
     """
     m = block_transform(mesh, resolution) if transform is None else _checked_transform(transform)
     faces_np = checked_faces(mesh)
+    in_voxels = to_voxel_space(mesh, m)
+    reach = float(np.abs(in_voxels[faces_np]).max(initial=0.0))
+    # The kernel's float-to-int voxel of a point beyond int32 is undefined (CPUs and GPUs
+    # differ), and no voxel beyond the texture's range can be synthesized anyway.
+    if not reach < COORD_LIMIT:  # NaN too
+        raise ValueError(f"the transformed mesh reaches {reach:.3g} voxels from the origin, "
+                         f"beyond the texture's +-{COORD_LIMIT}: check transform")
     checked_shell_size(mesh, m)
     init_warp()
     dev = device or default_device()
-    vertices_np, faces_np = _slivers_halved(to_voxel_space(mesh, m), faces_np)
+    vertices_np, faces_np = _slivers_halved(in_voxels, faces_np)
     # The shell only decides which voxels are synthesized ahead of the queries, so float32
     # suffices: a voxel it misses at extreme resolutions is synthesized when first read.
     vertices = wp.array(vertices_np.astype(np.float32), dtype=wp.vec3, device=dev)
@@ -184,6 +194,8 @@ def _unique_rows(voxels: np.ndarray) -> np.ndarray:
         return np.zeros((0, 3), np.int32)
     lo = voxels.min(axis=0).astype(np.int64)
     span = voxels.max(axis=0).astype(np.int64) - lo + 1
+    if math.prod(int(n) for n in span) >= 2**63:  # the box's numbers would wrap in int64
+        return np.unique(voxels, axis=0).astype(np.int32)
     v = voxels.astype(np.int64) - lo
     keys = unique((v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2])
     rows = np.stack([keys // (span[1] * span[2]), keys // span[2] % span[1], keys % span[2]], 1)
