@@ -833,6 +833,22 @@ def test_unused_vertices_decide_neither_refusal_nor_welding(tmp_path):
         load_mesh(tmp_path / "negative.ply")
 
 
+def test_a_reader_s_missing_library_is_said_so_not_called_damage(tmp_path, monkeypatch):
+    """trimesh reads .dae through pycollada and .3mf through lxml: a sound file was called
+    "damaged, or not what its name says" where the library was not installed."""
+    from warptex.mesh_files import MeshFileError, load_mesh
+
+    (tmp_path / "part.3mf").write_bytes(b"a sound file, as far as this test goes")
+
+    def without_lxml(*args, **kwargs):
+        raise ModuleNotFoundError("No module named 'lxml'")
+
+    monkeypatch.setattr(trimesh, "load", without_lxml)
+    with pytest.raises(MeshFileError, match=r"part\.3mf: reading this format needs a library "
+                                            r"that is not installed \(No module named 'lxml'\)"):
+        load_mesh(tmp_path / "part.3mf")
+
+
 def test_a_mesh_far_smaller_than_a_unit_bakes_and_cuts_as_at_unit_size(tmp_path, data_dir,
                                                                         warp_device):
     """Coincident vertices were welded to 8 decimals whatever the mesh's size: a sphere
