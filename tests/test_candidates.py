@@ -635,6 +635,16 @@ def test_a_checksummed_file_whose_arrays_do_not_fit_is_refused(tmp_path, granite
             CandidateSet.load(tmp_path / f"{name}.wtc")
 
 
+def _each_refused(folder: Path, arrays: dict, changes: dict) -> None:
+    """Each of ``changes`` (name: arrays replaced) made to a candidate file's ``arrays``,
+    written checksummed under its name, is refused on loading, the file named."""
+    for name, change in changes.items():
+        path = folder / f"{name}.wtc"
+        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
+        with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
+            CandidateSet.load(path)
+
+
 def test_a_checksummed_file_of_three_exemplars_whose_arrays_disagree_is_refused(tmp_path,
                                                                                warp_device):
     """The kernels take the first exemplar's and the first role's candidate row widths for
@@ -665,11 +675,7 @@ def test_a_checksummed_file_of_three_exemplars_whose_arrays_disagree_is_refused(
         "shift": {"meta": np.frombuffer(json.dumps({**meta, "shifts": shifts}).encode(),
                                         np.uint8)},
     }
-    for name, change in changes.items():
-        path = tmp_path / f"{name}.wtc"
-        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
-        with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
-            CandidateSet.load(path)
+    _each_refused(tmp_path, arrays, changes)
     # Precompute's shift rounds a negative sum down, as far as -PROJ_LIMIT - 1: still read.
     lowest = arrays[f"L{last}/S0/proj"].copy()
     lowest[0, 0] = -candidates.PROJ_LIMIT - 1
@@ -732,11 +738,7 @@ def test_a_checksummed_file_of_numbers_that_narrow_into_range_is_refused(tmp_pat
         "shift": {"meta": np.frombuffer(json.dumps({**meta, "shifts": shifts}).encode(),
                                         np.uint8)},
     }
-    for name, change in changes.items():
-        path = tmp_path / f"{name}.wtc"
-        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
-        with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
-            CandidateSet.load(path)
+    _each_refused(tmp_path, arrays, changes)
 
 
 def test_a_file_whose_basis_reaches_past_127_is_refused(tmp_path, granite):
