@@ -116,6 +116,7 @@ from mitsuba_plugin.properties import (
 from mitsuba_plugin.scalar import ScalarLookup
 from mitsuba_plugin.spectrum import check_upsampling, luminance, spectrum
 from mitsuba_plugin.traced import TracedLookup
+from warptex.affine import affine_inverse, apply_affine
 from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import (
@@ -287,14 +288,10 @@ def _inverse(to_world: np.ndarray) -> np.ndarray:
 
 
 def _finite_inverse(matrix: np.ndarray) -> np.ndarray | None:
-    """The inverse of ``matrix``, None where it has none in finite numbers."""
-    if not np.isfinite(matrix).all():
-        return None
-    try:
-        inverse = np.linalg.inv(matrix)
-    except np.linalg.LinAlgError:
-        return None
-    return inverse if np.isfinite(inverse).all() else None
+    """The inverse of affine ``matrix``, None where it has none in finite numbers; alike on
+    every machine (LAPACK's differed in its last bits between CPUs, and so did the voxels of
+    points on their borders)."""
+    return affine_inverse(matrix) if np.isfinite(matrix).all() else None
 
 
 class LazySolidTexture(mi.Texture):
@@ -576,7 +573,7 @@ class LazySolidTexture(mi.Texture):
             if self.space == "object":
                 p = self._in_object_frames(it, p, active)
             p = [wrap_far(c, dr.select, dr.round)
-                 for c in _apply_affine(self._world_to_texture, *p)]
+                 for c in apply_affine(self._world_to_texture, *p)]
             finite = dr.isfinite(p[0]) & dr.isfinite(p[1]) & dr.isfinite(p[2])
             p = [dr.select(finite, c, 0.0) for c in p]
             rgb = self._traced.colors(p, active & finite)
@@ -680,7 +677,7 @@ class LazySolidTexture(mi.Texture):
         p = [float(c) for c in it.p]
         if self.space == "object":
             p = self._in_object_frames(it, p, True)
-        point = _apply_affine(self._world_to_texture, *p)
+        point = apply_affine(self._world_to_texture, *p)
         if not all(map(math.isfinite, point)):  # before round(), which raises on them
             return [0.0, 0.0, 0.0]
         point = tuple(wrap_far(c, _choice_of, round) for c in point)
@@ -697,19 +694,19 @@ class LazySolidTexture(mi.Texture):
         with np.errstate(invalid="ignore"):  # zero times infinity: NaN, filled black
             if self.space == "object":
                 points = _to_object_space(points, it, keep, self._emitter)
-            texture = _apply_affine(self._world_to_texture, *points.T)
+            texture = apply_affine(self._world_to_texture, *points.T)
         return self.query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
         placed = _affine_matrix(self.to_world)
         inverse = _inverse(placed)
         with np.errstate(over="ignore", invalid="ignore"):
-            world_to_texture = np.diag([self.scale] * 3 + [1.0]) @ inverse
+            world_to_texture = inverse * np.array([[self.scale]] * 3 + [[1.0]])
         if not np.isfinite(world_to_texture).all():  # else every point would be black
             raise property_error(PLUGIN, "scale", f"{self.scale:g} times the inverse of "
                                  "to_world is beyond float64's range: lower scale or "
                                  "widen to_world")
-        # Rows of plain floats: _apply_affine runs on single points in scalar variants.
+        # Rows of plain floats: apply_affine runs on single points in scalar variants.
         self._world_to_texture = world_to_texture.tolist()
         self._placed = placed.astype(np.float32)
 
@@ -724,14 +721,6 @@ def _srgb_decoded(value: float) -> float:
     by the caller's Color3f, for the scalar variants' one point per call, where a NumPy or
     Dr.Jit call (about 6 us) would cost as much as the lookup."""
     return srgb_decoded(value, _choice_of)
-
-
-def _apply_affine(rows: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
-    """The affine map of ``rows`` (3 rows of 4 coefficients: numbers, or per-point
-    arrays) applied to coordinates ``x, y, z`` (floats, or NumPy or Dr.Jit float64 arrays) in one
-    fixed order of operations, so that wavefront and traced lookups of a point reach the
-    same voxel coordinates to the last bit."""
-    return tuple(r[0] * x + r[1] * y + r[2] * z + r[3] for r in list(rows)[:3])
 
 
 def _axis_colors(candidates: CandidateSet) -> list[np.ndarray]:
@@ -781,7 +770,7 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f, keep: np.ndarray 
         for obj in (it.instance, emitter if it.shape is None else it.shape):
             to_object = None if obj is None else _to_object_matrix(obj)
             if to_object is not None:
-                return np.stack(_apply_affine(to_object.tolist(), *points.T), axis=1)
+                return np.stack(apply_affine(to_object.tolist(), *points.T), axis=1)
         return points
     out = points.copy()
     placed = np.zeros(len(points), bool)
@@ -791,7 +780,7 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f, keep: np.ndarray 
             to_object = None if obj is None else _to_object_matrix(obj)
             rows &= ~placed
             if to_object is not None and rows.any():
-                out[rows] = np.stack(_apply_affine(to_object.tolist(), *points[rows].T), axis=1)
+                out[rows] = np.stack(apply_affine(to_object.tolist(), *points[rows].T), axis=1)
                 placed |= rows
     return out
 
@@ -882,5 +871,5 @@ class _ObjectFrames:
         placed = frame >= 0
         at = mi.UInt32(dr.maximum(frame, 0)) * 12
         m = [dr.gather(mi.Float64, self._matrices, at + k, placed) for k in range(12)]
-        moved = _apply_affine([m[0:4], m[4:8], m[8:12]], *p)
+        moved = apply_affine([m[0:4], m[4:8], m[8:12]], *p)
         return [dr.select(placed, q, c) for q, c in zip(moved, p, strict=True)]

@@ -31,7 +31,9 @@ from warptex.synthesis import COORD_LIMIT
 # Page table entries (4 bytes each) beyond which the stored bricks are too scattered for
 # a dense table; such a texture renders in wavefront mode instead.
 MAX_PAGES = 1 << 25
-LOG_CAPACITY = 1 << 20  # slots of the miss log (8 MiB); bricks that collide take another round
+# Slots of the miss log (8 MiB); bricks that collide take another round.
+_SLOT_BITS = 20
+LOG_CAPACITY = 1 << _SLOT_BITS
 # A miss log word: three 20-bit brick coordinates, biased (bricks lie within +-2^19 of the
 # origin, voxels within COORD_LIMIT), then 3 bits of brick edges; never 0, an empty slot.
 _LOG_BITS = 20
@@ -174,7 +176,7 @@ class TracedLookup:
         at = ((mi.UInt32(b[0]) * 73856093 ^ mi.UInt32(b[1]) * 19349663
                ^ mi.UInt32(b[2]) * 83492791
                ^ edges * 2654435761) * self._salt
-              >> 16) & (LOG_CAPACITY - 1)
+              >> (32 - _SLOT_BITS))  # a multiplicative hash's best bits are its highest
         word = mi.UInt64(edges)
         for c, shift in zip(b, _LOG_SHIFTS, strict=True):
             word |= mi.UInt64(mi.UInt32(c + _LOG_BIAS) & _LOG_MASK) << shift

@@ -788,6 +788,28 @@ def test_a_store_file_that_cannot_be_used_is_reported_once(candidates, tmp_path:
         again.save(path)
 
 
+def test_an_empty_store_leaves_another_texture_s_file_as_it_was(candidates, tmp_path: Path):
+    """A render that synthesized nothing for a texture whose file was another's (ignored
+    on loading), or one stopped before any synthesis, replaced that file with an empty
+    store: the other texture's voxels were lost for none of this one's. A stop's save is
+    no longer worth making without voxels, whatever file is there."""
+    from warptex.store import worth_saving
+
+    path = tmp_path / "s.wtb"
+    other = BrickStore(synthesizer(candidates, seed=3), whole_bricks=False)
+    other.prefetch(np.array([[0, 0, 0]]))
+    other.save(path)
+    before = path.read_bytes()
+    with pytest.warns(UserWarning, match="ignoring brick store file.*another texture"):
+        empty = BrickStore.load(path, synthesizer(candidates), whole_bricks=False)
+    assert not worth_saving(empty, path)
+    assert not empty.save(path)
+    assert path.read_bytes() == before
+    empty.prefetch(np.array([[1, 0, 0]]))  # with voxels of its own, it replaces the file
+    assert worth_saving(empty, path) and empty.save(path)
+    assert BrickStore.load(path, synthesizer(candidates)).stats()["voxels"] == 1
+
+
 def test_a_store_saved_through_a_symbolic_link_merges_into_its_target(candidates,
                                                                     tmp_path: Path):
     """Saving through a link writes the file it points to, in turns with saves to that

@@ -81,6 +81,21 @@ def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter,
                                   texture.query(far, filter=filter)[:, :3])
 
 
+def test_the_miss_log_spreads_bricks_over_all_of_its_slots(texture):
+    """Slots were the hash's bits 16 to 31: 65,536 of the log's 2^20, so a large cold
+    render lost most of its missed bricks to collisions, took more traced rounds and fell
+    back to the slower wavefront mode."""
+    from mitsuba_plugin.traced import LOG_CAPACITY, TracedLookup
+
+    lookup = TracedLookup(texture.store, "nearest", fallback=(0.5, 0.5, 0.5))
+    bricks = np.random.default_rng(1).choice(200**3, 200_000, replace=False)
+    voxels = np.stack(np.unravel_index(bricks, (200, 200, 200)), axis=1) * 8 - 800
+    lookup._log([mi.Int32(voxels[:, k]) for k in range(3)], mi.Bool(True))
+    slots = np.flatnonzero(lookup._log_voxels.numpy())
+    # 200,000 bricks hashed into 2^20 slots fill about 181,000 of them.
+    assert len(slots) > 170_000 and slots.max() >= LOG_CAPACITY - 1000
+
+
 def test_evicted_bricks_miss_instead_of_reading_a_reused_slot(texture):
     from mitsuba_plugin.traced import TracedLookup
 

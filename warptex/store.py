@@ -377,10 +377,11 @@ def check_store_path(path: str | Path, saving: bool = True) -> None:
 
 
 def worth_saving(store: BrickStore, path: Path | None) -> bool:
-    """Whether a stop's save of ``store`` to ``path`` keeps any work: it holds voxels, or
-    there is a file to merge with. A new file of an empty store would keep none, and be
-    said to hold the voxels synthesized before stopping (:func:`saved_when_stopped`)."""
-    return path is not None and (store.stats()["voxels"] > 0 or path.exists())
+    """Whether a stop's save of ``store`` to ``path`` keeps any work: whether it holds
+    voxels. A file of an empty store would keep none, and be said to hold the voxels
+    synthesized before stopping (:func:`saved_when_stopped`); merged with a file, it leaves
+    that as it was."""
+    return path is not None and store.stats()["voxels"] > 0
 
 
 @contextmanager
@@ -582,14 +583,15 @@ class BrickStore:
         copies of them (a partly filled brick grows), whichever is largest, are written, so
         every brick of ours is. Saves to one file take turns, so none loses the bricks of
         another. A damaged file or another texture's is replaced, with a warning unless
-        loading gave one for it. A save that writes deletes the temporary files that saves
-        killed over :data:`~warptex.archive.UNFINISHED_AGE` ago left beside the file.
+        loading gave one for it, by a store that holds voxels; an empty store leaves it. A
+        save that writes deletes the temporary files that saves killed over
+        :data:`~warptex.archive.UNFINISHED_AGE` ago left beside the file.
 
-        The file is left as it is, and False returned, when it is the one this store was
-        loaded from or last saved to, unchanged since, and no voxel was stored since: it
-        holds every brick of ours then, and a shared file is not rewritten by every render
-        that only reads it (so such a render does not make its bricks the file's most
-        recently used). Else True.
+        The file is left as it is, and False returned, where the store is empty and the file
+        damaged or another's, or where it is the one this store was loaded from or last
+        saved to, unchanged since, and no voxel was stored since: it holds every brick of
+        ours then, and a shared file is not rewritten by every render that only reads it (so
+        such a render does not make its bricks the file's most recently used). Else True.
         """
         path = written_through(Path(path))  # saves through a link take turns at its target
         check_store_path(path)
@@ -608,6 +610,8 @@ class BrickStore:
             try:
                 saved = self._read(path) if path.exists() and not _empty_file(path) else None
             except StoreFileError as e:
+                if not len(ours.keys):  # nothing to keep: another texture's voxels stay
+                    return False
                 if state != self._ignored:  # reported once, when it was loaded
                     warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None

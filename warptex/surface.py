@@ -14,6 +14,7 @@ import trimesh
 import warp as wp
 
 from kernels import surface as _k
+from warptex.affine import apply_affine
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
 from warptex.settings import check_count
@@ -50,7 +51,9 @@ def to_voxel_space(mesh: trimesh.Trimesh, transform: np.ndarray) -> np.ndarray:
     point gets."""
     v = np.asarray(mesh.vertices, np.float64)
     m = _checked_transform(transform)
-    return v @ m[:3, :3].T + m[:3, 3]
+    # Not a matrix product: a BLAS sums its terms otherwise on other CPUs, and a vertex on
+    # a voxel's border could land in another voxel there.
+    return np.stack(apply_affine(m, *v.T), axis=1)
 
 
 def _checked_transform(transform: object) -> np.ndarray:
