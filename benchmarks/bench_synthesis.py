@@ -10,6 +10,7 @@ are compiled and candidates pre-computed before anything is timed.
                                           [--sheet PNG]
                                           | --passes-sweep
                                           | --memory [--boxes DxHxW ...] [--part-voxels N]
+                                          | --request-memory
                                           | --cold-kernels [--names NAME ...]]
 """
 
@@ -109,6 +110,46 @@ _BOX_IN_A_PROCESS = textwrap.dedent("""
 
 MEMORY_BOXES = ((64, 256, 256), (128, 256, 256), (256, 256, 256))
 
+# What the memory estimates of a request count beside a box's work: argv: mode, then
+# "features" EXEMPLAR CHANNELS (a 56^3 box from the exemplar's 32 px corner, with random
+# feature channels added up to CHANNELS: its peak growth per finest work voxel), or
+# "scattered" EXEMPLAR N (N voxels a block apart, the engine's synthesis replaced by zeros:
+# the request's own arrays and the dilated keys of its parts, per voxel). Each in a fresh
+# process, kernels warm first.
+_REQUEST_IN_A_PROCESS = textwrap.dedent("""
+    import json, sys
+    import numpy as np
+    from warptex import synthesis
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar
+    from warptex.machine import PeakMemory
+    mode, path, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    colors = Exemplar.load(path).colors[:32, :32]
+    if mode == "features":
+        noise = np.random.default_rng(0).random((32, 32, n - 3), np.float32)
+        colors = np.concatenate([colors, noise], axis=2)
+    exemplar = Exemplar(np.ascontiguousarray(colors), name=f"{n} channels")
+    syn = synthesis.Synthesizer(precompute(exemplar, cache=False), seed=1)
+    syn.box((0, 0, 0), (8, 8, 8))
+    if mode == "features":
+        shape = (56, 56, 56)
+        with PeakMemory() as peak:
+            syn.box((100, 100, 100), shape)
+        reach = 2 * syn._apron * synthesis.BLOCK
+        per = peak.growth / np.prod([a + reach for a in shape])
+    else:
+        syn._synthesize = lambda level, keys, voxel_keys, local, work=None: np.zeros(
+            (len(voxel_keys), 3), np.int32)
+        rng = np.random.default_rng(0)
+        blocks = rng.choice(2**20, n, replace=False)
+        ijk = np.stack(np.unravel_index(blocks, (2**7,) * 3), axis=1) * 8 * 64
+        ijk -= synthesis.COORD_LIMIT // 2
+        with PeakMemory() as peak:
+            syn.pixel_triples(ijk)
+        per = peak.growth / n
+    print(json.dumps({"mib": peak.growth / 2**20, "per": per}))
+""")
+
 # Two 64^3 boxes of a fresh engine in a fresh process whose kernel cache is empty; argv:
 # exemplar. Its candidates come from the candidate cache, filled by the caller, so the
 # first box's time holds the engine's kernel builds and nothing of the pre-computation's.
@@ -168,6 +209,44 @@ def memory(folder: Path, boxes: list[tuple[int, int, int]], part_cap: int) -> No
                   f"{r['seconds']:.1f} |")
 
 
+def request_memory(folder: Path) -> None:
+    """The two terms of the engine's memory estimates that vary with the request: working
+    memory per finest work voxel against feature channels, and the memory of scattered
+    voxels per voxel beside the engine's work (``synthesis.work_bytes_per_voxel``,
+    ``REQUEST_BYTES_PER_VOXEL``, ``DILATED_KEY_BYTES``)."""
+    from warptex.synthesis import (
+        DILATED_KEY_BYTES,
+        REQUEST_BYTES_PER_VOXEL,
+        default_apron_blocks,
+        work_bytes_per_voxel,
+    )
+
+    exemplar = str(folder / "granite_64.png")
+
+    def run(*argv: str) -> dict:
+        done = subprocess.run([sys.executable, "-c", _REQUEST_IN_A_PROCESS, *argv],
+                              capture_output=True, text=True)
+        if done.returncode:
+            sys.exit(f"{' '.join(argv)} failed in its process:\n{done.stderr}")
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    print("| feature channels | 56^3 box: peak growth MiB | bytes a finest work voxel "
+          "| estimate |")
+    print("|---|---|---|---|")
+    for channels in (3, 12, 34):
+        r = run("features", exemplar, str(channels))
+        print(f"| {channels} | {r['mib']:.0f} | {r['per']:.0f} | "
+              f"{work_bytes_per_voxel(channels)} |")
+    dilated = (2 * default_apron_blocks(2) + 1) ** 3 * DILATED_KEY_BYTES
+    print("\n| scattered voxels (a block apart) | peak growth MiB, synthesis left out "
+          "| bytes a voxel | estimate |")
+    print("|---|---|---|---|")
+    for n in (200_000, 1_000_000):
+        r = run("scattered", exemplar, str(n))
+        print(f"| {n} | {r['mib']:.0f} | {r['per']:.0f} | "
+              f"{REQUEST_BYTES_PER_VOXEL + dilated} |")
+
+
 def _box(text: str) -> tuple[int, int, int]:
     try:
         box = tuple(int(a) for a in text.lower().split("x"))
@@ -207,6 +286,9 @@ def main() -> None:
     parser.add_argument("--memory", action="store_true",
                         help="only print the peak memory and time of large boxes, in parts "
                         "and in one engine call")
+    parser.add_argument("--request-memory", action="store_true",
+                        help="only print the engine's memory per work voxel against feature "
+                        "channels, and that of scattered voxels beside the engine's work")
     parser.add_argument("--cold-kernels", action="store_true",
                         help="only print the first and second 64^3 box of a fresh engine on "
                         "an empty kernel cache, for each of --names")
@@ -223,6 +305,9 @@ def main() -> None:
         return
     if args.cold_kernels:
         cold_kernels(args.exemplars, args.names)
+        return
+    if args.request_memory:
+        request_memory(args.exemplars)
         return
     if args.jitter_sweep:
         jitter_sweep(args.exemplars, args.names, args.jitters, args.slice, args.shifted_tiles,

@@ -95,8 +95,12 @@ def test_a_gpu_too_small_for_the_largest_part_gets_smaller_ones(monkeypatch):
     a large box (Warp's "Failed to allocate"); the CPU's parts are bounded by the request's
     memory check instead."""
     monkeypatch.setattr(synthesis, "_device_memory", lambda device: 4 << 30)
-    assert synthesis.work_voxel_cap("cuda:0") == (4 << 30) // (2 * synthesis.WORK_BYTES_PER_VOXEL)
+    rgb = synthesis.work_bytes_per_voxel(3)
+    assert synthesis.work_voxel_cap("cuda:0") == (4 << 30) // (2 * rgb)
     assert synthesis.work_voxel_cap("cuda:0") < synthesis.MAX_WORK_VOXELS
+    # More feature channels, more memory a work voxel: smaller parts (they took 76% of the
+    # GPU at 34 channels, not half).
+    assert synthesis.work_voxel_cap("cuda:0", 34) == (4 << 30) // (2 * (rgb + 6 * 31))
     monkeypatch.setattr(synthesis, "_device_memory", lambda device: 80 << 30)
     assert synthesis.work_voxel_cap("cuda") == synthesis.MAX_WORK_VOXELS
     assert synthesis.work_voxel_cap("cpu") == synthesis.MAX_WORK_VOXELS
@@ -675,6 +679,14 @@ def test_bad_requests_are_clear(candidates):
             syn.voxels(far)
     with pytest.raises(ValueError, match="integer array, got float64"):
         syn.voxels([[0.5, 0, 0]])
+    # NumPy makes a bool among ints 0 or 1, a voxel nobody named; ragged rows failed in
+    # NumPy's words, which name no argument.
+    for flagged in ([[True, 1, 2]], [(np.True_, 0, 5)]):
+        with pytest.raises(ValueError, match="must be integers, got booleans among them"):
+            syn.voxels(flagged)
+    with pytest.raises(ValueError, match=r"voxel coordinates must be an \(N, 3\) integer "
+                                         r"array, got rows of other lengths"):
+        syn.voxels([[1, 2, 3], [4, 5]])
     assert syn.voxels(np.zeros((0, 3), np.int64)).shape == (0, 3)
     # Beyond int64, and an empty box too long to be an array: the range names both.
     for origin, shape in (((10**20, 0, 0), (1, 1, 1)), ((0, 0, 0), (0, 10**30, 10**30)),
@@ -907,9 +919,10 @@ def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candid
     import warptex.machine
     from warptex.synthesis import (
         BLOCK,
+        DILATED_KEY_BYTES,
         REQUEST_BYTES_PER_VOXEL,
-        WORK_BYTES_PER_VOXEL,
         request_bytes,
+        work_bytes_per_voxel,
     )
 
     syn = Synthesizer(candidates)
@@ -926,9 +939,20 @@ def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candid
     # More passes read farther: a wider apron around each block.
     assert request_bytes(points[:8], apron_blocks=2) > request_bytes(points[:8])
     assert syn.voxels(near).shape == (4096, 3)
+    # Each of two far voxels: its arrays, its block's 27 dilated keys, its block and apron.
     far = np.array([[-COORD_LIMIT] * 3, [COORD_LIMIT - 1] * 3])  # a box of 2^69 voxels
-    assert request_bytes(far) == 2 * (REQUEST_BYTES_PER_VOXEL
-                                      + (3 * BLOCK) ** 3 * WORK_BYTES_PER_VOXEL)
+    assert request_bytes(far) == 2 * (REQUEST_BYTES_PER_VOXEL + 27 * DILATED_KEY_BYTES
+                                      + (3 * BLOCK) ** 3 * work_bytes_per_voxel())
+    # Scattered voxels' dilated keys (measured 744-997 bytes a voxel in all, the engine's
+    # work apart) are counted; a box's blocks hold many voxels each, so its keys count for
+    # little.
+    scattered = np.random.default_rng(6).integers(-COORD_LIMIT, COORD_LIMIT, (100_000, 3))
+    work = synthesis.MAX_WORK_VOXELS * work_bytes_per_voxel()
+    assert request_bytes(scattered) - work >= 997 * len(scattered)
+    box = np.argwhere(np.ones((64, 64, 64), bool))
+    assert request_bytes(box) - len(box) * REQUEST_BYTES_PER_VOXEL < 2 * 80**3 * 280
+    # Exemplars of more feature channels take more memory a work voxel.
+    assert request_bytes(points, channels=34) > request_bytes(points)
 
 
 def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.ndarray:

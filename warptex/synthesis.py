@@ -66,15 +66,24 @@ COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # finest voxels lie in [-COORD_L
 _HALO_CHUNK = {"cpu": 256, "cuda": 8192}
 # Finest voxels in the work region (request and apron) of one engine call: a larger request
 # is synthesized in parts, one after another, so its working memory stays under about
-# MAX_WORK_VOXELS * WORK_BYTES_PER_VOXEL (4.7 GB, host or GPU). Per voxel: the peak memory
-# growth of a 64 x 256 x 256 box (granite_64, 2 passes) over its 5.0M work voxels. A 1024^3
+# MAX_WORK_VOXELS * work_bytes_per_voxel(3) (4.7 GB, host or GPU, for RGB). A 1024^3
 # surface's query batches (about 13M work voxels each for the bunny) stay whole.
 MAX_WORK_VOXELS = 1 << 24
-WORK_BYTES_PER_VOXEL = 280
+# Working memory per work voxel: 280 bytes for RGB, the peak memory growth of a 64 x 256 x
+# 256 box (granite_64, 2 passes) over its 5.0M work voxels, and at most 6 more per feature
+# channel beyond three (the halos and features gathered): a 56^3 box grew by 218-251 and
+# 296-437 bytes a work voxel at 3 and 34 channels (BENCHMARKS.md, "Memory of a request").
+_WORK_BYTES_RGB = 280
+_WORK_BYTES_PER_CHANNEL = 6
 # Host memory of a request beside the engine's, per requested voxel (its coordinates, keys,
 # parts and triples), rounded up: a 256^3 box in two parts grew by 70 bytes a voxel more
 # than one part's work.
 REQUEST_BYTES_PER_VOXEL = 100
+# And per key of its blocks grown by the apron ((2 apron + 1)^3 a block), which splitting
+# it into parts sorts and keeps: scattered voxels, a block each, of which a box holds 512.
+# Measured: 744-997 bytes a voxel in all for 200,000 and 1,000,000 scattered voxels, 27
+# keys each, the engine's own work left out (BENCHMARKS.md, "Memory of a request").
+DILATED_KEY_BYTES = 36
 # A neighbour table is read from a dense grid over its blocks' bounding box where that grid
 # has at most this many cells a block: 32 bytes of grid per 108 bytes of table.
 _DENSE_CELLS_PER_BLOCK = 8
@@ -82,46 +91,61 @@ _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (sec
 _LOCAL = cell_offsets(BLOCK)
 
 
-def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1) -> int:
+def work_bytes_per_voxel(channels: int = 3) -> int:
+    """Working memory of the engine per finest work voxel, for exemplars of ``channels``
+    feature channels (colors and any feature distance)."""
+    return _WORK_BYTES_RGB + _WORK_BYTES_PER_CHANNEL * (max(channels, 3) - 3)
+
+
+def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1, channels: int = 3) -> int:
     """About the memory that synthesizing a box of ``shape`` takes beside its colors: its
     request's host arrays and the engine's work on one part of it (the box and its apron,
     at most ``MAX_WORK_VOXELS``); ``apron_blocks`` is the engine's (one at the default
-    passes), as for :func:`request_bytes`."""
+    passes) and ``channels`` its feature channels, as for :func:`request_bytes`."""
     reach = 2 * apron_blocks * BLOCK
     work = min(MAX_WORK_VOXELS, math.prod(n + reach for n in shape))
-    return math.prod(shape) * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
+    return (math.prod(shape) * REQUEST_BYTES_PER_VOXEL
+            + work * work_bytes_per_voxel(channels))
 
 
-def request_bytes(ijk: np.ndarray, apron_blocks: int = 1) -> int:
+def request_bytes(ijk: np.ndarray, apron_blocks: int = 1, channels: int = 3) -> int:
     """About the memory that synthesizing voxels ``ijk`` (N, 3) takes beside their results:
-    the request's host arrays and the engine's work on one part of it (its bounding box
-    grown by the apron, or each voxel's block and apron where they lie far apart, at most
-    ``MAX_WORK_VOXELS``); ``apron_blocks`` is the engine's (one at the default passes)."""
+    the request's host arrays, its blocks' keys grown by the apron, and the engine's work
+    on one part of it (its bounding box grown by the apron, or each voxel's block and apron
+    where they lie far apart, at most ``MAX_WORK_VOXELS``); ``apron_blocks`` is the
+    engine's (one at the default passes) and ``channels`` its feature channels."""
     if len(ijk) == 0:
         return 0
     reach = 2 * apron_blocks * BLOCK
     spread = ijk.max(axis=0) - ijk.min(axis=0) + 1 + reach
     box = math.prod(int(s) for s in spread)  # in Python ints: up to 2^69 voxels
     work = min(MAX_WORK_VOXELS, len(ijk) * (BLOCK + reach) ** 3, box)
-    return len(ijk) * REQUEST_BYTES_PER_VOXEL + work * WORK_BYTES_PER_VOXEL
+    blocks = min(len(ijk), math.prod(-(-int(s) // BLOCK) + 1 for s in spread))
+    dilated = blocks * (2 * apron_blocks + 1) ** 3 * DILATED_KEY_BYTES
+    return (len(ijk) * REQUEST_BYTES_PER_VOXEL + dilated
+            + work * work_bytes_per_voxel(channels))
 
 
-def _check_request(ijk: np.ndarray, apron_blocks: int, result_bytes: int) -> None:
+def _check_request(ijk: np.ndarray, apron_blocks: int, channels: int,
+                   result_bytes: int) -> None:
     """Refuse, before any work, a request of voxels ``ijk`` that with its results of
     ``result_bytes`` a voxel would not fit in this machine's memory. Not asked of the
     brick store's batches, which are bounded, as the machine's memory takes a file read."""
-    problem = memory_problem(request_bytes(ijk, apron_blocks) + len(ijk) * result_bytes)
+    problem = memory_problem(request_bytes(ijk, apron_blocks, channels)
+                             + len(ijk) * result_bytes)
     if problem is not None:
         raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
 
 
-def work_voxel_cap(device: str) -> int:
-    """Work voxels of one engine call on ``device``: ``MAX_WORK_VOXELS``, fewer on a GPU of
-    which that many would take more than half (a 4 GB one), leaving the rest to the brick
-    store, a renderer and other processes. Parts change no voxel (section 5.2)."""
+def work_voxel_cap(device: str, channels: int = 3) -> int:
+    """Work voxels of one engine call on ``device`` for exemplars of ``channels`` feature
+    channels: ``MAX_WORK_VOXELS``, fewer on a GPU of which that many would take more than
+    half (a 4 GB one), leaving the rest to the brick store, a renderer and other processes.
+    Parts change no voxel (section 5.2)."""
     if not device.startswith("cuda"):
         return MAX_WORK_VOXELS
-    return max(1, min(MAX_WORK_VOXELS, _device_memory(device) // (2 * WORK_BYTES_PER_VOXEL)))
+    per_voxel = 2 * work_bytes_per_voxel(channels)
+    return max(1, min(MAX_WORK_VOXELS, _device_memory(device) // per_voxel))
 
 
 @cache
@@ -246,7 +270,15 @@ def check_voxels(ijk: np.ndarray) -> np.ndarray:
     integers (a fraction names no voxel) within [-COORD_LIMIT, COORD_LIMIT), where block
     keys hold them without wrapping onto another voxel."""
     outside = f"voxel coordinates must lie within [-{COORD_LIMIT}, {COORD_LIMIT})"
-    given, ijk = ijk, np.asarray(ijk)
+    given = ijk
+    try:
+        ijk = np.asarray(ijk)
+    except ValueError:  # NumPy's words name no argument
+        raise ValueError("voxel coordinates must be an (N, 3) integer array, got rows of "
+                         "other lengths") from None
+    if (not isinstance(given, np.ndarray) and ijk.ndim == 2 and ijk.dtype.kind in "iu"
+            and _any_bool(given)):
+        raise ValueError("voxel coordinates must be integers, got booleans among them")
     if ijk.ndim != 2 or ijk.shape[1] != 3 or not np.issubdtype(ijk.dtype, np.integer):
         if _python_ints(given):  # beyond int64, which NumPy made objects or floats of
             raise ValueError(outside)
@@ -255,6 +287,11 @@ def check_voxels(ijk: np.ndarray) -> np.ndarray:
     if len(ijk) and (ijk.min() < -COORD_LIMIT or ijk.max() >= COORD_LIMIT):
         raise ValueError(outside)
     return ijk.astype(np.int64, copy=False)
+
+
+def _any_bool(rows: object) -> bool:
+    """Whether rows of numbers hold a bool, which NumPy makes 0 or 1 among integers."""
+    return any(isinstance(v, bool | np.bool_) for row in rows for v in row)
 
 
 def _python_ints(values: object) -> bool:
@@ -453,7 +490,8 @@ class Synthesizer:
             raise ValueError(f"neighbourhoods of more than {2 * BLOCK + 1} voxels are not "
                              f"supported (the candidates use {2 * half + 1}): a kernel reads "
                              f"voxels at most {BLOCK} away through its block's neighbours")
-        check_feature_channels(int(candidates.sources[0][0].feat.shape[2]), 2 * half + 1)
+        self._features = int(candidates.sources[0][0].feat.shape[2])
+        check_feature_channels(self._features, 2 * half + 1)
         self._apron = _apron_blocks(half, self.passes, self.subpasses)
         if self._apron + 2 > _KEY_MARGIN:
             raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
@@ -478,7 +516,7 @@ class Synthesizer:
         """
         ijk = check_voxels(ijk)
         # Its triples, and the int64 rows, columns and their stack on the way.
-        _check_request(ijk, self._apron, 136)
+        _check_request(ijk, self._apron, self._features, 136)
         pix = self._pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
@@ -488,7 +526,7 @@ class Synthesizer:
         colors (section 5.1). A request that would not fit in memory is a ValueError, before
         any work."""
         ijk = check_voxels(ijk)
-        _check_request(ijk, self._apron, 4 * self.candidates.channels)
+        _check_request(ijk, self._apron, self._features, 4 * self.candidates.channels)
         return self.colors_of(self._pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
@@ -501,7 +539,8 @@ class Synthesizer:
                    for o, n in zip(origin, shape, strict=True)):  # checked before any array
             raise ValueError(f"a box at origin {origin} of shape {shape} leaves the voxel "
                              f"coordinates' range [-{COORD_LIMIT}, {COORD_LIMIT})")
-        need = box_bytes(shape, self._apron) + 4 * self.candidates.channels * math.prod(shape)
+        need = (box_bytes(shape, self._apron, self._features)
+                + 4 * self.candidates.channels * math.prod(shape))
         problem = memory_problem(need)
         if problem is not None:  # before allocating: too large a box would end in swapping
             raise ValueError(f"a box of shape {shape} {problem}; synthesize it in parts")
@@ -562,7 +601,8 @@ class Synthesizer:
         is larger: halved across the longest side of their bounding box, so that parts stay
         compact and their aprons small."""
         work = _dilate(keys, self._apron)
-        if len(work) * _BLOCK_VOXELS <= work_voxel_cap(self.device) or len(keys) == 1:
+        if (len(work) * _BLOCK_VOXELS <= work_voxel_cap(self.device, self._features)
+                or len(keys) == 1):
             return [(keys, work)]
         blocks = unpack(keys)
         low, high = blocks.min(axis=0), blocks.max(axis=0)
