@@ -7,12 +7,21 @@ that found no coherent candidate. Targets (issue 3, a 2-core machine): 64^2 in <
 128^2 in <= 25 s, <= 500 KB for 64^2.
 
     .venv/bin/python benchmarks/bench_candidates.py [--names granite rust] [--sizes 64 128]
+                                                    [--degenerate]
+
+``--degenerate`` instead times synthetic photos whose windows tie by the thousand (a flat
+grey with one light square, light dots on grey), each in a fresh process with its peak
+resident memory beside the estimate that ``warptex info`` gives.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
+import textwrap
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -106,6 +115,43 @@ def verdict(size: int, result: dict) -> str:
     return ", ".join(notes)
 
 
+# One synthetic photo pre-computed in a fresh process; argv: kind, size.
+_DEGENERATE_IN_A_PROCESS = textwrap.dedent("""
+    import json, resource, sys, time
+    import numpy as np
+    from warptex.candidates import precompute, precompute_bytes
+    from warptex.exemplar import Exemplar
+    kind, n = sys.argv[1], int(sys.argv[2])
+    image = np.full((n, n, 3), 0.5, np.float32)
+    if kind == "flat":
+        image[10:20, 10:20] = 0.9
+    else:
+        image[np.random.default_rng(0).random((n, n)) < 0.05] = 0.9
+    exemplar = Exemplar(image, name=kind)
+    start = time.perf_counter()
+    precompute(exemplar, cache=False)
+    print(json.dumps({"seconds": time.perf_counter() - start,
+                      "mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "estimate": precompute_bytes([exemplar]) / 2**20}))
+""")
+
+
+def degenerate(sizes: list[int]) -> None:
+    """Photos whose windows tie by the thousand, each pre-computed in a fresh process."""
+    print("| photo | size | wall s | peak resident MiB | estimate MiB |")
+    print("|---|---|---|---|---|")
+    for kind, label in (("flat", "flat grey, one 10 x 10 light square"),
+                        ("dots", "light dots on grey, 5 % of the pixels")):
+        for size in sizes:
+            run = subprocess.run([sys.executable, "-c", _DEGENERATE_IN_A_PROCESS, kind,
+                                  str(size)], capture_output=True, text=True)
+            if run.returncode:
+                sys.exit(f"{kind} {size} failed in its process:\n{run.stderr}")
+            r = json.loads(run.stdout.strip().splitlines()[-1])
+            print(f"| {label} | {size}² | {r['seconds']:.1f} | {r['mib']:.0f} | "
+                  f"{r['estimate']:.0f} |", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
@@ -114,8 +160,13 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", type=positive_int, default=[64, 128])
     parser.add_argument("--repeat", type=positive_int, default=1,
                         help="runs per exemplar; best kept")
+    parser.add_argument("--degenerate", action="store_true",
+                        help="only time synthetic photos of a flat colour or sparse dots")
     args = parser.parse_args()
     print(run_record(), flush=True)
+    if args.degenerate:
+        degenerate(args.sizes)
+        return
 
     warm_up()
     print(

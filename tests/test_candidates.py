@@ -166,9 +166,37 @@ def test_nearest_rows_break_ties_by_index(k):
     rng = np.random.default_rng(0)
     database = rng.integers(0, 3, size=(500, 4))
     queries = rng.integers(0, 3, size=(200, 4))
+    assert np.array_equal(candidates.nearest_rows(database, queries, k),
+                          _brute_nearest(database, queries, k))
+
+
+def _brute_nearest(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
     d2 = ((queries[:, None] - database[None]) ** 2).sum(axis=2)
-    brute = np.stack([np.lexsort((np.arange(len(database)), row))[:k] for row in d2])
-    assert np.array_equal(candidates.nearest_rows(database, queries, k), brute)
+    return np.stack([np.lexsort((np.arange(len(database)), row))[:k] for row in d2])
+
+
+@pytest.mark.parametrize("k", [1, 5, 40, 300])
+def test_nearest_rows_of_a_mostly_flat_photo_are_found_without_searching_it_all(k,
+                                                                               monkeypatch):
+    """Equal rows tie at every distance: each query's ties widened its search to the
+    whole database (a 64 px photo, mostly flat, took 44 s and 4.4 GB to pre-compute, one
+    of 128 px ran out of memory). They are searched as one row now, which stands for all
+    of its members, and the result is the brute force's, ties by index, also where there
+    are fewer distinct rows than k."""
+    rng = np.random.default_rng(1)
+    database = np.zeros((3000, 6), np.int64)  # flat, but for a few patches and dots
+    database[rng.choice(3000, 200, replace=False)] = rng.integers(0, 3, (200, 6))
+    queries = np.concatenate([database[rng.choice(3000, 150)], rng.integers(0, 3, (50, 6))])
+    searched = []
+    nearest = candidates.parallel.nearest
+    monkeypatch.setattr(candidates.parallel, "nearest", lambda tree, q, **kw: (
+        searched.append(kw["k"]), nearest(tree, q, **kw))[1])
+    assert np.array_equal(candidates.nearest_rows(database, queries, k),
+                          _brute_nearest(database, queries, k))
+    assert max(searched) < 1000  # distinct rows, not every row of the database
+    few = np.repeat(np.eye(3, dtype=np.int64), 50, axis=0)[rng.permutation(150)]
+    assert np.array_equal(candidates.nearest_rows(few, few[:20], min(k, 150)),
+                          _brute_nearest(few, few[:20], min(k, 150)))
 
 
 def test_coordinates_inside_their_exemplar_level(granite, three):
