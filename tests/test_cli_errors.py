@@ -1192,3 +1192,65 @@ def test_render_help_gives_the_sampler_seed_range_it_checks(capsys):
     with pytest.raises(SystemExit):
         main(["render", "--help"])
     assert "0 to 536870911;" in " ".join(capsys.readouterr().out.split())
+
+
+_COMMAND_STOPPED = """
+import os, signal, sys
+
+when, exemplar = sys.argv[1:]
+sys.argv = ["warptex", "info", exemplar]  # as the command's script runs it
+
+
+class StopWhileWarpLoads:
+    def find_spec(self, name, path=None, target=None):
+        if name == "warp":
+            os.kill(os.getpid(), signal.SIGINT)
+
+
+if when == "starting":
+    sys.meta_path.insert(0, StopWhileWarpLoads())
+from warptex.cli import main
+
+code = main()
+if when == "ended":
+    os.kill(os.getpid(), signal.SIGINT)  # as Python shuts down, its work done
+    sys.exit(99)  # not reached: the stop ends the process with the command's code
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("when", ["starting", "ended"])
+def test_ctrl_c_before_the_command_runs_or_after_it_ended_says_one_line(tmp_path, data_dir,
+                                                                        when):
+    """Ctrl-C while the command's libraries loaded (its first second) printed a traceback
+    of the import under way; one as Python shut down after the work (a few tenths of a
+    second) made a finished command exit 130 without a word."""
+    import subprocess
+    import sys
+
+    (tmp_path / "stop.py").write_text(_COMMAND_STOPPED)
+    run = subprocess.run([sys.executable, "stop.py", when, str(data_dir / "granite_64.png")],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                         env=os.environ | {"WARPTEX_CACHE": str(tmp_path / "cache")})
+    assert "Traceback" not in run.stderr, run.stderr
+    if when == "starting":
+        assert (run.returncode, run.stderr) == (130, "\nwarptex: interrupted\n")
+        assert run.stdout == ""
+    else:
+        assert run.returncode == 0 and "granite_64.png" in run.stdout
+
+
+def test_only_the_command_s_own_process_stops_quietly(monkeypatch):
+    """Library users' and other programs' Ctrl-C stays Python's KeyboardInterrupt."""
+    import sys
+
+    from warptex.stops import is_the_command
+
+    for orig_argv, argv0, expected in (
+            (["python", "/venv/bin/warptex", "info"], "/venv/bin/warptex", True),
+            (["python", "-m", "warptex", "info"], "/src/warptex/__main__.py", True),
+            (["python", "-m", "pytest", "tests"], "/venv/lib/pytest/__main__.py", False),
+            (["python", "render.py"], "render.py", False)):
+        monkeypatch.setattr(sys, "orig_argv", orig_argv)
+        monkeypatch.setattr(sys, "argv", [argv0])
+        assert is_the_command() == expected, orig_argv

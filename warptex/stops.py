@@ -1,13 +1,60 @@
 """Work that Ctrl-C or SIGTERM must not cut short, run to its end before they go on: a
-brick store's change, the renames of files that belong together, a stop's own clean-up."""
+brick store's change, the renames of files that belong together, a stop's own clean-up.
+And the ``warptex`` command's Ctrl-C before its work begins and after it has ended, which
+Python would answer with a traceback or a failed exit."""
 
 from __future__ import annotations
 
 import contextlib
+import multiprocessing
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
+
+
+def is_the_command() -> bool:
+    """Whether this process runs the ``warptex`` command: its script, or ``python -m
+    warptex``; not a process the command started (which is given its arguments)."""
+    if multiprocessing.parent_process() is not None:
+        return False
+    given = getattr(sys, "orig_argv", [])
+    if "-m" in given:
+        return given[given.index("-m") + 1:][:1] == ["warptex"]
+    return bool(sys.argv) and os.path.basename(sys.argv[0]) in ("warptex", "warptex.exe")
+
+
+def quiet_while_starting() -> None:
+    """As the command, a Ctrl-C while its libraries load (about a second: Warp, SciPy)
+    ends it with the command's one line and exit code 130, not a traceback of the import
+    under way; :func:`started` gives Ctrl-C back to Python once the command runs."""
+    if is_the_command() and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _interrupted_while_starting)
+
+
+def started() -> None:
+    """Ctrl-C raises KeyboardInterrupt again, as the command's stops expect."""
+    if signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _interrupted_while_starting(signum: int, frame: Any) -> None:
+    print("\nwarptex: interrupted", file=sys.stderr)
+    raise SystemExit(130)
+
+
+def exit_at_a_stop(code: int) -> None:
+    """As the command, once its work has ended with exit code ``code``: a Ctrl-C or SIGTERM
+    while Python shuts down (a few tenths of a second) ends the process with ``code``, its
+    files written and said to be, rather than 130 or 143 without a word."""
+    if not is_the_command() or threading.current_thread() is not threading.main_thread():
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, lambda signum, frame: os._exit(code))
 
 
 def deferred_stops() -> contextlib.AbstractContextManager[None]:

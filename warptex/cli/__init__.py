@@ -27,7 +27,7 @@ from warptex.cli.console import (
 from warptex.cli.options import check_max_size_option
 from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
 from warptex.exemplar import ExemplarError
-from warptex.stops import deferred_stops
+from warptex.stops import deferred_stops, exit_at_a_stop, started
 
 # Modules nearly every command builds, and whether they run on the CPU whatever the device
 # (a CPU launch builds the block_dim 1 variant; CUDA launches the default one).
@@ -74,13 +74,19 @@ _STOP_LOSING_LIBRARIES = {"bake": ("trimesh",), "cut": ("trimesh",)}
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    code = _run(sys.argv[1:] if argv is None else list(argv))
+    exit_at_a_stop(code)
+    return code
+
+
+def _run(argv: list[str]) -> int:
     WRITTEN.clear()
-    args = parse_arguments(build_parser(), argv)
+    args = parse_arguments(build_parser(), argv)  # SciPy and more load here, Ctrl-C quiet
     _, command = SUBCOMMANDS[args.command]
     with warnings.catch_warnings(), terminated_like_interrupted(), bars_as_log_lines():
         warnings.showwarning = show_warning
         try:
+            started()  # Ctrl-C is a KeyboardInterrupt again, which the excepts below end
             if "exemplar_max_size" in args:  # before any work, a mesh's loading included
                 check_max_size_option(args)
             if args.command not in ("info", "cache"):  # the two that use no device
