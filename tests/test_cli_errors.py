@@ -224,6 +224,9 @@ CASES = [
      "{five}: 5 color channels"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "64", "-o", "{out}/b.ply"],
      "--texture-size applies to a UV texture (--uv auto or mesh)"),
+    # cut has no --uv mesh: a cut's caps have no UVs of the mesh's
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "64", "-o", "{out}/c.ply"],
+     "--texture-size applies to a UV texture (--uv auto), not to vertex colors"),
     (["render", "{missing_exemplar}", "-o", "{out}/r.png"],  # the scene's folder first
      'property "exemplar" names a file that does not exist: "textures/nope.png" (looked for '
      "in {folder}, "),

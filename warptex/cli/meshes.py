@@ -104,8 +104,8 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
     if args.resolution > COORD_LIMIT // 2:
         raise CliError(f"--resolution must be at most {COORD_LIMIT // 2}, got {args.resolution}")
     if args.uv == "none" and args.texture_size is not None:
-        raise CliError("--texture-size applies to a UV texture (--uv auto or mesh), not to "
-                       "vertex colors")
+        uv = "--uv auto" + (" or mesh" if args.command == "bake" else "")  # cut makes its own
+        raise CliError(f"--texture-size applies to a UV texture ({uv}), not to vertex colors")
     size = _texture_size(args)
     check_at_least("--texture-size", size, 1)
     if args.uv != "none":
