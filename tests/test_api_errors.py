@@ -593,11 +593,16 @@ def test_a_ctrl_c_between_the_renames_of_files_written_together_comes_after_the_
         if len(renamed) == 1:
             signal.raise_signal(signal.SIGINT)
 
+    synced = []
+    folder_synced = warptex.archive._synced
     monkeypatch.setattr(warptex.archive.os, "replace", replace_then_stop)
+    monkeypatch.setattr(warptex.archive, "_synced", lambda path, mode: (
+        synced.append(Path(path)), folder_synced(path, mode)))
     with pytest.raises(KeyboardInterrupt):
         write_together([(first, lambda tmp: tmp.write_bytes(b"new image")),
                         (second, lambda tmp: tmp.write_text("new figures"))])
     assert renamed == ["image.png", "image.png.json"]
+    assert synced[-1] == tmp_path  # the folder too, so the renames outlast a power cut
     assert (first.read_bytes(), second.read_text()) == (b"new image", "new figures")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["image.png", "image.png.json"]
 

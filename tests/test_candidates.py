@@ -197,6 +197,12 @@ def test_nearest_rows_of_a_mostly_flat_photo_are_found_without_searching_it_all(
     few = np.repeat(np.eye(3, dtype=np.int64), 50, axis=0)[rng.permutation(150)]
     assert np.array_equal(candidates.nearest_rows(few, few[:20], min(k, 150)),
                           _brute_nearest(few, few[:20], min(k, 150)))
+    # In parts of a few queries and members each, as a wide search is held: the same.
+    monkeypatch.setattr(candidates, "_NEAREST_ENTRIES", 50)
+    monkeypatch.setattr(candidates, "_DISTANCE_TERMS", 40)
+    assert np.array_equal(candidates.nearest_rows(database, queries, k),
+                          _brute_nearest(database, queries, k))
+    assert candidates.nearest_rows(database, queries[:0], k).shape == (0, k)
 
 
 def test_coordinates_inside_their_exemplar_level(granite, three):

@@ -1201,7 +1201,7 @@ _COMMAND_STOPPED = """
 import os, signal, sys
 
 when, exemplar = sys.argv[1:]
-sys.argv = ["warptex", "info", exemplar]  # as the command's script runs it
+sys.argv[1:] = ["info", exemplar]
 
 
 class StopWhileWarpLoads:
@@ -1231,8 +1231,8 @@ def test_ctrl_c_before_the_command_runs_or_after_it_ended_says_one_line(tmp_path
     import subprocess
     import sys
 
-    (tmp_path / "stop.py").write_text(_COMMAND_STOPPED)
-    run = subprocess.run([sys.executable, "stop.py", when, str(data_dir / "granite_64.png")],
+    (tmp_path / "warptex").write_text(_COMMAND_STOPPED)  # named as the command's script
+    run = subprocess.run([sys.executable, "warptex", when, str(data_dir / "granite_64.png")],
                          cwd=tmp_path, capture_output=True, text=True, timeout=300,
                          env=os.environ | {"WARPTEX_CACHE": str(tmp_path / "cache")})
     assert "Traceback" not in run.stderr, run.stderr
@@ -1249,11 +1249,15 @@ def test_only_the_command_s_own_process_stops_quietly(monkeypatch):
 
     from warptex.stops import is_the_command
 
-    for orig_argv, argv0, expected in (
-            (["python", "/venv/bin/warptex", "info"], "/venv/bin/warptex", True),
-            (["python", "-m", "warptex", "info"], "/src/warptex/__main__.py", True),
-            (["python", "-m", "pytest", "tests"], "/venv/lib/pytest/__main__.py", False),
-            (["python", "render.py"], "render.py", False)):
+    for orig_argv, expected in (
+            (["python", "/venv/bin/warptex", "info"], True),
+            (["python", "-X", "importtime", "/venv/bin/warptex", "info"], True),
+            (["python", "-m", "warptex", "info"], True),
+            (["python", "-m", "pytest", "-m", "warptex"], False),
+            (["python", "render.py", "-m", "warptex"], False),
+            # a process the command starts is given its arguments, not its command line
+            (["python", "-c", "from multiprocessing.spawn import spawn_main; spawn_main()",
+              "--multiprocessing-fork"], False)):
         monkeypatch.setattr(sys, "orig_argv", orig_argv)
-        monkeypatch.setattr(sys, "argv", [argv0])
+        monkeypatch.setattr(sys, "argv", ["/venv/bin/warptex", "info"])
         assert is_the_command() == expected, orig_argv

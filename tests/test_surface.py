@@ -113,6 +113,10 @@ def test_a_transform_beyond_the_texture_s_range_is_refused_in_words(warp_device)
     for m in (shifted, np.diag([1e200, 1.0, 1.0, 1.0])):
         with pytest.raises(ValueError, match=rf"beyond the texture's \+-{COORD_LIMIT}"):
             shell(tri, transform=m)
+    near_end = np.eye(4)
+    near_end[0, 3] = COORD_LIMIT - 3.6  # float32 rounds the far corner onto the range's end
+    with pytest.raises(ValueError, match="beyond the texture's"):
+        shell(tri, transform=near_end)
     m = np.eye(4)
     m[0, 3] = COORD_LIMIT - 8  # the last voxels within the range are still found (float32
     voxels = shell(tri, transform=m)  # rounds the corners there: some of 11, not all)

@@ -12,11 +12,11 @@ import importlib
 import sys
 from typing import Any
 
-# Before anything can import Mitsuba: Dr.Jit reads DRJIT_LIBLLVM_PATH when its backend starts.
 from warptex.stops import quiet_while_starting
 
 quiet_while_starting()  # before the heavy imports below and the command's own
 
+# Before anything can import Mitsuba: Dr.Jit reads DRJIT_LIBLLVM_PATH when its backend starts.
 from warptex.llvm import best_mitsuba_variant, configure_drjit  # noqa: E402
 
 configure_drjit()

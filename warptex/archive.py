@@ -191,15 +191,17 @@ def write_together(writes: Sequence[tuple[str | Path, Callable[[Path], None]]]) 
             if target.is_dir():  # refused before any file is replaced, not half way
                 current = path
                 raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))
-        with deferred_stops():  # a stop between two renames would leave them mixed
+        # A stop between two renames would leave them mixed, one before the folders are
+        # synced would leave the renames to a power cut.
+        with deferred_stops():
             for (path, _), target, tmp in zip(staged, targets, temporary, strict=True):
                 current = path
                 os.replace(tmp, target)
-        done = True
-        for folder in {target.parent for target in targets}:
-            # The renames are kept over a power cut too; the files are written by then.
-            with contextlib.suppress(OSError):  # where folders cannot be opened (Windows)
-                _synced(folder, os.O_RDONLY)
+            done = True
+            for folder in {target.parent for target in targets}:
+                # The renames are kept over a power cut too; the files are written by then.
+                with contextlib.suppress(OSError):  # where folders cannot be opened (Windows)
+                    _synced(folder, os.O_RDONLY)
     except OSError as error:
         if error.errno is None:
             raise

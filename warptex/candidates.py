@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import itertools
 import json
 import os
 import sys
@@ -782,8 +783,8 @@ def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarra
     which stands for all of its members: each query's ties with them widened its search to
     the whole database (a 64 px photo, mostly flat, took 44 s and 4.4 GB).
     """
-    db = np.asarray(database).astype(np.int64).reshape(len(database), -1)
-    q = np.asarray(queries).astype(np.int64).reshape(len(queries), -1)
+    db = np.asarray(database).astype(np.int64)
+    q = np.asarray(queries).astype(np.int64)
     k = min(int(k), len(db))
     out = np.empty((len(q), k), np.int32)
     if len(q) == 0 or k == 0:
@@ -831,18 +832,32 @@ def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarra
 def _first_members(idx: np.ndarray, d2: np.ndarray, dk: np.ndarray, k: int,
                    members: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Each query's ``k`` nearest database rows by (distance, index), from its retrieved
-    distinct rows ``idx`` (sorted by distance) at squared distances ``d2``, all those up to
-    the k-th member's ``dk`` among them; a distinct row's members are ``members[starts:
-    starts + counts]``, by index, of which no more than ``k`` can be among the first k."""
-    take = np.where(d2 <= dk[:, None], np.minimum(counts[idx], k), 0).ravel()
-    query = np.repeat(np.arange(len(idx)).repeat(idx.shape[1]), take)
-    distance = np.repeat(d2.ravel(), take)
-    offset = np.arange(int(take.sum())) - np.repeat(np.cumsum(take) - take, take)
-    member = members[np.repeat(starts[idx.ravel()], take) + offset]
-    ranked = member[np.lexsort((member, distance, query))]
-    per_query = take.reshape(idx.shape).sum(axis=1)
-    begin = np.cumsum(per_query) - per_query
-    return ranked[begin[:, None] + np.arange(k)]
+    distinct rows ``idx`` (sorted by distance, then first member) at squared distances
+    ``d2``, all those up to the k-th member's ``dk`` among them; a distinct row's members
+    are ``members[starts: starts + counts]``, by index."""
+    below = d2 < dk[:, None]
+    need = k - (counts[idx] * below).sum(axis=1, keepdims=True)  # taken from the dk tier
+    # In the tier, the first ``need`` rows (by first member) each bring at most ``need``
+    # members: any further member has ``need`` smaller ones before it.
+    tier = (d2 == dk[:, None]) & (np.cumsum(d2 == dk[:, None], axis=1) <= need)
+    take = np.where(below, counts[idx], np.where(tier, np.minimum(counts[idx], need), 0))
+    per_query = take.sum(axis=1)
+    out = np.empty((len(idx), k), np.int32)
+    # Queries in parts of about _NEAREST_ENTRIES members (a query at least).
+    ends = np.searchsorted(np.cumsum(per_query), np.arange(_NEAREST_ENTRIES, int(
+        per_query.sum()), _NEAREST_ENTRIES), side="right")
+    for lo, hi in itertools.pairwise([0, *np.unique(np.maximum(ends, 1)), len(idx)]):
+        if hi <= lo:
+            continue
+        part = take[lo:hi].ravel()
+        query = np.repeat(np.arange(hi - lo).repeat(idx.shape[1]), part)
+        distance = np.repeat(d2[lo:hi].ravel(), part)
+        offset = np.arange(int(part.sum())) - np.repeat(np.cumsum(part) - part, part)
+        member = members[np.repeat(starts[idx[lo:hi].ravel()], part) + offset]
+        ranked = member[np.lexsort((member, distance, query))]
+        begin = np.cumsum(per_query[lo:hi]) - per_query[lo:hi]
+        out[lo:hi] = ranked[begin[:, None] + np.arange(k)]
+    return out
 
 
 def _filter_coherent(
@@ -1074,7 +1089,7 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
             lvl_roles.append(
                 RoleLevel(
                     cand=_stored_int32(d[f"L{lv}/R{r}/cand"]),
-                    cb=np.zeros(0, np.int32),  # derived from the triples by _unflatten
+                    cb=np.zeros(0, np.int32),  # from the triples: _with_crossbar_errors
                     count=_stored_int32(d[f"L{lv}/R{r}/count"]),
                     fallback=_stored_flags(d[f"L{lv}/R{r}/fallback"], npix),
                 )

@@ -6,7 +6,6 @@ Python would answer with a traceback or a failed exit."""
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
 import os
 import signal
 import sys
@@ -17,20 +16,23 @@ from typing import Any
 
 def is_the_command() -> bool:
     """Whether this process runs the ``warptex`` command: its script, or ``python -m
-    warptex``; not a process the command started (which is given its arguments)."""
-    if multiprocessing.parent_process() is not None:
-        return False
-    given = getattr(sys, "orig_argv", [])
-    if "-m" in given:
-        return given[given.index("-m") + 1:][:1] == ["warptex"]
-    return bool(sys.argv) and os.path.basename(sys.argv[0]) in ("warptex", "warptex.exe")
+    warptex``, as the interpreter was started (a process the command starts, given the
+    command's arguments, was started otherwise)."""
+    given = getattr(sys, "orig_argv", [])[1:]
+    while given and given[0].startswith("-") and given[0] not in ("-m", "-c", "-"):
+        # Options of the interpreter; -X and -W take a value apart.
+        given = given[2:] if given[0] in ("-X", "-W") else given[1:]
+    if given[:1] == ["-m"]:
+        return given[1:2] == ["warptex"]
+    return bool(given) and os.path.basename(given[0]) in ("warptex", "warptex.exe")
 
 
 def quiet_while_starting() -> None:
     """As the command, a Ctrl-C while its libraries load (about a second: Warp, SciPy)
     ends it with the command's one line and exit code 130, not a traceback of the import
     under way; :func:`started` gives Ctrl-C back to Python once the command runs."""
-    if is_the_command() and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    if (is_the_command() and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
         signal.signal(signal.SIGINT, _interrupted_while_starting)
 
 

@@ -113,7 +113,10 @@ def shell(
     m = block_transform(mesh, resolution) if transform is None else _checked_transform(transform)
     faces_np = checked_faces(mesh)
     in_voxels = to_voxel_space(mesh, m)
-    reach = float(np.abs(in_voxels[faces_np]).max(initial=0.0))
+    # As the kernel gets them, in float32, which may round a vertex onto the range's end
+    # (or overflow, refused as well).
+    with np.errstate(over="ignore"):
+        reach = float(np.abs(in_voxels[faces_np].astype(np.float32)).max(initial=0.0))
     # The kernel's float-to-int voxel of a point beyond int32 is undefined (CPUs and GPUs
     # differ), and no voxel beyond the texture's range can be synthesized anyway.
     if not reach < COORD_LIMIT:  # NaN too

@@ -131,8 +131,10 @@ class _Axis:
     basis: np.ndarray  # (64 F, MAX_DIMS) PCA basis, zero past the kept coefficients
     dims: int
     tree: cKDTree
-    needed: int  # coefficients that hold VARIANCE_KEPT of the variance; more than dims where
-    kept: float  # the kernels hold fewer, and then the share that dims hold
+    # Coefficients that hold VARIANCE_KEPT of the variance: more than dims where the kernels
+    # hold fewer (then warned of, with ``kept``, the share of the variance that dims hold).
+    needed: int
+    kept: float
 
 
 def check_size(size: int) -> None:
