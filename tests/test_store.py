@@ -225,6 +225,29 @@ def test_lookups_split_over_threads_give_the_colors_of_one_launch(candidates, mo
         assert np.array_equal(one, synthesizer(candidates).voxels(voxels))
 
 
+@pytest.mark.parametrize("whole_bricks", [True, False])
+@pytest.mark.parametrize("filter", ["nearest", "trilinear"])
+def test_a_batch_needing_too_many_voxels_is_finished_in_parts(candidates, monkeypatch,
+                                                             whole_bricks, filter):
+    """Points far apart each bring a whole brick: a batch of 2^20 of them would synthesize
+    2^29 voxels at once (a 128 x 128 slice 8 voxels a pixel needed 5.6 GB). Batches are
+    finished in halves until each synthesizes at most BATCH_VOXELS, with the same colors."""
+    import warptex.store
+
+    points = np.random.default_rng(2).uniform(-400, 400, (300, 3))
+    expected = sample(BrickStore(synthesizer(candidates), whole_bricks=whole_bricks), points,
+                      filter)
+    budget = 8 * 512 if whole_bricks else 256  # a point's trilinear corners fit
+    monkeypatch.setattr(warptex.store, "BATCH_VOXELS", budget)
+    store = BrickStore(synthesizer(candidates), whole_bricks=whole_bricks)
+    made = []
+    synthesize = store._synthesize
+    monkeypatch.setattr(store, "_synthesize", lambda voxels: (
+        made.append(len(voxels)), synthesize(voxels))[1])
+    assert np.array_equal(sample(store, points[::-1], filter), expected[::-1])
+    assert len(made) > 1 and max(made) <= budget
+
+
 def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeypatch):
     store = BrickStore(synthesizer(candidates))
     monkeypatch.setattr(store, "_to_store", lambda voxels: voxels[:0])

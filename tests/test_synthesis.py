@@ -893,6 +893,14 @@ def test_a_box_larger_than_the_memory_is_refused_before_any_work(candidates, mon
     tex = SolidTexture(candidates, device="cpu")
     with pytest.raises(ValueError, match=r"a slice of shape \(40000, 40000\) needs about"):
         tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), (40000, 40000))
+    # Pixels far apart each bring the whole bricks of their corners: 32 x 32 of them read
+    # 4M voxels at once, which the slice's estimate counted as 1024.
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 64 << 20)
+    with pytest.raises(ValueError, match=r"a slice of shape \(32, 32\) needs about 40\d MiB"):
+        tex.slice((0.5, 0.5, 0.5), (64, 0, 0), (0, 64, 0), (32, 32))
+    near = SolidTexture(candidates, device="cpu", whole_bricks=False)
+    assert near.slice((0.5, 0.5, 0.5), (64, 0, 0), (0, 64, 0), (32, 32), "nearest").shape == (
+        32, 32, 3)
 
 
 def test_a_boxs_memory_counts_the_apron_of_its_passes(candidates, monkeypatch):

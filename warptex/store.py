@@ -64,6 +64,10 @@ _MAGIC = b"WTXBRICK"
 _EMPTY = int(_k.EMPTY)  # the key of a free slot, as the hash table marks free entries
 _MIN_BRICKS = 64
 _MAX_POOL_VOXELS = ((1 << 31) - 1) // 3  # the kernels index the pool's entries in int32
+# Voxels that one batch of lookups synthesizes at most; a batch whose points need more is
+# finished in halves. Points far apart each bring a whole brick: a query batch's 2^20 points
+# could need 2^29 voxels, whose request arrays alone would not fit.
+BATCH_VOXELS = 1 << 22
 # Exemplars of up to this many pixels each: pixel indices fit uint16, 6 bytes a voxel.
 _COMPACT_PIXELS = 1 << 16
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
@@ -736,9 +740,17 @@ class BrickStore:
             raise ValueError(f"{int((~inside).sum())} of {len(rows)} points are NaN, "
                              f"infinite or beyond +-{POINT_LIMIT} voxels; points must lie "
                              "within it")
+        read = voxels_read(points, filter)
+        if len(points) > 1 and self._voxels_to_store(read) > BATCH_VOXELS:
+            at = np.flatnonzero(rows)
+            for half in np.array_split(np.arange(len(points)), 2):
+                part = np.zeros(len(rows), bool)
+                part[at[half]] = True
+                self._finish(kernel, points[half], filter, out, part)
+            return
         sub = np.empty((len(points), self.channels), np.float32)
         pts, res, missed, count = self._lookup_arrays(np.ascontiguousarray(points), sub)
-        misses = self._with_voxels(self._to_store(voxels_read(points, filter)),
+        misses = self._with_voxels(self._to_store(read),
                                    lambda: self._launch(kernel, pts, res, missed, count))
         if misses:
             # Their colors were never written: a fault of the store, never a result.
@@ -752,6 +764,13 @@ class BrickStore:
         missed = wp.zeros(len(points), dtype=wp.int32, device=self._device)
         count = wp.zeros(1, dtype=wp.int32, device=self._device)
         return self._on_device(points, wp.vec3d), self._results(out), missed, count
+
+    def _voxels_to_store(self, voxels: np.ndarray) -> int:
+        """How many voxels :meth:`_to_store` gives for ``voxels``, at least where over
+        BATCH_VOXELS, without making them."""
+        if self.whole_bricks:
+            return len(unique(brick_keys(voxels))) * _k.BRICK_VOXELS
+        return len(voxels) if len(voxels) <= BATCH_VOXELS else len(unique_voxels(voxels))
 
     def _to_store(self, voxels: np.ndarray) -> np.ndarray:
         """The unique voxels to have stored for reading ``voxels``."""

@@ -130,7 +130,8 @@ def _check_request(ijk: np.ndarray, apron_blocks: int, channels: int,
                    result_bytes: int) -> None:
     """Refuse, before any work, a request of voxels ``ijk`` that with its results of
     ``result_bytes`` a voxel would not fit in this machine's memory. Not asked of the
-    brick store's batches, which are bounded, as the machine's memory takes a file read."""
+    brick store's batches, which are bounded (``store.BATCH_VOXELS``), as the machine's
+    memory takes a file read."""
     problem = memory_problem(request_bytes(ijk, apron_blocks, channels)
                              + len(ijk) * result_bytes)
     if problem is not None:

@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 import warp as wp
 
+from kernels.lookup import BRICK_VOXELS
 from warptex.archive import file_problem
 from warptex.candidates import CandidateSet, precompute
 from warptex.exemplar import Exemplar, as_exemplar
@@ -34,6 +35,7 @@ from warptex.settings import (
     names_folder,
 )
 from warptex.store import (
+    BATCH_VOXELS,
     POINT_LIMIT,
     BrickStore,
     StoreFileError,
@@ -268,9 +270,13 @@ class SolidTexture:
                                           and n > 0 for n in rows_cols):
             raise ValueError(f"shape must be two positive ints (rows, columns), got {shape!r}")
         # Its points (float64, and their grid while made) and colors, and one query batch's
-        # request arrays (queries run BATCH points at a time).
+        # request arrays: the voxels its points read (a whole brick each where the store
+        # keeps whole bricks), at most the store's BATCH_VOXELS at a time.
         count = int(rows_cols[0]) * int(rows_cols[1])  # NumPy integers would wrap around
-        need = count * (40 + 4 * self.channels) + min(count, BATCH) * REQUEST_BYTES_PER_VOXEL
+        per_point = ((8 if filter == "trilinear" else 1)
+                     * (BRICK_VOXELS if self.store.whole_bricks else 1))
+        batch = min(count * per_point, BATCH_VOXELS)
+        need = count * (40 + 4 * self.channels) + batch * REQUEST_BYTES_PER_VOXEL
         problem = memory_problem(need)
         if problem is not None:
             raise ValueError(f"a slice of shape {tuple(shape)} {problem}; take it in parts")
