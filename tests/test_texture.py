@@ -498,6 +498,11 @@ def test_masked_points_are_missing_points(candidates):
     np.testing.assert_array_equal(filled[good], tex.query(pts[good], filter="nearest"))
     unmasked = np.ma.MaskedArray(pts)
     np.testing.assert_array_equal(tex.query(unmasked), tex.query(pts))
+    # In slabs too (bake and cut query so): the values under the mask were read.
+    from warptex.texture import query_slabs
+
+    with pytest.raises(ValueError, match="2 of 10 points are NaN, infinite or masked"):
+        query_slabs(tex, points)
 
 
 def test_points_of_either_byte_order_are_read_alike(candidates):

@@ -380,7 +380,7 @@ def query_slabs(texture: PointTexture, points: np.ndarray, filter: Filter = "tri
     their faces."""
     from tqdm.auto import tqdm
 
-    points = np.asarray(points)
+    points = _as_points(points)  # a masked point is NaN, as query() refuses it
     order = np.argsort(points[:, 0], kind="stable")
     out = np.empty((len(points), texture.channels), np.float32)
     # Shown for one slab too: a cut's vertices are one, and synthesizing what they read at a
