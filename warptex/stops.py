@@ -53,8 +53,9 @@ def exit_at_a_stop(code: int) -> None:
     files written and said to be, rather than 130 or 143 without a word."""
     if not is_the_command() or threading.current_thread() is not threading.main_thread():
         return
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError):  # a reader gone: not this function's to report
+            stream.flush()
     for number in (signal.SIGINT, signal.SIGTERM):
         signal.signal(number, lambda signum, frame: os._exit(code))
 
