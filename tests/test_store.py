@@ -250,7 +250,7 @@ def test_a_batch_needing_too_many_voxels_is_finished_in_parts(candidates, monkey
 
 def test_points_left_unstored_raise_rather_than_read_garbage(candidates, monkeypatch):
     store = BrickStore(synthesizer(candidates))
-    monkeypatch.setattr(store, "_to_store", lambda voxels: voxels[:0])
+    monkeypatch.setattr(store, "_to_store", lambda voxels, most=None: voxels[:0])
     with pytest.raises(RuntimeError, match="2 of 2 points still read voxels missing"):
         sample(store, [brick_center((0, 0, 0)), brick_center((3, 0, 0))])
 

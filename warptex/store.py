@@ -740,8 +740,9 @@ class BrickStore:
             raise ValueError(f"{int((~inside).sum())} of {len(rows)} points are NaN, "
                              f"infinite or beyond +-{POINT_LIMIT} voxels; points must lie "
                              "within it")
-        read = voxels_read(points, filter)
-        if len(points) > 1 and self._voxels_to_store(read) > BATCH_VOXELS:
+        voxels = self._to_store(voxels_read(points, filter),
+                                most=BATCH_VOXELS if len(points) > 1 else None)
+        if voxels is None:
             at = np.flatnonzero(rows)
             for half in np.array_split(np.arange(len(points)), 2):
                 part = np.zeros(len(rows), bool)
@@ -750,7 +751,7 @@ class BrickStore:
             return
         sub = np.empty((len(points), self.channels), np.float32)
         pts, res, missed, count = self._lookup_arrays(np.ascontiguousarray(points), sub)
-        misses = self._with_voxels(self._to_store(read),
+        misses = self._with_voxels(voxels,
                                    lambda: self._launch(kernel, pts, res, missed, count))
         if misses:
             # Their colors were never written: a fault of the store, never a result.
@@ -765,18 +766,16 @@ class BrickStore:
         count = wp.zeros(1, dtype=wp.int32, device=self._device)
         return self._on_device(points, wp.vec3d), self._results(out), missed, count
 
-    def _voxels_to_store(self, voxels: np.ndarray) -> int:
-        """How many voxels :meth:`_to_store` gives for ``voxels``, at least where over
-        BATCH_VOXELS, without making them."""
+    def _to_store(self, voxels: np.ndarray, most: int | None = None) -> np.ndarray | None:
+        """The unique voxels to have stored for reading ``voxels``; None where they are more
+        than ``most``, whole bricks counted before they are made."""
         if self.whole_bricks:
-            return len(unique(brick_keys(voxels))) * _k.BRICK_VOXELS
-        return len(voxels) if len(voxels) <= BATCH_VOXELS else len(unique_voxels(voxels))
-
-    def _to_store(self, voxels: np.ndarray) -> np.ndarray:
-        """The unique voxels to have stored for reading ``voxels``."""
-        if self.whole_bricks:
-            return brick_voxels(unique(brick_keys(voxels)))
-        return unique_voxels(voxels)
+            keys = unique(brick_keys(voxels))
+            if most is not None and len(keys) * _k.BRICK_VOXELS > most:
+                return None
+            return brick_voxels(keys)
+        stored = unique_voxels(voxels)
+        return None if most is not None and len(stored) > most else stored
 
     def _synthesize(self, voxels: np.ndarray) -> np.ndarray:
         """Triples (N, 3) of ``voxels`` as pixel indices, in one engine request."""
