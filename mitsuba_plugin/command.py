@@ -169,7 +169,7 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
 
 def _saved_at_a_stop(scene) -> list[Path]:
     """The ``cache`` files of ``scene``'s textures, saved as a stop ends the render, but
-    for stores that synthesized nothing and have no file yet: an empty one keeps no work."""
+    for stores that synthesized nothing (:func:`~warptex.store.worth_saving`)."""
     import mitsuba_plugin
 
     return [path for texture in mitsuba_plugin.textures(scene)

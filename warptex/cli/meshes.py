@@ -230,7 +230,7 @@ def _colors_only(baked: dict, colors: int) -> dict:
 
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
     """A `bake` or `cut` stopped by Ctrl-C or SIGTERM saves its ``--store`` first, unless
-    nothing was synthesized and there is no file yet: an empty one would keep no work."""
+    nothing was synthesized (:func:`~warptex.store.worth_saving`)."""
     if args.store is None:
         return contextlib.nullcontext()
     from warptex.store import saved_when_stopped, worth_saving
