@@ -3,7 +3,10 @@
 Times saving a store of N whole bricks to a new file, saving it again over its own file (a
 merge that adds nothing), saving a second store of N other bricks over it (a merge of both,
 kept to the larger of the store's ``cache_bytes`` and the file's size), and loading that
-merged file (up to 2N bricks; the default ``cache_bytes``, 256 MiB, holds about 85,000).
+merged file (up to 2N bricks; the default ``cache_bytes``, 256 MiB, holds about 85,000),
+then the memory the merging save and the load hold at their peak beyond what was held
+before, once each, apart from the timed runs: NumPy's and Python's allocations as
+``tracemalloc`` counts them (the store's Warp arrays are not among them).
 The stores are filled with valid triples without synthesizing them (``BrickStore._insert``),
 so the figures are the files' costs alone, not synthesis.
 
@@ -16,6 +19,7 @@ import argparse
 import os
 import tempfile
 import time
+import tracemalloc
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -41,6 +45,16 @@ def filled(synthesizer: Synthesizer, bricks: int, first: int) -> BrickStore:
     return store
 
 
+def peak_mib(run) -> float:
+    """The most memory ``run()`` holds at once beyond what was held before, in MiB."""
+    tracemalloc.start()
+    try:
+        run()
+        return tracemalloc.get_traced_memory()[1] / 2**20
+    finally:
+        tracemalloc.stop()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--exemplar", default=str(REPO / "tests" / "data" / "granite_64.png"))
@@ -50,8 +64,9 @@ def main() -> None:
     print(run_record(), flush=True)
     synthesizer = Synthesizer(precompute(args.exemplar), device="cpu")
     print("| bricks N | save, new file s | save over itself s | save of N other bricks over "
-          "it s | merged file MiB | load of the merged file s |")
-    print("|---|---|---|---|---|---|")
+          "it s | merged file MiB | load of the merged file s | merging save, peak MiB held | "
+          "load, peak MiB held |")
+    print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:
         for n in args.bricks:
             path = Path(folder) / f"s{n}.wtb"
@@ -70,8 +85,12 @@ def main() -> None:
                 times.append(time.perf_counter() - start)
             size = path.stat().st_size / 2**20
             load = best_of(lambda path=path: BrickStore.load(path, synthesizer), args.repeat)
+            path.unlink()
+            store.save(path)
+            saving = peak_mib(lambda other=other, path=path: other.save(path))
+            loading = peak_mib(lambda path=path: BrickStore.load(path, synthesizer))
             print(f"| {n} | {fresh:.2f} | {again:.2f} | {min(times):.2f} | {size:.0f} | "
-                  f"{load:.2f} |")
+                  f"{load:.2f} | {saving:.0f} | {loading:.0f} |")
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import os
 import time
 import warnings
@@ -1086,7 +1087,9 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     from warptex.archive import _VERSION_BYTES
 
     magic_and_version = path.read_bytes()[:len(_MAGIC) + _VERSION_BYTES]
-    for payload in (b"PK\x03\x04" + bytes(60), b""):
+    single = io.BytesIO()
+    np.save(single, good["keys"])  # one array's .npy, which NumPy loads as that array
+    for payload in (b"PK\x03\x04" + bytes(60), b"", single.getvalue()):
         path.write_bytes(magic_and_version + hashlib.sha256(payload).digest() + payload)
         with pytest.warns(UserWarning, match="unreadable brick store data"):
             assert BrickStore.load(path, syn).stats()["bricks"] == 0

@@ -310,12 +310,40 @@ def is_temporary(name: str, prefix: str, suffix: str) -> bool:
 
 def write_archive(path: str | Path, magic: bytes, version: int,
                   arrays: dict[str, np.ndarray]) -> None:
-    """Write ``arrays`` to ``path`` under ``magic`` and ``version``, atomically."""
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    payload = buf.getvalue()
-    header = magic + version.to_bytes(_VERSION_BYTES, "little") + hashlib.sha256(payload).digest()
-    write_atomically(path, lambda tmp: tmp.write_bytes(header + payload))
+    """Write ``arrays`` to ``path`` under ``magic`` and ``version``, atomically. The payload
+    streams to the file as it is hashed: no copy of it is held, as a store file may take
+    much of the memory that the store itself does."""
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as file:
+            file.write(magic + version.to_bytes(_VERSION_BYTES, "little") + bytes(_DIGEST_BYTES))
+            digest = hashlib.sha256()
+            # np.savez's members, written by hand: it takes only files it can read back.
+            with zipfile.ZipFile(_Hashed(file, digest), "w", allowZip64=True) as payload:
+                for name, array in arrays.items():
+                    with payload.open(f"{name}.npy", "w", force_zip64=True) as member:
+                        np.lib.format.write_array(member, np.asanyarray(array),
+                                                  allow_pickle=False)
+            file.seek(len(magic) + _VERSION_BYTES)
+            file.write(digest.digest())
+
+    write_atomically(path, write)
+
+
+class _Hashed:
+    """A file written only forwards, adding what it is given to ``digest``. ZIP, unable to
+    seek in it, streams each member and writes its sizes after it, so the bytes hashed are
+    the bytes written, and the payload's offsets count from its own start, as a payload
+    that was written on its own."""
+
+    def __init__(self, file: io.BufferedWriter, digest: hashlib._Hash) -> None:
+        self._file, self._digest = file, digest
+
+    def write(self, data: bytes) -> int:
+        self._digest.update(data)
+        return self._file.write(data)
+
+    def flush(self) -> None:
+        self._file.flush()
 
 
 def is_foreign(path: str | Path, magic: bytes) -> bool:
@@ -416,28 +444,40 @@ def _header_version(data: bytes, magic: bytes) -> int | None:
 def read_archive(path: str | Path, magic: bytes, version: int, kind: str,
                  error: type[ArchiveError] = ArchiveError) -> dict[str, np.ndarray]:
     """The arrays of a file written by :func:`write_archive`; ``error`` (naming the file
-    and the ``kind`` of file expected) when it cannot be trusted."""
+    and the ``kind`` of file expected) when it cannot be trusted. The file is hashed, then
+    its arrays read, in parts: the arrays alone are held in memory."""
     path = Path(path)
     try:
-        data = _regular_file(path).read_bytes()
+        with open(_regular_file(path), "rb") as file:
+            header = file.read(_header_bytes(magic))
+            found = _header_version(header, magic)
+            if found is None:
+                raise error(f"{path}: not a warptex {kind} file")
+            if found != version:
+                raise error(f"{path}: {kind} file version {found}, expected {version}")
+            if hashlib.file_digest(file, "sha256").digest() != header[-_DIGEST_BYTES:]:
+                raise error(f"{path}: checksum mismatch (truncated or corrupt file)")
+            file.seek(len(header))
+            arrays = _arrays(file, f"{path}: unreadable {kind} data", error)
     except OSError as e:
-        raise error(f"{path}: cannot read {kind} file ({e.strerror})") from None
-    found = _header_version(data, magic)
-    if found is None:
-        raise error(f"{path}: not a warptex {kind} file")
-    if found != version:
-        raise error(f"{path}: {kind} file version {found}, expected {version}")
-    start, end = len(magic) + _VERSION_BYTES, _header_bytes(magic)
-    payload = data[end:]
-    if hashlib.sha256(payload).digest() != data[start:end]:
-        raise error(f"{path}: checksum mismatch (truncated or corrupt file)")
-    try:
-        with np.load(io.BytesIO(payload), allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile) as e:
-        raise error(f"{path}: unreadable {kind} data ({e})") from None
+        raise error(f"{path}: cannot read {kind} file ({e.strerror or e})") from None
     # NumPy gives the bytes of a member that is no .npy file (one another tool wrote) as is.
     loose = sorted(k for k, value in arrays.items() if not isinstance(value, np.ndarray))
     if loose:
         raise error(f"{path}: unreadable {kind} data ({loose[0]} is not an array)")
     return arrays
+
+
+def _arrays(file: io.BufferedReader, unreadable: str,
+            error: type[ArchiveError]) -> dict[str, np.ndarray]:
+    """The members of the ``.npz`` payload that ``file`` is at the start of (ZIP finds a
+    payload's offsets past a header, as in a self-extracting archive); ``error``, with the
+    words ``unreadable``, where they cannot be read."""
+    try:
+        loaded = np.load(file, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a single array's .npy
+            raise ValueError("one array, not an archive of arrays")
+        with loaded:
+            return {k: loaded[k] for k in loaded.files}
+    except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile) as e:
+        raise error(f"{unreadable} ({e})") from None
