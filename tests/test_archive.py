@@ -52,7 +52,7 @@ def test_an_archive_is_a_header_then_a_plain_npz_it_hashes(tmp_path):
     (tmp_path / "b.wta").write_bytes(data[:start] + hashlib.sha256(payload).digest() + payload)
     assert_same(read_archive(tmp_path / "b.wta", MAGIC, 3, "test"), expected)
     assert_same(read_archive(tmp_path / "a.wta", MAGIC, 3, "test"), expected)
-    with pytest.raises(ArchiveError, match="a.wta: test file version 3, expected 4"):
+    with pytest.raises(ArchiveError, match=r"a\.wta: test file version 3, expected 4"):
         read_archive(tmp_path / "a.wta", MAGIC, 4, "test")
 
 

@@ -218,9 +218,10 @@ def swapped_file(tmp_path, data_dir):
 def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir, swapped_file,
                                                              warp_device):
     """--ez gives the z axis an exemplar of its own: lazy synthesis and Kopf read it, the z
-    slices are measured against it, extrusion stacks it, and the table names each axis'
-    file; --jitter and --shifted-tiles reach the lazy engine, whose volume is the one any
-    other command gets with the same settings."""
+    slices are measured against it, extrusion stacks it, noise draws from both, and the
+    table names each axis' file; --jitter and --shifted-tiles reach the lazy engine, whose
+    volume is the one any other command gets with the same settings, and --seed each
+    method that draws."""
     from warptex import metrics
     from warptex.baselines.kopf import synthesize
     from warptex.candidates import precompute
@@ -230,24 +231,29 @@ def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir,
     granite_file = data_dir / "granite_64.png"
     out = tmp_path / "cmp"
     assert main(["compare", str(granite_file), "--ez", str(swapped_file), "--size", "16",
-                 "--methods", "lazy,kopf,extrude,flat", "--jitter", "0.5", "--shifted-tiles",
-                 "-o", str(out)]) == 0
+                 "--methods", "lazy,kopf,extrude,flat,noise", "--jitter", "0.5",
+                 "--shifted-tiles", "--seed", "3", "-o", str(out)]) == 0
     rows = {r["method"]: r for r in json.loads((out / "table.json").read_text())["methods"]}
     granite, swapped = Exemplar.load(granite_file), Exemplar.load(swapped_file)
     axes = (granite, granite, swapped)
     candidates = precompute(*axes)
-    lazy = Synthesizer(candidates, seed=0, jitter=0.5, passes=2,
+    lazy = Synthesizer(candidates, seed=3, jitter=0.5, passes=2,
                        shifted_tiles=True).box((0, 0, 0), (16, 16, 16))
     assert rows["lazy"]["energy"] == [metrics.neighborhood_energy(lazy, e, a)
                                       for a, e in enumerate(axes)]
-    kopf = synthesize(None, size=16, seed=0, progress=False, exemplars=axes)
-    assert rows["kopf"]["energy"] == [metrics.neighborhood_energy(kopf, e, a)
-                                      for a, e in enumerate(axes)]
+    kopf = synthesize(None, size=16, seed=3, progress=False, exemplars=axes)
+    energy = [metrics.neighborhood_energy(kopf, e, a) for a, e in enumerate(axes)]
+    assert rows["kopf"]["energy"] == energy
+    seed_0 = synthesize(None, size=16, seed=0, progress=False, exemplars=axes)
+    assert energy != [metrics.neighborhood_energy(seed_0, e, a) for a, e in enumerate(axes)]
     assert rows["extrude"]["energy"][2] == 0.0 and rows["extrude"]["energy"][0] > 0.2
     pixels = np.concatenate([granite.colors, swapped.colors]).reshape(-1, 3)
     flat = np.broadcast_to(pixels.mean(axis=0), (16, 16, 16, 3)).astype(np.float32)
     assert rows["flat"]["histogram"] == [metrics.histogram_distance(flat, e, a)
                                          for a, e in enumerate(axes)]
+    noise = metrics.iid_noise(pixels[:, None], (16, 16, 16), seed=3)
+    assert rows["noise"]["energy"] == [metrics.neighborhood_energy(noise, e, a)
+                                       for a, e in enumerate(axes)]
     table = json.loads((out / "table.json").read_text())
     assert [e["file"] for e in table["run"]["axis_exemplars"]] == [
         "granite_64.png", "granite_64.png", "swapped.png"]
@@ -256,7 +262,7 @@ def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir,
     assert table["run"]["settings"]["lazy"]["shifted_tiles"] is True
     markdown = (out / "table.md").read_text()
     assert markdown.startswith("# x: granite_64.png; y: granite_64.png; z: swapped.png\n")
-    assert "16^3, seed 0, jitter 0.5, shifted tiles;" in markdown
+    assert "16^3, seed 3, jitter 0.5, shifted tiles;" in markdown
 
 
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
@@ -407,12 +413,22 @@ def test_volume_command_runs_kopf_with_the_setting_tileable(tmp_path, ramp_file,
     assert not np.array_equal(expected, synthesize(ramp, size=8, progress=False))
 
 
-def test_volume_command_runs_kopf(tmp_path, data_dir, warp_device):
+def test_volume_command_runs_kopf_with_its_seed_and_mean_shift(tmp_path, data_dir,
+                                                                warp_device):
+    """--seed and --mean-shift reach Kopf: the volume is the one Python makes with them,
+    which neither setting's default makes."""
+    from warptex.baselines.kopf import synthesize
+    from warptex.exemplar import Exemplar
+
     out = tmp_path / "k.npy"
-    assert main(["volume", str(data_dir / "granite_64.png"), "--method", "kopf", "--size", "16",
+    path = data_dir / "granite_64.png"
+    assert main(["volume", str(path), "--method", "kopf", "--size", "8", "--seed", "3",
                  "--mean-shift", "-o", str(out)]) == 0
-    volume = np.load(out)
-    assert volume.shape == (16, 16, 16, 3) and np.isfinite(volume).all()
+    granite = Exemplar.load(path)
+    expected = synthesize(granite, size=8, seed=3, mean_shift=True, progress=False)
+    np.testing.assert_array_equal(np.load(out), expected)
+    for other in ({"seed": 0, "mean_shift": True}, {"seed": 3, "mean_shift": False}):
+        assert not np.array_equal(expected, synthesize(granite, size=8, progress=False, **other))
 
 
 def test_volume_command_leaves_the_free_axis_of_kopf_unconstrained(tmp_path, data_dir,

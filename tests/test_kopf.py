@@ -465,6 +465,13 @@ def test_each_level_matches_the_exemplar_at_its_scale(granite_32, monkeypatch, w
                                                                (4 ** 3, (16, 16, 3)),
                                                                (8 ** 3, (32, 32, 3))]
     np.testing.assert_array_equal(seen[-1][1][0], granite_32.features)
+    # A feature-distance channel (section 3's features) is matched with the colors.
+    seen.clear()
+    rng = np.random.default_rng(2)
+    featured = Exemplar(granite_32.colors, feature_distance=rng.random((32, 32), np.float32))
+    kopf.synthesize(featured, size=8, iterations=1, progress=False)
+    assert [f[0].shape for _, f, _ in seen] == [(8, 8, 4), (16, 16, 4), (32, 32, 4)]
+    np.testing.assert_array_equal(seen[-1][1][0], featured.features)
 
 
 def test_each_axis_gets_its_own_exemplar_and_seams(granite_32, stripes, monkeypatch):
