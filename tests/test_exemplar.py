@@ -571,7 +571,33 @@ def test_exr_channels_that_cannot_be_colors_are_named(tmp_path, rng):
             r"depth\.exr: image contains NaN or Inf values \(in OpenEXR channel Z\)")
     alpha = _write_exr(tmp_path / "alpha.exr", {"A": rgb[..., 0]})
     _raises(alpha, r"alpha\.exr: image holds only an alpha channel \(alpha='keep'")
-    assert _load_quiet(alpha, alpha="keep").channels == 1
+    from warptex.sheets import to_png8
+
+    alone = _load_quiet(alpha, alpha="keep")
+    assert alone.channels == 1 and not alone.kept_alpha  # one color: no PNG of no colors
+    assert to_png8(alone.colors, alone.kept_alpha).shape == (16, 16, 3)
+
+
+def test_an_image_beyond_the_memory_the_process_may_use_is_refused_by_name(tmp_path, rng,
+                                                                           monkeypatch):
+    """Under a memory limit (ulimit -v, a batch job's), decoding or converting a photo fails
+    where NumPy or Pillow allocates: the file is named, no traceback; warnings the load
+    gives before still point at its caller."""
+    import warptex.exemplar
+
+    path = tmp_path / "huge.png"
+    Image.fromarray((rng.random((16, 16, 4)) * 255).astype(np.uint8)).save(path)
+    monkeypatch.setattr(warptex.exemplar, "_opaque", lambda alpha: False)
+    monkeypatch.setattr(warptex.exemplar, "_shrunk",
+                        lambda *_: np.zeros((2**31, 2**30), np.uint8))  # NumPy refuses it
+    with pytest.warns(AlphaDropped) as caught:
+        error = _raises(path, r"huge\.png: too large to load in the memory this process may "
+                              r"use \(Unable to allocate", max_size=16)
+    assert caught[0].filename == __file__ and error.__cause__ is None
+    monkeypatch.setattr(warptex.exemplar, "read_image", lambda _: (_ for _ in ()).throw(
+        MemoryError()))
+    _raises(path, r"huge\.png: too large to load in the memory this process may use "
+                  r"\(out of memory\)$")
 
 
 def test_exr_luminance_only_is_one_channel(tmp_path, rng):
@@ -983,10 +1009,13 @@ def test_inf_in_npy(tmp_path):
     _raises(tmp_path / "inf.npy", r"inf\.npy: .*NaN or Inf")
 
 
-def test_float64_overflowing_float32_is_inf():
+def test_float64_beyond_float32_is_refused_as_such():
+    """Not as NaN or Inf, which the array does not hold: float32 cannot hold it."""
     data = np.full((16, 16), 1e300)
     data[0, 0] = 0
-    _raises(data, "NaN or Inf")
+    _raises(data, r"array: image holds values beyond float32's range \(±3\.4e\+38\)$")
+    data[0, 0] = np.inf
+    _raises(data, "array: image contains NaN or Inf values$")
 
 
 def test_zero_channels():

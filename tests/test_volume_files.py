@@ -77,6 +77,20 @@ def test_a_gray_and_alpha_exr_reads_back_as_gray_and_alpha(tmp_path):
     assert back.kept_alpha
 
 
+def test_an_exr_named_in_no_utf8_is_written_and_read(tmp_path):
+    """A name of an old share's Latin-1 bytes: OpenEXR takes no such name, so a volume
+    was synthesized, then lost in a traceback, and such an exemplar called unreadable."""
+    import os
+
+    folder = tmp_path / os.fsdecode(b"caf\xe9")
+    image = np.random.default_rng(5).random((16, 16, 3), np.float32)
+    write_image(folder / os.fsdecode(b"\xe9t\xe9.exr"), image, srgb=False)
+    write_volume(folder / "v.exr", np.stack([image] * 4, axis=2), srgb=False)
+    np.testing.assert_array_equal(
+        Exemplar.load(folder / os.fsdecode(b"\xe9t\xe9.exr")).colors, image)
+    assert Exemplar.load(folder / "v.exr").colors.shape == (16, 4 * 16, 3)
+
+
 @pytest.mark.parametrize("channels", [1, 2, 3, 4])
 def test_srgb_colors_are_decoded_in_exr_and_vol_files_only(tmp_path, channels, srgb_decoded):
     """.exr and .vol hold linear colors, as their readers assume: sRGB-encoded ones are

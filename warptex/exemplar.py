@@ -20,7 +20,8 @@ from __future__ import annotations
 import hashlib
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -189,57 +190,60 @@ class Exemplar:
         if path == "":  # not the working folder, which Path("") names
             raise ExemplarError("the exemplar's file name is empty")
         path = check_file_name("path", path)
-        array, has_alpha, file_srgb = read_image(path)
-        if has_alpha and alpha == "drop":
-            if array.shape[-1] == 1:
-                raise ExemplarError(f"{path}: image holds only an alpha channel (alpha='keep' "
-                                    "reads it as one color channel; --alpha keep in the CLI)")
-            if not _opaque(array[..., -1]):  # an alpha that is opaque everywhere says nothing
-                warn(
-                    f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in "
-                    "the CLI)", AlphaDropped, stacklevel=2,
-                )
-            array = array[..., :-1]
-        read_shape = array.shape
-        if max_size is not None:
-            array = _shrunk(_validated_colors(array, str(path)), int(max_size), str(path))
+        # In load's own frame (not a function's), so that its warnings' stack levels stay.
+        with _memory_named(path):
+            array, has_alpha, file_srgb = read_image(path)
+            if has_alpha and alpha == "drop":
+                if array.shape[-1] == 1:
+                    raise ExemplarError(f"{path}: image holds only an alpha channel (alpha='keep' "
+                                        "reads it as one color channel; --alpha keep in the CLI)")
+                if not _opaque(array[..., -1]):  # an alpha that is opaque everywhere says nothing
+                    warn(
+                        f"{path}: alpha channel dropped (alpha='keep' keeps it; --alpha keep in "
+                        "the CLI)", AlphaDropped, stacklevel=2,
+                    )
+                array = array[..., :-1]
+            read_shape = array.shape
+            if max_size is not None:
+                array = _shrunk(_validated_colors(array, str(path)), int(max_size), str(path))
 
-        distance = None
-        if feature_mask is not None:
-            mask_path = check_file_name("feature_mask", feature_mask)
-            mask_image = read_image(mask_path)[0]
-            if mask_image.shape[:2] != read_shape[:2]:
-                raise ExemplarError(
-                    f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
-                    f"{path} is {_size(read_shape)}"
-                )
-            first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
-            if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
-                # Half its maximum, the threshold, would be NaN or infinite.
-                raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
-            _warn_unless_binary(mask_image, str(mask_path))
-            if array.shape[:2] != read_shape[:2]:
-                mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
-                                     str(mask_path))
-            mask = _binary_mask(mask_image, str(mask_path))
-            distance = feature_distance_from_mask(mask, name=str(mask_path))
-        elif feature_distance:
-            colors = _validated_colors(array, str(path))
-            distance = feature_distance_from_mask(otsu_mask(colors),
-                                                  name=f"{path}: automatic (Otsu)")
+            distance = None
+            if feature_mask is not None:
+                mask_path = check_file_name("feature_mask", feature_mask)
+                mask_image = read_image(mask_path)[0]
+                if mask_image.shape[:2] != read_shape[:2]:
+                    raise ExemplarError(
+                        f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
+                        f"{path} is {_size(read_shape)}"
+                    )
+                first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
+                if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
+                    # Half its maximum, the threshold, would be NaN or infinite.
+                    raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
+                _warn_unless_binary(mask_image, str(mask_path))
+                if array.shape[:2] != read_shape[:2]:
+                    mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
+                                         str(mask_path))
+                mask = _binary_mask(mask_image, str(mask_path))
+                distance = feature_distance_from_mask(mask, name=str(mask_path))
+            elif feature_distance:
+                colors = _validated_colors(array, str(path))
+                distance = feature_distance_from_mask(otsu_mask(colors),
+                                                      name=f"{path}: automatic (Otsu)")
 
-        # Errors name the file as given; the exemplar itself goes by its file name.
-        exemplar = cls(array, name=str(path), feature_distance=distance,
-                       srgb=file_srgb if srgb is None else srgb)
-        exemplar.name = path.name
-        exemplar.path = path.resolve()
-        exemplar.file_shape = read_shape[:2]
-        exemplar.kept_alpha = has_alpha and alpha == "keep"
-        if feature_mask is not None:
-            exemplar.features_from = Path(feature_mask).name
-        elif feature_distance:
-            exemplar.features_from = "automatic"
-        return exemplar
+            # Errors name the file as given; the exemplar itself goes by its file name.
+            exemplar = cls(array, name=str(path), feature_distance=distance,
+                           srgb=file_srgb if srgb is None else srgb)
+            exemplar.name = path.name
+            exemplar.path = path.resolve()
+            exemplar.file_shape = read_shape[:2]
+            # A kept alpha alone is read as one color channel, as the writers take it.
+            exemplar.kept_alpha = has_alpha and alpha == "keep" and exemplar.channels > 1
+            if feature_mask is not None:
+                exemplar.features_from = Path(feature_mask).name
+            elif feature_distance:
+                exemplar.features_from = "automatic"
+            return exemplar
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -646,6 +650,9 @@ def _validated_colors(array: object, name: str) -> np.ndarray:
         )
     colors = _to_float32(data, name)
     if not np.isfinite(colors).all():
+        if np.issubdtype(data.dtype, np.floating) and np.isfinite(data).all():
+            raise ExemplarError(f"{name}: image holds values beyond float32's range "
+                                f"(±{np.finfo(np.float32).max:.3g})")
         raise ExemplarError(f"{name}: image contains NaN or Inf values")
     colors.setflags(write=False)
     return colors
@@ -696,6 +703,17 @@ def _warn_unless_binary(image: np.ndarray, name: str) -> None:
         warn(f"{name}: not a black-and-white feature mask ({grey:.0%} of its pixels "
              f"are grey); features are marked where {channel} exceeds half its "
              "maximum", stacklevel=3)
+
+
+@contextmanager
+def _memory_named(path: Path) -> Iterator[None]:
+    """An image that does not fit the memory the process may use (``ulimit -v``, a batch
+    job's limit) refused naming its file, not in NumPy's or Pillow's traceback."""
+    try:
+        yield
+    except MemoryError as error:
+        raise ExemplarError(f"{path}: too large to load in the memory this process may use "
+                            f"({str(error) or 'out of memory'})") from None
 
 
 def _binary_mask(image: np.ndarray, name: str) -> np.ndarray:

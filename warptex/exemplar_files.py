@@ -144,7 +144,8 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
     import OpenEXR
 
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as file:
+        # Through a Python file: OpenEXR takes no name that is not UTF-8 (an old share's).
+        with open(path, "rb") as stream, OpenEXR.File(stream, separate_channels=True) as file:
             channels = _exr_part_channels(file.parts, path)
     except (RuntimeError, OSError, ValueError) as error:
         raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None

@@ -121,8 +121,9 @@ def _write_exr_planes(path: Path, planes: list[np.ndarray], alpha: bool,
     header.update(extra or {})
     pixels = {name: np.ascontiguousarray(plane, np.float32)
               for name, plane in zip(names, planes, strict=True)}
-    with OpenEXR.File(header, pixels) as file:
-        file.write(str(path))
+    # Through a Python file: OpenEXR takes no name that is not UTF-8 (an old share's).
+    with OpenEXR.File(header, pixels) as file, open(path, "wb") as stream:
+        file.write(stream)
 
 
 def _write_vol(path: Path, volume: np.ndarray, alpha: bool = False) -> None:
