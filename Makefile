@@ -4,7 +4,12 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 PY := $(VENV)/bin/python
 INSTALLED := $(VENV)/.installed
-export WARP_CACHE_PATH ?= $(CURDIR)/.cache/warp
+# Warp's kernel cache: the checkout's unless one is given, an empty one being none (which
+# `?=` would keep, and Warp take for the working folder).
+ifeq ($(strip $(WARP_CACHE_PATH)),)
+override WARP_CACHE_PATH := $(CURDIR)/.cache/warp
+endif
+export WARP_CACHE_PATH
 
 .PHONY: demo test lint setup llvm
 

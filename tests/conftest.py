@@ -14,7 +14,8 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 
 # Before anything imports Warp, so compiled kernels land in one known, reusable folder.
-os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
+if not os.environ.get("WARP_CACHE_PATH"):  # an empty one is unset (warptex.warp_runtime)
+    os.environ["WARP_CACHE_PATH"] = str(REPO / ".cache" / "warp")
 # The candidates the tests pre-compute stay in the checkout, not among the user's own
 # (where every change of the code would leave another set); tests of the cache set theirs.
 os.environ["WARPTEX_CACHE"] = str(REPO / ".cache" / "candidates")

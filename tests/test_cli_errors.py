@@ -522,6 +522,35 @@ def test_a_kernel_cache_warp_cannot_make_is_a_clear_error(files, tmp_path, comma
     assert not out.exists() and files["notes"].read_text() == "not bricks"
 
 
+@pytest.mark.parametrize("failure", ["cannot build", "cannot load"])
+def test_a_kernel_cache_that_fails_a_build_is_one_line_and_exit_1(files, tmp_path, capsys,
+                                                                  monkeypatch, failure):
+    """A kernel cache folder that exists but cannot take a new build (read-only, another
+    user's, a full disk) or load one: the machine's failure mid-work, as a full disk is for
+    an output, not a traceback."""
+    import warp as wp
+
+    import warptex.warp_runtime
+
+    def failing_launch(kernel, *args, **kwargs):
+        if failure == "cannot build":
+            raise OSError(errno.EROFS, "Read-only file system",
+                          f"{tmp_path}/wp_{kernel.module.name}_1234567_p1_t2")
+        raise Exception(f"Failed to load CPU module '{kernel.module.name}' (device='cpu')")
+
+    monkeypatch.setattr(wp, "launch", failing_launch)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    monkeypatch.setattr(warptex.warp_runtime, "_REBUILT", set())
+    monkeypatch.setattr(warptex.warp_runtime, "_drop_builds", lambda module: [])
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(files["exemplar"]), "--size", "4", "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    (line,) = [line for line in err.splitlines() if line.startswith("warptex: error: ")]
+    assert line.startswith("warptex: error: Warp cannot "), err
+    assert str(tmp_path) in line and "set WARP_CACHE_PATH to another folder" in line
+    assert "Traceback" not in err and not out.exists()
+
+
 @pytest.mark.parametrize("exemplar", ["missing.png", "{five}"])
 def test_cut_refuses_a_bad_exemplar_before_cutting(files, tmp_path, capsys, monkeypatch,
                                                    exemplar):
@@ -649,6 +678,41 @@ def test_a_reader_gone_early_ends_the_command_quietly(files):
     proc.stdout.close()  # before anything is written: every write fails
     err = proc.communicate()[1].decode()
     assert proc.returncode == 141 and err == ""
+
+
+@pytest.mark.parametrize("closed", ["2>&-", ">&-"])
+def test_a_command_runs_with_a_standard_stream_closed(files, tmp_path, closed):
+    """Python has a stream closed when it started as None: the progress bars failed on a
+    closed stderr, the last flush on a closed stdout, each with exit code 1 and no word."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "v.npy"
+    command = [sys.executable, "-m", "warptex", "volume", str(files["exemplar"]), "--size", "4",
+               "-o", str(out)]
+    run = subprocess.run(["sh", "-c", f'exec "$@" {closed}', "sh", *command],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert np.load(out).shape == (4, 4, 4, 3)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
+@pytest.mark.parametrize("buffered", [True, False])
+def test_standard_output_that_cannot_be_written_is_one_line_and_exit_1(files, buffered):
+    """`warptex info ... >/dev/full`: the output lost is the command's failure, as a file
+    that cannot be written is, whether it fails as it is printed or as it is flushed."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if not buffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "warptex", "info", str(files["exemplar"])],
+                             stdout=full, stderr=subprocess.PIPE, text=True, env=env,
+                             timeout=300)
+    assert (run.returncode, run.stderr) == (
+        1, "warptex: error: standard output: No space left on device\n")
 
 
 def test_negative_numbers_in_any_notation_are_values(files, tmp_path, capsys):
@@ -1261,3 +1325,18 @@ def test_only_the_command_s_own_process_stops_quietly(monkeypatch):
         monkeypatch.setattr(sys, "orig_argv", orig_argv)
         monkeypatch.setattr(sys, "argv", ["/venv/bin/warptex", "info"])
         assert is_the_command() == expected, orig_argv
+
+
+def test_a_stream_closed_from_the_start_is_passed_over_at_the_end(monkeypatch):
+    """exit_at_a_stop flushed sys.stdout and sys.stderr, None where closed (`2>&-`)."""
+    import sys
+
+    import warptex.stops
+
+    handlers = {}
+    monkeypatch.setattr(warptex.stops, "is_the_command", lambda: True)
+    monkeypatch.setattr(signal, "signal", lambda number, handler: handlers.update({
+        number: handler}))
+    monkeypatch.setattr(sys, "stderr", None)
+    warptex.stops.exit_at_a_stop(0)
+    assert set(handlers) == {signal.SIGINT, signal.SIGTERM}

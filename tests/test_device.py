@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 import sys
@@ -150,6 +151,40 @@ def test_warp_starts_without_a_stderr(no_stderr):
     assert run.returncode == 0 and run.stdout.strip() in ("cpu", "cuda")
 
 
+def test_warp_starts_where_no_temporary_file_can_be_made(monkeypatch, capfd):
+    """No temporary folder writable: the capture is given up, not Warp's start (which the
+    command reported as a kernel cache folder it could not make)."""
+    monkeypatch.delenv("WARPTEX_DEVICE", raising=False)
+    monkeypatch.setattr(wp, "init", _noisy_init)
+
+    def no_room(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", "/tmp/tmpx")
+
+    monkeypatch.setattr(device_module.tempfile, "TemporaryFile", no_room)
+    device_module.init_warp.__wrapped__()
+    assert "something else Warp said" in capfd.readouterr().err
+
+
+def test_an_empty_kernel_cache_variable_is_unset_for_warp_too(monkeypatch):
+    """Warp takes a WARP_CACHE_PATH that is set, empty, for the working folder, and built
+    its kernels into it."""
+    seen = []
+    monkeypatch.setattr(wp, "init", lambda: seen.append(os.environ.get("WARP_CACHE_PATH")))
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", None)
+    monkeypatch.setenv("WARP_CACHE_PATH", "")
+    device_module.init_warp.__wrapped__()
+    assert seen == [None] and wp.config.kernel_cache_dir is None
+
+
+def test_the_kernel_cache_variable_starts_at_home_as_warptex_cache_does(tmp_path, monkeypatch):
+    monkeypatch.setattr(wp, "init", lambda: None)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", None)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("WARP_CACHE_PATH", "~/kernels")
+    device_module.init_warp.__wrapped__()
+    assert wp.config.kernel_cache_dir == str(tmp_path / "kernels")
+
+
 _DOUBLING = '''
 import numpy as np
 import warp as wp
@@ -208,9 +243,37 @@ def test_an_unloadable_kernel_build_is_a_clear_error(tmp_path, monkeypatch, warp
     monkeypatch.setattr(device_module, "_REBUILT", set())
     refusal = f"kernels of kernels.lookup.*{tmp_path}.*WARP_CACHE_PATH"
     with (pytest.warns(UserWarning, match="damaged build of kernels.lookup"),
-          pytest.raises(RuntimeError, match=refusal)):
+          pytest.raises(device_module.KernelCacheError, match=refusal)):
         device_module.launch(lookup.insert_keys, 1, [], [])
     assert len(calls) == 2
+
+
+@pytest.mark.parametrize("error", [
+    OSError(errno.EROFS, "Read-only file system", "/cache/wp_kernels.lookup_1234567_p1_t2"),
+    PermissionError(errno.EACCES, "Permission denied", "/cache/wp_kernels.lookup_1234567"),
+    OSError(errno.ENOSPC, "No space left on device")])
+def test_a_kernel_cache_that_cannot_take_a_build_is_a_clear_error(tmp_path, monkeypatch,
+                                                                  warp_device, error):
+    """A read-only folder, another user's or a full disk: Warp's OSError named a build
+    folder, if any, and not the variable that picks another."""
+    calls = []
+
+    def failing_launch(kernel, *args, **kwargs):
+        calls.append(kernel)
+        raise error
+
+    monkeypatch.setattr(wp, "launch", failing_launch)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    monkeypatch.setattr(device_module, "_REBUILT", set())
+    from kernels import lookup
+
+    refusal = (f"kernels of kernels.lookup in {tmp_path} \\({error.strerror}\\); set "
+               "WARP_CACHE_PATH to another folder")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no damaged build: nothing deleted
+        with pytest.raises(device_module.KernelCacheError, match=refusal):
+            device_module.launch(lookup.insert_keys, 1, [], [])
+    assert len(calls) == 1
 
 
 def test_a_module_is_built_again_once_per_process(tmp_path, monkeypatch, warp_device):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -66,6 +67,27 @@ def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
     # A bare name is Dr.Jit's dlopen's to find on the library path.
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "libLLVM-19.so")
     assert llvm.configure_drjit() == Path("libLLVM-19.so")
+
+
+def test_a_preset_link_of_no_version_is_judged_by_the_file_it_leads_to(tmp_path, monkeypatch):
+    """Debian 12's libLLVM.so leads to LLVM 15, which passed for a user's choice of no
+    version, then aborted the render inside LLVM."""
+    old, new = tmp_path / "libLLVM-15.so.1", tmp_path / "libLLVM.so.19.1"
+    for library in (old, new):
+        library.write_bytes(b"")
+    link = tmp_path / "lib" / "libLLVM.so"
+    link.parent.mkdir()
+    link.symlink_to(old)
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(link))
+    assert llvm._preset_problem(str(link)) == (
+        f"DRJIT_LIBLLVM_PATH={link} is libLLVM 15 ({old.resolve()}), older than 16")
+    assert llvm.configure_drjit() is None
+    if importlib.util.find_spec("mitsuba") is not None:
+        with pytest.warns(UserWarning, match=r"falls back to scalar_rgb: .* is libLLVM 15"):
+            assert llvm.best_mitsuba_variant() == "scalar_rgb"
+    link.unlink()
+    link.symlink_to(new)
+    assert llvm.configure_drjit() == link
 
 
 def test_a_preset_library_that_cannot_serve_is_named_in_the_fallback(tmp_path, monkeypatch):

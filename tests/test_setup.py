@@ -1,5 +1,6 @@
 """The Makefile's set-up, as `make test` and `make demo` run it on a fresh machine."""
 
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -26,3 +27,19 @@ def test_a_venv_that_fails_half_way_is_made_again_by_the_next_run(tmp_path):
     assert run.returncode != 0
     assert "ensurepip is not available" in run.stderr
     assert not (tmp_path / ".venv").exists()
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make")
+@pytest.mark.parametrize(("given", "kept"), [(None, False), ("", False),
+                                              ("/elsewhere/warp", True)])
+def test_make_keeps_kernels_in_the_checkout_unless_told_otherwise(tmp_path, given, kept):
+    """`export WARP_CACHE_PATH ?=` kept an empty value from the environment, which Warp
+    takes for the working folder: `make test` built its kernels into the checkout's root."""
+    shutil.copy(REPO / "Makefile", tmp_path)
+    (tmp_path / "show.mk").write_text('show:\n\t@echo "$$WARP_CACHE_PATH"\n')
+    env = {k: v for k, v in os.environ.items() if k != "WARP_CACHE_PATH"}
+    if given is not None:
+        env["WARP_CACHE_PATH"] = given
+    run = subprocess.run(["make", "-s", "-f", "Makefile", "-f", "show.mk", "show"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == (given if kept else f"{tmp_path}/.cache/warp")

@@ -57,7 +57,8 @@ def configure_drjit() -> Path | None:
     """
     preset = os.environ.get(_ENV)
     if preset:
-        # A user's choice is trusted unless it is no file or its name says it is too old.
+        # A user's choice is trusted unless it is no file or its name, or that of the file
+        # it links to, says it is too old.
         return None if _preset_problem(preset) else Path(preset)
     library = find_libllvm()
     if library is not None:
@@ -70,9 +71,15 @@ def _preset_problem(preset: str) -> str | None:
     # A bare name is looked up on the library path by Dr.Jit's dlopen, not here.
     if os.sep in preset and not Path(preset).is_file():
         return f"{_ENV}={preset} names no file"
-    major = _major(preset)
+    major, named = _major(preset), preset
+    if major is None and os.sep in preset:
+        # An unversioned link (libLLVM.so, a -dev package's) says its version in the name
+        # of the file it leads to: Debian 12's libLLVM.so leads to LLVM 15.
+        named = str(Path(preset).resolve())
+        major = _major(named)
     if major is not None and major < MIN_LLVM_MAJOR:
-        return f"{_ENV}={preset} is libLLVM {major}, older than {MIN_LLVM_MAJOR}"
+        behind = "" if named == preset else f" ({named})"
+        return f"{_ENV}={preset} is libLLVM {major}{behind}, older than {MIN_LLVM_MAJOR}"
     return None
 
 

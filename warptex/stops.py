@@ -54,6 +54,8 @@ def exit_at_a_stop(code: int) -> None:
     if not is_the_command() or threading.current_thread() is not threading.main_thread():
         return
     for stream in (sys.stdout, sys.stderr):
+        if stream is None:  # closed when the process started (`2>&-`)
+            continue
         with contextlib.suppress(OSError):  # a reader gone: not this function's to report
             stream.flush()
     for number in (signal.SIGINT, signal.SIGTERM):

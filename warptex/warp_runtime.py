@@ -1,5 +1,5 @@
 """Choice of the Warp device that synthesis runs on, one-time quiet Warp start-up, and
-launches that survive a damaged kernel cache."""
+launches that survive a damaged kernel cache and name one that cannot take a build."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import warp as wp
 
@@ -42,15 +42,18 @@ def init_warp() -> None:
     """Initialise Warp once, without its start-up banner.
 
     The kernel cache goes to ``WARP_CACHE_PATH`` when that is set, so tests and CI can keep
-    compiled kernels in a known project-local folder. Each GPU's memory pool keeps up to
+    compiled kernels in a known project-local folder; it is read as ``WARPTEX_CACHE`` is,
+    an empty one unset and ``~`` the home folder. Each GPU's memory pool keeps up to
     ``POOL_KEPT`` of its memory between requests.
     """
     # functools.cache does not lock: two threads' first calls may both get here, and the
     # capture below swaps the process's file descriptor 2.
     with _START_LOCK:
         cache = os.environ.get("WARP_CACHE_PATH")
-        if cache and wp.config.kernel_cache_dir is None:
-            wp.config.kernel_cache_dir = cache
+        if cache == "":  # which Warp takes for the working folder, building kernels into it
+            del os.environ["WARP_CACHE_PATH"]
+        elif cache and wp.config.kernel_cache_dir is None:
+            wp.config.kernel_cache_dir = str(Path(cache).expanduser())
         # Warp replaced ``config.quiet`` with ``config.log_level`` in 1.10; honour both.
         if hasattr(wp.config, "log_level"):
             wp.config.log_level = wp.LOG_WARNING
@@ -74,7 +77,8 @@ def _init_without_driver_warning() -> None:
     Warp's library straight to file descriptor 2 at every start, would interrupt every
     command's output (in the middle of progress bars, once per worker process). All
     else Warp writes while starting is passed on. Where there is no stderr to capture
-    (closed, or none at all), Warp starts as it would.
+    (closed, or none at all), or nowhere to capture it (no temporary folder writable),
+    Warp starts as it would: its warning shown is the lesser harm.
     """
     try:
         sys.stderr.flush()
@@ -82,8 +86,13 @@ def _init_without_driver_warning() -> None:
     except (AttributeError, OSError, ValueError):
         wp.init()
         return
+    captured = _capture_file()
+    if captured is None:
+        os.close(saved)
+        wp.init()
+        return
     try:
-        with tempfile.TemporaryFile() as captured:
+        with captured:
             os.dup2(captured.fileno(), 2)
             try:
                 wp.init()
@@ -94,6 +103,15 @@ def _init_without_driver_warning() -> None:
                 sys.stderr.write("".join(line for line in lines if _NO_DRIVER not in line))
     finally:
         os.close(saved)
+
+
+def _capture_file() -> IO[bytes] | None:
+    """A temporary file to capture Warp's start-up output in; None where no temporary
+    folder is writable, which is no fault of the kernel cache's that wp.init() reports."""
+    try:
+        return tempfile.TemporaryFile()
+    except OSError:
+        return None
 
 
 def _requested() -> str:
@@ -121,6 +139,11 @@ def device() -> str:
     return "cuda" if has_gpu else "cpu"
 
 
+class KernelCacheError(RuntimeError):
+    """Warp's kernel cache cannot take or load a build of warptex's kernels: the machine's
+    fault, not the input's, which the command reports in one line naming the folder."""
+
+
 def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
            device: str = "cpu") -> None:
     """``wp.launch``, except that a damaged build of the kernel's module in Warp's kernel
@@ -135,13 +158,16 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
     theirs.
 
     Raises:
-        RuntimeError: the module built again cannot be loaded either.
+        KernelCacheError: the module cannot be built into the kernel cache (a read-only
+            folder, another user's, a full disk), or built again cannot be loaded either.
     """
     try:
         wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
         return
     except FileNotFoundError:
         pass  # Warp found the build, then its files were gone: Warp now builds it again
+    except OSError as error:
+        raise _build_failure(kernel.module.name, error) from None
     except Exception as error:
         if not _unloadable(error):
             raise
@@ -154,6 +180,8 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
                       "again", stacklevel=2)
     try:
         wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
+    except OSError as error:
+        raise _build_failure(kernel.module.name, error) from None
     except Exception as error:
         if not _unloadable(error):
             raise
@@ -164,11 +192,18 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
 _REBUILT: set[tuple[str, str]] = set()
 
 
-def _load_failure(module: str, error: Exception) -> RuntimeError:
+def _build_failure(module: str, error: OSError) -> KernelCacheError:
+    """The error of a module that Warp cannot build into its kernel cache."""
+    return KernelCacheError(
+        f"Warp cannot build the kernels of {module} in {wp.config.kernel_cache_dir} "
+        f"({error.strerror or error}); set WARP_CACHE_PATH to another folder")
+
+
+def _load_failure(module: str, error: Exception) -> KernelCacheError:
     """The error of a module that Warp cannot load though built afresh."""
     cuda = ("; the CUDA driver may also refuse it for a full GPU memory or for being older "
             "than the CUDA compiler Warp builds with" if "CUDA" in str(error) else "")
-    return RuntimeError(
+    return KernelCacheError(
         f"Warp cannot load the kernels of {module} that it builds in "
         f"{wp.config.kernel_cache_dir} ({error}); check that the folder is writable and "
         f"its disk not full, or set WARP_CACHE_PATH to another folder{cuda}")

@@ -20,14 +20,18 @@ from warptex.cli.common import WRITTEN, CliError
 from warptex.cli.console import (
     SIGTERM_RECEIVED,
     SigtermInterrupt,
+    StandardOutputError,
     bars_as_log_lines,
+    missing_streams_to_devnull,
     show_warning,
+    standard_output_errors,
     terminated_like_interrupted,
 )
 from warptex.cli.options import check_max_size_option
 from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
 from warptex.exemplar import ExemplarError
 from warptex.stops import deferred_stops, exit_at_a_stop, started
+from warptex.warp_runtime import KernelCacheError
 
 # Modules nearly every command builds, and whether they run on the CPU whatever the device
 # (a CPU launch builds the block_dim 1 variant; CUDA launches the default one).
@@ -74,6 +78,7 @@ _STOP_LOSING_LIBRARIES = {"bake": ("trimesh",), "cut": ("trimesh",)}
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
+    missing_streams_to_devnull()
     code = _run(sys.argv[1:] if argv is None else list(argv))
     exit_at_a_stop(code)
     return code
@@ -83,7 +88,8 @@ def _run(argv: list[str]) -> int:
     WRITTEN.clear()
     args = parse_arguments(build_parser(), argv)  # SciPy and more load here, Ctrl-C quiet
     _, command = SUBCOMMANDS[args.command]
-    with warnings.catch_warnings(), terminated_like_interrupted(), bars_as_log_lines():
+    with (warnings.catch_warnings(), terminated_like_interrupted(), bars_as_log_lines(),
+          standard_output_errors()):
         warnings.showwarning = show_warning
         try:
             started()  # Ctrl-C is a KeyboardInterrupt again, which the excepts below end
@@ -99,11 +105,16 @@ def _run(argv: list[str]) -> int:
             sys.stdout.flush()  # here, so that a reader gone early is handled below
             return code
         except BrokenPipeError:  # `warptex info ... | head -1`: the reader has all it wants
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            _drop_unwritten_output()
             return 141  # as for a command that SIGPIPE ends
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
             return error.exit_code if isinstance(error, CliError) else 2
+        except (KernelCacheError, StandardOutputError) as error:  # the machine's, mid-work
+            if isinstance(error, StandardOutputError):
+                _drop_unwritten_output()
+            print(f"warptex: error: {error}", file=sys.stderr)
+            return 1
         except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
             terminated = isinstance(stop, SigtermInterrupt) or SIGTERM_RECEIVED.is_set()
             after = ("" if not WRITTEN else
@@ -111,3 +122,9 @@ def _run(argv: list[str]) -> int:
             print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}{after}",
                   file=sys.stderr)
             return 143 if terminated else 130  # as for a command that the signal ends
+
+
+def _drop_unwritten_output() -> None:
+    """Send what standard output still holds to the null device: the flush as Python
+    exits would fail on it again, into a second message and exit code 120."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

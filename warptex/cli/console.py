@@ -1,9 +1,11 @@
 """The terminal and the log: warnings as one line, progress bars in logs, a clock that ticks
-during long calls, and SIGTERM stopping a command as Ctrl-C does."""
+during long calls, standard streams closed or failing, and SIGTERM stopping a command as
+Ctrl-C does."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 import signal
 import sys
@@ -123,6 +125,62 @@ def _activity(line: str) -> str:
     postfix = times.rstrip("]").split(", ", 2)[2:]
     head = re.sub(r"\d+%\|[^|]*\|", "", head)  # the percentage and the bar, however full
     return re.sub(r"[\d.]+[kMGTPEZY]?", "", head).replace(" ", "") + "".join(postfix)
+
+
+def missing_streams_to_devnull() -> None:
+    """A command started with its standard output or error closed (``2>&-``) has them as
+    None in Python, which ``print`` passes over but progress bars and flushes fail on:
+    they go to the null device instead. Opened now, it also takes the closed descriptor,
+    which a file opened later would otherwise get, for Warp's library to write into."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (open for the process)
+
+
+class StandardOutputError(Exception):
+    """Standard output that cannot be written (a full disk, a lost mount), told apart from
+    the OSErrors of the command's own files, which name them."""
+
+
+class _StandardOutput:
+    """sys.stdout, whose failures to write raise :class:`StandardOutputError`; a reader
+    gone (EPIPE) stays a BrokenPipeError, which the command ends quietly on."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        with _as_standard_output_error():
+            return self._stream.write(text)
+
+    def flush(self) -> None:
+        with _as_standard_output_error():
+            self._stream.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _as_standard_output_error() -> Iterator[None]:
+    try:
+        yield
+    except BrokenPipeError:
+        raise
+    except OSError as error:
+        raise StandardOutputError(f"standard output: {error.strerror or error}") from None
+
+
+@contextlib.contextmanager
+def standard_output_errors() -> Iterator[None]:
+    """The block with its failures to write standard output raising
+    :class:`StandardOutputError`."""
+    stream = sys.stdout
+    sys.stdout = _StandardOutput(stream)
+    try:
+        yield
+    finally:
+        sys.stdout = stream
 
 
 @contextlib.contextmanager
