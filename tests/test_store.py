@@ -983,6 +983,46 @@ def test_a_merge_pairs_each_brick_with_its_own_copy_whatever_the_recency_order(
     assert loaded.stats()["misses"] == 0
 
 
+@pytest.mark.parametrize("gather", [1, 3, 2048])
+def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either(
+        monkeypatch, gather):
+    """Against a brute-force merge: the older list's own bricks first, then the newer's,
+    each in its list's order, a brick in both holding the voxels of either in local order;
+    gathered a few bricks at a time as one."""
+    import warptex.store as store
+    from kernels.lookup import VALID_WORDS
+
+    monkeypatch.setattr(store, "_GATHER_BRICKS", gather)
+    rng = np.random.default_rng(gather)
+
+    def triple(key: int, local: int) -> list[int]:  # as voxels are: one value per place
+        return [key % 97, local, (key * 7 + local) % 1000]
+
+    def bricks(keys: np.ndarray) -> tuple[store._Bricks, dict[int, set[int]]]:
+        held = {int(k): set(np.flatnonzero(rng.random(512) < rng.choice([0.01, 0.3, 1.0])))
+                or {0} for k in keys}
+        bits = np.zeros((len(keys), 512), bool)
+        for n, k in enumerate(keys):
+            bits[n, sorted(held[int(k)])] = True
+        valid = np.packbits(bits, axis=1, bitorder="little").view(np.uint32)
+        triples = [triple(int(k), c) for k in keys for c in sorted(held[int(k)])]
+        assert valid.shape == (len(keys), VALID_WORDS)
+        return store._Bricks(keys, np.array(triples, np.uint16).reshape(-1, 3), valid), held
+
+    for _ in range(5):
+        pool = rng.permutation(40)[:rng.integers(1, 40)].astype(np.int64)
+        older, old_held = bricks(rng.permutation(pool)[:rng.integers(0, len(pool) + 1)])
+        newer, new_held = bricks(rng.permutation(pool)[:rng.integers(1, len(pool) + 1)])
+        merged = store._bricks_union(older, newer)
+        keys = [k for k in older.keys if k not in new_held] + list(newer.keys)
+        assert list(merged.keys) == keys
+        expected = [triple(int(k), c) for k in keys
+                    for c in sorted(old_held.get(int(k), set()) | new_held.get(int(k), set()))]
+        np.testing.assert_array_equal(merged.triples, np.array(expected).reshape(-1, 3))
+        counts = [len(old_held.get(int(k), set()) | new_held.get(int(k), set())) for k in keys]
+        np.testing.assert_array_equal(np.bitwise_count(merged.valid).sum(axis=1), counts)
+
+
 def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
     """Saves take turns on the file's folder, so each merge reads the file the previous
     one wrote (threads here; processes lock the same way)."""

@@ -70,6 +70,9 @@ _MAX_POOL_VOXELS = ((1 << 31) - 1) // 3  # the kernels index the pool's entries 
 BATCH_VOXELS = 1 << 22
 # Exemplars of up to this many pixels each: pixel indices fit uint16, 6 bytes a voxel.
 _COMPACT_PIXELS = 1 << 16
+# Bricks gathered at a time (a million voxels at most): positions for every voxel of a
+# store at once, 8 bytes each and three times over while made, outweighed its voxels.
+_GATHER_BRICKS = 2048
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
 _LOCAL = cell_offsets(_k.BRICK)
 _T = TypeVar("_T")
@@ -131,6 +134,22 @@ def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
 
 
+def _gathered(source: np.ndarray, first: np.ndarray, counts: np.ndarray,
+              out: np.ndarray | None = None) -> np.ndarray:
+    """``source[_ranges_of(first, counts)]``, into ``out`` if given, :data:`_GATHER_BRICKS`
+    ranges at a time."""
+    counts = np.asarray(counts, np.int64)
+    if out is None:
+        out = np.empty((int(counts.sum()), *source.shape[1:]), source.dtype)
+    at = 0
+    for start in range(0, len(counts), _GATHER_BRICKS):
+        part = slice(start, start + _GATHER_BRICKS)
+        rows = _ranges_of(first[part], counts[part])
+        out[at: at + len(rows)] = source[rows]
+        at += len(rows)
+    return out
+
+
 class _Bricks(NamedTuple):
     """Bricks as a store file lists them, least recently used first: their keys, the
     triples of their stored voxels brick after brick, and their stored-voxel words."""
@@ -181,15 +200,20 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
     grown_triples = np.concatenate([
         older.triples[_ranges_of(old_first[grown], old_counts[grown])],
         newer.triples[_ranges_of(new_first[twin[grown]], new_counts[twin[grown]])]])[first]
-    # Each kept brick's voxels are one range of the triples of older, newer and grown.
-    source = np.concatenate([older.triples, newer.triples, grown_triples])
+    # The older list's own bricks, then the newer's, each grown one's voxels from grown.
+    kept_older = int(alone.sum())
     valid = np.concatenate([older.valid[alone], newer.valid])
-    starts = np.concatenate([old_first[alone], len(older.triples) + new_first])
-    at = int(alone.sum()) + twin[grown]
-    valid[at] = grown_valid
-    starts[at] = (len(older.triples) + len(newer.triples)
-                  + _range_starts(_voxels_per_brick(grown_valid)))
-    triples = source[_ranges_of(starts, _voxels_per_brick(valid))]
+    valid[kept_older + twin[grown]] = grown_valid
+    counts = _voxels_per_brick(valid)
+    triples = np.empty((int(counts.sum()), *newer.triples.shape[1:]), newer.triples.dtype)
+    split = int(counts[:kept_older].sum())
+    _gathered(older.triples, old_first[alone], old_counts[alone], out=triples[:split])
+    source, starts = newer.triples, new_first
+    if len(grown):
+        source = np.concatenate([newer.triples, grown_triples])
+        starts = new_first.copy()
+        starts[twin[grown]] = len(newer.triples) + _range_starts(_voxels_per_brick(grown_valid))
+    _gathered(source, starts, counts[kept_older:], out=triples[split:])
     return _Bricks(np.concatenate([older.keys[alone], newer.keys]), triples, valid)
 
 
@@ -602,7 +626,8 @@ class BrickStore:
         with self._reading():
             version = self._version
             live = self._by_recency()
-            ours = _Bricks(self._keys[live], self._payload[self._ranges(live)],
+            ours = _Bricks(self._keys[live], _gathered(self._payload, self._base[live],
+                                                       self._voxel_counts(live)),
                            self._valid[live])
         with _taking_turns(path):
             state = file_state(path)
@@ -905,11 +930,10 @@ class BrickStore:
         """The most recently used of ``bricks`` that fit ``budget`` bytes (``cache_bytes``
         unless given)."""
         counts = _voxels_per_brick(bricks.valid)
-        keep = self._kept(counts, budget)
-        if keep.all():
-            return bricks
-        rows = _ranges_of(_range_starts(counts)[keep], counts[keep])
-        return _Bricks(bricks.keys[keep], bricks.triples[rows], bricks.valid[keep])
+        # The list ends with the most recent, so those kept are its tail: viewed, not copied.
+        first = len(counts) - int(self._kept(counts, budget).sum())
+        return _Bricks(bricks.keys[first:], bricks.triples[int(counts[:first].sum()):],
+                       bricks.valid[first:])
 
     def _kept(self, counts: np.ndarray, budget: int | None = None) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
@@ -1014,12 +1038,13 @@ class BrickStore:
         """Pack the live bricks' voxels at the start of the pool, dropping what repacked
         and evicted bricks left behind; slots stay where they are."""
         live = np.flatnonzero(self._keys != _EMPTY)
-        rows = self._ranges(live)
         counts = self._voxel_counts(live)
+        used = int(counts.sum())
+        payload = np.zeros((2 * used, 3), self._dtype)
+        _gathered(self._payload, self._base[live], counts, out=payload[:used])
+        self._payload = payload
         self._base[live] = _range_starts(counts)
-        self._payload = np.concatenate([self._payload[rows],
-                                        np.zeros((len(rows), 3), self._dtype)])
-        self._used, self._garbage = len(rows), 0
+        self._used, self._garbage = used, 0
         self._upload_pool(0, self._used)
 
     def _upload_slots(self) -> None:
