@@ -28,7 +28,8 @@ from warptex.archive import (
 from warptex.machine import software_versions
 from warptex.settings import MAX_SAMPLER_SEED, MAX_SPP, RENDER_BATCHES
 from warptex.stops import deferred_stops
-from warptex.store import StoreFileError, saved_when_stopped, worth_saving
+from warptex.store import StoreFileError, saved_and_said, saved_when_stopped, worth_saving
+from warptex.warp_runtime import KernelCacheError
 
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
@@ -106,6 +107,19 @@ def _render_error(error: BaseException) -> str:
     return re.sub(r"^\[[\w.:]+\] ", "", own.strip())
 
 
+def _kernel_cache_failure(error: RuntimeError) -> KernelCacheError | None:
+    """The kernel cache's failure (the machine's, not the scene's) that Mitsuba's ``error``
+    wraps, if any: as the exception itself (a render's) or as its traceback's text (a
+    load's)."""
+    cause: BaseException | None = error
+    while cause is not None:
+        if isinstance(cause, KernelCacheError):
+            return cause
+        cause = cause.__cause__ or cause.__context__
+    found = re.search(r"^(?:[\w.]+\.)?KernelCacheError: (.+)$", str(error), re.MULTILINE)
+    return None if found is None else KernelCacheError(found[1])
+
+
 def _scene_root(path: Path) -> ElementTree.Element | None:
     """A scene file's XML; None where it does not parse, which loading it reports."""
     try:
@@ -168,8 +182,8 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
 
 
 def _saved_at_a_stop(scene) -> list[Path]:
-    """The ``cache`` files of ``scene``'s textures, saved as a stop ends the render, but
-    for stores that synthesized nothing (:func:`~warptex.store.worth_saving`)."""
+    """The ``cache`` files of ``scene``'s textures, saved as a stop or a failure ends the
+    render, but for stores that synthesized nothing (:func:`~warptex.store.worth_saving`)."""
     import mitsuba_plugin
 
     return [path for texture in mitsuba_plugin.textures(scene)
@@ -185,7 +199,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     brick stores that have a ``cache`` file unless ``save_stores`` is False (stores that
     are only to be read, such as a shared one), and write their statistics as JSON beside
     the image (``<output>.json``). Returns that report. A render stopped by Ctrl-C or
-    SIGTERM saves the stores too, before the KeyboardInterrupt goes on.
+    SIGTERM, or one Mitsuba fails half way, saves the stores too, before the
+    KeyboardInterrupt or the error goes on.
 
     ``resolution`` sets the scene's ``$width``/``$height`` parameters, which the scenes
     in ``scenes/`` declare, and ``parameters`` any others, by name (Mitsuba's ``-D``).
@@ -196,7 +211,9 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     Raises ValueError for bad input, found before rendering, and :class:`OutputError` where
     a file cannot be written after it (the files are then left as they were, except that a
     brick store that cannot be written keeps neither the image nor its statistics from
-    being written: it is entered there as ``not_saved``).
+    being written: it is entered there as ``not_saved``);
+    :class:`~warptex.warp_runtime.KernelCacheError` where Warp's kernel cache cannot take
+    or load a build.
     """
     if output.suffix.lower() not in IMAGE_SUFFIXES:
         raise ValueError(f"output must end in {endings(IMAGE_SUFFIXES)}, got {output.name!r}")
@@ -261,6 +278,8 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         stop = r"^(?:[\w.]+\.)?(?:KeyboardInterrupt|SigtermInterrupt)\b"
         if re.search(stop, str(e), re.MULTILINE):
             raise KeyboardInterrupt from None
+        if (failure := _kernel_cache_failure(e)) is not None:
+            raise failure from None
         unused = set(re.findall(r"^\s*- \$(\w+)=", str(e), re.MULTILINE))
         if resolution is not None and unused & {"width", "height"}:
             raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
@@ -301,6 +320,10 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
             image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
                                           seed=seed, progress=_progress)
         except RuntimeError as e:  # what the scene asks of Mitsuba that it cannot do
+            if save_stores:  # the voxels of the batches before are as good as any
+                saved_and_said(partial(_saved_at_a_stop, scene), "the render failed")
+            if (failure := _kernel_cache_failure(e)) is not None:
+                raise failure from None
             raise ValueError(f"{scene_path}: Mitsuba cannot render the scene: "
                              f"{_render_error(e)}") from None
         rendered = time.perf_counter()

@@ -1280,8 +1280,7 @@ from warptex.cli import main
 
 code = main()
 if when == "ended":
-    os.kill(os.getpid(), signal.SIGINT)  # as Python shuts down, its work done
-    sys.exit(99)  # not reached: the stop ends the process with the command's code
+    os.kill(os.getpid(), signal.SIGINT)  # as Python shuts down, its work done: ignored
 sys.exit(code)
 """
 
@@ -1328,7 +1327,7 @@ def test_only_the_command_s_own_process_stops_quietly(monkeypatch):
 
 
 def test_a_stream_closed_from_the_start_is_passed_over_at_the_end(monkeypatch):
-    """exit_at_a_stop flushed sys.stdout and sys.stderr, None where closed (`2>&-`)."""
+    """It flushed sys.stdout and sys.stderr, None where closed (`2>&-`)."""
     import sys
 
     import warptex.stops
@@ -1338,5 +1337,32 @@ def test_a_stream_closed_from_the_start_is_passed_over_at_the_end(monkeypatch):
     monkeypatch.setattr(signal, "signal", lambda number, handler: handlers.update({
         number: handler}))
     monkeypatch.setattr(sys, "stderr", None)
-    warptex.stops.exit_at_a_stop(0)
+    warptex.stops.stops_ignored_after_the_work()
     assert set(handlers) == {signal.SIGINT, signal.SIGTERM}
+
+
+_SIGNALLED_AS_PYTHON_ENDS = '''
+import os, signal, sys, time
+import warptex.stops as stops
+stops.is_the_command = lambda: True
+class Late:
+    def __del__(self):  # as Python tears the command's libraries down, after its handlers
+        os.kill(os.getpid(), signal.{signal})
+        time.sleep(0.2)
+keep = Late()
+stops.stops_ignored_after_the_work()
+sys.exit(3)
+'''
+
+
+@pytest.mark.parametrize("stop", ["SIGINT", "SIGTERM"])
+def test_a_stop_as_python_shuts_down_leaves_the_exit_code(stop):
+    """Python puts back the default action of the signals it handles early in its shutdown:
+    a handler that exited with the command's code was gone by the time Mitsuba, Dr.Jit and
+    Warp were let go, and a finished render was killed by the signal most times."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", _SIGNALLED_AS_PYTHON_ENDS.format(signal=stop)],
+                         capture_output=True, text=True, timeout=120)
+    assert (run.returncode, run.stderr) == (3, "")

@@ -647,6 +647,50 @@ def test_a_stopped_render_saves_its_store_for_the_next_to_start_from(tmp_path, c
     assert report["store"]["voxels"] > 0 and report["store"]["voxels_added"] == 0
 
 
+@pytest.mark.parametrize("failure", ["Mitsuba's", "the kernel cache's"])
+def test_a_render_that_fails_half_way_saves_its_store_first(tmp_path, capsys, monkeypatch,
+                                                            failure):
+    """A RuntimeError from Mitsuba or Dr.Jit after a batch: the voxels synthesized so far
+    are saved before the error is reported (they were lost); one of Warp's kernel cache,
+    which Dr.Jit wraps, is the machine's failure (exit 1, the cache named), not the
+    scene's."""
+    import mitsuba_plugin
+    from warptex.cli import main
+    from warptex.warp_runtime import KernelCacheError
+
+    render_batch = mitsuba_plugin._render_batch
+    batches = []
+
+    def failing(scene, spp, seed):
+        batches.append(spp)
+        if len(batches) == 2:
+            if failure == "Mitsuba's":
+                raise RuntimeError("[Integrator] drjit.while_loop(): out of registers")
+            try:
+                raise KernelCacheError("Warp cannot build the kernels of kernels.lookup in "
+                                       "/cache (Read-only file system); set WARP_CACHE_PATH "
+                                       "to another folder")
+            except KernelCacheError as error:
+                raise RuntimeError("drjit.custom(): error in the operation (see above)") from error
+        return render_batch(scene, spp, seed)
+
+    scene = _scene_with_cache(tmp_path, "bricks/bunny.wtb")
+    store = scene.parent / "bricks" / "bunny.wtb"
+    monkeypatch.setattr(mitsuba_plugin, "_render_batch", failing)
+    code = main(["render", str(scene), "--res", "16x16", "--spp", "2",
+                 "-o", str(tmp_path / "failed.exr")])
+    err = capsys.readouterr().err
+    assert f"brick store {store} holds the voxels synthesized before the render failed" in err
+    assert store.exists() and not (tmp_path / "failed.exr").exists()
+    if failure == "Mitsuba's":
+        assert code == 2 and err.rstrip().endswith(
+            "Mitsuba cannot render the scene: drjit.while_loop(): out of registers")
+    else:
+        assert code == 1 and err.rstrip().endswith(
+            "warptex: error: Warp cannot build the kernels of kernels.lookup in /cache "
+            "(Read-only file system); set WARP_CACHE_PATH to another folder")
+
+
 def test_a_render_stopped_while_saving_its_store_leaves_image_and_statistics_as_they_were(
         tmp_path, capsys, monkeypatch):
     """The stores are written before the image: Ctrl-C during that longest write leaves the

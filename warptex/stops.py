@@ -47,10 +47,13 @@ def _interrupted_while_starting(signum: int, frame: Any) -> None:
     raise SystemExit(130)
 
 
-def exit_at_a_stop(code: int) -> None:
-    """As the command, once its work has ended with exit code ``code``: a Ctrl-C or SIGTERM
-    while Python shuts down (a few tenths of a second) ends the process with ``code``, its
-    files written and said to be, rather than 130 or 143 without a word."""
+def stops_ignored_after_the_work() -> None:
+    """As the command, once its work has ended: a Ctrl-C or SIGTERM while Python shuts down
+    (a few tenths of a second: Mitsuba, Dr.Jit and Warp let go) leaves the process to end
+    with the command's exit code, its files written and said to be, rather than 130 or 143
+    without a word. The signals are ignored, not handled: Python puts back the
+    default action of a signal it handles early in its shutdown, which the signal then
+    took, killing the process."""
     if not is_the_command() or threading.current_thread() is not threading.main_thread():
         return
     for stream in (sys.stdout, sys.stderr):
@@ -59,7 +62,7 @@ def exit_at_a_stop(code: int) -> None:
         with contextlib.suppress(OSError):  # a reader gone: not this function's to report
             stream.flush()
     for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, lambda signum, frame: os._exit(code))
+        signal.signal(number, signal.SIG_IGN)
 
 
 def deferred_stops() -> contextlib.AbstractContextManager[None]:

@@ -423,19 +423,25 @@ def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
         yield
     except KeyboardInterrupt:
         print(file=sys.stderr)  # below the progress line that the stop cut short
-        try:
-            saved = list(save())
-        except StoreFileError as error:
-            print(f"warptex: brick store not saved: {error}", file=sys.stderr)
-        except OSError as error:  # a full disk: the file is left as it was
-            print(f"warptex: brick store not saved: {write_failure(error.filename, error)}",
-                  file=sys.stderr)
-        else:
-            for path in saved:
-                # Not "saved": a file that held every voxel already is left as it was.
-                print(f"warptex: brick store {path} holds the voxels synthesized before "
-                      "stopping: the next run starts from them", file=sys.stderr)
+        saved_and_said(save, "stopping")
         raise
+
+
+def saved_and_said(save: Callable[[], Iterable[Path]], before: str) -> None:
+    """Write brick stores with ``save`` as work ends early (``before``: "stopping"), and say
+    on stderr which hold the voxels synthesized so far, or why none was saved."""
+    try:
+        saved = list(save())
+    except StoreFileError as error:
+        print(f"warptex: brick store not saved: {error}", file=sys.stderr)
+    except OSError as error:  # a full disk: the file is left as it was
+        print(f"warptex: brick store not saved: {write_failure(error.filename, error)}",
+              file=sys.stderr)
+    else:
+        for path in saved:
+            # Not "saved": a file that held every voxel already is left as it was.
+            print(f"warptex: brick store {path} holds the voxels synthesized before {before}: "
+                  "the next run starts from them", file=sys.stderr)
 
 
 class BrickStore:

@@ -30,7 +30,7 @@ from warptex.cli.console import (
 from warptex.cli.options import check_max_size_option
 from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
 from warptex.exemplar import ExemplarError
-from warptex.stops import deferred_stops, exit_at_a_stop, started
+from warptex.stops import deferred_stops, started, stops_ignored_after_the_work
 from warptex.warp_runtime import KernelCacheError
 
 # Modules nearly every command builds, and whether they run on the CPU whatever the device
@@ -80,7 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``warptex`` with ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
     missing_streams_to_devnull()
     code = _run(sys.argv[1:] if argv is None else list(argv))
-    exit_at_a_stop(code)
+    stops_ignored_after_the_work()
     return code
 
 
