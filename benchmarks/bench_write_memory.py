@@ -3,7 +3,8 @@
 Prints, per format and encoding, the growth of the peak resident memory while
 ``write_volume`` writes a random SIZE^3 RGB volume, in copies of the volume: what
 ``WRITE_COPIES`` (the `volume` command's memory check) must cover. Each write runs in a
-process of its own, its libraries imported before the baseline is read.
+process of its own, its libraries imported and its peak reset (``PeakMemory``) before the
+write.
 
     python benchmarks/bench_write_memory.py [--size 256]
 """
@@ -12,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
-import resource
 import tempfile
 from pathlib import Path
 
 import numpy as np
 from timing import run_record
 
+from warptex.machine import PeakMemory
 from warptex.volume_files import WRITE_COPIES, write_volume
 
 
@@ -27,10 +28,11 @@ def _copies_held(path: Path, size: int, srgb: bool) -> float:
     import OpenEXR  # noqa: F401  (imported here so that its loading is not counted)
 
     volume = np.random.default_rng(0).random((size, size, size, 3), dtype=np.float32)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    write_volume(path, volume, srgb=srgb)
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return (after - before) * 1024 / volume.nbytes  # ru_maxrss is in KiB on Linux
+    # Its peak reset first: a spawned process starts with the parent's ru_maxrss, which
+    # hid any write peaking below the parent's size.
+    with PeakMemory() as held:
+        write_volume(path, volume, srgb=srgb)
+    return held.growth / volume.nbytes
 
 
 def main() -> None:

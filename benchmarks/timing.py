@@ -54,13 +54,22 @@ def best_of(fn: Callable[[], object], repeat: int) -> float:
 
 def run_record() -> str:
     """The commit (``-dirty`` with uncommitted changes), date, machine and versions of this
-    run: what BENCHMARKS.md records beside its figures."""
+    run: what BENCHMARKS.md records beside its figures. Refuses (SystemExit) to label a run
+    whose warptex is imported from another checkout than the script's."""
     import numpy as np
     import warp as wp
 
+    import warptex
     from warptex.machine import cpu_model, physical_memory, usable_cores
     from warptex.warp_runtime import device
 
+    # An interpreter whose install points at another checkout (a clone run with the main
+    # checkout's .venv) measures that checkout's code: its commit would be a false label.
+    measured = Path(warptex.__file__).resolve().parent.parent
+    if measured != ROOT:
+        raise SystemExit(f"this script is in {ROOT} but imports warptex from {measured}: "
+                         f"run it with an interpreter that imports {ROOT}'s own (set "
+                         f"PYTHONPATH={ROOT})")
     try:
         commit = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"],
                                 capture_output=True, text=True, check=True).stdout.strip()

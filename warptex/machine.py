@@ -145,7 +145,7 @@ class PeakMemory:
     """How far this process's resident memory rose above its level at the start of a
     ``with`` block, in bytes (``growth`` after the block): the peak memory of the work done
     in it, as ``warptex compare`` reports per method (in processes that
-    :func:`map_large_blocks`).
+    :func:`map_large_blocks`); ``peak``, the resident memory at that peak.
 
     On Linux the peak (``VmHWM``) is reset at the start through ``/proc/self/clear_refs``;
     elsewhere the rise of ``ru_maxrss`` over the start, which misses memory below an earlier
@@ -157,6 +157,7 @@ class PeakMemory:
 
     def __init__(self) -> None:
         self.growth = 0
+        self.peak = 0
         self._start = 0
         self._reset = False
 
@@ -170,8 +171,8 @@ class PeakMemory:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        peak = self._status("VmHWM") if self._reset else self._max_rss()
-        self.growth = max(peak - self._start, 0)
+        self.peak = self._status("VmHWM") if self._reset else self._max_rss()
+        self.growth = max(self.peak - self._start, 0)
 
     def _status(self, key: str) -> int:
         for line in self._STATUS.read_text().splitlines():
