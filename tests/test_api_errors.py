@@ -644,9 +644,16 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
     assert run.returncode != 0
     assert (f"the one Python found, {tmp_path / 'kernels' / '__init__.py'}, is another "
             f"({tmp_path / 'kernels' / 'common.py'} is not warptex's)" in run.stderr)
+    # One without common.py: an editable install's import hook gave warptex's to it, which
+    # passed, and imports failed later on the modules it hides.
+    (tmp_path / "kernels" / "common.py").unlink()
+    (tmp_path / "kernels" / "synthesis.py").write_text("HUB = 'another package'\n")
+    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0 and "is another (" in run.stderr, run.stderr
+    (tmp_path / "kernels" / "synthesis.py").unlink()
     # A folder named kernels without __init__.py (a cache) hides nothing.
     (tmp_path / "kernels" / "__init__.py").unlink()
-    (tmp_path / "kernels" / "common.py").unlink()
     run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr

@@ -921,8 +921,13 @@ def test_a_ply_or_glb_that_float32_would_flatten_is_refused_before_the_work(
                  "--resolution", "16"]
     for command, output in (("bake", "far.ply"), ("bake", "far.glb"), ("cut", "cut.ply")):
         assert main([command, *arguments, "--uv", "none", "-o", str(tmp_path / output)]) == 2
-        assert capsys.readouterr().err.startswith(
+        err = capsys.readouterr().err
+        assert err.startswith(
             f"warptex: error: {tmp_path / output}: .ply and .glb files hold vertices as float32")
+        # The way out it names is one the command takes: .obj alone was refused as a file of
+        # no vertex colors.
+        assert err.endswith(": write .obj with a UV texture (--uv auto: .obj holds no vertex "
+                            "colors), or move the mesh nearer the origin\n")
     # A part of a few units a few thousand units out (millimetres, an assembly) moves by a
     # fraction of a micrometre: written.
     part = trimesh.creation.icosphere(subdivisions=2)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+from pathlib import Path
 from typing import Any
 
 from warptex.stops import quiet_while_starting
@@ -26,15 +27,25 @@ def _check_kernels_package() -> None:
     """Refuse, in one message, a ``kernels`` package that is not warptex's: PyPI's package
     of that name installed over it, or a ``kernels`` package first on the path, would fail
     later with an error naming neither. (A folder named ``kernels`` without an
-    ``__init__.py``, a cache say, only joins warptex's modules to it.)"""
+    ``__init__.py`` or a module named as one of warptex's, a cache say, only joins
+    warptex's modules to it.)"""
     try:
         from kernels import common
     except ImportError as error:
         why = str(error)
     else:
-        if getattr(common, "WARPTEX_KERNELS", False):
+        # An editable install's import hook serves warptex's modules by name to a package
+        # that lacks them, so common may be warptex's and the package's others not.
+        home = Path(common.__file__).resolve().parent
+        hiding = [Path(folder) / mine.name for folder in sys.modules["kernels"].__path__
+                  if Path(folder).resolve() != home for mine in sorted(home.glob("*.py"))
+                  if (Path(folder) / mine.name).exists()]
+        if not getattr(common, "WARPTEX_KERNELS", False):
+            why = f"{common.__file__} is not warptex's"
+        elif hiding:
+            why = f"its {hiding[0]} hides warptex's {home / hiding[0].name}"
+        else:
             return
-        why = f"{common.__file__} is not warptex's"
     package = sys.modules.get("kernels")
     found = getattr(package, "__file__", None) or list(getattr(package, "__path__", []))
     raise ImportError(f"warptex's Warp kernels are the top-level package 'kernels', and the "

@@ -161,7 +161,8 @@ def _check_float32_outputs(mesh: trimesh.Trimesh, outputs: Sequence[Path]) -> No
         raise MeshFileError(f"{narrow[0]}: .ply and .glb files hold vertices as float32, which "
                             f"would move this mesh's by up to {shift:.3g}, {shift / edge:.2g} "
                             f"of its median edge (it lies {float(np.abs(vertices).max()):.3g} "
-                            "from the origin): write .obj, or move the mesh nearer the origin")
+                            "from the origin): write .obj with a UV texture (--uv auto: .obj "
+                            "holds no vertex colors), or move the mesh nearer the origin")
 
 
 def _matte(suffix: str, image: Image.Image | None,

@@ -142,7 +142,8 @@ def _write_vol(path: Path, volume: np.ndarray, alpha: bool = False) -> None:
 _VOLUME_WRITERS = {".npy": _write_npy, ".exr": _write_exr_volume, ".vol": _write_vol}
 # Copies of a volume that its write holds besides it, rounded up from what
 # benchmarks/bench_write_memory.py measures (sRGB-decoded at 256^3: .npy 0, .vol 1.13,
-# .exr 2.21; more at smaller sizes, where fixed buffers weigh more: 1.54 and 2.35 at 160^3).
+# .exr 2.27; more at smaller sizes, where fixed buffers weigh more: 2.04 and 2.57 at 128^3,
+# a MiB past .vol's 2 there, which no memory check of so small a volume turns on).
 WRITE_COPIES = {".npy": 0, ".exr": 3, ".vol": 2}
 _IMAGE_WRITERS = {".npy": _write_npy, ".exr": _write_exr}
 VOLUME_FORMATS = tuple(_VOLUME_WRITERS)
