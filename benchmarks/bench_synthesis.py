@@ -10,7 +10,7 @@ are compiled and candidates pre-computed before anything is timed.
                                           [--sheet PNG]
                                           | --passes-sweep
                                           | --memory [--boxes DxHxW ...] [--part-voxels N]
-                                          | --request-memory
+                                          | --request-memory | --contrast
                                           | --cold-kernels [--names NAME ...]]
 """
 
@@ -86,6 +86,32 @@ def passes_sweep(folder: Path) -> None:
             cells.append(f"{passes} passes: energy {worst_axis_energy(vol, ex.colors):.3f}, "
                          f"{seconds:.2f} s")
         print(f"{name}: " + "; ".join(cells))
+
+
+def colour_spread(colors: np.ndarray) -> float:
+    """The root-mean-square distance of an image's or volume's colours from their mean
+    colour: its contrast, whatever its colour cast (a grey and a brown photo of one
+    pattern have the same)."""
+    pixels = colors.reshape(-1, colors.shape[-1]).astype(np.float64)
+    return float(np.sqrt(pixels.var(axis=0).sum()))
+
+
+def contrast(folder: Path) -> None:
+    """The contrast a 64^3 box keeps of its exemplar (README, "Known limitations"): its
+    colour spread over the exemplar's, beside the standard deviation of all values with the
+    channels pooled, which counts the differences between the channels' means (a colour
+    cast, kept by any volume of the exemplar's colours, a flat one too) as contrast."""
+    print("| exemplar | colour spread, box over exemplar | all values' std, box over "
+          "exemplar | the same of a flat volume of the mean colour |")
+    print("|---|---|---|---|")
+    for path in sorted(folder.glob("*_64.png")):
+        ex = Exemplar.load(path)
+        vol = Synthesizer(precompute(ex), seed=0).box((0, 0, 0), (64, 64, 64))
+        flat = np.broadcast_to(ex.colors.reshape(-1, ex.channels).mean(axis=0), vol.shape)
+        print(f"| {path.stem.removesuffix('_64')} | "
+              f"{colour_spread(vol) / colour_spread(ex.colors):.2f} | "
+              f"{vol.std() / ex.colors.std():.2f} | {flat.std() / ex.colors.std():.2f} |",
+              flush=True)
 
 
 # One box in a fresh process: its peak memory growth (RSS) and time, engine set up and
@@ -294,6 +320,9 @@ def main() -> None:
     parser.add_argument("--request-memory", action="store_true",
                         help="only print the engine's memory per work voxel against feature "
                         "channels, and that of scattered voxels beside the engine's work")
+    parser.add_argument("--contrast", action="store_true",
+                        help="the contrast a 64^3 box keeps of each 64 px exemplar in "
+                             "--exemplars")
     parser.add_argument("--cold-kernels", action="store_true",
                         help="only print the first and second 64^3 box of a fresh engine on "
                         "an empty kernel cache, for each of --names")
@@ -310,6 +339,9 @@ def main() -> None:
         return
     if args.cold_kernels:
         cold_kernels(args.exemplars, args.names)
+        return
+    if args.contrast:
+        contrast(args.exemplars)
         return
     if args.request_memory:
         request_memory(args.exemplars)
