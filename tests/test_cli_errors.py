@@ -715,6 +715,22 @@ def test_standard_output_that_cannot_be_written_is_one_line_and_exit_1(files, bu
         1, "warptex: error: standard output: No space left on device\n")
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
+def test_standard_output_that_fails_after_an_output_says_it_was_written(files, tmp_path):
+    """The line that says a volume was written is the one that fails: the error says so."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "v.npy"
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "warptex", "volume", str(files["exemplar"]),
+                              "--size", "4", "-o", str(out)], stdout=full,
+                             stderr=subprocess.PIPE, text=True, timeout=300)
+    assert run.returncode == 1 and run.stderr.endswith(
+        f"warptex: error: standard output: No space left on device (after writing {out})\n")
+    assert np.load(out).shape == (4, 4, 4, 3)
+
+
 def test_negative_numbers_in_any_notation_are_values(files, tmp_path, capsys):
     """argparse reads "-1e3" (or "-32x32") as an unknown option; warptex takes it as the
     value, only where an option of numbers expects one (a file may be called -5), so that

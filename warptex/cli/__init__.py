@@ -113,15 +113,21 @@ def _run(argv: list[str]) -> int:
         except (KernelCacheError, StandardOutputError) as error:  # the machine's, mid-work
             if isinstance(error, StandardOutputError):
                 _drop_unwritten_output()
-            print(f"warptex: error: {error}", file=sys.stderr)
+            # Standard output may fail on the line that says an output was written.
+            after = f" ({_after_writing().strip()})" if WRITTEN else ""
+            print(f"warptex: error: {error}{after}", file=sys.stderr)
             return 1
         except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
             terminated = isinstance(stop, SigtermInterrupt) or SIGTERM_RECEIVED.is_set()
-            after = ("" if not WRITTEN else
-                     " after writing " + ", ".join(str(f) for f in dict.fromkeys(WRITTEN)))
-            print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}{after}",
+            print(f"\nwarptex: {'terminated' if terminated else 'interrupted'}{_after_writing()}",
                   file=sys.stderr)
             return 143 if terminated else 130  # as for a command that the signal ends
+
+
+def _after_writing() -> str:
+    """The words " after writing A, B" of the outputs written so far; none before any."""
+    return "" if not WRITTEN else " after writing " + ", ".join(
+        str(f) for f in dict.fromkeys(WRITTEN))
 
 
 def _drop_unwritten_output() -> None:
