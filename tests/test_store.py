@@ -430,20 +430,27 @@ def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
 def test_the_pool_grows_up_to_its_limit_and_refuses_only_what_exceeds_it(candidates,
                                                                          monkeypatch):
     """The pool doubles as it grows, but up to the limit of its int32 indices: voxels that
-    fit under it are stored (before, a doubling past the limit was refused though they fit),
-    and a batch that does not fit is refused with the voxels it needs."""
+    fit under it are stored (before, a doubling past the limit was refused though they fit).
+    A store keeps what the limit leaves room for, whatever its cache_bytes, evicting as any
+    store does (a full one refused every miss after); a batch that does not fit is refused
+    with the voxels it needs."""
     import warptex.store as store_module
 
     monkeypatch.setattr(store_module, "_MAX_POOL_VOXELS", 6000)
+    monkeypatch.setattr(store_module, "BATCH_VOXELS", 512)  # room kept: 4976 voxels
     syn = synthesizer(candidates)
-    store = BrickStore(syn)  # whole bricks of 512 voxels, a first pool of 4096
-    bricks = np.array([brick_center((i, 0, 0)) for i in range(12)])
-    for batch in (bricks[:8], bricks[8:11]):  # 4096 voxels, then 1536 more
+    with pytest.warns(UserWarning, match=r"cache_bytes 268435456 is more than a brick store's "
+                                         r"pool can index: the store keeps at most 29856 bytes"):
+        store = BrickStore(syn)  # whole bricks of 512 voxels, a first pool of 4096
+    bricks = np.array([brick_center((i, 0, 0)) for i in range(40)])
+    for batch in (bricks[:8], bricks[8:9], *bricks[9:, None]):
         np.testing.assert_array_equal(sample(store, batch),
                                       syn.voxels(np.floor(batch).astype(int)))
-    assert store.stats()["bricks"] == 11 and len(store._payload) == 6000  # not 8192
-    with pytest.raises(MemoryError, match="brick store pool of 6144 voxels exceeds"):
-        sample(store, bricks[11:])
+        if len(store._payload) > 4096:
+            assert len(store._payload) == 6000  # not 8192
+    assert store.stats()["bricks"] == 9 and store.stats()["bricks_evicted"] == 31
+    with pytest.raises(MemoryError, match="brick store pool of 11264 voxels exceeds"):  # 9 + 13
+        store.prefetch(np.floor(bricks[:13]).astype(int))
 
 
 def test_zero_cache_still_answers(candidates):

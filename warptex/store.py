@@ -448,9 +448,11 @@ class BrickStore:
     """Finest-level voxels of one solid texture in 8^3 bricks, synthesized on first touch
     (Dong 2008, section 6.2: synthesis focused on the voxels a surface needs, kept as triples).
 
-    ``cache_bytes`` bounds the stored voxels and their bricks' bits; least-recently-used
-    bricks are evicted after each batch (a batch may exceed the bound while it is being
-    finished). ``whole_bricks``: a miss synthesizes the whole brick of each voxel read,
+    ``cache_bytes`` bounds the stored voxels and their bricks' bits, up to what the pool's
+    int32 indices reach (about 700 million voxels; a larger one is warned of and kept to
+    that); least-recently-used bricks are evicted after each batch (a batch may exceed the
+    bound while it is being finished). ``whole_bricks``: a miss synthesizes the whole brick
+    of each voxel read,
     best when queries come back near each other (renders, volumes); else only the voxels
     read, best for thin sets such as mesh surfaces and cuts. Either way a stored voxel
     costs 6 bytes (12 with exemplars over 65536 pixels).
@@ -468,6 +470,13 @@ class BrickStore:
         compact = self._pixels.max() <= _COMPACT_PIXELS
         self._dtype = np.dtype(np.uint16 if compact else np.int32)
         self._voxel_bytes = 3 * self._dtype.itemsize
+        # The pool's int32 indices bound the voxels kept, whatever cache_bytes asks: room is
+        # left for a batch stored before eviction and the voxels of the bricks it repacks.
+        # Beyond it, a store filled up and refused every miss (a render failed half way).
+        self._most_bytes = (_MAX_POOL_VOXELS - 2 * BATCH_VOXELS) * self._voxel_bytes
+        if self.cache_bytes > self._most_bytes:
+            warn(f"cache_bytes {self.cache_bytes} is more than a brick store's pool can index: "
+                 f"the store keeps at most {self._most_bytes} bytes of voxels", stacklevel=2)
         self._device = synthesizer.device
         uploaded = {j: wp.array(cs.colors[j].reshape(-1), dtype=wp.float32, device=self._device)
                     for j in set(cs.axis_source)}
@@ -489,6 +498,11 @@ class BrickStore:
         # The store file that loading reported and ignored (file_state): replaced unsaid.
         self._ignored: tuple | None = None
         self._seconds = 0.0
+
+    @property
+    def _budget(self) -> int:
+        """The bytes of bricks kept: ``cache_bytes``, within what the pool can index."""
+        return min(self.cache_bytes, self._most_bytes)
 
     # -- public API -------------------------------------------------------------------
 
@@ -650,7 +664,7 @@ class BrickStore:
                 if state != self._ignored:  # reported once, when it was loaded
                     warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None
-            budget = self.cache_bytes
+            budget = self._budget
             if saved is not None:  # a store of less room does not shrink a shared file
                 mine = len(ours.keys)
                 ours = _bricks_union(saved, ours)
@@ -933,8 +947,8 @@ class BrickStore:
         return live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
 
     def _recent_that_fit(self, bricks: _Bricks, budget: int | None = None) -> _Bricks:
-        """The most recently used of ``bricks`` that fit ``budget`` bytes (``cache_bytes``
-        unless given)."""
+        """The most recently used of ``bricks`` that fit ``budget`` bytes (the store's bound,
+        ``cache_bytes`` within what the pool indexes, unless given)."""
         counts = _voxels_per_brick(bricks.valid)
         # The list ends with the most recent, so those kept are its tail: viewed, not copied.
         first = len(counts) - int(self._kept(counts, budget).sum())
@@ -943,10 +957,10 @@ class BrickStore:
 
     def _kept(self, counts: np.ndarray, budget: int | None = None) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
-        first, ``budget`` bytes (``cache_bytes`` unless given) keep: the most recently used
+        first, ``budget`` bytes (the store's bound unless given) keep: the most recently used
         that fit."""
         cost = self._brick_costs(counts)
-        return np.cumsum(cost[::-1])[::-1] <= (self.cache_bytes if budget is None else budget)
+        return np.cumsum(cost[::-1])[::-1] <= (self._budget if budget is None else budget)
 
     def _brick_costs(self, counts: np.ndarray) -> np.ndarray:
         """The bytes that bricks holding ``counts`` voxels each take in a store."""
@@ -996,7 +1010,9 @@ class BrickStore:
 
     def _reserve(self, voxels: int) -> int:
         """Pool position of ``voxels`` new consecutive voxels; compacts or grows the pool."""
-        if self._used + voxels > len(self._payload) and 2 * self._garbage > self._used:
+        if self._used + voxels > len(self._payload) and (
+                2 * self._garbage > self._used
+                or (self._garbage and self._used + voxels > _MAX_POOL_VOXELS)):
             self._compact()
         needed = self._used + voxels
         if needed > len(self._payload):
@@ -1046,7 +1062,8 @@ class BrickStore:
         live = np.flatnonzero(self._keys != _EMPTY)
         counts = self._voxel_counts(live)
         used = int(counts.sum())
-        payload = np.zeros((2 * used, 3), self._dtype)
+        # Room to grow, but not past the limit, which _reserve checks only to grow the pool.
+        payload = np.zeros((min(2 * used, max(used, _MAX_POOL_VOXELS)), 3), self._dtype)
         _gathered(self._payload, self._base[live], counts, out=payload[:used])
         self._payload = payload
         self._base[live] = _range_starts(counts)
