@@ -652,8 +652,18 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert run.returncode != 0 and "is another (" in run.stderr, run.stderr
     (tmp_path / "kernels" / "synthesis.py").unlink()
-    # A folder named kernels without __init__.py (a cache) hides nothing.
     (tmp_path / "kernels" / "__init__.py").unlink()
+    # One of links to warptex's own files (a strict editable install's) hides nothing.
+    import kernels
+
+    for mine in Path(kernels.__file__).parent.glob("*.py"):
+        (tmp_path / "kernels" / mine.name).symlink_to(mine)
+    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    for link in (tmp_path / "kernels").glob("*.py"):
+        link.unlink()
+    # A folder named kernels without __init__.py (a cache) hides nothing.
     run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr

@@ -1382,3 +1382,24 @@ def test_a_stop_as_python_shuts_down_leaves_the_exit_code(stop):
     run = subprocess.run([sys.executable, "-c", _SIGNALLED_AS_PYTHON_ENDS.format(signal=stop)],
                          capture_output=True, text=True, timeout=120)
     assert (run.returncode, run.stderr) == (3, "")
+
+
+_CLOSED_AT_START = '''
+import os, sys
+from warptex.cli.console import missing_streams_to_devnull
+missing_streams_to_devnull()
+with open(os.devnull) as later:
+    print(later.fileno(), sys.stderr is not None, file=sys.stdout)
+'''
+
+
+def test_streams_closed_at_the_start_leave_no_standard_descriptor_free():
+    """With stdin closed too (`<&- 2>&-`), the null device for stderr took descriptor 0 and
+    left 2 free: the next file opened got it, and what libraries write to 2 went there."""
+    import subprocess
+    import sys
+
+    run = subprocess.run(["sh", "-c", 'exec "$@" <&- 2>&-', "sh", sys.executable, "-c",
+                          _CLOSED_AT_START], capture_output=True, text=True, timeout=120)
+    fd, stderr_set = run.stdout.split()
+    assert int(fd) > 2 and stderr_set == "True", run.stdout

@@ -594,10 +594,25 @@ def test_an_image_beyond_the_memory_the_process_may_use_is_refused_by_name(tmp_p
         error = _raises(path, r"huge\.png: too large to load in the memory this process may "
                               r"use \(Unable to allocate", max_size=16)
     assert caught[0].filename == __file__ and error.__cause__ is None
-    monkeypatch.setattr(warptex.exemplar, "read_image", lambda _: (_ for _ in ()).throw(
-        MemoryError()))
+    read_image = warptex.exemplar.read_image
+    mask = tmp_path / "mask.png"
+    Image.fromarray(np.zeros((16, 16), np.uint8)).save(mask)
+
+    def no_room_for(name: str):
+        def read(path):
+            if Path(path).name == name:
+                raise MemoryError()
+            return read_image(path)
+        return read
+
+    monkeypatch.undo()
+    monkeypatch.setattr(warptex.exemplar, "read_image", no_room_for("huge.png"))
     _raises(path, r"huge\.png: too large to load in the memory this process may use "
-                  r"\(out of memory\)$")
+                  r"\(out of memory\)$", alpha="keep")
+    # A feature mask too large is the mask's fault, not the exemplar's.
+    monkeypatch.setattr(warptex.exemplar, "read_image", no_room_for("mask.png"))
+    _raises(path, r"mask\.png: too large to load in the memory this process may use",
+            alpha="keep", feature_mask=mask)
 
 
 def test_exr_luminance_only_is_one_channel(tmp_path, rng):

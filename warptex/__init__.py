@@ -37,9 +37,12 @@ def _check_kernels_package() -> None:
         # An editable install's import hook serves warptex's modules by name to a package
         # that lacks them, so common may be warptex's and the package's others not.
         home = Path(common.__file__).resolve().parent
-        hiding = [Path(folder) / mine.name for folder in sys.modules["kernels"].__path__
-                  if Path(folder).resolve() != home for mine in sorted(home.glob("*.py"))
-                  if (Path(folder) / mine.name).exists()]
+        # Other files: an install of links to warptex's own (a strict editable one) hides
+        # nothing.
+        hiding = [other for folder in sys.modules["kernels"].__path__
+                  for mine in sorted(home.glob("*.py"))
+                  if (other := Path(folder) / mine.name).exists()
+                  and other.resolve() != mine.resolve()]
         if not getattr(common, "WARPTEX_KERNELS", False):
             why = f"{common.__file__} is not warptex's"
         elif hiding:

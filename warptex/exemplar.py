@@ -210,22 +210,23 @@ class Exemplar:
             distance = None
             if feature_mask is not None:
                 mask_path = check_file_name("feature_mask", feature_mask)
-                mask_image = read_image(mask_path)[0]
-                if mask_image.shape[:2] != read_shape[:2]:
-                    raise ExemplarError(
-                        f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
-                        f"{path} is {_size(read_shape)}"
-                    )
-                first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
-                if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
-                    # Half its maximum, the threshold, would be NaN or infinite.
-                    raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
-                _warn_unless_binary(mask_image, str(mask_path))
-                if array.shape[:2] != read_shape[:2]:
-                    mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
-                                         str(mask_path))
-                mask = _binary_mask(mask_image, str(mask_path))
-                distance = feature_distance_from_mask(mask, name=str(mask_path))
+                with _memory_named(mask_path):  # the mask's, not the exemplar's
+                    mask_image = read_image(mask_path)[0]
+                    if mask_image.shape[:2] != read_shape[:2]:
+                        raise ExemplarError(
+                            f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
+                            f"{path} is {_size(read_shape)}"
+                        )
+                    first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
+                    if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
+                        # Half its maximum, the threshold, would be NaN or infinite.
+                        raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
+                    _warn_unless_binary(mask_image, str(mask_path))
+                    if array.shape[:2] != read_shape[:2]:
+                        mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
+                                             str(mask_path))
+                    mask = _binary_mask(mask_image, str(mask_path))
+                    distance = feature_distance_from_mask(mask, name=str(mask_path))
             elif feature_distance:
                 colors = _validated_colors(array, str(path))
                 distance = feature_distance_from_mask(otsu_mask(colors),

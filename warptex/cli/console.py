@@ -132,6 +132,11 @@ def missing_streams_to_devnull() -> None:
     None in Python, which ``print`` passes over but progress bars and flushes fail on:
     they go to the null device instead. Opened now, it also takes the closed descriptor,
     which a file opened later would otherwise get, for Warp's library to write into."""
+    # Each closed descriptor of 0, 1 and 2 (stdin closed too, `<&-`) is filled first: the
+    # lowest free one is what the next file opened gets.
+    while (held := os.open(os.devnull, os.O_RDWR)) <= 2:
+        pass
+    os.close(held)
     for name in ("stdout", "stderr"):
         if getattr(sys, name) is None:
             setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (open for the process)
