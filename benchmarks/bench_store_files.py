@@ -10,7 +10,7 @@ before, once each, apart from the timed runs: NumPy's and Python's allocations a
 The stores are filled with valid triples without synthesizing them (``BrickStore._insert``),
 so the figures are the files' costs alone, not synthesis.
 
-    .venv/bin/python benchmarks/bench_store_files.py [--bricks 10000 40000 85000]
+    .venv/bin/python benchmarks/bench_store_files.py [--bricks 10000 40000 85000] [--halves]
 """
 
 from __future__ import annotations
@@ -45,6 +45,19 @@ def filled(synthesizer: Synthesizer, bricks: int, first: int) -> BrickStore:
     return store
 
 
+def halves(synthesizer: Synthesizer, bricks: int, upper: bool) -> BrickStore:
+    """A store of partly filled bricks (``whole_bricks=False``, as bake and cut make):
+    the lower or upper half of each of ``bricks`` bricks, so two such stores of one file
+    merge brick by brick, voxel by voxel."""
+    store = BrickStore(synthesizer, whole_bricks=False)
+    coords = np.stack(np.unravel_index(np.arange(bricks), (64, 64, 64)), 1) - 32
+    half = brick_voxels(pack(coords)).reshape(bricks, 512, 3)[:, 256 * upper:256 * (upper + 1)]
+    pixels = synthesizer.candidates.colors[0].shape[0] * synthesizer.candidates.colors[0].shape[1]
+    voxels = half.reshape(-1, 3)
+    store._insert(voxels, np.random.default_rng(upper).integers(0, pixels, (len(voxels), 3)))
+    return store
+
+
 def peak_mib(run) -> float:
     """The most memory ``run()`` holds at once beyond what was held before, in MiB."""
     tracemalloc.start()
@@ -60,9 +73,25 @@ def main() -> None:
     parser.add_argument("--exemplar", default=str(REPO / "tests" / "data" / "granite_64.png"))
     parser.add_argument("--bricks", type=int, nargs="+", default=[10_000, 40_000, 85_000])
     parser.add_argument("--repeat", type=positive_int, default=3)
+    parser.add_argument("--halves", action="store_true",
+                        help="instead: the merging save of two stores of the same N bricks, "
+                             "each holding the other half of each brick")
     args = parser.parse_args()
     print(run_record(), flush=True)
     synthesizer = Synthesizer(precompute(args.exemplar), device="cpu")
+    if args.halves:
+        print("| bricks N, half filled in each store | merged file MiB | "
+              "merging save, peak MiB held |")
+        print("|---|---|---|")
+        with tempfile.TemporaryDirectory() as folder:
+            for n in args.bricks:
+                path = Path(folder) / f"h{n}.wtb"
+                lower, upper = halves(synthesizer, n, False), halves(synthesizer, n, True)
+                lower.save(path)
+                saving = peak_mib(lambda upper=upper, path=path: upper.save(path))
+                print(f"| {n} | {path.stat().st_size / 2**20:.0f} | {saving:.0f} |",
+                      flush=True)
+        return
     print("| bricks N | save, new file s | save over itself s | save of N other bricks over "
           "it s | merged file MiB | load of the merged file s | merging save, peak MiB held | "
           "load, peak MiB held |")

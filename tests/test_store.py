@@ -995,7 +995,8 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
         monkeypatch, gather):
     """Against a brute-force merge: the older list's own bricks first, then the newer's,
     each in its list's order, a brick in both holding the voxels of either in local order;
-    gathered a few bricks at a time as one."""
+    gathered and merged a few bricks at a time as one (a merge of partly filled bricks, two
+    bakes' stores, held ten times the file at once)."""
     import warptex.store as store
     from kernels.lookup import VALID_WORDS
 
@@ -1016,6 +1017,7 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
         assert valid.shape == (len(keys), VALID_WORDS)
         return store._Bricks(keys, np.array(triples, np.uint16).reshape(-1, 3), valid), held
 
+    grown = 0  # bricks whose older copy holds voxels the newer lacks: merged voxel by voxel
     for _ in range(5):
         pool = rng.permutation(40)[:rng.integers(1, 40)].astype(np.int64)
         older, old_held = bricks(rng.permutation(pool)[:rng.integers(0, len(pool) + 1)])
@@ -1028,6 +1030,8 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
         np.testing.assert_array_equal(merged.triples, np.array(expected).reshape(-1, 3))
         counts = [len(old_held.get(int(k), set()) | new_held.get(int(k), set())) for k in keys]
         np.testing.assert_array_equal(np.bitwise_count(merged.valid).sum(axis=1), counts)
+        grown += sum(bool(old_held[k] - new_held[k]) for k in old_held.keys() & new_held.keys())
+    assert grown > 0
 
 
 def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):

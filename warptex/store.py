@@ -193,28 +193,47 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
         return newer  # the older list adds nothing: a store saved over the file it loaded
     old_counts, new_counts = _voxels_per_brick(older.valid), _voxels_per_brick(newer.valid)
     old_first, new_first = _range_starts(old_counts), _range_starts(new_counts)
-    # The grown bricks' voxels, old then new, each brick after brick in local order.
-    cells = [np.flatnonzero(_stored_bits(part.valid[rows]))
-             for part, rows in ((older, grown), (newer, twin[grown]))]
-    first, grown_valid = _packed(np.concatenate(cells), len(grown))
-    grown_triples = np.concatenate([
-        older.triples[_ranges_of(old_first[grown], old_counts[grown])],
-        newer.triples[_ranges_of(new_first[twin[grown]], new_counts[twin[grown]])]])[first]
-    # The older list's own bricks, then the newer's, each grown one's voxels from grown.
+    # The older list's own bricks, then the newer's, a grown one holding both copies' voxels.
     kept_older = int(alone.sum())
     valid = np.concatenate([older.valid[alone], newer.valid])
-    valid[kept_older + twin[grown]] = grown_valid
+    valid[kept_older + twin[grown]] |= older.valid[grown]
     counts = _voxels_per_brick(valid)
     triples = np.empty((int(counts.sum()), *newer.triples.shape[1:]), newer.triples.dtype)
     split = int(counts[:kept_older].sum())
     _gathered(older.triples, old_first[alone], old_counts[alone], out=triples[:split])
-    source, starts = newer.triples, new_first
-    if len(grown):
-        source = np.concatenate([newer.triples, grown_triples])
-        starts = new_first.copy()
-        starts[twin[grown]] = len(newer.triples) + _range_starts(_voxels_per_brick(grown_valid))
-    _gathered(source, starts, counts[kept_older:], out=triples[split:])
+    older_twin = np.full(len(newer.keys), -1, np.int64)  # the older copy of a grown brick
+    older_twin[twin[grown]] = grown
+    at = split
+    for start in range(0, len(newer.keys), _GATHER_BRICKS):
+        part = np.arange(start, min(start + _GATHER_BRICKS, len(newer.keys)))
+        own = newer.triples[new_first[part[0]]: new_first[part[-1]] + new_counts[part[-1]]]
+        merged = counts[kept_older + part]
+        if (older_twin[part] >= 0).any():
+            own = _with_grown(own, part, older_twin[part], merged, (older, newer),
+                              (old_first, new_first))
+        triples[at: at + len(own)] = own
+        at += len(own)
     return _Bricks(np.concatenate([older.keys[alone], newer.keys]), triples, valid)
+
+
+def _with_grown(own: np.ndarray, part: np.ndarray, twins: np.ndarray, merged: np.ndarray,
+                lists: tuple[_Bricks, _Bricks], firsts: tuple[np.ndarray, np.ndarray]
+                ) -> np.ndarray:
+    """The voxels of the newer list's bricks ``part`` (``own``: theirs alone, brick after
+    brick), each brick with an older copy (``twins``, -1 for none) holding the voxels of both
+    in local order; ``merged``: the voxels each then holds; ``lists``: the older and newer
+    lists, ``firsts`` where each of their bricks' triples start."""
+    rows = (twins[twins >= 0], part[twins >= 0])  # the grown bricks in either list
+    # Both copies' voxels, old then new, each brick after brick in local order; a voxel in
+    # both appears twice with one triple (voxels are position-determined).
+    cells = [np.flatnonzero(_stored_bits(b.valid[r])) for b, r in zip(lists, rows, strict=True)]
+    first, _ = _packed(np.concatenate(cells), len(rows[1]))
+    both = np.concatenate([b.triples[_ranges_of(f[r], _voxels_per_brick(b.valid[r]))]
+                           for b, f, r in zip(lists, firsts, rows, strict=True)])[first]
+    source = np.concatenate([own, both])
+    starts = firsts[1][part] - firsts[1][part[0]]
+    starts[twins >= 0] = len(own) + _range_starts(merged[twins >= 0])
+    return source[_ranges_of(starts, merged)]
 
 
 def _voxels_per_brick(valid: np.ndarray) -> np.ndarray:
