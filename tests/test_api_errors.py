@@ -668,3 +668,31 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
 
+
+
+def test_an_engine_or_texture_is_not_pickled_but_named(data_dir, warp_device):
+    """pickle failed inside ctypes, naming no warptex object (a ProcessPoolExecutor's
+    submit of texture.query, say); the engine's CandidateSet pickles, and a texture made
+    from it in another process gives the same voxels."""
+    import copy
+    import pickle
+
+    from warptex.candidates import precompute
+    from warptex.store import BrickStore
+    from warptex.synthesis import Synthesizer
+    from warptex.texture import SolidTexture
+
+    texture = SolidTexture(precompute(data_dir / "granite_64.png"))
+    for thing, what in ((texture, "a SolidTexture"), (texture.synthesizer, "a Synthesizer"),
+                        (texture.store, "a Synthesizer")):
+        with pytest.raises(TypeError, match=f"^{what} holds Warp arrays of this process"):
+            pickle.dumps(thing)
+        with pytest.raises(TypeError, match=f"^{what} holds Warp arrays"):
+            copy.deepcopy(thing)
+    candidates = pickle.loads(pickle.dumps(texture.synthesizer.candidates))
+    points = np.random.default_rng(4).uniform(-40, 40, (200, 3))
+    np.testing.assert_array_equal(SolidTexture(candidates).query(points), texture.query(points))
+    with pytest.raises(TypeError, match=r"a SolidTexture's is its \.synthesizer\), got "
+                                        r"SolidTexture"):
+        BrickStore(texture)
+    assert isinstance(texture.store, BrickStore) and isinstance(texture.synthesizer, Synthesizer)

@@ -301,3 +301,31 @@ def test_a_timeout_the_child_raises_reaches_the_caller():
     for each in (None, while_waiting):
         with pytest.raises(TimeoutError, match="the function's own"):
             in_child_process(_timed_out, while_waiting=each)
+
+
+_FORKED = """
+import multiprocessing, sys
+import numpy as np
+import warptex.parallel as parallel
+parallel.THREADS = 2  # a pool of threads, on a machine of one core too
+from warptex.candidates import precompute
+from warptex.synthesis import Synthesizer
+syn = Synthesizer(precompute(sys.argv[1]), seed=1, device="cpu")
+parent = syn.box((0, 0, 0), (16, 16, 16))  # split launches: the pool's threads start
+
+def child(_):
+    return Synthesizer(syn.candidates, seed=1, device="cpu").box((0, 0, 0), (16, 16, 16))
+
+with multiprocessing.get_context("fork").Pool(1) as pool:
+    forked = pool.apply_async(child, (0,)).get(timeout=240)
+print(np.array_equal(parent, forked))
+"""
+
+
+def test_a_forked_process_launches_on_threads_of_its_own(data_dir):
+    """A child forked after a split launch (multiprocessing's default on Linux) inherited
+    the pool without its threads, and its first split launch waited for ever; it makes its
+    own, with the same voxels."""
+    run = subprocess.run([sys.executable, "-c", _FORKED, str(data_dir / "granite_64.png")],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0 and run.stdout.split() == ["True"], run.stderr[-2000:]

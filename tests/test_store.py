@@ -684,6 +684,17 @@ def test_a_file_of_another_kind_is_refused_and_kept(candidates, tmp_path: Path):
     assert empty.stat().st_size > 0
 
 
+def test_mark_used_refuses_slots_the_snapshot_does_not_have(candidates):
+    """A negative slot, which NumPy wraps, stamped another brick as just used."""
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    snap = store.snapshot()
+    for slots in ([-1], [len(snap.keys)]):
+        with pytest.raises(IndexError, match=r"slots must be those of the snapshot, 0 to "):
+            store.mark_used(np.array(slots), store.version)
+    store.mark_used(np.flatnonzero(snap.keys >= 0), store.version)
+
+
 def test_bricks_read_through_brick_sums_count_as_used(candidates):
     """The scalar plugin's copies read bricks through brick_sums: those count for
     least-recently-used eviction like a lookup's."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import multiprocessing
+import os
 import signal
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
@@ -35,6 +36,11 @@ def _pool() -> ThreadPoolExecutor:
     # Kept for the process: starting threads for each of many small launches costs more
     # than the launches themselves.
     return ThreadPoolExecutor(THREADS, thread_name_prefix="warptex")
+
+
+# A forked child (multiprocessing's default on Linux) inherits the pool without its
+# threads: its launches waited for ever. It makes a pool of its own.
+os.register_at_fork(after_in_child=_pool.cache_clear)
 
 
 def launch_ranges(

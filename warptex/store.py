@@ -479,6 +479,9 @@ class BrickStore:
 
     def __init__(self, synthesizer: Synthesizer, *, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  whole_bricks: bool = True) -> None:
+        if not isinstance(synthesizer, Synthesizer):
+            raise TypeError(f"a BrickStore stores the voxels of a Synthesizer (a SolidTexture's "
+                            f"is its .synthesizer), got {type(synthesizer).__name__}")
         self.synthesizer = synthesizer
         self.cache_bytes, self.whole_bricks = check_store_settings(cache_bytes, whole_bricks)
         cs = synthesizer.candidates
@@ -576,9 +579,14 @@ class BrickStore:
     def mark_used(self, slots: np.ndarray, version: int) -> None:
         """Count pool ``slots`` of the snapshot of ``version`` as just used, for
         readers outside Warp; ignored if bricks were inserted or evicted since."""
+        slots = np.asarray(slots)
         with self._lock.exclusive():
             if version != self._version or len(slots) == 0 or self._torn:
                 return
+            # A slot NumPy would wrap (negative) or not have would stamp another brick.
+            if slots.min() < 0 or slots.max() >= len(self._keys):
+                raise IndexError(f"slots must be those of the snapshot, 0 to "
+                                 f"{len(self._keys) - 1}, got {slots.min()} to {slots.max()}")
             self._stamp(slots)
 
     def snapshot(self) -> Snapshot:

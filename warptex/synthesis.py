@@ -14,6 +14,7 @@ import threading
 from dataclasses import dataclass
 from functools import cache
 from numbers import Integral
+from typing import NoReturn
 
 import numpy as np
 import warp as wp
@@ -442,6 +443,14 @@ def engine_device(device: str | None) -> str:
                          f"{device!r} ({error})") from None
 
 
+def not_pickled(what: str) -> str:
+    """Why ``what`` (an engine, or a texture holding one) is not pickled or copied: Warp's
+    arrays and the locks it holds are the process's, where pickle failed inside ctypes."""
+    return (f"{what} holds Warp arrays of this process and is not pickled or copied: make "
+            "one in each process from its exemplar or CandidateSet (which pickles); the "
+            "same settings give the same voxels")
+
+
 class Synthesizer:
     """Colors of any subset of an unbounded solid texture (Dong 2008, section 5).
 
@@ -521,6 +530,9 @@ class Synthesizer:
         pix = self._pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
+
+    def __getstate__(self) -> NoReturn:
+        raise TypeError(not_pickled("a Synthesizer"))
 
     def voxels(self, ijk: np.ndarray) -> np.ndarray:
         """Colors (N, C) float32 of voxels ``ijk`` (N, 3): the average of three exemplar

@@ -13,7 +13,7 @@ import weakref
 from collections.abc import Callable, Iterator, Sequence
 from numbers import Integral
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, NoReturn, Protocol
 
 import numpy as np
 import warp as wp
@@ -48,6 +48,7 @@ from warptex.synthesis import (
     REQUEST_BYTES_PER_VOXEL,
     Synthesizer,
     engine_device,
+    not_pickled,
 )
 from warptex.thread_warnings import captured, warn
 
@@ -206,6 +207,9 @@ class SolidTexture:
     def channels(self) -> int:
         """Channels of the colors a query gives: the exemplars' (3 for RGB)."""
         return self.store.channels
+
+    def __getstate__(self) -> NoReturn:
+        raise TypeError(not_pickled("a SolidTexture"))
 
     def query(
         self,
