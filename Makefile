@@ -28,7 +28,7 @@ setup: llvm $(INSTALLED)
 # Mitsuba's LLVM variants need libLLVM >= 16 (see warptex/llvm.py). Install Debian's libllvm19
 # when none is present and we may; otherwise warptex falls back to scalar rendering by itself.
 llvm:
-	@if ! $(PYTHON) warptex/llvm.py >/dev/null && [ "$$(id -u)" = 0 ] \
+	@if ! "$(PYTHON)" warptex/llvm.py >/dev/null && [ "$$(id -u)" = 0 ] \
 		&& command -v apt-get >/dev/null; then \
 		echo "installing libllvm19 for Mitsuba's LLVM variants"; \
 		(apt-get update -qq && apt-get install -y -qq libllvm19) \
@@ -38,6 +38,6 @@ llvm:
 $(INSTALLED): pyproject.toml
 	# A venv that fails half-way (Debian without python3-venv) leaves a python without pip,
 	# which the next run would take for a venv: removed, the next run makes it again.
-	test -x $(PY) || $(PYTHON) -m venv $(VENV) || { rm -rf $(VENV); exit 1; }
+	test -x $(PY) || "$(PYTHON)" -m venv $(VENV) || { rm -rf $(VENV); exit 1; }
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $@
