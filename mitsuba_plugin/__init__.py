@@ -63,7 +63,16 @@ def set_best_variant() -> str:
                       f"({e})", stacklevel=2)
         variant = "scalar_rgb"
         mi.set_variant(variant)
+    _exr_workers()
     return variant
+
+
+def _exr_workers() -> None:
+    """At least two Dr.Jit threads: Mitsuba's EXR writer and reader wait for ever for a
+    worker of a pool Dr.Jit sizes to the cores, which one core leaves empty (a one-vCPU
+    runner, a container pinned to one CPU; mitsuba3 issue #21)."""
+    if dr.thread_count() < 2:
+        dr.set_thread_count(2)
 
 
 def use_variant(name: str) -> str:
@@ -85,6 +94,7 @@ def use_variant(name: str) -> str:
             raise ValueError(f"Mitsuba variant {name} needs a CUDA GPU and its driver, which "
                              f"Dr.Jit does not find here ({e})") from None
         raise ValueError(f"Mitsuba variant {name} does not start here ({e})") from None
+    _exr_workers()
     return name
 
 

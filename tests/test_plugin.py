@@ -1019,3 +1019,18 @@ def test_an_object_frame_is_read_without_traversing_what_the_shape_holds(granite
     np.testing.assert_allclose(module._to_object_matrix(sphere), expected, rtol=1e-12)
     assert (module._to_object_matrix(cube) is not None) == framed
     assert traversed == []
+
+
+def test_a_variant_set_on_one_core_leaves_the_exr_writer_a_worker(monkeypatch):
+    """Dr.Jit sizes its pool to the cores: on one, Mitsuba's EXR writer waited for ever for
+    a worker (`warptex render -o out.exr` hung past SIGTERM, and so did the tests)."""
+    import drjit as dr
+
+    import mitsuba_plugin
+
+    asked = []
+    monkeypatch.setattr(dr, "thread_count", lambda: 1)
+    monkeypatch.setattr(dr, "set_thread_count", asked.append)
+    mitsuba_plugin.use_variant("scalar_rgb")
+    mitsuba_plugin.set_best_variant()
+    assert asked == [2, 2]
