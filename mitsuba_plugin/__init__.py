@@ -103,12 +103,14 @@ def register() -> None:
 
     Mitsuba keeps plugins per variant and a Python plugin subclasses that variant's
     ``mi.Texture``, so, like Mitsuba's own Python plugins, the plugin modules are
-    (re-)run for each new variant. Calling again for the same variant does nothing.
+    (re-)run for each new variant. Calling again for the same variant registers nothing
+    again. Dr.Jit gets the two threads Mitsuba's EXR files need (``_exr_workers``).
     """
     variant = mi.variant()
     if variant is None:
         raise RuntimeError("mitsuba_plugin.register: set a Mitsuba variant first "
                            "(mitsuba_plugin.set_best_variant())")
+    _exr_workers()  # a variant set by mi.set_variant, as scripts do, left it unchecked
     if variant in _registered:
         return
     from mitsuba_plugin import texture, volume
