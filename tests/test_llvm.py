@@ -69,6 +69,32 @@ def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
     assert llvm.configure_drjit() == Path("libLLVM-19.so")
 
 
+def test_without_home_dr_jit_caches_in_the_users_home_and_says_nothing(tmp_path, monkeypatch):
+    """With HOME unset Dr.Jit printed "jit_init(): the HOME environment variable is not
+    set, disabling the kernel cache" before any command's own output."""
+    monkeypatch.delenv("HOME")
+    monkeypatch.delenv("DRJIT_CACHE_DIR", raising=False)
+    llvm.configure_drjit()
+    assert os.environ["DRJIT_CACHE_DIR"] == str(Path.home() / ".drjit")
+    monkeypatch.setenv("DRJIT_CACHE_DIR", str(tmp_path))  # a user's own is kept
+    llvm.configure_drjit()
+    assert os.environ["DRJIT_CACHE_DIR"] == str(tmp_path)
+    monkeypatch.delenv("DRJIT_CACHE_DIR")
+    monkeypatch.setenv("HOME", str(tmp_path))  # and Dr.Jit's own default with a HOME
+    llvm.configure_drjit()
+    assert "DRJIT_CACHE_DIR" not in os.environ
+
+    if importlib.util.find_spec("mitsuba") is None:
+        return
+    env = {k: v for k, v in os.environ.items() if k not in ("HOME", "DRJIT_CACHE_DIR")}
+    run = subprocess.run([sys.executable, "-m", "warptex", "render", str(tmp_path / "no.xml"),
+                          "-o", str(tmp_path / "out.png")],
+                         capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 2
+    assert run.stderr.splitlines() == [f"warptex: error: {tmp_path / 'no.xml'}: scene file "
+                                       "not found"], run.stderr
+
+
 def test_a_preset_link_of_no_version_is_judged_by_the_file_it_leads_to(tmp_path, monkeypatch):
     """Debian 12's libLLVM.so leads to LLVM 15, which passed for a user's choice of no
     version, then aborted the render inside LLVM."""

@@ -12,6 +12,7 @@ dependencies exist, which is why this module imports only the standard library a
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import sys
@@ -51,10 +52,12 @@ def find_libllvm() -> Path | None:
 
 
 def configure_drjit() -> Path | None:
-    """Point ``DRJIT_LIBLLVM_PATH`` at a suitable libLLVM unless the user already set it.
+    """Point ``DRJIT_LIBLLVM_PATH`` at a suitable libLLVM unless the user already set it
+    (and ``DRJIT_CACHE_DIR`` at the user's home where HOME is unset).
 
     Returns the library Dr.Jit will use, or None when no suitable one is known.
     """
+    _drjit_cache_without_home()
     preset = os.environ.get(_ENV)
     if preset:
         # A user's choice is trusted unless it is no file or its name, or that of the file
@@ -64,6 +67,16 @@ def configure_drjit() -> Path | None:
     if library is not None:
         os.environ[_ENV] = str(library)
     return library
+
+
+def _drjit_cache_without_home() -> None:
+    """Dr.Jit keeps its kernels in ``$HOME/.drjit``: with HOME unset (a service, some CI
+    containers) it printed a line of its own before a command's output and cached nothing.
+    The user's home from the password database, as Python and Warp find it, serves instead."""
+    if os.environ.get("HOME") or os.environ.get("DRJIT_CACHE_DIR"):
+        return
+    with contextlib.suppress(RuntimeError):  # no entry either: Dr.Jit says so, caches nothing
+        os.environ["DRJIT_CACHE_DIR"] = str(Path.home() / ".drjit")
 
 
 def _preset_problem(preset: str) -> str | None:
