@@ -15,6 +15,7 @@ from warptex.cut import cap_faces, cut
 from warptex.mesh_files import export, exported_files
 from warptex.surface import block_transform, shell, to_voxel_space
 from warptex.texture import SolidTexture, plane_points
+from warptex.warp_runtime import KernelCacheError
 
 
 @pytest.fixture(scope="module")
@@ -416,11 +417,16 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys,
 
 
 @pytest.mark.parametrize("command", ["bake", "cut"])
+@pytest.mark.parametrize(("stop", "code", "cause"), [
+    (KeyboardInterrupt, 130, "stopping"),
+    # A kernel cache that took the synthesis kernels but not a later module's build.
+    (lambda: KernelCacheError("/cache: cannot build kernels"), 1, "the kernel cache failed")])
 def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_device,
-                                               capsys, monkeypatch, command):
-    """Ctrl-C while the mesh's colours are made (a cut's second half): the --store file
-    keeps what was synthesized, no mesh is written, not even a cut's first half, and the
-    next run synthesizes less."""
+                                               capsys, monkeypatch, command, stop, code,
+                                               cause):
+    """Ctrl-C, or a failing kernel cache, while the mesh's colours are made (a cut's second
+    half): the --store file keeps what was synthesized (the cache's failure lost it), no
+    mesh is written, not even a cut's first half, and the next run synthesizes less."""
     import warptex.cli
     from warptex.cli import main
 
@@ -436,15 +442,15 @@ def test_a_stopped_bake_or_cut_saves_its_store(tmp_path, data_dir, sphere, warp_
 
     def stopped_on_the_last(tex, mesh, *args):
         if command == "bake" or made:
-            raise KeyboardInterrupt
+            raise stop()
         made.append(baked(tex, mesh, *args))
         return made[-1]
 
     before = set(tmp_path.iterdir())
     with monkeypatch.context() as patch:
         patch.setattr(warptex.cli.meshes, "_baked", stopped_on_the_last)
-        assert main(argv) == 130
-    assert (f"brick store {store} holds the voxels synthesized before stopping"
+        assert main(argv) == code
+    assert (f"brick store {store} holds the voxels synthesized before {cause}"
             in capsys.readouterr().err)
     assert set(tmp_path.iterdir()) == before | {store}
     assert main(argv) == 0

@@ -8,7 +8,7 @@ import contextlib
 import math
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -228,14 +228,26 @@ def _colors_only(baked: dict, colors: int) -> dict:
             else value for name, value in baked.items()}
 
 
-def _store_saved_when_stopped(tex, args: argparse.Namespace) -> contextlib.AbstractContextManager:
-    """A `bake` or `cut` stopped by Ctrl-C or SIGTERM saves its ``--store`` first, unless
-    nothing was synthesized (:func:`~warptex.store.worth_saving`)."""
+@contextlib.contextmanager
+def _store_saved_when_stopped(tex, args: argparse.Namespace) -> Iterator[None]:
+    """A `bake` or `cut` stopped by Ctrl-C or SIGTERM, or by a kernel cache that cannot
+    take a later kernel's build, saves its ``--store`` first, unless nothing was
+    synthesized (:func:`~warptex.store.worth_saving`): the next run starts from its voxels."""
     if args.store is None:
-        return contextlib.nullcontext()
-    from warptex.store import saved_when_stopped, worth_saving
+        yield
+        return
+    from warptex.store import saved_and_said, saved_when_stopped, worth_saving
+    from warptex.warp_runtime import KernelCacheError
 
-    return saved_when_stopped(lambda: [tex.save()] if worth_saving(tex.store, args.store) else [])
+    def save() -> list[Path]:
+        return [tex.save()] if worth_saving(tex.store, args.store) else []
+
+    with saved_when_stopped(save):
+        try:
+            yield
+        except KernelCacheError:
+            saved_and_said(save, "the kernel cache failed")
+            raise
 
 
 def _finish_mesh_command(tex, args: argparse.Namespace, files: list[Path], start: float) -> int:
