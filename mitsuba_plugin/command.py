@@ -96,14 +96,20 @@ def _scene_error(text: str, scene: Path | None = None) -> str:
     return f"{file} ({place}): {message}"
 
 
+def _chain(error: BaseException) -> list[BaseException]:
+    """``error`` and the exceptions it was raised from or while handling, outermost first."""
+    chain = [error]
+    while (cause := chain[-1].__cause__ or chain[-1].__context__) is not None:
+        chain.append(cause)
+    return chain
+
+
 def _render_error(error: BaseException) -> str:
     """Mitsuba's own message for a render that failed: the first in the chain of ``error``
     that does not point elsewhere (Dr.Jit's wrapper says "see above"), without the tag of
     the class that raised it ("[Endpoint] ")."""
-    chain = [error]
-    while (cause := chain[-1].__cause__ or chain[-1].__context__) is not None:
-        chain.append(cause)
-    own = next((str(e) for e in reversed(chain) if "(see above)" not in str(e)), str(error))
+    own = next((str(e) for e in reversed(_chain(error)) if "(see above)" not in str(e)),
+               str(error))
     return re.sub(r"^\[[\w.:]+\] ", "", own.strip())
 
 
@@ -111,11 +117,9 @@ def _kernel_cache_failure(error: RuntimeError) -> KernelCacheError | None:
     """The kernel cache's failure (the machine's, not the scene's) that Mitsuba's ``error``
     wraps, if any: as the exception itself (a render's) or as its traceback's text (a
     load's)."""
-    cause: BaseException | None = error
-    while cause is not None:
-        if isinstance(cause, KernelCacheError):
-            return cause
-        cause = cause.__cause__ or cause.__context__
+    wrapped = next((e for e in _chain(error) if isinstance(e, KernelCacheError)), None)
+    if wrapped is not None:
+        return wrapped
     found = re.search(r"^(?:[\w.]+\.)?KernelCacheError: (.+)$", str(error), re.MULTILINE)
     return None if found is None else KernelCacheError(found[1])
 
