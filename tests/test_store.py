@@ -1042,6 +1042,19 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
         counts = [len(old_held.get(int(k), set()) | new_held.get(int(k), set())) for k in keys]
         np.testing.assert_array_equal(np.bitwise_count(merged.valid).sum(axis=1), counts)
         grown += sum(bool(old_held[k] - new_held[k]) for k in old_held.keys() & new_held.keys())
+        # Only the most recent bricks a budget keeps are gathered (a save of a large union
+        # held all of it first): the same as the whole union's tail.
+        seen = []
+        for count in (0, int(rng.integers(0, len(keys) + 1)), len(keys)):
+            tail = store._bricks_union(older, newer,
+                                       lambda valid, n=count, seen=seen: seen.append(valid) or n)
+            first, voxels = len(keys) - count, sum(counts[len(keys) - count:])
+            np.testing.assert_array_equal(tail.keys, merged.keys[first:])
+            np.testing.assert_array_equal(tail.valid, merged.valid[first:])
+            np.testing.assert_array_equal(tail.triples,
+                                          merged.triples[len(merged.triples) - voxels:])
+        for valid in seen:
+            np.testing.assert_array_equal(valid, merged.valid)
     assert grown > 0
 
 

@@ -176,12 +176,14 @@ def _packed(cells: np.ndarray, bricks: int) -> tuple[np.ndarray, np.ndarray]:
     return first, valid.reshape(bricks, _k.VALID_WORDS)
 
 
-def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
+def _bricks_union(older: _Bricks, newer: _Bricks,
+                  kept: Callable[[np.ndarray], int] | None = None) -> _Bricks:
     """The bricks of two lists, each least recently used first, as one such list:
     ``newer``'s bricks the more recent, a brick in both holding the voxels of either
     (their triples are the same, as voxels are position-determined). Bricks are copied
     whole; only those whose older copy holds voxels the newer lacks are merged voxel by
-    voxel."""
+    voxel. ``kept``: how many of the most recent bricks of the union to keep, given its
+    stored-voxel words; the others are never gathered (all are kept without it)."""
     order = np.argsort(newer.keys)
     found = lookup(newer.keys[order], older.keys)
     twin = np.full(len(found), -1, np.int64)  # newer's copy of each older brick, if any
@@ -190,21 +192,25 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
     both = np.flatnonzero(~alone)
     grown = both[(older.valid[both] & ~newer.valid[twin[both]]).any(axis=1)]
     if len(grown) == 0 and len(both) == len(older.keys):
-        return newer  # the older list adds nothing: a store saved over the file it loaded
+        # The older list adds nothing: a store saved over the file it loaded.
+        return newer if kept is None else _recent(newer, kept(newer.valid))
     old_counts, new_counts = _voxels_per_brick(older.valid), _voxels_per_brick(newer.valid)
     old_first, new_first = _range_starts(old_counts), _range_starts(new_counts)
     # The older list's own bricks, then the newer's, a grown one holding both copies' voxels.
     kept_older = int(alone.sum())
     valid = np.concatenate([older.valid[alone], newer.valid])
     valid[kept_older + twin[grown]] |= older.valid[grown]
+    drop = 0 if kept is None else len(valid) - kept(valid)  # the least recent, left out
     counts = _voxels_per_brick(valid)
-    triples = np.empty((int(counts.sum()), *newer.triples.shape[1:]), newer.triples.dtype)
-    split = int(counts[:kept_older].sum())
-    _gathered(older.triples, old_first[alone], old_counts[alone], out=triples[:split])
+    triples = np.empty((int(counts[drop:].sum()), *newer.triples.shape[1:]),
+                       newer.triples.dtype)
+    split = int(counts[drop:kept_older].sum())
+    older_kept = np.flatnonzero(alone)[drop:]
+    _gathered(older.triples, old_first[older_kept], old_counts[older_kept], out=triples[:split])
     older_twin = np.full(len(newer.keys), -1, np.int64)  # the older copy of a grown brick
     older_twin[twin[grown]] = grown
     at = split
-    for start in range(0, len(newer.keys), _GATHER_BRICKS):
+    for start in range(max(drop - kept_older, 0), len(newer.keys), _GATHER_BRICKS):
         part = np.arange(start, min(start + _GATHER_BRICKS, len(newer.keys)))
         own = newer.triples[new_first[part[0]]: new_first[part[-1]] + new_counts[part[-1]]]
         merged = counts[kept_older + part]
@@ -213,7 +219,15 @@ def _bricks_union(older: _Bricks, newer: _Bricks) -> _Bricks:
                               (old_first, new_first))
         triples[at: at + len(own)] = own
         at += len(own)
-    return _Bricks(np.concatenate([older.keys[alone], newer.keys]), triples, valid)
+    keys = np.concatenate([older.keys[alone], newer.keys])
+    return _Bricks(keys[drop:], triples, valid[drop:])
+
+
+def _recent(bricks: _Bricks, count: int) -> _Bricks:
+    """The ``count`` most recently used of ``bricks`` (the tail of the list), as views."""
+    first = len(bricks.keys) - count
+    skipped = int(_voxels_per_brick(bricks.valid[:first]).sum())
+    return _Bricks(bricks.keys[first:], bricks.triples[skipped:], bricks.valid[first:])
 
 
 def _with_grown(own: np.ndarray, part: np.ndarray, twins: np.ndarray, merged: np.ndarray,
@@ -691,15 +705,20 @@ class BrickStore:
                 if state != self._ignored:  # reported once, when it was loaded
                     warn(f"replacing brick store file: {e}", stacklevel=2)
                 saved = None
-            budget = self._budget
-            if saved is not None:  # a store of less room does not shrink a shared file
+            if saved is None:
+                kept = self._recent_that_fit(ours)
+            else:  # a store of less room does not shrink a shared file
                 mine = len(ours.keys)
-                ours = _bricks_union(saved, ours)
-                # Our partly filled bricks may have grown by the file's voxels: all of them
-                # are kept still, as the file is then marked as holding them.
-                budget = max(budget, *(int(self._brick_costs(_voxels_per_brick(v)).sum())
-                                       for v in (saved.valid, ours.valid[len(ours.keys) - mine:])))
-            kept = self._recent_that_fit(ours, budget)
+
+                def fitting(valid: np.ndarray) -> int:
+                    # Our partly filled bricks may have grown by the file's voxels: all of
+                    # them are kept still, as the file is then marked as holding them.
+                    budget = max(self._budget, *(
+                        int(self._brick_costs(_voxels_per_brick(v)).sum())
+                        for v in (saved.valid, valid[len(valid) - mine:])))
+                    return int(self._kept(_voxels_per_brick(valid), budget).sum())
+
+                kept = _bricks_union(saved, ours, fitting)
             write_archive(path, _MAGIC, FORMAT_VERSION,
                           {"identity": np.array(self.identity()),
                            "settings": np.array(self._settings_json()), **kept._asdict()})
@@ -973,14 +992,11 @@ class BrickStore:
         live = np.flatnonzero(self._keys != _EMPTY)
         return live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
 
-    def _recent_that_fit(self, bricks: _Bricks, budget: int | None = None) -> _Bricks:
-        """The most recently used of ``bricks`` that fit ``budget`` bytes (the store's bound,
-        ``cache_bytes`` within what the pool indexes, unless given)."""
-        counts = _voxels_per_brick(bricks.valid)
+    def _recent_that_fit(self, bricks: _Bricks) -> _Bricks:
+        """The most recently used of ``bricks`` that fit the store's bound (``cache_bytes``
+        within what the pool indexes)."""
         # The list ends with the most recent, so those kept are its tail: viewed, not copied.
-        first = len(counts) - int(self._kept(counts, budget).sum())
-        return _Bricks(bricks.keys[first:], bricks.triples[int(counts[:first].sum()):],
-                       bricks.valid[first:])
+        return _recent(bricks, int(self._kept(_voxels_per_brick(bricks.valid)).sum()))
 
     def _kept(self, counts: np.ndarray, budget: int | None = None) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
