@@ -404,6 +404,36 @@ def test_a_mutation_stopped_while_waiting_does_not_hold_back_lookups(monkeypatch
     assert woken == [1]
 
 
+@pytest.mark.parametrize("mode", ["shared", "exclusive"])
+def test_a_stop_as_the_lock_is_taken_leaves_no_reader_or_writer_counted(mode):
+    """Ctrl-C as the lock's condition is released, before the block (a signal comes
+    between any two steps): the lookup or change went on counting, and every later change
+    or lookup waited for it for ever."""
+    import threading
+
+    from warptex.store import _SharedLock
+
+    class StoppedOnRelease(threading.Condition):
+        armed = False
+
+        def __exit__(self, *exc):
+            super().__exit__(*exc)
+            if self.armed:
+                self.armed = False
+                raise KeyboardInterrupt
+
+    lock = _SharedLock()
+    lock._cond = StoppedOnRelease()
+    lock._cond.armed = True
+    with pytest.raises(KeyboardInterrupt), getattr(lock, mode)():
+        pytest.fail("the block ran")
+    assert (lock._readers, lock._writing, lock._waiting) == (0, False, 0)
+    with lock.exclusive():
+        pass
+    with lock.shared():
+        pass
+
+
 def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
     """saved_when_stopped: Ctrl-C or SIGTERM in the block saves, says where, and stops as
     asked; a save that fails says why and stops all the same; no stop, no save."""

@@ -311,35 +311,41 @@ class _SharedLock:
         self._writing = False
         self._waiting = 0
 
+    # A Ctrl-C between taking the lock and the block (the lock's own release raises it)
+    # must not leave a reader or writer counted for ever: every later change or lookup
+    # would wait for it. Hence the counts change inside the ``try`` their ``finally`` undoes.
+
     @contextmanager
     def shared(self) -> Iterator[None]:
-        with self._cond:
-            self._cond.wait_for(lambda: not self._writing and not self._waiting)
-            self._readers += 1
+        entered = False
         try:
+            with self._cond:
+                self._cond.wait_for(lambda: not self._writing and not self._waiting)
+                self._readers += 1
+                entered = True
             yield
         finally:
-            with self._cond:
-                self._readers -= 1
-                self._cond.notify_all()
+            if entered:
+                with self._cond:
+                    self._readers -= 1
+                    self._cond.notify_all()
 
     @contextmanager
     def exclusive(self) -> Iterator[None]:
-        with self._cond:
-            self._waiting += 1
-            acquired = False
-            try:
-                acquired = self._cond.wait_for(lambda: not self._writing and not self._readers)
-            finally:
-                self._waiting -= 1
-                if not acquired:  # a wait stopped (Ctrl-C) must not hold back lookups for ever
-                    self._cond.notify_all()
-            self._writing = True
+        entered = False
         try:
+            with self._cond:
+                self._waiting += 1
+                try:
+                    self._cond.wait_for(lambda: not self._writing and not self._readers)
+                finally:
+                    self._waiting -= 1
+                self._writing = entered = True
             yield
         finally:
-            with self._cond:
-                self._writing = False
+            with self._cond:  # also a wait stopped: it held back lookups while it waited
+                if entered:
+                    self._writing = False
                 self._cond.notify_all()
 
 
