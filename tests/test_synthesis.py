@@ -491,12 +491,14 @@ def test_the_ends_of_the_coordinate_range_are_synthesized_right(candidates):
     an apron of 5 blocks) stay within the packed block keys."""
     syn = Synthesizer(candidates, seed=5, jitter=0.0, subpasses=8)
     n = int(candidates.params["neighborhood"])
-    period = 2 * n * 2 ** (syn.finest - syn.start)  # even at every level: sub-pass parity
-    for end, step in ((COORD_LIMIT - 1, -1), (1 - COORD_LIMIT, 1)):
-        far = np.array([[end + step * r, -3, 4] for r in range(3)])
-        near = far.copy()
-        near[:, 0] = far[:, 0] - (far[:, 0] // period) * period
-        np.testing.assert_array_equal(syn.voxels(far), syn.voxels(near))
+    scale = 2 ** (syn.finest - syn.start)
+    # x: the slab's tiles (even at every level: sub-pass parity); y and z: the exemplar's.
+    height, width = candidates.sources[syn.start][candidates.axis_source[0]].size
+    period = np.array([2 * n * scale, height * scale, width * scale])
+    ends = (-COORD_LIMIT, 1 - COORD_LIMIT, COORD_LIMIT - 2, COORD_LIMIT - 1, 0)
+    far = np.array(list(itertools.product(ends, repeat=3)))  # each axis' key field
+    near = far - (far // period) * period
+    np.testing.assert_array_equal(syn.voxels(far), syn.voxels(near))
 
 
 def test_subpasses_are_deterministic_too(candidates):
