@@ -969,6 +969,25 @@ def test_corrupt_exr_is_unreadable(tmp_path):
     _raises(tmp_path / "bad.exr", r"bad\.exr: unreadable OpenEXR")
 
 
+@pytest.mark.parametrize(("mode", "kind"), [("MIPMAP_LEVELS", "mip"), ("RIPMAP_LEVELS", "rip")])
+def test_a_tiled_exr_of_several_levels_is_named_so_not_damaged(tmp_path, rng, mode, kind):
+    """OpenEXR's Python module reads no part of a valid mip-mapped file (Mitsuba reads it):
+    it was refused as "damaged or truncated"; one level of tiles reads."""
+    def tiled(name: str, levels) -> Path:
+        tiles = OpenEXR.TileDescription()
+        tiles.xSize, tiles.ySize, tiles.mode = 16, 16, levels
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.tiledimage,
+                  "tiles": tiles}
+        OpenEXR.File(header, {"RGB": rng.random((32, 32, 3), dtype=np.float32)}).write(
+            str(tmp_path / name))
+        return tmp_path / name
+
+    assert Exemplar.load(tiled("one.exr", OpenEXR.ONE_LEVEL)).colors.shape == (32, 32, 3)
+    _raises(tiled("levels.exr", getattr(OpenEXR, mode)),
+            rf"levels\.exr: a {kind}-mapped tiled OpenEXR file, whose levels OpenEXR's Python "
+            rf"module cannot read: save it without {kind}-maps")
+
+
 def test_corrupt_npy_is_unreadable(tmp_path):
     (tmp_path / "bad.npy").write_bytes(b"\x93NUMPY\x01\x00garbage")
     _raises(tmp_path / "bad.npy", r"bad\.npy: unreadable \.npy")

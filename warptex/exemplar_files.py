@@ -148,9 +148,11 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
         with open(path, "rb") as stream, OpenEXR.File(stream, separate_channels=True) as file:
             channels = _exr_part_channels(file.parts, path)
     except (RuntimeError, OSError, ValueError) as error:
-        raise ExemplarError(f"{path}: unreadable OpenEXR file ({error})") from None
+        raise _exr_levels_refused(path) or ExemplarError(
+            f"{path}: unreadable OpenEXR file ({error})") from None
     if not channels:  # OpenEXR reads no part of a file cut short, saying so on stderr
-        raise ExemplarError(f"{path}: damaged or truncated OpenEXR file (no part readable)")
+        raise _exr_levels_refused(path) or ExemplarError(
+            f"{path}: damaged or truncated OpenEXR file (no part readable)")
     order, alpha = _exr_channel_order(list(channels), path)
     for name in order:
         if np.issubdtype(channels[name].dtype, np.integer):
@@ -165,6 +167,24 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
     except ValueError:
         raise ExemplarError(f"{path}: OpenEXR channels have different sizes") from None
     return pixels, alpha
+
+
+def _exr_levels_refused(path: Path) -> ExemplarError | None:
+    """The error of a mip- or rip-mapped tiled OpenEXR file, whose levels OpenEXR's Python
+    module cannot read (it reads no part of one, as of a damaged file); None for others."""
+    import OpenEXR
+
+    try:
+        with open(path, "rb") as stream, OpenEXR.File(stream, header_only=True) as file:
+            tiles = file.header().get("tiles")
+    except (RuntimeError, OSError, ValueError):
+        return None
+    if tiles is None or tiles.mode == OpenEXR.ONE_LEVEL:
+        return None
+    kind = "mip" if tiles.mode == OpenEXR.MIPMAP_LEVELS else "rip"
+    return ExemplarError(f"{path}: a {kind}-mapped tiled OpenEXR file, whose levels OpenEXR's "
+                         f"Python module cannot read: save it without {kind}-maps (as scan "
+                         "lines or one level of tiles)")
 
 
 def _exr_part_channels(parts: list, path: Path) -> dict[str, np.ndarray]:
