@@ -1,4 +1,5 @@
-"""Kernels that find, for every texel of a UV texture, the surface point it shows.
+"""Kernels that find, for every texel of a UV texture, the surface point it shows: the
+points whose solid-texture colours bake a mesh's texture (Dong 2008, section 6.2).
 
 Texel (x, y) of a W x H image has its centre at UV ((x + 0.5) / W, 1 - (y + 0.5) / H):
 image rows run down while V runs up. A texel belongs to the lowest-numbered triangle
@@ -16,6 +17,7 @@ NO_TRIANGLE = wp.constant(2147483647)
 
 @wp.func
 def texel_uv(x: int, y: int, width: int, height: int) -> wp.vec2:
+    """UV of the centre of texel ``(x, y)`` (rows run down, V up)."""
     return wp.vec2((float(x) + 0.5) / float(width), 1.0 - (float(y) + 0.5) / float(height))
 
 
@@ -32,6 +34,7 @@ def barycentric(p: wp.vec2, a: wp.vec2, b: wp.vec2, c: wp.vec2) -> wp.vec3:
 
 @wp.func
 def covers(w: wp.vec3) -> bool:
+    """Whether barycentric coordinates ``w`` lie in their triangle, edges included."""
     return w[0] >= 0.0 and w[1] >= 0.0 and w[2] >= 0.0
 
 

@@ -9,7 +9,7 @@ role k+1. The three crossbar pairs are therefore (0, 1), (1, 2) and (2, 0).
 
 import warp as wp
 
-from kernels.common import pixel_index
+from kernels.common import pixel_coords, pixel_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -85,7 +85,7 @@ def best_crossbar_triples(
     keys: wp.array2d(dtype=wp.int64),
     cand1: wp.array2d(dtype=wp.int32),
     cand2: wp.array2d(dtype=wp.int32),
-    cb: wp.array2d(dtype=wp.int32),
+    crossbar_errors: wp.array2d(dtype=wp.int32),
     count: wp.array(dtype=wp.int32),
 ):
     """Score all S^2 triples of one pixel by crossbar error and keep the best, sorted.
@@ -121,12 +121,12 @@ def best_crossbar_triples(
                     keys[p, pos] = keys[p, pos - 1]
                     cand1[p, pos] = cand1[p, pos - 1]
                     cand2[p, pos] = cand2[p, pos - 1]
-                    cb[p, pos] = cb[p, pos - 1]
+                    crossbar_errors[p, pos] = crossbar_errors[p, pos - 1]
                     pos -= 1
                 keys[p, pos] = key
                 cand1[p, pos] = q
                 cand2[p, pos] = r
-                cb[p, pos] = err
+                crossbar_errors[p, pos] = err
     count[p] = n
 
 
@@ -136,12 +136,12 @@ def candidate_crossbar_errors(
     strips: RoleStrips,
     cand1: wp.array2d(dtype=wp.int32),
     cand2: wp.array2d(dtype=wp.int32),
-    cb: wp.array2d(dtype=wp.int32),
+    crossbar_errors: wp.array2d(dtype=wp.int32),
 ):
     """Crossbar error of stored candidate k of pixel p (section 4.1), recomputed; one
     thread per candidate slot of pixels ``first...``."""
-    p, k = pixel_slot(first, wp.tid(), cb.shape[1])
-    cb[p, k] = crossbar_error(strips, p, cand1[p, k], cand2[p, k])
+    p, k = pixel_slot(first, wp.tid(), crossbar_errors.shape[1])
+    crossbar_errors[p, k] = crossbar_error(strips, p, cand1[p, k], cand2[p, k])
 
 
 @wp.func
@@ -162,10 +162,9 @@ def mark_continuations(
     exemplar pixels that continue a candidate of a direct neighbour of p: the direct
     (4-connected, toroidal) neighbours of its coordinates. Clearing zeroes whole words, as
     every bit set in the row was set here."""
-    u = p // own_width
-    v = p - u * own_width
+    uv = pixel_coords(p, own_width)
     for d in range(4):
-        q = pixel_index(u + _STEP_U[d], v + _STEP_V[d], own_height, own_width)
+        q = pixel_index(uv[0] + _STEP_U[d], uv[1] + _STEP_V[d], own_height, own_width)
         for j in range(count[q]):
             for e in range(4):
                 du = _STEP_U[e]
@@ -199,6 +198,32 @@ def keep_marked(
             keep[i, k] = 0
 
 
+@wp.func
+def keep_continued(
+    cand_u: wp.array2d(dtype=wp.int32),
+    cand_v: wp.array2d(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    p: int,
+    height: wp.vec3i,
+    width: wp.vec3i,
+    role: int,
+    marks: wp.array2d(dtype=wp.uint32),
+    row: int,
+    keep: wp.array2d(dtype=wp.int32),
+    i: int,
+):
+    """Section 4.2 in the exemplar of ``role``: clear the flag of each candidate of p whose
+    coordinates there continue no candidate of a direct neighbour, through bitmap row
+    ``row``, left zeroed again for the next role."""
+    h0 = height[0]
+    w0 = width[0]
+    mark_continuations(cand_u, cand_v, count, p, h0, w0, height[role], width[role], marks, row,
+                       True)
+    keep_marked(cand_u, cand_v, count, p, width[role], marks, row, keep, i)
+    mark_continuations(cand_u, cand_v, count, p, h0, w0, height[role], width[role], marks, row,
+                       False)
+
+
 @wp.kernel
 def coherent_candidates(
     first: int,
@@ -229,11 +254,5 @@ def coherent_candidates(
     row = i - batch_first
     for k in range(keep.shape[1]):
         keep[i, k] = wp.where(k < count[p], 1, 0)
-    h0 = height[0]
-    w0 = width[0]
-    mark_continuations(cand1_u, cand1_v, count, p, h0, w0, height[1], width[1], marks, row, True)
-    keep_marked(cand1_u, cand1_v, count, p, width[1], marks, row, keep, i)
-    mark_continuations(cand1_u, cand1_v, count, p, h0, w0, height[1], width[1], marks, row, False)
-    mark_continuations(cand2_u, cand2_v, count, p, h0, w0, height[2], width[2], marks, row, True)
-    keep_marked(cand2_u, cand2_v, count, p, width[2], marks, row, keep, i)
-    mark_continuations(cand2_u, cand2_v, count, p, h0, w0, height[2], width[2], marks, row, False)
+    keep_continued(cand1_u, cand1_v, count, p, height, width, 1, marks, row, keep, i)
+    keep_continued(cand2_u, cand2_v, count, p, height, width, 2, marks, row, keep, i)

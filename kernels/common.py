@@ -44,6 +44,14 @@ def pixel_index(u: int, v: int, height: int, width: int) -> int:
     return wrap(u, height) * width + wrap(v, width)
 
 
+@wp.func
+def pixel_coords(pixel: int, width: int) -> wp.vec2i:
+    """Coordinates ``(u, v)`` of row-major exemplar pixel index ``pixel``: the inverse of
+    :func:`pixel_index` (a remainder by product, as Warp's ``%`` rounds like C's)."""
+    u = pixel // width
+    return wp.vec2i(u, pixel - u * width)
+
+
 _MIX1 = wp.constant(wp.uint32(0x7FEB352D))
 _MIX2 = wp.constant(wp.uint32(0x846CA68B))
 _GOLDEN = wp.constant(wp.uint32(0x9E3779B9))

@@ -15,7 +15,7 @@ row offsets; a match is the index of its window's centre pixel inside its axis' 
 
 import warp as wp
 
-from kernels.common import pixel_index, plane_offset, wrap
+from kernels.common import pixel_coords, pixel_index, plane_offset, wrap
 
 wp.set_module_options({"enable_backward": False})
 
@@ -79,13 +79,12 @@ def window_distance(
 ) -> float:
     """L2 distance ``|s_v,i - e_v,i|`` between the window of ``p`` and the exemplar window
     centred on pixel ``centre`` (equation 1)."""
-    u = centre // width
-    v = centre - u * width
+    uv = pixel_coords(centre, width)
     total = float(0.0)
     for a in range(WINDOW):
         for b in range(WINDOW):
             q = voxel_index(p + plane_offset(axis, a - HALF, b - HALF), n)
-            e = ex_first + pixel_index(u + a - HALF, v + b - HALF, height, width)
+            e = ex_first + pixel_index(uv[0] + a - HALF, uv[1] + b - HALF, height, width)
             for f in range(s.shape[1]):
                 d = s[q, f] - ex[e, f]
                 total += d * d
@@ -271,11 +270,9 @@ def optimize_voxels(
                         if ((col - (b - HALF)) & 1) == 0:
                             centre = p - plane_offset(axis, a - HALF, b - HALF)
                             g = grid_first[axis] + grid_index(axis, centre, n)
-                            m = match[g]
-                            u = m // width[axis]
+                            uv = pixel_coords(match[g], width[axis])
                             e = ex_first[axis] + pixel_index(
-                                u + a - HALF, m - u * width[axis] + b - HALF, height[axis],
-                                width[axis])
+                                uv[0] + a - HALF, uv[1] + b - HALF, height[axis], width[axis])
                             texels[count] = e
                             weights[count] = weight[g] / (1.0 + penalty[e])
                             count += 1

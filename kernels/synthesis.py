@@ -14,6 +14,7 @@ from kernels.common import (
     cell_local_index,
     floor_div,
     hash_cell,
+    pixel_coords,
     pixel_index,
     plane_offset,
     wrap,
@@ -84,7 +85,15 @@ def block_local(i: int) -> wp.vec3i:
 
 @wp.func
 def voxel_world(coords: wp.array(dtype=wp.vec3i), i: int) -> wp.vec3i:
+    """Coordinates of work voxel ``i``: its block's corner plus its place in the block."""
     return coords[i >> 6] * BLOCK + block_local(i)
+
+
+@wp.func
+def parent_voxel(p: wp.vec3i) -> wp.vec3i:
+    """The voxel one level coarser that voxel ``p`` inherits from (section 5.1, p >> 1,
+    rounding down at negative coordinates too)."""
+    return wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
 
 
 @wp.func
@@ -108,8 +117,9 @@ def neighbor_voxel(nbr: wp.array2d(dtype=wp.int32), i: int, d: wp.vec3i) -> int:
 
 @wp.func
 def shift_pixel(pix: int, du: int, dv: int, height: int, width: int) -> int:
-    u = pix // width
-    return pixel_index(u + du, pix - u * width + dv, height, width)
+    """Exemplar pixel ``pix`` moved by ``(du, dv)``, wrapping around the exemplar."""
+    uv = pixel_coords(pix, width)
+    return pixel_index(uv[0] + du, uv[1] + dv, height, width)
 
 
 @wp.func
@@ -245,15 +255,13 @@ def upsample(
     if slot < 0:  # a block no correction reads: its parents were not synthesized
         return
     p = voxel_world(coords, i)
-    up = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)  # the parent voxel (section 5.1)
-    src = parent[slot * BLOCK_VOXELS + cell_local_index(up, _BLOCK_SHIFT)]
+    src = parent[slot * BLOCK_VOXELS + cell_local_index(parent_voxel(p), _BLOCK_SHIFT)]
     out = wp.vec3i(0, 0, 0)
     for k in range(3):
-        u = src[k] // parent_width[k]
-        v = src[k] - u * parent_width[k]
+        uv = pixel_coords(src[k], parent_width[k])
         du = p[(k + 1) % 3] & 1
         dv = p[(k + 2) % 3] & 1
-        out[k] = pixel_index(2 * u + du, 2 * v + dv, t.height[k], t.width[k])
+        out[k] = pixel_index(2 * uv[0] + du, 2 * uv[1] + dv, t.height[k], t.width[k])
     triples[i] = out
 
 
@@ -285,9 +293,7 @@ def mark_parents(
     same 1 to a voxel; the result is the same."""
     i = first + wp.tid()
     if need[i] != wp.uint8(0):
-        p = voxel_world(coords, i)
-        parent = wp.vec3i(p[0] >> 1, p[1] >> 1, p[2] >> 1)
-        local = cell_local_index(parent, _BLOCK_SHIFT)
+        local = cell_local_index(parent_voxel(voxel_world(coords, i)), _BLOCK_SHIFT)
         parents[parent_block[i >> 6] * BLOCK_VOXELS + local] = wp.uint8(1)
 
 
@@ -394,6 +400,8 @@ def entry_sum(t: LevelTables, halos: wp.array(dtype=wp.float32), w: int, j: int)
 
 @wp.func
 def project_clamp(acc: appearance_vector, shift: int) -> appearance_vector:
+    """A projection's integer sums scaled down by ``2^shift`` to 12 bits (``PROJ_LIMIT``),
+    so that a distance over the three planes fits in int32."""
     for d in range(MAX_DIMS):
         acc[d] = wp.clamp(acc[d] >> shift, -PROJ_LIMIT, PROJ_LIMIT)
     return acc
@@ -509,11 +517,10 @@ def clear_of_margins(t: LevelTables, tri: wp.vec3i) -> bool:
     clear = True
     for k in range(3):
         if t.margin_rows[k] > 0 or t.margin_cols[k] > 0:
-            u = tri[k] // t.width[k]
-            v = tri[k] - u * t.width[k]
-            if u < t.margin_rows[k] or u >= t.height[k] - t.margin_rows[k]:
+            uv = pixel_coords(tri[k], t.width[k])
+            if uv[0] < t.margin_rows[k] or uv[0] >= t.height[k] - t.margin_rows[k]:
                 clear = False
-            if v < t.margin_cols[k] or v >= t.width[k] - t.margin_cols[k]:
+            if uv[1] < t.margin_cols[k] or uv[1] >= t.width[k] - t.margin_cols[k]:
                 clear = False
     return clear
 

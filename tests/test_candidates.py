@@ -144,7 +144,7 @@ def _assert_same(a: CandidateSet, b: CandidateSet) -> None:
                 np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name))
     for la, lb in zip(a.roles, b.roles, strict=True):
         for ra, rb in zip(la, lb, strict=True):
-            for name in ("cand", "cb", "count", "fallback"):
+            for name in ("cand", "crossbar_errors", "count", "fallback"):
                 np.testing.assert_array_equal(getattr(ra, name), getattr(rb, name))
 
 
@@ -226,14 +226,14 @@ def test_lists_sorted_by_crossbar_error_and_padded_with_the_best(granite, three)
     for cs in (granite, three[0]):
         for lv, r in _role_cases(cs):
             role = cs.roles[lv][r]
-            k = role.cb.shape[1]
+            k = role.crossbar_errors.shape[1]
             valid = np.arange(k)[None, :] < role.count[:, None]
-            steps = np.diff(role.cb, axis=1)
+            steps = np.diff(role.crossbar_errors, axis=1)
             assert (steps[valid[:, 1:]] >= 0).all(), f"level {lv} role {r} not ascending"
             # Slots past `count` repeat the first candidate, so readers stay in range.
             pad = ~valid
-            best_cb = np.broadcast_to(role.cb[:, :1], role.cb.shape)
-            np.testing.assert_array_equal(role.cb[pad], best_cb[pad])
+            best_cb = np.broadcast_to(role.crossbar_errors[:, :1], role.crossbar_errors.shape)
+            np.testing.assert_array_equal(role.crossbar_errors[pad], best_cb[pad])
             best = np.broadcast_to(role.cand[:, :1], role.cand.shape)
             np.testing.assert_array_equal(role.cand[pad], best[pad])
 
@@ -248,7 +248,7 @@ def test_stored_crossbar_error_matches_numpy_reference(granite, three):
             own = np.broadcast_to(np.arange(npix)[:, None], (npix, k))
             expected = _crossbar(feats, [own, role.cand[..., 0], role.cand[..., 1]], half)
             valid = np.arange(k)[None, :] < role.count[:, None]
-            np.testing.assert_array_equal(role.cb[valid], expected[valid])
+            np.testing.assert_array_equal(role.crossbar_errors[valid], expected[valid])
 
 
 def test_crossbar_reference_sees_orientation():
@@ -358,7 +358,7 @@ def test_two_equal_exemplars_share_a_source(warp_device):
         feats = [s.feat for s in _trio(cs, lv, r)]
         expected = _crossbar(feats, [own, role.cand[..., 0], role.cand[..., 1]], half)
         valid = np.arange(k)[None, :] < role.count[:, None]
-        np.testing.assert_array_equal(role.cb[valid], expected[valid])
+        np.testing.assert_array_equal(role.crossbar_errors[valid], expected[valid])
 
 
 def test_same_image_thrice_is_shared(warp_device):
@@ -1133,8 +1133,8 @@ def test_triples_are_among_the_keep_lowest_crossbar_errors(granite_32, warp_devi
                    np.broadcast_to(near2[:, None, :], (len(pixels), strips, strips))]
         errors = np.sort(_crossbar([feat] * 3, triples, half).reshape(len(pixels), -1), axis=1)
         role = cs.roles[lv][0]
-        valid = np.arange(role.cb.shape[1])[None, :] < role.count[:, None]
-        worst = np.where(valid, role.cb, -1).max(axis=1)
+        valid = np.arange(role.crossbar_errors.shape[1])[None, :] < role.count[:, None]
+        worst = np.where(valid, role.crossbar_errors, -1).max(axis=1)
         assert (worst <= errors[:, keep - 1]).all(), lv
 
 

@@ -157,7 +157,7 @@ class RoleLevel:
     """3D candidates of the pixels of one exemplar role at one level (sections 4.1-4.2)."""
 
     cand: np.ndarray  # (h*w, K3, 2) int32: pixel in the next and the next-next exemplar
-    cb: np.ndarray  # (h*w, K3) int32 crossbar error, ascending
+    crossbar_errors: np.ndarray  # (h*w, K3) int32 crossbar error, ascending
     count: np.ndarray  # (h*w,) int32 valid candidates
     fallback: np.ndarray  # (h*w,) bool: no coherent candidate was found, best one kept
 
@@ -720,7 +720,7 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int,
     keys = wp.full((npix, keep), np.iinfo(np.int64).max, dtype=wp.int64, device=dev)
     c1 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     c2 = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
-    cb = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
+    errors_of = wp.zeros((npix, keep), dtype=wp.int32, device=dev)
     count = wp.zeros(npix, dtype=wp.int32, device=dev)
     closing = wp.empty(near2.shape, dtype=wp.int32, device=dev)
     launch_ranges(
@@ -729,16 +729,16 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int,
         npix,
         [_role_strips([a for pair in strips for a in pair]), wp.array(near1, device=dev),
          wp.array(near2, device=dev), closing],
-        [keys, c1, c2, cb, count],
+        [keys, c1, c2, errors_of, count],
         min_items=_MIN_SPLIT_PIXELS,
     )
     cand = np.stack([c1.numpy(), c2.numpy()], axis=2)
     done_half()
-    cand, cb_np, cnt, fallback = _filter_coherent(
-        cand, cb.numpy(), count.numpy(), [t.size for t in trio], k3, int(p["coherence_rounds"])
-    )
+    cand, errors, cnt, fallback = _filter_coherent(cand, errors_of.numpy(), count.numpy(),
+                                                   [t.size for t in trio], k3,
+                                                   int(p["coherence_rounds"]))
     done_half()
-    return RoleLevel(cand=cand, cb=cb_np, count=cnt, fallback=fallback)
+    return RoleLevel(cand=cand, crossbar_errors=errors, count=cnt, fallback=fallback)
 
 
 def _crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np.ndarray:
@@ -747,12 +747,12 @@ def _crossbar_errors(trio: list[SourceLevel], cand: np.ndarray, half: int) -> np
     init_warp()
     dev = _DEVICE
     strips = _role_strips([_strips(t.feat, axis, half) for t in trio for axis in (0, 1)])
-    cb = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
+    errors = wp.zeros(cand.shape[:2], dtype=wp.int32, device=dev)
     pairs = [wp.array(np.ascontiguousarray(cand[:, :, i]), dtype=wp.int32, device=dev)
              for i in (0, 1)]
-    launch_ranges(_k.candidate_crossbar_errors, 0, cand.shape[0], [strips, *pairs], [cb],
+    launch_ranges(_k.candidate_crossbar_errors, 0, cand.shape[0], [strips, *pairs], [errors],
                   per_item=cand.shape[1], min_items=_MIN_SPLIT_PIXELS)
-    return cb.numpy()
+    return errors.numpy()
 
 
 def _role_strips(strips: list[np.ndarray]) -> _k.RoleStrips:
@@ -862,7 +862,7 @@ def _first_members(idx: np.ndarray, d2: np.ndarray, dk: np.ndarray, k: int,
 
 def _filter_coherent(
     cand: np.ndarray,
-    cb: np.ndarray,
+    errors: np.ndarray,
     count: np.ndarray,
     sizes: list[tuple[int, int]],
     k3: int,
@@ -877,7 +877,7 @@ def _filter_coherent(
     round removes nothing, so the final lists are coherent with each other (except at
     fallback pixels). Every round but the last removes candidates, so this ends.
     """
-    cand, cb = cand.copy(), cb.copy()  # lists are reordered in place below
+    cand, errors = cand.copy(), errors.copy()  # lists are reordered in place below
     npix, slots = cand.shape[:2]
     fallback = np.zeros(npix, bool)
     # A pixel's test reads only its neighbours' lists, and a list that passed keeps
@@ -904,7 +904,7 @@ def _filter_coherent(
             shrunk = np.flatnonzero(kept != count)  # elsewhere the kept ones lead already
             order = np.argsort(~flags[shrunk], axis=1, kind="stable")
             cand[shrunk] = np.take_along_axis(cand[shrunk], order[:, :, None], axis=1)
-            cb[shrunk] = np.take_along_axis(cb[shrunk], order, axis=1)
+            errors[shrunk] = np.take_along_axis(errors[shrunk], order, axis=1)
             count = kept
             if done >= rounds:
                 # Stopping here would leave lists whose support was just removed; cut them
@@ -913,13 +913,13 @@ def _filter_coherent(
         retest = _direct_neighbours(count != before, sizes[0])
     width_k = min(k3, cand.shape[1])
     cand = cand[:, :width_k].copy()
-    cb = cb[:, :width_k].copy()
+    errors = errors[:, :width_k].copy()
     count = np.minimum(count, width_k).astype(np.int32)
     invalid = np.arange(width_k)[None, :] >= count[:, None]
     # Unused slots repeat the best candidate so any reader stays in range.
     cand[invalid] = np.repeat(cand[:, :1], width_k, axis=1)[invalid]
-    cb[invalid] = np.repeat(cb[:, :1], width_k, axis=1)[invalid]
-    return cand.astype(np.int32), cb.astype(np.int32), count, fallback
+    errors[invalid] = np.repeat(errors[:, :1], width_k, axis=1)[invalid]
+    return cand.astype(np.int32), errors.astype(np.int32), count, fallback
 
 
 def _continued(cand: np.ndarray, count: np.ndarray, sizes: list[tuple[int, int]],
@@ -1061,7 +1061,8 @@ def _with_crossbar_errors(cs: CandidateSet) -> CandidateSet:
     half = int(cs.params["neighborhood"]) // 2
     for lv in range(cs.num_levels):
         for r, role in enumerate(cs.roles[lv]):
-            role.cb = _crossbar_errors(_trio(cs.sources[lv], cs.axis_source, r), role.cand, half)
+            trio = _trio(cs.sources[lv], cs.axis_source, r)
+            role.crossbar_errors = _crossbar_errors(trio, role.cand, half)
     return cs
 
 
@@ -1089,7 +1090,8 @@ def _from_arrays(d: dict[str, np.ndarray]) -> CandidateSet:
             lvl_roles.append(
                 RoleLevel(
                     cand=_stored_int32(d[f"L{lv}/R{r}/cand"]),
-                    cb=np.zeros(0, np.int32),  # from the triples: _with_crossbar_errors
+                    # From the triples: _with_crossbar_errors.
+                    crossbar_errors=np.zeros(0, np.int32),
                     count=_stored_int32(d[f"L{lv}/R{r}/count"]),
                     fallback=_stored_flags(d[f"L{lv}/R{r}/fallback"], npix),
                 )
