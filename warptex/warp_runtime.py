@@ -161,31 +161,27 @@ def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
         KernelCacheError: the module cannot be built into the kernel cache (a read-only
             folder, another user's, a full disk), or built again cannot be loaded either.
     """
-    try:
-        wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
-        return
-    except FileNotFoundError:
-        pass  # Warp found the build, then its files were gone: Warp now builds it again
-    except OSError as error:
-        raise _build_failure(kernel.module.name, error) from None
-    except Exception as error:
-        if not _unloadable(error):
-            raise
-        if (kernel.module.name, str(device)) in _REBUILT:
-            raise _load_failure(kernel.module.name, error) from None
-        _REBUILT.add((kernel.module.name, str(device)))
-        folders = _drop_builds(kernel.module)
-        warnings.warn(f"Warp's kernel cache held a damaged build of {kernel.module.name} "
-                      f"({error}); deleted {', '.join(folders) or 'nothing'}, building it "
-                      "again", stacklevel=2)
-    try:
-        wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
-    except OSError as error:
-        raise _build_failure(kernel.module.name, error) from None
-    except Exception as error:
-        if not _unloadable(error):
-            raise
-        raise _load_failure(kernel.module.name, error) from None
+    module = kernel.module.name
+    for again in (False, True):
+        try:
+            wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
+            return
+        except FileNotFoundError as error:
+            if again:
+                raise _build_failure(module, error) from None
+            # Warp found the build, then its files were gone: Warp now builds it again.
+        except OSError as error:
+            raise _build_failure(module, error) from None
+        except Exception as error:
+            if not _unloadable(error):
+                raise
+            if again or (module, str(device)) in _REBUILT:
+                raise _load_failure(module, error) from None
+            _REBUILT.add((module, str(device)))
+            folders = _drop_builds(kernel.module)
+            warnings.warn(f"Warp's kernel cache held a damaged build of {module} ({error}); "
+                          f"deleted {', '.join(folders) or 'nothing'}, building it again",
+                          stacklevel=2)
 
 
 # Warp modules built again by :func:`launch` in this process, and for which device.
