@@ -547,7 +547,7 @@ class LazySolidTexture(mi.Texture):
             return rgb
         return mi.Color3f(srgb_decoded(dr.float64_array_t(mi.Color3f)(rgb), dr.select))
 
-    def query_texture_space(self, points: np.ndarray) -> np.ndarray:
+    def _query_texture_space(self, points: np.ndarray) -> np.ndarray:
         """RGB (N, 3) float32 at texture-space ``points`` (N, 3), as stored (not decoded):
         beyond the texture's coordinate range as :func:`warptex.texture.wrap_far` moves
         them, black where a point is NaN or infinite, as Mitsuba's textures never raise."""
@@ -684,7 +684,7 @@ class LazySolidTexture(mi.Texture):
         color = self._scalar.color(point)
         if color is None:
             self._scalar.forget(point)
-            return self.query_texture_space(np.array([point])).tolist()[0]
+            return self._query_texture_space(np.array([point])).tolist()[0]
         return _as_rgb(np.array([color])).tolist()[0]  # float32, as Color3f rounds
 
     def _query(self, points: np.ndarray, it: mi.Interaction3f,
@@ -695,7 +695,7 @@ class LazySolidTexture(mi.Texture):
             if self.space == "object":
                 points = _to_object_space(points, it, keep, self._emitter)
             texture = apply_affine(self._world_to_texture, *points.T)
-        return self.query_texture_space(np.stack(texture, axis=1))
+        return self._query_texture_space(np.stack(texture, axis=1))
 
     def _update_transform(self) -> None:
         placed = _affine_matrix(self.to_world)

@@ -346,7 +346,7 @@ class _Hashed:
         self._file.flush()
 
 
-def is_foreign(path: str | Path, magic: bytes) -> bool:
+def _is_foreign(path: str | Path, magic: bytes) -> bool:
     """Whether ``path`` holds something other than a ``magic`` archive, which writing one
     there would destroy: a folder, a device or pipe, or a file that starts otherwise. A
     missing path, an empty file or one cut short within the magic is not foreign.
@@ -373,7 +373,7 @@ def overwrite_problem(path: str | Path, magic: bytes, kind: str,
     read (not ``written``), a file of another kind is refused as such, without the
     overwriting that does not happen."""
     try:
-        foreign = is_foreign(path, magic)
+        foreign = _is_foreign(path, magic)
     except OSError as e:
         return f"cannot read ({e.strerror or e})"
     if foreign and Path(path).is_dir():
