@@ -22,12 +22,12 @@ wp.set_module_options({"enable_backward": False})
 WINDOW = 8  # 8x8 neighbourhoods (section 5)
 HALF = 4  # window offsets run -HALF .. WINDOW-HALF-1
 MEAN_SHIFT_STEPS = 2  # after the densest texel, before the final average of its cluster
-MAX_DIMS = 96
+MAX_COEFFS = 96
 """Most PCA coefficients kept: 95% of the variance of the bundled exemplars' 8x8 RGB windows
 needs 30 to 71 (bricks_red's coarse levels), 94 with a feature-distance channel; fewer
 kept is warned of."""
 
-projection = wp.types.vector(length=MAX_DIMS, dtype=wp.float32)
+projection = wp.types.vector(length=MAX_COEFFS, dtype=wp.float32)
 """A PCA-projected neighbourhood; unused trailing coefficients stay zero."""
 
 
@@ -92,7 +92,7 @@ def window_distance(
 
 
 @wp.kernel
-def project_neighborhoods(
+def project_windows(
     first: int,
     s: wp.array2d(dtype=wp.float32),
     n: int,

@@ -143,7 +143,7 @@ def test_pca_keeps_95_percent_of_the_variance_or_says_how_much_less(granite, mon
     more are needed than the kernels hold, the share kept is warned of, not hidden."""
     colors = np.ascontiguousarray(granite.colors[:SIZE, :SIZE])
     full = kopf._search_structure(colors, (False, False))
-    assert 1 < full.dims <= kopf._k.MAX_DIMS
+    assert 1 < full.dims <= kopf._k.MAX_COEFFS
     assert not full.basis[:, full.dims:].any() and full.basis[:, : full.dims].any()
     # The kept coefficients hold 95% of the windows' variance, one fewer would not.
     windows = kopf._windows(colors, (False, False))[0].astype(np.float64)
@@ -152,7 +152,7 @@ def test_pca_keeps_95_percent_of_the_variance_or_says_how_much_less(granite, mon
              for k in (full.dims - 1, full.dims)]
     assert share[0] < kopf.VARIANCE_KEPT <= share[1]
     assert full.needed == full.dims and full.kept >= kopf.VARIANCE_KEPT
-    monkeypatch.setattr(kopf._k, "MAX_DIMS", full.dims - 1)
+    monkeypatch.setattr(kopf._k, "MAX_COEFFS", full.dims - 1)
     capped = kopf._search_structure(colors, (False, False))
     assert (capped.dims, capped.needed) == (full.dims - 1, full.dims)
     assert capped.kept == pytest.approx(share[0], abs=1e-6)
@@ -166,9 +166,9 @@ def test_a_pca_short_of_95_percent_is_warned_of_once_at_the_caller(granite, monk
 
     built = kopf._search_structure
     # As if the kernels held fewer coefficients than the windows need (their projection
-    # type is fixed at MAX_DIMS, so the limit itself cannot be lowered for a run).
+    # type is fixed at MAX_COEFFS, so the limit itself cannot be lowered for a run).
     monkeypatch.setattr(kopf, "_search_structure", lambda *args: dataclasses.replace(
-        built(*args), needed=kopf._k.MAX_DIMS + 1, kept=0.9))
+        built(*args), needed=kopf._k.MAX_COEFFS + 1, kept=0.9))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         kopf.synthesize(granite, size=SIZE, iterations=1, progress=False)
@@ -177,7 +177,7 @@ def test_a_pca_short_of_95_percent_is_warned_of_once_at_the_caller(granite, monk
     message = str(said[0].message)
     for level in range(kopf.LEVELS):
         assert re.search(rf"{granite.name} at level {level}: \d+ dimensions, 90\.0% of the "
-                         rf"variance; 95% needs {kopf._k.MAX_DIMS + 1}", message), message
+                         rf"variance; 95% needs {kopf._k.MAX_COEFFS + 1}", message), message
 
 
 def test_each_axis_keeps_its_own_seams(granite):

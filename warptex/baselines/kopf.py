@@ -81,14 +81,14 @@ _BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_searc
 # optimization of each resolution level progresses" (section 4.1).
 MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 # Peak memory of a synthesis per voxel, beside the solid and its returned copy: most of it the
-# search's PCA coefficients (MAX_DIMS float32 per grid centre, a quarter of the voxels) and
+# search's PCA coefficients (MAX_COEFFS float32 per grid centre, a quarter of the voxels) and
 # its float64 copies of the kept ones (about 4 bytes a voxel per coefficient). Measured at
 # 64^3: 287 bytes (bricks_red_64, 39 coefficients), 325 (granite_64, 48); noise, which keeps
 # all 96, about 520.
 WORK_BYTES_PER_VOXEL = 600
 # Peak memory of an exemplar's search structure per window (pixel) while it is built: its
 # float64 window of 64 values per feature, centred in place, beside its coefficients (at most
-# MAX_DIMS float64) and the tree over them, which are kept for the level (the coarser level's,
+# MAX_COEFFS float64) and the tree over them, which are kept for the level (the coarser level's,
 # a quarter as large, still held); and, once per exemplar, the (64 F)^2 covariance with the
 # eigensolver's copies of it. Measured with tracemalloc, every window kept (no seam): 1,663
 # bytes a pixel (rust_256, 13 coefficients), 2,066 (granite_64, 48), 5,528 (8 random
@@ -97,7 +97,7 @@ WORK_BYTES_PER_VOXEL = 600
 # the resident peak of a fresh process exceeded the count by 3.0 to 6.3 MiB at 16^2 to
 # 128^2 pixels (benchmarks/bench_kopf_search_memory.py): 8 MiB on top, once.
 SEARCH_BYTES_PER_FEATURE = 512
-SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_DIMS + 512
+SEARCH_BYTES_PER_WINDOW = 8 * _k.MAX_COEFFS + 512
 SEARCH_COVARIANCES = 3
 SEARCH_BYTES_UNTRACED = 8 << 20
 
@@ -128,7 +128,7 @@ class _Axis:
     features: np.ndarray  # (h, w, F)
     window_pixels: np.ndarray  # (windows,) int32 exemplar pixel each tree window is centred on
     mean: np.ndarray  # (64 F,) mean window
-    basis: np.ndarray  # (64 F, MAX_DIMS) PCA basis, zero past the kept coefficients
+    basis: np.ndarray  # (64 F, MAX_COEFFS) PCA basis, zero past the kept coefficients
     dims: int
     tree: cKDTree
     # Coefficients that hold VARIANCE_KEPT of the variance: more than dims where the kernels
@@ -358,8 +358,8 @@ def _search_structure(features: np.ndarray, seams: tuple[bool, bool]) -> _Axis:
     # Windows all alike (a constant exemplar) vary in no direction: one coefficient holds it.
     explained = np.cumsum(variance) / total if total > 0 else np.ones(len(variance))
     needed = int(np.searchsorted(explained, VARIANCE_KEPT)) + 1
-    dims = min(needed, _k.MAX_DIMS)
-    basis = np.zeros((centred.shape[1], _k.MAX_DIMS), np.float32)
+    dims = min(needed, _k.MAX_COEFFS)
+    basis = np.zeros((centred.shape[1], _k.MAX_COEFFS), np.float32)
     basis[:, :dims] = vectors[:, :dims]
     tree = cKDTree(centred @ vectors[:, :dims])
     return _Axis(features, pixels, mean.astype(np.float32), basis, dims, tree, needed,
@@ -432,7 +432,7 @@ class _LevelOptimizer:
                 continue
             mean = wp.array(ax.mean, dtype=wp.float32, device=_DEVICE)
             basis = wp.array(ax.basis, dtype=_k.projection, device=_DEVICE)
-            launch_ranges(_k.project_neighborhoods, 0, self.centres,
+            launch_ranges(_k.project_windows, 0, self.centres,
                           [self.solid, n, axis, mean, basis, self.coeffs], device=_DEVICE)
             lo, hi = self.grid_first[axis], self.grid_first[axis] + self.centres
             found = _ann_search(ax, self.coeffs.numpy()[:, : ax.dims],
