@@ -43,8 +43,12 @@ def started() -> None:
 
 
 def _interrupted_while_starting(signum: int, frame: Any) -> None:
-    print("\nwarptex: interrupted", file=sys.stderr)
-    raise SystemExit(130)
+    # The process ends here, not by SystemExit: an import it cut short may catch what that
+    # becomes (NumPy's C extension makes it an ImportError) and go on, or blame the
+    # environment. Nothing is written before the work, so nothing is left to flush.
+    with contextlib.suppress(OSError, ValueError):
+        print("\nwarptex: interrupted", file=sys.stderr, flush=True)
+    os._exit(130)
 
 
 def stops_ignored_after_the_work() -> None:
