@@ -329,3 +329,38 @@ def test_a_forked_process_launches_on_threads_of_its_own(data_dir):
     run = subprocess.run([sys.executable, "-c", _FORKED, str(data_dir / "granite_64.png")],
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0 and run.stdout.split() == ["True"], run.stderr[-2000:]
+
+
+_STOPPED_AS_A_THREAD_STARTS = """
+import os, signal, threading
+
+from warptex import parallel
+
+parallel.THREADS = 2  # a pool of more than one thread, whatever the machine
+started = threading.Thread.start
+
+
+def start_then_stop(thread):
+    started(thread)
+    if thread.name.startswith("warptex") and threading.Thread.start is start_then_stop:
+        threading.Thread.start = started
+        os.kill(os.getpid(), signal.SIGINT)  # as Ctrl-C comes with the thread just running
+        for _ in range(1000):  # the handler runs at the loop's next turn
+            pass
+
+
+threading.Thread.start = start_then_stop
+try:
+    parallel._pool().submit(print, "ran").result()  # the first launch's submission
+except KeyboardInterrupt:
+    print("interrupted")
+"""
+
+
+def test_a_stop_as_the_pool_starts_a_thread_lets_the_process_end():
+    """Ctrl-C inside Thread.start, the thread already running: the pool had not recorded
+    it, and the interpreter's exit waited for it for ever (only kill -9 ended a command so
+    stopped, Ctrl-C and SIGTERM being ignored by then)."""
+    run = subprocess.run([sys.executable, "-c", _STOPPED_AS_A_THREAD_STARTS],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0 and run.stdout.split() == ["interrupted"], run.stderr[-2000:]

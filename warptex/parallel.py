@@ -14,6 +14,7 @@ import functools
 import multiprocessing
 import os
 import signal
+import threading
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
 from itertools import pairwise
@@ -33,9 +34,22 @@ WAIT_SECONDS = 0.5  # how often in_child_process calls its while_waiting
 
 @functools.cache
 def _pool() -> ThreadPoolExecutor:
-    # Kept for the process: starting threads for each of many small launches costs more
-    # than the launches themselves.
-    return ThreadPoolExecutor(THREADS, thread_name_prefix="warptex")
+    """The CPU launches' threads, kept for the process: starting threads for each of many
+    small launches costs more than the launches themselves. All start here, each held at
+    a barrier so that the next submission needs a thread of its own, with Ctrl-C and
+    SIGTERM held back: one inside ``Thread.start`` left a running thread the pool had not
+    recorded, which the interpreter's exit then waited for for ever."""
+    pool = ThreadPoolExecutor(THREADS, thread_name_prefix="warptex")
+    everyone = threading.Barrier(THREADS + 1)
+    with deferred_stops():
+        try:
+            for _ in range(THREADS):
+                pool.submit(everyone.wait)
+            everyone.wait()
+        except BaseException:  # a thread that could not start: the others let go
+            everyone.abort()
+            raise
+    return pool
 
 
 # A forked child (multiprocessing's default on Linux) inherits the pool without its
