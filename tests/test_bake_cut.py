@@ -761,6 +761,31 @@ def test_bake_names_finding_the_shell_before_that_long_call(tmp_path, granite_32
     assert "surface shell" in shown[0] and "finding the voxels" in shown[0]
 
 
+def test_the_shell_bar_ticks_while_its_voxels_are_synthesized(tmp_path, granite_32_file,
+                                                              sphere, warp_device,
+                                                              monkeypatch):
+    """A shell of up to 2^20 voxels (512^3 blocks) is one engine request of minutes: its
+    bar stood at 0 % with a stopped clock, and a log got no line meanwhile."""
+    import threading
+
+    from warptex.cli import main
+    from warptex.texture import SolidTexture
+
+    ticking = []
+    query = SolidTexture.query
+
+    def seen(self, points, filter="trilinear"):
+        ticking.append(any(t.name == "warptex-bar" for t in threading.enumerate()))
+        return query(self, points, filter=filter)
+
+    monkeypatch.setattr(SolidTexture, "query", seen)
+    mesh_path = tmp_path / "sphere.ply"
+    sphere.export(mesh_path)
+    assert main(["bake", str(mesh_path), "--exemplar", str(granite_32_file),
+                 "--resolution", "16", "-o", str(tmp_path / "b.ply")]) == 0
+    assert ticking[0]  # the shell's one request
+
+
 def test_the_uv_bar_ticks_while_the_mesh_is_unwrapped(texture, sphere, capsys, monkeypatch):
     """xatlas takes 21 s for the bunny in a child process; its bar's clock is redrawn
     meanwhile rather than standing at the step's start."""

@@ -322,11 +322,13 @@ def _synthesize_shell(tex, mesh, resolution: int, transform: np.ndarray) -> int:
         bar.reset(total=len(voxels))
         # Not query_slabs: its colors would be thrown away, and holding them, with a point
         # and an order for every shell voxel at once, would double what the shell takes in
-        # memory. The shell is sorted along x, so each batch is a slab and one engine request.
-        for first in range(0, len(voxels), BATCH):
-            part = voxels[first : first + BATCH]
-            tex.query(part + 0.5, filter="nearest")
-            bar.update(len(part))
+        # memory. The shell is sorted along x, so each batch is a slab and one engine request;
+        # the shell of a 512^3 block is one, of minutes, whose bar's clock must run.
+        with ticking(bar):
+            for first in range(0, len(voxels), BATCH):
+                part = voxels[first : first + BATCH]
+                tex.query(part + 0.5, filter="nearest")
+                bar.update(len(part))
     return len(voxels)
 
 
