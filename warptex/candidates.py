@@ -682,9 +682,11 @@ def _kcoherent(proj: np.ndarray, h: int, w: int, k: int, usable: np.ndarray) -> 
     lead = np.where(usable, own, idx[:, 0])
     far = ((np.minimum(du, h - du) > 2) | (np.minimum(dv, w - dv) > 2)) & (idx != lead[:, None])
     out = np.repeat(lead[:, None], k, axis=1).astype(np.int32)
-    for pix in range(npix):
-        others = idx[pix][far[pix]][: k - 1]
-        out[pix, 1 : 1 + len(others)] = others
+    # Each pixel's first k - 1 far ones, in order of similarity; rows with fewer keep the
+    # lead in the slots left.
+    first = np.argsort(~far, axis=1, kind="stable")[:, : k - 1]
+    taken = np.arange(k - 1)[None, :] < far.sum(axis=1)[:, None]
+    out[:, 1:][taken] = np.take_along_axis(idx, first, axis=1)[taken]
     return out
 
 
