@@ -175,6 +175,31 @@ def _brute_nearest(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndar
     return np.stack([np.lexsort((np.arange(len(database)), row))[:k] for row in d2])
 
 
+@pytest.mark.parametrize(("size", "k", "usable_share"),
+                         [(16, 4, 1.0), (16, 4, 0.6), (9, 30, 1.0), (9, 30, 0.3)])
+def test_k_coherent_candidates_are_the_nearest_far_pixels_in_order(size, k, usable_share):
+    """Section 4.2's 2D candidates (Tong et al. 2002) against a pixel-by-pixel reference:
+    the pixel itself (or the usable one most like it), then the most similar usable pixels
+    more than 2 pixels away, the lead repeated where there are too few. A level with fewer
+    usable pixels than k (seams' margins at a coarse level) raised an IndexError."""
+    rng = np.random.default_rng(size * k)
+    proj = rng.integers(-2, 3, (size * size, 4)).astype(np.int16)  # ties by the hundred
+    usable = rng.random(size * size) < usable_share
+    usable[0] = True
+    got = candidates._kcoherent(proj, size, size, k, usable)
+    pool = np.flatnonzero(usable)
+    for pix in range(size * size):
+        d2 = ((proj[pool].astype(np.int64) - proj[pix]) ** 2).sum(axis=1)
+        ranked = pool[np.lexsort((pool, d2))][: 4 * k + 25]  # ties by index
+        lead = pix if usable[pix] else ranked[0]
+        u, v = divmod(pix, size)
+        far = [q for q in ranked if q != lead and (
+            min(abs(q // size - u), size - abs(q // size - u)) > 2
+            or min(abs(q % size - v), size - abs(q % size - v)) > 2)][: k - 1]
+        expected = [lead, *far] + [lead] * (k - 1 - len(far))
+        assert got[pix].tolist() == expected, pix
+
+
 @pytest.mark.parametrize("k", [1, 5, 40, 300])
 def test_nearest_rows_of_a_mostly_flat_photo_are_found_without_searching_it_all(k,
                                                                                monkeypatch):

@@ -683,10 +683,10 @@ def _kcoherent(proj: np.ndarray, h: int, w: int, k: int, usable: np.ndarray) -> 
     far = ((np.minimum(du, h - du) > 2) | (np.minimum(dv, w - dv) > 2)) & (idx != lead[:, None])
     out = np.repeat(lead[:, None], k, axis=1).astype(np.int32)
     # Each pixel's first k - 1 far ones, in order of similarity; rows with fewer keep the
-    # lead in the slots left.
+    # lead in the slots left (a level of fewer usable pixels than k has fewer for all).
     first = np.argsort(~far, axis=1, kind="stable")[:, : k - 1]
-    taken = np.arange(k - 1)[None, :] < far.sum(axis=1)[:, None]
-    out[:, 1:][taken] = np.take_along_axis(idx, first, axis=1)[taken]
+    taken = np.arange(first.shape[1])[None, :] < far.sum(axis=1)[:, None]
+    out[:, 1 : 1 + first.shape[1]][taken] = np.take_along_axis(idx, first, axis=1)[taken]
     return out
 
 
