@@ -9,7 +9,7 @@ role k+1. The three crossbar pairs are therefore (0, 1), (1, 2) and (2, 0).
 
 import warp as wp
 
-from kernels.common import pixel_coords, pixel_index
+from kernels.common import bit_mask, pixel_coords, pixel_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -174,7 +174,7 @@ def mark_continuations(
                     at = pixel_index(cand_u[q, j] + du, cand_v[q, j] + dv, height, width)
                     word = at >> 5
                     if setting:
-                        marks[row, word] = marks[row, word] | (wp.uint32(1) << wp.uint32(at & 31))
+                        marks[row, word] = marks[row, word] | bit_mask(at)
                     else:
                         marks[row, word] = wp.uint32(0)
 
@@ -194,7 +194,7 @@ def keep_marked(
     """Clear the flag of each candidate of p whose coordinates are not marked."""
     for k in range(count[p]):
         at = cand_u[p, k] * width + cand_v[p, k]
-        if (marks[row, at >> 5] >> wp.uint32(at & 31)) & wp.uint32(1) == wp.uint32(0):
+        if (marks[row, at >> 5] & bit_mask(at)) == wp.uint32(0):
             keep[i, k] = 0
 
 

@@ -52,6 +52,12 @@ def pixel_coords(pixel: int, width: int) -> wp.vec2i:
     return wp.vec2i(u, pixel - u * width)
 
 
+@wp.func
+def bit_mask(bit: int) -> wp.uint32:
+    """The mask of bit ``bit`` in its uint32 word: bitmaps keep bit i in word ``i >> 5``."""
+    return wp.uint32(1) << wp.uint32(bit & 31)
+
+
 _MIX1 = wp.constant(wp.uint32(0x7FEB352D))
 _MIX2 = wp.constant(wp.uint32(0x846CA68B))
 _GOLDEN = wp.constant(wp.uint32(0x9E3779B9))

@@ -317,6 +317,6 @@ def upsample_trilinear(
             for tz in range(2):
                 az = linear_tap(p[2], tz, n)
                 w = taps[ax[1]] * taps[ay[1]] * taps[az[1]]
-                q = (ax[0] * n + ay[0]) * n + az[0]
+                q = voxel_index(wp.vec3i(ax[0], ay[0], az[0]), n)
                 for f in range(fine.shape[1]):
                     fine[i, f] = fine[i, f] + w * coarse[q, f]

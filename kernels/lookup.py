@@ -16,7 +16,7 @@ from typing import Any
 
 import warp as wp
 
-from kernels.common import KEY_BIAS, KEY_BITS, cell_local_index, floor_voxel
+from kernels.common import KEY_BIAS, KEY_BITS, bit_mask, cell_local_index, floor_voxel
 
 # No fused multiply-adds (CUDA's default): the plugin's traced lookups (Dr.Jit) repeat
 # the trilinear blend with separate roundings and must match to the bit.
@@ -108,8 +108,7 @@ def voxel_stored(index: BrickIndex, slot: int, local: int) -> bool:
     """Whether voxel ``local`` of the brick in pool ``slot`` (-1: absent) is stored."""
     if slot < 0:
         return False
-    word = index.valid[slot * VALID_WORDS + (local >> 5)]
-    return ((word >> wp.uint32(local & 31)) & wp.uint32(1)) != wp.uint32(0)
+    return (index.valid[slot * VALID_WORDS + (local >> 5)] & bit_mask(local)) != wp.uint32(0)
 
 
 @wp.func
@@ -132,7 +131,7 @@ def voxel_address(index: BrickIndex, slot: int, local: int) -> int:
         return index.base[slot] + local
     row = slot * VALID_WORDS
     word = local >> 5
-    below = (wp.uint32(1) << wp.uint32(local & 31)) - wp.uint32(1)
+    below = bit_mask(local) - wp.uint32(1)
     rank = int(wp.bit_count(index.valid[row + word] & below))
     for w in range(word):
         rank += int(wp.bit_count(index.valid[row + w]))
@@ -252,7 +251,7 @@ def sample_trilinear(
         addresses[corner] = -1
         if last_slot >= 0:
             local = cell_local_index(voxel, _SHIFT)
-            if index.partial == 0:
+            if index.partial == 0:  # voxel_address's first case, the base read once a brick
                 addresses[corner] = last_base + local
             elif voxel_stored(index, last_slot, local):
                 addresses[corner] = voxel_address(index, last_slot, local)
