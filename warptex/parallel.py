@@ -21,6 +21,7 @@ from itertools import pairwise
 from typing import Any
 
 import numpy as np
+import warp as wp
 from scipy.spatial import cKDTree
 
 from warptex.machine import usable_cores
@@ -58,7 +59,7 @@ os.register_at_fork(after_in_child=_pool.cache_clear)
 
 
 def launch_ranges(
-    kernel: Any,
+    kernel: wp.Kernel,
     start: int,
     stop: int,
     inputs: list,

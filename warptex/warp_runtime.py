@@ -144,7 +144,7 @@ class KernelCacheError(RuntimeError):
     fault, not the input's, which the command reports in one line naming the folder."""
 
 
-def launch(kernel: Any, dim: int, inputs: Sequence, outputs: Sequence = (), *,
+def launch(kernel: wp.Kernel, dim: int, inputs: Sequence, outputs: Sequence = (), *,
            device: str = "cpu") -> None:
     """``wp.launch``, except that a damaged build of the kernel's module in Warp's kernel
     cache (a truncated object file or metadata, after a full disk or a copy cut short) is
