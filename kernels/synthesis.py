@@ -97,13 +97,26 @@ def parent_voxel(p: wp.vec3i) -> wp.vec3i:
 
 
 @wp.func
+def neighbor_block(dx: int, dy: int, dz: int) -> int:
+    """Column of a work block's block-neighbour table for the block at offset
+    ``(dx, dy, dz)`` (each -1, 0 or 1): the 3 x 3 x 3 neighbours, x slowest."""
+    return (dx + 1) * 9 + (dy + 1) * 3 + dz + 1
+
+
+@wp.func
+def halo_side(half: int) -> int:
+    """Voxels along a side of a halo block: a work block with ``half`` voxels more on
+    either side (warptex.synthesis gathers halo blocks of this side)."""
+    return BLOCK + 2 * half
+
+
+@wp.func
 def neighbor_in_block(nbr: wp.array2d(dtype=wp.int32), block: int, local: wp.vec3i,
                       d: wp.vec3i) -> int:
     """Flat index of the voxel at offset ``d`` (|d| <= 4) from position ``local`` of work
     block ``block``, -1 if absent."""
     p = local + d
-    b = ((p[0] >> 2) + 1) * 9 + ((p[1] >> 2) + 1) * 3 + (p[2] >> 2) + 1
-    slot = nbr[block, b]
+    slot = nbr[block, neighbor_block(p[0] >> 2, p[1] >> 2, p[2] >> 2)]
     if slot < 0:
         return -1
     return (slot << 6) + cell_local_index(p, _BLOCK_SHIFT)
@@ -333,14 +346,14 @@ def gather_halos(
     (section 5.1). Absent voxels hold -1, which no feature sum or pixel takes. One thread
     fills one z row of a halo block; block ``blocks[q]`` goes to halo block ``q - lo``, ``lo``
     being the first block of the chunk gathered."""
-    side = BLOCK + 2 * t.half
+    side = halo_side(t.half)
     row = first + wp.tid()
     q = row // (side * side)
     r = row - q * side * side
     px = r // side - t.half
     py = r - (r // side) * side - t.half
     # A row crosses at most three blocks along z: one table entry each, not one per voxel.
-    pre = ((px >> 2) + 1) * 9 + ((py >> 2) + 1) * 3 + 1
+    pre = neighbor_block(px >> 2, py >> 2, 0)
     lxy = ((px & 3) << 4) + ((py & 3) << 2)
     out = ((q - lo) * side * side + r) * side * t.nfeat
     for z in range(side):
@@ -361,7 +374,7 @@ def gather_halos(
 @wp.func
 def halo_strides(half: int) -> wp.vec3i:
     """Index steps along x, y, z in a halo block."""
-    side = BLOCK + 2 * half
+    side = halo_side(half)
     return wp.vec3i(side * side, side, 1)
 
 
@@ -375,7 +388,7 @@ def plane_strides(half: int, k: int) -> wp.vec2i:
 @wp.func
 def halo_voxel_of(halo_of: wp.array(dtype=wp.int32), i: int, half: int) -> int:
     """Index of work voxel ``i`` in the halo block ``halo_of`` its block."""
-    side = BLOCK + 2 * half
+    side = halo_side(half)
     p = block_local(i) + wp.vec3i(half, half, half)
     return halo_of[i >> 6] * side * side * side + wp.dot(p, halo_strides(half))
 

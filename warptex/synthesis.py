@@ -773,8 +773,9 @@ class Synthesizer:
         blocks = block[starts]
         halo_of = np.full(nbr.shape[0], -1, np.int32)
         halo_of[blocks] = np.arange(len(blocks)) % chunk
-        rows = (BLOCK + 2 * t.half) ** 2  # gathered per halo block, one thread each
-        size = min(len(blocks), chunk) * rows * (BLOCK + 2 * t.half)
+        side = BLOCK + 2 * t.half  # of a halo block (the kernels' halo_side)
+        rows = side * side  # gathered per halo block, one thread each
+        size = min(len(blocks), chunk) * rows * side
         halos = wp.empty(size * t.nfeat, dtype=wp.float32, device=dev)
         halo_src = wp.empty(size, dtype=wp.vec3i, device=dev)
         blocks_wp = wp.array(blocks, dtype=wp.int32, device=dev)
