@@ -38,6 +38,20 @@ def voxel_index(p: wp.vec3i, n: int) -> int:
 
 
 @wp.func
+def window_voxel(p: wp.vec3i, axis: int, a: int, b: int, n: int) -> int:
+    """Row of entry ``(a, b)`` of the 8x8 window of voxel ``p`` in its slice across
+    ``axis`` (section 3's ``s_v,i``)."""
+    return voxel_index(p + plane_offset(axis, a - HALF, b - HALF), n)
+
+
+@wp.func
+def window_texel(centre: wp.vec2i, a: int, b: int, height: int, width: int) -> int:
+    """Pixel of entry ``(a, b)`` of the exemplar window centred on pixel ``centre``
+    (its row and column), wrapping around the exemplar."""
+    return pixel_index(centre[0] + a - HALF, centre[1] + b - HALF, height, width)
+
+
+@wp.func
 def voxel_at(row: int, n: int) -> wp.vec3i:
     """Voxel of ``row`` of an ``n^3`` solid, x slowest: the inverse of :func:`voxel_index`."""
     return wp.vec3i(row // (n * n), (row // n) % n, row % n)
@@ -83,8 +97,8 @@ def window_distance(
     total = float(0.0)
     for a in range(WINDOW):
         for b in range(WINDOW):
-            q = voxel_index(p + plane_offset(axis, a - HALF, b - HALF), n)
-            e = ex_first + pixel_index(uv[0] + a - HALF, uv[1] + b - HALF, height, width)
+            q = window_voxel(p, axis, a, b, n)
+            e = ex_first + window_texel(uv, a, b, height, width)
             for f in range(s.shape[1]):
                 d = s[q, f] - ex[e, f]
                 total += d * d
@@ -111,7 +125,7 @@ def project_windows(
     nfeat = s.shape[1]
     for a in range(WINDOW):
         for b in range(WINDOW):
-            q = voxel_index(p + plane_offset(axis, a - HALF, b - HALF), n)
+            q = window_voxel(p, axis, a, b, n)
             for f in range(nfeat):
                 k = (a * WINDOW + b) * nfeat + f
                 acc += basis[k] * (s[q, f] - mean[k])
@@ -271,8 +285,8 @@ def optimize_voxels(
                             centre = p - plane_offset(axis, a - HALF, b - HALF)
                             g = grid_first[axis] + grid_index(axis, centre, n)
                             uv = pixel_coords(match[g], width[axis])
-                            e = ex_first[axis] + pixel_index(
-                                uv[0] + a - HALF, uv[1] + b - HALF, height[axis], width[axis])
+                            e = ex_first[axis] + window_texel(uv, a, b, height[axis],
+                                                              width[axis])
                             texels[count] = e
                             weights[count] = weight[g] / (1.0 + penalty[e])
                             count += 1
