@@ -141,6 +141,9 @@ def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_de
                                  ((0, 0, np.inf), (0, 0, 1), "origin")):
         with pytest.raises(ValueError, match=f"plane's {name} must be three finite numbers"):
             cut(mesh, origin, normal)
+    # Not NumPy's divide warning and "the plane does not cut the mesh".
+    with pytest.raises(ValueError, match="non-zero normal"):
+        cut(mesh, (0, 0, 0), (0, 0, 0))
 
 
 def test_meshes_are_read_by_the_library_as_the_commands_read_them(tmp_path):

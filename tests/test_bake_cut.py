@@ -615,6 +615,39 @@ def test_uv_layouts_that_bake_wrong_colors_are_told(texture, sphere):
         "the UVs of 2 of 3 triangles have no area")  # a collinear face's rounding is none
 
 
+def test_uvs_a_little_past_one_are_told_as_tiled():
+    """UVs up to 1.5, exactly 2 or down to -0.5 leave surface uncoloured as surely as 2.7
+    does; only those at 2.7 and 1.0000001 (rounding, not tiling) were tried."""
+    from warptex.bake import uv_layout_problems
+
+    faces = np.array([[0, 1, 2]])
+    for low, top in ((0.0, 1.5), (0.0, 2.0), (-0.5, 1.0)):
+        uv = np.array([[low, 0.0], [top, 0.0], [0.0, 1.0]])
+        problems = uv_layout_problems(uv, faces, np.ones(64 * 64, bool))
+        assert any("reach outside [0, 1]" in p for p in problems), (low, top, problems)
+
+
+class _FilterRecorder(_Constant):
+    """A texture of one colour that notes the filter of each query."""
+
+    def __init__(self):
+        self.filters = []
+
+    def query(self, points, filter="trilinear"):
+        self.filters.append(filter)
+        return super().query(points, filter)
+
+
+def test_a_uv_texture_is_baked_with_the_filter_asked_for(warp_device):
+    """bake_uv_texture(filter="nearest") from the Python API gave trilinear colours had
+    the argument not reached the queries (the command never passes it)."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    mesh = trimesh.Trimesh(v, np.array([[0, 1, 2]]), process=False)
+    recorder = _FilterRecorder()
+    bake_uv_texture(recorder, mesh, v[:, :2], np.eye(4), size=8, filter="nearest")
+    assert recorder.filters and set(recorder.filters) == {"nearest"}
+
+
 def test_vertex_colors_use_the_filter_asked_for(texture):
     sphere = trimesh.creation.icosphere(subdivisions=2)
     m = block_transform(sphere, 24)

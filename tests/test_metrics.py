@@ -311,6 +311,14 @@ def _repetition_by_hand(image: np.ndarray, exclude: int) -> float:
     return float(np.where(peak & past, score, 0.0).max())
 
 
+def test_repetition_score_is_at_most_one():
+    """An exactly tiled image scores 1, as the docstring says, not 1 + 1.6e-15."""
+    from warptex.metrics import repetition_score
+
+    image = np.tile(np.random.default_rng(1).random((8, 8, 3)), (9, 9, 1))[:64, :64]
+    assert repetition_score(image, exclude=4) <= 1.0
+
+
 @pytest.mark.parametrize("seed", [12, 14])
 def test_repetition_score_equals_a_brute_force_reference(seed):
     """At every ``exclude`` from 0 (shift 0 alone left out) to 4: a shift of ``exclude``

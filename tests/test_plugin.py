@@ -92,6 +92,16 @@ def test_property_errors_name_the_property(granite_32_file, props, name):
         load(granite_32_file, **props)
 
 
+@pytest.mark.parametrize("props", [{"seed": True}, {"passes": True}, {"cache_bytes": False}])
+def test_a_boolean_is_no_integer_property(granite_32_file, props):
+    """Python's bools are ints: cache_bytes=False failed deep in the store with a message
+    that named no property, inside Mitsuba's traceback."""
+    use("scalar_rgb")
+    name = next(iter(props))
+    with pytest.raises(RuntimeError, match=f'lazy_solid: property "{name}" must be an <integer'):
+        load(granite_32_file, **props)
+
+
 def test_a_broken_or_looping_link_is_named_as_such_not_as_a_missing_file(granite_32_file,
                                                                            tmp_path):
     use("scalar_rgb")
@@ -748,6 +758,13 @@ def test_rotated_frames_place_points_by_their_inverse_matrix(granite_32_file, va
     expected = np.concatenate([solid.query(_texture_points(sphere_frame, hits[:2])),
                                solid.query(_texture_points(instance_frame, hits[2:]))])
     np.testing.assert_allclose(colors, expected[:, :3], atol=1e-5)
+
+
+def test_mean_is_the_same_on_every_load(granite_32_file):
+    """mean() is estimated from sampled voxels: from the same samples on every load, or a
+    scene's mean (which Mitsuba reads) would change from one load to the next."""
+    use("scalar_rgb")
+    assert len({float(load(granite_32_file).mean()) for _ in range(3)}) == 1
 
 
 def test_mean_weighs_the_axes_alike_and_max_bounds_every_voxel(granite_32_file, tmp_path):

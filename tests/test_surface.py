@@ -70,6 +70,25 @@ def test_block_transform_fits_the_bounding_box():
     assert np.isclose(np.ptp(corners[:, 0]), 64, atol=0.01)
 
 
+def test_block_transform_centres_the_bounding_box():
+    """The mesh's box in the middle of the block, wherever the mesh lies: a mesh moved to a
+    corner showed other voxels (nothing else checked where in the block it went)."""
+    box = trimesh.creation.box(extents=[2.0, 1.0, 0.5])
+    box.apply_translation([5.0, -3.0, 7.0])
+    m = block_transform(box, 64)
+    corners = box.bounds @ m[:3, :3].T + m[:3, 3]
+    np.testing.assert_allclose(corners.mean(axis=0), [32.0, 32.0, 32.0], atol=1e-9)
+
+
+def test_faces_naming_one_past_the_last_vertex_are_refused(warp_device):
+    """The first index past the vertices, not only ones far out: a raw IndexError from the
+    shell, or xatlas's own error, otherwise."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    mesh = trimesh.Trimesh(v, np.array([[0, 1, 3]]), process=False)
+    with pytest.raises(ValueError, match="outside"):
+        shell(mesh, 8, transform=np.eye(4))
+
+
 def test_long_slivers_are_halved_and_touch_the_same_voxels(monkeypatch, warp_device):
     """A thin rod along the block's diagonal (CAD exports have such slivers): the kernel
     tested every voxel of each triangle's bounding box, the whole block, 75 s at 512^3.
