@@ -551,6 +551,32 @@ def test_a_kernel_cache_that_fails_a_build_is_one_line_and_exit_1(files, tmp_pat
     assert "Traceback" not in err and not out.exists()
 
 
+@pytest.mark.parametrize("failure", [
+    MemoryError("Unable to allocate 192. MiB for an array"),  # NumPy's
+    RuntimeError("Failed to allocate 104857600 bytes on device 'cpu'"),  # Warp's
+])
+def test_an_allocation_that_fails_mid_work_is_one_line_and_exit_1(files, tmp_path, capsys,
+                                                                 monkeypatch, failure):
+    """Under a limit the checks did not see (ulimit -v), or past their estimate, an
+    allocation failed anywhere with a traceback, at times after minutes of work."""
+    from warptex.synthesis import Synthesizer
+
+    def failing(*args, **kwargs):
+        raise failure
+
+    monkeypatch.setattr(Synthesizer, "box", failing)
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(files["exemplar"]), "--size", "4", "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    (line,) = [line for line in err.splitlines() if line.startswith("warptex: error: ")]
+    assert line.startswith(f"warptex: error: out of memory ({failure}): "), err
+    assert "Traceback" not in err and not out.exists()
+    monkeypatch.setattr(Synthesizer, "box",
+                        lambda *args, **kwargs: (_ for _ in ()).throw(RuntimeError("other")))
+    with pytest.raises(RuntimeError, match="other"):  # any other error is not one
+        main(["volume", str(files["exemplar"]), "--size", "4", "-o", str(out)])
+
+
 @pytest.mark.parametrize("exemplar", ["missing.png", "{five}"])
 def test_cut_refuses_a_bad_exemplar_before_cutting(files, tmp_path, capsys, monkeypatch,
                                                    exemplar):

@@ -122,6 +122,29 @@ def test_usable_cores_are_a_containers_cpu_quota_where_fewer(tmp_path, monkeypat
     assert machine.usable_cores() == expected
 
 
+def test_physical_memory_is_what_the_process_limits_leave(monkeypatch):
+    """Under ulimit -v (a batch job's limit) the checks compared their estimates with the
+    machine's memory: a 512^3 volume was accepted, then failed with a traceback."""
+    import resource
+
+    from warptex import machine
+
+    limits = {resource.RLIMIT_AS: 8 << 30, resource.RLIMIT_DATA: resource.RLIM_INFINITY}
+    real = resource.getrlimit
+    monkeypatch.setattr(resource, "getrlimit",
+                        lambda which: (limits[which], resource.RLIM_INFINITY)
+                        if which in limits else real(which))
+    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))
+    if not Path("/proc/self/status").exists():
+        pytest.skip("no /proc/self/status")
+    room = machine.physical_memory()
+    assert (6 << 30) < room < (8 << 30)  # less what the process maps already
+    assert machine.memory_problem(10 << 30) == ("needs about 10 GiB, this process may have "
+                                                f"{machine.byte_size(room)}")
+    limits[resource.RLIMIT_DATA] = 4 << 30  # the lower of the two
+    assert (2 << 30) < machine.physical_memory() < (4 << 30)
+
+
 def test_physical_memory_is_the_systems_total(monkeypatch):
     import os
 

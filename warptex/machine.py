@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -46,13 +47,36 @@ def usable_cores() -> int:
 
 def physical_memory() -> int | None:
     """Bytes of memory this process may have: the machine's, or its container's limit
-    (cgroup) where that is lower; None where the system says neither."""
+    (cgroup), or what its own limits (``ulimit -v`` or ``-d``, a batch job's) leave it,
+    where lower; None where the system says none of these."""
     try:
         total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         total = None
-    known = [n for n in (total, _cgroup_limit()) if n is not None]
+    known = [n for n in (total, _cgroup_limit(), _process_limit_room()) if n is not None]
     return min(known) if known else None
+
+
+# Each limit of a process's memory, and the /proc/self/status field of what it holds of it.
+_PROCESS_LIMITS = (("RLIMIT_AS", "VmSize"), ("RLIMIT_DATA", "VmData"))
+
+
+def _process_limit_room() -> int | None:
+    """Bytes more this process may map under its soft address-space and data limits, past
+    what it maps already (a started Warp about 0.7 GB of address space); None without
+    either limit. A limit it reaches fails allocations anywhere, as a traceback."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return None
+    status = _read(Path("/proc/self/status"))
+    rooms = []
+    for name, field in _PROCESS_LIMITS:
+        soft, _ = resource.getrlimit(getattr(resource, name))
+        held = re.search(rf"^{field}:\s+(\d+) kB$", status, re.MULTILINE)
+        if soft != resource.RLIM_INFINITY and held is not None:
+            rooms.append(max(soft - int(held[1]) * 1024, 0))
+    return min(rooms, default=None)
 
 
 def _cgroup_limit() -> int | None:
@@ -119,7 +143,8 @@ def memory_problem(need: int) -> str | None:
     memory = physical_memory()
     if memory is None or need <= memory:
         return None
-    return f"needs about {byte_size(need)}, this machine has {byte_size(memory)}"
+    where = "this machine has" if _process_limit_room() is None else "this process may have"
+    return f"needs about {byte_size(need)}, {where} {byte_size(memory)}"
 
 
 def byte_size(n: int) -> str:
