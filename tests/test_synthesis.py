@@ -90,10 +90,11 @@ def test_batch_size_and_order_do_not_matter(candidates, subpasses):
     assert np.array_equal(whole, reverse)
 
 
-def test_a_gpu_too_small_for_the_largest_part_gets_smaller_ones(monkeypatch):
+def test_a_gpu_or_a_process_too_small_for_the_largest_part_gets_smaller_ones(monkeypatch):
     """A part of MAX_WORK_VOXELS takes about 4.7 GB: a 4 GB GPU failed half-way through
-    a large box (Warp's "Failed to allocate"); the CPU's parts are bounded by the request's
-    memory check instead."""
+    a large box (Warp's "Failed to allocate"), and so did 3,000 scattered points queried
+    through a brick store (whose batches no request check sees) on a 2 GiB machine."""
+    import warptex.machine
     monkeypatch.setattr(synthesis, "_device_memory", lambda device: 4 << 30)
     rgb = synthesis.work_bytes_per_voxel(3)
     assert synthesis.work_voxel_cap("cuda:0") == (4 << 30) // (2 * rgb)
@@ -103,6 +104,11 @@ def test_a_gpu_too_small_for_the_largest_part_gets_smaller_ones(monkeypatch):
     assert synthesis.work_voxel_cap("cuda:0", 34) == (4 << 30) // (2 * (rgb + 6 * 31))
     monkeypatch.setattr(synthesis, "_device_memory", lambda device: 80 << 30)
     assert synthesis.work_voxel_cap("cuda") == synthesis.MAX_WORK_VOXELS
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 80 << 30)
+    assert synthesis.work_voxel_cap("cpu") == synthesis.MAX_WORK_VOXELS
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 2 << 30)
+    assert synthesis.work_voxel_cap("cpu") == (2 << 30) // (2 * rgb)
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: None)  # unknown
     assert synthesis.work_voxel_cap("cpu") == synthesis.MAX_WORK_VOXELS
 
 

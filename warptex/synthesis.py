@@ -22,6 +22,7 @@ from scipy import ndimage
 
 from kernels import synthesis as _k
 from kernels.common import KEY_BIAS, KEY_BITS
+from warptex import machine
 from warptex.candidates import DEFAULT_PARAMS, CandidateSet, check_feature_channels
 from warptex.keysets import (
     cell_offsets,
@@ -141,13 +142,19 @@ def _check_request(ijk: np.ndarray, apron_blocks: int, channels: int,
 
 def work_voxel_cap(device: str, channels: int = 3) -> int:
     """Work voxels of one engine call on ``device`` for exemplars of ``channels`` feature
-    channels: ``MAX_WORK_VOXELS``, fewer on a GPU of which that many would take more than
-    half (a 4 GB one), leaving the rest to the brick store, a renderer and other processes.
-    Parts change no voxel (section 5.2)."""
-    if not device.startswith("cuda"):
+    channels: ``MAX_WORK_VOXELS``, fewer where that many would take more than half of the
+    GPU's memory (a 4 GB one) or, on the CPU, of what the process may have
+    (:func:`~warptex.machine.physical_memory`: a small machine, a container, ``ulimit
+    -v``), leaving the rest to the brick store, a renderer and other processes. Scattered
+    points' requests reach the cap, which the brick store's batches are not checked
+    against. Parts change no voxel (section 5.2)."""
+    if device.startswith("cuda"):
+        memory: int | None = _device_memory(device)
+    else:
+        memory = machine.physical_memory()
+    if memory is None:
         return MAX_WORK_VOXELS
-    per_voxel = 2 * work_bytes_per_voxel(channels)
-    return max(1, min(MAX_WORK_VOXELS, _device_memory(device) // per_voxel))
+    return max(1, min(MAX_WORK_VOXELS, memory // (2 * work_bytes_per_voxel(channels))))
 
 
 @cache
@@ -576,7 +583,9 @@ class Synthesizer:
     def pixel_triples(self, ijk: np.ndarray) -> np.ndarray:
         """Finest-level triples (N, 3) int32 of voxels ``ijk`` (N, 3) ints as flat pixel
         indices: entry ``[n, k]`` is ``row * width + column`` in axis k's exemplar, what the
-        brick store keeps (section 6.2)."""
+        brick store keeps (section 6.2). Unlike :meth:`voxels` and :meth:`triples`, no
+        request is refused up front (the brick store's batches are bounded); its engine
+        calls stay within :func:`work_voxel_cap` all the same."""
         return self._pixel_triples(check_voxels(ijk))
 
     # -- orchestration ----------------------------------------------------------------
