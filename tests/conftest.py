@@ -35,6 +35,16 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+@pytest.fixture(autouse=True)
+def _memory_read_afresh():
+    """The engine reads the process's memory once (``synthesis._host_memory``): a test
+    that fakes it (``machine.physical_memory``) must not leave its parts' cap to the next."""
+    yield
+    from warptex import synthesis
+
+    synthesis._host_memory.cache_clear()
+
+
 @pytest.fixture(scope="session")
 def warp_device() -> str:
     """Warp initialised once per session, with CPU as Warp's default device. warptex's

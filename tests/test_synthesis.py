@@ -104,12 +104,11 @@ def test_a_gpu_or_a_process_too_small_for_the_largest_part_gets_smaller_ones(mon
     assert synthesis.work_voxel_cap("cuda:0", 34) == (4 << 30) // (2 * (rgb + 6 * 31))
     monkeypatch.setattr(synthesis, "_device_memory", lambda device: 80 << 30)
     assert synthesis.work_voxel_cap("cuda") == synthesis.MAX_WORK_VOXELS
-    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 80 << 30)
-    assert synthesis.work_voxel_cap("cpu") == synthesis.MAX_WORK_VOXELS
-    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 2 << 30)
-    assert synthesis.work_voxel_cap("cpu") == (2 << 30) // (2 * rgb)
-    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: None)  # unknown
-    assert synthesis.work_voxel_cap("cpu") == synthesis.MAX_WORK_VOXELS
+    for memory, cap in ((80 << 30, synthesis.MAX_WORK_VOXELS), (2 << 30, (2 << 30) // (2 * rgb)),
+                        (None, synthesis.MAX_WORK_VOXELS)):  # None: unknown
+        monkeypatch.setattr(warptex.machine, "physical_memory", lambda memory=memory: memory)
+        synthesis._host_memory.cache_clear()
+        assert synthesis.work_voxel_cap("cpu") == cap
 
 
 def test_requests_beyond_one_call_are_split_into_parts_with_the_same_result(candidates,

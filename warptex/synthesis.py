@@ -148,10 +148,7 @@ def work_voxel_cap(device: str, channels: int = 3) -> int:
     -v``), leaving the rest to the brick store, a renderer and other processes. Scattered
     points' requests reach the cap, which the brick store's batches are not checked
     against. Parts change no voxel (section 5.2)."""
-    if device.startswith("cuda"):
-        memory: int | None = _device_memory(device)
-    else:
-        memory = machine.physical_memory()
+    memory = _device_memory(device) if device.startswith("cuda") else _host_memory()
     if memory is None:
         return MAX_WORK_VOXELS
     return max(1, min(MAX_WORK_VOXELS, memory // (2 * work_bytes_per_voxel(channels))))
@@ -160,6 +157,13 @@ def work_voxel_cap(device: str, channels: int = 3) -> int:
 @cache
 def _device_memory(device: str) -> int:
     return int(wp.get_device(device).total_memory)
+
+
+@cache
+def _host_memory() -> int | None:
+    # Once a process: reading the system's and the cgroups' files takes 0.2 ms, more than
+    # many a small request's work.
+    return machine.physical_memory()
 
 
 def default_apron_blocks(passes: int = DEFAULT_PASSES) -> int:
