@@ -551,6 +551,25 @@ def test_a_kernel_cache_that_fails_a_build_is_one_line_and_exit_1(files, tmp_pat
     assert "Traceback" not in err and not out.exists()
 
 
+def test_a_shell_s_check_counts_its_making_and_a_batch_s_synthesis(files, tmp_path, capsys,
+                                                                   monkeypatch):
+    """Making a shell peaked at 108-119 bytes a voxel where 64 were counted, and one batch
+    of its synthesis (about 2 KB a voxel) was not counted at all: on a 4 GiB machine a
+    4096^3 bunny passed the check and failed after two minutes in a traceback."""
+    import warptex.machine
+    import warptex.surface
+
+    monkeypatch.setattr(warptex.surface, "checked_shell_size", lambda mesh, transform: 10**7)
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: 2 << 30)
+    out = tmp_path / "b.ply"
+    assert main(["bake", str(files["mesh"]), "--exemplar", str(files["exemplar"]),
+                 "--resolution", "64", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert ("--resolution 64: the surface passes through about 1e+07 voxels, which needs "
+            "about 3 GiB") in err, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("failure", [
     MemoryError("Unable to allocate 192. MiB for an array"),  # NumPy's
     RuntimeError("Failed to allocate 104857600 bytes on device 'cpu'"),  # Warp's

@@ -46,8 +46,12 @@ _TEXEL_BYTES = 3 * 8 + 4 + 1 + 3 * 4 * 4 + 2 * 8
 
 
 # Bytes a shell voxel takes at most at once: its coordinates, their copies and sort keys
-# while the shell is made, and its stored triple with its share of a partial brick.
-_SHELL_VOXEL_BYTES = 64
+# while the shell is made, and its stored triple with its share of a partial brick (the
+# bunny's shell peaked at 108-119 bytes a voxel at 1024^3 and 4096^3; 64 were counted).
+_SHELL_VOXEL_BYTES = 128
+# And the engine's work for one batch of shell voxels (texture.BATCH), per voxel: 1.9 GB
+# for a batch of 2^20 at 2048^3, which the check left out.
+_SHELL_BATCH_VOXEL_BYTES = 2048
 
 
 _MAX_TEXTURE_SIZE = math.isqrt(2**31 - 1)  # texels are numbered by 32-bit integers
@@ -341,8 +345,11 @@ def _check_shell(mesh, transform: np.ndarray, resolution: int) -> None:
         voxels = checked_shell_size(mesh, transform)
     except ValueError as error:
         raise CliError(f"--resolution {resolution}: {error}; lower --resolution") from None
-    check_fits(voxels * _SHELL_VOXEL_BYTES, f"--resolution {resolution}: the surface passes "
-               f"through about {voxels:.3g} voxels, which", "lower --resolution")
+    from warptex.texture import BATCH
+
+    check_fits(voxels * _SHELL_VOXEL_BYTES + min(voxels, BATCH) * _SHELL_BATCH_VOXEL_BYTES,
+               f"--resolution {resolution}: the surface passes through about {voxels:.3g} "
+               "voxels, which", "lower --resolution")
 
 
 def run_bake(args: argparse.Namespace) -> int:
