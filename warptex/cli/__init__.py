@@ -114,18 +114,16 @@ def _run(argv: list[str]) -> int:
             if isinstance(error, StandardOutputError):
                 _drop_unwritten_output()
             # Standard output may fail on the line that says an output was written.
-            after = f" ({_after_writing().strip()})" if WRITTEN else ""
-            print(f"warptex: error: {error}{after}", file=sys.stderr)
+            print(f"warptex: error: {error}{_written_aside()}", file=sys.stderr)
             return 1
         except (MemoryError, RuntimeError) as error:
             if not _out_of_memory(error):
                 raise
             # The checks before the work estimate; a limit they did not see, or work beyond
             # the estimate, fails an allocation anywhere (a NumPy array, a Warp array).
-            after = f" ({_after_writing().strip()})" if WRITTEN else ""
             print(f"warptex: error: out of memory ({str(error) or 'MemoryError'}): the work "
                   "needs more than this machine, or this process's memory limit, allows; ask "
-                  f"for less of it{after}", file=sys.stderr)
+                  f"for less of it{_written_aside()}", file=sys.stderr)
             return 1
         except KeyboardInterrupt as stop:  # outputs are renamed into place whole: none partial
             terminated = isinstance(stop, SigtermInterrupt) or SIGTERM_RECEIVED.is_set()
@@ -138,6 +136,11 @@ def _out_of_memory(error: BaseException) -> bool:
     """Whether ``error`` is a failed allocation: NumPy's MemoryError, or Warp's RuntimeError
     for an array it could not allocate."""
     return isinstance(error, MemoryError) or str(error).startswith("Failed to allocate")
+
+
+def _written_aside() -> str:
+    """:func:`_after_writing` in brackets, after an error's own words; none before any."""
+    return f" ({_after_writing().strip()})" if WRITTEN else ""
 
 
 def _after_writing() -> str:
