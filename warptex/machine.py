@@ -69,12 +69,15 @@ def _process_limit_room() -> int | None:
         import resource
     except ImportError:  # not on Windows
         return None
+    limits = [(soft, field) for name, field in _PROCESS_LIMITS
+              if (soft := resource.getrlimit(getattr(resource, name))[0]) != resource.RLIM_INFINITY]
+    if not limits:  # as most processes run: nothing to read
+        return None
     status = _read(Path("/proc/self/status"))
     rooms = []
-    for name, field in _PROCESS_LIMITS:
-        soft, _ = resource.getrlimit(getattr(resource, name))
+    for soft, field in limits:
         held = re.search(rf"^{field}:\s+(\d+) kB$", status, re.MULTILINE)
-        if soft != resource.RLIM_INFINITY and held is not None:
+        if held is not None:
             rooms.append(max(soft - int(held[1]) * 1024, 0))
     return min(rooms, default=None)
 
