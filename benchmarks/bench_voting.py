@@ -28,7 +28,8 @@ from timing import exemplar_files, run_record
 from tqdm import tqdm
 
 from warptex import metrics
-from warptex.candidates import CandidateSet, precompute
+from warptex.candidate_set import CandidateSet
+from warptex.candidates import precompute
 from warptex.exemplar import Exemplar
 from warptex.sheets import save_png, sheet
 from warptex.synthesis import Synthesizer

@@ -118,7 +118,8 @@ from mitsuba_plugin.spectrum import check_upsampling, luminance, spectrum
 from mitsuba_plugin.traced import TracedLookup
 from warptex.affine import affine_inverse, apply_affine
 from warptex.archive import file_problem
-from warptex.candidates import CandidateSet, precompute
+from warptex.candidate_set import CandidateSet
+from warptex.candidates import precompute
 from warptex.exemplar import (
     AlphaDropped,
     Exemplar,

@@ -27,7 +27,8 @@ from warptex.archive import (
     write_atomically,
     write_together,
 )
-from warptex.candidates import CandidateSet, precompute
+from warptex.candidate_set import CandidateCacheError, CandidateSet
+from warptex.candidates import precompute
 from warptex.settings import MAX_JITTER, MAX_PASSES, MAX_SEED, SettingError, check_settings
 from warptex.volume_files import write_image, write_volume
 
@@ -320,7 +321,7 @@ def test_candidates_are_saved_where_nothing_else_is_lost(candidates, tmp_path):
     for path, problem in ((f"{tmp_path}/cands/", "names a folder, not a file"),
                           (photo, "exists and is not a warptex candidate file"),
                           (tmp_path / "folder", "is a folder")):
-        with pytest.raises(warptex.candidates.CandidateCacheError, match=problem):
+        with pytest.raises(CandidateCacheError, match=problem):
             candidates.save(path)
     assert photo.read_bytes().endswith(b"not candidates")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "granite.png"]

@@ -15,14 +15,9 @@ import pytest
 from PIL import Image
 
 from warptex import candidate_cache as cc
-from warptex import candidates
-from warptex.candidates import (
-    DEFAULT_PARAMS,
-    CandidateCacheError,
-    CandidateSet,
-    cache_path,
-    precompute,
-)
+from warptex import candidate_set, candidates
+from warptex.candidate_set import DEFAULT_PARAMS, CandidateCacheError, CandidateSet
+from warptex.candidates import cache_path, precompute
 from warptex.cli import main
 from warptex.exemplar import Exemplar
 
@@ -62,8 +57,8 @@ def folder(computed, tmp_path, monkeypatch) -> Path:
     shutil.copy(current, folder / current.name)
     shutil.copy(other, folder / other.name)
     data = current.read_bytes()
-    at = len(candidates.FILE_MAGIC)
-    older = data[:at] + (candidates.FORMAT_VERSION - 1).to_bytes(4, "little") + data[at + 4:]
+    at = len(candidate_set.FILE_MAGIC)
+    older = data[:at] + (candidate_set.FORMAT_VERSION - 1).to_bytes(4, "little") + data[at + 4:]
     (folder / f"{candidates.CACHE_PREFIX}{'0' * 40}.wtc").write_bytes(older)
     (folder / f"{candidates.CACHE_PREFIX}{'1' * 40}.wtc").write_bytes(data[: len(data) // 2])
     (folder / f"{candidates.CACHE_PREFIX}{'2' * 40}.wtc").write_bytes(b"not candidates at all")
@@ -189,12 +184,12 @@ def _rewritten(source: Path, target: Path, meta: dict | None = None, **arrays) -
     ``arrays`` changed: a file made by other means, which the checksum does not tell."""
     from warptex.archive import read_archive, write_archive
 
-    stored = read_archive(source, candidates.FILE_MAGIC, candidates.FORMAT_VERSION,
+    stored = read_archive(source, candidate_set.FILE_MAGIC, candidate_set.FORMAT_VERSION,
                           "candidate", CandidateCacheError)
     if meta is not None:
         record = json.loads(bytes(stored["meta"]).decode())
         stored["meta"] = np.frombuffer(json.dumps({**record, **meta}).encode(), np.uint8)
-    write_archive(target, candidates.FILE_MAGIC, candidates.FORMAT_VERSION,
+    write_archive(target, candidate_set.FILE_MAGIC, candidate_set.FORMAT_VERSION,
                   {**stored, **arrays})
 
 
@@ -440,8 +435,8 @@ def test_a_file_of_a_newer_format_is_listed_as_another_version(tmp_path, monkeyp
     precompute(ex)
     (path,) = tmp_path.glob("candidates-*.wtc")
     data = path.read_bytes()
-    at = len(candidates.FILE_MAGIC)
-    newer = data[:at] + (candidates.FORMAT_VERSION + 1).to_bytes(4, "little") + data[at + 4:]
+    at = len(candidate_set.FILE_MAGIC)
+    newer = data[:at] + (candidate_set.FORMAT_VERSION + 1).to_bytes(4, "little") + data[at + 4:]
     (tmp_path / f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc").write_bytes(newer)
     statuses = {f.path.name: f.status for f in cc.cache_files(tmp_path)}
     assert statuses[f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc"] == cc.OTHER_VERSION

@@ -22,17 +22,10 @@ import pytest
 import warp as wp
 
 import warptex.candidates as candidates
-from warptex import Exemplar, ExemplarError, exact_pca, parallel
+from warptex import Exemplar, ExemplarError, candidate_set, exact_pca, parallel
 from warptex.archive import read_archive, write_archive
-from warptex.candidates import (
-    FORMAT_VERSION,
-    CandidateCacheError,
-    CandidateSet,
-    SourceLevel,
-    cache_path,
-    cached_candidate_path,
-    precompute,
-)
+from warptex.candidate_set import FORMAT_VERSION, CandidateCacheError, CandidateSet, SourceLevel
+from warptex.candidates import cache_path, cached_candidate_path, precompute
 from warptex.code_digest import sources_digest
 
 GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
@@ -428,11 +421,11 @@ def test_byte_identical_files_in_one_and_across_two_processes(tmp_path, warp_dev
 _BLAS_SUBPROCESS = """
 import hashlib
 import numpy as np
-from warptex import candidates, exemplar
+from warptex import candidate_set, candidates, exemplar
 rng = np.random.default_rng(7)
 gray = np.repeat(rng.integers(0, 256, (16, 16, 1), dtype=np.uint8), 3, axis=2)
 wide = rng.integers(0, 256, (8, 8, 7), dtype=np.uint8)
-params = dict(candidates.DEFAULT_PARAMS)
+params = dict(candidate_set.DEFAULT_PARAMS)
 cases = [(gray, (0, 0)), (wide, (0, 0)), (gray, (2, 2))]  # the last keeps margins
 levels = [candidates._source_level(feat, params, 2, margins) for feat, margins in cases]
 cov = np.cov(3 * candidates._neighborhoods(gray, 5), rowvar=False)
@@ -687,7 +680,7 @@ def test_a_checksummed_file_whose_arrays_do_not_fit_is_refused(tmp_path, granite
     """Written by other means but checksummed: out-of-range candidates crashed the process
     that loaded them (the crossbar kernel read beyond its arrays), short ones loaded."""
     granite.save(tmp_path / "g.wtc")
-    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    arrays = read_archive(tmp_path / "g.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                           "candidate", CandidateCacheError)
     finest = granite.num_levels - 1
     beyond = dict(arrays)
@@ -700,7 +693,7 @@ def test_a_checksummed_file_whose_arrays_do_not_fit_is_refused(tmp_path, granite
     counted[f"L{finest}/R0/count"] = arrays[f"L{finest}/R0/count"] + 200
     for name, bad in (("beyond", beyond), ("short", short), ("small", small),
                       ("counted", counted)):
-        write_archive(tmp_path / f"{name}.wtc", candidates.FILE_MAGIC, FORMAT_VERSION, bad)
+        write_archive(tmp_path / f"{name}.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION, bad)
         with pytest.raises(CandidateCacheError, match="unreadable candidate data"):
             CandidateSet.load(tmp_path / f"{name}.wtc")
 
@@ -710,7 +703,7 @@ def _each_refused(folder: Path, arrays: dict, changes: dict) -> None:
     written checksummed under its name, is refused on loading, the file named."""
     for name, change in changes.items():
         path = folder / f"{name}.wtc"
-        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
+        write_archive(path, candidate_set.FILE_MAGIC, FORMAT_VERSION, {**arrays, **change})
         with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
             CandidateSet.load(path)
 
@@ -726,7 +719,7 @@ def test_a_checksummed_file_of_three_exemplars_whose_arrays_disagree_is_refused(
     axes = [_crop(slice(0, 16), slice(0, 16)), _crop(slice(16, 32), slice(0, 16)),
             _crop(slice(0, 16), slice(16, 32))]
     precompute(*axes, cache=False).save(tmp_path / "three.wtc")
-    arrays = read_archive(tmp_path / "three.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    arrays = read_archive(tmp_path / "three.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                           "candidate", CandidateCacheError)
     meta = json.loads(bytes(arrays["meta"]).decode())
     assert meta["num_sources"] == meta["num_roles"] == 3
@@ -749,7 +742,7 @@ def test_a_checksummed_file_of_three_exemplars_whose_arrays_disagree_is_refused(
     # Precompute's shift rounds a negative sum down, as far as -PROJ_LIMIT - 1: still read.
     lowest = arrays[f"L{last}/S0/proj"].copy()
     lowest[0, 0] = -candidates.PROJ_LIMIT - 1
-    write_archive(tmp_path / "lowest.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    write_archive(tmp_path / "lowest.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                   {**arrays, f"L{last}/S0/proj": lowest})
     CandidateSet.load(tmp_path / "lowest.wtc")
 
@@ -761,7 +754,7 @@ def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_pat
     import json
 
     granite.save(tmp_path / "g.wtc")
-    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    arrays = read_archive(tmp_path / "g.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                           "candidate", CandidateCacheError)
     meta = json.loads(bytes(arrays["meta"]).decode())
     changes = {"newer": {"params": {**meta["params"], "a_later_setting": 1}},
@@ -771,7 +764,7 @@ def test_a_checksummed_file_whose_layout_is_another_is_refused_naming_it(tmp_pat
         path = tmp_path / f"{name}.wtc"
         changed = {**arrays, "meta": np.frombuffer(json.dumps({**meta, **change}).encode(),
                                                    np.uint8)}
-        write_archive(path, candidates.FILE_MAGIC, FORMAT_VERSION, changed)
+        write_archive(path, candidate_set.FILE_MAGIC, FORMAT_VERSION, changed)
         with pytest.raises(CandidateCacheError, match=f"{name}.wtc: unreadable candidate data"):
             CandidateSet.load(path)
 
@@ -783,7 +776,7 @@ def test_a_checksummed_file_of_numbers_that_narrow_into_range_is_refused(tmp_pat
     import json
 
     granite.save(tmp_path / "g.wtc")
-    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    arrays = read_archive(tmp_path / "g.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                           "candidate", CandidateCacheError)
     meta = json.loads(bytes(arrays["meta"]).decode())
     last = granite.num_levels - 1
@@ -815,12 +808,12 @@ def test_a_file_whose_basis_reaches_past_127_is_refused(tmp_path, granite):
     """A basis coefficient of -128 (int8 holds it) makes the projections' float32 sums
     depend on their order of adding, so a CPU and a GPU could differ."""
     granite.save(tmp_path / "g.wtc")
-    arrays = read_archive(tmp_path / "g.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    arrays = read_archive(tmp_path / "g.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                           "candidate", CandidateCacheError)
     name = next(k for k in arrays if k.endswith("/basis"))
     basis = arrays[name].copy()
     basis.flat[0] = -128
-    write_archive(tmp_path / "wide.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    write_archive(tmp_path / "wide.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                   {**arrays, name: basis})
     with pytest.raises(CandidateCacheError, match=r"wide\.wtc: unreadable candidate data"):
         CandidateSet.load(tmp_path / "wide.wtc")
@@ -888,7 +881,7 @@ def test_load_rejects_bad_magic_version_checksum_and_data(tmp_path, granite):
         "payload": (_valid_header(b"garbage") + b"garbage", "unreadable candidate data"),
     }
     # Whole and checksummed, but not the arrays a candidate set is made of.
-    write_archive(tmp_path / "arrays.wtc", candidates.FILE_MAGIC, FORMAT_VERSION,
+    write_archive(tmp_path / "arrays.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
                   {"x": np.zeros(1)})
     cases["arrays"] = ((tmp_path / "arrays.wtc").read_bytes(), "unreadable candidate data")
     for name, (content, message) in cases.items():
@@ -908,13 +901,13 @@ OTHER_PARAMS = {"neighborhood": 3, "strips": 33, "keep": 50, "candidates_3d": 8,
 def test_cache_file_name_depends_on_content_parameters_and_code(warp_device, monkeypatch):
     a = _crop(slice(0, 16), slice(0, 16))
     b = _crop(slice(0, 16), slice(16, 32))
-    params = candidates.resolved_params({})
+    params = candidate_set.resolved_params({})
     assert cache_path([a, a, a], params) == cache_path([a, a, a], dict(params))
     assert cache_path([a, a, a], params) != cache_path([b, b, b], params)
     assert cache_path([a, b, a], params) != cache_path([a, a, b], params)
-    assert set(OTHER_PARAMS) == set(candidates.DEFAULT_PARAMS)
+    assert set(OTHER_PARAMS) == set(candidate_set.DEFAULT_PARAMS)
     for name, value in OTHER_PARAMS.items():  # files of two parameter sets never collide
-        other = candidates.resolved_params({name: value})
+        other = candidate_set.resolved_params({name: value})
         assert other != params
         assert cache_path([a, a, a], params) != cache_path([a, a, a], other), name
     before = cache_path([a, a, a], params)
@@ -945,7 +938,8 @@ def test_cache_key_reads_the_code_that_decides_candidates(tmp_path):
     root = Path(candidates.__file__).resolve().parents[1]
     assert sorted(p.resolve().relative_to(root).as_posix()
                   for p in candidates._deciding_sources()) == [
-        "kernels/candidates.py", "kernels/common.py", "warptex/candidates.py",
+        "kernels/candidates.py", "kernels/common.py", "warptex/candidate_set.py",
+        "warptex/candidates.py",
         "warptex/exact_pca.py", "warptex/exemplar.py", "warptex/parallel.py",
         "warptex/warp_runtime.py"]
     files = [tmp_path / "a.py", tmp_path / "b.py"]
@@ -1006,9 +1000,9 @@ def test_unknown_or_bad_parameters_are_rejected():
     with pytest.raises(ValueError, match="progress must be True or False"):
         precompute(ex, cache=False, progress="x")
     # A NumPy integer is an integer, and keys the cache as the plain one does.
-    resolved = candidates.resolved_params({"neighborhood": np.int64(5)})
-    assert resolved == candidates.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int
-    assert candidates.resolved_params({"tileable": np.bool_(False)})["tileable"] is False
+    resolved = candidate_set.resolved_params({"neighborhood": np.int64(5)})
+    assert resolved == candidate_set.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int
+    assert candidate_set.resolved_params({"tileable": np.bool_(False)})["tileable"] is False
 
 
 def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -1281,10 +1275,10 @@ def test_a_cache_file_of_other_parameters_is_reported_and_replaced(warp_device):
     exemplar is not served under them."""
     ex = _crop(slice(0, 16), slice(0, 16))
     precompute(ex)
-    params = candidates.resolved_params({"neighborhood": 3})
+    params = candidate_set.resolved_params({"neighborhood": 3})
     wanted = cache_path([ex] * 3, params)
     wanted.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copy(cache_path([ex] * 3, candidates.resolved_params({})), wanted)
+    shutil.copy(cache_path([ex] * 3, candidate_set.resolved_params({})), wanted)
     with pytest.warns(UserWarning, match="candidates of other exemplars or parameters"):
         cs = precompute(ex, neighborhood=3)
     assert cs.params["neighborhood"] == 3

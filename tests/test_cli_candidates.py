@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from warptex.candidates import DEFAULT_PARAMS, CandidateSet, cache_path, precompute
+from warptex.candidate_set import DEFAULT_PARAMS, CandidateSet
+from warptex.candidates import cache_path, precompute
 from warptex.cli import console, main, volumes
 from warptex.exemplar import Exemplar
 from warptex.volume_files import write_volume

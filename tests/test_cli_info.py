@@ -129,7 +129,7 @@ def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
 def test_info_and_slice_say_which_exemplars_no_command_synthesizes(tmp_path, capsys):
     """35 channels: info quoted the memory to pre-compute them, which every command then
     refused, and slice sent such an exemplar to `warptex volume`, which refuses it too."""
-    from warptex.candidates import check_feature_channels
+    from warptex.candidate_set import check_feature_channels
 
     rng = np.random.default_rng(0)
     for channels in (5, 35):

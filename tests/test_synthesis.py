@@ -16,7 +16,8 @@ import pytest
 
 from kernels import synthesis as _k
 from warptex import metrics, synthesis
-from warptex.candidates import CandidateSet, precompute
+from warptex.candidate_set import CandidateSet
+from warptex.candidates import precompute
 from warptex.exemplar import Exemplar
 from warptex.keysets import pack, unique
 from warptex.synthesis import (
@@ -305,7 +306,7 @@ def test_bit_identical_across_processes(candidates, tmp_path):
     script = textwrap.dedent(
         f"""
         import numpy as np
-        from warptex.candidates import CandidateSet
+        from warptex.candidate_set import CandidateSet
         from warptex.synthesis import Synthesizer
         syn = Synthesizer(CandidateSet.load({str(path)!r}), seed=11, device="cpu")
         np.save({str(out)!r}, syn.voxels(np.array({pts.tolist()!r})))

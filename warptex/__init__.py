@@ -67,7 +67,7 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "precompute": "warptex.candidates",
-    "CandidateSet": "warptex.candidates",
+    "CandidateSet": "warptex.candidate_set",
     "Synthesizer": "warptex.synthesis",
     "SolidTexture": "warptex.texture",
     "SettingError": "warptex.settings",

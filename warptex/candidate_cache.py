@@ -20,18 +20,14 @@ from pathlib import Path
 from tqdm.auto import tqdm
 
 from warptex.archive import UNFINISHED_AGE, archive_version, dead_link, is_temporary
-from warptex.candidates import (
-    CACHE_PREFIX,
-    CACHE_SUFFIX,
+from warptex.candidate_set import (
     DEFAULT_PARAMS,
     FILE_MAGIC,
     FORMAT_VERSION,
     CandidateCacheError,
-    cache_dir,
-    cache_file_name,
-    computed_here,
     read_cache_meta,
 )
+from warptex.candidates import CACHE_PREFIX, CACHE_SUFFIX, cache_dir, cache_file_name, computed_here
 
 IN_USE = "in use"  # read by this warptex when its exemplars and parameters come up
 OTHER_VERSION = "other version"  # written by other warptex code (or renamed): never read

@@ -476,7 +476,8 @@ def _check_unchanged(setup: Setup) -> None:
 def _precomputed(job: _Job) -> tuple[_Job, float]:
     """The job with the candidates of its exemplars computed afresh, and the seconds that
     took, its kernels compiled first on a small exemplar of as many channels."""
-    from warptex.candidates import cache_path, precompute, resolved_params
+    from warptex.candidate_set import resolved_params
+    from warptex.candidates import cache_path, precompute
 
     channels = job.axes[0].colors.shape[2]
     warm = np.random.default_rng(0).random((16, 16, channels), dtype=np.float32)
@@ -646,7 +647,7 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
     check_flag("progress", progress)
     axes = setup.exemplars()
     if any(m in _LAZY for m in methods):  # before any method's minutes of work
-        from warptex.candidates import check_feature_channels
+        from warptex.candidate_set import check_feature_channels
         from warptex.store import check_lookup_channels
 
         try:

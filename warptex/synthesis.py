@@ -23,7 +23,7 @@ from scipy import ndimage
 from kernels import synthesis as _k
 from kernels.common import KEY_BIAS, KEY_BITS
 from warptex import machine
-from warptex.candidates import DEFAULT_PARAMS, CandidateSet, check_feature_channels
+from warptex.candidate_set import DEFAULT_PARAMS, CandidateSet, check_feature_channels
 from warptex.keysets import (
     cell_offsets,
     distinct_sorted,

@@ -20,7 +20,8 @@ import warp as wp
 
 from kernels.lookup import BRICK_VOXELS
 from warptex.archive import file_problem
-from warptex.candidates import CandidateSet, precompute
+from warptex.candidate_set import CandidateSet
+from warptex.candidates import precompute
 from warptex.exemplar import Exemplar, as_exemplar
 from warptex.machine import memory_problem
 from warptex.settings import (

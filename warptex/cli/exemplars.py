@@ -33,7 +33,7 @@ from warptex.settings import TILEABLE
 
 # Imported inside the commands that need them, so `warptex info` stays light.
 if TYPE_CHECKING:
-    from warptex.candidates import CandidateSet
+    from warptex.candidate_set import CandidateSet
 
 
 def add_info_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -140,14 +140,8 @@ def add_precompute_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_precompute(args: argparse.Namespace) -> int:
-    from warptex.candidates import (
-        CandidateCacheError,
-        cache_file_there,
-        cache_path,
-        check_candidate_path,
-        precompute,
-        resolved_params,
-    )
+    from warptex.candidate_set import CandidateCacheError, check_candidate_path, resolved_params
+    from warptex.candidates import cache_file_there, cache_path, precompute
 
     if args.output is not None:
         check_output(args.output, (".wtc",), "a candidate file")

@@ -124,7 +124,7 @@ def load_exemplar(args: argparse.Namespace, path: Path) -> Exemplar:
 def precompute_refusal(exemplar: Exemplar) -> str | None:
     """Why no command pre-computes the candidates of ``exemplar`` (too many channels), or
     None."""
-    from warptex.candidates import check_feature_channels
+    from warptex.candidate_set import check_feature_channels
 
     try:
         check_feature_channels(exemplar.features.shape[2])
