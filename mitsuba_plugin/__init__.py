@@ -351,7 +351,7 @@ def _render_batch(scene: mi.Scene, spp: int, seed: int) -> mi.TensorXf:
         # Dr.Jit wraps what escapes a custom operation, mi.render's included: a Ctrl-C
         # (or the commands' SIGTERM, a KeyboardInterrupt of theirs) during a render came as
         # this RuntimeError, which the stores' saving on a stop
-        # (warptex.store.saved_when_stopped) and the commands' exit status did not see.
+        # (warptex.store_files.saved_when_stopped) and the commands' exit status did not see.
         if isinstance(e.__cause__, KeyboardInterrupt):
             raise e.__cause__ from None
         raise

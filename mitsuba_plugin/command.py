@@ -28,7 +28,7 @@ from warptex.archive import (
 from warptex.machine import software_versions
 from warptex.settings import MAX_SAMPLER_SEED, MAX_SPP, RENDER_BATCHES
 from warptex.stops import deferred_stops
-from warptex.store import StoreFileError, saved_and_said, saved_when_stopped, worth_saving
+from warptex.store_files import StoreFileError, saved_and_said, saved_when_stopped, worth_saving
 from warptex.warp_runtime import KernelCacheError
 
 IMAGE_SUFFIXES = (".exr", ".png")
@@ -187,7 +187,7 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
 
 def _saved_at_a_stop(scene) -> list[Path]:
     """The ``cache`` files of ``scene``'s textures, saved as a stop or a failure ends the
-    render, but for stores that synthesized nothing (:func:`~warptex.store.worth_saving`)."""
+    render, but for stores that synthesized nothing (:func:`~warptex.store_files.worth_saving`)."""
     import mitsuba_plugin
 
     return [path for texture in mitsuba_plugin.textures(scene)

@@ -138,7 +138,8 @@ from warptex.settings import (
     check_settings,
     names_folder,
 )
-from warptex.store import StoreFileError, check_lookup_channels, check_store_path
+from warptex.store import check_lookup_channels
+from warptex.store_files import StoreFileError, check_store_path
 from warptex.texture import SolidTexture, wrap_far
 from warptex.thread_warnings import Warned, captured
 

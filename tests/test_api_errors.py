@@ -216,7 +216,7 @@ class _Positions:
 
 def test_a_store_file_named_by_a_loop_of_links_is_refused(candidates, warp_device, tmp_path):
     """It was a RuntimeError ("Symlink loop") from deep inside, and save's the same."""
-    from warptex.store import StoreFileError
+    from warptex.store_files import StoreFileError
     from warptex.texture import SolidTexture
 
     (tmp_path / "loop.wts").symlink_to("loop.wts")

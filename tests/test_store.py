@@ -15,15 +15,8 @@ import pytest
 
 from kernels.lookup import BRICK_VOXELS
 from warptex.archive import _TOKEN_BYTES, UNFINISHED_AGE, _temporary_name
-from warptex.store import (
-    BrickStore,
-    StoreFileError,
-    brick_keys,
-    brick_voxels,
-    store_settings,
-    unique_voxels,
-    voxels_read,
-)
+from warptex.store import BrickStore, brick_keys, brick_voxels, unique_voxels, voxels_read
+from warptex.store_files import StoreFileError, store_settings
 
 SLOT_BYTES = 68  # a brick's stored-voxel bits and pool base
 BRICK_BYTES = 512 * 6 + SLOT_BYTES  # uint16 triples
@@ -326,7 +319,7 @@ def test_ctrl_c_during_a_change_keeps_its_voxels_and_they_are_saved(
     dropped every brick and then said it held the voxels synthesized before stopping)."""
     import signal
 
-    from warptex.store import saved_when_stopped
+    from warptex.store_files import saved_when_stopped
 
     syn = synthesizer(candidates)
     store = BrickStore(syn)
@@ -437,7 +430,7 @@ def test_a_stop_as_the_lock_is_taken_leaves_no_reader_or_writer_counted(mode):
 def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
     """saved_when_stopped: Ctrl-C or SIGTERM in the block saves, says where, and stops as
     asked; a save that fails says why and stops all the same; no stop, no save."""
-    from warptex.store import saved_when_stopped
+    from warptex.store_files import saved_when_stopped
 
     saves = []
     with saved_when_stopped(lambda: saves.append(1) or [tmp_path / "a.wtb"]):
@@ -639,7 +632,7 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     other_params = dataclasses.replace(candidates, params={**candidates.params, "keep": 7})
     assert BrickStore(synthesizer(other_params)).identity() not in ids
     with monkeypatch.context() as m:
-        m.setattr("warptex.store.ENGINE_VERSION", -1)
+        m.setattr("warptex.store_files.ENGINE_VERSION", -1)
         assert BrickStore(synthesizer(candidates)).identity() not in ids
     store = BrickStore(synthesizer(candidates))
     sample(store, [brick_center((0, 0, 0))])
@@ -668,7 +661,7 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     with pytest.warns(UserWarning, match=r"another texture \(candidate parameters\)"):
         BrickStore.load(path, synthesizer(other_params))
     with monkeypatch.context() as m:
-        m.setattr("warptex.store.ENGINE_VERSION", -1)
+        m.setattr("warptex.store_files.ENGINE_VERSION", -1)
         with pytest.warns(UserWarning, match=r"\(engine version \d+ in the file, -1 here\)"):
             BrickStore.load(path, synthesizer(candidates))
     with monkeypatch.context() as m:
@@ -865,7 +858,7 @@ def test_an_empty_store_leaves_another_texture_s_file_as_it_was(candidates, tmp_
     on loading), or one stopped before any synthesis, replaced that file with an empty
     store: the other texture's voxels were lost for none of this one's. A stop's save is
     no longer worth making without voxels, whatever file is there."""
-    from warptex.store import worth_saving
+    from warptex.store_files import worth_saving
 
     path = tmp_path / "s.wtb"
     other = BrickStore(synthesizer(candidates, seed=3), whole_bricks=False)
@@ -1038,16 +1031,16 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
     each in its list's order, a brick in both holding the voxels of either in local order;
     gathered and merged a few bricks at a time as one (a merge of partly filled bricks, two
     bakes' stores, held ten times the file at once)."""
-    import warptex.store as store
+    import warptex.bricks as bricks_module
     from kernels.lookup import VALID_WORDS
 
-    monkeypatch.setattr(store, "_GATHER_BRICKS", gather)
+    monkeypatch.setattr(bricks_module, "_GATHER_BRICKS", gather)
     rng = np.random.default_rng(gather)
 
     def triple(key: int, local: int) -> list[int]:  # as voxels are: one value per place
         return [key % 97, local, (key * 7 + local) % 1000]
 
-    def bricks(keys: np.ndarray) -> tuple[store._Bricks, dict[int, set[int]]]:
+    def bricks(keys: np.ndarray) -> tuple[bricks_module.Bricks, dict[int, set[int]]]:
         held = {int(k): set(np.flatnonzero(rng.random(512) < rng.choice([0.01, 0.3, 1.0])))
                 or {0} for k in keys}
         bits = np.zeros((len(keys), 512), bool)
@@ -1056,14 +1049,14 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
         valid = np.packbits(bits, axis=1, bitorder="little").view(np.uint32)
         triples = [triple(int(k), c) for k in keys for c in sorted(held[int(k)])]
         assert valid.shape == (len(keys), VALID_WORDS)
-        return store._Bricks(keys, np.array(triples, np.uint16).reshape(-1, 3), valid), held
+        return bricks_module.Bricks(keys, np.array(triples, np.uint16).reshape(-1, 3), valid), held
 
     grown = 0  # bricks whose older copy holds voxels the newer lacks: merged voxel by voxel
     for _ in range(5):
         pool = rng.permutation(40)[:rng.integers(1, 40)].astype(np.int64)
         older, old_held = bricks(rng.permutation(pool)[:rng.integers(0, len(pool) + 1)])
         newer, new_held = bricks(rng.permutation(pool)[:rng.integers(1, len(pool) + 1)])
-        merged = store._bricks_union(older, newer)
+        merged = bricks_module.bricks_union(older, newer)
         keys = [k for k in older.keys if k not in new_held] + list(newer.keys)
         assert list(merged.keys) == keys
         expected = [triple(int(k), c) for k in keys
@@ -1076,7 +1069,7 @@ def test_a_merge_of_random_lists_holds_each_brick_once_with_the_voxels_of_either
         # held all of it first): the same as the whole union's tail.
         seen = []
         for count in (0, int(rng.integers(0, len(keys) + 1)), len(keys)):
-            tail = store._bricks_union(older, newer,
+            tail = bricks_module.bricks_union(older, newer,
                                        lambda valid, n=count, seen=seen: seen.append(valid) or n)
             first, voxels = len(keys) - count, sum(counts[len(keys) - count:])
             np.testing.assert_array_equal(tail.keys, merged.keys[first:])
@@ -1134,7 +1127,7 @@ def test_identity_follows_the_engine_code_and_the_jitter_the_engine_takes(candid
     sample(store, [brick_center((0, 0, 0))])
     path = tmp_path / "s.wtb"
     store.save(path)
-    monkeypatch.setattr("warptex.store._engine_code", lambda: "another engine")
+    monkeypatch.setattr("warptex.store_files._engine_code", lambda: "another engine")
     with pytest.warns(UserWarning, match=r"another texture \(engine code\)"):
         assert BrickStore.load(path, synthesizer(candidates)).stats()["bricks"] == 0
 
@@ -1144,17 +1137,17 @@ def test_engine_code_digest_reads_every_module_the_engine_runs(monkeypatch):
     any of them (a building block in kernels/common.py, say) retires the stores it wrote."""
     import ast
 
-    import warptex.store
+    import warptex.store_files
 
     read = []
-    real = warptex.store.module_sources
+    real = warptex.store_files.module_sources
 
     def recorded(modules):
         read.extend(modules)
         return real(read)
 
-    monkeypatch.setattr(warptex.store, "module_sources", recorded)
-    warptex.store._engine_code.__wrapped__()
+    monkeypatch.setattr(warptex.store_files, "module_sources", recorded)
+    warptex.store_files._engine_code.__wrapped__()
     digested = {m.__name__ for m in read}
     assert {"warptex.synthesis", "kernels.synthesis", "warptex.keysets", "warptex.parallel",
             "warptex.warp_runtime"} <= digested
@@ -1170,7 +1163,7 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     """A file that passes its checksum but was written by other means: triples beyond the
     exemplars or repeated bricks would send the lookup kernels out of bounds."""
     from warptex.archive import read_archive, write_archive
-    from warptex.store import _MAGIC, FORMAT_VERSION
+    from warptex.store_files import _MAGIC, FORMAT_VERSION
 
     syn = synthesizer(candidates)
     store = BrickStore(syn)

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warptex.store import BrickStore, StoreFileError
+from warptex.store import BrickStore
+from warptex.store_files import StoreFileError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -385,7 +386,7 @@ def test_textures_built_at_once_on_threads_get_no_shared_store_file(candidates, 
                                     "valid bits as uint64"])
 def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, damage):
     """Whole and checksummed, but not a store's arrays: warned about and not used."""
-    from warptex import store
+    from warptex import store_files
     from warptex.archive import read_archive, write_archive
 
     pts = points_near_origin(60, 3)
@@ -393,7 +394,7 @@ def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, d
     tex = texture(candidates, store=path)
     expected = tex.query(pts)
     tex.save()
-    arrays = read_archive(path, store._MAGIC, store.FORMAT_VERSION, "brick store",
+    arrays = read_archive(path, store_files._MAGIC, store_files.FORMAT_VERSION, "brick store",
                           StoreFileError)
     if damage == "no valid bits":
         del arrays["valid"]
@@ -403,7 +404,7 @@ def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, d
         arrays["valid"] = np.concatenate([arrays["valid"], arrays["valid"][:, :1]], axis=1)
     else:
         arrays["valid"] = arrays["valid"].astype(np.uint64)
-    write_archive(path, store._MAGIC, store.FORMAT_VERSION, arrays)
+    write_archive(path, store_files._MAGIC, store_files.FORMAT_VERSION, arrays)
     with pytest.warns(UserWarning, match="ignoring brick store file") as w:
         loaded = texture(candidates, store=path)
     assert w[0].filename == __file__  # the line that made the texture, not warptex's own
@@ -617,7 +618,7 @@ def test_store_files_cut_short_empty_or_with_loose_members(candidates, tmp_path)
     import io
     import zipfile
 
-    from warptex.store import _MAGIC
+    from warptex.store_files import _MAGIC
 
     pts = points_near_origin(20, 3)
     path = tmp_path / "granite.wtb"

@@ -71,11 +71,12 @@ _LAZY = {
     "Synthesizer": "warptex.synthesis",
     "SolidTexture": "warptex.texture",
     "SettingError": "warptex.settings",
-    "StoreFileError": "warptex.store",
+    "StoreFileError": "warptex.store_files",
 }
 # Submodules the README names as ``warptex.<module>.<name>``, imported on first access too.
 _SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "mesh_files", "metrics",
-               "sheets", "store", "surface", "synthesis", "texture", "volume_files")
+               "sheets", "store", "store_files", "surface", "synthesis", "texture",
+               "volume_files")
 
 __all__ = [
     "CandidateSet",

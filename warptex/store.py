@@ -22,16 +22,12 @@ change how much is synthesized, never a color.
 from __future__ import annotations
 
 import contextlib
-import fcntl
-import functools
 import hashlib
 import itertools
 import json
-import os
-import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple, TypeVar
@@ -41,26 +37,38 @@ import warp as wp
 
 from kernels import lookup as _k
 from warptex.archive import (
-    ArchiveError,
     dead_writes,
     file_state,
-    overwrite_problem,
-    read_archive,
-    write_archive,
-    write_failure,
     written_through,
 )
-from warptex.code_digest import code_digest, module_sources
+from warptex.bricks import (
+    Bricks,
+    bricks_union,
+    gathered,
+    most_recent,
+    packed,
+    range_starts,
+    ranges_of,
+    stored_bits,
+    voxels_per_brick,
+)
 from warptex.keysets import cell_offsets, local_index, lookup, pack, unique, unpack
 from warptex.parallel import launch_ranges
 from warptex.settings import DEFAULT_CACHE_BYTES, FILTERS, check_count, check_flag
 from warptex.stops import deferred_stops
-from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer, check_voxels
+from warptex.store_files import (
+    StoreFileError,
+    check_store_path,
+    empty_file,
+    read_bricks,
+    store_settings,
+    taking_turns,
+    write_bricks,
+)
+from warptex.synthesis import COORD_LIMIT, Synthesizer, check_voxels
 from warptex.thread_warnings import warn
 from warptex.warp_runtime import launch
 
-FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
-_MAGIC = b"WTXBRICK"
 _EMPTY = int(_k.EMPTY)  # the key of a free slot, as the hash table marks free entries
 _MIN_BRICKS = 64
 _MAX_POOL_VOXELS = ((1 << 31) - 1) // 3  # the kernels index the pool's entries in int32
@@ -70,22 +78,14 @@ _MAX_POOL_VOXELS = ((1 << 31) - 1) // 3  # the kernels index the pool's entries 
 BATCH_VOXELS = 1 << 22
 # Exemplars of up to this many pixels each: pixel indices fit uint16, 6 bytes a voxel.
 _COMPACT_PIXELS = 1 << 16
-# Bricks gathered at a time (a million voxels at most): positions for every voxel of a
-# store at once, 8 bytes each and three times over while made, outweighed its voxels.
-_GATHER_BRICKS = 2048
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
 _LOCAL = cell_offsets(_k.BRICK)
 _T = TypeVar("_T")
-_MAX_BRICK = (COORD_LIMIT >> _k.BRICK_SHIFT) + 1  # farthest brick any voxel lies in
 # Points lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
 POINT_LIMIT = COORD_LIMIT - 2
 CORNERS = np.indices((2, 2, 2)).reshape(3, -1).T
 """Offsets of the 8 voxels a trilinear lookup blends, in the kernels' order:
 corner c is ((c >> 2) & 1, (c >> 1) & 1, c & 1)."""
-
-
-class StoreFileError(ArchiveError):
-    """A store file is damaged, of another format version, or of another texture."""
 
 
 def brick_keys(voxels: np.ndarray) -> np.ndarray:
@@ -123,168 +123,6 @@ def unique_voxels(voxels: np.ndarray) -> np.ndarray:
 def brick_voxels(keys: np.ndarray) -> np.ndarray:
     """Every voxel (N * 512, 3) of the bricks ``keys``, x slowest within a brick."""
     return (brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
-
-
-def _ranges_of(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Concatenated ``first[i] .. first[i] + counts[i]`` ranges."""
-    counts = np.asarray(counts, np.int64)
-    if counts.sum() == 0:
-        return np.zeros(0, np.int64)
-    starts = _range_starts(counts)
-    return np.repeat(np.asarray(first, np.int64) - starts, counts) + np.arange(counts.sum())
-
-
-def _gathered(source: np.ndarray, first: np.ndarray, counts: np.ndarray,
-              out: np.ndarray | None = None) -> np.ndarray:
-    """``source[_ranges_of(first, counts)]``, into ``out`` if given, :data:`_GATHER_BRICKS`
-    ranges at a time."""
-    counts = np.asarray(counts, np.int64)
-    if out is None:
-        out = np.empty((int(counts.sum()), *source.shape[1:]), source.dtype)
-    at = 0
-    for start in range(0, len(counts), _GATHER_BRICKS):
-        part = slice(start, start + _GATHER_BRICKS)
-        rows = _ranges_of(first[part], counts[part])
-        out[at: at + len(rows)] = source[rows]
-        at += len(rows)
-    return out
-
-
-class _Bricks(NamedTuple):
-    """Bricks as a store file lists them, least recently used first: their keys, the
-    triples of their stored voxels brick after brick, and their stored-voxel words."""
-
-    keys: np.ndarray
-    triples: np.ndarray
-    valid: np.ndarray
-
-
-def _stored_bits(valid: np.ndarray) -> np.ndarray:
-    """Bricks' stored-voxel words (N, VALID_WORDS) as bits (N, 512), in local order."""
-    return np.unpackbits(valid.view(np.uint8), bitorder="little").reshape(
-        len(valid), _k.BRICK_VOXELS).astype(bool)
-
-
-def _packed(cells: np.ndarray, bricks: int) -> tuple[np.ndarray, np.ndarray]:
-    """For voxels numbered ``brick * 512 + local`` in ``bricks`` bricks, repeats allowed:
-    the index of each distinct voxel's first appearance, in (brick, local) order (the
-    order a brick's voxels take in the pool), and the bricks' stored-voxel words."""
-    cells, first = np.unique(cells, return_index=True)
-    bits = np.zeros(bricks * _k.BRICK_VOXELS, bool)
-    bits[cells] = True
-    valid = np.packbits(bits, bitorder="little").view(np.uint32)
-    return first, valid.reshape(bricks, _k.VALID_WORDS)
-
-
-def _bricks_union(older: _Bricks, newer: _Bricks,
-                  kept: Callable[[np.ndarray], int] | None = None) -> _Bricks:
-    """The bricks of two lists, each least recently used first, as one such list:
-    ``newer``'s bricks the more recent, a brick in both holding the voxels of either
-    (their triples are the same, as voxels are position-determined). Bricks are copied
-    whole; only those whose older copy holds voxels the newer lacks are merged voxel by
-    voxel. ``kept``: how many of the most recent bricks of the union to keep, given its
-    stored-voxel words; the others are never gathered (all are kept without it)."""
-    order = np.argsort(newer.keys)
-    found = lookup(newer.keys[order], older.keys)
-    twin = np.full(len(found), -1, np.int64)  # newer's copy of each older brick, if any
-    twin[found >= 0] = order[found[found >= 0]]
-    alone = twin < 0
-    both = np.flatnonzero(~alone)
-    grown = both[(older.valid[both] & ~newer.valid[twin[both]]).any(axis=1)]
-    if len(grown) == 0 and len(both) == len(older.keys):
-        # The older list adds nothing: a store saved over the file it loaded.
-        return newer if kept is None else _recent(newer, kept(newer.valid))
-    old_counts, new_counts = _voxels_per_brick(older.valid), _voxels_per_brick(newer.valid)
-    old_first, new_first = _range_starts(old_counts), _range_starts(new_counts)
-    # The older list's own bricks, then the newer's, a grown one holding both copies' voxels.
-    kept_older = int(alone.sum())
-    valid = np.concatenate([older.valid[alone], newer.valid])
-    valid[kept_older + twin[grown]] |= older.valid[grown]
-    drop = 0 if kept is None else len(valid) - kept(valid)  # the least recent, left out
-    counts = _voxels_per_brick(valid)
-    triples = np.empty((int(counts[drop:].sum()), *newer.triples.shape[1:]),
-                       newer.triples.dtype)
-    split = int(counts[drop:kept_older].sum())
-    older_kept = np.flatnonzero(alone)[drop:]
-    _gathered(older.triples, old_first[older_kept], old_counts[older_kept], out=triples[:split])
-    older_twin = np.full(len(newer.keys), -1, np.int64)  # the older copy of a grown brick
-    older_twin[twin[grown]] = grown
-    at = split
-    for start in range(max(drop - kept_older, 0), len(newer.keys), _GATHER_BRICKS):
-        part = np.arange(start, min(start + _GATHER_BRICKS, len(newer.keys)))
-        own = newer.triples[new_first[part[0]]: new_first[part[-1]] + new_counts[part[-1]]]
-        merged = counts[kept_older + part]
-        if (older_twin[part] >= 0).any():
-            own = _with_grown(own, part, older_twin[part], merged, (older, newer),
-                              (old_first, new_first))
-        triples[at: at + len(own)] = own
-        at += len(own)
-    keys = np.concatenate([older.keys[alone], newer.keys])
-    return _Bricks(keys[drop:], triples, valid[drop:])
-
-
-def _recent(bricks: _Bricks, count: int) -> _Bricks:
-    """The ``count`` most recently used of ``bricks`` (the tail of the list), as views."""
-    first = len(bricks.keys) - count
-    skipped = int(_voxels_per_brick(bricks.valid[:first]).sum())
-    return _Bricks(bricks.keys[first:], bricks.triples[skipped:], bricks.valid[first:])
-
-
-def _with_grown(own: np.ndarray, part: np.ndarray, twins: np.ndarray, merged: np.ndarray,
-                lists: tuple[_Bricks, _Bricks], firsts: tuple[np.ndarray, np.ndarray]
-                ) -> np.ndarray:
-    """The voxels of the newer list's bricks ``part`` (``own``: theirs alone, brick after
-    brick), each brick with an older copy (``twins``, -1 for none) holding the voxels of both
-    in local order; ``merged``: the voxels each then holds; ``lists``: the older and newer
-    lists, ``firsts`` where each of their bricks' triples start."""
-    rows = (twins[twins >= 0], part[twins >= 0])  # the grown bricks in either list
-    # Both copies' voxels, old then new, each brick after brick in local order; a voxel in
-    # both appears twice with one triple (voxels are position-determined).
-    cells = [np.flatnonzero(_stored_bits(b.valid[r])) for b, r in zip(lists, rows, strict=True)]
-    first, _ = _packed(np.concatenate(cells), len(rows[1]))
-    both = np.concatenate([b.triples[_ranges_of(f[r], _voxels_per_brick(b.valid[r]))]
-                           for b, f, r in zip(lists, firsts, rows, strict=True)])[first]
-    source = np.concatenate([own, both])
-    starts = firsts[1][part] - firsts[1][part[0]]
-    starts[twins >= 0] = len(own) + _range_starts(merged[twins >= 0])
-    return source[_ranges_of(starts, merged)]
-
-
-def _voxels_per_brick(valid: np.ndarray) -> np.ndarray:
-    """Stored voxels of each brick of stored-voxel words ``valid`` (N, VALID_WORDS)."""
-    return np.bitwise_count(valid).sum(axis=1).astype(np.int64)
-
-
-def _range_starts(counts: np.ndarray) -> np.ndarray:
-    """Where each of consecutive ranges of ``counts`` items begins: their exclusive sums."""
-    return np.cumsum(counts) - counts
-
-
-def _empty_file(path: Path) -> bool:
-    """Whether ``path`` is an empty file (made by mktemp, say): a place to save a store to,
-    not a damaged one."""
-    return path.is_file() and path.stat().st_size == 0
-
-
-@contextmanager
-def _taking_turns(path: Path) -> Iterator[None]:
-    """Hold an exclusive lock on ``path``'s folder: every process's saves there take turns,
-    so a merge reads the file that the previous save wrote. Where the folder cannot be
-    locked (a file system without locks), saves go on without turns: two at once may
-    then keep only the bricks of the later, which costs voxels synthesized again, never
-    a wrong one."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        folder = os.open(path.parent, os.O_RDONLY)
-    except OSError:
-        yield
-        return
-    try:
-        with contextlib.suppress(OSError):
-            fcntl.flock(folder, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(folder)  # releases the lock
 
 
 class Snapshot(NamedTuple):
@@ -349,30 +187,6 @@ class _SharedLock:
                 self._cond.notify_all()
 
 
-_SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
-                  "candidates": "pre-computed candidates", "engine": "engine version",
-                  "engine_code": "engine code",
-                  "format": "file format", "brick": "brick size",
-                  "levels": "synthesized levels", "passes": "correction passes",
-                  "subpasses": "sub-passes", "shifted_tiles": "shifted tiles"}
-
-
-def _differences(stored: dict, current: dict, where: str = "in the file") -> str:
-    """The settings in which a store file's texture (or another texture, ``where``)
-    differs from this one, in words."""
-    out = []
-    for name in sorted(set(stored) | set(current)):
-        there, here = stored.get(name), current.get(name)
-        if there != here:
-            words = _SETTING_NAMES.get(name, name)
-            if name not in stored:  # a file written before this setting was kept
-                words += f" (not recorded {where})"
-            elif isinstance(here, int | float) and isinstance(there, int | float):
-                words += f" {there} {where}, {here} here"
-            out.append(words)
-    return ", ".join(out) or "equal settings with another identity digest"
-
-
 def check_lookup_channels(channels: int) -> None:
     """Raise ValueError unless the voxels of exemplars of ``channels`` color channels can be
     stored and looked up: the lookup kernels filter at most four."""
@@ -385,102 +199,6 @@ def check_store_settings(cache_bytes: object, whole_bricks: object) -> tuple[int
     """``cache_bytes`` and ``whole_bricks`` as :class:`BrickStore` keeps them, after a
     SettingError unless they are a byte count and a bool."""
     return check_count("cache_bytes", cache_bytes), check_flag("whole_bricks", whole_bricks)
-
-
-def store_settings(synthesizer: Synthesizer) -> dict:
-    """Everything a stored voxel depends on: exemplars, candidate parameters and algorithm
-    version, seed, jitter, tile shifts, engine version and parameters; digested by
-    :meth:`BrickStore.identity` and kept in store files in plain words, so that a file of
-    another texture can be told apart by the settings that differ."""
-    s = synthesizer
-    return {
-        "format": FORMAT_VERSION,
-        "candidates": s.candidates.content_digest,
-        "engine": ENGINE_VERSION,
-        "engine_code": _engine_code(),
-        "brick": _k.BRICK,
-        "digests": list(s.candidates.digests),
-        "params": s.candidates.params,
-        "seed": s.seed,
-        "jitter": round(s.jitter * 256) / 256,  # as the engine takes it
-        "shifted_tiles": s.shifted_tiles,
-        "levels": s.finest - s.start,
-        "passes": s.passes,
-        "subpasses": s.subpasses,
-    }
-
-
-@functools.cache
-def _engine_code() -> str:
-    """Digest of the engine's code (``warptex.code_digest``): stores of another engine's
-    voxels are never reused, also where ``ENGINE_VERSION`` was not raised."""
-    from kernels import common
-    from kernels import synthesis as engine_kernels
-    from warptex import keysets, parallel, synthesis, warp_runtime
-
-    # How launches are split over threads decides voxels as much as the kernels do.
-    modules = (synthesis, engine_kernels, common, keysets, parallel, warp_runtime)
-    return code_digest(module_sources(modules), str(ENGINE_VERSION))
-
-
-_engine_code()  # now: the code this process runs, even if its files are edited meanwhile
-
-
-def settings_differences(other: Synthesizer, this: Synthesizer) -> str:
-    """The settings in which ``other``'s stored voxels would differ from ``this``'s, in
-    words; empty when they would be the same."""
-    theirs, mine = store_settings(other), store_settings(this)
-    return "" if theirs == mine else _differences(theirs, mine, "in the other texture")
-
-
-def check_store_path(path: str | Path, saving: bool = True) -> None:
-    """Raise StoreFileError if ``path`` holds a folder or a file of another kind, which
-    saving a store there would destroy (or, not ``saving``, which is no store to read); a
-    missing file or any brick store file is fine."""
-    problem = overwrite_problem(path, _MAGIC, "brick store", ", choose another store path",
-                                written=saving)
-    if problem is not None:
-        raise StoreFileError(f"{path}: {problem}")
-
-
-def worth_saving(store: BrickStore, path: Path | None) -> bool:
-    """Whether a stop's save of ``store`` to ``path`` keeps any work: whether it holds
-    voxels. A file of an empty store would keep none, and be said to hold the voxels
-    synthesized before stopping (:func:`saved_when_stopped`); merged with a file, it leaves
-    that as it was."""
-    return path is not None and store.stats()["voxels"] > 0
-
-
-@contextmanager
-def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
-    """Ctrl-C or SIGTERM (a KeyboardInterrupt) in the block first writes brick stores to
-    their files with ``save``, then stops as asked: the voxels synthesized so far are kept,
-    so the next run starts from them (section 6.2's synthesize-once, across runs); a stop
-    waits for a change of the bricks under way to end (:class:`BrickStore`). What was
-    saved, or why nothing was, is said on stderr."""
-    try:
-        yield
-    except KeyboardInterrupt:
-        print(file=sys.stderr)  # below the progress line that the stop cut short
-        saved_and_said(save, "stopping")
-        raise
-
-
-def saved_and_said(save: Callable[[], Iterable[Path]], before: str) -> None:
-    """Write brick stores with ``save`` as work ends early (``before``: "stopping"), and say
-    on stderr which hold the voxels synthesized so far, or why none was saved."""
-    try:
-        saved = list(save())
-    except StoreFileError as error:
-        print(f"warptex: brick store not saved: {error}", file=sys.stderr)
-    except OSError as error:  # a full disk: the file is left as it was
-        print(f"warptex: brick store not saved: {write_failure(error.filename, error)}",
-              file=sys.stderr)
-    else:
-        for path in saved:
-            # Not "saved": a file that held every voxel already is left as it was.
-            print(f"warptex: brick store {path} holds the voxels synthesized before {before}: "
-                  "the next run starts from them", file=sys.stderr)
 
 
 class BrickStore:
@@ -693,10 +411,10 @@ class BrickStore:
         with self._reading():
             version = self._version
             live = self._by_recency()
-            ours = _Bricks(self._keys[live], _gathered(self._payload, self._base[live],
-                                                       self._voxel_counts(live)),
-                           self._valid[live])
-        with _taking_turns(path):
+            ours = Bricks(self._keys[live], gathered(self._payload, self._base[live],
+                                                     self._voxel_counts(live)),
+                          self._valid[live])
+        with taking_turns(path):
             state = file_state(path)
             if state is not None and self._synced == (state, version):
                 return False
@@ -704,7 +422,7 @@ class BrickStore:
                 with contextlib.suppress(OSError):
                     leftover.unlink()
             try:
-                saved = self._read(path) if path.exists() and not _empty_file(path) else None
+                saved = self._read(path) if path.exists() and not empty_file(path) else None
             except StoreFileError as e:
                 if not len(ours.keys):  # nothing to keep: another texture's voxels stay
                     return False
@@ -720,14 +438,12 @@ class BrickStore:
                     # Our partly filled bricks may have grown by the file's voxels: all of
                     # them are kept still, as the file is then marked as holding them.
                     budget = max(self._budget, *(
-                        int(self._brick_costs(_voxels_per_brick(v)).sum())
+                        int(self._brick_costs(voxels_per_brick(v)).sum())
                         for v in (saved.valid, valid[len(valid) - mine:])))
-                    return int(self._kept(_voxels_per_brick(valid), budget).sum())
+                    return int(self._kept(voxels_per_brick(valid), budget).sum())
 
-                kept = _bricks_union(saved, ours, fitting)
-            write_archive(path, _MAGIC, FORMAT_VERSION,
-                          {"identity": np.array(self.identity()),
-                           "settings": np.array(self._settings_json()), **kept._asdict()})
+                kept = bricks_union(saved, ours, fitting)
+            write_bricks(path, self.identity(), self._settings_json(), kept)
             self._synced = (file_state(path), version)
         return True
 
@@ -746,7 +462,7 @@ class BrickStore:
         check_store_path(path)
         store = cls(synthesizer, cache_bytes=cache_bytes, whole_bricks=whole_bricks)
         state = file_state(Path(path))  # before reading: a file replaced meanwhile differs
-        if _empty_file(Path(path)):
+        if empty_file(Path(path)):
             return store
         try:
             kept = store._recent_that_fit(store._read(Path(path)))
@@ -951,8 +667,8 @@ class BrickStore:
         # Old and new voxels of the touched bricks, ordered by (brick, local) and without
         # repeats (a voxel synthesized twice has the same triple): the repacked ranges.
         old = self._ranges(touched)
-        first, valid = _packed(np.concatenate([
-            np.flatnonzero(_stored_bits(self._valid[touched])),
+        first, valid = packed(np.concatenate([
+            np.flatnonzero(stored_bits(self._valid[touched])),
             np.searchsorted(touched, slots) * _k.BRICK_VOXELS + local_index(voxels, _k.BRICK)]),
             len(touched))
         triples = np.concatenate([self._payload[old], payload.astype(self._dtype)])[first]
@@ -961,7 +677,7 @@ class BrickStore:
         self._valid[touched] = valid
         self._place(touched, start, triples)
 
-    def _fill(self, bricks: _Bricks) -> None:
+    def _fill(self, bricks: Bricks) -> None:
         """Fill this empty store with ``bricks``, listed least recently used first. A
         file's triples lie brick after brick in local order, as the pool keeps them, so
         they are copied as they are; slots follow the list, so eviction breaks the tie of
@@ -981,7 +697,7 @@ class BrickStore:
         brick after brick in local order, at pool position ``start``; the bricks count as
         used now."""
         self._payload[start: start + len(triples)] = triples
-        self._base[slots] = start + _range_starts(self._voxel_counts(slots))
+        self._base[slots] = start + range_starts(self._voxel_counts(slots))
         self._upload_pool(start, start + len(triples))
         self._upload_slots()
         self._stamp(slots)
@@ -998,11 +714,11 @@ class BrickStore:
         live = np.flatnonzero(self._keys != _EMPTY)
         return live[np.argsort(self._index.stamps.numpy()[live], kind="stable")]
 
-    def _recent_that_fit(self, bricks: _Bricks) -> _Bricks:
+    def _recent_that_fit(self, bricks: Bricks) -> Bricks:
         """The most recently used of ``bricks`` that fit the store's bound (``cache_bytes``
         within what the pool indexes)."""
         # The list ends with the most recent, so those kept are its tail: viewed, not copied.
-        return _recent(bricks, int(self._kept(_voxels_per_brick(bricks.valid)).sum()))
+        return most_recent(bricks, int(self._kept(voxels_per_brick(bricks.valid)).sum()))
 
     def _kept(self, counts: np.ndarray, budget: int | None = None) -> np.ndarray:
         """Which of the bricks holding ``counts`` voxels each, listed least recently used
@@ -1051,11 +767,11 @@ class BrickStore:
 
     def _voxel_counts(self, slots: np.ndarray) -> np.ndarray:
         """Stored voxels of each of ``slots``."""
-        return _voxels_per_brick(self._valid[slots])
+        return voxels_per_brick(self._valid[slots])
 
     def _ranges(self, slots: np.ndarray) -> np.ndarray:
         """Pool positions of the stored voxels of ``slots``, brick after brick."""
-        return _ranges_of(self._base[slots], self._voxel_counts(slots))
+        return ranges_of(self._base[slots], self._voxel_counts(slots))
 
     def _reserve(self, voxels: int) -> int:
         """Pool position of ``voxels`` new consecutive voxels; compacts or grows the pool."""
@@ -1113,9 +829,9 @@ class BrickStore:
         used = int(counts.sum())
         # Room to grow, but not past the limit, which _reserve checks only to grow the pool.
         payload = np.zeros((min(2 * used, max(used, _MAX_POOL_VOXELS)), 3), self._dtype)
-        _gathered(self._payload, self._base[live], counts, out=payload[:used])
+        gathered(self._payload, self._base[live], counts, out=payload[:used])
         self._payload = payload
-        self._base[live] = _range_starts(counts)
+        self._base[live] = range_starts(counts)
         self._used, self._garbage = used, 0
         self._upload_pool(0, self._used)
 
@@ -1180,6 +896,10 @@ class BrickStore:
         """``a`` as a Warp array; on the CPU a view, so results land in ``a`` directly."""
         return wp.array(a, dtype=dtype, device=self._device, copy=self._device != "cpu")
 
+    def _read(self, path: Path) -> Bricks:
+        return read_bricks(path, self.identity(), self._settings_json(), self._dtype,
+                           self._pixels)
+
     def _results(self, out: np.ndarray) -> wp.array:
         """Where a launch writes colors bound for ``out``: ``out`` itself on the CPU, else
         device memory, read back after the launch (nothing to upload first)."""
@@ -1187,36 +907,3 @@ class BrickStore:
             return self._on_device(out, wp.float32)
         return wp.empty(out.shape, dtype=wp.float32, device=self._device)
 
-    def _read(self, path: Path) -> _Bricks:
-        z = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
-        try:
-            identity, keys, triples = str(z["identity"]), z["keys"], z["triples"]
-            valid = z["valid"]
-        except KeyError as e:
-            raise StoreFileError(f"{path}: unreadable brick store data ({e})") from None
-        if identity != self.identity():
-            differences = "other exemplars, seed, jitter or synthesis parameters"
-            try:  # files written before the settings were kept lack them
-                stored = json.loads(str(z["settings"]))
-                # Through JSON, as the file's went: tuples become lists, so equal compares equal.
-                current = json.loads(self._settings_json())
-                if isinstance(stored, dict):
-                    differences = _differences(stored, current)
-            except (KeyError, ValueError):
-                pass
-            raise StoreFileError(f"{path}: written for another texture ({differences})")
-        if keys.dtype != np.int64 or keys.ndim != 1:
-            raise StoreFileError(f"{path}: brick keys of unexpected type or shape")
-        valid = np.ascontiguousarray(valid)  # viewed as bytes
-        if valid.dtype != np.uint32 or valid.shape != (len(keys), _k.VALID_WORDS):
-            raise StoreFileError(f"{path}: stored-voxel bits of unexpected type or shape")
-        if triples.dtype != self._dtype or triples.shape != (int(np.bitwise_count(valid).sum()), 3):
-            raise StoreFileError(f"{path}: voxel triples of unexpected type or shape")
-        # The lookup kernels read exemplar colors at these pixels and bricks at these keys:
-        # a file that passed its checksum but holds others (written by hand) is refused.
-        if len(triples) and (triples.min() < 0 or (triples.max(axis=0) >= self._pixels).any()):
-            raise StoreFileError(f"{path}: voxel triples outside the exemplars")
-        if len(keys) and (len(np.unique(keys)) != len(keys)
-                          or np.abs(brick_coords(keys)).max() > _MAX_BRICK):
-            raise StoreFileError(f"{path}: repeated bricks or bricks beyond the texture range")
-        return _Bricks(keys, triples, valid)

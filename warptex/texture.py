@@ -39,12 +39,10 @@ from warptex.store import (
     BATCH_VOXELS,
     POINT_LIMIT,
     BrickStore,
-    StoreFileError,
     check_lookup_channels,
-    check_store_path,
     check_store_settings,
-    settings_differences,
 )
+from warptex.store_files import StoreFileError, check_store_path, settings_differences
 from warptex.synthesis import (
     REQUEST_BYTES_PER_VOXEL,
     Synthesizer,

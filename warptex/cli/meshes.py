@@ -151,7 +151,7 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
         raise CliError(f"{twice[0]} and {twice[1]} are one file (through a link); each file "
                        "of a cut is written once: choose another output name")
     if args.store is not None:
-        from warptex.store import StoreFileError, check_store_path
+        from warptex.store_files import StoreFileError, check_store_path
 
         check_output(args.store)
         if any(args.store.resolve() == f.resolve() for f in written):
@@ -236,11 +236,11 @@ def _colors_only(baked: dict, colors: int) -> dict:
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> Iterator[None]:
     """A `bake` or `cut` stopped by Ctrl-C or SIGTERM, or by a kernel cache that cannot
     take a later kernel's build, saves its ``--store`` first, unless nothing was
-    synthesized (:func:`~warptex.store.worth_saving`): the next run starts from its voxels."""
+    synthesized (:func:`~warptex.store_files.worth_saving`): the next run starts from its voxels."""
     if args.store is None:
         yield
         return
-    from warptex.store import saved_and_said, saved_when_stopped, worth_saving
+    from warptex.store_files import saved_and_said, saved_when_stopped, worth_saving
     from warptex.warp_runtime import KernelCacheError
 
     def save() -> list[Path]:
