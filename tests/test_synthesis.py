@@ -917,6 +917,9 @@ def test_a_boxs_memory_counts_the_apron_of_its_passes(candidates, monkeypatch):
     import warptex.machine
     from warptex.synthesis import box_bytes
 
+    # Parts as large as a GPU of memory to spare takes: on the CPU the engine's parts are
+    # kept to half the memory, so a box's work never decides (the next tests).
+    monkeypatch.setattr(synthesis, "work_voxel_cap", lambda *args: synthesis.MAX_WORK_VOXELS)
     syn = Synthesizer(candidates, passes=8, subpasses=8)
     shape = (64, 64, 64)
     colors = 4 * candidates.channels * 64**3
@@ -941,6 +944,7 @@ def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candid
         work_bytes_per_voxel,
     )
 
+    monkeypatch.setattr(synthesis, "work_voxel_cap", lambda *args: synthesis.MAX_WORK_VOXELS)
     syn = Synthesizer(candidates)
     points = np.random.default_rng(5).integers(-1000, 1000, (4096, 3))
     monkeypatch.setattr(warptex.machine, "physical_memory", lambda: request_bytes(points) - 1)
@@ -969,6 +973,31 @@ def test_voxels_and_triples_beyond_the_memory_are_refused_before_any_work(candid
     assert request_bytes(box) - len(box) * REQUEST_BYTES_PER_VOXEL < 2 * 80**3 * 280
     # Exemplars of more feature channels take more memory a work voxel.
     assert request_bytes(points, channels=34) > request_bytes(points)
+
+
+def test_requests_are_estimated_in_the_parts_the_engine_works_in(candidates, monkeypatch):
+    """voxels(), triples() and box() counted a request's work as MAX_WORK_VOXELS whatever
+    the parts the engine keeps to where memory is small (work_voxel_cap): on a 120 MiB
+    machine they refused what the engine does in parts."""
+    import warptex.machine
+    from warptex.synthesis import box_bytes, request_bytes, work_voxel_cap
+
+    points = np.random.default_rng(5).integers(-1000, 1000, (512, 3))
+    shape = (64, 64, 64)
+    reference = Synthesizer(candidates)
+    expected = reference.voxels(points), reference.triples(points)
+    box = reference.box((0, 0, 0), shape)
+    memory = 120 << 20
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: memory)
+    synthesis._host_memory.cache_clear()
+    cap = work_voxel_cap("cpu")
+    assert request_bytes(points) > memory > request_bytes(points, work_cap=cap) + (1 << 20)
+    colors = 4 * candidates.channels * 64**3
+    assert box_bytes(shape) + colors > memory > box_bytes(shape, work_cap=cap) + colors
+    syn = Synthesizer(candidates)
+    np.testing.assert_array_equal(syn.voxels(points), expected[0])
+    np.testing.assert_array_equal(syn.triples(points), expected[1])
+    np.testing.assert_array_equal(syn.box((0, 0, 0), shape), box)
 
 
 def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.ndarray:

@@ -99,42 +99,46 @@ def work_bytes_per_voxel(channels: int = 3) -> int:
     return _WORK_BYTES_RGB + _WORK_BYTES_PER_CHANNEL * (max(channels, 3) - 3)
 
 
-def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1, channels: int = 3) -> int:
+def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1, channels: int = 3,
+              work_cap: int = MAX_WORK_VOXELS) -> int:
     """About the memory that synthesizing a box of ``shape`` takes beside its colors: its
     request's host arrays and the engine's work on one part of it (the box and its apron,
-    at most ``MAX_WORK_VOXELS``); ``apron_blocks`` is the engine's (one at the default
-    passes) and ``channels`` its feature channels, as for :func:`request_bytes`."""
+    at most ``work_cap`` voxels); ``apron_blocks`` is the engine's (one at the default
+    passes), ``channels`` its feature channels and ``work_cap`` its parts' size
+    (:func:`work_voxel_cap`), as for :func:`request_bytes`."""
     reach = 2 * apron_blocks * BLOCK
-    work = min(MAX_WORK_VOXELS, math.prod(n + reach for n in shape))
+    work = min(work_cap, math.prod(n + reach for n in shape))
     return (math.prod(shape) * REQUEST_BYTES_PER_VOXEL
             + work * work_bytes_per_voxel(channels))
 
 
-def request_bytes(ijk: np.ndarray, apron_blocks: int = 1, channels: int = 3) -> int:
+def request_bytes(ijk: np.ndarray, apron_blocks: int = 1, channels: int = 3,
+                  work_cap: int = MAX_WORK_VOXELS) -> int:
     """About the memory that synthesizing voxels ``ijk`` (N, 3) takes beside their results:
     the request's host arrays, its blocks' keys grown by the apron, and the engine's work
     on one part of it (its bounding box grown by the apron, or each voxel's block and apron
-    where they lie far apart, at most ``MAX_WORK_VOXELS``); ``apron_blocks`` is the
-    engine's (one at the default passes) and ``channels`` its feature channels."""
+    where they lie far apart, at most ``work_cap`` voxels); ``apron_blocks`` is the
+    engine's (one at the default passes), ``channels`` its feature channels and
+    ``work_cap`` its parts' size (:func:`work_voxel_cap`)."""
     if len(ijk) == 0:
         return 0
     reach = 2 * apron_blocks * BLOCK
     spread = ijk.max(axis=0) - ijk.min(axis=0) + 1 + reach
     box = math.prod(int(s) for s in spread)  # in Python ints: up to 2^69 voxels
-    work = min(MAX_WORK_VOXELS, len(ijk) * (BLOCK + reach) ** 3, box)
+    work = min(work_cap, len(ijk) * (BLOCK + reach) ** 3, box)
     blocks = min(len(ijk), math.prod(-(-int(s) // BLOCK) + 1 for s in spread))
     dilated = blocks * (2 * apron_blocks + 1) ** 3 * DILATED_KEY_BYTES
     return (len(ijk) * REQUEST_BYTES_PER_VOXEL + dilated
             + work * work_bytes_per_voxel(channels))
 
 
-def _check_request(ijk: np.ndarray, apron_blocks: int, channels: int,
+def _check_request(ijk: np.ndarray, apron_blocks: int, channels: int, work_cap: int,
                    result_bytes: int) -> None:
     """Refuse, before any work, a request of voxels ``ijk`` that with its results of
-    ``result_bytes`` a voxel would not fit in this machine's memory. Not asked of the
-    brick store's batches, which are bounded (``store.BATCH_VOXELS``), as the machine's
-    memory takes a file read."""
-    problem = memory_problem(request_bytes(ijk, apron_blocks, channels)
+    ``result_bytes`` a voxel would not fit in this machine's memory, the engine working on
+    parts of ``work_cap`` voxels. Not asked of the brick store's batches, which are bounded
+    (``store.BATCH_VOXELS``), as the machine's memory takes a file read."""
+    problem = memory_problem(request_bytes(ijk, apron_blocks, channels, work_cap)
                              + len(ijk) * result_bytes)
     if problem is not None:
         raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
@@ -537,7 +541,7 @@ class Synthesizer:
         """
         ijk = check_voxels(ijk)
         # Its triples, and the int64 rows, columns and their stack on the way.
-        _check_request(ijk, self._apron, self._features, 136)
+        _check_request(ijk, self._apron, self._features, self._work_cap(), 136)
         pix = self._pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
@@ -550,7 +554,8 @@ class Synthesizer:
         colors (section 5.1). A request that would not fit in memory is a ValueError, before
         any work."""
         ijk = check_voxels(ijk)
-        _check_request(ijk, self._apron, self._features, 4 * self.candidates.channels)
+        _check_request(ijk, self._apron, self._features, self._work_cap(),
+                       4 * self.candidates.channels)
         return self.colors_of(self._pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
@@ -563,7 +568,7 @@ class Synthesizer:
                    for o, n in zip(origin, shape, strict=True)):  # checked before any array
             raise ValueError(f"a box at origin {origin} of shape {shape} leaves the voxel "
                              f"coordinates' range [-{COORD_LIMIT}, {COORD_LIMIT})")
-        need = (box_bytes(shape, self._apron, self._features)
+        need = (box_bytes(shape, self._apron, self._features, self._work_cap())
                 + 4 * self.candidates.channels * math.prod(shape))
         problem = memory_problem(need)
         if problem is not None:  # before allocating: too large a box would end in swapping
@@ -627,14 +632,18 @@ class Synthesizer:
         is larger: halved across the longest side of their bounding box, so that parts stay
         compact and their aprons small."""
         work = _dilate(keys, self._apron)
-        if (len(work) * _BLOCK_VOXELS <= work_voxel_cap(self.device, self._features)
-                or len(keys) == 1):
+        if len(work) * _BLOCK_VOXELS <= self._work_cap() or len(keys) == 1:
             return [(keys, work)]
         blocks = unpack(keys)
         low, high = blocks.min(axis=0), blocks.max(axis=0)
         axis = int(np.argmax(high - low))
         below = blocks[:, axis] < (low[axis] + high[axis] + 1) // 2
         return self._parts(keys[below]) + self._parts(keys[~below])
+
+    def _work_cap(self) -> int:
+        """Work voxels of one engine call here (:func:`work_voxel_cap`): what requests are
+        split into, and estimated by."""
+        return work_voxel_cap(self.device, self._features)
 
     def _final(self, level: int, keys: np.ndarray, flat: np.ndarray) -> _Level:
         """Corrected triples at ``level`` of the voxels ``flat`` (block * 64 + local,

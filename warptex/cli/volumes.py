@@ -93,7 +93,14 @@ def run_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import Synthesizer, box_bytes, default_apron_blocks, work_voxels
+    from warptex.synthesis import (
+        Synthesizer,
+        box_bytes,
+        default_apron_blocks,
+        work_voxel_cap,
+        work_voxels,
+    )
+    from warptex.warp_runtime import device
 
     check_output(args.output, VOLUME_FORMATS, "a volume file")
     check_inputs_kept(args, [args.output])
@@ -127,7 +134,7 @@ def run_volume(args: argparse.Namespace) -> int:
     thickness = max(b - a for a, b in itertools.pairwise(edges))
     # One slab at a time, its work and colors, gone before the write's copies are made.
     slab = (box_bytes((thickness, args.size, args.size), default_apron_blocks(args.passes),
-                      channels)
+                      channels, work_voxel_cap(device(), channels))
             + 4 * channels * thickness * args.size**2)
     check_memory(args.size, channels, max(slab, (copies - 1) * volume_bytes(args.size, channels)),
                  copies=1)
