@@ -144,11 +144,19 @@ def candidate_crossbar_errors(
     crossbar_errors[p, k] = crossbar_error(strips, p, cand1[p, k], cand2[p, k])
 
 
+@wp.struct
+class CandidateCoords:
+    """The candidates of every role-0 pixel as (u, v) pixel coordinates in the exemplar of
+    one other role, and how many each pixel has (section 4.2)."""
+
+    u: wp.array2d(dtype=wp.int32)
+    v: wp.array2d(dtype=wp.int32)
+    count: wp.array(dtype=wp.int32)
+
+
 @wp.func
 def mark_continuations(
-    cand_u: wp.array2d(dtype=wp.int32),
-    cand_v: wp.array2d(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
+    cand: CandidateCoords,
     p: int,
     own_height: int,
     own_width: int,
@@ -165,13 +173,13 @@ def mark_continuations(
     uv = pixel_coords(p, own_width)
     for d in range(4):
         q = pixel_index(uv[0] + _STEP_U[d], uv[1] + _STEP_V[d], own_height, own_width)
-        for j in range(count[q]):
+        for j in range(cand.count[q]):
             for e in range(4):
                 du = _STEP_U[e]
                 dv = _STEP_V[e]
                 # Along a side of one pixel a neighbour would be the pixel itself.
                 if (du != 0 and height > 1) or (dv != 0 and width > 1):
-                    at = pixel_index(cand_u[q, j] + du, cand_v[q, j] + dv, height, width)
+                    at = pixel_index(cand.u[q, j] + du, cand.v[q, j] + dv, height, width)
                     word = at >> 5
                     if setting:
                         marks[row, word] = marks[row, word] | bit_mask(at)
@@ -181,9 +189,7 @@ def mark_continuations(
 
 @wp.func
 def keep_marked(
-    cand_u: wp.array2d(dtype=wp.int32),
-    cand_v: wp.array2d(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
+    cand: CandidateCoords,
     p: int,
     width: int,
     marks: wp.array2d(dtype=wp.uint32),
@@ -192,17 +198,15 @@ def keep_marked(
     i: int,
 ):
     """Clear the flag of each candidate of p whose coordinates are not marked."""
-    for k in range(count[p]):
-        at = cand_u[p, k] * width + cand_v[p, k]
+    for k in range(cand.count[p]):
+        at = cand.u[p, k] * width + cand.v[p, k]
         if (marks[row, at >> 5] & bit_mask(at)) == wp.uint32(0):
             keep[i, k] = 0
 
 
 @wp.func
 def keep_continued(
-    cand_u: wp.array2d(dtype=wp.int32),
-    cand_v: wp.array2d(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
+    cand: CandidateCoords,
     p: int,
     height: wp.vec3i,
     width: wp.vec3i,
@@ -217,11 +221,9 @@ def keep_continued(
     ``row``, left zeroed again for the next role."""
     h0 = height[0]
     w0 = width[0]
-    mark_continuations(cand_u, cand_v, count, p, h0, w0, height[role], width[role], marks, row,
-                       True)
-    keep_marked(cand_u, cand_v, count, p, width[role], marks, row, keep, i)
-    mark_continuations(cand_u, cand_v, count, p, h0, w0, height[role], width[role], marks, row,
-                       False)
+    mark_continuations(cand, p, h0, w0, height[role], width[role], marks, row, True)
+    keep_marked(cand, p, width[role], marks, row, keep, i)
+    mark_continuations(cand, p, h0, w0, height[role], width[role], marks, row, False)
 
 
 @wp.kernel
@@ -229,11 +231,8 @@ def coherent_candidates(
     first: int,
     batch_first: int,
     pixels: wp.array(dtype=wp.int32),
-    cand1_u: wp.array2d(dtype=wp.int32),
-    cand1_v: wp.array2d(dtype=wp.int32),
-    cand2_u: wp.array2d(dtype=wp.int32),
-    cand2_v: wp.array2d(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
+    cand1: CandidateCoords,
+    cand2: CandidateCoords,
     height: wp.vec3i,
     width: wp.vec3i,
     marks: wp.array2d(dtype=wp.uint32),
@@ -253,6 +252,6 @@ def coherent_candidates(
     p = pixels[i]
     row = i - batch_first
     for k in range(keep.shape[1]):
-        keep[i, k] = wp.where(k < count[p], 1, 0)
-    keep_continued(cand1_u, cand1_v, count, p, height, width, 1, marks, row, keep, i)
-    keep_continued(cand2_u, cand2_v, count, p, height, width, 2, marks, row, keep, i)
+        keep[i, k] = wp.where(k < cand1.count[p], 1, 0)
+    keep_continued(cand1, p, height, width, 1, marks, row, keep, i)
+    keep_continued(cand2, p, height, width, 2, marks, row, keep, i)

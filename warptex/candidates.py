@@ -654,17 +654,19 @@ def _continued(cand: np.ndarray, count: np.ndarray, sizes: list[tuple[int, int]]
     coordinates continue a candidate of a direct neighbour in both other exemplars
     (section 4.2); ``cand`` (P, K, 2) holds the role-1 and role-2 pixels of each list."""
     dev = PRECOMPUTE_DEVICE
+    counts = wp.array(count, dtype=wp.int32, device=dev)
     coords = []
     for role in (1, 2):
+        coords.append(_k.CandidateCoords())
         u, v = np.divmod(cand[:, :, role - 1], sizes[role][1])
-        coords += [wp.array(a.astype(np.int32), device=dev) for a in (u, v)]
+        coords[-1].u, coords[-1].v = (wp.array(a.astype(np.int32), device=dev) for a in (u, v))
+        coords[-1].count = counts
     # A bitmap row of the larger exemplar's pixels per pixel tested at once, in batches of
     # at most _MARK_BYTES.
     words = -(-max(h * w for h, w in sizes[1:]) // 32)
     batch = max(1, min(len(listed), _MARK_BYTES // (4 * words)))
     keep = wp.zeros((len(listed), cand.shape[1]), dtype=wp.int32, device=dev)
     inputs = [wp.array(listed.astype(np.int32), dtype=wp.int32, device=dev), *coords,
-              wp.array(count, dtype=wp.int32, device=dev),
               wp.vec3i(*[s[0] for s in sizes]), wp.vec3i(*[s[1] for s in sizes]),
               wp.zeros((batch, words), dtype=wp.uint32, device=dev)]
     for lo in range(0, len(listed), batch):
