@@ -36,7 +36,7 @@ from timing import positive_int, run_record
 
 import mitsuba_plugin
 import warptex  # noqa: F401  (before Mitsuba: points Dr.Jit at libLLVM)
-from warptex.exemplar import srgb_to_linear
+from warptex.srgb import srgb_to_linear
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 TEXTURE = re.compile(r'<texture type="lazy_solid".*?</texture>', re.S)

@@ -59,7 +59,7 @@ Mitsuba's bitmap decodes texels before filtering instead: the same at voxel cent
 the ``nearest`` filter, darker half way between voxels, by 0.003 where two mid-gray
 neighbours differ by 0.1 and 0.026 where they differ by 0.3. Unlike the bitmap's ``raw``, this
 one leaves spectral upsampling on. The decoding widens colors to float64 and rounds the
-result to float32, as :func:`warptex.exemplar.srgb_to_linear` does: the scalar and the LLVM
+result to float32, as :func:`warptex.srgb.srgb_to_linear` does: the scalar and the LLVM
 variants and NumPy give a point the same bits (float32 powers differ between them in the
 last bits); the CUDA variants should too (not yet checked on a GPU).
 
@@ -120,13 +120,7 @@ from warptex.affine import affine_inverse, apply_affine
 from warptex.archive import file_problem
 from warptex.candidate_set import CandidateSet
 from warptex.candidates import precompute
-from warptex.exemplar import (
-    AlphaDropped,
-    Exemplar,
-    srgb_decoded,
-    srgb_encoded,
-    srgb_to_linear,
-)
+from warptex.exemplar import AlphaDropped, Exemplar, srgb_encoded
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
@@ -138,6 +132,7 @@ from warptex.settings import (
     check_settings,
     names_folder,
 )
+from warptex.srgb import srgb_decoded, srgb_to_linear
 from warptex.store import check_lookup_channels
 from warptex.store_files import StoreFileError, check_store_path
 from warptex.texture import SolidTexture, wrap_far
@@ -719,9 +714,9 @@ def _choice_of(condition: bool, if_true: float, if_false: float) -> float:
 
 
 def _srgb_decoded(value: float) -> float:
-    """:func:`srgb_to_linear` of one Python float holding a float32 color, rounded to float32
-    by the caller's Color3f, for the scalar variants' one point per call, where a NumPy or
-    Dr.Jit call (about 6 us) would cost as much as the lookup."""
+    """:func:`~warptex.srgb.srgb_to_linear` of one Python float holding a float32 color,
+    rounded to float32 by the caller's Color3f, for the scalar variants' one point per call,
+    where a NumPy or Dr.Jit call (about 6 us) would cost as much as the lookup."""
     return srgb_decoded(value, _choice_of)
 
 

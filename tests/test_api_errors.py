@@ -283,7 +283,7 @@ def test_a_slices_filter_is_checked_before_its_points_are_made(candidates, warp_
 
 def test_colors_are_reencoded_only_by_flags():
     """``srgb=None``, a texture's "not recorded", decoded one way and encoded the other."""
-    from warptex.exemplar import reencoded
+    from warptex.srgb import reencoded
 
     values = np.full((2, 3), 0.5, np.float32)
     np.testing.assert_array_equal(reencoded(values, srgb=True, to_srgb=True), values)

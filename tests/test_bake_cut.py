@@ -343,7 +343,7 @@ def test_cli_slice_writes_each_format_in_its_own_encoding(tmp_path, data_dir, wa
     from PIL import Image
 
     from warptex.cli import main
-    from warptex.exemplar import linear_to_srgb
+    from warptex.srgb import linear_to_srgb
 
     def sliced(exemplar: Path, name: str, *extra: str) -> np.ndarray:
         out = tmp_path / name
@@ -674,7 +674,7 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
     others; srgb=None writes them as they are."""
     from PIL import Image
 
-    from warptex.exemplar import linear_to_srgb, srgb_to_linear
+    from warptex.srgb import linear_to_srgb, srgb_to_linear
 
     mesh, uv = _square()
     colors = np.array([[0.5, 0.0, 1.0], [0.2, 0.75, 0.04], [0.9, 0.3, 0.6],

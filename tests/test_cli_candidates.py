@@ -431,7 +431,7 @@ np.save(sys.argv[2], np.array(mi.VolumeGrid(sys.argv[1])))
 
 
 def test_volume_vol_reads_in_mitsuba(images, expected, tmp_path):
-    from warptex.exemplar import srgb_to_linear
+    from warptex.srgb import srgb_to_linear
 
     pytest.importorskip("mitsuba")
     assert _volume(images, tmp_path / "v.vol") == 0

@@ -326,7 +326,7 @@ def test_a_flat_cube_renders_as_its_converged_shading_without_noise(warp_device)
     """Each visible face of a one-color cube shows one color: albedo x (sun's cosine-weighted
     irradiance / pi + sky), what the path-traced sun and sky converge to; the sky around
     it. Only pixels the cube's edges cut (antialiased) show anything else."""
-    from warptex.exemplar import srgb_to_linear
+    from warptex.srgb import srgb_to_linear
 
     albedo, sky = np.array([0.45, 0.38, 0.28]), np.array(compare._SKY)
     sun = -np.array(compare._SUN_DIRECTION) / np.linalg.norm(compare._SUN_DIRECTION)

@@ -714,7 +714,7 @@ def test_integer_images_are_srgb_encoded_float_images_linear(tmp_path, rng, writ
 def test_srgb_transfer_functions():
     """IEC 61966-2-1: the linear segment, its joint and a known mid-tone; each the other's
     inverse; re-encoding touches the leading color channels only."""
-    from warptex.exemplar import linear_to_srgb, reencoded, srgb_to_linear
+    from warptex.srgb import linear_to_srgb, reencoded, srgb_to_linear
 
     np.testing.assert_allclose(srgb_to_linear([0.0, 0.04045, 0.5, 1.0]),
                                [0.0, 0.0031308, 0.2140411, 1.0], rtol=1e-5, atol=1e-7)

@@ -538,7 +538,7 @@ def test_every_variant_gives_a_point_the_same_bits(granite_32_file, filter):
     """Raw or decoded to linear, the scalar and the LLVM variants give each point the color
     that ``srgb_to_linear`` makes of the stored values, bit for bit (float32 powers of
     NumPy, Dr.Jit and Python differ by up to 7 ulp there; the decoding is done in float64)."""
-    from warptex.exemplar import srgb_to_linear
+    from warptex.srgb import srgb_to_linear
 
     points = np.random.default_rng(5).uniform(-1, 1, (400, 3)).astype(np.float32)
     got = {}
@@ -773,7 +773,7 @@ def test_mean_weighs_the_axes_alike_and_max_bounds_every_voxel(granite_32_file, 
     eval). max() bounds every voxel's channels, also after sRGB decoding."""
     from PIL import Image
 
-    from warptex.exemplar import srgb_to_linear
+    from warptex.srgb import srgb_to_linear
 
     use("scalar_rgb")
     pixels = np.asarray(Image.open(granite_32_file).convert("RGB"), np.float32) / 255
@@ -798,7 +798,7 @@ def test_mean_and_max_decode_each_voxel_of_a_two_tone_exemplar(tmp_path):
     test before."""
     from PIL import Image
 
-    from warptex.exemplar import srgb_to_linear
+    from warptex.srgb import srgb_to_linear
 
     use("scalar_rgb")
     gray = 128 / 255

@@ -207,7 +207,7 @@ def test_the_medium_fills_its_shape_as_a_homogeneous_one(tmp_path):
     use(LLVM)
     flat = tmp_path / "flat.png"
     Image.fromarray(np.full((32, 32, 3), (200, 120, 60), np.uint8)).save(flat)
-    albedo = mi.ScalarColor3f(warptex.exemplar.srgb_to_linear(
+    albedo = mi.ScalarColor3f(warptex.srgb.srgb_to_linear(
         np.array([200, 120, 60], np.float32) / 255))
     lazy_texture = {"type": "lazy_solid", "exemplar": str(flat)}
     homogeneous = rgb(mitsuba_plugin.render(_medium_cube_scene(

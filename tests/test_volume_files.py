@@ -136,11 +136,11 @@ def test_a_kept_alpha_after_gray_and_data_is_no_color(tmp_path, srgb_decoded):
 def test_colors_are_decoded_alike_in_parts(tmp_path, monkeypatch):
     """Large volumes are decoded a part at a time (the float64 of a whole volume's decoding
     took nine copies of it): parts of a few rows give the same file."""
-    import warptex.exemplar
+    import warptex.srgb
 
     vol = _volume(4)
     write_volume(tmp_path / "whole.vol", vol, srgb=True, alpha=True)
-    monkeypatch.setattr(warptex.exemplar, "_REENCODED_ROWS", 5)
+    monkeypatch.setattr(warptex.srgb, "_REENCODED_ROWS", 5)
     write_volume(tmp_path / "parts.vol", vol, srgb=True, alpha=True)
     assert (tmp_path / "parts.vol").read_bytes() == (tmp_path / "whole.vol").read_bytes()
 

@@ -75,7 +75,7 @@ _LAZY = {
 }
 # Submodules the README names as ``warptex.<module>.<name>``, imported on first access too.
 _SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "mesh_files", "metrics",
-               "sheets", "store", "store_files", "surface", "synthesis", "texture",
+               "sheets", "srgb", "store", "store_files", "surface", "synthesis", "texture",
                "volume_files")
 
 __all__ = [

@@ -53,8 +53,6 @@ from warptex.exemplar import (
     ExemplarError,
     axis_triple,
     check_same_channels,
-    linear_to_srgb,
-    reencoded,
     srgb_encoded,
 )
 from warptex.machine import PeakMemory, map_large_blocks
@@ -70,6 +68,7 @@ from warptex.settings import (
     check_tileable,
     tileable_word,
 )
+from warptex.srgb import linear_to_srgb, reencoded
 from warptex.thread_warnings import captured
 
 REPORT_FILES = ("sheet.png", "table.md", "table.json")  # what write_report writes

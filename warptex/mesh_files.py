@@ -17,8 +17,8 @@ import trimesh
 from PIL import Image
 
 from warptex.archive import input_file_problem, write_together
-from warptex.exemplar import reencoded
 from warptex.sheets import to_rgb, to_rgb8
+from warptex.srgb import reencoded
 
 MESH_FORMATS = ("ply", "obj", "glb", "gltf", "stl", "off")  # trimesh's common mesh formats
 _WELD_TOLERANCE = 1e-8  # trimesh's tol.merge: vertices equal to 8 decimals are one

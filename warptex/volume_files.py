@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from warptex.archive import endings, write_atomically
-from warptex.exemplar import color_channels, reencoded
 from warptex.settings import check_file_name, check_flag, names_folder
+from warptex.srgb import color_channels, reencoded
 
 
 def write_volume(path: str | Path, volume: np.ndarray, *, srgb: bool,

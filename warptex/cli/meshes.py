@@ -37,7 +37,8 @@ from warptex.cli.options import (
     lookup_exemplars,
     solid_texture,
 )
-from warptex.exemplar import Exemplar, color_channels
+from warptex.exemplar import Exemplar
+from warptex.srgb import color_channels
 
 # Bytes a UV texel takes while baking: its float64 surface point, owner and coverage,
 # up to 4 float32 channels three times over (colors, image, filled image), and the

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from warptex.cli.common import CliError, input_file, plural
-from warptex.exemplar import Exemplar, axis_triple, color_channels, srgb_encoded
+from warptex.exemplar import Exemplar, axis_triple, srgb_encoded
 from warptex.settings import (
     DEFAULT_JITTER,
     DEFAULT_PASSES,
@@ -21,6 +21,7 @@ from warptex.settings import (
     check_max_size,
     check_settings,
 )
+from warptex.srgb import color_channels
 
 if TYPE_CHECKING:  # imported when first used, not as the command line starts
     from warptex.texture import SolidTexture

@@ -44,8 +44,9 @@ from warptex.cli.options import (
     lookup_exemplars,
     solid_texture,
 )
-from warptex.exemplar import Exemplar, color_channels, reencoded
+from warptex.exemplar import Exemplar
 from warptex.settings import FILTERS, TILEABLE
+from warptex.srgb import color_channels, reencoded
 from warptex.volume_files import VOLUME_FORMATS, WRITE_COPIES, write_image, write_volume
 
 
