@@ -247,7 +247,6 @@ def _strings(value: object) -> bool:
     return isinstance(value, list) and all(isinstance(v, str) for v in value)
 
 
-
 def resolved_params(params: dict) -> dict:
     """Candidate parameters ``params`` with the defaults of the others, each checked
     against :data:`_PARAM_RANGES` (and made a plain int or float, as cache keys and files
@@ -510,8 +509,8 @@ def _check_layout(cs: CandidateSet) -> None:
                     or not _indices_below(s.cand2d, pixels)):
                 raise ValueError(f"level {lv}, exemplar {j}: arrays that do not fit together")
         for r, role in enumerate(cs.roles[lv]):
-            owner, *others = (p.size[0] * p.size[1] for p in role_trio(cs.sources[lv],
-                                                                    cs.axis_source, r))
+            trio = role_trio(cs.sources[lv], cs.axis_source, r)
+            owner, *others = (p.size[0] * p.size[1] for p in trio)
             if (role.cand.ndim != 3 or role.cand.shape[0] != owner or role.cand.shape[2] != 2
                     or role.cand.shape[1:2] != k3 or k3[0] < 1
                     or role.count.shape != (owner,) or role.fallback.shape != (owner,)

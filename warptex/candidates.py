@@ -270,7 +270,6 @@ def cached_candidate_path(ex: Exemplar, tileable: bool | str = "auto") -> Path |
     return path
 
 
-
 def _compute(exemplars: list[Exemplar], p: dict, progress: bool | None) -> CandidateSet:
     init_warp()
     digests = tuple(e.digest() for e in exemplars)
@@ -368,7 +367,6 @@ def _margins(size: tuple[int, int], seams: tuple[bool, bool], n: int) -> tuple[i
     return tuple(0 if wrap else n // 2 for wrap in wrapping_edges(seams, size, n))
 
 
-
 def _quantize(features: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     q = np.rint((features.astype(np.float64) - lo) / (hi - lo) * 255.0)
     return np.clip(q, 0, 255).astype(np.uint8)
@@ -451,7 +449,6 @@ def _nearest_usable(database: np.ndarray, usable: np.ndarray, queries: np.ndarra
     return pool[nearest_rows(database[pool], queries, k)].astype(np.int32)
 
 
-
 def _role_level(trio: list[SourceLevel], p: dict, k3: int,
                 done_half: Callable[[], None]) -> RoleLevel:
     """3D candidates of the role-0 exemplar's pixels against roles 1 and 2 (4.1, 4.2);
@@ -487,7 +484,6 @@ def _role_level(trio: list[SourceLevel], p: dict, k3: int,
                                                    int(p["coherence_rounds"]))
     done_half()
     return RoleLevel(cand=cand, crossbar_errors=errors, count=cnt, fallback=fallback)
-
 
 
 def _nearest_strips(database: np.ndarray, usable: np.ndarray, queries: np.ndarray,
