@@ -219,109 +219,23 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     :class:`~warptex.warp_runtime.KernelCacheError` where Warp's kernel cache cannot take
     or load a build.
     """
-    if output.suffix.lower() not in IMAGE_SUFFIXES:
-        raise ValueError(f"output must end in {endings(IMAGE_SUFFIXES)}, got {output.name!r}")
-    if spp is not None and not 1 <= spp <= MAX_SPP:
-        raise ValueError(f"--spp must be 1 to {MAX_SPP} (Mitsuba counts samples per pixel in "
-                         f"32 bits), got {spp}")
-    if not 0 <= seed <= MAX_SAMPLER_SEED:
-        raise ValueError(f"--sampler-seed must be 0 to {MAX_SAMPLER_SEED}, got {seed}")
-    parameters = dict(parameters or {})
-    if resolution is not None and {"width", "height"} & set(parameters):
-        raise ValueError("--res sets the parameters width and height: give them with -D or "
-                         "--res, not both")
-    if spp is not None and "spp" in parameters:  # the render's count wins: -D would do nothing
-        raise ValueError("--spp sets the samples per pixel, which scenes take as the parameter "
-                         "spp: give it with -D or --spp, not both")
-    reserved = sorted(set(parameters) & set(_LOAD_FILE_ARGUMENTS))
-    if reserved:
-        raise ValueError(f"-D {reserved[0]}: Mitsuba's load_file takes {reserved[0]} as an "
-                         "argument of its own, so no scene parameter of that name can be set; "
-                         "rename it in the scene")
+    parameters = _checked_arguments(output, spp, seed, resolution, parameters)
     statistics = output.with_name(output.name + ".json")
-    clash = overwritten_input([output, statistics],
-                              [scene_path, *scene_files(scene_path, parameters)])
-    if clash is not None:
-        raise ValueError(f"{clash[0]}: would overwrite {clash[1]}, which the scene reads; "
-                         "choose another output name")
-    for written in (output, statistics):  # both, before the minutes a render may take
-        problem = file_problem(written)
-        if problem is not None:
-            beside = "" if written == output else f" (the statistics written with {output})"
-            raise ValueError(f"{written}{beside}: {problem}")
+    _check_outputs(scene_path, parameters, output, statistics)
     if resolution is not None:  # before loading: a film this size may not even be made
         _check_render_size(*resolution, _samples_per_batch(spp or 1))
-    # A signal while Dr.Jit starts a variant's extension fails the import: it was taken for
-    # a variant this machine cannot run (a scalar render, exit 0) or crashed the process.
-    with deferred_stops():
-        import mitsuba as mi
+    variant = _started_variant(variant)
+    import mitsuba_plugin
 
-        import mitsuba_plugin
-
-        try:
-            variant = (mitsuba_plugin.set_best_variant() if variant is None
-                       else mitsuba_plugin.use_variant(variant))
-        except ValueError as e:
-            raise ValueError(f"--variant {variant}: {e}") from None
-    mitsuba_plugin.register()
     params = parameters | ({} if resolution is None
                            else {"width": resolution[0], "height": resolution[1]})
     start = time.perf_counter()
-    try:
-        reading = nullcontext() if save_stores else mitsuba_plugin.stores_read_only()
-        with _status(f"loading {scene_path.name} (exemplars new to the candidate cache are "
-                     "pre-computed first)"), mitsuba_plugin.candidates_progress(), reading:
-            scene = mi.load_file(str(scene_path), **params)
-    except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
-        # Ctrl-C in a plugin that Mitsuba built on this thread comes wrapped, the Python
-        # exception's own line last (the commands' SIGTERM is a KeyboardInterrupt of theirs,
-        # which they tell apart by its signal); one on a loading thread arrives when loading
-        # ends.
-        if isinstance(e.__cause__, KeyboardInterrupt):
-            raise e.__cause__ from None
-        stop = r"^(?:[\w.]+\.)?(?:KeyboardInterrupt|SigtermInterrupt)\b"
-        if re.search(stop, str(e), re.MULTILINE):
-            raise KeyboardInterrupt from None
-        if (failure := _kernel_cache_failure(e)) is not None:
-            raise failure from None
-        unused = set(re.findall(r"^\s*- \$(\w+)=", str(e), re.MULTILINE))
-        if resolution is not None and unused & {"width", "height"}:
-            raise ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
-                             "which this scene does not declare or does not use: add <default "
-                             "name=\"width\" value=\"256\"/> and <integer name=\"width\" "
-                             "value=\"$width\"/> in its film, the same for height") from None
-        if unused:
-            from mitsuba_plugin.properties import did_you_mean
-
-            declared = _declared_parameters(_scene_root(scene_path))
-            if len(unused) > 1:
-                hint = ""
-            elif unused <= set(declared):  # no typo to point at: the name is the scene's own
-                hint = f" (declared by a <default>, but no value reads ${next(iter(unused))})"
-            else:
-                hint = did_you_mean(next(iter(unused)), tuple(declared))
-            raise ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
-                             f"{', '.join(sorted(unused))}{hint}") from None
-        problem = _scene_error(str(e), scene_path)
-        raise ValueError(f"{scene_path}: cannot load the scene: {problem}") from None
+    scene = _loaded_scene(scene_path, params, resolution, save_stores)
     loaded = time.perf_counter()
-    try:
-        sensor = mitsuba_plugin.first_sensor(scene)
-        _check_renderable(scene, sensor, spp, output)
-        mitsuba_plugin._check_texture_places(scene)
-        for texture in mitsuba_plugin.textures(scene):
-            _check_texture_files(texture, [output, statistics], save_stores)
-    except ValueError as e:
-        raise ValueError(f"{scene_path}: {e}") from None
-    try:
-        shares = mitsuba_plugin._batch_shares(sensor.sampler(), spp, RENDER_BATCHES)
-    except ValueError as e:
-        raise ValueError(f"{scene_path}: {e}") from None
-    total = sum(shares)
-    _check_render_size(*sensor.film().crop_size(), max(shares))
+    shares = _checked_scene(scene, scene_path, spp, [output, statistics], save_stores)
     with saved_when_stopped(partial(_saved_at_a_stop, scene) if save_stores else list):
         try:
-            image = mitsuba_plugin.render(scene, spp=total, batches=len(shares),
+            image = mitsuba_plugin.render(scene, spp=sum(shares), batches=len(shares),
                                           seed=seed, progress=_progress)
         except RuntimeError as e:  # what the scene asks of Mitsuba that it cannot do
             if save_stores:  # the voxels of the batches before are as good as any
@@ -342,15 +256,163 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         "versions": software_versions(),
         "variant": variant,
         "size": list(image.shape[1::-1]),
-        "spp": total,
+        "spp": sum(shares),
         "sampler_seed": seed,
         "parameters": params,
         "load_seconds": round(loaded - start, 3),
         "render_seconds": round(rendered - loaded, 3),
         "textures": textures,
     }
+    _write_image_and_report(image, report, output, statistics)
+    failed = [t["not_saved"] for t in textures if "not_saved" in t]
+    if failed:  # the image is kept: a store is a cache, which the next render rebuilds
+        raise OutputError("; ".join(failed))
+    return report
+
+
+def _checked_arguments(output: Path, spp: int | None, seed: int,
+                       resolution: tuple[int, int] | None,
+                       parameters: dict[str, str] | None) -> dict[str, str]:
+    """The scene ``parameters`` (a copy), after a ValueError where the render's arguments
+    are out of range or set one thing twice."""
+    if output.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"output must end in {endings(IMAGE_SUFFIXES)}, got {output.name!r}")
+    if spp is not None and not 1 <= spp <= MAX_SPP:
+        raise ValueError(f"--spp must be 1 to {MAX_SPP} (Mitsuba counts samples per pixel in "
+                         f"32 bits), got {spp}")
+    if not 0 <= seed <= MAX_SAMPLER_SEED:
+        raise ValueError(f"--sampler-seed must be 0 to {MAX_SAMPLER_SEED}, got {seed}")
+    parameters = dict(parameters or {})
+    if resolution is not None and {"width", "height"} & set(parameters):
+        raise ValueError("--res sets the parameters width and height: give them with -D or "
+                         "--res, not both")
+    if spp is not None and "spp" in parameters:  # the render's count wins: -D would do nothing
+        raise ValueError("--spp sets the samples per pixel, which scenes take as the parameter "
+                         "spp: give it with -D or --spp, not both")
+    reserved = sorted(set(parameters) & set(_LOAD_FILE_ARGUMENTS))
+    if reserved:
+        raise ValueError(f"-D {reserved[0]}: Mitsuba's load_file takes {reserved[0]} as an "
+                         "argument of its own, so no scene parameter of that name can be set; "
+                         "rename it in the scene")
+    return parameters
+
+
+def _check_outputs(scene_path: Path, parameters: dict[str, str], output: Path,
+                   statistics: Path) -> None:
+    """A ValueError where the image or its statistics would overwrite a file the scene
+    reads, or cannot be written: before the minutes a render may take."""
+    clash = overwritten_input([output, statistics],
+                              [scene_path, *scene_files(scene_path, parameters)])
+    if clash is not None:
+        raise ValueError(f"{clash[0]}: would overwrite {clash[1]}, which the scene reads; "
+                         "choose another output name")
+    for written in (output, statistics):
+        problem = file_problem(written)
+        if problem is not None:
+            beside = "" if written == output else f" (the statistics written with {output})"
+            raise ValueError(f"{written}{beside}: {problem}")
+
+
+def _started_variant(variant: str | None) -> str:
+    """Mitsuba set to ``variant`` (the best this machine runs where None), with the
+    plugin registered in it: the variant's name."""
+    # A signal while Dr.Jit starts a variant's extension fails the import: it was taken for
+    # a variant this machine cannot run (a scalar render, exit 0) or crashed the process.
+    with deferred_stops():
+        import mitsuba  # noqa: F401 (whole, before a stop can cut its import short)
+
+        import mitsuba_plugin
+
+        try:
+            variant = (mitsuba_plugin.set_best_variant() if variant is None
+                       else mitsuba_plugin.use_variant(variant))
+        except ValueError as e:
+            raise ValueError(f"--variant {variant}: {e}") from None
+    mitsuba_plugin.register()
+    return variant
+
+
+def _loaded_scene(scene_path: Path, params: dict, resolution: tuple[int, int] | None,
+                  save_stores: bool) -> object:
+    """The scene of ``scene_path`` with its parameters ``params``, its textures' candidates
+    pre-computed; Mitsuba's errors in the words of :func:`_load_failure`."""
+    import mitsuba as mi
+
+    import mitsuba_plugin
+
+    try:
+        reading = nullcontext() if save_stores else mitsuba_plugin.stores_read_only()
+        with _status(f"loading {scene_path.name} (exemplars new to the candidate cache are "
+                     "pre-computed first)"), mitsuba_plugin.candidates_progress(), reading:
+            return mi.load_file(str(scene_path), **params)
+    except RuntimeError as e:  # how Mitsuba reports parse and plugin errors, ours included
+        raise _load_failure(e, scene_path, resolution) from None
+
+
+def _load_failure(error: RuntimeError, scene_path: Path,
+                  resolution: tuple[int, int] | None) -> BaseException:
+    """What Mitsuba's ``error`` in loading ``scene_path`` is to the command: a stop, the
+    kernel cache's failure, or a ValueError that names the parameter or the fault."""
+    # Ctrl-C in a plugin that Mitsuba built on this thread comes wrapped, the Python
+    # exception's own line last (the commands' SIGTERM is a KeyboardInterrupt of theirs,
+    # which they tell apart by its signal); one on a loading thread arrives when loading
+    # ends.
+    if isinstance(error.__cause__, KeyboardInterrupt):
+        return error.__cause__
+    stop = r"^(?:[\w.]+\.)?(?:KeyboardInterrupt|SigtermInterrupt)\b"
+    if re.search(stop, str(error), re.MULTILINE):
+        return KeyboardInterrupt()
+    if (failure := _kernel_cache_failure(error)) is not None:
+        return failure
+    unused = set(re.findall(r"^\s*- \$(\w+)=", str(error), re.MULTILINE))
+    if resolution is not None and unused & {"width", "height"}:
+        return ValueError(f"{scene_path}: --res sets the parameters $width and $height, "
+                          "which this scene does not declare or does not use: add <default "
+                          "name=\"width\" value=\"256\"/> and <integer name=\"width\" "
+                          "value=\"$width\"/> in its film, the same for height")
+    if unused:
+        from mitsuba_plugin.properties import did_you_mean
+
+        declared = _declared_parameters(_scene_root(scene_path))
+        if len(unused) > 1:
+            hint = ""
+        elif unused <= set(declared):  # no typo to point at: the name is the scene's own
+            hint = f" (declared by a <default>, but no value reads ${next(iter(unused))})"
+        else:
+            hint = did_you_mean(next(iter(unused)), tuple(declared))
+        return ValueError(f"{scene_path}: -D sets parameters this scene does not use: "
+                          f"{', '.join(sorted(unused))}{hint}")
+    problem = _scene_error(str(error), scene_path)
+    return ValueError(f"{scene_path}: cannot load the scene: {problem}")
+
+
+def _checked_scene(scene: object, scene_path: Path, spp: int | None, outputs: list[Path],
+                   save_stores: bool) -> list[int]:
+    """The samples per pixel of each of the render's batches, after a ValueError naming
+    ``scene_path`` where the scene cannot be rendered to ``outputs`` (the image, its
+    statistics) as asked, or its textures' files are at fault."""
+    import mitsuba_plugin
+
+    try:
+        sensor = mitsuba_plugin.first_sensor(scene)
+        _check_renderable(scene, sensor, spp, outputs[0])
+        mitsuba_plugin._check_texture_places(scene)
+        for texture in mitsuba_plugin.textures(scene):
+            _check_texture_files(texture, outputs, save_stores)
+        shares = mitsuba_plugin._batch_shares(sensor.sampler(), spp, RENDER_BATCHES)
+    except ValueError as e:
+        raise ValueError(f"{scene_path}: {e}") from None
+    _check_render_size(*sensor.film().crop_size(), max(shares))
+    return shares
+
+
+def _write_image_and_report(image: object, report: dict, output: Path,
+                            statistics: Path) -> None:
+    """Write the image and its report together, and print the report; a stop meanwhile
+    comes once the files are written and said to be, not between."""
+    import mitsuba as mi
+
     text = json.dumps(report, indent=2) + "\n"
-    # A stop meanwhile comes once the files are written and said to be, not between.
     with deferred_stops():
         try:
             # Synchronously: the default asynchronous write would race the rename.
@@ -361,10 +423,6 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         except OSError as error:
             raise OutputError(_write_failure(error, output)) from None
         _print_report(report)
-    failed = [t["not_saved"] for t in textures if "not_saved" in t]
-    if failed:  # the image is kept: a store is a cache, which the next render rebuilds
-        raise OutputError("; ".join(failed))
-    return report
 
 
 def _write_failure(error: OSError, path: Path) -> str:
