@@ -308,6 +308,32 @@ class LazySolidTexture(mi.Texture):
         features = _feature_options(props, named)
         self.feature_distance = bool(features.get("feature_distance", False))
         self.feature_mask = features.get("feature_mask")
+        self._read_settings(props)
+        self._read_only = mitsuba_plugin.stores_are_read_only()
+        store = self._store_to_load()
+        # A JIT-typed transform, so mi.traverse can update it in place.
+        self.to_world = mi.AffineTransform4f(_to_world(props))
+        candidates = self._candidates(named, features)
+        self.solid = self._solid_texture(candidates, store)
+        self._set_color_range(_axis_colors(candidates))
+        self._traced: TracedLookup | None = None
+        # The scalar variants' copies of bricks, as large as the store may be.
+        self._scalar = (None if dr.is_jit_v(mi.Float)
+                        else ScalarLookup(self.solid.store, self.filter, self.cache_bytes))
+        self._frames: _ObjectFrames | None = None
+        # The one shape whose area light this texture colours, for the points that light
+        # tracing emits from it, which carry no shape: during renders only (emitting_in),
+        # of which ``_emitting`` are under way.
+        self._emitter: mi.Shape | None = None
+        self._emitting = 0
+        self._emitting_lock = threading.Lock()
+        self._tracing: int | None = None  # the thread whose render traces this texture
+        self._inert = False  # traced as another scene's texture that cannot be traced
+        self._update_transform()
+        mitsuba_plugin.live_textures.add(self)
+
+    def _read_settings(self, props: mi.Properties) -> None:
+        """The synthesis, mapping and store properties, each checked as it is read."""
         self.max_size = get_property(props, "exemplar_max_size", int, None, PLUGIN)
         try:
             check_max_size(self.max_size)
@@ -328,51 +354,61 @@ class LazySolidTexture(mi.Texture):
         self.space = choice_property(props, "space", _SPACES, PLUGIN)
         self.filter = choice_property(props, "filter", FILTERS, PLUGIN)
         self.raw = get_property(props, "raw", bool, False, PLUGIN)
-        self.cache_bytes = cache_bytes = get_property(props, "cache_bytes", int,
-                                                      DEFAULT_CACHE_BYTES, PLUGIN)
-        if cache_bytes < 0:
-            raise property_error(PLUGIN, "cache_bytes", f"must not be negative, got {cache_bytes}")
+        self.cache_bytes = get_property(props, "cache_bytes", int, DEFAULT_CACHE_BYTES, PLUGIN)
+        if self.cache_bytes < 0:
+            raise property_error(PLUGIN, "cache_bytes",
+                                 f"must not be negative, got {self.cache_bytes}")
         cache = get_property(props, "cache", str, None, PLUGIN)
         if cache is not None and names_folder(cache):
             raise property_error(PLUGIN, "cache", f'names a folder, not a file: "{cache}"')
         self.cache = None if cache is None else scene_path(cache, must_exist=False)
-        self._read_only = mitsuba_plugin.stores_are_read_only()
+
+    def _store_to_load(self) -> Path | None:
+        """The store file to load the bricks of, if any: the ``cache`` file, where it exists
+        or may be saved to."""
         # A store file yet to be made that never can be would only fail its first save,
         # after a render's work; one that exists is loaded even from a read-only place.
-        store = self.cache
-        if self.cache is not None and not self.cache.exists():
-            problem = None if self._read_only else file_problem(self.cache)
-            if problem is not None:
-                raise property_error(PLUGIN, "cache",
-                                     f"cannot be saved to {self.cache}: {problem}")
-            if self._read_only:
-                store = None  # nothing to read, and nothing will be saved
-        # A JIT-typed transform, so mi.traverse can update it in place.
-        self.to_world = mi.AffineTransform4f(_to_world(props))
+        if self.cache is None or self.cache.exists():
+            return self.cache
+        if self._read_only:
+            return None  # nothing to read, and nothing will be saved
+        problem = file_problem(self.cache)
+        if problem is not None:
+            raise property_error(PLUGIN, "cache", f"cannot be saved to {self.cache}: {problem}")
+        return self.cache
+
+    def _candidates(self, named: list[tuple[str, Path]], features: dict) -> CandidateSet:
+        """The exemplars' candidates (pre-computed, or from the cache), after a property
+        error naming the exemplars where they cannot be used together."""
         exemplars = _load_exemplars(named, self.max_size, **features)
         try:
             self._decode_srgb = not self.raw and srgb_encoded(exemplars)
             check_lookup_channels(exemplars[0].channels)  # before pre-computing
-        except ValueError as e:  # ExemplarError included
+            return precompute(*exemplars, progress=mitsuba_plugin.candidates_bar(),
+                              tileable=TILEABLE[self.tileable])
+        except ValueError as e:  # ExemplarError included; exemplars that do not go together
             raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
-        try:
-            candidates = precompute(*exemplars, progress=mitsuba_plugin.candidates_bar(),
-                                    tileable=TILEABLE[self.tileable])
-        except ValueError as e:  # the exemplars do not go together
-            raise property_error(PLUGIN, _exemplar_names(named), f"cannot be used: {e}") from e
+
+    def _solid_texture(self, candidates: CandidateSet, store: Path | None) -> SolidTexture:
+        """The solid texture of these settings, its bricks loaded from ``store``; a store
+        file it ignores is warned of under the ``cache`` property."""
         try:
             if self._read_only and store is not None:  # read, never saved: said as such
                 check_store_path(store, saving=False)
             with captured() as said:  # a store file ignored
-                self.solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
-                                          passes=self.passes, cache_bytes=cache_bytes,
-                                          store=store, shifted_tiles=self.shifted_tiles)
+                solid = SolidTexture(candidates, seed=self.seed, jitter=self.jitter,
+                                     passes=self.passes, cache_bytes=self.cache_bytes,
+                                     store=store, shifted_tiles=self.shifted_tiles)
         except StoreFileError as e:
             raise property_error(PLUGIN, "cache", f"cannot be used: {e}") from e
         for warning in said:
             warnings.warn(f'{PLUGIN}: property "cache": {warning.message}', warning.category,
-                          stacklevel=2)
-        axes = _axis_colors(candidates)
+                          stacklevel=3)
+        return solid
+
+    def _set_color_range(self, axes: list[np.ndarray]) -> None:
+        """What stands in for voxels not yet stored, and what ``eval`` gives on average and
+        at least and at most, from the exemplars' colors ``axes``."""
         # Traced lookups give voxels not yet stored this color, in stored values as theirs.
         self._stand_in = tuple(float(c) for c in np.mean([a.mean(axis=0) for a in axes], 0))
         # What eval gives on average (the mean channel; luminance in a monochrome variant)
@@ -385,21 +421,6 @@ class LazySolidTexture(mi.Texture):
         if mi.is_monochromatic:
             self._mean = float(np.ravel(luminance(mi.Color3f(*map(float, mean_rgb))))[0])
         self._max = 1.0 if mi.is_spectral else self.largest
-        self._traced: TracedLookup | None = None
-        # The scalar variants' copies of bricks, as large as the store may be.
-        self._scalar = (None if dr.is_jit_v(mi.Float)
-                        else ScalarLookup(self.solid.store, self.filter, cache_bytes))
-        self._frames: _ObjectFrames | None = None
-        # The one shape whose area light this texture colours, for the points that light
-        # tracing emits from it, which carry no shape: during renders only (emitting_in),
-        # of which ``_emitting`` are under way.
-        self._emitter: mi.Shape | None = None
-        self._emitting = 0
-        self._emitting_lock = threading.Lock()
-        self._tracing: int | None = None  # the thread whose render traces this texture
-        self._inert = False  # traced as another scene's texture that cannot be traced
-        self._update_transform()
-        mitsuba_plugin.live_textures.add(self)
 
     # -- mi.Texture interface ---------------------------------------------------------
 
