@@ -29,9 +29,10 @@ from timing import best_of, positive_int, run_record
 
 from warptex import metrics
 from warptex.candidates import precompute
+from warptex.dependencies import dependency_chain
 from warptex.exemplar import Exemplar
 from warptex.metrics import worst_axis_energy
-from warptex.synthesis import MAX_WORK_VOXELS, Synthesizer, dependency_chain
+from warptex.synthesis import MAX_WORK_VOXELS, Synthesizer
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
@@ -245,12 +246,8 @@ def request_memory(folder: Path) -> None:
     memory per finest work voxel against feature channels, and the memory of scattered
     voxels per voxel beside the engine's work (``synthesis.work_bytes_per_voxel``,
     ``REQUEST_BYTES_PER_VOXEL``, ``DILATED_KEY_BYTES``)."""
-    from warptex.synthesis import (
-        DILATED_KEY_BYTES,
-        REQUEST_BYTES_PER_VOXEL,
-        default_apron_blocks,
-        work_bytes_per_voxel,
-    )
+    from warptex.dependencies import default_apron_blocks
+    from warptex.synthesis import DILATED_KEY_BYTES, REQUEST_BYTES_PER_VOXEL, work_bytes_per_voxel
 
     exemplar = str(folder / "granite_64.png")
 

@@ -47,7 +47,8 @@ def test_the_volume_command_counts_what_writing_its_file_holds(tmp_path, granite
     monkeypatch.setattr(volumes, "check_memory", stop_at_the_second_check)
     assert main(["volume", str(granite_32_file), "--size", "16", "-o",
                  str(tmp_path / f"v{suffix}")]) == 2
-    from warptex.synthesis import box_bytes, default_apron_blocks
+    from warptex.dependencies import default_apron_blocks
+    from warptex.synthesis import box_bytes
 
     (first, none), (one, working) = counted
     assert (first, none, one) == (copies, 0, 1)

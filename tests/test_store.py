@@ -1149,8 +1149,8 @@ def test_engine_code_digest_reads_every_module_the_engine_runs(monkeypatch):
     monkeypatch.setattr(warptex.store_files, "module_sources", recorded)
     warptex.store_files._engine_code.__wrapped__()
     digested = {m.__name__ for m in read}
-    assert {"warptex.synthesis", "kernels.synthesis", "warptex.keysets", "warptex.parallel",
-            "warptex.warp_runtime"} <= digested
+    assert {"warptex.synthesis", "warptex.dependencies", "kernels.synthesis", "warptex.keysets",
+            "warptex.parallel", "warptex.warp_runtime"} <= digested
     for module in read:
         tree = ast.parse(Path(module.__file__).read_text())
         imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)} | {

@@ -18,16 +18,15 @@ from kernels import synthesis as _k
 from warptex import metrics, synthesis
 from warptex.candidate_set import CandidateSet
 from warptex.candidates import precompute
-from warptex.exemplar import Exemplar
-from warptex.keysets import pack, unique
-from warptex.synthesis import (
-    COORD_LIMIT,
-    Synthesizer,
+from warptex.dependencies import (
     correction_steps,
     dependency_chain,
     dependency_mask,
     dependency_radius,
 )
+from warptex.exemplar import Exemplar
+from warptex.keysets import pack, unique
+from warptex.synthesis import COORD_LIMIT, Synthesizer
 
 
 @pytest.fixture(scope="module")

@@ -128,10 +128,11 @@ def _engine_code() -> str:
     voxels are never reused, also where ``ENGINE_VERSION`` was not raised."""
     from kernels import common
     from kernels import synthesis as engine_kernels
-    from warptex import keysets, parallel, synthesis, warp_runtime
+    from warptex import dependencies, keysets, parallel, synthesis, warp_runtime
 
     # How launches are split over threads decides voxels as much as the kernels do.
-    modules = (synthesis, engine_kernels, common, keysets, parallel, warp_runtime)
+    modules = (synthesis, dependencies, engine_kernels, common, keysets, parallel,
+               warp_runtime)
     return code_digest(module_sources(modules), str(ENGINE_VERSION))
 
 

@@ -94,13 +94,8 @@ def run_volume(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from warptex.candidates import precompute
-    from warptex.synthesis import (
-        Synthesizer,
-        box_bytes,
-        default_apron_blocks,
-        work_voxel_cap,
-        work_voxels,
-    )
+    from warptex.dependencies import default_apron_blocks
+    from warptex.synthesis import Synthesizer, box_bytes, work_voxel_cap, work_voxels
     from warptex.warp_runtime import device
 
     check_output(args.output, VOLUME_FORMATS, "a volume file")
