@@ -15,7 +15,14 @@ import pytest
 
 from kernels.lookup import BRICK_VOXELS
 from warptex.archive import _TOKEN_BYTES, UNFINISHED_AGE, _temporary_name
-from warptex.store import BrickStore, brick_keys, brick_voxels, unique_voxels, voxels_read
+from warptex.store import (
+    BrickStore,
+    StoreStats,
+    brick_keys,
+    brick_voxels,
+    unique_voxels,
+    voxels_read,
+)
 from warptex.store_files import StoreFileError, store_settings
 
 SLOT_BYTES = 68  # a brick's stored-voxel bits and pool base
@@ -86,6 +93,7 @@ def test_hash_table_finds_many_bricks_and_decodes_like_the_engine(candidates):
     assert stats["bricks"] == len(keys) and stats["misses"] == 0
     assert stats["voxels"] == len(keys) * 512 and stats["voxels_added"] == 0
     assert stats["index_bytes"] <= 0.1 * stats["payload_bytes"]
+    assert stats.keys() == StoreStats.__annotations__.keys()  # as documented, no more
     check_table(store, keys, np.arange(len(keys)))
 
 

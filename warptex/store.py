@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple, TypedDict, TypeVar
 
 import numpy as np
 import warp as wp
@@ -123,6 +123,24 @@ def unique_voxels(voxels: np.ndarray) -> np.ndarray:
 def brick_voxels(keys: np.ndarray) -> np.ndarray:
     """Every voxel (N * 512, 3) of the bricks ``keys``, x slowest within a brick."""
     return (brick_coords(keys)[:, None, :] * _k.BRICK + _LOCAL[None]).reshape(-1, 3)
+
+
+class StoreStats(TypedDict):
+    """What :meth:`BrickStore.stats` reports of a store."""
+
+    bricks: int
+    voxels: int  # stored voxels
+    bytes: int  # what the stored voxels take: payload_bytes + index_bytes
+    payload_bytes: int  # their triples, their bricks' stored-voxel bits and pool bases
+    index_bytes: int  # hash table, brick keys and stamps
+    allocated_bytes: int  # all the store holds, free room included
+    bytes_per_voxel: int  # of a stored voxel's triple: 6, or 12 past 65536 pixels
+    hits: int  # points looked up whose voxels the store held
+    misses: int  # points that needed a voxel synthesized first
+    voxels_added: int
+    bricks_evicted: int
+    voxels_synthesized: dict[int, int]  # voxels the engine corrected, per level
+    synthesis_seconds: float
 
 
 class Snapshot(NamedTuple):
@@ -354,14 +372,10 @@ class BrickStore:
                     self._colors], [sums], device=self._device)
         return sums.numpy()
 
-    def stats(self) -> dict:
+    def stats(self) -> StoreStats:
         """Bricks and stored voxels, bytes, lookups served from the store (hits) or not
         (misses), and the synthesis behind them: voxels added to the store, voxels the
-        engine corrected per level, seconds.
-
-        ``bytes`` is what the stored voxels take: ``payload_bytes`` (their triples and
-        their bricks' bits and pool bases) plus ``index_bytes`` (hash table, brick keys
-        and stamps); ``allocated_bytes`` is all the store holds, free room included."""
+        engine corrected per level, seconds (:class:`StoreStats`)."""
         with self._reading(), self._counts:
             bricks = int((self._keys != _EMPTY).sum())
             voxels = int(np.bitwise_count(self._valid).sum())
