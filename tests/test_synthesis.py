@@ -917,7 +917,7 @@ def test_a_boxs_memory_counts_the_apron_of_its_passes(candidates, monkeypatch):
     from warptex.synthesis import box_bytes
 
     # Parts as large as a GPU of memory to spare takes: on the CPU the engine's parts are
-    # kept to half the memory, so a box's work never decides (the next tests).
+    # kept to half the memory, one block's work at least (the next tests).
     monkeypatch.setattr(synthesis, "work_voxel_cap", lambda *args: synthesis.MAX_WORK_VOXELS)
     syn = Synthesizer(candidates, passes=8, subpasses=8)
     shape = (64, 64, 64)
@@ -997,6 +997,28 @@ def test_requests_are_estimated_in_the_parts_the_engine_works_in(candidates, mon
     np.testing.assert_array_equal(syn.voxels(points), expected[0])
     np.testing.assert_array_equal(syn.triples(points), expected[1])
     np.testing.assert_array_equal(syn.box((0, 0, 0), shape), box)
+
+
+def test_a_part_is_estimated_at_one_block_at_least(candidates, monkeypatch):
+    """The engine splits no part below one block, whose work with 8 passes of 8 sub-passes
+    (an apron of 17 blocks) is 2.7M voxels: estimated at a 512 MiB machine's cap instead, one
+    voxel was accepted, and grew the process by 1.6 GB."""
+    import warptex.machine
+    from warptex.synthesis import BLOCK, request_bytes, work_bytes_per_voxel
+
+    syn = Synthesizer(candidates, passes=8, subpasses=8)
+    block = (BLOCK + 2 * syn._apron * BLOCK) ** 3
+    one = np.zeros((1, 3), np.int64)
+    assert request_bytes(one, syn._apron, work_cap=1) >= block * work_bytes_per_voxel()
+    memory = 512 << 20
+    assert block * work_bytes_per_voxel() > memory
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: memory)
+    synthesis._host_memory.cache_clear()
+    monkeypatch.setattr(syn, "_pixel_triples", lambda voxels: pytest.fail("it ran"))
+    with pytest.raises(ValueError, match=r"a request of 1 voxels needs about"):
+        syn.voxels(one)
+    with pytest.raises(ValueError, match=r"a box of shape \(1, 1, 1\) needs about"):
+        syn.box((0, 0, 0), (1, 1, 1))
 
 
 def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.ndarray:

@@ -108,11 +108,12 @@ def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1, channels: int 
               work_cap: int = MAX_WORK_VOXELS) -> int:
     """About the memory that synthesizing a box of ``shape`` takes beside its colors: its
     request's host arrays and the engine's work on one part of it (the box and its apron,
-    at most ``work_cap`` voxels); ``apron_blocks`` is the engine's (one at the default
-    passes), ``channels`` its feature channels and ``work_cap`` its parts' size
+    at most ``work_cap`` voxels, or one block's); ``apron_blocks`` is the engine's (one at
+    the default passes), ``channels`` its feature channels and ``work_cap`` its parts' size
     (:func:`work_voxel_cap`), as for :func:`request_bytes`."""
     reach = 2 * apron_blocks * BLOCK
-    work = min(work_cap, math.prod(n + reach for n in shape))
+    # The engine splits no part below one block, whose work may exceed a small machine's cap.
+    work = min(max(work_cap, (BLOCK + reach) ** 3), math.prod(n + reach for n in shape))
     return (math.prod(shape) * REQUEST_BYTES_PER_VOXEL
             + work * work_bytes_per_voxel(channels))
 
@@ -122,15 +123,18 @@ def request_bytes(ijk: np.ndarray, apron_blocks: int = 1, channels: int = 3,
     """About the memory that synthesizing voxels ``ijk`` (N, 3) takes beside their results:
     the request's host arrays, its blocks' keys grown by the apron, and the engine's work
     on one part of it (its bounding box grown by the apron, or each voxel's block and apron
-    where they lie far apart, at most ``work_cap`` voxels); ``apron_blocks`` is the
-    engine's (one at the default passes), ``channels`` its feature channels and
+    where they lie far apart, at most ``work_cap`` voxels, or one block's); ``apron_blocks``
+    is the engine's (one at the default passes), ``channels`` its feature channels and
     ``work_cap`` its parts' size (:func:`work_voxel_cap`)."""
     if len(ijk) == 0:
         return 0
     reach = 2 * apron_blocks * BLOCK
     spread = ijk.max(axis=0) - ijk.min(axis=0) + 1 + reach
-    box = math.prod(int(s) for s in spread)  # in Python ints: up to 2^69 voxels
-    work = min(work_cap, len(ijk) * (BLOCK + reach) ** 3, box)
+    # The work region is made of whole blocks: the blocks the voxels lie in, grown.
+    blocks_spread = ijk.max(axis=0) // BLOCK - ijk.min(axis=0) // BLOCK + 1 + 2 * apron_blocks
+    box = math.prod(int(s) * BLOCK for s in blocks_spread)  # Python ints: up to 2^69 voxels
+    block = (BLOCK + reach) ** 3  # one block's work, which no part goes below
+    work = min(max(work_cap, block), len(ijk) * block, box)
     blocks = min(len(ijk), math.prod(-(-int(s) // BLOCK) + 1 for s in spread))
     dilated = blocks * (2 * apron_blocks + 1) ** 3 * DILATED_KEY_BYTES
     return (len(ijk) * REQUEST_BYTES_PER_VOXEL + dilated
