@@ -223,7 +223,8 @@ def _rewarn(warning: Warned, path: Path) -> None:
     message = warning.message
     if issubclass(warning.category, AlphaDropped):
         message = f"{path}: alpha channel dropped ({PLUGIN} gives colors only)"
-    warnings.warn(f"{PLUGIN}: {message}", warning.category, stacklevel=3)
+    # Past _load_exemplars, LazySolidTexture._candidates and __init__: the scene's loader.
+    warnings.warn(f"{PLUGIN}: {message}", warning.category, stacklevel=5)
 
 
 def _exemplar_names(named: list[tuple[str, Path]]) -> str:

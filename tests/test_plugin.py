@@ -491,8 +491,10 @@ def test_a_dropped_alpha_channel_is_said_in_the_plugin_s_words(granite_32_file, 
     half_transparent.save(rgba)
     with pytest.warns(AlphaDropped) as said:
         load(rgba)
-    (message,) = [str(w.message) for w in said if issubclass(w.category, AlphaDropped)]
-    assert message == f"lazy_solid: {rgba}: alpha channel dropped (lazy_solid gives colors only)"
+    (warning,) = [w for w in said if issubclass(w.category, AlphaDropped)]
+    assert str(warning.message) == (f"lazy_solid: {rgba}: alpha channel dropped (lazy_solid "
+                                    "gives colors only)")
+    assert warning.filename == __file__  # the line that loads the scene, not the plugin's
 
 
 def test_save_caches_writes_the_stores_of_textures_with_a_cache(granite_32_file, tmp_path):
@@ -998,8 +1000,9 @@ def test_a_store_file_ignored_is_said_of_the_cache_property(granite_32_file, tmp
     load(granite_32_file, cache=str(store)).save()
     store.write_bytes(store.read_bytes()[:60])  # truncated
     with pytest.warns(UserWarning, match=r'^lazy_solid: property "cache": ignoring brick '
-                                         r"store file, starting empty: .*bricks\.wtb"):
+                                         r"store file, starting empty: .*bricks\.wtb") as said:
         load(granite_32_file, cache=str(store))
+    assert all(w.filename == __file__ for w in said)
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
