@@ -74,9 +74,9 @@ _LAZY = {
     "StoreFileError": "warptex.store_files",
 }
 # Submodules the README names as ``warptex.<module>.<name>``, imported on first access too.
-_SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "mesh_files", "metrics",
-               "sheets", "srgb", "store", "store_files", "surface", "synthesis", "texture",
-               "volume_files")
+_SUBMODULES = ("bake", "baselines", "candidates", "compare", "cut", "dependencies",
+               "mesh_files", "metrics", "sheets", "srgb", "store", "store_files", "surface",
+               "synthesis", "texture", "volume_files")
 
 __all__ = [
     "CandidateSet",
