@@ -153,19 +153,3 @@ def test_make_comparisons_removes_the_reports_its_index_no_longer_lists(tmp_path
     assert all((out / "wood_rosewood" / report).exists() for report in REPORT_FILES)
     assert f"removed {out / 'granite'}" in capsys.readouterr().err
 
-
-def test_every_name_the_readme_gives_is_there_after_import_warptex():
-    """The README names ``warptex.<module>.<name>`` for scripts to use: each resolves in a
-    fresh process from ``import warptex`` alone (a module moved left README naming
-    ``warptex.synthesis.dependency_radius``, which no longer existed)."""
-    import subprocess
-
-    names = sorted(set(re.findall(r"\bwarptex(?:\.[A-Za-z_]\w*)+", (REPO / "README.md")
-                                  .read_text())))
-    assert "warptex.srgb.srgb_to_linear" in names  # the pattern finds them
-    script = ("import functools, sys, warptex\n"
-              "for name in sys.argv[1:]:\n"
-              "    functools.reduce(getattr, name.split('.')[1:], warptex)\n")
-    done = subprocess.run([sys.executable, "-c", script, *names], capture_output=True,
-                          text=True, cwd=REPO)
-    assert done.returncode == 0, done.stderr
