@@ -151,6 +151,19 @@ _REQUEST_IN_A_PROCESS = textwrap.dedent("""
     from warptex.exemplar import Exemplar
     from warptex.machine import PeakMemory
     mode, path, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    if mode == "steps":  # n passes of sys.argv[4] sub-passes over a box of sys.argv[5]^3
+        from warptex.machine import map_large_blocks
+        map_large_blocks()
+        cs = precompute(Exemplar.load(path))
+        synthesis.Synthesizer(cs, seed=1).box((0, 0, 0), (8, 8, 8))
+        syn = synthesis.Synthesizer(cs, seed=1, passes=n, subpasses=int(sys.argv[4]))
+        shape = (int(sys.argv[5]),) * 3
+        with PeakMemory() as peak:
+            syn.box((100, 100, 100), shape)
+        reach = 2 * syn._apron * synthesis.BLOCK
+        work = int(np.prod([-(-a // synthesis.BLOCK) * synthesis.BLOCK + reach for a in shape]))
+        print(json.dumps({"mib": peak.growth / 2**20, "per": peak.growth / work, "work": work}))
+        sys.exit()
     colors = Exemplar.load(path).colors[:32, :32]
     if mode == "features":
         noise = np.random.default_rng(0).random((32, 32, n - 3), np.float32)
@@ -242,10 +255,11 @@ def memory(folder: Path, boxes: list[tuple[int, int, int]], part_cap: int) -> No
 
 
 def request_memory(folder: Path) -> None:
-    """The two terms of the engine's memory estimates that vary with the request: working
-    memory per finest work voxel against feature channels, and the memory of scattered
-    voxels per voxel beside the engine's work (``synthesis.work_bytes_per_voxel``,
-    ``REQUEST_BYTES_PER_VOXEL``, ``DILATED_KEY_BYTES``)."""
+    """The terms of the engine's memory estimates that vary with the request: working
+    memory per finest work voxel against feature channels and against correction steps
+    (passes times sub-passes), and the memory of scattered voxels per voxel beside the
+    engine's work (``synthesis.work_bytes_per_voxel``, ``REQUEST_BYTES_PER_VOXEL``,
+    ``DILATED_KEY_BYTES``)."""
     from warptex.dependencies import default_apron_blocks
     from warptex.synthesis import DILATED_KEY_BYTES, REQUEST_BYTES_PER_VOXEL, work_bytes_per_voxel
 
@@ -265,6 +279,14 @@ def request_memory(folder: Path) -> None:
         r = run("features", exemplar, str(channels))
         print(f"| {channels} | {r['mib']:.0f} | {r['per']:.0f} | "
               f"{work_bytes_per_voxel(channels)} |")
+    print("\n| passes x sub-passes (correction steps) | box | finest work voxels | peak growth "
+          "MiB | bytes a work voxel | estimate |")
+    print("|---|---|---|---|---|---|")
+    for passes, subpasses, edge in ((2, 1, 56), (8, 1, 32), (2, 8, 32), (4, 8, 16), (8, 8, 8)):
+        r = run("steps", exemplar, str(passes), str(subpasses), str(edge))
+        steps = passes * subpasses
+        print(f"| {passes} x {subpasses} ({steps}) | {edge}^3 | {r['work']} | {r['mib']:.0f} | "
+              f"{r['per']:.0f} | {work_bytes_per_voxel(3, steps)} |")
     dilated = (2 * default_apron_blocks(2) + 1) ** 3 * DILATED_KEY_BYTES
     print("\n| scattered voxels (a block apart) | peak growth MiB, synthesis left out "
           "| bytes a voxel | estimate |")

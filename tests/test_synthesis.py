@@ -1021,6 +1021,26 @@ def test_a_part_is_estimated_at_one_block_at_least(candidates, monkeypatch):
         syn.box((0, 0, 0), (1, 1, 1))
 
 
+def test_more_correction_steps_count_more_memory_a_work_voxel(candidates, monkeypatch):
+    """Each correction step lists the voxels it corrects: a work voxel took 603 bytes at 8
+    passes of 8 sub-passes, where 280 were counted, so one voxel's block, estimated at 688
+    MiB, grew the process by 1.6 GB (BENCHMARKS.md, "Memory of a request")."""
+    import warptex.machine
+    from warptex.synthesis import request_bytes, work_bytes_per_voxel
+
+    assert work_bytes_per_voxel(3, 8) >= 325 and work_bytes_per_voxel(3, 32) >= 405
+    assert work_bytes_per_voxel(3, 64) >= 603 and work_bytes_per_voxel(3, 1) == 280
+    deep = Synthesizer(candidates, passes=8, subpasses=8)
+    one = np.zeros((1, 3), np.int64)
+    counted = request_bytes(one, deep._apron, steps=64)
+    memory = (request_bytes(one, deep._apron) + counted) // 2  # between 2 steps' and 64's
+    monkeypatch.setattr(warptex.machine, "physical_memory", lambda: memory)
+    synthesis._host_memory.cache_clear()
+    monkeypatch.setattr(deep, "_pixel_triples", lambda voxels: pytest.fail("it ran"))
+    with pytest.raises(ValueError, match=r"a request of 1 voxels needs about"):
+        deep.voxels(one)
+
+
 def _slab_tiling(candidates: CandidateSet, level: int, vox: np.ndarray) -> np.ndarray:
     """Triples (N, 3, 2) of the start level without jitter or correction: the x exemplar's
     pixel under each voxel and that pixel's first 3D candidate, its two other coordinates

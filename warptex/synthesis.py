@@ -80,8 +80,12 @@ MAX_WORK_VOXELS = 1 << 24
 # 256 box (granite_64, 2 passes) over its 5.0M work voxels, and at most 6 more per feature
 # channel beyond three (the halos and features gathered): a 56^3 box grew by 218-251 and
 # 296-437 bytes a work voxel at 3 and 34 channels (BENCHMARKS.md, "Memory of a request").
+# And 10 more per correction step beyond the default two (passes times sub-passes): a work
+# voxel took 325 bytes at 8 passes, 405 at 4 passes of 8 sub-passes, 603 at 8 of 8.
 _WORK_BYTES_RGB = 280
 _WORK_BYTES_PER_CHANNEL = 6
+_WORK_BYTES_PER_STEP = 10
+_DEFAULT_STEPS = DEFAULT_PASSES  # correction steps a level at the default passes of one sub-pass
 # Host memory of a request beside the engine's, per requested voxel (its coordinates, keys,
 # parts and triples), rounded up: a 256^3 box in two parts grew by 70 bytes a voxel more
 # than one part's work.
@@ -98,34 +102,38 @@ _FINEST_CANDIDATES_3D = 4  # "2 2D and 4 3D candidates at the finest level" (sec
 _LOCAL = cell_offsets(BLOCK)
 
 
-def work_bytes_per_voxel(channels: int = 3) -> int:
+def work_bytes_per_voxel(channels: int = 3, steps: int = _DEFAULT_STEPS) -> int:
     """Working memory of the engine per finest work voxel, for exemplars of ``channels``
-    feature channels (colors and any feature distance)."""
-    return _WORK_BYTES_RGB + _WORK_BYTES_PER_CHANNEL * (max(channels, 3) - 3)
+    feature channels (colors and any feature distance) and ``steps`` correction steps a
+    level (passes times sub-passes)."""
+    return (_WORK_BYTES_RGB + _WORK_BYTES_PER_CHANNEL * (max(channels, 3) - 3)
+            + _WORK_BYTES_PER_STEP * (max(steps, _DEFAULT_STEPS) - _DEFAULT_STEPS))
 
 
 def box_bytes(shape: tuple[int, int, int], apron_blocks: int = 1, channels: int = 3,
-              work_cap: int = MAX_WORK_VOXELS) -> int:
+              work_cap: int = MAX_WORK_VOXELS, steps: int = _DEFAULT_STEPS) -> int:
     """About the memory that synthesizing a box of ``shape`` takes beside its colors: its
     request's host arrays and the engine's work on one part of it (the box and its apron,
     at most ``work_cap`` voxels, or one block's); ``apron_blocks`` is the engine's (one at
-    the default passes), ``channels`` its feature channels and ``work_cap`` its parts' size
-    (:func:`work_voxel_cap`), as for :func:`request_bytes`."""
+    the default passes), ``channels`` its feature channels, ``work_cap`` its parts' size
+    (:func:`work_voxel_cap`) and ``steps`` its correction steps, as for
+    :func:`request_bytes`."""
     reach = 2 * apron_blocks * BLOCK
     # The engine splits no part below one block, whose work may exceed a small machine's cap.
     work = min(max(work_cap, (BLOCK + reach) ** 3), math.prod(n + reach for n in shape))
     return (math.prod(shape) * REQUEST_BYTES_PER_VOXEL
-            + work * work_bytes_per_voxel(channels))
+            + work * work_bytes_per_voxel(channels, steps))
 
 
 def request_bytes(ijk: np.ndarray, apron_blocks: int = 1, channels: int = 3,
-                  work_cap: int = MAX_WORK_VOXELS) -> int:
+                  work_cap: int = MAX_WORK_VOXELS, steps: int = _DEFAULT_STEPS) -> int:
     """About the memory that synthesizing voxels ``ijk`` (N, 3) takes beside their results:
     the request's host arrays, its blocks' keys grown by the apron, and the engine's work
     on one part of it (its bounding box grown by the apron, or each voxel's block and apron
     where they lie far apart, at most ``work_cap`` voxels, or one block's); ``apron_blocks``
-    is the engine's (one at the default passes), ``channels`` its feature channels and
-    ``work_cap`` its parts' size (:func:`work_voxel_cap`)."""
+    is the engine's (one at the default passes), ``channels`` its feature channels,
+    ``work_cap`` its parts' size (:func:`work_voxel_cap`) and ``steps`` its correction steps
+    a level (passes times sub-passes)."""
     if len(ijk) == 0:
         return 0
     reach = 2 * apron_blocks * BLOCK
@@ -138,33 +146,35 @@ def request_bytes(ijk: np.ndarray, apron_blocks: int = 1, channels: int = 3,
     blocks = min(len(ijk), math.prod(-(-int(s) // BLOCK) + 1 for s in spread))
     dilated = blocks * (2 * apron_blocks + 1) ** 3 * DILATED_KEY_BYTES
     return (len(ijk) * REQUEST_BYTES_PER_VOXEL + dilated
-            + work * work_bytes_per_voxel(channels))
+            + work * work_bytes_per_voxel(channels, steps))
 
 
 def _check_request(ijk: np.ndarray, apron_blocks: int, channels: int, work_cap: int,
-                   result_bytes: int) -> None:
+                   steps: int, result_bytes: int) -> None:
     """Refuse, before any work, a request of voxels ``ijk`` that with its results of
     ``result_bytes`` a voxel would not fit in this machine's memory, the engine working on
-    parts of ``work_cap`` voxels. Not asked of the brick store's batches, which are bounded
-    (``store.BATCH_VOXELS``), as the machine's memory takes a file read."""
-    problem = memory_problem(request_bytes(ijk, apron_blocks, channels, work_cap)
+    parts of ``work_cap`` voxels with ``steps`` correction steps. Not asked of the brick
+    store's batches, which are bounded (``store.BATCH_VOXELS``), as the machine's memory
+    takes a file read."""
+    problem = memory_problem(request_bytes(ijk, apron_blocks, channels, work_cap, steps)
                              + len(ijk) * result_bytes)
     if problem is not None:
         raise ValueError(f"a request of {len(ijk)} voxels {problem}; synthesize them in parts")
 
 
-def work_voxel_cap(device: str, channels: int = 3) -> int:
+def work_voxel_cap(device: str, channels: int = 3, steps: int = _DEFAULT_STEPS) -> int:
     """Work voxels of one engine call on ``device`` for exemplars of ``channels`` feature
-    channels: ``MAX_WORK_VOXELS``, fewer where that many would take more than half of the
-    GPU's memory (a 4 GB one) or, on the CPU, of what the process may have
-    (:func:`~warptex.machine.physical_memory`: a small machine, a container, ``ulimit
-    -v``), leaving the rest to the brick store, a renderer and other processes. Scattered
-    points' requests reach the cap, which the brick store's batches are not checked
-    against. Parts change no voxel (section 5.2)."""
+    channels and ``steps`` correction steps a level: ``MAX_WORK_VOXELS``, fewer where that
+    many would take more than half of the GPU's memory (a 4 GB one) or, on the CPU, of what
+    the process may have (:func:`~warptex.machine.physical_memory`: a small machine, a
+    container, ``ulimit -v``), leaving the rest to the brick store, a renderer and other
+    processes. Scattered points' requests reach the cap, which the brick store's batches
+    are not checked against. Parts change no voxel (section 5.2)."""
     memory = _device_memory(device) if device.startswith("cuda") else _host_memory()
     if memory is None:
         return MAX_WORK_VOXELS
-    return max(1, min(MAX_WORK_VOXELS, memory // (2 * work_bytes_per_voxel(channels))))
+    return max(1, min(MAX_WORK_VOXELS,
+                      memory // (2 * work_bytes_per_voxel(channels, steps))))
 
 
 @cache
@@ -430,6 +440,7 @@ class Synthesizer:
         self._features = int(candidates.sources[0][0].feat.shape[2])
         check_feature_channels(self._features, 2 * half + 1)
         self._apron = apron_blocks(half, self.passes, self.subpasses)
+        self._steps = len(correction_steps(self.passes, self.subpasses))
         if self._apron + 2 > _KEY_MARGIN:
             raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
                              f"{self.passes} passes of {self.subpasses} sub-passes and "
@@ -453,7 +464,7 @@ class Synthesizer:
         """
         ijk = check_voxels(ijk)
         # Its triples, and the int64 rows, columns and their stack on the way.
-        _check_request(ijk, self._apron, self._features, self._work_cap(), 136)
+        _check_request(ijk, self._apron, self._features, self._work_cap(), self._steps, 136)
         pix = self._pixel_triples(ijk)
         widths = np.array([self._tables[self.finest].width[k] for k in range(3)])
         return np.stack([pix // widths, pix % widths], axis=-1).astype(np.int32)
@@ -466,7 +477,7 @@ class Synthesizer:
         colors (section 5.1). A request that would not fit in memory is a ValueError, before
         any work."""
         ijk = check_voxels(ijk)
-        _check_request(ijk, self._apron, self._features, self._work_cap(),
+        _check_request(ijk, self._apron, self._features, self._work_cap(), self._steps,
                        4 * self.candidates.channels)
         return self.colors_of(self._pixel_triples(ijk))
 
@@ -480,7 +491,7 @@ class Synthesizer:
                    for o, n in zip(origin, shape, strict=True)):  # checked before any array
             raise ValueError(f"a box at origin {origin} of shape {shape} leaves the voxel "
                              f"coordinates' range [-{COORD_LIMIT}, {COORD_LIMIT})")
-        need = (box_bytes(shape, self._apron, self._features, self._work_cap())
+        need = (box_bytes(shape, self._apron, self._features, self._work_cap(), self._steps)
                 + 4 * self.candidates.channels * math.prod(shape))
         problem = memory_problem(need)
         if problem is not None:  # before allocating: too large a box would end in swapping
@@ -555,7 +566,7 @@ class Synthesizer:
     def _work_cap(self) -> int:
         """Work voxels of one engine call here (:func:`work_voxel_cap`): what requests are
         split into, and estimated by."""
-        return work_voxel_cap(self.device, self._features)
+        return work_voxel_cap(self.device, self._features, self._steps)
 
     def _final(self, level: int, keys: np.ndarray, flat: np.ndarray) -> _Level:
         """Corrected triples at ``level`` of the voxels ``flat`` (block * 64 + local,

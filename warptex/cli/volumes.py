@@ -130,7 +130,7 @@ def run_volume(args: argparse.Namespace) -> int:
     thickness = max(b - a for a, b in itertools.pairwise(edges))
     # One slab at a time, its work and colors, gone before the write's copies are made.
     slab = (box_bytes((thickness, args.size, args.size), default_apron_blocks(args.passes),
-                      channels, work_voxel_cap(device(), channels))
+                      channels, work_voxel_cap(device(), channels, args.passes), args.passes)
             + 4 * channels * thickness * args.size**2)
     check_memory(args.size, channels, max(slab, (copies - 1) * volume_bytes(args.size, channels)),
                  copies=1)
