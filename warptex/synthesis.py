@@ -81,7 +81,8 @@ MAX_WORK_VOXELS = 1 << 24
 # channel beyond three (the halos and features gathered): a 56^3 box grew by 218-251 and
 # 296-437 bytes a work voxel at 3 and 34 channels (BENCHMARKS.md, "Memory of a request").
 # And 10 more per correction step beyond the default two (passes times sub-passes): a work
-# voxel took 325 bytes at 8 passes, 405 at 4 passes of 8 sub-passes, 603 at 8 of 8.
+# voxel took 326 bytes at 8 passes, 405 at 4 passes of 8 sub-passes, 603 at 8 of 8
+# (BENCHMARKS.md, "Memory of a request against its correction steps").
 _WORK_BYTES_RGB = 280
 _WORK_BYTES_PER_CHANNEL = 6
 _WORK_BYTES_PER_STEP = 10
