@@ -200,6 +200,42 @@ def test_a_nearest_neighbour_query_stopped_by_a_signal_ends_before_the_signal_go
                                   tree.query(points[:5], k=2)[1])
 
 
+def test_a_long_query_runs_in_parts_and_a_stop_waits_for_one(monkeypatch):
+    """A query held Ctrl-C and SIGTERM back to its end (100 s for one axis of `compare
+    --size 128`'s completeness): it runs in parts, a stop ends it after the part under way,
+    and the parts give what one query would."""
+    from scipy.spatial import cKDTree
+
+    import warptex.parallel
+
+    points = np.random.default_rng(1).random((1000, 4))
+    tree = cKDTree(points)
+    monkeypatch.setattr(warptex.parallel, "_FIRST_QUERY_ROWS", 7)
+    asked = []
+
+    class Counted:
+        def query(self, queries, **options):
+            asked.append(len(queries))
+            return tree.query(queries, **options)
+
+    found = warptex.parallel.nearest(Counted(), points[::-1], k=3)
+    assert len(asked) > 1 and sum(asked) == len(points)
+    expected = tree.query(points[::-1], k=3)
+    for mine, theirs in zip(found, expected, strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    asked.clear()
+
+    class Stopped:
+        def query(self, queries, **options):
+            asked.append(len(queries))
+            os.kill(os.getpid(), signal.SIGINT)
+            return tree.query(queries, **options)
+
+    with pytest.raises(KeyboardInterrupt):
+        warptex.parallel.nearest(Stopped(), points, k=1)
+    assert asked == [7]
+
+
 def test_every_signal_held_back_during_a_query_reaches_its_handler():
     """Ctrl-C and SIGTERM both during one query: each goes on to its own handler after it
     (SIGTERM was lost behind Ctrl-C's KeyboardInterrupt), and the handlers are as before."""

@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
 from itertools import pairwise
@@ -29,6 +30,10 @@ from warptex.stops import blocked, deferred_stops
 from warptex.warp_runtime import launch
 
 THREADS = min(usable_cores(), 8)
+# A nearest-neighbour query holds Ctrl-C and SIGTERM back until it ends: it runs in parts
+# of about this many seconds, the first of so many rows.
+QUERY_SECONDS = 0.5
+_FIRST_QUERY_ROWS = 256
 MIN_SPLIT = 4096  # fewer items than this run as one launch: threads would cost more
 WAIT_SECONDS = 0.5  # how often in_child_process calls its while_waiting
 
@@ -112,12 +117,31 @@ def launch_ranges(
 
 def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
             **options: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``tree.query(queries, workers=workers or THREADS, **options)``, run to its end when
-    Ctrl-C or SIGTERM comes meanwhile, which then goes on: SciPy joins its query threads in
-    a way a KeyboardInterrupt cuts short, and the threads went on reading the tree while the
-    interrupt freed it (a segmentation fault as the process ended)."""
-    with deferred_stops():
-        return tree.query(queries, workers=workers or THREADS, **options)
+    """``tree.query(queries, workers=workers or THREADS, **options)``, in parts of rows of
+    about ``QUERY_SECONDS`` each, each run to its end when Ctrl-C or SIGTERM comes meanwhile,
+    which then goes on: SciPy joins its query threads in a way a KeyboardInterrupt cuts
+    short, and the threads went on reading the tree while the interrupt freed it (a
+    segmentation fault as the process ended). In one part, a query of many far rows held a
+    stop back for minutes (100 s for one axis of ``compare --size 128``'s completeness).
+    Each row's neighbours are its own, so the parts give what one query would."""
+    queries = np.asarray(queries)
+    if queries.ndim < 2:  # one point
+        with deferred_stops():
+            return tree.query(queries, workers=workers or THREADS, **options)
+    parts, start, rows = [], 0, _FIRST_QUERY_ROWS
+    while True:
+        began = time.perf_counter()
+        with deferred_stops():
+            parts.append(tree.query(queries[start:start + rows], workers=workers or THREADS,
+                                    **options))
+        start += rows
+        if start >= len(queries):
+            break
+        took = time.perf_counter() - began  # the next part sized to take QUERY_SECONDS
+        rows = int(min(max(rows * QUERY_SECONDS / max(took, 1e-6), 1), 4 * rows))
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
 
 
 def in_child_process(function: Callable[..., Any], *args: Any,
