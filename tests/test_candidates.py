@@ -804,6 +804,90 @@ def test_a_checksummed_file_of_numbers_that_narrow_into_range_is_refused(tmp_pat
     _each_refused(tmp_path, arrays, changes)
 
 
+def test_a_checksummed_file_one_past_each_bound_of_its_layout_is_refused(tmp_path, three):
+    """Each layout check at its edge, in a file of three exemplars of different sizes: a
+    2D candidate one past the pixels (a synthesis from it ended the process), colors smaller
+    than the finest level (an IndexError traceback), a role's candidate one past the pixels
+    of the exemplar it indexes, arrays one row or column short, no dimensions, a negative
+    shift or margin, a count one past the row, a projection one past its range, one role for
+    three exemplars, a source of fewer feature channels, fractional candidates. Mutants that
+    dropped or loosened each check passed every test."""
+    import json
+
+    cs, _ = three
+    cs.save(tmp_path / "three.wtc")
+    arrays = read_archive(tmp_path / "three.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    CandidateSet.load(tmp_path / "three.wtc")  # as written, it loads
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    last = meta["num_levels"] - 1
+    sizes = [s.size for s in cs.sources[last]]
+    assert len(set(sizes)) == 3  # each role's others differ in size
+
+    def changed(name: str, at: tuple, value: int) -> np.ndarray:
+        a = arrays[name].copy()  # of its own type: only the bound under test is crossed
+        a[at] = value
+        assert a[at] == value
+        return a
+
+    def with_meta(**change) -> dict:
+        return {"meta": np.frombuffer(json.dumps({**meta, **change}).encode(), np.uint8)}
+
+    shifts = [list(level) for level in meta["shifts"]]
+    shifts[last][0] = -1
+    margins = [[list(m) for m in level] for level in meta["margins"]]
+    margins[last][0] = [-1, 0]
+    pixels = [h * w for h, w in sizes]
+    # Role 0's triples index the exemplars of axes 1 and 2, in that order.
+    role0 = f"L{last}/R0/cand"
+    basis, proj = arrays[f"L{last}/S0/basis"], arrays[f"L{last}/S0/proj"]
+    _each_refused(tmp_path, arrays, {
+        "cand2d_at_pixels": {f"L{last}/S0/cand2d": changed(f"L{last}/S0/cand2d", (0, 0),
+                                                           pixels[0])},
+        "cand2d_far": {f"L{last}/S0/cand2d": changed(f"L{last}/S0/cand2d", (0, 0),
+                                                     pixels[0] + 5000)},
+        "small_colors": {"colors/0": arrays["colors/0"][:8, :8]},
+        "first_of_triple": {role0: changed(role0, (0, 0, 0), pixels[1])},
+        "second_of_triple": {role0: changed(role0, (0, 0, 1), pixels[2])},
+        "basis_columns": {f"L{last}/S0/basis": basis[:, :-3]},
+        "proj_rows": {f"L{last}/S0/proj": proj[:-1]},
+        "no_dims": {f"L{last}/S0/basis": basis[:0], f"L{last}/S0/proj": proj[:, :0]},
+        "negative_shift": with_meta(shifts=shifts),
+        "negative_margin": with_meta(margins=margins),
+        "count_past_row": {f"L{last}/R0/count": changed(
+            f"L{last}/R0/count", (0,), arrays[role0].shape[1] + 1)},
+        "proj_past_range": {f"L{last}/S0/proj": changed(f"L{last}/S0/proj", (0, 0),
+                                                        candidates.PROJ_LIMIT + 1)},
+        "one_role": with_meta(num_roles=1),
+        "fewer_features": {f"L{last}/S1/feat": arrays[f"L{last}/S1/feat"][..., :2],
+                           f"L{last}/S1/basis": arrays[f"L{last}/S1/basis"][:, :-25]},
+        "fractional": {role0: arrays[role0] + 0.5},
+    })
+    # The largest of each in range still loads: the checks are one past, not at, the bound.
+    top = {role0: changed(role0, (0, 0, 0), pixels[1] - 1)}
+    top[role0][0, 0, 1] = pixels[2] - 1
+    write_archive(tmp_path / "top.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
+                  {**arrays, **top})
+    CandidateSet.load(tmp_path / "top.wtc")
+
+
+def test_a_candidate_record_with_names_of_another_type_is_refused(tmp_path, granite):
+    """Cache listings read the names as they come, so a hand-made record of other names
+    must not reach them: its check, dropped, passed every test."""
+    import json
+
+    granite.save(tmp_path / "g.wtc")
+    arrays = read_archive(tmp_path / "g.wtc", candidate_set.FILE_MAGIC, FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    for names in (3, {"x": 1}, [1, 2, 3]):
+        path = tmp_path / "names.wtc"
+        record = np.frombuffer(json.dumps({**meta, "names": names}).encode(), np.uint8)
+        write_archive(path, candidate_set.FILE_MAGIC, FORMAT_VERSION, {**arrays, "meta": record})
+        with pytest.raises(CandidateCacheError, match=r"names\.wtc: unreadable candidate data"):
+            candidate_set.read_cache_meta(path)
+
+
 def test_a_file_whose_basis_reaches_past_127_is_refused(tmp_path, granite):
     """A basis coefficient of -128 (int8 holds it) makes the projections' float32 sums
     depend on their order of adding, so a CPU and a GPU could differ."""

@@ -722,6 +722,13 @@ def test_srgb_transfer_functions():
                                [0.0, 0.04045, 0.5, 1.0, 1.0, 0.0], rtol=1e-5, atol=1e-7)
     values = np.linspace(0, 1, 1001, dtype=np.float32)
     np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(values)), values, atol=1e-6)
+    # Each segment up to its joint, to the bit: a 16-bit value just below the decoding
+    # joint (2622/65535) is linear, one just above the encoding joint is not (a joint of
+    # 0.04 decoded it 1.5e-4 off, and passed the tolerances above).
+    low = np.float32(2622 / 65535)
+    assert srgb_to_linear(low) == np.float32(np.float64(low) / 12.92)
+    above = np.float32(0.0031309)
+    assert linear_to_srgb(above) == np.float32(1.055 * np.float64(above) ** (1 / 2.4) - 0.055)
     rgba = np.random.default_rng(0).random((5, 4)).astype(np.float32)
     decoded = reencoded(rgba, srgb=True, to_srgb=False)
     np.testing.assert_array_equal(decoded[:, :3], srgb_to_linear(rgba[:, :3]))

@@ -1167,11 +1167,34 @@ def test_engine_code_digest_reads_every_module_the_engine_runs(monkeypatch):
         assert kernels <= digested, f"{module.__name__} imports {kernels - digested}"
 
 
+def test_a_negative_triple_in_a_file_of_wide_triples_is_refused(candidates, tmp_path,
+                                                                 monkeypatch):
+    """Exemplars of more than 65536 pixels are stored as int32 triples, which can hold a
+    negative pixel: the lookup kernels would read before the exemplar's colors. The check,
+    dropped, passed every test (uint16 triples cannot be negative)."""
+    from warptex.archive import read_archive, write_archive
+    from warptex.store_files import _MAGIC, FORMAT_VERSION
+
+    monkeypatch.setattr("warptex.store._COMPACT_PIXELS", 0)
+    syn = synthesizer(candidates)
+    store = BrickStore(syn)
+    sample(store, [brick_center((0, 0, 0))])
+    path = tmp_path / "wide.wtb"
+    store.save(path)
+    arrays = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
+    assert arrays["triples"].dtype == np.int32
+    arrays["triples"][0, 1] = -1
+    write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
+    with pytest.warns(UserWarning, match="voxel triples outside the exemplars"):
+        assert BrickStore.load(path, syn).stats()["bricks"] == 0
+
+
 def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidates, tmp_path):
     """A file that passes its checksum but was written by other means: triples beyond the
     exemplars or repeated bricks would send the lookup kernels out of bounds."""
     from warptex.archive import read_archive, write_archive
-    from warptex.store_files import _MAGIC, FORMAT_VERSION
+    from warptex.keysets import pack
+    from warptex.store_files import _MAGIC, _MAX_BRICK, FORMAT_VERSION
 
     syn = synthesizer(candidates)
     store = BrickStore(syn)
@@ -1184,8 +1207,21 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     repeated = dict(good, keys=np.repeat(good["keys"], 2), valid=np.repeat(good["valid"], 2, 0),
                     triples=np.concatenate([good["triples"]] * 2))
     float_keys = dict(good, keys=good["keys"].astype(np.float64))
-    for arrays, problem in ((beyond, "outside the exemplars"), (repeated, "repeated bricks"),
-                            (float_keys, "brick keys of unexpected type")):
+    # One past each other check (each, dropped or loosened, passed every test; the first
+    # three then failed in a traceback): keys of another shape, a brick's bits missing (its
+    # voxels too), bits of a float type, triples of another type, a brick past the range.
+    last = int(np.bitwise_count(good["valid"][-1]).sum())
+    far = good["keys"].copy()
+    far[0] = pack(np.array([[_MAX_BRICK + 1, 0, 0]]))[0]
+    cases = ((beyond, "outside the exemplars"), (repeated, "repeated bricks"),
+             (float_keys, "brick keys of unexpected type"),
+             (dict(good, keys=good["keys"][:, None]), "brick keys of unexpected type or shape"),
+             (dict(good, valid=good["valid"][:-1], triples=good["triples"][:-last]),
+              "stored-voxel bits of unexpected type or shape"),
+             (dict(good, valid=good["valid"].view(np.float32)), "stored-voxel bits"),
+             (dict(good, triples=good["triples"].astype(np.int64)), "voxel triples of unexpected"),
+             (dict(good, keys=far), "bricks beyond the texture range"))
+    for arrays, problem in cases:
         write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
         with pytest.warns(UserWarning, match=problem):
             assert BrickStore.load(path, syn).stats()["bricks"] == 0

@@ -60,15 +60,20 @@ def _random_voxels(rng: np.random.Generator, n: int, lo: int = -40, hi: int = 40
     return rng.integers(lo, hi, size=(n, 3))
 
 
-def test_voxel_independent_of_what_else_is_requested(candidates):
+@pytest.mark.parametrize("passes", [1, 2, 3])
+def test_voxel_independent_of_what_else_is_requested(candidates, passes):
+    """Also at 1 and 3 passes, whose dependency radii (2 and 6 voxels) are no whole number of
+    blocks: an apron rounded down passed at the default 2 passes' 4."""
     rng = np.random.default_rng(1)
     probe = np.array([[3, 5, 7], [-9, 0, 4], [0, -1, -13], [17, 22, -6]])
-    alone = np.concatenate([Synthesizer(candidates, seed=5).voxels(p[None]) for p in probe])
-    small_box = Synthesizer(candidates, seed=5).box((-16, -16, -16), (40, 40, 40))
+    alone = np.concatenate([Synthesizer(candidates, seed=5, passes=passes).voxels(p[None])
+                            for p in probe])
+    small_box = Synthesizer(candidates, seed=5, passes=passes).box((-16, -16, -16),
+                                                                   (40, 40, 40))
     in_box = small_box[probe[:, 0] + 16, probe[:, 1] + 16, probe[:, 2] + 16]
     scattered = np.concatenate([probe, _random_voxels(rng, 300)])
     perm = rng.permutation(len(scattered))
-    shuffled = Synthesizer(candidates, seed=5).voxels(scattered[perm])
+    shuffled = Synthesizer(candidates, seed=5, passes=passes).voxels(scattered[perm])
     in_scattered = np.empty_like(shuffled)
     in_scattered[perm] = shuffled
     assert np.array_equal(alone, in_box)
@@ -102,6 +107,7 @@ def test_a_gpu_or_a_process_too_small_for_the_largest_part_gets_smaller_ones(mon
     # More feature channels, more memory a work voxel: smaller parts (they took 76% of the
     # GPU at 34 channels, not half).
     assert synthesis.work_voxel_cap("cuda:0", 34) == (4 << 30) // (2 * (rgb + 6 * 31))
+    assert synthesis.work_bytes_per_voxel(1) == rgb  # gray: no fewer than RGB's
     monkeypatch.setattr(synthesis, "_device_memory", lambda device: 80 << 30)
     assert synthesis.work_voxel_cap("cuda") == synthesis.MAX_WORK_VOXELS
     for memory, cap in ((80 << 30, synthesis.MAX_WORK_VOXELS), (2 << 30, (2 << 30) // (2 * rgb)),
