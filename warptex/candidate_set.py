@@ -128,8 +128,8 @@ class CandidateSet:
     roles: list[list[RoleLevel]]  # [level][role]
     stats: dict = field(default_factory=dict)
     # The exemplars' names (x, y, z) when computed, with what set them apart from their
-    # files (:func:`_exemplar_label`), for people listing cache files; the digests, not the
-    # names, say what the candidates are of.
+    # files (``warptex.candidates._exemplar_label``), for people listing cache files; the
+    # digests, not the names, say what the candidates are of.
     names: tuple[str, ...] = field(default=(), compare=False)
     # How precompute got these: "loaded" from its cache, "written" to it, "not written"
     # (the cache could not be written), or "" without a cache. Not saved in files.
@@ -216,7 +216,7 @@ def read_cache_meta(path: Path, version: int = FORMAT_VERSION) -> dict:
     ``version``, where its record reads alike) says it holds: ``digests`` and ``params``,
     which name it (:func:`warptex.candidates.cache_file_name`), and ``names`` where recorded;
     CandidateCacheError otherwise, and, for this version, where its arrays do not fit
-    together (a file :func:`precompute` would refuse is no file in use)."""
+    together (a file :func:`~warptex.candidates.precompute` would refuse is no file in use)."""
     arrays = read_candidate_arrays(path, version)
     if version == FORMAT_VERSION:
         laid_out(arrays, path)
@@ -250,7 +250,7 @@ def _strings(value: object) -> bool:
 def resolved_params(params: dict) -> dict:
     """Candidate parameters ``params`` with the defaults of the others, each checked
     against :data:`_PARAM_RANGES` (and made a plain int or float, as cache keys and files
-    hold them): what :func:`precompute` keys its cache by."""
+    hold them): what :func:`~warptex.candidates.precompute` keys its cache by."""
     unknown = set(params) - set(DEFAULT_PARAMS)
     if unknown:
         raise TypeError(f"unknown candidate parameter(s): {', '.join(sorted(unknown))}")

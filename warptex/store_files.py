@@ -102,8 +102,8 @@ def _differences(stored: dict, current: dict, where: str = "in the file") -> str
 def store_settings(synthesizer: Synthesizer) -> dict:
     """Everything a stored voxel depends on: exemplars, candidate parameters and algorithm
     version, seed, jitter, tile shifts, engine version and parameters; digested by
-    :meth:`BrickStore.identity` and kept in store files in plain words, so that a file of
-    another texture can be told apart by the settings that differ."""
+    :meth:`~warptex.store.BrickStore.identity` and kept in store files in plain words, so
+    that a file of another texture can be told apart by the settings that differ."""
     s = synthesizer
     return {
         "format": FORMAT_VERSION,
@@ -169,7 +169,7 @@ def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
     """Ctrl-C or SIGTERM (a KeyboardInterrupt) in the block first writes brick stores to
     their files with ``save``, then stops as asked: the voxels synthesized so far are kept,
     so the next run starts from them (section 6.2's synthesize-once, across runs); a stop
-    waits for a change of the bricks under way to end (:class:`BrickStore`). What was
+    waits for a change of the bricks under way to end (:class:`~warptex.store.BrickStore`). What was
     saved, or why nothing was, is said on stderr."""
     try:
         yield
