@@ -149,20 +149,22 @@ _REQUEST_IN_A_PROCESS = textwrap.dedent("""
     from warptex import synthesis
     from warptex.candidates import precompute
     from warptex.exemplar import Exemplar
-    from warptex.machine import PeakMemory
-    mode, path, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
-    if mode == "steps":  # n passes of sys.argv[4] sub-passes over a box of sys.argv[5]^3
-        from warptex.machine import map_large_blocks
-        map_large_blocks()
-        cs = precompute(Exemplar.load(path))
-        synthesis.Synthesizer(cs, seed=1).box((0, 0, 0), (8, 8, 8))
-        syn = synthesis.Synthesizer(cs, seed=1, passes=n, subpasses=int(sys.argv[4]))
-        shape = (int(sys.argv[5]),) * 3
+    from warptex.machine import PeakMemory, map_large_blocks
+
+    def measured_box(syn, shape):
         with PeakMemory() as peak:
             syn.box((100, 100, 100), shape)
         reach = 2 * syn._apron * synthesis.BLOCK
         work = int(np.prod([-(-a // synthesis.BLOCK) * synthesis.BLOCK + reach for a in shape]))
-        print(json.dumps({"mib": peak.growth / 2**20, "per": peak.growth / work, "work": work}))
+        return {"mib": peak.growth / 2**20, "per": peak.growth / work, "work": work}
+
+    mode, path, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    if mode == "steps":  # n passes of sys.argv[4] sub-passes over a box of sys.argv[5]^3
+        map_large_blocks()
+        cs = precompute(Exemplar.load(path))
+        synthesis.Synthesizer(cs, seed=1).box((0, 0, 0), (8, 8, 8))
+        syn = synthesis.Synthesizer(cs, seed=1, passes=n, subpasses=int(sys.argv[4]))
+        print(json.dumps(measured_box(syn, (int(sys.argv[5]),) * 3)))
         sys.exit()
     colors = Exemplar.load(path).colors[:32, :32]
     if mode == "features":
@@ -172,22 +174,17 @@ _REQUEST_IN_A_PROCESS = textwrap.dedent("""
     syn = synthesis.Synthesizer(precompute(exemplar, cache=False), seed=1)
     syn.box((0, 0, 0), (8, 8, 8))
     if mode == "features":
-        shape = (56, 56, 56)
-        with PeakMemory() as peak:
-            syn.box((100, 100, 100), shape)
-        reach = 2 * syn._apron * synthesis.BLOCK
-        per = peak.growth / np.prod([a + reach for a in shape])
-    else:
-        syn._synthesize = lambda level, keys, voxel_keys, local, work=None: np.zeros(
-            (len(voxel_keys), 3), np.int32)
-        rng = np.random.default_rng(0)
-        blocks = rng.choice(2**20, n, replace=False)
-        ijk = np.stack(np.unravel_index(blocks, (2**7,) * 3), axis=1) * 8 * 64
-        ijk -= synthesis.COORD_LIMIT // 2
-        with PeakMemory() as peak:
-            syn.pixel_triples(ijk)
-        per = peak.growth / n
-    print(json.dumps({"mib": peak.growth / 2**20, "per": per}))
+        print(json.dumps(measured_box(syn, (56, 56, 56))))
+        sys.exit()
+    syn._synthesize = lambda level, keys, voxel_keys, local, work=None: np.zeros(
+        (len(voxel_keys), 3), np.int32)
+    rng = np.random.default_rng(0)
+    blocks = rng.choice(2**20, n, replace=False)
+    ijk = np.stack(np.unravel_index(blocks, (2**7,) * 3), axis=1) * 8 * 64
+    ijk -= synthesis.COORD_LIMIT // 2
+    with PeakMemory() as peak:
+        syn.pixel_triples(ijk)
+    print(json.dumps({"mib": peak.growth / 2**20, "per": peak.growth / n}))
 """)
 
 # The candidates loaded, then two 64^3 boxes of a fresh engine, in a fresh process whose
