@@ -125,15 +125,15 @@ def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
     stop back for minutes (100 s for one axis of ``compare --size 128``'s completeness).
     Each row's neighbours are its own, so the parts give what one query would."""
     queries = np.asarray(queries)
+    options["workers"] = workers or THREADS
     if queries.ndim < 2:  # one point
         with deferred_stops():
-            return tree.query(queries, workers=workers or THREADS, **options)
+            return tree.query(queries, **options)
     parts, start, rows = [], 0, _FIRST_QUERY_ROWS
     while True:
         began = time.perf_counter()
         with deferred_stops():
-            parts.append(tree.query(queries[start:start + rows], workers=workers or THREADS,
-                                    **options))
+            parts.append(tree.query(queries[start:start + rows], **options))
         start += rows
         if start >= len(queries):
             break
