@@ -1229,8 +1229,9 @@ def test_a_photo_given_as_feature_mask_is_used_with_a_warning(tmp_path, data_dir
     path = data_dir / "granite_64.png"
     with pytest.warns(UserWarning, match=r"granite_64\.png: not a black-and-white feature "
                                          r"mask \(\d+% of its pixels are grey\); features are "
-                                         r"marked where its first channel exceeds half"):
+                                         r"marked where its first channel exceeds half") as said:
         photo = Exemplar.load(path, feature_mask=path)
+    assert said[0].filename == __file__  # the line that loads, not the loader's own
     first = np.asarray(Image.open(path))[..., 0]
     np.testing.assert_array_equal(photo.features[..., 3],
                                   feature_distance_from_mask(first > 0.5 * first.max()))

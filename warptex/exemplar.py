@@ -172,21 +172,8 @@ class Exemplar:
             TypeError: ``path`` is no file name.
             SettingError: ``max_size`` or ``srgb`` out of range or of the wrong type.
         """
-        if alpha not in ("drop", "keep"):
-            raise ValueError(f"alpha must be 'drop' or 'keep', not {alpha!r}")
-        # Not ``in (False, True, "auto")``: 1 and 0.0 equal the bools and would pass.
-        if not (feature_distance == "auto" if isinstance(feature_distance, str)
-                else isinstance(feature_distance, bool | np.bool_)):
-            raise ValueError(
-                f"feature_distance must be False, True or 'auto', not {feature_distance!r}"
-            )
-        feature_distance = bool(feature_distance)
-        if feature_mask is not None and feature_distance:
-            raise ValueError("give either feature_mask or feature_distance ('auto' or True), "
-                             "not both")
-        check_max_size(max_size)
-        if srgb is not None:
-            check_flag("srgb", srgb)
+        feature_distance = _checked_load_options(alpha, feature_mask, feature_distance,
+                                                 max_size, srgb)
         if path == "":  # not the working folder, which Path("") names
             raise ExemplarError("the exemplar's file name is empty")
         path = check_file_name("path", path)
@@ -209,24 +196,7 @@ class Exemplar:
 
             distance = None
             if feature_mask is not None:
-                mask_path = check_file_name("feature_mask", feature_mask)
-                with _memory_named(mask_path):  # the mask's, not the exemplar's
-                    mask_image = read_image(mask_path)[0]
-                    if mask_image.shape[:2] != read_shape[:2]:
-                        raise ExemplarError(
-                            f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
-                            f"{path} is {_size(read_shape)}"
-                        )
-                    first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
-                    if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
-                        # Half its maximum, the threshold, would be NaN or infinite.
-                        raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
-                    _warn_unless_binary(mask_image, str(mask_path))
-                    if array.shape[:2] != read_shape[:2]:
-                        mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
-                                             str(mask_path))
-                    mask = _binary_mask(mask_image, str(mask_path))
-                    distance = feature_distance_from_mask(mask, name=str(mask_path))
+                distance = _mask_distance(feature_mask, path, read_shape, array.shape, max_size)
             elif feature_distance:
                 colors = _validated_colors(array, str(path))
                 distance = feature_distance_from_mask(otsu_mask(colors),
@@ -635,6 +605,54 @@ def _opaque(alpha: np.ndarray) -> bool:
     return bool(np.all(alpha >= full))
 
 
+def _checked_load_options(alpha: str, feature_mask: str | Path | None,
+                          feature_distance: bool | str, max_size: int | None,
+                          srgb: bool | None) -> bool:
+    """:meth:`Exemplar.load`'s options checked, before any file is read; whether a
+    feature-distance channel is asked for."""
+    if alpha not in ("drop", "keep"):
+        raise ValueError(f"alpha must be 'drop' or 'keep', not {alpha!r}")
+    # Not ``in (False, True, "auto")``: 1 and 0.0 equal the bools and would pass.
+    if not (feature_distance == "auto" if isinstance(feature_distance, str)
+            else isinstance(feature_distance, bool | np.bool_)):
+        raise ValueError(
+            f"feature_distance must be False, True or 'auto', not {feature_distance!r}"
+        )
+    if feature_mask is not None and feature_distance:
+        raise ValueError("give either feature_mask or feature_distance ('auto' or True), "
+                         "not both")
+    check_max_size(max_size)
+    if srgb is not None:
+        check_flag("srgb", srgb)
+    return bool(feature_distance)
+
+
+def _mask_distance(feature_mask: str | Path, path: Path, read_shape: tuple[int, ...],
+                   shape: tuple[int, ...], max_size: int | None) -> np.ndarray:
+    """The feature-distance channel of :meth:`Exemplar.load`'s ``feature_mask`` for the
+    exemplar ``path``, read at ``read_shape`` and now of ``shape`` (shrunk to ``max_size``),
+    which the mask is shrunk to as well: Kopf 2007's signed feature distance, of features
+    marked by hand."""
+    mask_path = check_file_name("feature_mask", feature_mask)
+    with _memory_named(mask_path):  # the mask's, not the exemplar's
+        mask_image = read_image(mask_path)[0]
+        if mask_image.shape[:2] != read_shape[:2]:
+            raise ExemplarError(
+                f"{mask_path}: feature mask is {_size(mask_image.shape)} pixels but "
+                f"{path} is {_size(read_shape)}"
+            )
+        first = mask_image[..., 0] if mask_image.ndim == 3 else mask_image
+        if np.issubdtype(first.dtype, np.floating) and not np.isfinite(first).all():
+            # Half its maximum, the threshold, would be NaN or infinite.
+            raise ExemplarError(f"{mask_path}: feature mask contains NaN or Inf values")
+        _warn_unless_binary(mask_image, str(mask_path))
+        if shape[:2] != read_shape[:2]:
+            mask_image = _shrunk(_to_float32(mask_image, str(mask_path)), int(max_size),
+                                 str(mask_path))
+        return feature_distance_from_mask(_binary_mask(mask_image, str(mask_path)),
+                                          name=str(mask_path))
+
+
 def _warn_unless_binary(image: np.ndarray, name: str) -> None:
     """Warn where a feature mask is no black-and-white image (a photo given by mistake):
     it is thresholded at half its maximum all the same, which may mark nothing useful."""
@@ -648,7 +666,7 @@ def _warn_unless_binary(image: np.ndarray, name: str) -> None:
         channel = "its first channel" if image.ndim == 3 else "it"
         warn(f"{name}: not a black-and-white feature mask ({grey:.0%} of its pixels "
              f"are grey); features are marked where {channel} exceeds half its "
-             "maximum", stacklevel=3)
+             "maximum", stacklevel=4)  # the caller of Exemplar.load
 
 
 @contextmanager

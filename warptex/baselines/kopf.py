@@ -213,11 +213,7 @@ def synthesize(
         check_flag(name, flag)  # "no" would count as true
     if on_iteration is not None and not callable(on_iteration):  # not after a level's work
         raise TypeError(f"on_iteration must be a function or None, got {on_iteration!r}")
-    counts = [iterations] * LEVELS if np.ndim(iterations) == 0 else list(iterations)
-    if len(counts) != LEVELS or not all(is_integer(t) and t >= 1 for t in counts):
-        raise ValueError(f"iterations must be a positive integer or {LEVELS} of them, one per "
-                         f"level, got {iterations!r}")
-    counts = [int(t) for t in counts]
+    counts = _iteration_counts(iterations)
     axes = _axis_exemplars(exemplar, exemplars)
     # One pyramid (and below, one search structure) per distinct exemplar.
     distinct = {id(e): e for e in axes if e is not None}
@@ -236,11 +232,7 @@ def synthesize(
             feats = [None if e is None else level_feats[id(e)] for e in axes]
             solid = _random_solid(feats, n, rng) if solid is None else _upsample(solid, n // 2)
             optimizer = _LevelOptimizer(feats, axis_seams, solid, histogram_matching)
-            for e, ax in zip(axes, optimizer.axes, strict=True):
-                if ax is not None and ax.needed > ax.dims:
-                    short[f"{e.path or e.name} at level {level}"] = (
-                        f"{ax.dims} dimensions, {ax.kept:.1%} of the variance; "
-                        f"{VARIANCE_KEPT:.0%} needs {ax.needed}")
+            short |= _pca_shortfall(axes, optimizer, level)
             bandwidths = _bandwidths(optimizer.spread, counts[level]) if mean_shift else None
             for it in range(counts[level]):
                 start = time.perf_counter()
@@ -256,6 +248,26 @@ def synthesize(
              stacklevel=2)
     channels = next(e for e in axes if e is not None).channels
     return solid.numpy().reshape(size, size, size, -1)[..., :channels].copy()
+
+
+def _iteration_counts(iterations: int | Sequence[int]) -> list[int]:
+    """``synthesize``'s ``iterations`` as one count per level, coarsest first."""
+    counts = [iterations] * LEVELS if np.ndim(iterations) == 0 else list(iterations)
+    if len(counts) != LEVELS or not all(is_integer(t) and t >= 1 for t in counts):
+        raise ValueError(f"iterations must be a positive integer or {LEVELS} of them, one per "
+                         f"level, got {iterations!r}")
+    return [int(t) for t in counts]
+
+
+def _pca_shortfall(axes: Sequence[Exemplar | None], optimizer: _LevelOptimizer,
+                   level: int) -> dict[str, str]:
+    """Per exemplar whose windows at ``level`` need more PCA coefficients than the kernels
+    hold (section 4.2's 95 % of the variance), what they keep."""
+    return {f"{e.path or e.name} at level {level}":
+            f"{ax.dims} dimensions, {ax.kept:.1%} of the variance; "
+            f"{VARIANCE_KEPT:.0%} needs {ax.needed}"
+            for e, ax in zip(axes, optimizer.axes, strict=True)
+            if ax is not None and ax.needed > ax.dims}
 
 
 def _axis_exemplars(
