@@ -1194,6 +1194,7 @@ def test_compare_refuses_channels_a_later_method_cannot_take_before_any_method_r
     with no report (a traceback for the lazy cube)."""
     from warptex import compare
     from warptex.cli import main
+    from warptex.compare import measure
 
     path = tmp_path / "stack.npy"
     np.save(path, np.random.default_rng(0).random((32, 32, channels), np.float32))
@@ -1201,7 +1202,7 @@ def test_compare_refuses_channels_a_later_method_cannot_take_before_any_method_r
     def never(*args, **kwargs):
         raise AssertionError("a method ran")
 
-    monkeypatch.setattr(compare, "in_child_process", never)
+    monkeypatch.setattr(measure, "in_child_process", never)
     assert main(["compare", str(path), "--size", "16", "--methods", methods,
                  "-o", str(tmp_path / "cmp")]) == 2
     assert f"warptex: error: {path}: {said}" in capsys.readouterr().err

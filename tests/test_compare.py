@@ -17,6 +17,7 @@ from PIL import Image
 
 from warptex import compare
 from warptex.cli import main
+from warptex.compare import measure, methods
 from warptex.metrics import histogram_distance, repetition_score
 
 
@@ -174,7 +175,8 @@ def test_a_feature_mask_marks_the_one_exemplar_and_reaches_the_lazy_cube(tmp_pat
                                                                        capsys):
     """A mask is read with the exemplar, named in the table, passed to the lazy cube's
     plugin; beside --feature-distance or --ey/--ez it is refused before any work."""
-    from warptex.compare import Setup, _cube_texture, _Job
+    from warptex.compare import Setup
+    from warptex.compare.methods import _cube_texture, _Job
     from warptex.exemplar import Exemplar
 
     granite = data_dir / "granite_64.png"
@@ -266,7 +268,8 @@ def test_compare_measures_each_axis_against_its_own_exemplar(tmp_path, data_dir,
 
 
 def test_the_passes_reach_the_rendered_cube_and_the_tiled_volume(data_dir, warp_device):
-    from warptex.compare import Setup, _cube_texture, _Job, _tiled
+    from warptex.compare import Setup
+    from warptex.compare.methods import _cube_texture, _Job, _tiled
     from warptex.exemplar import Exemplar
 
     path = data_dir / "granite_64.png"
@@ -310,7 +313,8 @@ def test_a_setting_refused_in_a_method_s_process_comes_through_as_itself(data_di
 def test_every_rendered_cube_shows_linear_colors(data_dir, warp_device, srgb_decoded):
     """The grid textures of the other methods are decoded from sRGB as the plugin decodes
     the lazy cube's, so cubes compare in one color space; a float exemplar is left as is."""
-    from warptex.compare import Setup, _cube_texture, _Job
+    from warptex.compare import Setup
+    from warptex.compare.methods import _cube_texture, _Job
     from warptex.exemplar import Exemplar
 
     ex = Exemplar.load(data_dir / "granite_64.png")
@@ -328,9 +332,9 @@ def test_a_flat_cube_renders_as_its_converged_shading_without_noise(warp_device)
     it. Only pixels the cube's edges cut (antialiased) show anything else."""
     from warptex.srgb import srgb_to_linear
 
-    albedo, sky = np.array([0.45, 0.38, 0.28]), np.array(compare._SKY)
-    sun = -np.array(compare._SUN_DIRECTION) / np.linalg.norm(compare._SUN_DIRECTION)
-    irradiance = np.array(compare._SUN_IRRADIANCE)
+    albedo, sky = np.array([0.45, 0.38, 0.28]), np.array(methods._SKY)
+    sun = -np.array(methods._SUN_DIRECTION) / np.linalg.norm(methods._SUN_DIRECTION)
+    irradiance = np.array(methods._SUN_IRRADIANCE)
     faces = [albedo * (irradiance * sun[axis] / np.pi + sky) for axis in range(3)]
     image = srgb_to_linear(compare.render_cube({"type": "rgb", "value": list(albedo)},
                                                resolution=64)).reshape(-1, 3)
@@ -467,25 +471,25 @@ def test_volume_command_refuses_mean_shift_for_lazy(tmp_path, data_dir, capsys):
 
 
 @pytest.fixture
-def measure(data_dir, monkeypatch):
-    """``compare._measure`` in this process, without the rendered cube."""
+def measured(data_dir, monkeypatch):
+    """``measure._measure`` in this process, without the rendered cube."""
     from warptex import compare
 
-    monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
-    monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
+    monkeypatch.setattr(measure, "render_cube", lambda texture: np.zeros((2, 2, 3)))
+    monkeypatch.setattr(measure, "_cube_texture", lambda *args: {})
     path = str(data_dir / "granite_64.png")
-    return lambda method, size=16, tileable="auto", seed=0: compare._measure(
+    return lambda method, size=16, tileable="auto", seed=0: measure._measure(
         method, compare.Setup(path, size, tileable=tileable, seed=seed))
 
 
-def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
+def test_scores_are_those_of_the_metrics_axis_by_axis(measured, data_dir):
     from warptex import compare, metrics
     from warptex.exemplar import Exemplar
 
-    row = measure("extrude")
+    row = measured("extrude")
     ex = Exemplar.load(data_dir / "granite_64.png")
-    job = compare._Job(compare.Setup(ex.path, 16), (ex, ex, ex))
-    volume = compare._extrude(job, 16)
+    job = methods._Job(compare.Setup(ex.path, 16), (ex, ex, ex))
+    volume = methods._extrude(job, 16)
     for key, metric in (("energy", metrics.neighborhood_energy),
                         ("completeness", metrics.completeness_energy),
                         ("swd", metrics.sliced_wasserstein),
@@ -497,12 +501,12 @@ def test_scores_are_those_of_the_metrics_axis_by_axis(measure, data_dir):
     for a in range(3):
         np.testing.assert_array_equal(row["slices"][a], metrics.axis_slice(volume, a, 8))
     assert not np.array_equal(row["slices"][0], metrics.axis_slice(volume, 0, 0))
-    large = compare._extrude_large(job, volume)
+    large = methods._extrude_large(job, volume)
     assert large.shape[:2] == (compare.LARGE, compare.LARGE)
     assert row["repetition"] == metrics.repetition_score(large)
 
 
-def test_the_patch_scores_follow_the_setting_tileable_and_not_the_methods_seed(measure,
+def test_the_patch_scores_follow_the_setting_tileable_and_not_the_methods_seed(measured,
                                                                              data_dir):
     """Energy, completeness and sliced Wasserstein distance measure against the exemplar's
     patches as ``tileable`` says (granite tiles: "no" takes its wrapped patches away), and
@@ -511,9 +515,9 @@ def test_the_patch_scores_follow_the_setting_tileable_and_not_the_methods_seed(m
     from warptex import compare, metrics
     from warptex.exemplar import Exemplar
 
-    row = measure("extrude", tileable=False, seed=3)
+    row = measured("extrude", tileable=False, seed=3)
     ex = Exemplar.load(data_dir / "granite_64.png")
-    volume = compare._extrude(compare._Job(compare.Setup(ex.path, 16), (ex, ex, ex)), 16)
+    volume = methods._extrude(methods._Job(compare.Setup(ex.path, 16), (ex, ex, ex)), 16)
     for key, metric in (("energy", metrics.neighborhood_energy),
                         ("completeness", metrics.completeness_energy),
                         ("swd", metrics.sliced_wasserstein)):
@@ -524,22 +528,22 @@ def test_the_patch_scores_follow_the_setting_tileable_and_not_the_methods_seed(m
                           for a in range(3)]
 
 
-def test_the_time_leaves_out_the_warm_up_run(measure, monkeypatch):
+def test_the_time_leaves_out_the_warm_up_run(measured, monkeypatch):
     """The first, small run builds the kernels; the time is that of the second alone (on a
     clock that the warm-up moves 100 s and the timed run 1 s)."""
     import types
 
-    from warptex import compare, metrics
+    from warptex import metrics
 
     clock = [0.0]
-    monkeypatch.setattr(compare, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(measure, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
 
     def slow_first(job, size):
         clock[0] += 100.0 if size == 8 else 1.0
         return metrics.iid_noise(job.axes[0].colors, (size, size, size), job.setup.seed)
 
-    monkeypatch.setitem(compare._RUN, "noise", (slow_first, compare._noise_large))
-    assert measure("noise")["seconds"] == 1.0
+    monkeypatch.setitem(methods._RUN, "noise", (slow_first, methods._noise_large))
+    assert measured("noise")["seconds"] == 1.0
 
 
 def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypatch, capsys,
@@ -552,15 +556,15 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
 
     # Runs of 5, 2 and 1 s: neither their mean, first, last, least nor largest is 2.
     clock = iter([0.0, 5.0, 10.0, 12.0, 20.0, 21.0])
-    monkeypatch.setattr(compare, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
-    monkeypatch.setattr(compare, "render_cube", lambda texture: np.zeros((2, 2, 3)))
-    monkeypatch.setattr(compare, "_cube_texture", lambda *args: {})
+    monkeypatch.setattr(measure, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
+    monkeypatch.setattr(measure, "render_cube", lambda texture: np.zeros((2, 2, 3)))
+    monkeypatch.setattr(measure, "_cube_texture", lambda *args: {})
     sizes = []
-    noise, noise_large = compare._RUN["noise"]
-    monkeypatch.setitem(compare._RUN, "noise", (lambda job, size: sizes.append(size)
+    noise, noise_large = methods._RUN["noise"]
+    monkeypatch.setitem(methods._RUN, "noise", (lambda job, size: sizes.append(size)
                                                 or noise(job, size), noise_large))
     setup = compare.Setup(data_dir / "granite_64.png", 16)
-    row = compare._measure("noise", setup, repeats=3)
+    row = measure._measure("noise", setup, repeats=3)
     assert sizes == [8, 16, 16, 16]  # the warm-up, then three timed volumes
     assert row["seconds_runs"] == [5.0, 2.0, 1.0] and row["seconds"] == 2.0
     result = compare.MethodResult(**row)
@@ -576,10 +580,9 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     assert "--repeats must be at least 1, got 0" in capsys.readouterr().err
 
 
-def test_peak_memory_is_that_of_the_timed_runs_in_mib(measure, monkeypatch):
+def test_peak_memory_is_that_of_the_timed_runs_in_mib(measured, monkeypatch):
     """The memory window holds the timed runs alone: not the warm-up before them, nor the
     large slice and the measures after; its rise in bytes is reported in MiB."""
-    from warptex import compare
 
     said = []
 
@@ -594,12 +597,12 @@ def test_peak_memory_is_that_of_the_timed_runs_in_mib(measure, monkeypatch):
             said.append("close")
             self.growth = 3 * 2**20
 
-    noise, noise_large = compare._RUN["noise"]
-    monkeypatch.setattr(compare, "PeakMemory", Window)
-    monkeypatch.setitem(compare._RUN, "noise", (
+    noise, noise_large = methods._RUN["noise"]
+    monkeypatch.setattr(measure, "PeakMemory", Window)
+    monkeypatch.setitem(methods._RUN, "noise", (
         lambda job, size: said.append(size) or noise(job, size),
         lambda job, volume: said.append("large") or noise_large(job, volume)))
-    row = measure("noise")
+    row = measured("noise")
     assert said == [8, "open", 16, "close", "large"]
     assert row["peak_mib"] == 3.0
 
@@ -675,7 +678,7 @@ def test_report_gives_the_size_of_a_shrunk_exemplar_as_width_by_height(tmp_path,
 def test_large_slices_are_256_pixels_whatever_the_tile():
     """A tile whose side does not divide 256 is repeated past it and cut."""
     tile = np.random.default_rng(0).random((24, 40, 3))
-    large = compare._tile_slice(tile, compare.LARGE)
+    large = methods._tile_slice(tile, compare.LARGE)
     assert large.shape == (compare.LARGE, compare.LARGE, 3)
     np.testing.assert_array_equal(large[24:48, 40:80], tile)
 
@@ -700,13 +703,13 @@ def test_the_large_slices_are_taken_at_the_middle_z(monkeypatch):
             asked.append((origin, shape))
             return np.zeros((*shape, 3), np.float32)
 
-    monkeypatch.setattr(compare, "_synthesizer", lambda job: Engine())
+    monkeypatch.setattr(methods, "_synthesizer", lambda job: Engine())
     ex = type("Ex", (), {"shape": (64, 64)})()
-    job = compare._Job(None, (ex, ex, ex))
+    job = methods._Job(None, (ex, ex, ex))
     volume = np.random.default_rng(4).random((16, 16, 16, 3)).astype(np.float32)
-    assert compare._lazy_large(job, volume).shape == (256, 256, 3)
+    assert methods._lazy_large(job, volume).shape == (256, 256, 3)
     assert asked == [((0, 0, 8), (256, 256, 1))]
-    large = compare._periodic_large(job, volume)
+    large = methods._periodic_large(job, volume)
     np.testing.assert_array_equal(large[16:32, 48:64], volume[:, :, 8])
 
 
@@ -719,7 +722,7 @@ def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block
     block = rng.random((64, 64, 64, 3)).astype(np.float32)
     volume = np.tile(block, (2, 2, 2, 1))[:72, :72, :72]
     ex = type("Ex", (), {"shape": (64, 64)})()
-    large = compare._tiled_large(compare._Job(None, (ex, ex, ex)), volume)
+    large = methods._tiled_large(methods._Job(None, (ex, ex, ex)), volume)
     assert large.shape[:2] == (256, 256)
     np.testing.assert_array_equal(large[64:128, 128:192], block[:, :, 36])
     assert metrics.repetition_score(large) == pytest.approx(1.0)
@@ -732,11 +735,11 @@ def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
                 "swd": [0.0] * 3, "histogram": [0.0] * 3, "repetition": 0.0, "seconds": 0.0,
                 "peak_mib": 0.0}
 
-    monkeypatch.setattr(compare, "in_child_process", inline)
-    methods = ["noise", "extrude", "tiled", "lazy"]
-    results = compare.compare(compare.Setup(data_dir / "granite_64.png", 16), methods,
+    monkeypatch.setattr(measure, "in_child_process", inline)
+    asked = ["noise", "extrude", "tiled", "lazy"]
+    results = compare.compare(compare.Setup(data_dir / "granite_64.png", 16), asked,
                               progress=False).results
-    assert [r.method for r in results] == methods
+    assert [r.method for r in results] == asked
 
 
 def test_methods_are_a_sequence_of_names_not_one_string(monkeypatch, data_dir):
@@ -747,7 +750,7 @@ def test_methods_are_a_sequence_of_names_not_one_string(monkeypatch, data_dir):
                 "swd": [0.0] * 3, "histogram": [0.0] * 3, "repetition": 0.0, "seconds": 0.0,
                 "peak_mib": 0.0}
 
-    monkeypatch.setattr(compare, "in_child_process", inline)
+    monkeypatch.setattr(measure, "in_child_process", inline)
     setup = compare.Setup(data_dir / "granite_64.png", 16)
     with pytest.raises(TypeError, match=r"such as \['noise'\], got the string 'noise'"):
         compare.compare(setup, "noise", progress=False)
@@ -803,7 +806,8 @@ def test_an_image_given_under_two_names_is_one_exemplar(tmp_path, data_dir, warp
 def test_the_lazy_cube_renders_the_exemplars_and_settings_measured(data_dir, swapped_file):
     """The lazy cube's lazy_solid texture names each axis' file where they differ, and
     carries the engine's settings, so it shows the volume the table measures."""
-    from warptex.compare import Setup, _cube_texture, _Job
+    from warptex.compare import Setup
+    from warptex.compare.methods import _cube_texture, _Job
 
     granite = data_dir / "granite_64.png"
     setup = Setup(granite, 16, seed=3, passes=1, jitter=0.5, shifted_tiles=True, ez=swapped_file)
@@ -966,7 +970,7 @@ def test_a_mixed_axis_error_names_the_file_given_for_that_axis(tmp_path, data_di
 def test_a_file_changed_before_the_lazy_cube_reads_it_again_is_refused(tmp_path, data_dir):
     """The lazy cube's plugin reads the exemplar files again: one that no longer holds the
     image the scores were taken of is refused, naming it."""
-    from warptex.compare import _check_unchanged
+    from warptex.compare.measure import _check_unchanged
     from warptex.exemplar import ExemplarError
 
     path = tmp_path / "granite.png"
@@ -1004,10 +1008,10 @@ def test_the_lazy_cube_reads_the_candidates_its_method_computed(data_dir, tmp_pa
 
     monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
     setup = compare.Setup(str(data_dir / "granite_64.png"), 16)
-    job, _ = compare._precomputed(compare._Job(setup, setup.exemplars()))
+    job, _ = measure._precomputed(methods._Job(setup, setup.exemplars()))
     mi.set_variant("scalar_rgb")
     mitsuba_plugin.register()
-    cube = mi.load_dict(compare._cube_texture("lazy", job, np.zeros((16, 16, 16, 3))))
+    cube = mi.load_dict(methods._cube_texture("lazy", job, np.zeros((16, 16, 16, 3))))
     assert cube.solid.synthesizer.candidates.cache_status == "loaded"
 
 
@@ -1085,10 +1089,10 @@ def test_the_tiled_volume_is_lazy_s_own_up_to_its_block_as_its_note_says(monkeyp
     """Up to 64 voxels, the default --size included, ``tiled`` is the lazy volume itself
     (its note said "below 64"); past it, the 64^3 block repeated."""
     blocks = {}
-    monkeypatch.setattr(compare, "_lazy", lambda job, size: blocks.setdefault(
+    monkeypatch.setattr(methods, "_lazy", lambda job, size: blocks.setdefault(
         size, np.random.default_rng(size).random((size, size, size, 1), np.float32)))
     for size in (compare.TILE - 8, compare.TILE, compare.TILE + 8):
-        same = np.array_equal(compare._tiled(None, size), compare._lazy(None, size))
+        same = np.array_equal(methods._tiled(None, size), methods._lazy(None, size))
         assert same == (size <= compare.TILE)
     assert f"up to {compare.TILE} voxels" in compare.METHOD_NOTES["tiled"]
 
@@ -1106,18 +1110,18 @@ def test_a_two_channel_exemplar_renders_its_cubes_in_gray(tmp_path, data_dir):
     files = compare.write_report(comparison, tmp_path / "out")
     assert {f.name for f in files} == {"sheet.png", "table.md", "table.json"}
     volume = np.repeat(colors[None, :8, :8, :2], 8, axis=0)
-    job = compare._Job(compare.Setup(path, 8), (Exemplar.load(path),) * 3)
-    grid = compare._cube_texture("noise", job, volume)["volume"]["data"]
+    job = methods._Job(compare.Setup(path, 8), (Exemplar.load(path),) * 3)
+    grid = methods._cube_texture("noise", job, volume)["volume"]["data"]
     assert np.asarray(grid).shape == (8, 8, 8, 1)
 
 
 def test_method_names_and_cube_arguments_that_are_no_such_things_are_refused(data_dir):
     """Non-string method names failed inside str.join or a dict lookup, and render_cube(None)
     ended the interpreter in Mitsuba: each is now one error naming the argument."""
-    for methods, match in ((None, "methods must be a sequence"), ([1], "got 1"),
-                           (["noise", ["flat"]], r"got \['flat'\]"), ([b"noise"], "got b'noise'")):
+    for names, match in ((None, "methods must be a sequence"), ([1], "got 1"),
+                         (["noise", ["flat"]], r"got \['flat'\]"), ([b"noise"], "got b'noise'")):
         with pytest.raises(TypeError, match=match):
-            compare.check_methods(methods)
+            compare.check_methods(names)
     with pytest.raises(TypeError, match="texture must be a Mitsuba texture dict"):
         compare.render_cube(None, 8)
     for resolution in (0, -5, 1.5):

@@ -62,10 +62,10 @@ def test_compare_reads_the_device_memory_the_engine_held(warp_device):
     a GPU: at least what the process allocated there; nothing for the CPU."""
     import warp as wp
 
-    from warptex import compare
+    from warptex.compare import measure
 
     held = wp.zeros(64 << 20, dtype=wp.uint8, device="cuda:0")
-    peak = compare._device_peak_mib("cuda:0")
+    peak = measure._device_peak_mib("cuda:0")
     assert peak is None or peak >= 64  # None: a device without a memory pool
-    assert compare._device_peak_mib("cpu") is None
+    assert measure._device_peak_mib("cpu") is None
     del held
