@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from warptex.archive import (
     endings,
@@ -31,12 +32,46 @@ from warptex.stops import deferred_stops
 from warptex.store_files import StoreFileError, saved_and_said, saved_when_stopped, worth_saving
 from warptex.warp_runtime import KernelCacheError
 
+if TYPE_CHECKING:
+    from warptex.store import StoreStats
+
 IMAGE_SUFFIXES = (".exr", ".png")
 # Of the report beside the image (<output>.json); 2: format, date, versions, sampler seed,
 # scene parameters, and each texture's properties as a mapping beside its string.
 REPORT_FORMAT = 2
 # Arguments of mi.load_file, which its keyword arguments (scene parameters) cannot be.
 _LOAD_FILE_ARGUMENTS = ("path", "parallel", "optimize")
+
+
+class TextureReport(TypedDict):
+    """What a render's report says of one ``lazy_solid`` texture of the scene."""
+
+    texture: str  # the texture as Mitsuba prints it
+    properties: dict  # LazySolidTexture.properties(): what sets the colors a point shows
+    store: StoreStats
+    traced: dict[str, int]  # symbolic renders with traced lookups, and those that missed
+    scalar: dict[str, int] | None  # scalar variants' lookups from brick copies; None in JIT
+    saved_to: str | None  # the store file written or left as it was; None: not saved
+    store_file: str | None  # "written", or "unchanged" where the file held every voxel
+    not_saved: NotRequired[str]  # why the store file could not be written
+
+
+class RenderReport(TypedDict):
+    """What :func:`render_scene` returns and writes beside the image (``<output>.json``)."""
+
+    format: int  # REPORT_FORMAT
+    scene: str
+    image: str
+    date: str  # ISO 8601, UTC
+    versions: dict[str, str]  # warptex.machine.software_versions()
+    variant: str
+    size: list[int]  # width, height
+    spp: int
+    sampler_seed: int
+    parameters: dict[str, str | int]  # the scene's parameters, $width and $height included
+    load_seconds: float
+    render_seconds: float
+    textures: list[TextureReport]
 
 
 class OutputError(Exception):
@@ -198,7 +233,7 @@ def _saved_at_a_stop(scene) -> list[Path]:
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,
                  resolution: tuple[int, int] | None = None,
                  variant: str | None = None, save_stores: bool = True,
-                 parameters: dict[str, str] | None = None, seed: int = 0) -> dict:
+                 parameters: dict[str, str] | None = None, seed: int = 0) -> RenderReport:
     """Render ``scene_path`` to ``output`` (.exr or .png) with progress on stderr, save
     brick stores that have a ``cache`` file unless ``save_stores`` is False (stores that
     are only to be read, such as a shared one), and write their statistics as JSON beside
@@ -248,7 +283,7 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
         # Before the image: a stop while the stores are written (the longest of the writes)
         # leaves the image and its statistics as they were, never one beside the other's.
         textures = [_save_and_report(t, save_stores) for t in mitsuba_plugin.textures(scene)]
-    report = {
+    report: RenderReport = {
         "format": REPORT_FORMAT,
         "scene": str(scene_path),
         "image": str(output),
@@ -406,7 +441,7 @@ def _checked_scene(scene: object, scene_path: Path, spp: int | None, outputs: li
     return shares
 
 
-def _write_image_and_report(image: object, report: dict, output: Path,
+def _write_image_and_report(image: object, report: RenderReport, output: Path,
                             statistics: Path) -> None:
     """Write the image and its report together, and print the report; a stop meanwhile
     comes once the files are written and said to be, not between."""
@@ -503,7 +538,7 @@ def _progress(done: int, total: int) -> None:
     print(f"\rrendering: batch {done}/{total}", end=end, file=sys.stderr, flush=True)
 
 
-def _save_and_report(texture, save: bool) -> dict:
+def _save_and_report(texture, save: bool) -> TextureReport:
     """The texture's entry of the report, its store saved first if ``save``; a store that
     cannot be written (a full disk) is entered as ``not_saved``, why, and left as it was."""
     saved, failed, before = None, None, None
@@ -515,17 +550,18 @@ def _save_and_report(texture, save: bool) -> dict:
         failed = _write_failure(error, texture.cache)
     except StoreFileError as error:  # a file of another kind put there during the render
         failed = str(error)
-    entry = {"texture": texture.to_string(), "properties": texture.properties(),
-             "store": texture.solid.store.stats(),
-             "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
-             "saved_to": None if saved is None else str(saved),
-             # A store that held every voxel already is left as it was (BrickStore.save).
-             "store_file": None if saved is None else
-             "unchanged" if before is not None and file_state(saved) == before else "written"}
+    entry: TextureReport = {
+        "texture": texture.to_string(), "properties": texture.properties(),
+        "store": texture.solid.store.stats(),
+        "traced": texture.traced_stats(), "scalar": texture.scalar_stats(),
+        "saved_to": None if saved is None else str(saved),
+        # A store that held every voxel already is left as it was (BrickStore.save).
+        "store_file": None if saved is None else
+        "unchanged" if before is not None and file_state(saved) == before else "written"}
     return entry if failed is None else entry | {"not_saved": failed}
 
 
-def _print_report(report: dict) -> None:
+def _print_report(report: RenderReport) -> None:
     print(f"written: {report['image']} ({report['size'][0]}x{report['size'][1]}, "
           f"{report['spp']} spp, {report['variant']}): load {report['load_seconds']:.1f} s, "
           f"render {report['render_seconds']:.1f} s")

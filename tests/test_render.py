@@ -401,6 +401,7 @@ def test_render_refuses_what_it_could_not_write_or_would_overwrite_once_loaded(
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""
+    from mitsuba_plugin.command import RenderReport, TextureReport
     from warptex.cli import main
 
     out = tmp_path / "bunny.PNG"
@@ -414,6 +415,9 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert set(report["versions"]) == {"warptex", "warptex_code", "mitsuba", "drjit", "warp",
                                        "numpy", "scipy", "python", "os"}
     (texture,) = report["textures"]
+    # As documented, no more: what the render's statistics hold is what the API's types say.
+    assert report.keys() == RenderReport.__annotations__.keys()
+    assert texture.keys() == TextureReport.__annotations__.keys() - {"not_saved"}
     props = texture["properties"]  # the scene's lazy_solid, as a mapping
     assert [Path(e).name for e in props["exemplars"]] == ["wood_rosewood_64.png"] * 3
     assert f"seed={props['seed']}," in texture["texture"]
