@@ -990,6 +990,7 @@ def test_cache_file_name_depends_on_content_parameters_and_code(warp_device, mon
     assert cache_path([a, a, a], params) != cache_path([b, b, b], params)
     assert cache_path([a, b, a], params) != cache_path([a, a, b], params)
     assert set(OTHER_PARAMS) == set(candidate_set.DEFAULT_PARAMS)
+    assert params.keys() == candidate_set.CandidateParams.__annotations__.keys()  # as typed
     for name, value in OTHER_PARAMS.items():  # files of two parameter sets never collide
         other = candidate_set.resolved_params({name: value})
         assert other != params

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from numbers import Real
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 import warp as wp
@@ -40,7 +42,24 @@ MIN_SPLIT_PIXELS = 64
 # beside the k-d tree searches whose results they read.
 PRECOMPUTE_DEVICE = "cpu"
 
-DEFAULT_PARAMS: dict[str, object] = {
+class CandidateParams(TypedDict):
+    """The parameters that decide a candidate set (Dong 2008, sections 4 and 6.2), as
+    :data:`DEFAULT_PARAMS` gives them and candidate files and cache names record them."""
+
+    neighborhood: int
+    strips: int
+    keep: int
+    candidates_3d: int
+    candidates_2d: int
+    candidates_2d_finest: int
+    variance: float
+    min_dims: int
+    max_dims: int
+    coherence_rounds: int
+    tileable: bool | str
+
+
+DEFAULT_PARAMS: CandidateParams = {
     "neighborhood": 5,  # N
     "strips": 65,  # S
     "keep": 100,  # best crossbar triples kept before coherence filtering
@@ -120,7 +139,7 @@ class CandidateSet:
     exemplar lies on all three axes, else three (role k owned by axis k).
     """
 
-    params: dict
+    params: CandidateParams
     digests: tuple[str, str, str]
     axis_source: tuple[int, int, int]
     colors: list[np.ndarray]  # per source, finest level, (H, W, C) float32
@@ -247,7 +266,7 @@ def _strings(value: object) -> bool:
     return isinstance(value, list) and all(isinstance(v, str) for v in value)
 
 
-def resolved_params(params: dict) -> dict:
+def resolved_params(params: Mapping[str, object]) -> CandidateParams:
     """Candidate parameters ``params`` with the defaults of the others, each checked
     against :data:`_PARAM_RANGES` (and made a plain int or float, as cache keys and files
     hold them): what :func:`~warptex.candidates.precompute` keys its cache by."""

@@ -38,6 +38,7 @@ from warptex.candidate_set import (
     MIN_SPLIT_PIXELS,
     PRECOMPUTE_DEVICE,
     CandidateCacheError,
+    CandidateParams,
     CandidateSet,
     RoleLevel,
     SourceLevel,
@@ -146,12 +147,12 @@ def precompute(
     return result
 
 
-def _cached(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet:
+def _cached(path: Path, exemplars: list[Exemplar], params: CandidateParams) -> CandidateSet:
     """The candidates cached at ``path``, if they are those of ``exemplars`` and ``params``."""
     return with_crossbar_errors(_cached_set(path, exemplars, params))
 
 
-def _cached_set(path: Path, exemplars: list[Exemplar], params: dict) -> CandidateSet:
+def _cached_set(path: Path, exemplars: list[Exemplar], params: CandidateParams) -> CandidateSet:
     """The candidates of the cache file ``path`` (crossbar errors not yet derived), whole
     (checksummed), laid out as the kernels index them, and of ``exemplars`` and
     ``params``; CandidateCacheError otherwise."""
@@ -205,7 +206,7 @@ def cache_dir() -> Path:
     return (base if base.is_absolute() else Path.home() / ".cache") / "warptex"
 
 
-def cache_path(exemplars: list[Exemplar], params: dict) -> Path:
+def cache_path(exemplars: list[Exemplar], params: CandidateParams) -> Path:
     """Where the candidates of ``exemplars`` (x, y, z) and ``params`` are cached."""
     return cache_dir() / cache_file_name([e.digest() for e in exemplars], params)
 
@@ -220,7 +221,7 @@ def cache_file_there(path: Path) -> bool:
         return False
 
 
-def cache_file_name(digests: Sequence[str], params: dict) -> str:
+def cache_file_name(digests: Sequence[str], params: CandidateParams) -> str:
     """The name this warptex gives the cache file of exemplars of these content digests
     (x, y, z) and parameters; a file under another name is never read by it."""
     key = json.dumps(
