@@ -4,6 +4,7 @@ and the README links to each."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
 import shutil
 import sys
@@ -153,3 +154,16 @@ def test_make_comparisons_removes_the_reports_its_index_no_longer_lists(tmp_path
     assert all((out / "wood_rosewood" / report).exists() for report in REPORT_FILES)
     assert f"removed {out / 'granite'}" in capsys.readouterr().err
 
+
+
+def test_the_committed_comparisons_were_measured_as_the_code_measures():
+    """Each table in docs/comparisons records the settings its scores were measured with;
+    they are the code's own (a changed default, such as the sliced Wasserstein distance's
+    directions or seed, shows here: the tables are then to be made again)."""
+    from warptex.compare.report import _measure_settings
+
+    tables = sorted((REPO / "docs" / "comparisons").glob("*/table.json"))
+    assert len(tables) >= 11
+    for table in tables:
+        measures = json.loads(table.read_text())["run"]["measures"]
+        assert measures == _measure_settings(measures["repetition_slice"]), table

@@ -32,6 +32,26 @@ def test_extrusion_is_perfect_on_its_axis_only():
     assert metrics.sliced_wasserstein(vol, ex, 2) < metrics.sliced_wasserstein(vol, ex, 0)
 
 
+def test_extrusion_stacks_along_z_unless_told_otherwise():
+    ex = _exemplar()
+    vol = metrics.extrusion(ex, 4)
+    assert vol.shape == (32, 32, 4, 3)
+    assert all(np.array_equal(vol[:, :, k], ex) for k in range(4))
+
+
+def test_iid_noise_draws_every_exemplar_pixel():
+    """The last pixel too: two pixels, 64 draws."""
+    two = np.array([[[0.0], [1.0]]], np.float32)
+    assert set(np.unique(metrics.iid_noise(two, (4, 4, 4)))) == {0.0, 1.0}
+
+
+def test_slices_as_wide_as_a_patch_are_measured():
+    """A 5 x 5 slice holds one 5 x 5 patch: measured, not refused."""
+    ex = _exemplar()
+    energy = metrics.neighborhood_energy(metrics.iid_noise(ex, (5, 5, 5)), ex, 0, size=5)
+    assert np.isfinite(energy) and energy > 0
+
+
 def test_noise_scores_badly_on_every_axis():
     ex = _exemplar()
     noise = metrics.iid_noise(ex, (32, 32, 32))
@@ -342,6 +362,19 @@ def test_repetition_score_equals_the_reference_where_few_shifts_count(shape):
     shift each way (half of a side, both signs) and peaks among the 8 neighbours then decide
     the score, not one high peak well inside the range."""
     rng = np.random.default_rng(sum(shape))
+    image = gaussian_filter(rng.standard_normal((*shape, 2)), (0.7, 0.7, 0))
+    for exclude in range(max(shape) // 2):
+        assert metrics.repetition_score(image, exclude=exclude) == pytest.approx(
+            _repetition_by_hand(image, exclude), rel=1e-9), exclude
+
+
+@pytest.mark.parametrize("seed", [1, 11])
+def test_repetition_score_equals_the_reference_at_the_last_ring_of_shifts(seed):
+    """Noise of other shapes, where a peak lies on the last shift each way: its neighbours
+    past the edge of the shifts are none (the reference's), not those across the other side
+    (a wrapping peak filter scored 0.0 where the reference gives 0.005)."""
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(8, 20, 2))
     image = gaussian_filter(rng.standard_normal((*shape, 2)), (0.7, 0.7, 0))
     for exclude in range(max(shape) // 2):
         assert metrics.repetition_score(image, exclude=exclude) == pytest.approx(
