@@ -88,8 +88,10 @@ def test_texture_arguments_of_the_wrong_kind_are_named(candidates, warp_device):
     tex = SolidTexture(candidates)
     with pytest.raises(ValueError, match="fill must be one finite value or 3 of them, got 'red'"):
         tex.query(np.array([[np.nan, 0.0, 0.0]]), fill="red")
-    # np.float32 reads both as numbers, the bool as 1.
-    for fill in (True, "0.25", np.array([True, False, True])):
+    # np.float32 reads both as numbers, the bool as 1; NaN and infinity are no colours,
+    # and one value in a list is a list of the wrong length.
+    for fill in (True, "0.25", np.array([True, False, True]), np.nan, -np.inf,
+                 [0.0, np.nan, 1.0], [0.5]):
         with pytest.raises(ValueError, match="fill must be one finite value or 3 of them"):
             tex.query(np.array([[np.nan, 0.0, 0.0]]), fill=fill)
     np.testing.assert_array_equal(tex.query(np.array([[np.nan, 0.0, 0.0]]), fill=np.int64(1)),
@@ -264,6 +266,41 @@ def test_slice_arguments_are_checked(candidates, warp_device):
     for shape in ((np.int64(2**32),) * 2, np.array([2**32, 2**32])):
         with pytest.raises(ValueError, match="take it in parts"):
             tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), shape)
+    for shape in ((0, 5), (5, 0)):
+        with pytest.raises(ValueError, match="shape must be two positive ints"):
+            tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), shape)
+    # A plane whose last pixel lies just inside the range is taken, a row or column of one
+    # pixel included.
+    from warptex.texture import POINT_LIMIT
+
+    edge = POINT_LIMIT - 0.5
+    for origin, u, v in (((edge, 0, 0), (0, 1, 0), (0, 0, 1)),
+                         ((0, 0, edge - 3), (0, 1, 0), (0, 0, 1))):
+        assert tex.slice(origin, u, v, (1, 4 if origin[2] else 1)).shape[:2] == (
+            1, 4 if origin[2] else 1)
+
+
+def test_a_slice_counts_the_memory_of_its_points_and_the_voxels_they_read(candidates,
+                                                                           warp_device,
+                                                                           monkeypatch):
+    """What a slice asks of the machine before any work: 40 bytes a point (its float64
+    points, their grid while made) and its colors, and one batch of the voxels its points
+    read: eight a point trilinear, one nearest, a whole brick each where bricks are whole."""
+    from kernels.lookup import BRICK_VOXELS
+    from warptex import texture as texture_module
+    from warptex.store import BATCH_VOXELS
+    from warptex.synthesis import REQUEST_BYTES_PER_VOXEL
+    from warptex.texture import SolidTexture
+
+    asked = []
+    monkeypatch.setattr(texture_module, "memory_problem", lambda need: asked.append(need))
+    for whole, filter in ((False, "nearest"), (False, "trilinear"), (True, "nearest")):
+        asked.clear()
+        SolidTexture(candidates, whole_bricks=whole).slice((0, 0, 0), (1, 0, 0), (0, 1, 0),
+                                                            (4, 4), filter=filter)
+        per_point = (8 if filter == "trilinear" else 1) * (BRICK_VOXELS if whole else 1)
+        assert asked[0] == (16 * (40 + 4 * 3)
+                            + min(16 * per_point, BATCH_VOXELS) * REQUEST_BYTES_PER_VOXEL)
 
 
 def test_a_slices_filter_is_checked_before_its_points_are_made(candidates, warp_device,

@@ -1072,6 +1072,33 @@ def test_both_halves_of_a_cut_close_with_the_same_cap(mesh, origin, normal):
 
 
 
+@pytest.mark.parametrize(("radius", "offset"), [(0.7, (0.3, -0.2, 0.11)),
+                                                 (3e-3, (1e3 + 0.1, 0.0, 0.0))])
+def test_the_halves_keep_the_mesh_s_own_vertices_bit_for_bit(radius, offset):
+    """A cut works at unit size near the origin and brings the halves back exactly (a
+    power-of-two scale, a centre whose differences are exact): every vertex of a half off
+    the cut plane is one of the mesh's, to the bit, near the origin or far from it for its
+    size."""
+    mesh = trimesh.creation.icosphere(2, radius=radius).apply_translation(offset)
+    original = {v.tobytes() for v in mesh.vertices}
+    origin = mesh.vertices.mean(axis=0) + 0.01 * mesh.scale
+    normal = np.array([1.0, 0.3, 0.2])
+    for half in cut(mesh, origin, normal):
+        off = np.abs((half.vertices - origin) @ (normal / np.linalg.norm(normal)))
+        kept = half.vertices[off > 1e-6 * mesh.scale]
+        assert len(kept) > 20 and all(v.tobytes() in original for v in kept)
+
+
+@pytest.mark.parametrize("size", [1e8, 1e-9])
+def test_cap_faces_are_found_on_halves_of_any_size(size):
+    """cap_faces measures its tolerance in the half's own size, as the cut does."""
+    box = trimesh.creation.box(extents=(size,) * 3).apply_translation((0.3 * size, 0.1 * size,
+                                                                        0.0))
+    origin, normal = np.array([0.31 * size, 0.1 * size, 0.0]), np.array([1.0, 0.37, 0.11])
+    for half in cut(box, origin, normal):
+        assert cap_faces(half, origin, normal).sum() >= 4
+
+
 def test_a_plane_through_vertices_up_to_rounding_is_not_moved():
     """A cylinder's axis vertices lie 6e-17 off the plane x = 0 (cos(pi / 2) rounds): the
     slicing and the cap take them as in it, so moving the plane off them would only leave

@@ -350,6 +350,29 @@ def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(cand
     assert w[0].filename == __file__  # the line that saved, not warptex's own
 
 
+def test_a_texture_whose_store_failed_to_load_leaves_its_file_to_others(candidates, tmp_path,
+                                                                         monkeypatch):
+    """A construction stopped while its store file loads (Ctrl-C) holds the file for no
+    texture, even while its exception is kept (a REPL's ``sys.last_value``): a texture of
+    other settings may take it next."""
+    path = tmp_path / "granite.wtb"
+    tex = texture(candidates, store=path)
+    tex.query(points_near_origin(4, 1))
+    tex.save()
+    del tex
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(BrickStore, "load", stopped)
+    with pytest.raises(KeyboardInterrupt) as kept:
+        texture(candidates, store=path)
+    monkeypatch.undo()
+    with pytest.warns(UserWarning, match="starting empty: .*seed 0 in the file, 1 here"):
+        other = texture(candidates, seed=1, store=path)
+    assert other.path == path and kept.value is not None
+
+
 def test_textures_built_at_once_on_threads_get_no_shared_store_file(candidates, tmp_path,
                                                                      monkeypatch):
     """Mitsuba builds a scene's plugins on several threads: of two textures of other
@@ -652,3 +675,12 @@ def test_store_files_cut_short_empty_or_with_loose_members(candidates, tmp_path)
     with pytest.warns(UserWarning, match="keys is not an array"):
         loose = texture(candidates, store=path)
     assert loose.store.stats()["bricks"] == 0
+
+
+def test_far_points_move_by_the_period_the_readme_gives():
+    """README: points past the coordinate range move by whole periods of 2^22 voxels."""
+    from warptex.texture import POINT_LIMIT, wrap_far
+
+    far = np.array([POINT_LIMIT + 1.0, -(POINT_LIMIT + 1.0), 2.5 * 2.0**22 + 0.25])
+    np.testing.assert_array_equal(wrap_far(far), [POINT_LIMIT + 1.0 - 2**22,
+                                                  -(POINT_LIMIT + 1.0) + 2**22, 0.25 - 2**21])
