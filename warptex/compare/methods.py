@@ -259,9 +259,9 @@ def render_cube(texture: dict, resolution: int = 128) -> np.ndarray:
 
 def _cube_texture(method: str, job: _Job, volume: np.ndarray) -> dict:
     """``lazy`` renders through the ``lazy_solid`` plugin, which reads the exemplar files
-    again (:func:`_check_unchanged` then makes sure they are those measured); the others
-    through Mitsuba's own grid texture of their volume (both trilinear, one voxel = 1/size
-    of the cube), decoded from sRGB as the plugin decodes the lazy one's."""
+    again (:func:`.measure._check_unchanged` then makes sure they are those measured); the
+    others through Mitsuba's own grid texture of their volume (both trilinear, one voxel =
+    1/size of the cube), decoded from sRGB as the plugin decodes the lazy one's."""
     s, axes = job.setup, job.axes
     size = volume.shape[0]
     if method == "lazy":
