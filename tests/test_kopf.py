@@ -900,6 +900,34 @@ def test_search_bytes_cover_the_peak_of_building_a_search(data_dir, name, seams)
             == 2 * budget + kopf.SEARCH_BYTES_UNTRACED)  # what is untraced comes once
 
 
+def test_working_bytes_cover_a_bounded_search(warp_device):
+    """The search phase's peak, what ``kopf.working_bytes`` counts beside the solid: the
+    PCA coefficients of every grid centre (Warp's) and, from a level's second search on,
+    the float64 distances to the current matches that bound it (NumPy's), at their most
+    for an exemplar that keeps every coefficient."""
+    import tracemalloc
+    import warnings
+
+    n = 32
+    noise = np.random.default_rng(0).random((32, 32, 3), np.float32)
+    volume = np.random.default_rng(1).random((n ** 3, 3)).astype(np.float32)
+    with warnings.catch_warnings():  # noise needs more coefficients than Kopf keeps
+        warnings.simplefilter("ignore")
+        opt = kopf._LevelOptimizer([noise, noise, noise], [(False, False)] * 3,
+                                   wp.array(volume, dtype=wp.float32, device="cpu"), False)
+    assert opt.axes[0].dims == kopf._k.MAX_COEFFS
+    opt.search()  # the first, unbounded
+    tracemalloc.start()
+    try:
+        opt.search()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    coefficients = opt.coeffs.capacity
+    assert peak > coefficients  # the distances, in float64, outweigh them
+    assert peak + coefficients <= kopf.working_bytes(n)
+
+
 def test_a_constant_exemplar_keeps_one_coefficient_without_a_warning(warp_device):
     """Windows all alike have no variance: 95% of none needed '193' of 192 dimensions and
     warned that 96 kept 0.0% of it."""
