@@ -82,9 +82,10 @@ _BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_searc
 MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 # Peak memory of a synthesis per voxel, beside the solid and its returned copy: most of it the
 # search's PCA coefficients (MAX_COEFFS float32 per grid centre, a quarter of the voxels) and
-# its float64 copies of the kept ones (about 4 bytes a voxel per coefficient). Measured at
-# 64^3: 287 bytes (bricks_red_64, 39 coefficients), 325 (granite_64, 48); noise, which keeps
-# all 96, about 520.
+# a bounded search's float64 distances to the current matches (about 4 bytes a voxel per
+# kept coefficient). Resident peaks beyond the volume and its copy at 64^3, two iterations a
+# level (benchmarks/bench_kopf_memory.py, BENCHMARKS.md): 235 bytes a voxel (bricks_red_128,
+# 26 coefficients), 311 (granite_64, 48), 477-496 for noise, which keeps all 96.
 WORK_BYTES_PER_VOXEL = 600
 # Peak memory of an exemplar's search structure per window (pixel) while it is built: its
 # float64 window of 64 values per feature, centred in place, beside its coefficients (at most
