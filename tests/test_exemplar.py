@@ -55,16 +55,17 @@ def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
 
 def _write_tiff(path: Path, samples: np.ndarray, photometric: int, signed: bool = False,
                 order: str = "<") -> Path:
-    """An uncompressed TIFF of (H, W, S) integer ``samples`` in one strip, little-endian
-    or (``order`` ">") big-endian, of kinds Pillow does not write (16-bit CMYK, 16-bit
-    signed gray)."""
+    """An uncompressed TIFF of (H, W, S) integer or float ``samples`` in one strip,
+    little-endian or (``order`` ">") big-endian, of kinds Pillow does not write (16-bit
+    CMYK, 16-bit signed gray, float RGB)."""
     h, w, count = samples.shape
     data = samples.astype(samples.dtype.newbyteorder(order)).tobytes()
     short, long = 3, 4
     tags = {256: (long, [w]), 257: (long, [h]), 258: (short, [samples.dtype.itemsize * 8] * count),
             259: (short, [1]), 262: (short, [photometric]), 273: (long, [0]),
             277: (short, [count]), 278: (long, [h]), 279: (long, [len(data)]),
-            284: (short, [1]), 339: (short, [2 if signed else 1] * count)}
+            284: (short, [1]),
+            339: (short, [3 if samples.dtype.kind == "f" else 2 if signed else 1] * count)}
 
     def packed(kind: int, values: list[int]) -> bytes:
         return struct.pack(order + ("H" if kind == short else "I") * len(values), *values)
@@ -136,6 +137,37 @@ def test_tiff_16bit_grayscale_keeps_16_bits(tmp_path, rng):
                                   grey.astype(np.float32) / np.float32(65535))
 
 
+def _gray_icc_profile(name: bytes = b"Dot Gain 20%") -> bytes:
+    """An ICC profile of the GRAY color space (Photoshop's gray working spaces), which
+    Pillow's ImageCms cannot make: header, description, white point and a gamma curve."""
+
+    def padded(b: bytes) -> bytes:
+        return b + b"\0" * (-len(b) % 4)
+
+    white = struct.pack(">iii", int(0.9642 * 65536), 65536, int(0.8249 * 65536))
+    tags = [(b"desc", padded(b"desc\0\0\0\0" + struct.pack(">I", len(name) + 1) + name
+                             + b"\0" * 79)),
+            (b"wtpt", b"XYZ \0\0\0\0" + white),
+            (b"kTRC", b"curv\0\0\0\0" + struct.pack(">IH", 1, 0x0233) + b"\0\0")]
+    offset = 128 + 4 + 12 * len(tags)
+    table, data = struct.pack(">I", len(tags)), b""
+    for signature, body in tags:
+        table += signature + struct.pack(">II", offset + len(data), len(body))
+        data += padded(body)
+    header = (struct.pack(">I", offset + len(data)) + b"lcms" + struct.pack(">I", 0x02100000)
+              + b"mntrGRAYXYZ " + b"\0" * 12 + b"acsp" + b"\0" * 24 + white)
+    return header.ljust(128, b"\0") + table + data
+
+
+def test_a_gray_image_s_gray_profile_brings_no_warning(tmp_path, rng):
+    """A gray profile's curve is the gray image's own encoding, which is read as sRGB's
+    gray: nothing shifts, so nothing is said."""
+    pixels = rng.integers(0, 256, (16, 16), dtype=np.uint8)
+    Image.fromarray(pixels, "L").save(tmp_path / "gray.png", icc_profile=_gray_icc_profile())
+    np.testing.assert_array_equal(_load_quiet(tmp_path / "gray.png").colors[..., 0],
+                                  pixels / np.float32(255))
+
+
 def test_16bit_color_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
     """Pillow decodes 16-bit RGB PPM and TIFF files into 8 bits: loaded, with a warning
     naming the file, where 8-bit ones and 16-bit grey ones load quietly."""
@@ -147,6 +179,10 @@ def test_16bit_color_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
     np.testing.assert_allclose(exemplar.colors, rgb16 / 65535, atol=1 / 255)
     Image.fromarray((rgb16 >> 8).astype(np.uint8)).save(tmp_path / "rgb8.ppm")
     _load_quiet(tmp_path / "rgb8.ppm")
+    # 256 levels are two bytes a sample too.
+    ppm.write_bytes(b"P6\n20 16\n256\n" + (rgb16 >> 8).astype(">u2").tobytes())
+    with pytest.warns(UserWarning, match=r"rgb16\.ppm: 16-bit color image read as 8 bits"):
+        Exemplar.load(ppm)
     Image.fromarray(rgb16[..., 0]).save(tmp_path / "grey16.tif")
     _load_quiet(tmp_path / "grey16.tif")
 
@@ -229,6 +265,25 @@ def test_what_pillow_reads_in_part_is_said_naming_the_file(tmp_path, rng):
             Exemplar.load(jpeg)
     (tmp_path / "odd.tif").write_bytes(b"II*\0" + bytes(40))
     _raises(tmp_path / "odd.tif", r"odd\.tif: a TIFF file of a kind Pillow cannot read")
+    # Float RGB, which Pillow reads in neither byte order: named as a TIFF either way.
+    colors = rng.random((16, 16, 3)).astype(np.float32)
+    for order in "<>":
+        path = _write_tiff(tmp_path / f"float{order == '>'}.tif", colors, 2, order=order)
+        _raises(path, r"a TIFF file of a kind Pillow cannot read \(float RGB.*save it as "
+                      r"OpenEXR")
+
+
+def test_an_animation_of_two_frames_is_said_so(tmp_path, rng):
+    """Two frames are an animation too, read through Pillow (a GIF) or pypng (an APNG of
+    16 bits)."""
+    frames = [Image.fromarray(rng.integers(0, 256, (16, 20, 3), dtype=np.uint8))
+              for _ in range(2)]
+    frames[0].save(tmp_path / "two.gif", save_all=True, append_images=frames[1:])
+    gray16 = [Image.fromarray(np.asarray(f)[..., 0].astype(np.uint16) * 257) for f in frames]
+    gray16[0].save(tmp_path / "two16.png", save_all=True, append_images=gray16[1:])
+    for name in ("two.gif", "two16.png"):
+        with pytest.warns(UserWarning, match=rf"{name}: an animation of 2 frames"):
+            Exemplar.load(tmp_path / name)
 
 
 def test_png_8bit_grayscale_is_one_channel(tmp_path, rng):
@@ -283,6 +338,20 @@ def test_an_alpha_channel_opaque_everywhere_is_dropped_without_a_warning(tmp_pat
     Image.fromarray(rgba, mode="RGBA").save(tmp_path / "almost.png")
     with pytest.warns(AlphaDropped, match=r"almost\.png: alpha channel dropped"):
         Exemplar.load(tmp_path / "almost.png")
+
+
+def test_an_alpha_that_pypng_decodes_is_dropped_by_default_too(tmp_path, rng):
+    """16-bit RGBA, and a transparent color (tRNS), are decoded by pypng: their alpha is
+    dropped with a warning, not taken for a fourth color, and kept where asked."""
+    rgba16 = rng.integers(0, 65536, size=(16, 16, 4)).astype(np.uint16)
+    rgb = rng.integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    rgb[0, 0] = (1, 2, 3)
+    Image.fromarray(rgb).save(tmp_path / "trns.png", transparency=(1, 2, 3))
+    for path in (_write_png16(tmp_path / "rgba16.png", rgba16), tmp_path / "trns.png"):
+        with pytest.warns(AlphaDropped, match=rf"{path.name}: alpha channel dropped"):
+            assert Exemplar.load(path).channels == 3
+        kept = _load_quiet(path, alpha="keep")
+        assert kept.channels == 4 and kept.kept_alpha
 
 
 def test_png_rgba_alpha_kept_as_last_channel(tmp_path, rng):
@@ -380,6 +449,9 @@ def test_integer_tiffs_are_told_by_their_kind_not_their_values(tmp_path, rng):
     pgm = tmp_path / "plain16.pgm"
     pgm.write_text("P2\n18 16\n65535\n" + " ".join(map(str, values.ravel())) + "\n")
     np.testing.assert_array_equal(_load_quiet(pgm).colors[..., 0], expected)
+    values[0, 0] = 65535  # full white is a 16-bit value too, not a 32-bit one
+    pgm.write_text("P2\n18 16\n65535\n" + " ".join(map(str, values.ravel())) + "\n")
+    assert _load_quiet(pgm).colors[0, 0, 0] == 1.0
 
 
 def test_16bit_cmyk_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
@@ -559,6 +631,15 @@ def test_exr_layer_choice_prefers_colors_and_refuses_channels_told_apart_by_case
     np.testing.assert_array_equal(
         _load_quiet(_write_exr(tmp_path / "data.exr", no_color), alpha="keep").colors,
         rgb[..., :2])  # depth, then the alpha last
+
+
+def test_exr_of_numbered_data_channels_keeps_their_numeric_order(tmp_path, rng):
+    """Channels of no color (C1, C2, C10) are read in the order of their numbers, not of
+    their names' letters."""
+    planes = {f"C{k}": np.full((16, 16), float(k), np.float32) for k in (10, 1, 2)}
+    planes["C1"][0, 1] = 0.5  # not constant
+    colors = _load_quiet(_write_exr(tmp_path / "data.exr", planes)).colors
+    assert colors[0, 0].tolist() == [1.0, 2.0, 10.0]
 
 
 def test_exr_channels_that_cannot_be_colors_are_named(tmp_path, rng):
@@ -1242,6 +1323,16 @@ def test_a_photo_given_as_feature_mask_is_used_with_a_warning(tmp_path, data_dir
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Exemplar.load(path, feature_mask=tmp_path / "mask.png")
+    # Up to 5 % of grey pixels pass as edges; more do not.
+    for grey, said in ((204, False), (246, True)):  # 4.98 % and 6.0 % of 4096
+        mask = binary.copy()
+        mask[10] = 0
+        mask.reshape(-1, 3)[:grey] = 128
+        Image.fromarray(mask).save(tmp_path / "edges.png")
+        with warnings.catch_warnings(record=True) as shown:
+            warnings.simplefilter("always")
+            Exemplar.load(path, feature_mask=tmp_path / "edges.png")
+        assert any("not a black-and-white" in str(w.message) for w in shown) == said, grey
 
 
 # --- shrinking (max_size) ------------------------------------------------------------------
@@ -1488,6 +1579,30 @@ def test_otsu_mask_weighs_the_channels_as_rec_709():
     expected = np.zeros((16, 16), bool)
     expected[4:10, 5:12] = True
     np.testing.assert_array_equal(otsu_mask(image), expected)
+
+
+def test_otsu_mask_of_rgb_weighs_green_above_red():
+    """A green square on a red ground: by Rec. 709 luminance green is the brighter (0.7152
+    against 0.2126), so the square is the feature; the red channel alone would invert it."""
+    image = np.zeros((16, 16, 3), np.float32)
+    image[..., 0] = 1.0
+    image[4:10, 5:12] = (0.0, 1.0, 0.0)
+    expected = np.zeros((16, 16), bool)
+    expected[4:10, 5:12] = True
+    np.testing.assert_array_equal(otsu_mask(image), expected)
+
+
+@pytest.mark.parametrize(("contrast", "seam"), [(2.25, True), (1.9, False)])
+def test_a_wrap_above_twice_the_neighbours_difference_is_a_seam(contrast, seam):
+    """SEAM_LIMIT is 2: bundled photos whose wrap lies between 2 and 2.5 (bricks_red_128
+    2.26, fabric_gingham_128 2.25, dry_mud_128 2.07) keep their candidates away from it.
+    40 columns alternating 0 and 1, then one whose wrap to the first is ``contrast`` times
+    the mean neighbouring difference, and which no neighbouring pair matches."""
+    last = 38 * contrast / (40 - contrast)  # contrast = 40 last / (39 + last - 1)
+    columns = np.append(np.arange(40) % 2, last).astype(np.float64)
+    image = np.repeat(columns[None, :, None], 16, axis=0)
+    assert seam_contrast_of(image)[0] == pytest.approx(contrast)
+    assert seams_of(image) == (False, seam)
 
 
 def test_seam_contrast_compares_each_wrap_with_its_own_direction():

@@ -145,6 +145,25 @@ def test_colors_are_decoded_alike_in_parts(tmp_path, monkeypatch):
     assert (tmp_path / "parts.vol").read_bytes() == (tmp_path / "whole.vol").read_bytes()
 
 
+def test_volumes_of_any_memory_layout_are_written(tmp_path):
+    """A view (colors of an RGBA volume, a transposed one, Fortran order) is written as its
+    values, not refused by the writer's byte view."""
+    volume = _volume(4)
+    for view in (volume[..., :3], volume.transpose(2, 1, 0, 3), np.asfortranarray(volume)):
+        write_volume(tmp_path / "v.npy", view, srgb=False)
+        np.testing.assert_array_equal(np.load(tmp_path / "v.npy"), view)
+
+
+def test_a_suffix_in_capitals_names_the_same_format(tmp_path):
+    volume = _volume(3)
+    write_volume(tmp_path / "v.NPY", volume, srgb=False)
+    np.testing.assert_array_equal(np.load(tmp_path / "v.NPY"), volume)
+    write_volume(tmp_path / "v.EXR", volume, srgb=False)
+    assert (tmp_path / "v.EXR").read_bytes()[:4] == b"\x76\x2f\x31\x01"  # OpenEXR's magic
+    write_volume(tmp_path / "v.Vol", volume, srgb=False)
+    assert (tmp_path / "v.Vol").read_bytes()[:3] == b"VOL"
+
+
 def test_a_path_that_names_a_folder_or_is_no_file_name_is_refused(tmp_path):
     """A trailing slash was dropped (a file written under the name of the folder meant),
     and a number met pathlib's error, which names no argument."""
