@@ -333,6 +333,7 @@ def test_exported_materials_are_white_and_matte(tmp_path):
     export(mesh, tmp_path / "t.obj", image=image, uv=uv)
     mtl = (tmp_path / "t.mtl").read_text()
     assert "Kd 1.00000000 1.00000000 1.00000000" in mtl and "Ks 0.00000000" in mtl
+    assert "Ka 1.00000000 1.00000000 1.00000000" in mtl
 
 
 def test_cli_slice_writes_each_format_in_its_own_encoding(tmp_path, data_dir, warp_device,
@@ -602,7 +603,8 @@ def test_uv_layouts_that_bake_wrong_colors_are_told(texture, sphere):
     assert 45 <= int(share) <= 55 and said.startswith("of the UV area lies over other")
     tiled = mirrored * np.array([3.0, 1.0])
     _, covered = bake_uv_texture(_Constant(), mesh, tiled, np.eye(4), size=64)
-    assert uv_layout_problems(tiled, faces, covered)[1] == (
+    collapsed, outside = uv_layout_problems(tiled, faces, covered)  # and no overlap
+    assert outside == (
         "the UVs of 2 of 3 triangles reach outside [0, 1] (tiled UVs), where no texel holds "
         "their colors")
     # Unmapped faces exported at one UV: all collapsed, but not a degenerate face, which
@@ -1097,6 +1099,83 @@ def test_cap_faces_are_found_on_halves_of_any_size(size):
     origin, normal = np.array([0.31 * size, 0.1 * size, 0.0]), np.array([1.0, 0.37, 0.11])
     for half in cut(box, origin, normal):
         assert cap_faces(half, origin, normal).sum() >= 4
+
+
+def _flat_grid(size: float) -> trimesh.Trimesh:
+    """A square of 8 x 8 quads in the plane z = 0, ``size`` across: a decal, a terrain tile."""
+    u, v = np.meshgrid(np.arange(9.0), np.arange(9.0), indexing="ij")
+    vertices = np.c_[u.ravel(), v.ravel(), np.zeros(81)] * size / 8
+    corner = (np.arange(8)[:, None] * 9 + np.arange(8)[None, :]).ravel()
+    faces = np.r_[np.c_[corner, corner + 9, corner + 1], np.c_[corner + 1, corner + 9,
+                                                                corner + 10]]
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+@pytest.mark.parametrize("size", [1.0, 1e-9])
+def test_flat_meshes_unwrap_weld_and_export_at_their_own_size(size, tmp_path):
+    """A flat mesh's size is its longest side, not its thickness of none: it unwraps to
+    finite UVs of some area, welds only coincident vertices and keeps its shape in .obj."""
+    from warptex.bake import unwrapped
+    from warptex.mesh_files import _obj_digits, weld_tolerance
+
+    grid = _flat_grid(size)
+    uv = np.asarray(unwrapped(grid).visual.uv)
+    assert np.isfinite(uv).all() and np.ptp(uv, axis=0).min() > 0.1
+    assert weld_tolerance(grid.vertices) <= 1e-6 * size
+    assert _obj_digits(grid.vertices) >= 8 - np.floor(np.log10(size))
+    export(grid, tmp_path / "grid.obj", image=np.full((8, 8, 3), 0.5, np.float32),
+           uv=grid.vertices[:, :2] / size)
+    kept = trimesh.load(tmp_path / "grid.obj", force="mesh", process=False)
+    np.testing.assert_allclose(kept.extents[:2], [size, size], rtol=1e-7)
+
+
+def test_output_suffixes_in_capitals_are_the_same_formats(tmp_path):
+    """-o X.OBJ writes its .mtl and .png too; -o X.PLY holds float32 vertices too; and a
+    format without vertex colors is refused them whatever its case."""
+    from warptex.mesh_files import MeshFileError, load_mesh
+
+    assert exported_files(tmp_path / "a.OBJ", uv_texture=True) == [
+        tmp_path / "a.OBJ", tmp_path / "a.mtl", tmp_path / "a.png"]
+    far = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    far.apply_translation([5e5, 4.4e6, 100.0])
+    (tmp_path / "far.obj").write_text(trimesh.exchange.obj.export_obj(far, digits=10))
+    with pytest.raises(MeshFileError, match="hold vertices as float32"):
+        load_mesh(tmp_path / "far.obj", outputs=[tmp_path / "out.PLY"])
+    mesh, _ = _square()
+    for name in ("x.obj", "x.OBJ"):
+        with pytest.raises(ValueError, match=r"vertex colors need a \.ply or \.glb file"):
+            export(mesh, tmp_path / name, colors=np.full((4, 3), 0.5, np.float32))
+
+
+def test_uvs_a_face_reads_must_be_finite(warp_device):
+    """An infinite UV would make its triangle claim no texel, without a word; NaN too."""
+    mesh, uv = _square()
+    for bad in (np.inf, -np.inf, np.nan):
+        broken = uv.copy()
+        broken[2, 0] = bad
+        with pytest.raises(ValueError, match="uv holds NaN or infinite coordinates"):
+            texel_points(mesh, broken, np.eye(4), (8, 8))
+
+
+def test_a_file_of_points_only_is_said_to_hold_no_triangles(tmp_path):
+    from warptex.mesh_files import MeshFileError, load_mesh
+
+    trimesh.PointCloud(np.random.default_rng(0).random((10, 3))).export(tmp_path / "p.ply")
+    with pytest.raises(MeshFileError, match=r"p\.ply: no triangles found"):
+        load_mesh(tmp_path / "p.ply")
+
+
+def test_input_files_named_with_spaces_or_escapes_are_found(tmp_path):
+    """An OBJ's one library named with a space (as trimesh reads it) and a .gltf's
+    percent-escaped buffer are files an output must not replace."""
+    from warptex.mesh_files import referenced_files
+
+    (tmp_path / "my lib.mtl").write_text("newmtl m\n")
+    (tmp_path / "a.obj").write_text("mtllib my lib.mtl\nv 0 0 0\n")
+    assert tmp_path / "my lib.mtl" in referenced_files(tmp_path / "a.obj")
+    (tmp_path / "my buf.bin").write_bytes(b"")
+    (tmp_path / "a.gltf").write_text('{"buffers": [{"uri": "my%20buf.bin"}]}')
+    assert referenced_files(tmp_path / "a.gltf") == [tmp_path / "my buf.bin"]
 
 
 def test_a_plane_through_vertices_up_to_rounding_is_not_moved():

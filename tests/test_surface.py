@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from warptex.surface import block_transform, shell, to_voxel_space
+from warptex.surface import (
+    MAX_SHELL,
+    block_transform,
+    checked_shell_size,
+    shell,
+    shell_size,
+    to_voxel_space,
+)
 
 
 @pytest.mark.parametrize("resolution", [24, 48])
@@ -150,3 +157,46 @@ def test_shell_rows_of_a_box_wider_than_int64_s_numbering_stay_apart():
     rows = np.array([[0, 0, 2200000], [2200000, 0, 0], [0, 2200000, 0], [0, 0, 0],
                      [0, 0, 0]], np.int32)
     assert np.array_equal(_unique_rows(rows), np.unique(rows, axis=0))
+
+
+def test_the_shell_size_estimate_is_near_the_shell(warp_device):
+    """shell_size, which the commands' refusals and memory checks go by, is within a few
+    per cent of the voxels shell finds (the surface's area projected on the axis planes)."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    m = block_transform(sphere, 64)
+    found = len(shell(sphere, transform=m))
+    assert abs(shell_size(sphere, m) - found) < 0.02 * found
+
+
+def test_a_shell_beyond_what_a_shell_may_hold_is_refused_before_the_work():
+    """Up to 2^28 voxels: a sphere at 9600^3 passes through about 4e8, refused in words;
+    at 4096^3 through 7e7, taken."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    assert MAX_SHELL == 1 << 28
+    with pytest.raises(ValueError, match=r"about 4.*e\+08 voxels, more than the 268435456 a "
+                                         r"shell may hold"):
+        checked_shell_size(sphere, block_transform(sphere, 9600))
+    assert checked_shell_size(sphere, block_transform(sphere, 4096)) < MAX_SHELL
+
+
+def test_vertices_no_face_uses_decide_nothing_of_the_shell(warp_device):
+    """An unused vertex far out, as exporters leave them, neither widens the shell nor
+    takes it past the texture's range; a used NaN vertex is refused in words."""
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    m = block_transform(sphere, 24)
+    stray = trimesh.Trimesh(np.vstack([sphere.vertices, [[1e12, 0.0, 0.0]]]), sphere.faces,
+                            process=False)
+    np.testing.assert_array_equal(shell(stray, transform=m), shell(sphere, transform=m))
+    broken = trimesh.Trimesh(sphere.vertices.copy(), sphere.faces, process=False)
+    broken.vertices[broken.faces[0, 0]] = np.nan
+    with pytest.raises(ValueError, match=r"reaches nan voxels .*: check transform"):
+        shell(broken, transform=m)
+
+
+def test_meshes_and_transforms_that_fit_no_block_are_refused_in_words():
+    point = trimesh.Trimesh(np.ones((3, 3)), [[0, 1, 2]], process=False)
+    with pytest.raises(ValueError, match="the mesh has an empty bounding box"):
+        block_transform(point, 16)
+    for bad in (np.eye(4)[:, :3], np.eye(4)[:3], np.eye(3)):
+        with pytest.raises(ValueError, match="transform must be a 4x4 matrix"):
+            to_voxel_space(point, bad)
