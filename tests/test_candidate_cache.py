@@ -441,3 +441,25 @@ def test_a_file_of_a_newer_format_is_listed_as_another_version(tmp_path, monkeyp
     statuses = {f.path.name: f.status for f in cc.cache_files(tmp_path)}
     assert statuses[f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc"] == cc.OTHER_VERSION
     assert statuses[path.name] == cc.IN_USE
+
+
+def test_a_file_of_this_name_but_other_code_is_listed_as_other_code(folder, computed):
+    """A current name does not make a file current: one whose record names other code
+    (copied from another machine, renamed) is one every run refuses and recomputes."""
+    current, _ = computed
+    _rewritten(current, folder / current.name, meta={"code": "another warptex's code"})
+    assert _statuses(folder)[current.name] == cc.OTHER_VERSION
+
+
+def test_prune_reports_the_bytes_it_freed_and_leaves_young_writes(folder):
+    """What --prune says it freed is the files' sizes; a temporary file younger than
+    UNFINISHED_AGE (another run writing) is being written, not unfinished."""
+    young = folder / f".{candidates.CACHE_PREFIX}{'7' * 40}.1.2.tmp.wtc"
+    young.write_bytes(b"in progress")
+    minutes_ago = time.time() - cc.UNFINISHED_AGE / 2
+    os.utime(young, (minutes_ago, minutes_ago))
+    assert _statuses(folder)[young.name] == cc.BEING_WRITTEN
+    listed = [f for f in cc.cache_files(folder) if f.status in cc.NEVER_READ]
+    count, freed, failed = cc.remove(listed)
+    assert failed == [] and count == len(listed)
+    assert freed == sum(f.size for f in listed) > 0

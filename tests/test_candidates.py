@@ -1468,3 +1468,14 @@ def test_the_cache_folder_follows_xdg_cache_home_when_absolute(monkeypatch, tmp_
     else:
         monkeypatch.setenv("XDG_CACHE_HOME", xdg)
     assert cache_dir() == Path(expected.format(home=tmp_path))
+
+
+def test_the_cached_file_looked_up_is_that_of_the_setting_tileable(warp_device, tmp_path,
+                                                                  monkeypatch):
+    """`warptex info` says whether candidates are cached for the tileable asked: the file
+    of tileable=True is not the file of "auto"."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    ex = _crop(slice(0, 16), slice(0, 16))
+    precompute(ex, tileable=True)
+    assert cached_candidate_path(ex, True) is not None
+    assert cached_candidate_path(ex, "auto") is None

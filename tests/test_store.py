@@ -957,10 +957,9 @@ def test_a_store_that_stored_nothing_since_leaves_its_file_as_it_is(candidates,
     sample(reader, [brick_center((0, 0, 0))])  # a hit: nothing synthesized
     assert reader.stats()["voxels_added"] == 0
     assert not reader.save(path) and state() == as_saved
-    assert reader.save(tmp_path / "elsewhere.wtb")  # another file is written
-
-    sample(reader, [brick_center((1, 0, 0))])  # stored since: the file is rewritten
+    sample(reader, [brick_center((1, 0, 0))])  # stored since loading: the file is rewritten
     assert reader.save(path) and state() != as_saved
+    assert reader.save(tmp_path / "elsewhere.wtb")  # another file is written
     # The first stored nothing since its save, but another save replaced the file: merged.
     assert first.save(path)
     assert BrickStore.load(path, syn).stats()["bricks"] == 2
@@ -1238,3 +1237,17 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     # Bits stored column-major are the same bits.
     write_archive(path, _MAGIC, FORMAT_VERSION, dict(good, valid=np.asfortranarray(good["valid"])))
     assert BrickStore.load(path, syn).stats()["bricks"] == 2
+
+
+def test_stats_count_hits_misses_and_bytes_as_documented(candidates):
+    """One point of a cold store misses, the same point again hits; bytes are the payload's
+    and the index's (StoreStats)."""
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    first = store.stats()
+    assert (first["hits"], first["misses"]) == (0, 1)
+    sample(store, [brick_center((0, 0, 0))])
+    again = store.stats()
+    assert (again["hits"], again["misses"]) == (1, 1)
+    assert again["bytes"] == again["payload_bytes"] + again["index_bytes"] > 0
+
