@@ -463,3 +463,16 @@ def test_prune_reports_the_bytes_it_freed_and_leaves_young_writes(folder):
     count, freed, failed = cc.remove(listed)
     assert failed == [] and count == len(listed)
     assert freed == sum(f.size for f in listed) > 0
+
+
+def test_a_file_rewritten_in_place_since_the_listing_is_left_alone(folder):
+    """Rewritten in place at the same size (same inode), a file is told apart from the one
+    listed by its modification time."""
+    damaged = folder / f"{candidates.CACHE_PREFIX}{'1' * 40}.wtc"
+    (listed,) = [f for f in cc.cache_files(folder) if f.path == damaged]
+    data = damaged.read_bytes()
+    with damaged.open("r+b") as file:
+        file.write(bytes(len(data)))
+    later = time.time() + 5
+    os.utime(damaged, (later, later))
+    assert cc.remove([listed])[0] == 0 and damaged.read_bytes() == bytes(len(data))
