@@ -1284,3 +1284,33 @@ def test_corrections_pick_the_reference_triple(exemplars, request, monkeypatch):
                                           err_msg=f"level {step.level}, voxel {i}")
             changed += not np.array_equal(step.after[i], step.before[i])
     assert changed > 40  # corrections that keep every triple would test nothing
+
+
+# The engine's triples of voxels across the origin, per exemplar and setting, at
+# ENGINE_VERSION 4: what the engine makes, which no other test pins (a changed start level,
+# jitter scale, sub-pass order or tie rule stays deterministic and passes them all). The
+# kernels compute in integers and the candidates are the same on every CPU, so these are
+# the same on every machine and device. A change that alters them must say so: raise
+# ENGINE_VERSION and write the new digests here.
+_GOLDEN = {
+    ("granite_32", ()): "795ef8f7a454118b",
+    ("granite_32", (("subpasses", 8),)): "3cd70528e9c33aff",
+    ("granite_32", (("shifted_tiles", True), ("jitter", 1.5), ("seed", 7))): "e7aa76994676850d",
+    ("granite_64", ()): "d00e20092ab7d0a5",  # four levels: the start is three above
+}
+
+
+@pytest.mark.parametrize(("exemplar", "settings"), list(_GOLDEN))
+def test_the_engine_makes_the_triples_of_its_version(candidates, data_dir, exemplar,
+                                                     settings):
+    import hashlib
+
+    assert synthesis.ENGINE_VERSION == 4
+    if exemplar == "granite_64":
+        candidates = precompute(Exemplar.load(data_dir / "granite_64.png"), cache=False)
+    voxels = np.concatenate([
+        np.random.default_rng(0).integers(-40, 40, (48, 3)),
+        np.stack(np.meshgrid(*[np.arange(-2, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)])
+    triples = Synthesizer(candidates, **dict(settings)).pixel_triples(voxels)
+    digest = hashlib.sha256(np.ascontiguousarray(triples, np.int32).tobytes()).hexdigest()
+    assert digest[:16] == _GOLDEN[exemplar, settings]
