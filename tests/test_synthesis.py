@@ -829,17 +829,22 @@ def ramp(warp_device) -> Exemplar:
     return Exemplar(ramp.astype(np.float32), name="ramp")
 
 
-def test_a_photo_that_does_not_tile_never_has_its_seam_continued(ramp):
-    """A ramp's left and right edges differ. As a torus (``tileable=True``, the paper's
-    exemplars) the texture continues patches across that seam into the columns next to
-    it; by default no voxel takes the N // 2 columns at either edge, so no patch crosses
-    the seam: shifted neighbour triples stop at the margins, as candidates do."""
+@pytest.mark.parametrize("along", ["columns", "rows"])
+def test_a_photo_that_does_not_tile_never_has_its_seam_continued(ramp, along):
+    """A ramp's left and right edges differ (and, turned, its top and bottom). As a torus
+    (``tileable=True``, the paper's exemplars) the texture continues patches across that
+    seam into the pixels next to it; by default no voxel takes the N // 2 columns (rows)
+    at either edge, so no patch crosses the seam: shifted neighbour triples stop at the
+    margins, as candidates do."""
+    exemplar = ramp if along == "columns" else Exemplar(
+        np.ascontiguousarray(ramp.colors.transpose(1, 0, 2)), name="turned ramp")
     grid = np.indices((20, 20, 20)).reshape(3, -1).T - 10
-    columns = {tileable: Synthesizer(precompute(ramp, cache=False, tileable=tileable),
-                                     seed=1).triples(grid)[:, :, 1]
-               for tileable in ("auto", True)}
+    index = 1 if along == "columns" else 0
+    pixels = {tileable: Synthesizer(precompute(exemplar, cache=False, tileable=tileable),
+                                    seed=1).triples(grid)[:, :, index]
+              for tileable in ("auto", True)}
     half = 2  # of the default 5 x 5 neighbourhoods
-    in_margin = {k: (c < half) | (c >= 32 - half) for k, c in columns.items()}
+    in_margin = {k: (c < half) | (c >= 32 - half) for k, c in pixels.items()}
     assert in_margin[True].mean() > 0.02
     assert not in_margin["auto"].any()
 
