@@ -1319,3 +1319,18 @@ def test_the_engine_makes_the_triples_of_its_version(candidates, data_dir, exemp
     triples = Synthesizer(candidates, **dict(settings)).pixel_triples(voxels)
     digest = hashlib.sha256(np.ascontiguousarray(triples, np.int32).tobytes()).hexdigest()
     assert digest[:16] == _GOLDEN[exemplar, settings]
+
+
+def test_a_request_counts_its_results_beside_its_work(candidates, monkeypatch):
+    """voxels() and triples() ask the machine for the request's work and the arrays they
+    make: C float32 colors a voxel, or its triples and the int64 rows, columns and their
+    stack on the way (136 bytes)."""
+    syn = Synthesizer(candidates)
+    ijk = _random_voxels(np.random.default_rng(3), 64)
+    asked = []
+    monkeypatch.setattr(synthesis, "memory_problem", lambda need: asked.append(need))
+    syn.voxels(ijk)
+    syn.triples(ijk)
+    work = synthesis.request_bytes(ijk, syn._apron, syn._features, syn._work_cap(),
+                                   syn._steps)
+    assert asked == [work + 64 * 4 * 3, work + 64 * 136]
