@@ -1334,3 +1334,16 @@ def test_a_request_counts_its_results_beside_its_work(candidates, monkeypatch):
     work = synthesis.request_bytes(ijk, syn._apron, syn._features, syn._work_cap(),
                                    syn._steps)
     assert asked == [work + 64 * 4 * 3, work + 64 * 136]
+
+
+def test_the_coarse_cache_keeps_every_voxel_a_block_was_given(candidates):
+    """A second request whose coarse voxels share blocks with the first's adds to them:
+    asking the first again synthesizes nothing above the finest level."""
+    syn = Synthesizer(candidates)
+    first, second = np.array([[0, 0, 0]]), np.array([[3, 1, 0]])
+    syn.voxels(first)
+    syn.voxels(second)
+    before = dict(syn.voxels_synthesized)
+    syn.voxels(first)
+    coarse = [lv for lv in before if lv < syn.finest]
+    assert coarse and all(syn.voxels_synthesized[lv] == before[lv] for lv in coarse)
