@@ -181,6 +181,10 @@ def test_a_full_coarse_cache_starts_over_without_changing_results(candidates):
         assert np.array_equal(small.voxels(voxels), cold.voxels(voxels))
         held.append(sum(len(c.keys) for c in small._cache.values()))
     assert any(b < a for a, b in pairwise(held))  # the cache filled up and started over
+    # A request of more blocks than the cache holds keeps none of them: the bound holds.
+    tiny = Synthesizer(candidates, seed=4, coarse_cache_bytes=4 * 64 * 12)
+    assert np.array_equal(tiny.box((0, 0, 0), (24, 24, 24)), cold.box((0, 0, 0), (24, 24, 24)))
+    assert all(c.triples.nbytes <= c.max_bytes for c in tiny._cache.values())
 
 
 class _StoppedInTheCache:
