@@ -1570,23 +1570,15 @@ def test_arguments_without_a_meaning_are_refused_naming_them(tmp_path, data_dir)
         Exemplar(colors).pyramid(min_size="a")
 
 
-def test_otsu_mask_weighs_the_channels_as_rec_709():
-    """A red square on a blue ground: red is the brighter (0.2126 against 0.0722), so the
-    square is the feature; channels read in the wrong order would invert it."""
+@pytest.mark.parametrize(("ground", "square"), [(2, (1.0, 0.0, 0.0)), (0, (0.0, 1.0, 0.0))])
+def test_otsu_mask_weighs_the_channels_as_rec_709(ground, square):
+    """A red square on a blue ground, a green one on a red ground: by Rec. 709 luminance
+    the square is the brighter (red 0.2126 against blue 0.0722, green 0.7152 against red),
+    so it is the feature; channels read in the wrong order, or the red channel alone, would
+    invert it."""
     image = np.zeros((16, 16, 3), np.float32)
-    image[..., 2] = 1.0
-    image[4:10, 5:12] = (1.0, 0.0, 0.0)
-    expected = np.zeros((16, 16), bool)
-    expected[4:10, 5:12] = True
-    np.testing.assert_array_equal(otsu_mask(image), expected)
-
-
-def test_otsu_mask_of_rgb_weighs_green_above_red():
-    """A green square on a red ground: by Rec. 709 luminance green is the brighter (0.7152
-    against 0.2126), so the square is the feature; the red channel alone would invert it."""
-    image = np.zeros((16, 16, 3), np.float32)
-    image[..., 0] = 1.0
-    image[4:10, 5:12] = (0.0, 1.0, 0.0)
+    image[..., ground] = 1.0
+    image[4:10, 5:12] = square
     expected = np.zeros((16, 16), bool)
     expected[4:10, 5:12] = True
     np.testing.assert_array_equal(otsu_mask(image), expected)
