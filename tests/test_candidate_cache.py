@@ -476,3 +476,23 @@ def test_a_file_rewritten_in_place_since_the_listing_is_left_alone(folder):
     later = time.time() + 5
     os.utime(damaged, (later, later))
     assert cc.remove([listed])[0] == 0 and damaged.read_bytes() == bytes(len(data))
+
+
+def test_a_file_another_prune_deleted_meanwhile_is_no_failure(folder, monkeypatch):
+    """Two prunes at once: a file the other deleted after the listing is skipped, not
+    counted as one that could not be deleted."""
+    listed = [f for f in cc.cache_files(folder) if f.status in cc.NEVER_READ]
+
+    def gone(self, missing_ok=False):
+        raise FileNotFoundError(self)
+
+    monkeypatch.setattr(Path, "unlink", gone)
+    assert cc.remove(listed) == (0, 0, [])
+
+
+def test_a_file_whose_record_names_no_code_is_not_this_code_s(computed):
+    """Only a record naming this code's digest is this code's: one naming none (written by
+    other means) is recomputed, never read."""
+    assert candidates.computed_here({"code": candidates._code_digest()})
+    assert not candidates.computed_here({})
+    assert not candidates.computed_here({"code": None})
