@@ -17,10 +17,7 @@ resident memory beside the estimate that ``warptex info`` gives.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
 import textwrap
 import time
 from collections.abc import Callable, Iterator
@@ -30,7 +27,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
-from timing import positive_int, run_record  # noqa: E402
+from timing import in_a_process, positive_int, run_record  # noqa: E402
 
 import warptex.candidates as candidates  # noqa: E402
 from warptex.exemplar import Exemplar  # noqa: E402
@@ -148,11 +145,8 @@ def degenerate(sizes: list[int]) -> None:
     for kind, label in (("flat", "flat grey, one 10 x 10 light square"),
                         ("dots", "light dots on grey, 5 % of the pixels")):
         for size in sizes:
-            run = subprocess.run([sys.executable, "-c", _DEGENERATE_IN_A_PROCESS, kind,
-                                  str(size)], capture_output=True, text=True)
-            if run.returncode:
-                sys.exit(f"{kind} {size} failed in its process:\n{run.stderr}")
-            r = json.loads(run.stdout.strip().splitlines()[-1])
+            r = in_a_process(["-c", _DEGENERATE_IN_A_PROCESS, kind, str(size)],
+                             f"{kind} {size}")
             print(f"| {label} | {size}² | {r['seconds']:.1f} | {r['mib']:.0f} | "
                   f"{r['estimate']:.0f} |", flush=True)
 

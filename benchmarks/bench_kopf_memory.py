@@ -22,13 +22,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
-from timing import positive_int, run_record
+from timing import in_a_process, positive_int, run_record
 
 from warptex.baselines import kopf
 from warptex.exemplar import Exemplar
@@ -63,12 +61,8 @@ def synthesis_peak(exemplar: Exemplar, size: int, iterations: int) -> dict:
 def _in_a_process(folder: Path, name: str, size: int, iterations: int) -> dict:
     """:func:`synthesis_peak` in a fresh process: memory freed by an earlier run would hide
     part of the next one's rise."""
-    run = subprocess.run([sys.executable, __file__, "--exemplars", str(folder), "--one", name,
-                          "--sizes", str(size), "--iterations", str(iterations)],
-                         capture_output=True, text=True)
-    if run.returncode:
-        sys.exit(f"{name} at {size}^3: the run failed in its process:\n{run.stderr}")
-    return json.loads(run.stdout.strip().splitlines()[-1])
+    return in_a_process([__file__, "--exemplars", str(folder), "--one", name, "--sizes",
+                         str(size), "--iterations", str(iterations)], f"{name} at {size}^3")
 
 
 def main() -> None:

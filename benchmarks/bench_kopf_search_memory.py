@@ -15,13 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
-from timing import run_record
+from timing import in_a_process, run_record
 
 from warptex.baselines import kopf
 from warptex.exemplar import Exemplar
@@ -53,11 +51,7 @@ def search_peak(path: Path) -> dict:
 def _in_a_process(path: Path) -> dict:
     """:func:`search_peak` in a fresh process: memory freed by an earlier build would
     hide part of the next one's rise."""
-    run = subprocess.run([sys.executable, __file__, "--one", str(path)], capture_output=True,
-                         text=True)
-    if run.returncode:
-        sys.exit(f"{path}: the build failed in its process:\n{run.stderr}")
-    return json.loads(run.stdout.strip().splitlines()[-1])
+    return in_a_process([__file__, "--one", str(path)], f"{path}: the build")
 
 
 def main() -> None:

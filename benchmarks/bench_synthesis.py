@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import best_of, positive_int, run_record
+from timing import best_of, in_a_process, positive_int, run_record
 
 from warptex import metrics
 from warptex.candidates import precompute
@@ -224,12 +224,8 @@ def cold_kernels(folder: Path, names: list[str]) -> None:
         exemplar = str(folder / f"{name}.png")
         precompute(Exemplar.load(exemplar))  # into the candidate cache the process reads
         with tempfile.TemporaryDirectory() as kernels:
-            run = subprocess.run([sys.executable, "-c", _COLD_BOXES, exemplar],
-                                 capture_output=True, text=True,
-                                 env={**os.environ, "WARP_CACHE_PATH": kernels})
-        if run.returncode:
-            sys.exit(f"{name} failed in its process:\n{run.stderr}")
-        load, first, second = json.loads(run.stdout.strip().splitlines()[-1])
+            load, first, second = in_a_process(["-c", _COLD_BOXES, exemplar], name,
+                                               env={**os.environ, "WARP_CACHE_PATH": kernels})
         print(f"| {name} | {load:.1f} s | {first:.1f} s | {second:.2f} s |")
 
 
@@ -241,11 +237,8 @@ def memory(folder: Path, boxes: list[tuple[int, int, int]], part_cap: int) -> No
     print("|---|---|---|---|")
     for shape in boxes:
         for cap in (part_cap, 1 << 40):
-            run = subprocess.run([sys.executable, "-c", _BOX_IN_A_PROCESS, exemplar, str(cap),
-                                  *map(str, shape)], capture_output=True, text=True)
-            if run.returncode:
-                sys.exit(f"the box {shape} failed in its process:\n{run.stderr}")
-            r = json.loads(run.stdout.strip().splitlines()[-1])
+            r = in_a_process(["-c", _BOX_IN_A_PROCESS, exemplar, str(cap), *map(str, shape)],
+                             f"the box {shape}")
             label = f"at most {cap}" if cap == part_cap else "one call"
             print(f"| {' x '.join(map(str, shape))} | {label} | {r['mib']:.0f} | "
                   f"{r['seconds']:.1f} |")

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 T = TypeVar("T")
 ROOT = Path(__file__).resolve().parent.parent
@@ -50,6 +52,17 @@ def timed_runs(run: Callable[[T], object], repeat: int, prepare: Callable[[], T]
 def best_of(fn: Callable[[], object], repeat: int) -> float:
     """The shortest of ``repeat`` wall-clock timings of ``fn()``, in seconds."""
     return min(timed_runs(lambda _: fn(), repeat, lambda: None))
+
+
+def in_a_process(arguments: list[str], what: str, env: dict[str, str] | None = None) -> Any:
+    """What a Python process of ``arguments`` (a script and its options, or ``-c`` and
+    code) prints as JSON on its last line: measured in a fresh process, where memory freed
+    or kernels compiled by an earlier run hide nothing. Exits naming ``what`` where it
+    fails."""
+    run = subprocess.run([sys.executable, *arguments], capture_output=True, text=True, env=env)
+    if run.returncode:
+        sys.exit(f"{what} failed in its process:\n{run.stderr}")
+    return json.loads(run.stdout.strip().splitlines()[-1])
 
 
 def run_record() -> str:
