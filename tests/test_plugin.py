@@ -65,6 +65,9 @@ def eval_at(tex: mi.Texture, points: np.ndarray) -> np.ndarray:
     ({"passes": -1}, "passes"),
     ({"passes": 2.5}, "passes"),
     ({"passes": 9}, "passes"),
+    # Python's bools are numbers: jitter=True would have been a jitter of 1.
+    ({"jitter": True}, 'jitter" must be a <float ...>, got True'),
+    ({"scale": False}, 'scale" must be a <float ...>, got False'),
     ({"raw": 1}, 'raw" must be a <boolean ...>, got 1'),
     ({"shifted_tiles": "yes"}, "shifted_tiles\" must be a <boolean ...>, got 'yes'"),
     ({"tileable": "maybe"}, 'tileable" must be "auto" or "yes" or "no", got "maybe"'),
@@ -348,6 +351,9 @@ def test_to_string_tells_textures_of_other_settings_apart(granite_32_file, tmp_p
     assert f'x="{granite_32_file}", y="{granite_32_file}", z="{other}"' in on_z
     plain = load(granite_32_file).to_string()
     assert f'exemplars=["{granite_32_file}"]' in plain and "to_world" not in plain
+    assert "scale=64.0," in plain  # the default, README's
+    finer = load(granite_32_file, scale=8.0)
+    assert "scale=8.0," in finer.to_string() and finer.properties()["scale"] == 8.0
     assert f"cache_bytes={256 << 20}]" in plain
     moved = load(granite_32_file, to_world=mi.ScalarTransform4f().translate([1, 2, 3]))
     assert "to_world=[[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 2.0]," in moved.to_string()
@@ -593,11 +599,20 @@ def test_float_exemplars_are_linear_already(granite_32_file, tmp_path):
     assert "raw=True" in load(path, exemplar_y=str(granite_32_file), raw=True).to_string()
 
 
-def test_inactive_lanes_are_zero_and_not_synthesized(granite_32_file):
-    use(LLVM)
+@pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
+def test_inactive_lanes_are_zero_and_not_synthesized(granite_32_file, variant):
+    use(variant)
     tex = load(granite_32_file, scale=8.0)
     far = np.array([[0.1, 0.1, 0.1], [500.0, 500.0, 500.0]], np.float32)
-    colors = np.array(tex.eval(interaction(far), mi.Bool([True, False]))).T
+    if dr.is_jit_v(mi.Float):
+        colors = np.array(tex.eval(interaction(far), mi.Bool([True, False]))).T
+    else:
+        si = mi.SurfaceInteraction3f()
+        colors = []
+        for p, active in zip(far, (True, False), strict=True):
+            si.p = mi.Point3f(*map(float, p))
+            colors.append(np.array(tex.eval(si, active)))
+        colors = np.array(colors)
     assert (colors[1] == 0).all() and (colors[0] > 0).all()
     assert tex.solid.store.stats()["misses"] == 1
 

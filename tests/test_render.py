@@ -346,6 +346,9 @@ def test_render_keeps_the_samplers_count_and_its_stratification(tmp_path, capsys
     assert "rendering: batch 1/1\n" in capsys.readouterr().err
     assert main(["render", str(stratified), "-o", str(out), "--res", "4x4", "--spp", "5"]) == 2
     assert "5 samples per pixel: the scene's StratifiedSampler takes 9" in capsys.readouterr().err
+    # Without --spp, the scene's own count, as rendered, is what the report records.
+    assert main(["render", str(stratified), "-o", str(out), "--res", "4x4"]) == 0
+    assert json.loads(out.with_name("s.exr.json").read_text())["spp"] == 16
 
 
 def test_batches_are_renders_of_their_shares_with_their_own_seeds_weighted_by_share():
@@ -410,6 +413,7 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert list(mi.Bitmap(str(out)).size()) == [16, 16]
     report = json.loads((tmp_path / "bunny.PNG.json").read_text())
     assert report["spp"] == 1 and report["format"] == 2
+    assert report["parameters"] == {"width": "16", "height": "16"}  # --res sets them
     assert datetime.strptime(report["date"], "%Y-%m-%dT%H:%M:%SZ")  # ISO 8601, UTC
     assert report["versions"]["mitsuba"] == mi.__version__
     assert set(report["versions"]) == {"warptex", "warptex_code", "mitsuba", "drjit", "warp",

@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 import mitsuba_plugin
+from kernels.lookup import BRICK_VOXELS
 from mitsuba_plugin.scalar import ScalarLookup
+
+RGB_BRICK_BYTES = BRICK_VOXELS * 3 * 4
 
 
 def sample_points(rng: np.random.Generator, n: int, low: float, high: float) -> np.ndarray:
@@ -54,12 +57,14 @@ def test_eval_is_the_store_to_the_bit_cold_and_warm(granite_32_file, filter):
 
 
 @pytest.mark.parametrize("filter", ["trilinear", "nearest"])
-@pytest.mark.parametrize("max_bytes", [1, 1 << 20])  # starts over at every brick, or keeps all
+# Starts over at every brick, after ten of the RGB bricks, or keeps all.
+@pytest.mark.parametrize("max_bytes", [1, 10 * RGB_BRICK_BYTES, 1 << 20])
 def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_file,
                                                                     warp_device, filter,
                                                                     max_bytes):
     """A miss forgets every brick the point reads, so once the store has filled them the
-    next lookup finds the point, however many bricks the copies keep."""
+    next lookup finds the point, however many bricks the copies keep; the copies never
+    take more than ``max_bytes`` (or one brick), counted in float32 colors."""
     from warptex.texture import SolidTexture
 
     tex = SolidTexture(granite_32_file, whole_bricks=False, device=warp_device)
@@ -75,6 +80,7 @@ def test_partly_stored_bricks_are_misses_until_the_store_fills_them(granite_32_f
             color = lookup.color(tuple(p))
             assert color is not None, p
         got.append(color)
+        assert len(lookup._bricks) * RGB_BRICK_BYTES <= max(max_bytes, RGB_BRICK_BYTES)
     assert lookup.color(tuple(points[0])) is not None  # stored by now
     assert ScalarLookup(tex.store, filter, 1 << 20).color((40.0, 40.0, 40.0)) is None
     np.testing.assert_array_equal(np.array(got, np.float64).astype(np.float32),

@@ -418,6 +418,27 @@ def test_traced_reads_count_for_least_recently_used_eviction(texture):
     assert sorted(snap.keys[snap.keys >= 0]) == sorted(kept)
 
 
+def test_trilinear_reads_count_for_both_bricks_they_read(texture):
+    """A trilinear point on a brick's last voxel reads the next brick too; the render
+    that reads it keeps both over a brick stored later but not read."""
+    from mitsuba_plugin.traced import TracedLookup
+
+    rng = np.random.default_rng(8)
+    across = np.column_stack([rng.uniform(7.6, 7.9, 50), rng.uniform(1, 6, (50, 2))])
+    expected = texture.query(across, filter="trilinear")  # bricks (0, 0, 0) and (1, 0, 0)
+    texture.query(np.array([[40.0, 40.0, 40.0]]), filter="nearest")  # stored later
+    lookup = TracedLookup(texture.store, "trilinear", (0, 0, 0))
+    assert lookup.refresh()
+    np.testing.assert_array_equal(traced_colors(lookup, across), expected)
+    lookup.take_misses()
+    store = texture.store
+    store.cache_bytes = 3 * store.stats()["payload_bytes"] // store.stats()["bricks"]
+    store.prefetch(np.array([[-40, -40, -40]]))  # a fourth brick: one must go
+    kept = brick_keys(np.array([[0, 0, 0], [8, 0, 0], [-40, -40, -40]]))
+    snap = store.snapshot()
+    assert sorted(snap.keys[snap.keys >= 0]) == sorted(kept)
+
+
 def test_voxels_missing_from_a_partly_filled_brick_are_misses(granite_32_file, warp_device):
     from mitsuba_plugin.traced import TracedLookup
     from warptex.texture import SolidTexture
