@@ -121,6 +121,7 @@ from warptex.archive import file_problem
 from warptex.candidate_set import CandidateSet
 from warptex.candidates import precompute
 from warptex.exemplar import AlphaDropped, Exemplar, srgb_encoded
+from warptex.float_env import ieee_arithmetic
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
     DEFAULT_JITTER,
@@ -314,9 +315,12 @@ class LazySolidTexture(mi.Texture):
         store = self._store_to_load()
         # A JIT-typed transform, so mi.traverse can update it in place.
         self.to_world = mi.AffineTransform4f(_to_world(props))
-        candidates = self._candidates(named, features)
-        self.solid = self._solid_texture(candidates, store)
-        self._set_color_range(_axis_colors(candidates))
+        # Mitsuba builds nested textures on its threads, which flush denormals to zero:
+        # the exemplars read and candidates computed as on any other (warptex.float_env).
+        with ieee_arithmetic():
+            candidates = self._candidates(named, features)
+            self.solid = self._solid_texture(candidates, store)
+            self._set_color_range(_axis_colors(candidates))
         self._traced: TracedLookup | None = None
         # The scalar variants' copies of bricks, as large as the store may be.
         self._scalar = (None if dr.is_jit_v(mi.Float)

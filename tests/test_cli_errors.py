@@ -1076,13 +1076,14 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, monkeypatch, arg
         '<scene version="3.0.0"><shape type="sphere"><bsdf type="diffuse"><texture '
         'type="bitmap" name="reflectance"><string name="filename" value="$img"/></texture>'
         "</bsdf></shape></scene>")
-    before = {p.name: p.read_bytes() for p in work.iterdir()}
+    # Files only: Dr.Jit makes its folder in the home folder when it first loads.
+    before = {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()}
     code = main([a.format(work=work) for a in argv])
     err = capsys.readouterr().err
     assert code == 2, err
     assert f"would overwrite {work / victim}" in err or \
         f"would overwrite the input {work / victim}" in err
-    assert {p.name: p.read_bytes() for p in work.iterdir()} == before
+    assert {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()} == before
 
 
 @pytest.mark.parametrize("command", ["slice", "volume"])

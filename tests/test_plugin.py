@@ -942,6 +942,35 @@ def test_an_emitter_traced_from_the_light_shows_what_the_camera_sees(granite_32_
     np.testing.assert_allclose(light.mean(), path.mean(), rtol=0.02)
 
 
+@pytest.mark.parametrize("lights", [1, 2])
+def test_the_points_of_no_shape_are_in_the_frame_of_the_one_light_alone(granite_32_file,
+                                                                          srgb_decoded, lights):
+    """While a render emits light tracing's rays, a point of no shape is read in the frame
+    of the one shape whose light an object-space texture colours; a texture lighting two
+    shapes has no one frame, and reads it in world space (README)."""
+    use("scalar_rgb")
+    T = mi.ScalarTransform4f
+    scene = {"type": "scene", "tex": {"type": "lazy_solid", "exemplar": str(granite_32_file),
+                                      "scale": 4.0, "space": "object", "filter": "nearest"}}
+    for n, x in enumerate((5.0, -5.0)[:lights]):
+        scene[f"rect{n}"] = {"type": "rectangle", "to_world": T().translate([x, 0.0, 0.0]),
+                             "emitter": {"type": "area", "radiance": {"type": "ref",
+                                                                      "id": "tex"}}}
+    scene = mi.load_dict(scene)
+    (tex,) = mitsuba_plugin.textures(scene)
+    si = mi.SurfaceInteraction3f()  # of no shape, as an area light's emitted points
+    si.p = mi.Point3f(5.1, 0.2, 0.0)
+    in_world = np.array(tex.eval(si))
+    with tex.emitting_in(scene):
+        emitted = np.array(tex.eval(si))
+    if lights == 1:  # the rectangle's frame: the world point 5 units along x from it
+        stored = tex.solid.query(np.array([[0.1, 0.2, 0.0]]) * 4.0, filter="nearest")
+        np.testing.assert_allclose(emitted, srgb_decoded(stored)[0], rtol=1e-6)
+        assert not np.allclose(emitted, in_world)
+    else:
+        np.testing.assert_array_equal(emitted, in_world)
+
+
 @pytest.mark.parametrize("variant", ["scalar_rgb", LLVM])
 def test_eval_1_grad_is_the_slope_along_the_surface(granite_32_file, variant):
     """bumpmap reads eval_1_grad: forward differences half a voxel long, in (u, v) units, so

@@ -245,6 +245,26 @@ def test_a_lazy_solid_sigma_t_of_negative_values_is_refused(tmp_path):
                       "sigma_t": {"type": "lazy_solid", "exemplar": str(tmp_path / "signed.npy")}})
 
 
+def test_zero_extinction_and_scale_are_taken_as_mitsubas_media_take_them(tmp_path):
+    """A vacuum is a medium too: sigma_t and scale of 0, and a lazy_solid sigma_t whose
+    exemplar holds zeros (clear gaps in smoke), load; just below zero does not."""
+    use("scalar_rgb")
+    values = np.random.default_rng(0).uniform(0.5, 3.0, (32, 32, 3)).astype(np.float32)
+    values[:4] = 0.0
+    np.save(tmp_path / "gaps.npy", values)
+    wood = REPO / "scenes" / "textures" / "wood_rosewood_64.png"
+    albedo = {"type": "lazy_solid", "exemplar": str(wood)}
+    for sigma_t, scale in ((0.0, 1.0), (2.0, 0.0),
+                           ({"type": "lazy_solid", "exemplar": str(tmp_path / "gaps.npy")}, 1.0)):
+        medium = mi.load_dict({"type": "lazy_solid_medium", "albedo": dict(albedo),
+                               "sigma_t": sigma_t, "scale": scale})
+        assert medium.is_homogeneous() is False or medium is not None
+    for name, value in (("sigma_t", -1e-9), ("scale", -1e-9)):
+        with pytest.raises(RuntimeError, match=f'lazy_solid_medium: property "{name}" must be '
+                                               "finite and not negative, got -1e-09"):
+            mi.load_dict({"type": "lazy_solid_medium", "albedo": dict(albedo), name: value})
+
+
 def test_a_lazy_solid_sigma_t_varies_with_the_point_as_the_texture_does():
     """Mitsuba's texture-to-volume conversion reads a texture at p = 0 only: a lazy_solid
     sigma_t was the texture's colour at the origin everywhere."""
@@ -399,6 +419,18 @@ def test_render_refuses_what_it_could_not_write_or_would_overwrite_once_loaded(
     assert (f"{exemplar}: would overwrite {exemplar}, which a lazy_solid texture reads"
             in capsys.readouterr().err)
     assert exemplar.read_bytes() == before
+    from PIL import Image  # the feature mask it reads as well
+
+    mask = tmp_path / "mask.png"
+    Image.fromarray(np.where(np.arange(32)[:, None] < 16, 255, 0).astype(np.uint8)
+                    .repeat(32, axis=1)).save(mask)
+    before = mask.read_bytes()
+    scene.write_text(scene.read_text().replace(
+        "</texture>", f'<string name="feature_mask" value="{mask}"/></texture>'))
+    assert main(["render", str(scene), "-o", str(mask), "--spp", "1"]) == 2
+    assert (f"{mask}: would overwrite {mask}, which a lazy_solid texture reads"
+            in capsys.readouterr().err)
+    assert mask.read_bytes() == before
 
 
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):

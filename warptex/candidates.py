@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
-from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from kernels import candidates as _k
@@ -62,6 +61,7 @@ from warptex.exemplar import (
     check_same_channels,
     wrapping_edges,
 )
+from warptex.float_env import ieee_arithmetic
 from warptex.machine import memory_problem
 from warptex.parallel import launch_ranges
 from warptex.settings import (
@@ -93,6 +93,7 @@ _SHRINK_ADVICE = ("shrink it when loading: max_size=256 in Exemplar.load, --exem
                   "a scene")
 
 
+@ieee_arithmetic()  # the same candidates on a renderer's thread (float_env)
 def precompute(
     ex: Exemplar | str | Path,
     ey: Exemplar | str | Path | None = None,
@@ -516,7 +517,7 @@ def nearest_rows(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndarra
                                              return_inverse=True, return_counts=True)
     members = np.argsort(inverse.reshape(-1), kind="stable")  # by row, each by index
     starts = np.cumsum(counts) - counts
-    tree = cKDTree(rows.astype(np.float64))
+    tree = parallel.kd_tree(rows.astype(np.float64))
     todo = np.arange(len(q))
     want = min(len(rows), k + 8)
     while len(todo):

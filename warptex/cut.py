@@ -117,13 +117,14 @@ def _share_section(first: trimesh.Trimesh, second: trimesh.Trimesh, origin: np.n
     """Give the vertices of ``second``'s section the coordinates of ``first``'s: trimesh
     finds where the plane crosses an edge from the edge's end on each half's side, points
     apart in their last bits, and the caps are to be triangulated from the same points."""
-    from scipy.spatial import cKDTree
+    from warptex import parallel
 
     ours, theirs = (np.flatnonzero(_in_plane(h, origin, normal, _CAP_TOLERANCE))
                     for h in (first, second))
     if not len(ours) or not len(theirs):
         return
-    distance, nearest = cKDTree(first.vertices[ours]).query(second.vertices[theirs])
+    distance, nearest = parallel.nearest(parallel.kd_tree(first.vertices[ours]),
+                                         second.vertices[theirs])
     same = distance <= _CAP_TOLERANCE * max(float(np.ptp(first.vertices, axis=0).max()), 1e-300)
     vertices = second.vertices.copy()
     vertices[theirs[same]] = first.vertices[ours[nearest[same]]]

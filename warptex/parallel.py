@@ -25,6 +25,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
+from warptex.float_env import ieee_arithmetic
 from warptex.machine import usable_cores
 from warptex.stops import blocked, deferred_stops
 from warptex.warp_runtime import launch
@@ -115,6 +116,14 @@ def launch_ranges(
         raise
 
 
+def kd_tree(data: np.ndarray, **options: Any) -> cKDTree:
+    """``cKDTree(data, **options)`` built in IEEE arithmetic: under a caller's
+    denormals-are-zero mode (Mitsuba's threads) SciPy's median splits recursed without end
+    on some data (:mod:`warptex.float_env`)."""
+    with ieee_arithmetic():
+        return cKDTree(data, **options)
+
+
 def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
             **options: Any) -> tuple[np.ndarray, np.ndarray]:
     """``tree.query(queries, workers=workers or THREADS, **options)``, in parts of rows of
@@ -123,16 +132,17 @@ def nearest(tree: cKDTree, queries: np.ndarray, workers: int | None = None,
     short, and the threads went on reading the tree while the interrupt freed it (a
     segmentation fault as the process ended). In one part, a query of many far rows held a
     stop back for minutes (100 s for one axis of ``compare --size 128``'s completeness).
-    Each row's neighbours are its own, so the parts give what one query would."""
+    Each row's neighbours are its own, so the parts give what one query would. Searched in
+    IEEE arithmetic, as :func:`kd_tree` builds."""
     queries = np.asarray(queries)
     options["workers"] = workers or THREADS
     if queries.ndim < 2:  # one point
-        with deferred_stops():
+        with deferred_stops(), ieee_arithmetic():
             return tree.query(queries, **options)
     parts, start, rows = [], 0, _FIRST_QUERY_ROWS
     while True:
         began = time.perf_counter()
-        with deferred_stops():
+        with deferred_stops(), ieee_arithmetic():
             parts.append(tree.query(queries[start:start + rows], **options))
         start += rows
         if start >= len(queries):

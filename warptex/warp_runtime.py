@@ -23,6 +23,7 @@ from typing import IO, Any
 import warp as wp
 
 from warptex.archive import UNFINISHED_AGE
+from warptex.float_env import ieee_arithmetic
 
 _ENV = "WARPTEX_DEVICE"
 _CHOICES = ("cpu", "cuda")
@@ -164,7 +165,9 @@ def launch(kernel: wp.Kernel, dim: int, inputs: Sequence, outputs: Sequence = ()
     module = kernel.module.name
     for again in (False, True):
         try:
-            wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
+            # A CPU kernel runs on this thread, in its floating-point mode (float_env).
+            with ieee_arithmetic() if str(device) == "cpu" else contextlib.nullcontext():
+                wp.launch(kernel, dim, list(inputs), list(outputs), device=device)
             return
         except FileNotFoundError as error:
             if again:

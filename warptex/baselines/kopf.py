@@ -56,7 +56,7 @@ from warptex.exemplar import (
     file_names,
     wrapping_edges,
 )
-from warptex.parallel import launch_ranges, nearest
+from warptex.parallel import kd_tree, launch_ranges, nearest
 from warptex.settings import check_flag, check_settings, is_integer
 from warptex.thread_warnings import warn
 from warptex.warp_runtime import init_warp, launch
@@ -374,7 +374,7 @@ def _search_structure(features: np.ndarray, seams: tuple[bool, bool]) -> _Axis:
     dims = min(needed, _k.MAX_COEFFS)
     basis = np.zeros((centred.shape[1], _k.MAX_COEFFS), np.float32)
     basis[:, :dims] = vectors[:, :dims]
-    tree = cKDTree(centred @ vectors[:, :dims])
+    tree = kd_tree(centred @ vectors[:, :dims])
     return _Axis(features, pixels, mean.astype(np.float32), basis, dims, tree, needed,
                  float(explained[dims - 1]))
 
