@@ -166,6 +166,13 @@ CASES = [
      "-D optimize: Mitsuba's load_file takes optimize as an argument of its own"),
     (["render", "{no_sensor}", "--sampler-seed", "-1", "-o", "{out}/r.png"],
      "--sampler-seed must be 0 to 536870911, got -1"),
+    # The largest seed passes its check: the scene is what is refused.
+    (["render", "{no_sensor}", "--sampler-seed", "536870911", "-o", "{out}/r.png"],
+     "has no sensor (camera)"),
+    (["render", "{no_sensor}", "--res", "16x0", "-o", "{out}/r.png"],
+     "--res must be positive, got '16x0'"),
+    (["render", "{no_sensor}", "--spp", "0", "-o", "{out}/r.png"],
+     "--spp must be 1 to 4294967295 (Mitsuba counts samples per pixel in 32 bits), got 0"),
     (["render", "{no_sensor}", "--res", "100000x100000", "-o", "{out}/r.png"],
      "100000x100000 pixels at 1 samples per pixel in a batch exceed"),
     (["render", "{no_sensor}", "--res", "16384x16384", "--spp", "512", "-o", "{out}/r.png"],
