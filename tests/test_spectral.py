@@ -181,6 +181,25 @@ def test_a_mitsuba_that_upsamples_otherwise_is_refused(granite_32_file, monkeypa
         spectrum._check_upsampling.cache_clear()
 
 
+def test_a_table_that_is_not_mitsubas_whole_table_is_refused(tmp_path):
+    """Read as Mitsuba reads it: a SPEC header, a resolution of at least 2 and every
+    coefficient it promises (more bytes after them are ignored)."""
+    mi.set_variant("scalar_spectral")
+    mitsubas = str(mi.file_resolver().resolve(spectrum._TABLE))
+    table = Path(mitsubas).read_bytes()
+    res, scale, data = spectrum._table(mitsubas)
+    assert res >= 2 and len(scale) == res and len(data) == 9 * res**3
+    (tmp_path / "longer").write_bytes(table + b"more")
+    assert spectrum._table(str(tmp_path / "longer"))[0] == res
+    whole = 8 + 4 * (res + 9 * res**3)
+    for name, content in (("truncated", table[:whole - 4]), ("other", b"CEPS" + table[4:]),
+                          ("one", b"SPEC" + np.uint32(1).tobytes() + table[8:]),
+                          ("header", table[:6])):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(RuntimeError, match="not Mitsuba's spectral upsampling table"):
+            spectrum._table(str(tmp_path / name))
+
+
 @pytest.mark.parametrize("emissive", [False, True], ids=["reflectance", "radiance"])
 def test_spectral_renders_are_traced_and_match_the_rgb_render(emissive, plane_scene):
     """A spectral render reads stored voxels in its traced program as the wavefront one
