@@ -81,6 +81,23 @@ def test_misses_show_the_fallback_and_log_every_brick_they_read(texture, filter,
                                   texture.query(far, filter=filter)[:, :3])
 
 
+@pytest.mark.parametrize("axis", [0, 1, 2])
+@pytest.mark.parametrize("side", [1, -1])
+def test_a_point_just_past_the_stored_bricks_is_a_miss(texture, axis, side):
+    """The brick next to the stored ones lies outside their table of pages: no page of it
+    is read (one past the end read another brick's slot, or memory beyond the table)."""
+    from mitsuba_plugin.traced import TracedLookup
+
+    texture.query(np.array([[3.5, 3.5, 3.5], [11.5, 11.5, 11.5]]), filter="nearest")
+    lookup = TracedLookup(texture.store, "nearest", fallback=(0.25, 0.5, 0.75))
+    assert lookup.refresh()
+    point = np.array([[3.5, 3.5, 3.5]]) if side < 0 else np.array([[11.5, 11.5, 11.5]])
+    point[0, axis] += side * 8.0
+    np.testing.assert_array_equal(traced_colors(lookup, point),
+                                  np.array([[0.25, 0.5, 0.75]], np.float32))
+    assert set(brick_keys(lookup.take_misses())) == set(brick_keys(point.astype(int)))
+
+
 def test_the_miss_log_spreads_bricks_over_all_of_its_slots(texture):
     """Slots were the hash's bits 16 to 31: 65,536 of the log's 2^20, so a large cold
     render lost most of its missed bricks to collisions, took more traced rounds and fell
