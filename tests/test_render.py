@@ -371,6 +371,19 @@ def test_render_keeps_the_samplers_count_and_its_stratification(tmp_path, capsys
     assert json.loads(out.with_name("s.exr.json").read_text())["spp"] == 16
 
 
+def test_the_size_check_counts_the_largest_batch_a_render_makes():
+    """`warptex render` refuses, before loading, a film whose largest batch Dr.Jit could
+    not hold: the share it counts is the largest the render takes."""
+    from mitsuba_plugin.command import _samples_per_batch
+    from warptex.settings import RENDER_BATCHES
+
+    use("scalar_rgb")
+    sampler = mi.load_dict({"type": "independent"})
+    for total in (*range(1, 3 * RENDER_BATCHES), 1000, 4097):
+        shares = mitsuba_plugin._batch_shares(sampler, total, RENDER_BATCHES)
+        assert _samples_per_batch(total) == max(shares), total
+
+
 def test_batches_are_renders_of_their_shares_with_their_own_seeds_weighted_by_share():
     """render(spp=3, batches=2, seed=5) is Mitsuba's render of 2 samples with seed 10 and of
     1 sample with seed 11, weighted 2:1, as render's documentation says: batches sharing
