@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import os
 import platform
 import shutil
@@ -25,7 +26,7 @@ import warptex.candidates as candidates
 from warptex import Exemplar, ExemplarError, candidate_set, exact_pca, parallel
 from warptex.archive import read_archive, write_archive
 from warptex.candidate_set import FORMAT_VERSION, CandidateCacheError, CandidateSet, SourceLevel
-from warptex.candidates import cache_path, cached_candidate_path, precompute
+from warptex.candidates import cache_file_name, cache_path, cached_candidate_path, precompute
 from warptex.code_digest import sources_digest
 
 GRANITE = Path(__file__).resolve().parent / "data" / "granite_64.png"
@@ -168,15 +169,22 @@ def _brute_nearest(database: np.ndarray, queries: np.ndarray, k: int) -> np.ndar
     return np.stack([np.lexsort((np.arange(len(database)), row))[:k] for row in d2])
 
 
-@pytest.mark.parametrize(("size", "k", "usable_share"),
-                         [(16, 4, 1.0), (16, 4, 0.6), (9, 30, 1.0), (9, 30, 0.3)])
-def test_k_coherent_candidates_are_the_nearest_far_pixels_in_order(size, k, usable_share):
+@pytest.mark.parametrize(("size", "k", "usable_share", "smooth"),
+                         [(16, 4, 1.0, False), (16, 4, 0.6, False), (9, 30, 1.0, False),
+                          (9, 30, 0.3, False), (16, 4, 1.0, True)])
+def test_k_coherent_candidates_are_the_nearest_far_pixels_in_order(size, k, usable_share,
+                                                                   smooth):
     """Section 4.2's 2D candidates (Tong et al. 2002) against a pixel-by-pixel reference:
     the pixel itself (or the usable one most like it), then the most similar usable pixels
     more than 2 pixels away, the lead repeated where there are too few. A level with fewer
-    usable pixels than k (seams' margins at a coarse level) raised an IndexError."""
+    usable pixels than k (seams' margins at a coarse level) raised an IndexError. On a
+    smooth ramp the 5x5 pixels around each are its most similar: the far ones lie past
+    them."""
     rng = np.random.default_rng(size * k)
     proj = rng.integers(-2, 3, (size * size, 4)).astype(np.int16)  # ties by the hundred
+    if smooth:
+        u, v = np.divmod(np.arange(size * size), size)
+        proj = np.stack([10 * u, 10 * v, 0 * u, 0 * v], axis=1).astype(np.int16)
     usable = rng.random(size * size) < usable_share
     usable[0] = True
     got = candidates._kcoherent(proj, size, size, k, usable)
@@ -307,6 +315,8 @@ def test_coherence_holds_when_rounds_run_out(warp_device):
         sizes = [cs.sources[lv][0].size] * 3
         bad = _incoherent(role.cand, role.count, sizes).any(axis=1)
         np.testing.assert_array_equal(bad, role.fallback)
+    # Cut to the paper's "first 12", not fewer: lists that stay coherent keep all of them.
+    assert max(int(r[0].count.max()) for r in cs.roles) == cs.params["candidates_3d"]
 
 
 
@@ -315,10 +325,31 @@ def test_coherence_rounds_cut_the_lists_when_they_run_out(warp_device):
     filtering on; without the cut, filtering would run to its fixpoint whatever the
     setting."""
     ex = _crop(slice(0, 32), slice(0, 32))
-    one, many = (precompute(ex, cache=False, coherence_rounds=r) for r in (1, 16))
-    assert any(not np.array_equal(a[0].cand, b[0].cand) or not np.array_equal(a[0].count,
-                                                                              b[0].count)
-               for a, b in zip(one.roles, many.roles, strict=True))
+    one, two, many = (precompute(ex, cache=False, coherence_rounds=r) for r in (1, 2, 16))
+
+    def differ(a: CandidateSet, b: CandidateSet) -> bool:
+        return any(not np.array_equal(x[0].cand, y[0].cand)
+                   or not np.array_equal(x[0].count, y[0].count)
+                   for x, y in zip(a.roles, b.roles, strict=True))
+
+    assert differ(one, many) and differ(one, two)
+
+
+def test_lists_are_cut_after_as_many_rounds_as_the_setting_says(monkeypatch, warp_device):
+    """With ``coherence_rounds=1`` the lists that the first round filtered are cut to k3
+    before the second: no two rounds in a row see longer lists. Lists filtered to their
+    fixpoint before that are cut to k3 too, and keep all k3 where they are coherent."""
+    ex = _crop(slice(0, 32), slice(0, 32))
+    longest = []
+    continued = candidates._continued
+    monkeypatch.setattr(candidates, "_continued", lambda cand, count, sizes, listed: (
+        longest.append(int(count[listed].max())), continued(cand, count, sizes, listed))[1])
+    k3 = precompute(ex, cache=False, coherence_rounds=1).params["candidates_3d"]
+    assert longest[0] > k3
+    assert not any(a > k3 and b > k3 for a, b in itertools.pairwise(longest))
+    longest.clear()
+    plain = precompute(ex, cache=False)  # 16 rounds: the fixpoint comes first
+    assert max(int(r[0].count.max()) for r in plain.roles) == k3
 
 # -- different exemplars per axis ---------------------------------------------------------
 
@@ -1074,6 +1105,9 @@ def test_unknown_or_bad_parameters_are_rejected():
            ({"variance": 2.0}, ValueError, r"variance .* must be within \(0, 1\]"),
            ({"variance": float("nan")}, ValueError, "variance"),
            ({"variance": "0.9"}, TypeError, "variance must be a number"),
+           ({"variance": 0}, ValueError, r"variance .* must be within \(0, 1\]"),
+           ({"variance": True}, TypeError, "variance must be a number"),
+           ({"coherence_rounds": 0}, ValueError, "coherence_rounds must be within"),
            ({"tileable": "yes"}, ValueError, 'tileable must be "auto", True or False'),
            ({"tileable": 1}, TypeError, "tileable must be"),
            ({"tileable": None}, TypeError, "tileable must be")]
@@ -1088,6 +1122,12 @@ def test_unknown_or_bad_parameters_are_rejected():
     resolved = candidate_set.resolved_params({"neighborhood": np.int64(5)})
     assert resolved == candidate_set.DEFAULT_PARAMS and type(resolved["neighborhood"]) is int
     assert candidate_set.resolved_params({"tileable": np.bool_(False)})["tileable"] is False
+    # The bounds themselves are taken: the whole variance, a dimension count fixed by
+    # min_dims == max_dims; an integer variance is the float one (one cache name).
+    fixed = candidate_set.resolved_params({"variance": 1, "min_dims": 8, "max_dims": 8})
+    assert fixed["variance"] == 1.0 and type(fixed["variance"]) is float
+    as_float = candidate_set.resolved_params({"variance": 1.0, "min_dims": 8, "max_dims": 8})
+    assert cache_file_name(["d"], fixed) == cache_file_name(["d"], as_float)
 
 
 def _squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -1147,6 +1187,10 @@ def test_pca_keeps_the_fewest_dimensions_that_hold_the_variance(granite_32, warp
         assert level[0].basis.shape[0] == want
         dims.append(want)
     assert min(dims) < 12  # the variance, not the cap, decided somewhere
+    floor = min(dims) + 1  # min_dims raises the levels that need fewer
+    raised = precompute(granite_32, cache=False, variance=0.7, min_dims=floor, max_dims=12)
+    assert [level[0].basis.shape[0] for level in raised.sources] == [max(d, floor)
+                                                                     for d in dims]
 
 
 def test_pca_basis_is_orthonormal_axes_on_one_common_scale(granite_32, warp_device):
