@@ -866,6 +866,8 @@ def test_a_checksummed_file_one_past_each_bound_of_its_layout_is_refused(tmp_pat
 
     shifts = [list(level) for level in meta["shifts"]]
     shifts[last][0] = -1
+    wide_shifts = [list(level) for level in meta["shifts"]]
+    wide_shifts[last][0] = 32  # a shift of an int32 by 32 bits is undefined in the kernels
     margins = [[list(m) for m in level] for level in meta["margins"]]
     margins[last][0] = [-1, 0]
     pixels = [h * w for h, w in sizes]
@@ -884,6 +886,9 @@ def test_a_checksummed_file_one_past_each_bound_of_its_layout_is_refused(tmp_pat
         "proj_rows": {f"L{last}/S0/proj": proj[:-1]},
         "no_dims": {f"L{last}/S0/basis": basis[:0], f"L{last}/S0/proj": proj[:, :0]},
         "negative_shift": with_meta(shifts=shifts),
+        "shift_of_32": with_meta(shifts=wide_shifts),
+        "triples_of_three": {role0: np.concatenate([arrays[role0], arrays[role0][..., :1]],
+                                                   axis=2)},
         "negative_margin": with_meta(margins=margins),
         "count_past_row": {f"L{last}/R0/count": changed(
             f"L{last}/R0/count", (0,), arrays[role0].shape[1] + 1)},
@@ -937,6 +942,9 @@ def test_a_file_whose_basis_reaches_past_127_is_refused(tmp_path, granite):
 def test_content_digest_is_kept_through_a_file_and_sees_one_coefficient(tmp_path, granite):
     granite.save(tmp_path / "g.wtc")
     assert CandidateSet.load(tmp_path / "g.wtc").content_digest == granite.content_digest
+    # Equal sets are those of the same parameters too (their caches are other files).
+    assert CandidateSet.load(tmp_path / "g.wtc") == granite
+    assert dataclasses.replace(granite, params={**granite.params, "keep": 50}) != granite
     # Another LAPACK may round one PCA coefficient otherwise, under the same cache key.
     loaded = CandidateSet.load(tmp_path / "g.wtc")
     loaded.sources[1][0].basis[0, 0] += 1
