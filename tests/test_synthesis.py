@@ -749,6 +749,10 @@ def test_candidates_no_synthesis_could_use_are_refused_before_they_are_computed(
         precompute(many, cache=False)
     with pytest.raises(ValueError, match=r"35 feature channels .* \(at most 19\)"):
         precompute(many, cache=False, neighborhood=9)
+    # The most it names is taken: 34 channels reach the pre-computation.
+    most = Exemplar(np.random.default_rng(0).random((16, 16, 34), np.float32), name="most")
+    with pytest.raises(AssertionError, match="pre-computed candidates the engine refuses"):
+        precompute(most, cache=False)
 
 
 def test_candidate_counts_reach_the_search(granite_32, candidates):
