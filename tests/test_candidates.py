@@ -1182,6 +1182,19 @@ def test_a_constant_channel_quantizes_without_warnings(warp_device):
         assert level[0].feat[..., :2].std() > 0, lv
 
 
+def test_a_flat_exemplar_keeps_the_fewest_dimensions_and_gives_its_color(warp_device):
+    """No variance to keep: min_dims at every level (the fraction of none is taken as all
+    of it), and the texture is the one color."""
+    from warptex.texture import SolidTexture
+
+    with pytest.warns(UserWarning, match="flat: image is constant"):
+        flat = Exemplar(np.full((16, 16, 3), 0.5, np.float32), name="flat")
+    cs = precompute(flat, cache=False)
+    assert {level[0].basis.shape[0] for level in cs.sources} == {cs.params["min_dims"]}
+    points = np.random.default_rng(0).uniform(-30, 30, (50, 3))
+    assert (SolidTexture(cs).query(points) == np.float32(0.5)).all()
+
+
 def test_pca_keeps_the_fewest_dimensions_that_hold_the_variance(granite_32, warp_device):
     cs = precompute(granite_32, cache=False, variance=0.7, min_dims=1, max_dims=12)
     dims = []
