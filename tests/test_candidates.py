@@ -1257,6 +1257,8 @@ def test_projections_are_of_three_times_the_neighbourhood_in_basis_order(warp_de
                              axis=1)
         expected = (3 * vec) @ src.basis.astype(np.int64).T >> src.shift
         np.testing.assert_array_equal(src.proj, expected, f"level {lv}")
+        # The least shift that fits them in range: they use its upper half, no bit lost.
+        assert src.shift > 0 and np.abs(src.proj).max() > candidates.PROJ_LIMIT // 2, lv
 
 
 def test_2d_candidates_are_the_nearest_neighbourhoods_more_than_2_pixels_away(granite_32,
