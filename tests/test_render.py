@@ -458,7 +458,7 @@ def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     assert list(mi.Bitmap(str(out)).size()) == [16, 16]
     report = json.loads((tmp_path / "bunny.PNG.json").read_text())
     assert report["spp"] == 1 and report["format"] == 2
-    assert report["parameters"] == {"width": "16", "height": "16"}  # --res sets them
+    assert report["parameters"] == {"width": 16, "height": 16}  # --res sets them
     assert datetime.strptime(report["date"], "%Y-%m-%dT%H:%M:%SZ")  # ISO 8601, UTC
     assert report["versions"]["mitsuba"] == mi.__version__
     assert set(report["versions"]) == {"warptex", "warptex_code", "mitsuba", "drjit", "warp",
