@@ -243,6 +243,8 @@ def test_precompute_errors(images, tmp_path, capsys):
     args = ["precompute", str(images["a"]), "--feature-mask", str(mask), "--ey", str(images["a"])]
     assert main(args) == 2
     assert "--feature-mask marks one image" in capsys.readouterr().err
+    assert main([*args[:4], "--ez", str(images["a"])]) == 2  # z's alone as well
+    assert "--feature-mask marks one image" in capsys.readouterr().err
     assert main(["precompute", str(tmp_path / "missing.png")]) == 2
     assert "missing.png: image file not found" in capsys.readouterr().err
     target = tmp_path / "no" / "such" / "dir" / "c.wtc"

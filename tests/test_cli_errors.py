@@ -183,6 +183,15 @@ CASES = [
     (["slice", "{exemplar}", "--origin", "5e6", "0", "0", "-o", "{out}/s.png"],
      "coordinate range"),
     (["compare", "{exemplar}", "--size", "4", "-o", "{out}/cmp"], "--size must be at least 8"),
+    # Kopf's checks come before the work for its mean-shift variant alone too.
+    (["compare", "{exemplar}", "--methods", "kopf-meanshift", "--size", "12", "-o",
+      "{out}/cmp"], "--size must be a positive multiple of 8 for Kopf's method"),
+    (["slice", "{exemplar}", "--shape", "16", "0", "-o", "{out}/s.png"],
+     "--shape must be positive, got 16 0"),
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--normal", "inf", "1", "0",
+      "-o", "{out}/c.ply"], "--normal must be finite numbers, got inf 1.0 0.0"),
+    (["slice", "{exemplar}", "--origin", "-inf", "0", "0", "-o", "{out}/s.png"],
+     "--origin must be finite numbers, got -inf 0.0 0.0"),
     (["compare", "{exemplar}", "--ey", "{out}/missing.png", "-o", "{out}/cmp"],
      "{out}/missing.png"),
     (["compare", "{exemplar}", "--ez", "{gray}", "-o", "{out}/cmp"],
@@ -1034,6 +1043,8 @@ def test_kernel_build_note_on_a_gpu_machine(tmp_path, monkeypatch, capsys, warp_
 OVERWRITES = [
     (["volume", "{work}/wood.npy", "--size", "8", "-o", "{work}/wood.npy"], "wood.npy"),
     (["slice", "{work}/wood.png", "--ey", "{work}/y.png", "-o", "{work}/y.png"], "y.png"),
+    (["slice", "{work}/wood.png", "--feature-mask", "{work}/sheet.png", "-o",
+      "{work}/sheet.png"], "sheet.png"),
     (["bake", "{work}/ball.ply", "--exemplar", "{work}/wood.png", "-o", "{work}/ball.ply"],
      "ball.ply"),
     # An .obj comes with its texture, named after it: wood.obj writes wood.png.
