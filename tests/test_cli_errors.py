@@ -832,6 +832,12 @@ def test_slice_warns_of_what_a_png_cannot_show(files, tmp_path, capsys):
     assert main(["slice", str(rgba), "--alpha", "keep", "--shape", "4", "4", "--passes", "0",
                  "-o", str(out)]) == 0
     assert "the PNG keeps 8-bit RGB: 1 channel of 4 dropped" in capsys.readouterr().err
+    # Data below 0 (linear, centred) is clipped too, and said so.
+    signed = tmp_path / "signed.npy"
+    np.save(signed, color.astype(np.float32) / 255 - 0.5)
+    assert main(["slice", str(signed), "--shape", "4", "4", "--passes", "0",
+                 "-o", str(out)]) == 0
+    assert "values outside [0, 1] are clipped" in capsys.readouterr().err
     # A file's alpha, kept, is the PNG's alpha, as stored; a .npy's fourth channel is data.
     png = tmp_path / "rgba.png"
     Image.fromarray(np.concatenate([color, color[..., 1:2]], axis=2)).save(png)

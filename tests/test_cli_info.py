@@ -95,6 +95,17 @@ def test_info_of_an_exemplar_shrunk_to_max_size(data_dir, capsys, no_candidates)
     assert "pyramid: 3 levels (6x6, 12x12, 24x24)" in out
 
 
+def test_info_of_a_wide_exemplar_shrunk_gives_both_sizes_width_first(data_dir, tmp_path,
+                                                                     capsys, no_candidates):
+    from PIL import Image
+
+    wide = tmp_path / "wide.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 48, 32)).save(wide)
+    assert main(["info", "--exemplar-max-size", "24", str(wide)]) == 0
+    assert ("size: 24 x 16 pixels (width x height), shrunk from 48 x 32\n"
+            in capsys.readouterr().out)
+
+
 def test_info_reports_cached_candidates(data_dir, capsys, monkeypatch):
     seen = []
 

@@ -66,7 +66,10 @@ def test_compare_writes_every_file_and_ranks_the_baselines(tmp_path, data_dir, w
     table = json.loads((out / "table.json").read_text())
     run = table["run"]
     assert table["format"] == 6 and table["axes"] == ["x", "y", "z"]
+    assert table["exemplar"] == "granite_64.png"  # its name: no local path in a shared table
     assert run["size"] == 16 and run["seed"] == 0 and run["cores"] >= 1 and run["passes"] == 2
+    # Both methods that run the engine say with how many passes.
+    assert rows["lazy"]["notes"] == rows["tiled"]["notes"] == "correction passes per level: 2"
     assert run["cpu"] and run["warp"] and 1 <= run["threads"] <= run["cores"]
     assert {"numpy", "scipy", "python", "mitsuba", "drjit", "warptex_code"} <= set(
         run["versions"])
