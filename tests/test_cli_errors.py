@@ -440,6 +440,17 @@ def test_render_refuses_statistics_it_could_not_write_before_rendering(files, tm
     assert [p.name for p in out.iterdir()] == ["r.png.json"]
 
 
+def test_a_warning_that_names_warptex_is_not_prefixed_twice(capsys):
+    """Warnings worded for Python's users ("warptex: Mitsuba falls back to scalar_rgb")
+    show once prefixed in a command's output, as any other."""
+    from warptex.cli.console import show_warning
+
+    show_warning(UserWarning("warptex: falls back to scalar_rgb"), UserWarning, "f.py", 1)
+    show_warning(UserWarning("image is constant"), UserWarning, "f.py", 1)
+    assert capsys.readouterr().err == ("warptex: warning: falls back to scalar_rgb\n"
+                                       "warptex: warning: image is constant\n")
+
+
 def test_python_m_warptex_is_the_command():
     import subprocess
     import sys

@@ -716,7 +716,8 @@ def test_the_large_slices_are_taken_at_the_middle_z(monkeypatch):
     np.testing.assert_array_equal(large[16:32, 48:64], volume[:, :, 8])
 
 
-def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block():
+def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block(
+        monkeypatch):
     """At 72^3 the tiled volume is its 64^3 block repeated and cut: its large slice repeats
     that block (score 1), not the 72-voxel cut with a seam in it (it scored 0.19)."""
     from warptex import metrics
@@ -729,6 +730,9 @@ def test_a_tiled_volume_of_a_size_its_block_does_not_divide_repeats_by_the_block
     assert large.shape[:2] == (256, 256)
     np.testing.assert_array_equal(large[64:128, 128:192], block[:, :, 36])
     assert metrics.repetition_score(large) == pytest.approx(1.0)
+    # The volume itself is the block repeated and cut: as large as asked.
+    monkeypatch.setattr(methods, "_lazy", lambda job, size: block[:size, :size, :size])
+    np.testing.assert_array_equal(methods._tiled(None, 72), volume)
 
 
 def test_results_come_in_the_order_of_the_methods_asked(monkeypatch, data_dir):
