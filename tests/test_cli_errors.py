@@ -1247,6 +1247,28 @@ def test_compare_refuses_channels_a_later_method_cannot_take_before_any_method_r
         compare.compare(compare.Setup(path, 16), methods.split(","), progress=False)
 
 
+def test_a_volume_file_s_write_copies_are_counted_before_the_work(files, tmp_path, capsys,
+                                                                  monkeypatch):
+    """A .exr holds three copies of the volume while it is written (WRITE_COPIES), a .npy
+    none: at 1024^3, where the volume's slabs take less than those copies, memory for the
+    volume and its slabs but not for the copies refuses the .exr before any work."""
+    from warptex import candidates, machine
+    from warptex.cli.common import volume_bytes
+    from warptex.volume_files import WRITE_COPIES
+
+    def work(*args, **kwargs):
+        raise AssertionError("the work began")
+
+    monkeypatch.setattr(candidates, "precompute", work)
+    need = (1 + WRITE_COPIES[".exr"]) * volume_bytes(1024, 3)
+    monkeypatch.setattr(machine, "physical_memory", lambda: need - 1)
+    assert main(["volume", str(files["exemplar"]), "--size", "1024",
+                 "-o", str(tmp_path / "v.exr")]) == 2
+    assert "--size 1024: a 1024^3 volume needs about" in capsys.readouterr().err
+    with pytest.raises(AssertionError, match="the work began"):  # a .npy fits
+        main(["volume", str(files["exemplar"]), "--size", "1024", "-o", str(tmp_path / "v.npy")])
+
+
 def test_a_kopf_search_beyond_the_memory_is_refused_naming_the_exemplar(
         files, tmp_path, capsys, monkeypatch):
     """The search's windows take kilobytes per exemplar pixel whatever the volume's size:
