@@ -1134,3 +1134,24 @@ def test_method_names_and_cube_arguments_that_are_no_such_things_are_refused(dat
     for resolution in (0, -5, 1.5):
         with pytest.raises(ValueError, match="resolution"):
             compare.render_cube({"type": "rgb", "value": 0.5}, resolution)
+
+
+def test_the_sheet_shows_each_axis_exemplar_and_each_method_s_slices_and_cube(
+        tmp_path, data_dir, monkeypatch):
+    """The sheet's rows, as drawn: one exemplar row (per axis where they differ), then per
+    method its three middle slices and its rendered cube."""
+    from warptex import sheets
+
+    drawn = []
+    sheet = sheets.sheet
+    monkeypatch.setattr(sheets, "sheet", lambda rows, **kw: (drawn.append(rows),
+                                                             sheet(rows, **kw))[1])
+    granite, onyx = data_dir / "granite_64.png", data_dir / "onyx_banded_64.png"
+    for setup in (compare.Setup(granite, 16), compare.Setup(granite, 16, ey=onyx)):
+        compare.write_report(compare.compare(setup, ["noise"], progress=False),
+                             tmp_path / f"cmp{len(drawn)}")
+    (same, *noise), (per_axis, *_) = drawn
+    assert [label for label, _ in same[1]] == ["exemplar"]
+    assert [label for label, _ in per_axis[1]] == ["x exemplar", "y exemplar", "z exemplar"]
+    assert [(method, [label for label, _ in images]) for method, images in noise] == [
+        ("noise", ["x = 8", "y = 8", "z = 8", "rendered cube"])]
