@@ -726,6 +726,27 @@ def test_mark_used_refuses_slots_the_snapshot_does_not_have(candidates):
     store.mark_used(np.flatnonzero(snap.keys >= 0), store.version)
 
 
+def test_an_eviction_alone_makes_snapshots_stale_and_their_marks_are_ignored(candidates):
+    """A store made smaller, then asked for what it holds, evicts without inserting: its
+    version changes all the same (readers of a snapshot look again), and a stale snapshot's
+    marks of use stamp nothing, though its slots still hold bricks."""
+    store = BrickStore(synthesizer(candidates))
+    bricks = [(0, 0, 0), (1, 0, 0), (2, 0, 0)]
+    for b in bricks:
+        sample(store, [brick_center(b)])
+    snap, version = store.snapshot(), store.version
+    evicted = store.stats()["bricks_evicted"]
+    store.cache_bytes = 2 * BRICK_BYTES
+    store.prefetch(np.array([[16, 0, 0]]))  # brick (2, 0, 0), stored: nothing inserted
+    assert store.stats()["bricks_evicted"] == evicted + 1 and store.version != version
+    # The oldest left, brick (1, 0, 0), marked through the stale snapshot: ignored, so it
+    # is the one the next brick evicts.
+    store.mark_used(np.flatnonzero(snap.keys == brick_keys(np.array([[8, 0, 0]]))[0]), version)
+    store.prefetch(np.array([[24, 0, 0]]))
+    now = store.snapshot()
+    assert set(now.keys[now.keys >= 0]) == set(brick_keys(np.array([[16, 0, 0], [24, 0, 0]])))
+
+
 def test_bricks_read_through_brick_sums_count_as_used(candidates):
     """The scalar plugin's copies read bricks through brick_sums: those count for
     least-recently-used eviction like a lookup's."""
@@ -822,6 +843,10 @@ def test_saves_to_one_file_merge_rather_than_replace(candidates, tmp_path: Path)
     small = BrickStore.load(path, syn, whole_bricks=False, cache_bytes=two)
     snap = small.snapshot()
     assert set(snap.keys[snap.keys >= 0]) == set(brick_keys(voxels[[0, 4]]))
+    # Their own voxels, read from the file past the partial brick left out of the room.
+    kept = voxels[[0, 1, 3, 4]]
+    np.testing.assert_array_equal(sample(small, kept + 0.5), syn.voxels(kept))
+    assert small.stats()["misses"] == 0
     # Saving again changes nothing; a store of another seed replaces the file.
     second.save(path)
     assert BrickStore.load(path, syn).stats()["voxels"] == 5
