@@ -220,6 +220,15 @@ def test_a_long_query_runs_in_parts_and_a_stop_waits_for_one(monkeypatch):
 
     found = warptex.parallel.nearest(Counted(), points[::-1], k=3)
     assert len(asked) > 1 and sum(asked) == len(points)
+    # However fast a part seems, the next is at most 4 times as large: one part sized from
+    # a timer's tick would take the rest of a long query, and hold a stop back with it.
+    ticks = iter(range(10**6))
+    monkeypatch.setattr(warptex.parallel.time, "perf_counter", lambda: next(ticks) * 1e-9)
+    asked.clear()
+    warptex.parallel.nearest(Counted(), points, k=1)
+    assert asked[:3] == [7, 28, 112]
+    monkeypatch.undo()
+    monkeypatch.setattr(warptex.parallel, "_FIRST_QUERY_ROWS", 7)
     expected = tree.query(points[::-1], k=3)
     for mine, theirs in zip(found, expected, strict=True):
         np.testing.assert_array_equal(mine, theirs)

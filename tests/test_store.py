@@ -405,6 +405,53 @@ def test_a_mutation_stopped_while_waiting_does_not_hold_back_lookups(monkeypatch
     assert woken == [1]
 
 
+def test_a_waiting_mutation_holds_back_new_lookups_and_a_stopped_one_no_writer(monkeypatch):
+    """A change waiting for a lookup keeps later lookups out until it has run (a steady
+    stream of queries would starve it); a change stopped while another holds the lock
+    leaves that one writing."""
+    import threading
+
+    from warptex.store import _SharedLock
+
+    lock, order = _SharedLock(), []
+
+    def change() -> None:
+        with lock.exclusive():
+            order.append("change")
+
+    def lookup() -> None:
+        with lock.shared():
+            order.append("lookup")
+
+    with lock.shared():
+        writer = threading.Thread(target=change)
+        writer.start()
+        for _ in range(10**6):  # until the change waits (bounded: a regression fails)
+            with lock._cond:
+                if lock._waiting:
+                    break
+        else:
+            pytest.fail("the change never waited")
+        reader = threading.Thread(target=lookup)
+        reader.start()
+        reader.join(0.2)
+        assert reader.is_alive() and order == []  # held back behind the waiting change
+    writer.join()
+    reader.join()
+    assert order == ["change", "lookup"]
+
+    def stopped(predicate):
+        raise KeyboardInterrupt
+
+    with lock.exclusive():
+        with monkeypatch.context() as patch:
+            patch.setattr(lock._cond, "wait_for", stopped)
+            with pytest.raises(KeyboardInterrupt), lock.exclusive():
+                pass
+        assert lock._writing  # still this block's, not cleared by the stopped one
+    assert not lock._writing
+
+
 @pytest.mark.parametrize("mode", ["shared", "exclusive"])
 def test_a_stop_as_the_lock_is_taken_leaves_no_reader_or_writer_counted(mode):
     """Ctrl-C as the lock's condition is released, before the block (a signal comes
