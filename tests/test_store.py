@@ -452,6 +452,26 @@ def test_a_waiting_mutation_holds_back_new_lookups_and_a_stopped_one_no_writer(m
     assert not lock._writing
 
 
+def test_a_lookup_finding_the_store_torn_as_it_reads_asks_again(candidates):
+    """Another thread's change cut short between this lookup's check and its lock: the
+    lookup reads no half-changed bricks, it says to query again."""
+    from contextlib import contextmanager
+
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    shared = store._lock.shared
+
+    @contextmanager
+    def torn_meanwhile():
+        with shared():
+            store._torn = True
+            yield
+
+    store._lock.shared = torn_meanwhile
+    with pytest.raises(RuntimeError, match="a change of its bricks was cut short; query again"):
+        store.snapshot()
+
+
 @pytest.mark.parametrize("mode", ["shared", "exclusive"])
 def test_a_stop_as_the_lock_is_taken_leaves_no_reader_or_writer_counted(mode):
     """Ctrl-C as the lock's condition is released, before the block (a signal comes
