@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -66,12 +67,18 @@ def test_a_stopped_split_launch_ends_its_ranges_before_going_on(monkeypatch, war
 
     def stopped(self, timeout=None):
         concurrent.futures.Future.result = result
+        for _ in range(10**6):  # the stop comes once a range runs
+            if any(job.running() for job in jobs):
+                break
         raise KeyboardInterrupt
 
     out = wp.zeros(64 * MIN_SPLIT, dtype=wp.float32, device="cpu")
     launch_ranges(_busy, 0, MIN_SPLIT, [], [out])  # builds the module first
     monkeypatch.setattr(pool, "submit", recorded)
     monkeypatch.setattr(concurrent.futures.Future, "result", stopped)
+    launch = parallel.launch
+    # Ranges that take a while: one still running when the stop comes is waited for.
+    monkeypatch.setattr(parallel, "launch", lambda *a, **k: (time.sleep(0.3), launch(*a, **k)))
     with pytest.raises(KeyboardInterrupt):
         launch_ranges(_busy, 0, out.shape[0], [], [out])
     assert jobs and all(job.done() for job in jobs)
