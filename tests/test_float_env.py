@@ -67,16 +67,21 @@ def test_k_d_trees_are_built_and_searched_alike_under_flush_to_zero(tmp_path):
     from warptex.parallel import kd_tree, nearest
 
     rows = REPO / "tests" / "data" / "flush_to_zero_rows.npy"
+    # And points a denormal apart, whose distances the mode would read as zero.
+    faint = tmp_path / "faint_rows.npy"
+    np.save(faint, np.random.default_rng(5).random((300, 3)) * 1e-310)
     script = FLUSH_TO_ZERO + textwrap.dedent(f"""
         import numpy as np
         from warptex.parallel import kd_tree, nearest
-        rows = np.load({str(rows)!r}).astype(np.float64)
-        print(nearest(kd_tree(rows), rows[::7], k=4)[1].tolist())
+        for path in ({str(rows)!r}, {str(faint)!r}):
+            rows = np.load(path).astype(np.float64)
+            print(nearest(kd_tree(rows), rows[::7], k=4)[1].tolist())
     """)
     done = _run(script, tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
-    here = np.load(rows).astype(np.float64)
-    assert done.stdout.splitlines()[-1] == str(nearest(kd_tree(here), here[::7], k=4)[1].tolist())
+    for path, seen in zip((rows, faint), done.stdout.splitlines()[-2:], strict=True):
+        here = np.load(path).astype(np.float64)
+        assert seen == str(nearest(kd_tree(here), here[::7], k=4)[1].tolist()), path.name
 
 
 def _run(script: str, tmp_path: Path) -> subprocess.CompletedProcess:
