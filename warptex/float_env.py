@@ -3,12 +3,13 @@
 Mitsuba's threads (and Dr.Jit's, which later run on the main thread too) compute with
 denormals read as zero and results flushed to zero. Under that mode SciPy's k-d tree, built
 with its default median splits, recursed without end on some exemplars' windows and ended
-the process with a segmentation fault (a ``lazy_solid`` nested in a medium or a BSDF is
-built on such a thread), and any arithmetic that meets a denormal would give other values
+the process with a segmentation fault (a ``lazy_solid`` nested in a medium is built on
+such a thread), and any arithmetic that meets a denormal would give other values
 than the same work on another thread: the candidates and colours of a point must not
 depend on who asks. Work run inside :func:`ieee_arithmetic` gets the C library's default
 floating-point environment, and the caller's is restored after it; threads started inside
-(SciPy's query threads, warptex's launch threads) inherit the default.
+(SciPy's query threads) inherit the default. warptex's launch threads may have started
+anywhere, so each CPU launch sets it itself (``warp_runtime.launch``).
 """
 
 from __future__ import annotations
