@@ -1021,40 +1021,36 @@ def test_a_stop_while_a_library_is_imported_stops_the_command(tmp_path, data_dir
     assert sorted(p.name for p in work.iterdir()) == ["stop.py"]
 
 
-def test_first_use_of_a_kernel_cache_is_announced(tmp_path, monkeypatch, capsys, warp_device):
-    import importlib
+def test_a_command_that_builds_the_kernels_says_so_once(tmp_path, monkeypatch, capsys,
+                                                       data_dir, warp_device):
+    """Whatever the modules it builds and the threads it launches on: one line, naming
+    the kernel cache."""
+    from warptex import warp_runtime
 
+    absent = tmp_path / "kernels"
+    monkeypatch.setattr(warp_runtime, "build_folder", lambda name, cpu: absent / name)
+    out = tmp_path / "s.npy"
+    assert main(["slice", str(data_dir / "granite_64.png"), "--shape", "8", "12", "-o",
+                 str(out)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warptex: Warp is building the kernels") == 1, err
+    assert f"building the kernels into {absent} (once for this version" in err
+    assert out.exists()
+
+
+def test_a_refused_input_on_a_fresh_kernel_cache_is_one_line(tmp_path, monkeypatch, capsys,
+                                                             data_dir, warp_device):
+    """The kernels are built at the first launch, and said to be then: a command refused
+    before any launch says its error alone (it said that the kernels were being built)."""
     import warp as wp
 
-    from warptex import cli
-
-    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
-    stale = tmp_path / "wp_kernels.synthesis_0123abc"  # an older version's build
-    stale.mkdir()
-    cli._note_kernel_build()
-    assert f"building the kernels into {tmp_path}" in capsys.readouterr().err
-    for name, _ in cli._KERNEL_MODULES:
-        importlib.import_module(name)  # Warp names a module's build by its kernels' code
-        (tmp_path / wp.get_module(name).get_module_identifier(block_dim=1)).mkdir()
-    cli._note_kernel_build()
-    assert capsys.readouterr().err == ""
-
-
-def test_kernel_build_note_on_a_gpu_machine(tmp_path, monkeypatch, capsys, warp_device):
-    """There the candidates still build for the CPU; synthesis builds for CUDA."""
-    import importlib
-
-    import warp as wp
-
-    from warptex import cli
-
-    monkeypatch.setattr(importlib.import_module("warptex.warp_runtime"), "device", lambda: "cuda")
-    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
-    for name, cpu_only in cli._KERNEL_MODULES:
-        module = wp.get_module(importlib.import_module(name).__name__)
-        (tmp_path / module.get_module_identifier(block_dim=1 if cpu_only else None)).mkdir()
-    cli._note_kernel_build()
-    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path / "kernels"))
+    out = tmp_path / "v.npy"
+    assert main(["volume", str(data_dir / "granite_64.png"), "--size", "100000", "-o",
+                 str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("warptex: error: --size 100000") and err.count("\n") == 1, err
+    assert not out.exists()
 
 
 # A command's arguments and the input file that one of its outputs would overwrite; the

@@ -583,6 +583,24 @@ def test_repeated_runs_are_each_kept_and_the_median_reported(data_dir, monkeypat
     assert "--repeats must be at least 1, got 0" in capsys.readouterr().err
 
 
+def test_a_methods_process_says_on_the_bar_when_it_builds_the_kernels(data_dir, tmp_path,
+                                                                      monkeypatch):
+    """In the method's process, where the command's note would be drawn over: a phase."""
+    import queue
+
+    from warptex import warp_runtime
+
+    monkeypatch.setattr(warp_runtime, "build_folder", lambda name, cpu: tmp_path / name)
+    monkeypatch.setattr(measure, "render_cube", lambda texture: np.zeros((2, 2, 3)))
+    monkeypatch.setattr(measure, "_cube_texture", lambda *args: {})
+    phases = queue.Queue()
+    monkeypatch.setattr(measure, "_phases", phases)
+    measure._measure_in_child("lazy", compare.Setup(data_dir / "granite_64.png", 8), 1)
+    said = [phases.get_nowait() for _ in range(phases.qsize())]
+    assert said.count("Warp builds the kernels, once a version") == 1, said
+    assert said.index("Warp builds the kernels, once a version") < said.index("8^3, timed")
+
+
 def test_peak_memory_is_that_of_the_timed_runs_in_mib(measured, monkeypatch):
     """The memory window holds the timed runs alone: not the warm-up before them, nor the
     large slice and the measures after; its rise in bytes is reported in MiB."""

@@ -202,6 +202,67 @@ print(out.numpy().tolist())
 '''
 
 
+_NOTICED_BUILD = '''
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+from warptex.warp_runtime import init_warp, kernel_build_notice, launch
+
+@wp.kernel
+def double(a: wp.array(dtype=float)):
+    i = wp.tid()
+    a[i] = 2.0 * a[i]
+
+def notice(cache):
+    built = any(cache.glob("wp___main__*"))
+    print("notice", cache == Path(wp.config.kernel_cache_dir), "built" if built else "unbuilt")
+
+init_warp()
+a = wp.array(np.arange(3, dtype=np.float32), device="cpu")
+with kernel_build_notice(notice):
+    print("launching")
+    launch(double, 3, [a])
+    launch(double, 3, [a])
+print(a.numpy().tolist())
+'''
+
+
+def test_a_kernel_build_is_noticed_once_as_it_begins(tmp_path):
+    """Before Warp builds the module into its cache, once; not where the build is there."""
+    script = tmp_path / "noticed.py"
+    script.write_text(_NOTICED_BUILD)
+    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "kernels")}
+    runs = [subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                           env=env, timeout=300) for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[-1].stderr
+    assert runs[0].stdout.split("\n") == ["launching", "notice True unbuilt",
+                                          "[0.0, 4.0, 8.0]", ""]
+    assert runs[1].stdout.split("\n") == ["launching", "[0.0, 4.0, 8.0]", ""]
+
+
+def test_a_kernel_build_notice_looks_for_the_launch_devices_build(tmp_path, monkeypatch,
+                                                                 warp_device):
+    """A CPU launch builds Warp's block_dim 1 variant, a CUDA launch its default one."""
+    import importlib
+
+    importlib.import_module("kernels.lookup")
+    module = wp.get_module("kernels.lookup")
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    (tmp_path / module.get_module_identifier(block_dim=1)).mkdir()
+    notes = []
+    with device_module.kernel_build_notice(notes.append):
+        device_module._notice_build("kernels.lookup", "cpu")
+        assert notes == []
+        device_module._notice_build("kernels.lookup", "cuda:0")
+        assert notes == [tmp_path]
+    (tmp_path / module.get_module_identifier(block_dim=None)).mkdir()
+    with device_module.kernel_build_notice(notes.append):
+        device_module._notice_build("kernels.lookup", "cuda:0")
+    device_module._notice_build("kernels.synthesis", "cpu")  # outside a block: never
+    assert notes == [tmp_path]
+
+
 @pytest.mark.parametrize("damage", ["object file", "metadata"])
 def test_a_damaged_kernel_build_is_built_again_with_a_warning(tmp_path, damage):
     """Warp alone fails on such a build in every later run, until someone deletes it."""

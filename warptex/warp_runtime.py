@@ -1,5 +1,6 @@
 """Choice of the Warp device that synthesis runs on, one-time quiet Warp start-up, and
-launches that survive a damaged kernel cache and name one that cannot take a build."""
+launches that survive a damaged kernel cache, name one that cannot take a build, and say
+when they are about to build."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import tempfile
 import threading
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -163,6 +164,8 @@ def launch(kernel: wp.Kernel, dim: int, inputs: Sequence, outputs: Sequence = ()
             folder, another user's, a full disk), or built again cannot be loaded either.
     """
     module = kernel.module.name
+    if _BUILD_NOTICE:
+        _notice_build(module, str(device))
     for again in (False, True):
         try:
             # A CPU kernel runs on this thread, in its floating-point mode (float_env).
@@ -189,6 +192,39 @@ def launch(kernel: wp.Kernel, dim: int, inputs: Sequence, outputs: Sequence = ()
 
 # Warp modules built again by :func:`launch` in this process, and for which device.
 _REBUILT: set[tuple[str, str]] = set()
+
+
+@contextlib.contextmanager
+def kernel_build_notice(notice: Callable[[Path], None]) -> Iterator[None]:
+    """Within the block, ``notice(folder)`` is called once, just before the first launch
+    that has Warp build one of warptex's kernel modules into its kernel cache ``folder``:
+    the pause of a first use (README, "first use") is explained when it comes, and a
+    command that ends before any launch (a refused input) says nothing of it."""
+    _BUILD_NOTICE[:] = [notice]
+    _NOTICE_CHECKED.clear()
+    try:
+        yield
+    finally:
+        _BUILD_NOTICE.clear()
+
+
+# The notice of kernel_build_notice until it is given, and the (module, device) pairs
+# whose builds were found in the cache meanwhile (a stat each, then nothing a launch).
+_BUILD_NOTICE: list[Callable[[Path], None]] = []
+_NOTICE_CHECKED: set[tuple[str, str]] = set()
+_NOTICE_LOCK = threading.Lock()
+
+
+def _notice_build(module: str, device: str) -> None:
+    with _NOTICE_LOCK:  # launches of split ranges start on several threads at once
+        if not _BUILD_NOTICE or (module, device) in _NOTICE_CHECKED:
+            return
+        _NOTICE_CHECKED.add((module, device))
+        folder = build_folder(module, cpu=device == "cpu")
+        if folder is None or folder.is_dir():
+            return
+        notice = _BUILD_NOTICE.pop()
+    notice(folder.parent)
 
 
 def _build_failure(module: str, error: OSError) -> KernelCacheError:

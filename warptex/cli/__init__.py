@@ -15,6 +15,9 @@ import os
 import sys
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
+
+from tqdm.auto import tqdm
 
 from warptex.cli.common import WRITTEN, CliError
 from warptex.cli.console import (
@@ -31,11 +34,7 @@ from warptex.cli.options import check_max_size_option
 from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
 from warptex.exemplar import ExemplarError
 from warptex.stops import deferred_stops, started, stops_ignored_after_the_work
-from warptex.warp_runtime import KernelCacheError
-
-# Modules nearly every command builds, and whether they run on the CPU whatever the device
-# (a CPU launch builds the block_dim 1 variant; CUDA launches the default one).
-_KERNEL_MODULES = (("kernels.candidates", True), ("kernels.synthesis", False))
+from warptex.warp_runtime import KernelCacheError, kernel_build_notice
 
 
 def _check_device() -> None:
@@ -56,18 +55,12 @@ def _check_device() -> None:
             raise CliError(str(error)) from None
 
 
-def _note_kernel_build() -> None:
-    """Say why a machine's first command pauses: Warp builds the kernels into its kernel
-    cache, once (README, "first use"), and until then no bar moves. The candidate and
-    synthesis modules are what nearly every command builds; each is looked up under the
-    name Warp gives its current code, so a new version of either is noticed too."""
-    from warptex.warp_runtime import build_folder, device
-
-    on_cpu = device() == "cpu"
-    folders = [build_folder(name, on_cpu or cpu_only) for name, cpu_only in _KERNEL_MODULES]
-    if None not in folders and not all(f.is_dir() for f in folders):
-        print(f"warptex: Warp is building the kernels into {folders[0].parent} (once for this "
-              "version, about half a minute)", file=sys.stderr)
+def _note_kernel_build(cache: Path) -> None:
+    """Say why a machine's first command pauses, as the pause begins: no bar moves while
+    Warp builds the kernels into its kernel cache, once a version (README, "first use").
+    Written as tqdm writes, so that a bar being drawn on a terminal is drawn again below."""
+    tqdm.write(f"warptex: Warp is building the kernels into {cache} (once for this version, "
+               "about half a minute)", file=sys.stderr)
 
 
 # Libraries whose imports would lose a Ctrl-C or SIGTERM (trimesh's optional imports catch
@@ -97,11 +90,11 @@ def _run(argv: list[str]) -> int:
                 check_max_size_option(args)
             if args.command not in ("info", "cache"):  # the two that use no device
                 _check_device()
-                _note_kernel_build()
             with deferred_stops():
                 for library in _STOP_LOSING_LIBRARIES.get(args.command, ()):
                     importlib.import_module(library)
-            code = command(args)
+            with kernel_build_notice(_note_kernel_build):
+                code = command(args)
             sys.stdout.flush()  # here, so that a reader gone early is handled below
             return code
         except BrokenPipeError:  # `warptex info ... | head -1`: the reader has all it wants

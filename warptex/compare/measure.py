@@ -186,7 +186,8 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
         bar.set_postfix_str(method)  # one method can take minutes: the bar says which
         phases = ctx.Queue()  # and what it is doing: candidates alone can take a minute
         show = functools.partial(_show_phases, bar, method, phases)
-        out = in_child_process(_measure, method, setup, repeats, initializer=_start_worker,
+        out = in_child_process(_measure_in_child, method, setup, repeats,
+                               initializer=_start_worker,
                                initargs=(_shown_as_here(), phases), while_waiting=show)
         show()
         results.append(MethodResult(**out))
@@ -194,6 +195,15 @@ def compare(setup: Setup, methods: Sequence[str] = METHODS, *, progress: bool = 
 
 
 _phases: multiprocessing.queues.Queue | None = None  # where a method's process says it
+
+
+def _measure_in_child(method: str, s: Setup, repeats: int) -> dict:
+    """:func:`_measure` in a method's process, which says on the bar when it first has Warp
+    build the kernels (the command's own note would be drawn over by the bar)."""
+    from warptex.warp_runtime import kernel_build_notice
+
+    with kernel_build_notice(lambda cache: _phase("Warp builds the kernels, once a version")):
+        return _measure(method, s, repeats)
 
 
 def _phase(text: str) -> None:
