@@ -752,6 +752,28 @@ def test_a_reader_gone_early_ends_the_command_quietly(files):
     assert proc.returncode == 141 and err == ""
 
 
+@pytest.mark.parametrize("argv", [["--help"], ["volume", "--help"], ["--version"]])
+def test_help_that_cannot_be_written_is_an_error(argv):
+    """argparse drops its failures to write: help sent to a full disk exited 0, as if
+    shown. A reader gone early ends quietly, as a command's output does."""
+    import subprocess
+    import sys
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full on this system")
+    command = [sys.executable, "-c", "import sys; from warptex.cli import main; sys.exit(main())",
+               *argv]
+    with open("/dev/full", "w") as full:
+        run = subprocess.run(command, stdout=full, stderr=subprocess.PIPE, text=True,
+                             timeout=300)
+    prog = " ".join(["warptex", *argv[:-1]])
+    assert run.returncode == 1
+    assert run.stderr == f"{prog}: error: standard output: No space left on device\n"
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    assert proc.communicate()[1].decode() == "" and proc.returncode == 141
+
+
 @pytest.mark.parametrize("closed", ["2>&-", ">&-"])
 def test_a_command_runs_with_a_standard_stream_closed(files, tmp_path, closed):
     """Python has a stream closed when it started as None: the progress bars failed on a

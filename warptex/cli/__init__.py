@@ -17,14 +17,13 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from tqdm.auto import tqdm
-
 from warptex.cli.common import WRITTEN, CliError
 from warptex.cli.console import (
     SIGTERM_RECEIVED,
     SigtermInterrupt,
     StandardOutputError,
     bars_as_log_lines,
+    drop_unwritten_output,
     missing_streams_to_devnull,
     show_warning,
     standard_output_errors,
@@ -59,6 +58,8 @@ def _note_kernel_build(cache: Path) -> None:
     """Say why a machine's first command pauses, as the pause begins: no bar moves while
     Warp builds the kernels into its kernel cache, once a version (README, "first use").
     Written as tqdm writes, so that a bar being drawn on a terminal is drawn again below."""
+    from tqdm.auto import tqdm
+
     tqdm.write(f"warptex: Warp is building the kernels into {cache} (once for this version, "
                "about half a minute)", file=sys.stderr)
 
@@ -98,14 +99,14 @@ def _run(argv: list[str]) -> int:
             sys.stdout.flush()  # here, so that a reader gone early is handled below
             return code
         except BrokenPipeError:  # `warptex info ... | head -1`: the reader has all it wants
-            _drop_unwritten_output()
+            drop_unwritten_output()
             return 141  # as for a command that SIGPIPE ends
         except (ExemplarError, CliError) as error:
             print(f"warptex: error: {error}", file=sys.stderr)
             return error.exit_code if isinstance(error, CliError) else 2
         except (KernelCacheError, StandardOutputError) as error:  # the machine's, mid-work
             if isinstance(error, StandardOutputError):
-                _drop_unwritten_output()
+                drop_unwritten_output()
             # Standard output may fail on the line that says an output was written.
             print(f"warptex: error: {error}{_written_aside()}", file=sys.stderr)
             return 1
@@ -140,9 +141,3 @@ def _after_writing() -> str:
     """The words " after writing A, B" of the outputs written so far; none before any."""
     return "" if not WRITTEN else " after writing " + ", ".join(
         str(f) for f in dict.fromkeys(WRITTEN))
-
-
-def _drop_unwritten_output() -> None:
-    """Send what standard output still holds to the null device: the flush as Python
-    exits would fail on it again, into a second message and exit code 120."""
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -142,6 +142,12 @@ def missing_streams_to_devnull() -> None:
             setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 (open for the process)
 
 
+def drop_unwritten_output() -> None:
+    """Send what standard output still holds to the null device: the flush as Python
+    exits would fail on it again, into a second message and exit code 120."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 class StandardOutputError(Exception):
     """Standard output that cannot be written (a full disk, a lost mount), told apart from
     the OSErrors of the command's own files, which name them."""

@@ -9,11 +9,12 @@ import itertools
 import re
 import sys
 from collections.abc import Callable
-from typing import NoReturn
+from typing import IO, NoReturn
 
 from warptex import __version__
 from warptex.cli.cache import add_cache_parser, run_cache
 from warptex.cli.compare import add_compare_parser, run_compare
+from warptex.cli.console import drop_unwritten_output
 from warptex.cli.exemplars import add_info_parser, add_precompute_parser, run_info, run_precompute
 from warptex.cli.meshes import add_bake_parser, add_cut_parser, run_bake, run_cut
 from warptex.cli.render import add_render_parser, run_render
@@ -42,6 +43,23 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+    def _print_message(self, message: str, file: IO[str] | None = None) -> None:
+        """argparse's drops a failure to write: help sent to a full disk exited 0, as if
+        shown. On standard output it fails as a command's output does: a reader gone early
+        ends it quietly (141), another failure is one line and exit code 1."""
+        if not message or file is not sys.stdout:
+            super()._print_message(message, file)
+            return
+        try:
+            file.write(message)
+            file.flush()
+        except BrokenPipeError:
+            drop_unwritten_output()
+            self.exit(141)
+        except OSError as error:
+            drop_unwritten_output()
+            self.exit(1, f"{self.prog}: error: standard output: {error.strerror or error}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
