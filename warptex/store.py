@@ -380,14 +380,14 @@ class BrickStore:
             bricks = int((self._keys != _EMPTY).sum())
             voxels = int(np.bitwise_count(self._valid).sum())
             payload = voxels * self._voxel_bytes + bricks * _SLOT_BYTES
-            held = (len(self._payload) * self._voxel_bytes + len(self._keys) * _SLOT_BYTES
-                    + self._index_bytes())
+            index = self._index_bytes()
+            held = len(self._payload) * self._voxel_bytes + len(self._keys) * _SLOT_BYTES + index
             return {
                 "bricks": bricks,
                 "voxels": voxels,
-                "bytes": payload + self._index_bytes(),
+                "bytes": payload + index,
                 "payload_bytes": payload,
-                "index_bytes": self._index_bytes(),
+                "index_bytes": index,
                 "allocated_bytes": held,
                 "bytes_per_voxel": self._voxel_bytes,
                 "hits": self._hits,
