@@ -1320,6 +1320,48 @@ def test_triples_are_among_the_keep_lowest_crossbar_errors(granite_32, warp_devi
         assert (worst <= errors[:, keep - 1]).all(), lv
 
 
+def test_crossbar_triples_of_equal_error_keep_the_order_of_their_pair_rank(warp_device):
+    """Section 4.1's sorted lists, to the triple where errors tie (integer strips tie
+    often): the triple of q = near1[i] and r = near2[j] ranks i * S + j among equals, so
+    the lists and every voxel after them are the same on every machine."""
+    from kernels import candidates as kc
+    from warptex.candidate_set import role_strips
+    from warptex.warp_runtime import launch
+
+    rng = np.random.default_rng(5)
+    pixels, strips, keep = 9, 4, 7
+    own_first, own_second, next_first, next_second, nnext_first, nnext_second = (
+        rng.integers(0, 2, (pixels, 3)) for _ in range(6))
+    near1, near2 = (np.stack([rng.permutation(pixels)[:strips] for _ in range(pixels)])
+                    for _ in range(2))
+    outputs = [wp.zeros((pixels, keep), dtype=t) for t in (wp.int64, wp.int32, wp.int32,
+                                                           wp.int32)]
+    keys, cand1, cand2, errors = outputs
+    keys.fill_(np.iinfo(np.int64).max)
+    count = wp.zeros(pixels, dtype=wp.int32)
+    launch(kc.best_crossbar_triples, pixels,
+           [0, role_strips([own_first, own_second, next_first, next_second, nnext_first,
+                            nnext_second]),
+            wp.array(near1, dtype=wp.int32), wp.array(near2, dtype=wp.int32),
+            wp.empty((pixels, strips), dtype=wp.int32)], [*outputs, count])
+
+    def distance(a, b):
+        return ((a - b) ** 2).sum(axis=-1)
+
+    ties = 0
+    for p in range(pixels):
+        q, r = near1[p][:, None], near2[p][None, :]
+        error = (distance(own_second[p], next_first[q]) + distance(next_second[q], nnext_first[r])
+                 + distance(nnext_second[r], own_first[p]))  # (S, S): rank i * S + j
+        order = np.argsort(error.ravel(), kind="stable")[:keep]
+        ties += len(order) - len(np.unique(error.ravel()[order]))
+        assert cand1.numpy()[p].tolist() == near1[p][order // strips].tolist(), p
+        assert cand2.numpy()[p].tolist() == near2[p][order % strips].tolist(), p
+        assert errors.numpy()[p].tolist() == error.ravel()[order].tolist(), p
+    assert count.numpy().tolist() == [keep] * pixels
+    assert ties > pixels  # what the rule decides
+
+
 def _ramp(rows: int, cols: int) -> Exemplar:
     """A noisy ramp from left to right: its left and right edges form a seam, its top and
     bottom edges do not."""
