@@ -95,6 +95,32 @@ def test_batch_size_and_order_do_not_matter(candidates, subpasses):
     assert np.array_equal(whole, reverse)
 
 
+@pytest.mark.parametrize("kind", ["neighbourhood 3", "neighbourhood 9", "feature distance"])
+def test_other_settings_keep_each_voxel_independent_in_any_parts(granite_32, kind,
+                                                                 monkeypatch):
+    """N = 9 reads a whole block away, the farthest the dependency spread of section 5.2
+    supports, N = 3 the nearest, and a feature-distance channel (section 6) widens every
+    neighbourhood's vector: each voxel alone, among others shuffled, and in parts of one
+    block each, over block edges, far voxels and both ends of the range."""
+    if kind == "feature distance":
+        rows, columns = np.mgrid[:32, :32]
+        distance = (0.5 + 0.5 * np.sin(columns / 5.0) * np.cos(rows / 7.0)).astype(np.float32)
+        cs = precompute(Exemplar(granite_32.colors, name="features", feature_distance=distance),
+                        cache=False)
+    else:
+        cs = precompute(granite_32, cache=False, neighborhood=int(kind.split()[1]))
+    rng = np.random.default_rng(4)
+    edges = rng.integers(-3, 3, (12, 3)) * 4 + rng.choice([-1, 0, 3], (12, 3))
+    ends = np.array([[-COORD_LIMIT, 0, COORD_LIMIT - 1], [COORD_LIMIT - 2, -COORD_LIMIT + 1, 5]])
+    pts = np.concatenate([_random_voxels(rng, 12), edges, ends,
+                          _random_voxels(rng, 4, -10**6, 10**6)])
+    alone = np.concatenate([Synthesizer(cs, seed=3).pixel_triples(p[None]) for p in pts])
+    perm = rng.permutation(np.concatenate([np.arange(len(pts)), [0, 5, 13]]))
+    assert np.array_equal(Synthesizer(cs, seed=3).pixel_triples(pts[perm]), alone[perm])
+    monkeypatch.setattr(synthesis, "work_voxel_cap", lambda *args: 1)
+    assert np.array_equal(Synthesizer(cs, seed=3).pixel_triples(pts[perm]), alone[perm])
+
+
 def test_a_gpu_or_a_process_too_small_for_the_largest_part_gets_smaller_ones(monkeypatch):
     """A part of MAX_WORK_VOXELS takes about 4.7 GB: a 4 GB GPU failed half-way through
     a large box (Warp's "Failed to allocate"), and so did 3,000 scattered points queried
