@@ -435,12 +435,10 @@ def test_a_store_file_whose_arrays_do_not_fit_is_ignored(candidates, tmp_path, d
     np.testing.assert_array_equal(loaded.query(pts), expected)
 
 
-@pytest.mark.parametrize("whole_bricks", [True, False])
-def test_concurrent_queries_match_serial_ones(candidates, whole_bricks, monkeypatch):
-    """Threads querying one store, with room for everything or for a few bricks only
-    (evictions; with partly filled bricks also repacking and pool compaction). A race
-    this machine's timing may not show is caught by its rule: the store changes only
-    under its exclusive lock, with no lookup running, and looks up under its shared one."""
+def _store_lock_rule(monkeypatch, reader: str) -> None:
+    """The brick store's rule, checked as it runs: it changes only under its exclusive
+    lock, with no lookup running, and ``reader`` (a method that reads its pool) runs under
+    its shared one at least. A race this machine's timing may not show is caught so."""
     from warptex.store import BrickStore
 
     def exclusive_only(name: str):
@@ -452,16 +450,25 @@ def test_concurrent_queries_match_serial_ones(candidates, whole_bricks, monkeypa
 
         return held
 
-    def shared_at_least(launch):
-        def held(self, *args):  # a lookup beside a change reads a reused slot's voxels
-            assert self._lock._readers or self._lock._writing, "lookup outside the lock"
-            return launch(self, *args)
+    def shared_at_least(read):
+        def held(self, *args):  # a read beside a change reads a reused slot's voxels
+            assert self._lock._readers or self._lock._writing, f"{reader} outside the lock"
+            return read(self, *args)
 
         return held
 
     for name in ("_insert", "_evict"):
         monkeypatch.setattr(BrickStore, name, exclusive_only(name))
-    monkeypatch.setattr(BrickStore, "_launch", shared_at_least(BrickStore._launch))
+    monkeypatch.setattr(BrickStore, reader, shared_at_least(getattr(BrickStore, reader)))
+
+
+@pytest.mark.parametrize("whole_bricks", [True, False])
+def test_concurrent_queries_match_serial_ones(candidates, whole_bricks, monkeypatch):
+    """Threads querying one store, with room for everything or for a few bricks only
+    (evictions; with partly filled bricks also repacking and pool compaction). A race
+    this machine's timing may not show is caught by its rule: the store changes only
+    under its exclusive lock, with no lookup running, and looks up under its shared one."""
+    _store_lock_rule(monkeypatch, "_launch")
     sets = [points_near_origin(150, 10 + i) * (1 + 0.3 * i) for i in range(4)]
     serial = [texture(candidates).query(p, filter=f) for p, f in
               zip(sets, ["trilinear", "nearest"] * 2, strict=True)]
@@ -486,6 +493,72 @@ def test_concurrent_queries_match_serial_ones(candidates, whole_bricks, monkeypa
         assert not errors, errors
         for i in range(4):
             np.testing.assert_array_equal(results[i], serial[i])
+
+
+@pytest.mark.parametrize("whole_bricks", [True, False])
+def test_saves_and_snapshots_beside_evicting_queries_change_no_color(candidates, reference,
+                                                                    tmp_path, whole_bricks,
+                                                                    monkeypatch):
+    """Queries on three threads through a store of four bricks (evicting all the time),
+    while a fourth thread saves it to its file, reads snapshots and prefetches: every
+    color is the serial one, every snapshot holds the engine's sums (read under the
+    store's lock), and the file loads the same colors."""
+    from warptex.store import brick_voxels
+
+    _store_lock_rule(monkeypatch, "_voxel_sums")
+
+    sets = [points_near_origin(300, 20 + i) * (1 + 0.5 * i) for i in range(3)]
+    serial = [texture(candidates).query(p, filter="nearest") for p in sets]
+    path = tmp_path / "s.wts"
+    tex = texture(candidates, store=path, cache_bytes=4 * (512 * 6 + 68),
+                  whole_bricks=whole_bricks)
+    channels = candidates.channels
+    colors = [candidates.colors[candidates.axis_source[k]].reshape(-1, channels)
+              for k in range(3)]
+    results: dict[int, np.ndarray] = {}
+    errors: list[BaseException] = []
+    done = threading.Event()
+    checked = [0, 0]  # saves, stored voxels checked
+
+    def query(i: int) -> None:
+        try:
+            for _ in range(3):
+                results[i] = tex.query(sets[i], filter="nearest")
+        except BaseException as e:  # re-raised below, in the test's thread
+            errors.append(e)
+
+    def save_and_check() -> None:
+        try:
+            while not done.is_set() or not checked[0]:
+                tex.save()
+                snap = tex.store.snapshot()
+                live = snap.keys >= 0
+                sums = snap.sums.reshape(len(snap.keys), 512, channels)[live].reshape(-1, channels)
+                stored = ~np.isnan(sums).any(axis=1)
+                pix = reference.pixel_triples(brick_voxels(snap.keys[live])[stored])
+                expected = colors[0][pix[:, 0]] + colors[1][pix[:, 1]] + colors[2][pix[:, 2]]
+                np.testing.assert_array_equal(sums[stored], expected)
+                tex.store.prefetch(np.floor(sets[checked[0] % 3][:5]).astype(np.int64))
+                checked[0] += 1
+                checked[1] += int(stored.sum())
+        except BaseException as e:
+            errors.append(e)
+
+    threads = [threading.Thread(target=query, args=(i,)) for i in range(3)]
+    checker = threading.Thread(target=save_and_check)
+    for t in [*threads, checker]:
+        t.start()
+    for t in threads:
+        t.join()
+    done.set()
+    checker.join()
+    assert not errors, errors
+    assert checked[1] > 0 and tex.store.stats()["bricks_evicted"] > 0
+    for i in range(3):
+        np.testing.assert_array_equal(results[i], serial[i])
+    loaded = texture(candidates, store=path)
+    for p, expected in zip(sets, serial, strict=True):
+        np.testing.assert_array_equal(loaded.query(p, filter="nearest"), expected)
 
 
 def test_bad_points_raise_unless_filled(candidates):
