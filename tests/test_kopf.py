@@ -61,6 +61,7 @@ def test_shape_dtype_and_history(granite):
     assert [(h.level, h.iteration) for h in history] == [
         (lv, it) for lv, n in enumerate((6, 4, 3)) for it in range(n)
     ]
+    assert all(h.seconds > 0 for h in history)
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
@@ -134,6 +135,10 @@ def test_the_initial_solid_draws_from_every_constrained_exemplar():
     dark, light = np.zeros((8, 8, 3), np.float32), np.ones((8, 8, 3), np.float32)
     solid = kopf._random_solid([dark, None, light], 8, np.random.default_rng(0)).numpy()
     assert set(np.unique(solid)) == {0.0, 1.0}
+    # Every pixel of the pool, the last one included.
+    ramp = np.arange(16, dtype=np.float32).reshape(4, 4, 1).repeat(3, axis=2)
+    solid = kopf._random_solid([ramp, None, None], 8, np.random.default_rng(0)).numpy()
+    assert set(np.unique(solid)) == set(range(16))
 
 
 def test_mean_shift_bandwidths_are_in_units_of_the_colours_spread(granite):
@@ -418,6 +423,7 @@ def test_same_seed_same_volume(granite, monkeypatch):
     ("kwargs", "message"),
     [
         ({"size": 12}, "multiple of 8"),
+        ({"size": 0}, "positive multiple of 8"),
         ({"iterations": (1, 1)}, "a positive integer or 3 of them"),
         ({"iterations": 1.7}, "a positive integer or 3 of them"),
         ({"iterations": (1, 0, 1)}, "a positive integer or 3 of them"),
@@ -643,6 +649,39 @@ def test_the_voxel_order_follows_the_seed(granite_32, monkeypatch, warp_device):
     assert len(first) == kopf.LEVELS
     assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
     assert not any(np.array_equal(a, b) for a, b in zip(first, other, strict=True))
+
+
+def test_each_iteration_clusters_at_its_level_s_bandwidth(granite_32, monkeypatch,
+                                                           warp_device):
+    """Section 4.1's schedule inside a run: each level from its own texels' spread down
+    to a quarter of it over that level's iterations (levels of 1, 2 and 3 here); no
+    clustering without mean-shift."""
+    calls = []
+    optimize = kopf._LevelOptimizer.optimize
+
+    def recorded(self, order, bandwidth=0.0):
+        calls.append((self.n, self.spread, bandwidth))
+        return optimize(self, order, bandwidth)
+
+    monkeypatch.setattr(kopf._LevelOptimizer, "optimize", recorded)
+    kopf.synthesize(granite_32, size=8, iterations=(1, 2, 3), mean_shift=True, progress=False)
+    assert [n for n, _, _ in calls] == [2, 4, 4, 8, 8, 8]
+    for n, count in ((2, 1), (4, 2), (8, 3)):
+        level = [(spread, bandwidth) for m, spread, bandwidth in calls if m == n]
+        assert level[0][0] != 1.0
+        np.testing.assert_array_equal([b for _, b in level], kopf._bandwidths(level[0][0], count))
+    calls.clear()
+    kopf.synthesize(granite_32, size=8, iterations=(1, 2, 3), progress=False)
+    assert [b for _, _, b in calls] == [0.0] * 6
+
+
+def test_exemplar_and_exemplars_are_one_or_the_other_and_three(granite):
+    with pytest.raises(ValueError, match=r"give either exemplar or exemplars .* not both"):
+        kopf.synthesize(granite, exemplars=(granite, granite, None), size=8, progress=False)
+    with pytest.raises(ValueError, match="not both or neither"):
+        kopf.synthesize(None, size=8, progress=False)
+    with pytest.raises(ValueError, match=r"exemplars must have three entries \(x, y, z\), got 2"):
+        kopf.synthesize(None, exemplars=(granite, granite), size=8, progress=False)
 
 
 def test_mean_shift_bandwidth_shrinks_geometrically_over_a_level():

@@ -170,6 +170,31 @@ def test_histogram_distance_of_a_constant_volume_is_known():
     assert metrics.histogram_distance(vol + 5.0, ex, 1) <= 2.0  # clipped into the last bin
 
 
+def test_histogram_distance_of_a_constant_channel_counts_a_volume_that_leaves_it():
+    """A channel the exemplar holds at one value is binned over a range of 1 from it: a
+    volume at that value there scores 0 on it, one elsewhere in the range the maximum,
+    2 (averaged over the three channels)."""
+    ex = np.random.default_rng(9).random((16, 16, 3)).astype(np.float32)
+    ex[..., 2] = 0.5
+    vol = metrics.iid_noise(ex, (8, 8, 8))
+    kept = metrics.histogram_distance(vol, ex, 0)
+    vol[..., 2] = 0.9
+    assert metrics.histogram_distance(vol, ex, 0) == pytest.approx(kept + 2 / 3)
+
+
+def test_the_patch_measures_read_the_slices_asked_for():
+    """``slices`` evenly spaced slices: two read the first and the last alone, flat here,
+    where the default eight read the exemplar's copies between them too."""
+    ex = np.random.default_rng(10).random((16, 16, 3)).astype(np.float32)
+    vol = np.repeat(np.tile(ex, (2, 2, 1))[None], 16, axis=0)
+    vol[[0, 15]] = ex.mean(axis=(0, 1))
+    flat = np.broadcast_to(ex.mean(axis=(0, 1)), vol.shape)
+    for metric in (metrics.sliced_wasserstein, metrics.completeness_energy,
+                   metrics.neighborhood_energy):
+        assert metric(vol, ex, 0, slices=2) == metric(flat, ex, 0, slices=2), metric
+        assert metric(vol, ex, 0) < metric(flat, ex, 0), metric
+
+
 def test_histogram_distance_reads_the_8_slices_across_its_axis():
     """Voxels hold their x index, 0 to 15, and the exemplar each of 0 to 15 once: one value
     to each of the 16 bins. Every slice across y or z holds every x: 0. The 8 slices across
@@ -205,6 +230,8 @@ def test_inputs_without_a_meaning_are_one_clear_error():
     vol = metrics.iid_noise(ex, (8, 8, 8))
     nan_vol = vol.copy()
     nan_vol[0, 0, 0, 0] = np.nan
+    nan_ex = ex.copy()
+    nan_ex[3, 4, 1] = np.nan
     cases = [
         (metrics.neighborhood_energy, (vol, np.full_like(ex, 0.5), 0), {}, "exemplar is constant"),
         # float32 rounding gives this one a variance of 1.5e-10, which made noise of scores
@@ -227,6 +254,15 @@ def test_inputs_without_a_meaning_are_one_clear_error():
         (metrics.neighborhood_energy, (vol[:0], ex, 0), {}, "too few or too small"),
         (metrics.repetition_score, (np.full((64, 64), np.nan),), {}, "image holds NaN"),
         (metrics.repetition_score, (rng.random((64, 64)),), {"exclude": -1}, "exclude must"),
+        # One color everywhere, of channels that differ from each other.
+        (metrics.neighborhood_energy, (vol, np.broadcast_to(np.float32([0.2, 0.5, 0.7]),
+                                                            ex.shape), 0), {},
+         "exemplar is constant"),
+        (metrics.sliced_wasserstein, (vol, nan_ex, 0), {}, "exemplar holds NaN"),
+        (metrics.iid_noise, (ex, (8, 8, 8, 8)), {}, "shape must be three positive ints"),
+        (metrics.patches, (np.zeros((20, 8, 3)), 10), {}, r"size \(of the patches\) 10"),
+        (metrics.patches, (np.zeros((20, 20, 3)), 4), {"stride": 0}, "stride must be at least 1"),
+        (metrics.extrusion, (np.zeros((0, 8, 3)), 4), {}, "exemplar must be"),
     ]
     for metric, args, kwargs, message in cases:
         with pytest.raises(ValueError, match=message):
@@ -329,6 +365,12 @@ def _repetition_by_hand(image: np.ndarray, exclude: int) -> float:
     peak = score == ndimage.maximum_filter(score, size=3, mode="nearest")
     past = np.maximum(np.abs(dys)[:, None], np.abs(dxs)[None, :]) > exclude
     return float(np.where(peak & past, score, 0.0).max())
+
+
+def test_a_constant_slice_repeats_nothing():
+    """Its overlaps have no energy to normalize by: 0, as the docstring says."""
+    assert metrics.repetition_score(np.zeros((64, 64))) == 0.0
+    assert metrics.repetition_score(np.zeros((64, 64, 3))) == 0.0
 
 
 def test_repetition_score_is_at_most_one():
