@@ -1051,6 +1051,7 @@ def test_a_command_that_builds_the_kernels_says_so_once(tmp_path, monkeypatch, c
 
     absent = tmp_path / "kernels"
     monkeypatch.setattr(warp_runtime, "build_folder", lambda name, cpu: absent / name)
+    monkeypatch.setattr(warp_runtime, "_LAUNCHED", set())  # as in a fresh process
     out = tmp_path / "s.npy"
     assert main(["slice", str(data_dir / "granite_64.png"), "--shape", "8", "12", "-o",
                  str(out)]) == 0

@@ -224,12 +224,17 @@ with kernel_build_notice(notice):
     print("launching")
     launch(double, 3, [a])
     launch(double, 3, [a])
+# Loaded in this process, the module is not built again, whatever the cache holds now.
+wp.config.kernel_cache_dir = str(Path(wp.config.kernel_cache_dir).parent / "elsewhere")
+with kernel_build_notice(notice):
+    launch(double, 3, [a])
 print(a.numpy().tolist())
 '''
 
 
 def test_a_kernel_build_is_noticed_once_as_it_begins(tmp_path):
-    """Before Warp builds the module into its cache, once; not where the build is there."""
+    """Before Warp builds the module into its cache, once; not where the build is there,
+    nor for a module this process launched already."""
     script = tmp_path / "noticed.py"
     script.write_text(_NOTICED_BUILD)
     env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "kernels")}
@@ -237,8 +242,8 @@ def test_a_kernel_build_is_noticed_once_as_it_begins(tmp_path):
                            env=env, timeout=300) for _ in range(2)]
     assert [r.returncode for r in runs] == [0, 0], runs[-1].stderr
     assert runs[0].stdout.split("\n") == ["launching", "notice True unbuilt",
-                                          "[0.0, 4.0, 8.0]", ""]
-    assert runs[1].stdout.split("\n") == ["launching", "[0.0, 4.0, 8.0]", ""]
+                                          "[0.0, 8.0, 16.0]", ""]
+    assert runs[1].stdout.split("\n") == ["launching", "[0.0, 8.0, 16.0]", ""]
 
 
 def test_a_kernel_build_notice_looks_for_the_launch_devices_build(tmp_path, monkeypatch,
@@ -250,6 +255,7 @@ def test_a_kernel_build_notice_looks_for_the_launch_devices_build(tmp_path, monk
     module = wp.get_module("kernels.lookup")
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     (tmp_path / module.get_module_identifier(block_dim=1)).mkdir()
+    monkeypatch.setattr(device_module, "_LAUNCHED", set())
     notes = []
     with device_module.kernel_build_notice(notes.append):
         device_module._notice_build("kernels.lookup", "cpu")
@@ -257,6 +263,7 @@ def test_a_kernel_build_notice_looks_for_the_launch_devices_build(tmp_path, monk
         device_module._notice_build("kernels.lookup", "cuda:0")
         assert notes == [tmp_path]
     (tmp_path / module.get_module_identifier(block_dim=None)).mkdir()
+    monkeypatch.setattr(device_module, "_LAUNCHED", set())
     with device_module.kernel_build_notice(notes.append):
         device_module._notice_build("kernels.lookup", "cuda:0")
     device_module._notice_build("kernels.synthesis", "cpu")  # outside a block: never

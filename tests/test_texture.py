@@ -529,7 +529,7 @@ def test_saves_and_snapshots_beside_evicting_queries_change_no_color(candidates,
 
     def save_and_check() -> None:
         try:
-            while not done.is_set() or not checked[0]:
+            while not done.is_set() or not checked[1]:
                 tex.save()
                 snap = tex.store.snapshot()
                 live = snap.keys >= 0

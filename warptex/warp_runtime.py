@@ -164,7 +164,7 @@ def launch(kernel: wp.Kernel, dim: int, inputs: Sequence, outputs: Sequence = ()
             folder, another user's, a full disk), or built again cannot be loaded either.
     """
     module = kernel.module.name
-    if _BUILD_NOTICE:
+    if (module, str(device)) not in _LAUNCHED:
         _notice_build(module, str(device))
     for again in (False, True):
         try:
@@ -201,7 +201,6 @@ def kernel_build_notice(notice: Callable[[Path], None]) -> Iterator[None]:
     the pause of a first use (README, "first use") is explained when it comes, and a
     command that ends before any launch (a refused input) says nothing of it."""
     _BUILD_NOTICE[:] = [notice]
-    _NOTICE_CHECKED.clear()
     try:
         yield
     finally:
@@ -209,19 +208,24 @@ def kernel_build_notice(notice: Callable[[Path], None]) -> Iterator[None]:
 
 
 # The notice of kernel_build_notice until it is given, and the (module, device) pairs
-# whose builds were found in the cache meanwhile (a stat each, then nothing a launch).
+# launched in this process: loaded since, or their failure kept by Warp, so that Warp
+# builds them no more whatever the kernel cache holds now (launch's rebuild warns itself).
 _BUILD_NOTICE: list[Callable[[Path], None]] = []
-_NOTICE_CHECKED: set[tuple[str, str]] = set()
+_LAUNCHED: set[tuple[str, str]] = set()
 _NOTICE_LOCK = threading.Lock()
 
 
 def _notice_build(module: str, device: str) -> None:
     with _NOTICE_LOCK:  # launches of split ranges start on several threads at once
-        if not _BUILD_NOTICE or (module, device) in _NOTICE_CHECKED:
+        if (module, device) in _LAUNCHED:
             return
-        _NOTICE_CHECKED.add((module, device))
+        _LAUNCHED.add((module, device))
+        if not _BUILD_NOTICE:
+            return
         folder = build_folder(module, cpu=device == "cpu")
-        if folder is None or folder.is_dir():
+        # os.path.isdir: a folder that cannot be searched (another user's) is no build
+        # found; the launch then names the folder (KernelCacheError), not a traceback.
+        if folder is None or os.path.isdir(folder):
             return
         notice = _BUILD_NOTICE.pop()
     notice(folder.parent)

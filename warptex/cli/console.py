@@ -145,7 +145,9 @@ def missing_streams_to_devnull() -> None:
 def drop_unwritten_output() -> None:
     """Send what standard output still holds to the null device: the flush as Python
     exits would fail on it again, into a second message and exit code 120."""
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, sys.stdout.fileno())
+    os.close(null)
 
 
 class StandardOutputError(Exception):

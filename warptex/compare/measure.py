@@ -202,15 +202,23 @@ def _measure_in_child(method: str, s: Setup, repeats: int) -> dict:
     build the kernels (the command's own note would be drawn over by the bar)."""
     from warptex.warp_runtime import kernel_build_notice
 
-    with kernel_build_notice(lambda cache: _phase("Warp builds the kernels, once a version")):
+    def building(cache: object) -> None:  # before the phase it interrupts, which goes on
+        then = f", then {_said[0]}" if _said[0] else ""
+        _phase(f"Warp builds the kernels (once a version){then}")
+
+    with kernel_build_notice(building):
         return _measure(method, s, repeats)
 
 
 def _phase(text: str) -> None:
     """Say, on the bar of the process that runs the comparison, what this method's process
     does now; nothing where it is not one (a test measuring in its own process)."""
+    _said[0] = text
     if _phases is not None:
         _phases.put(text)
+
+
+_said = [""]  # what this method's process said last, which a kernel build interrupts
 
 
 def _show_phases(bar: tqdm, method: str, phases: multiprocessing.queues.Queue) -> None:
