@@ -195,8 +195,9 @@ def test_a_feature_mask_marks_the_one_exemplar_and_reaches_the_lazy_cube(tmp_pat
                          np.zeros((16, 16, 16, 3)))["feature_distance"] is True
     with pytest.raises(ValueError, match="feature_mask and feature_distance exclude"):
         Setup(granite, feature_mask=mask, feature_distance=True)
-    with pytest.raises(ValueError, match="feature_mask marks one exemplar"):
-        Setup(granite, feature_mask=mask, ez=granite)
+    for axis in ("ey", "ez"):
+        with pytest.raises(ValueError, match="feature_mask marks one exemplar"):
+            Setup(granite, feature_mask=mask, **{axis: granite})
     out = tmp_path / "cmp"
     assert main(["compare", str(granite), "--feature-mask", str(mask), "--ey", str(granite),
                  "--methods", "noise", "-o", str(out)]) == 2
@@ -647,6 +648,66 @@ def test_table_cells_sit_under_their_headers():
         assert cells["repetition"] == "0.500" and cells["seconds"] == "1.25"
         assert cells["pre-computation s"] == "0.75" and cells["peak MiB"] == "2.0"
         assert cells.get("GPU MiB") == (None if gpu is None else "12.0")
+    # Every column under its rule (Markdown drops a row of fewer); none values as "-"; the
+    # GPU column where any method ran there, a CPU method's cell "-".
+    r.notes, r.device = "n", "cuda:0"
+    cpu = compare.MethodResult("c", [0] * 3, [0] * 3, [0] * 3, [0] * 3, 0.0, 0.0, 0.0)
+    header, rule, line, cpu_line = table_markdown([r, cpu]).splitlines()
+    assert header.count("|") == rule.count("|") == line.count("|") == cpu_line.count("|")
+    cells = dict(zip([c.strip() for c in header.split("|")],
+                     [c.strip() for c in cpu_line.split("|")], strict=True))
+    assert cells["pre-computation s"] == cells["GPU MiB"] == "-"
+    assert (cells["device"], cells["notes"]) == ("cpu", "")
+    cells = dict(zip([c.strip() for c in header.split("|")],
+                     [c.strip() for c in line.split("|")], strict=True))
+    assert (cells["device"], cells["notes"]) == ("cuda:0", "n")
+
+
+def test_the_report_says_what_was_measured_where(tmp_path, data_dir, monkeypatch):
+    """table.md's run line and legend, and table.json's exemplar of the x axis, from
+    hand-made results: one run's seconds, the repetition slice's edge and exclusion, the
+    machine's cores, the GPU legend where a method ran there; each axis' exemplar size
+    width first; the sheet titled."""
+    from warptex.exemplar import Exemplar
+
+    wide = tmp_path / "wide.png"
+    Image.open(data_dir / "granite_64.png").crop((0, 0, 48, 32)).save(wide)
+    granite = data_dir / "granite_64.png"
+    drawn = {}
+    monkeypatch.setattr("warptex.parallel.THREADS", 7)  # threads apart from cores
+    monkeypatch.setattr("warptex.sheets.sheet",
+                        lambda rows, **kw: drawn.update(kw) or np.zeros((2, 2, 3), np.uint8))
+    slices = [np.zeros((4, 4, 3), np.float32)] * 3
+    rows = [compare.MethodResult(m, [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0, 0.0,
+                                 slices=slices, device_peak_mib=gpu, seconds_runs=[0.0])
+            for m, gpu in (("noise", None), ("lazy", 5.0))]
+    setup = compare.Setup(granite, 16, ez=wide)
+    compare.write_report(compare.Comparison(setup, rows), tmp_path / "out")
+    table = json.loads((tmp_path / "out" / "table.json").read_text())
+    run, md = table["run"], (tmp_path / "out" / "table.md").read_text()
+    measures = run["measures"]
+    assert (f"a {measures['repetition_slice']}-voxel slice at a peak past "
+            f"{measures['repetition_exclude']} voxels") in run["scores"]
+    assert measures["repetition_slice"] != measures["repetition_exclude"]
+    assert "seconds: one wall-clock run in a fresh process" in md
+    assert f", {run['cores']} cores, no GPU; warptex" in md and run["threads"] == 7
+    assert "GPU MiB: high-water mark of Warp's CUDA memory pool" in md
+    assert run["exemplar_digest"] == Exemplar.load(granite).digest()
+    assert run["exemplar_size"] == [64, 64]
+    assert [a["size"] for a in run["axis_exemplars"]] == [[64, 64], [64, 64], [48, 32]]
+    assert drawn["title"] == "x: granite_64.png; y: granite_64.png; z: wide.png: 16^3, seed 0"
+    # The settings of the methods that ran: the lazy engine's here, Kopf's defaults there.
+    import inspect
+
+    from warptex.baselines import kopf
+
+    assert set(run["settings"]) == {"lazy"}
+    rows[1].method = "kopf-meanshift"
+    compare.write_report(compare.Comparison(setup, rows), tmp_path / "kopf")
+    run = json.loads((tmp_path / "kopf" / "table.json").read_text())["run"]
+    defaults = inspect.signature(kopf.synthesize).parameters
+    assert run["settings"] == {"kopf": {"iterations": list(defaults["iterations"].default),
+                                        "histogram_matching": True}}
 
 
 def test_stopping_a_comparison_ends_the_running_worker_at_once():
@@ -907,8 +968,9 @@ def test_a_setup_holds_plain_values_that_table_json_can_write(tmp_path, data_dir
     keywords; a Comparison of something else is refused before anything is written."""
     granite = data_dir / "granite_64.png"
     setup = compare.Setup(granite, np.int64(16), seed=np.int64(1), passes=np.int64(2),
-                          max_size=np.int64(32))
+                          max_size=np.int64(32), jitter=np.float32(0.5))
     assert [type(v) for v in (setup.size, setup.seed, setup.passes, setup.max_size)] == [int] * 4
+    assert type(setup.jitter) is float
     row = compare.MethodResult("noise", [0.0] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3, 0.0, 0.0,
                                0.0, slices=[np.zeros((16, 16, 3), np.float32)] * 3)
     compare.write_report(compare.Comparison(setup, [row]), tmp_path / "out")
@@ -1166,11 +1228,27 @@ def test_the_sheet_shows_each_axis_exemplar_and_each_method_s_slices_and_cube(
     monkeypatch.setattr(sheets, "sheet", lambda rows, **kw: (drawn.append(rows),
                                                              sheet(rows, **kw))[1])
     granite, onyx = data_dir / "granite_64.png", data_dir / "onyx_banded_64.png"
-    for setup in (compare.Setup(granite, 16), compare.Setup(granite, 16, ey=onyx)):
-        compare.write_report(compare.compare(setup, ["noise"], progress=False),
-                             tmp_path / f"cmp{len(drawn)}")
+    linear = tmp_path / "granite.npy"  # linear colors, which the sheet encodes
+    np.save(linear, np.asarray(Image.open(granite), np.float32) / 255.0)
+    comparisons = []
+    for setup in (compare.Setup(linear, 16), compare.Setup(granite, 16, ey=onyx)):
+        comparisons.append(compare.compare(setup, ["noise"], progress=False))
+        compare.write_report(comparisons[-1], tmp_path / f"cmp{len(drawn)}")
     (same, *noise), (per_axis, *_) = drawn
     assert [label for label, _ in same[1]] == ["exemplar"]
     assert [label for label, _ in per_axis[1]] == ["x exemplar", "y exemplar", "z exemplar"]
     assert [(method, [label for label, _ in images]) for method, images in noise] == [
         ("noise", ["x = 8", "y = 8", "z = 8", "rendered cube"])]
+    # Colors as an 8-bit picture shows them: sRGB-encoded; each slice under its own axis.
+    from warptex.srgb import reencoded
+
+    ex = comparisons[0].setup.exemplars()[0]
+    assert not ex.srgb
+
+    def shown(image):
+        return reencoded(image, srgb=False, to_srgb=True)
+
+    np.testing.assert_array_equal(same[1][0][1], shown(ex.colors))
+    for (_, image), expected in zip(noise[0][1], comparisons[0].results[0].slices, strict=False):
+        np.testing.assert_array_equal(image, shown(expected))
+    assert len({s.tobytes() for s in comparisons[0].results[0].slices}) == 3

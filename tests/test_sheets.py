@@ -51,3 +51,34 @@ def test_a_titled_sheet_holds_its_title_above_the_rows():
     np.testing.assert_array_equal(titled[band:, :plain.shape[1]], plain)
     assert (titled[:band] < 128).any()  # the title's text
     assert titled.shape[1] >= 7 * len("granite_64.png: 64^3, seed 0")  # room for it
+
+
+def test_rows_of_several_images_sit_in_a_grid_with_their_labels():
+    """A row of one image and one of three: each image at its column and row, a gap apart,
+    each label above its image and each row's name left of it, drawn dark; the sheet as
+    wide as the widest row."""
+    colors = [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 1.0, 0.0)]
+    solid = [np.broadcast_to(np.float32(c), (8, 8, 3)) for c in colors]
+    cell, gap, label = 16, 4, 14
+    out = sheet([("ex", [("a", solid[0])]), ("method", [("b", solid[1]), ("c", solid[2]),
+                                                         ("d", solid[3])])], cell=cell)
+    left = 8 * len("method") + gap
+    assert out.shape[1] == left + 3 * (cell + gap) + gap
+    places = [(0, 0, colors[0])] + [(1, c, colors[c + 1]) for c in range(3)]
+    for row, column, color in places:
+        x = left + column * (cell + gap)
+        y = gap + row * (cell + label + gap)
+        np.testing.assert_array_equal(out[y + label:y + label + cell, x:x + cell],
+                                      np.broadcast_to(np.uint8(color) * 255, (cell, cell, 3)))
+        assert (out[y:y + label, x:x + cell] < 128).any()  # its label
+        assert (out[y + label:y + label + cell, :left] < 128).any()  # its row's name
+        assert (out[y + label:y + label + cell, x + cell:x + cell + gap] == 255).all()
+
+
+def test_an_image_shrunk_into_its_cell_is_smoothed():
+    """A one-pixel checker shrunk fourfold is grey, not a pick of its black or white."""
+    checker = np.zeros((64, 64, 3), np.float32)
+    checker[(np.arange(64)[:, None] + np.arange(64)[None, :]) % 2 == 1] = 1.0
+    out = sheet([("r", [("a", checker)])], cell=16)
+    x, y = 8 + 4, 4 + 14
+    assert (np.abs(out[y + 4:y + 12, x + 4:x + 12].astype(int) - 128) < 40).all()
