@@ -36,6 +36,22 @@ def test_the_inverse_of_affine_maps_and_none_for_singular_ones():
     assert affine_inverse(np.diag([1e-310, 1.0, 1.0, 1.0])) is None  # 1e310: beyond it
 
 
+def test_maps_with_a_zero_where_a_pivot_would_be_are_inverted_exactly():
+    """A quarter turn and an axis swap: their first column's leading entry is 0, which
+    elimination without row exchanges cannot divide by (a rotated object lost its frame);
+    and a tiny leading entry beside a unit one, where the largest pivot keeps the inverse
+    exact."""
+    turn = np.array([[0.0, -1.0, 0.0, 5.0], [1.0, 0.0, 0.0, 2.0], [0.0, 0.0, 1.0, 0.0],
+                     [0.0, 0.0, 0.0, 1.0]])
+    swap = np.array([[0.0, 0.0, 2.0, 1.0], [0.0, 4.0, 0.0, 0.0], [8.0, 0.0, 0.0, -3.0],
+                     [0.0, 0.0, 0.0, 1.0]])
+    for m in (turn, swap):
+        np.testing.assert_array_equal(affine_inverse(m), np.linalg.inv(m))
+    small = np.array([[1e-12, 1.0, 0.0, 1.0], [1.0, 1.0, 0.0, 2.0], [0.0, 0.0, 1.0, 0.0],
+                      [0.0, 0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(small @ affine_inverse(small), np.eye(4), atol=1e-15)
+
+
 def test_a_scale_s_inverse_is_its_correctly_rounded_reciprocal():
     """Cofactors over a determinant made 1/0.33 an ulp off (as for 1,666 of 3,000 random
     scales), so a point on a face of the block of matter mapped to 0.9999999999999999,

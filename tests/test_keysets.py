@@ -3,7 +3,17 @@ arrays included."""
 
 import numpy as np
 
-from warptex.keysets import distinct_sorted, lookup, lookup_runs, pack, run_starts, unique, unpack
+from warptex.keysets import (
+    cell_offsets,
+    distinct_sorted,
+    local_index,
+    lookup,
+    lookup_runs,
+    pack,
+    run_starts,
+    unique,
+    unpack,
+)
 from warptex.surface import _unique_rows
 
 
@@ -58,3 +68,14 @@ def test_lookup_of_runs_is_lookup():
     for query in (runs, rng.integers(-60, 60, 500), runs[:1], runs[:0]):
         np.testing.assert_array_equal(lookup_runs(keys, query), lookup(keys, query))
     assert lookup_runs(keys, runs).dtype == lookup(keys, runs).dtype
+
+
+def test_a_cell_s_voxels_are_numbered_x_slowest_in_both_directions():
+    """The order the kernels number a block's or brick's voxels in: the offsets' index is
+    the local index, and negative voxels sit in their cell as positive ones do."""
+    for size in (2, 4, 8):
+        offsets = cell_offsets(size)
+        np.testing.assert_array_equal(local_index(offsets, size), np.arange(size**3))
+        np.testing.assert_array_equal(local_index(offsets - 3 * size, size), np.arange(size**3))
+    assert cell_offsets(2)[1].tolist() == [0, 0, 1] and cell_offsets(2)[4].tolist() == [1, 0, 0]
+    assert local_index(np.array([[-1, 0, 1], [5, -6, 7]]), 4).tolist() == [49, 27]

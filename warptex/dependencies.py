@@ -2,8 +2,9 @@
 the 3-neighbourhood of its level (three orthogonal N x N planes), so each correction step
 widens what must be synthesized before it, and each level's voxels need their parents'.
 The engine works on a request grown by the apron these give; ``dependency_mask`` and
-``dependency_chain`` are the reference computations on grids the tests and the paper's
-figures compare with (6778 voxels for N=5, 2 passes, 3 levels).
+``dependency_chain`` are the reference computations on grids that the tests and the
+benchmarks compare with (5,037 voxels for N=5, 2 passes, 3 levels, where the paper
+reports 6778: BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -97,7 +98,8 @@ def apron_blocks(half: int, passes: int, subpasses: int) -> int:
 def dependency_chain(half: int, passes: int, subpasses: int, levels: int) -> list[int]:
     """Voxels synthesized at each level to get one finest voxel, finest level first.
 
-    The count that Dong 2008 (section 5.2) reports as 6778 for N=5, 2 passes, 3 levels.
+    The dependency chain of Dong 2008, section 5.2, which reports 6778 voxels for N=5, 2
+    passes, 3 levels; this gives 473 + 1,749 + 2,815 = 5,037 (BENCHMARKS.md).
     """
     steps = correction_steps(passes, subpasses)
     n = 4 * len(steps) * half + 8
