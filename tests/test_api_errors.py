@@ -614,6 +614,36 @@ def test_files_written_together_are_all_left_as_they_were_when_one_fails(tmp_pat
     assert (first.read_bytes(), second.read_text()) == (b"new image", "new figures")
 
 
+def test_a_folder_in_the_place_of_a_later_file_written_together_replaces_none(tmp_path):
+    """Refused before any rename: the first file is not replaced beside a second that
+    cannot be, and no temporary file is left."""
+    first, second = tmp_path / "image.png", tmp_path / "image.png.json"
+    first.write_bytes(b"old image")
+    second.mkdir()
+    with pytest.raises(IsADirectoryError) as caught:
+        write_together([(first, lambda tmp: tmp.write_bytes(b"new image")),
+                        (second, lambda tmp: tmp.write_text("new figures"))])
+    assert caught.value.filename == str(second)
+    assert first.read_bytes() == b"old image" and not any(second.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["image.png", "image.png.json"]
+
+
+def test_a_folder_that_takes_no_file_is_found_by_a_trial_write(tmp_path, monkeypatch):
+    """Permission bits do not tell (root, read-only mounts): a trial file does."""
+    import tempfile
+
+    from warptex.archive import folder_problem
+
+    assert folder_problem(tmp_path / "new" / "deeper") is None
+
+    def refused(*args, **kwargs):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    assert folder_problem(tmp_path / "new" / "deeper") == (
+        f"cannot write in {tmp_path} ({os.strerror(errno.EROFS)})")
+
+
 def test_a_ctrl_c_between_the_renames_of_files_written_together_comes_after_the_last(
         tmp_path, monkeypatch):
     """A stop right after the first rename left a new image beside old figures (a

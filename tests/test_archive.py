@@ -14,6 +14,7 @@ from warptex.archive import (
     _DIGEST_BYTES,
     _VERSION_BYTES,
     ArchiveError,
+    archive_version,
     read_archive,
     write_archive,
 )
@@ -74,3 +75,31 @@ def test_reading_or_writing_an_archive_holds_no_copy_of_the_file(tmp_path):
     assert_same(found, expected)
     assert written < size / 2, f"writing {size} bytes of arrays held {written}"
     assert read < size * 1.5, f"reading {size} bytes of arrays held {read}"
+
+
+def test_a_file_cut_inside_its_header_or_of_another_magic_is_no_archive(tmp_path):
+    """Not an archive at all (the cache lists it damaged), not one of version 0 or 3: the
+    magic alone, the magic and a version, a header one byte short; a magic differing in its
+    last byte only; a payload changed after its checksum; a newer version."""
+    write_archive(tmp_path / "a.wta", MAGIC, 3, arrays(1))
+    data = (tmp_path / "a.wta").read_bytes()
+    header = len(MAGIC) + _VERSION_BYTES + _DIGEST_BYTES
+    cut = tmp_path / "cut.wta"
+    for length in (len(MAGIC), len(MAGIC) + _VERSION_BYTES, header - 1):
+        cut.write_bytes(data[:length])
+        assert archive_version(cut, MAGIC) is None, length
+        with pytest.raises(ArchiveError, match=r"cut\.wta: not a warptex test file"):
+            read_archive(cut, MAGIC, 3, "test")
+    other = tmp_path / "other.wta"
+    other.write_bytes(MAGIC[:-1] + b"X" + data[len(MAGIC):])
+    assert archive_version(other, MAGIC) is None
+    with pytest.raises(ArchiveError, match="not a warptex test file"):
+        read_archive(other, MAGIC, 3, "test")
+    flipped = bytearray(data)
+    flipped[-100] ^= 1
+    (tmp_path / "flipped.wta").write_bytes(bytes(flipped))
+    with pytest.raises(ArchiveError, match="checksum mismatch"):
+        read_archive(tmp_path / "flipped.wta", MAGIC, 3, "test")
+    assert archive_version(tmp_path / "a.wta", MAGIC) == 3
+    with pytest.raises(ArchiveError, match="test file version 3, expected 2"):
+        read_archive(tmp_path / "a.wta", MAGIC, 2, "test")
