@@ -3,17 +3,7 @@ arrays included."""
 
 import numpy as np
 
-from warptex.keysets import (
-    cell_offsets,
-    distinct_sorted,
-    local_index,
-    lookup,
-    lookup_runs,
-    pack,
-    run_starts,
-    unique,
-    unpack,
-)
+from warptex.keysets import distinct_sorted, lookup, lookup_runs, pack, run_starts, unique, unpack
 from warptex.surface import _unique_rows
 
 
@@ -73,6 +63,8 @@ def test_lookup_of_runs_is_lookup():
 def test_a_cell_s_voxels_are_numbered_x_slowest_in_both_directions():
     """The order the kernels number a block's or brick's voxels in: the offsets' index is
     the local index, and negative voxels sit in their cell as positive ones do."""
+    from warptex.keysets import cell_offsets, local_index
+
     for size in (2, 4, 8):
         offsets = cell_offsets(size)
         np.testing.assert_array_equal(local_index(offsets, size), np.arange(size**3))
