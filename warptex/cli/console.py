@@ -163,11 +163,11 @@ class _StandardOutput:
         self._stream = stream
 
     def write(self, text: str) -> int:
-        with _as_standard_output_error():
+        with as_standard_output_error():
             return self._stream.write(text)
 
     def flush(self) -> None:
-        with _as_standard_output_error():
+        with as_standard_output_error():
             self._stream.flush()
 
     def __getattr__(self, name: str) -> Any:
@@ -175,7 +175,9 @@ class _StandardOutput:
 
 
 @contextlib.contextmanager
-def _as_standard_output_error() -> Iterator[None]:
+def as_standard_output_error() -> Iterator[None]:
+    """The block's failures to write standard output as :class:`StandardOutputError`; a
+    reader gone (EPIPE) stays a BrokenPipeError."""
     try:
         yield
     except BrokenPipeError:

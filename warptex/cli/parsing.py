@@ -14,7 +14,11 @@ from typing import IO, NoReturn
 from warptex import __version__
 from warptex.cli.cache import add_cache_parser, run_cache
 from warptex.cli.compare import add_compare_parser, run_compare
-from warptex.cli.console import drop_unwritten_output
+from warptex.cli.console import (
+    StandardOutputError,
+    as_standard_output_error,
+    drop_unwritten_output,
+)
 from warptex.cli.exemplars import add_info_parser, add_precompute_parser, run_info, run_precompute
 from warptex.cli.meshes import add_bake_parser, add_cut_parser, run_bake, run_cut
 from warptex.cli.render import add_render_parser, run_render
@@ -52,14 +56,15 @@ class _Parser(argparse.ArgumentParser):
             super()._print_message(message, file)
             return
         try:
-            file.write(message)
-            file.flush()
+            with as_standard_output_error():
+                file.write(message)
+                file.flush()
         except BrokenPipeError:
             drop_unwritten_output()
             self.exit(141)
-        except OSError as error:
+        except StandardOutputError as error:
             drop_unwritten_output()
-            self.exit(1, f"{self.prog}: error: standard output: {error.strerror or error}\n")
+            self.exit(1, f"{self.prog}: error: {error}\n")
 
 
 def build_parser() -> argparse.ArgumentParser:

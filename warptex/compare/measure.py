@@ -203,7 +203,7 @@ def _measure_in_child(method: str, s: Setup, repeats: int) -> dict:
     from warptex.warp_runtime import kernel_build_notice
 
     def building(cache: object) -> None:  # before the phase it interrupts, which goes on
-        then = f", then {_said[0]}" if _said[0] else ""
+        then = f", then {_said}" if _said else ""
         _phase(f"Warp builds the kernels (once a version){then}")
 
     with kernel_build_notice(building):
@@ -213,12 +213,13 @@ def _measure_in_child(method: str, s: Setup, repeats: int) -> dict:
 def _phase(text: str) -> None:
     """Say, on the bar of the process that runs the comparison, what this method's process
     does now; nothing where it is not one (a test measuring in its own process)."""
-    _said[0] = text
+    global _said
+    _said = text
     if _phases is not None:
         _phases.put(text)
 
 
-_said = [""]  # what this method's process said last, which a kernel build interrupts
+_said = ""  # what this method's process said last, which a kernel build interrupts
 
 
 def _show_phases(bar: tqdm, method: str, phases: multiprocessing.queues.Queue) -> None:
