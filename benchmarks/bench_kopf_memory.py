@@ -9,7 +9,7 @@ compiled first by an 8^3 run): the rise of the resident memory's peak over its s
 finest level, what the check counts, and the rise beyond the volume and its copy per voxel,
 which ``WORK_BYTES_PER_VOXEL`` is to cover. Two iterations a level by default: a level's
 second search is the first bounded by the current matches (its float64 distances to them,
-the peak), and later ones repeat it.
+taken in parts of rows), and later ones repeat it.
 
     python benchmarks/bench_kopf_memory.py [--exemplars DIR] [--names granite_64 noise8 ...]
                                            [--sizes 32 64] [--iterations 2]

@@ -10,6 +10,7 @@ import re
 import numpy as np
 import pytest
 import warp as wp
+from scipy.spatial import cKDTree
 
 from warptex import metrics
 from warptex.baselines import kopf
@@ -943,7 +944,8 @@ def test_working_bytes_cover_a_bounded_search(warp_device):
     """The search phase's peak, what ``kopf.working_bytes`` counts beside the solid: the
     PCA coefficients of every grid centre (Warp's) and, from a level's second search on,
     the float64 distances to the current matches that bound it (NumPy's), at their most
-    for an exemplar that keeps every coefficient."""
+    for an exemplar that keeps every coefficient. The distances are taken in parts: all
+    at once, they took four times the coefficients' memory."""
     import tracemalloc
     import warnings
 
@@ -963,8 +965,21 @@ def test_working_bytes_cover_a_bounded_search(warp_device):
     finally:
         tracemalloc.stop()
     coefficients = opt.coeffs.capacity
-    assert peak > coefficients  # the distances, in float64, outweigh them
+    assert peak < coefficients
     assert peak + coefficients <= kopf.working_bytes(n)
+
+
+def test_distances_to_matches_in_parts_are_those_of_one_pass(monkeypatch):
+    """The bounded search's distances, taken a few rows at a time, are bit for bit those
+    of all rows at once: each bound decides which matches the search may return."""
+    rng = np.random.default_rng(3)
+    data = rng.random((50, 7))
+    tree = cKDTree(data)
+    query = rng.random((23, 7)).astype(np.float32)
+    rows = rng.integers(0, 50, 23)
+    whole = np.linalg.norm(query - data[rows], axis=1)
+    monkeypatch.setattr(kopf, "_BOUND_PART_BYTES", 8 * 7 * 4)  # parts of 4 rows, the last 3
+    assert np.array_equal(kopf._distances_to_matches(tree, query, rows), whole)
 
 
 def test_a_constant_exemplar_keeps_one_coefficient_without_a_warning(warp_device):

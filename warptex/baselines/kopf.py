@@ -76,17 +76,19 @@ HISTOGRAM_REFRESHES = 64
 MIN_DISTANCE = 1e-3
 _DEVICE = "cpu"  # the ANN search runs on the host; the solid is shared with it without copies
 _BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_search
+_BOUND_PART_BYTES = 1 << 20  # float64 differences at a time in _distances_to_matches
 # Mean-shift bandwidth at a level's first and last iteration, in units of the standard
 # deviation of the level's exemplar texels (geometric in between): "gradually reduced as the
 # optimization of each resolution level progresses" (section 4.1).
 MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 # Peak memory of a synthesis per voxel, beside the solid and its returned copy: most of it the
-# search's PCA coefficients (MAX_COEFFS float32 per grid centre, a quarter of the voxels) and
-# a bounded search's float64 distances to the current matches (about 4 bytes a voxel per
-# kept coefficient). Resident peaks beyond the volume and its copy at 64^3, two iterations a
-# level (benchmarks/bench_kopf_memory.py, BENCHMARKS.md): 235 bytes a voxel (bricks_red_128,
-# 26 coefficients), 311 (granite_64, 48), 477-496 for noise, which keeps all 96.
-WORK_BYTES_PER_VOXEL = 600
+# search's PCA coefficients (MAX_COEFFS float32 per grid centre, a quarter of the voxels: 96
+# bytes a voxel) and, as a level begins, its histograms' bin indices (16 bytes a voxel per
+# channel for a moment). Resident peaks beyond the volume and its copy at 64^3, two
+# iterations a level, search structures included (benchmarks/bench_kopf_memory.py,
+# BENCHMARKS.md): 167 bytes a voxel (granite_64), 186 (bricks_red_128), 160 and 223 for 3 and
+# 8 channels of noise, which keeps every coefficient.
+WORK_BYTES_PER_VOXEL = 300
 # Peak memory of an exemplar's search structure per window (pixel) while it is built: its
 # float64 window of 64 values per feature, centred in place, beside its coefficients (at most
 # MAX_COEFFS float64) and the tree over them, which are kept for the level (the coarser level's,
@@ -392,8 +394,7 @@ def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray
     tree = ax.tree
     if np.any(current < 0):
         return ax.window_pixels[nearest(tree, query, eps=ANN_EPS)[1]]
-    rows = np.searchsorted(ax.window_pixels, current)
-    bound = np.linalg.norm(query - tree.data[rows], axis=1)
+    bound = _distances_to_matches(tree, query, np.searchsorted(ax.window_pixels, current))
     found = current.copy()
     order = np.argsort(bound)
     for group in np.array_split(order, _BOUND_GROUPS):
@@ -403,6 +404,19 @@ def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray
             hit = idx < tree.n
             found[group[hit]] = ax.window_pixels[idx[hit]]
     return found
+
+
+def _distances_to_matches(tree: cKDTree, query: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Euclidean distance of each of ``query`` to the tree window in its row of ``rows``,
+    taken in parts of rows: all at once, the float64 differences took about 4 bytes a voxel
+    per coefficient kept, three times the search's other memory. Each row's distance is its
+    own, so the parts give what one pass would."""
+    step = max(1, _BOUND_PART_BYTES // (8 * max(1, query.shape[1])))
+    bound = np.empty(len(rows))
+    for lo in range(0, len(rows), step):
+        part = slice(lo, lo + step)
+        bound[part] = np.linalg.norm(query[part] - tree.data[rows[part]], axis=1)
+    return bound
 
 
 class _LevelOptimizer:
