@@ -246,7 +246,7 @@ def test_slice_arguments_are_checked(candidates, warp_device):
     from warptex.texture import SolidTexture
 
     tex = SolidTexture(candidates)
-    for shape in (8, (8, 8, 3), (8.0, 8.0), (-1, 8)):
+    for shape in (8, (8, 8, 3), (8.0, 8.0), (-1, 8), (True, 8)):
         with pytest.raises(ValueError, match="shape must be two positive ints"):
             tex.slice((0, 0, 0), (1, 0, 0), (0, 1, 0), shape)
     for origin in ((0, 0), "000", (0, np.nan, 0), (1 + 2j, 0, 0)):
@@ -278,6 +278,11 @@ def test_slice_arguments_are_checked(candidates, warp_device):
                          ((0, 0, edge - 3), (0, 1, 0), (0, 0, 1))):
         assert tex.slice(origin, u, v, (1, 4 if origin[2] else 1)).shape[:2] == (
             1, 4 if origin[2] else 1)
+    # One pixel exactly at the limit, which queries refuse, is the plane's to name.
+    for origin, u, v, shape in (((POINT_LIMIT, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1)),
+                                ((0, 0, POINT_LIMIT - 3), (0, 1, 0), (0, 0, 1), (1, 4))):
+        with pytest.raises(ValueError, match="the plane reaches beyond"):
+            tex.slice(origin, u, v, shape)
 
 
 def test_a_slice_counts_the_memory_of_its_points_and_the_voxels_they_read(candidates,

@@ -48,6 +48,10 @@ def computed(image, tmp_path_factory) -> tuple[Path, Path]:
     return current, other
 
 
+# Other tools' files in a shared cache folder, one named like a cache file but for its end.
+_FOREIGN = ("notes.txt", "bunny.wtb", f"{candidates.CACHE_PREFIX}notes.txt")
+
+
 @pytest.fixture
 def folder(computed, tmp_path, monkeypatch) -> Path:
     """A cache folder holding one file of each kind, and files of other tools."""
@@ -67,8 +71,8 @@ def folder(computed, tmp_path, monkeypatch) -> Path:
     hours_ago = time.time() - 2 * cc.UNFINISHED_AGE
     os.utime(unfinished, (hours_ago, hours_ago))
     (folder / f".{current.stem}.789.1.tmp.wtc").write_bytes(data[:100])
-    (folder / "notes.txt").write_text("another tool's file")
-    (folder / "bunny.wtb").write_bytes(b"a brick store kept here by hand")
+    for name in _FOREIGN:
+        (folder / name).write_text("another tool's file")
     monkeypatch.setenv("WARPTEX_CACHE", str(folder))
     return folder
 
@@ -258,7 +262,7 @@ def test_prune_deletes_what_no_run_reads_and_keeps_the_rest(folder, computed, im
     assert "deleted: 5 files" in capsys.readouterr().out
     assert _statuses(folder) == {current.name: cc.IN_USE,
                                  f".{current.stem}.789.1.tmp.wtc": cc.BEING_WRITTEN}
-    assert (folder / "notes.txt").exists() and (folder / "bunny.wtb").exists()
+    assert all((folder / name).exists() for name in _FOREIGN)
     again = precompute(Exemplar.load(image))
     assert again.cache_status == "loaded"
     assert again.names == (image.name,) * 3
@@ -349,7 +353,7 @@ def test_clear_deletes_every_candidate_file_but_writes_in_progress(folder, image
     assert main(["cache", "--clear"]) == 0
     assert "deleted: 6 files" in capsys.readouterr().out
     assert [f.status for f in cc.cache_files(folder)] == [cc.BEING_WRITTEN]
-    assert (folder / "notes.txt").exists() and (folder / "bunny.wtb").exists()
+    assert all((folder / name).exists() for name in _FOREIGN)
     assert precompute(Exemplar.load(image)).cache_status == "written"
 
 

@@ -524,15 +524,17 @@ def test_symmetric_eigen_decomposes(eigenvalues):
     assert np.allclose(matrix @ vectors, vectors * values, atol=1e-12)
 
 
-@pytest.mark.parametrize("rank", [None, 30, 5])
-def test_leading_eigen_finds_the_principal_axes_of_wide_neighbourhoods(rank):
+@pytest.mark.parametrize("rank, decay", [(None, 0.8), (30, 0.8), (5, 0.8), (None, 0.983)])
+def test_leading_eigen_finds_the_principal_axes_of_wide_neighbourhoods(rank, decay):
     """Beyond JACOBI_MAX_DIMS (multi-channel exemplars) only the leading axes are found, by
-    orthogonal iteration on exact products; a matrix of low rank leaves vectors unused."""
+    orthogonal iteration on exact products; a matrix of low rank leaves vectors unused. A
+    slowly falling spectrum takes tens of rounds to settle: one stopped at a residual of 1e-2
+    was 0.4 off in its variances."""
     n = exact_pca.JACOBI_MAX_DIMS + 10
     rank = n if rank is None else rank
     rng = np.random.default_rng(rank)
     basis = np.linalg.qr(rng.normal(size=(n, n)))[0][:, :rank]
-    spectrum = 100.0 * 0.8 ** np.arange(rank)
+    spectrum = 100.0 * decay ** np.arange(rank)
     matrix = basis @ np.diag(spectrum) @ basis.T
     values, vectors, total = exact_pca.principal_axes((matrix + matrix.T) / 2, 12)
     found = min(12, rank)

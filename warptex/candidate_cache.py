@@ -152,9 +152,6 @@ def _status(path: Path) -> tuple[str, dict]:
         meta = read_cache_meta(path)
     except CandidateCacheError:
         return DAMAGED, {}
-    try:
-        expected = cache_file_name(meta["digests"], meta["params"])
-    except TypeError:  # not JSON-serializable: cannot come from any warptex
-        return DAMAGED, meta
-    current = path.name == expected and computed_here(meta)
+    current = (path.name == cache_file_name(meta["digests"], meta["params"])
+               and computed_here(meta))
     return (IN_USE if current else OTHER_VERSION), meta
