@@ -1499,6 +1499,43 @@ def test_a_stream_closed_from_the_start_is_passed_over_at_the_end(monkeypatch):
     assert set(handlers) == {signal.SIGINT, signal.SIGTERM}
 
 
+def test_the_command_run_on_another_thread_leaves_the_signals_to_the_main_one(monkeypatch):
+    """``main()`` called from a thread (a pipeline's worker): signals are the main thread's
+    to set, and setting them from there raised ValueError as the work ended."""
+    import threading
+
+    import warptex.stops
+
+    monkeypatch.setattr(warptex.stops, "is_the_command", lambda: True)
+    errors = []
+
+    def end() -> None:
+        try:
+            warptex.stops.stops_ignored_after_the_work()
+        except BaseException as error:  # whatever it raises is the failure
+            errors.append(error)
+
+    thread = threading.Thread(target=end)
+    thread.start()
+    thread.join()
+    assert errors == []
+
+
+def test_a_ctrl_c_handler_of_the_caller_s_own_is_kept_while_starting(monkeypatch):
+    import warptex.stops
+
+    def own(signum, frame):
+        pass
+
+    monkeypatch.setattr(warptex.stops, "is_the_command", lambda: True)
+    previous = signal.signal(signal.SIGINT, own)
+    try:
+        warptex.stops.quiet_while_starting()
+        assert signal.getsignal(signal.SIGINT) is own
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 _SIGNALLED_AS_PYTHON_ENDS = '''
 import os, signal, sys, time
 import warptex.stops as stops

@@ -45,6 +45,49 @@ def test_find_libllvm_ignores_too_old(tmp_path, monkeypatch):
     assert llvm.find_libllvm() is None
 
 
+def test_find_libllvm_takes_the_oldest_suitable_and_orders_by_version(tmp_path, monkeypatch):
+    """LLVM 16 is the oldest Dr.Jit takes; 18 is newer than 17 whatever the names' order."""
+    (tmp_path / "libLLVM-16.so.1").write_bytes(b"")
+    monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    assert llvm.find_libllvm() == tmp_path / "libLLVM-16.so.1"
+    assert llvm._preset_problem(str(tmp_path / "libLLVM-16.so.1")) is None
+    for name in ("libLLVM-18.so.1", "libLLVM.so.17.1"):
+        (tmp_path / name).write_bytes(b"")
+    assert llvm.find_libllvm() == tmp_path / "libLLVM-18.so.1"
+
+
+def test_find_libllvm_passes_over_what_is_no_file(tmp_path, monkeypatch):
+    (tmp_path / "libLLVM-17.so.1").write_bytes(b"")
+    (tmp_path / "libLLVM.so.20.1").symlink_to(tmp_path / "gone")
+    (tmp_path / "libLLVM-21.so").mkdir()
+    monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    assert llvm.find_libllvm() == tmp_path / "libLLVM-17.so.1"
+
+
+def test_an_empty_preset_is_searched_past(tmp_path, monkeypatch):
+    (tmp_path / "libLLVM-18.so.1").write_bytes(b"")
+    monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
+    assert llvm.configure_drjit() == tmp_path / "libLLVM-18.so.1"
+
+
+def test_a_preset_too_old_by_its_name_is_named_once(tmp_path):
+    old = tmp_path / "libLLVM-15.so"
+    old.write_bytes(b"")
+    assert llvm._preset_problem(str(old)) == (
+        f"DRJIT_LIBLLVM_PATH={old} is libLLVM 15, older than 16")
+
+
+def test_run_as_a_script_it_fails_where_no_library_is_found():
+    """The set-up (Makefile) installs libllvm19 where ``python warptex/llvm.py`` fails."""
+    script = ("import pathlib, runpy, sys\n"
+              "pathlib.Path.glob = lambda self, pattern: iter(())\n"
+              "runpy.run_path(sys.argv[1], run_name='__main__')\n")
+    done = subprocess.run([sys.executable, "-c", script, llvm.__file__], capture_output=True,
+                          text=True, timeout=60)
+    assert (done.returncode, done.stdout.strip()) == (1, "no libLLVM >= 16 found")
+
+
 def test_configure_sets_env_only_when_unset(tmp_path, monkeypatch):
     (tmp_path / "libLLVM-18.so.1").write_bytes(b"")
     monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))
@@ -122,6 +165,14 @@ def test_a_preset_library_that_cannot_serve_is_named_in_the_fallback(tmp_path, m
     pytest.importorskip("mitsuba")
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "libfoo.so"))
     with pytest.warns(UserWarning, match=r"DRJIT_LIBLLVM_PATH=.*libfoo\.so names no file"):
+        assert llvm.best_mitsuba_variant() == "scalar_rgb"
+
+
+def test_a_mitsuba_without_the_llvm_variant_falls_back_and_says_so(tmp_path, monkeypatch):
+    mi = pytest.importorskip("mitsuba")
+    monkeypatch.setattr(llvm, "configure_drjit", lambda: tmp_path / "libLLVM-19.so")
+    monkeypatch.setattr(mi, "variants", lambda: ["scalar_rgb"])
+    with pytest.warns(UserWarning, match="this Mitsuba build has no llvm_ad_rgb variant"):
         assert llvm.best_mitsuba_variant() == "scalar_rgb"
 
 

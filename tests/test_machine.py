@@ -100,6 +100,8 @@ def test_physical_memory_is_a_containers_limit_where_lower(tmp_path, monkeypatch
                             "cpu/cpu.cfs_period_us": "100000"}, 16),   # v1 without a quota
     ("1:cpu:/\n", {"cpu/cpu.cfs_quota_us": "400000"}, 16),            # no period: unread
     ("4:memory:/\n", {"cpu.max": "200000 100000"}, 16),               # no cpu controller
+    ("3:cpuset:/pinned\n1:cpu,cpuacct:/\n",                          # cpuset is not cpu
+     {"cpu/pinned/cpu.cfs_quota_us": "100000", "cpu/pinned/cpu.cfs_period_us": "100000"}, 16),
     (None, {}, 16),                                                   # no cgroups at all
 ])
 def test_usable_cores_are_a_containers_cpu_quota_where_fewer(tmp_path, monkeypatch, groups,
@@ -151,6 +153,33 @@ def test_physical_memory_is_what_the_process_limits_leave(monkeypatch):
                                                 f"{machine.byte_size(room)}")
     limits[resource.RLIMIT_DATA] = held("VmData") + (1 << 30)  # the lower of the two
     assert abs(machine.physical_memory() - (1 << 30)) < (256 << 20)
+
+
+def test_a_process_limit_below_what_is_mapped_leaves_no_room(monkeypatch):
+    """Not a negative room, which a refusal would name as "may have -x MiB"."""
+    import resource
+
+    from warptex import machine
+
+    if not Path("/proc/self/status").exists():
+        pytest.skip("no /proc/self/status")
+    limits = {resource.RLIMIT_AS: 1 << 20, resource.RLIMIT_DATA: resource.RLIM_INFINITY}
+    real = resource.getrlimit
+    monkeypatch.setattr(resource, "getrlimit",
+                        lambda which: (limits[which], resource.RLIM_INFINITY)
+                        if which in limits else real(which))
+    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))
+    assert machine.physical_memory() == 0
+
+
+def test_cpu_model_is_the_model_name_line(tmp_path, monkeypatch):
+    """x86's /proc/cpuinfo has a "model" line (a number) before "model name"."""
+    from warptex import machine
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel\t\t: 2\nmodel name\t: AMD EPYC 9654\n")
+    monkeypatch.setattr(machine, "_CPUINFO", info)
+    assert machine.cpu_model() == "AMD EPYC 9654"
 
 
 def test_physical_memory_is_the_systems_total(monkeypatch):

@@ -321,6 +321,62 @@ def test_a_stop_between_two_handler_swaps_leaves_every_handler_as_it_was(monkeyp
             signal.signal(n, handler)
 
 
+def test_blocked_holds_the_signals_and_gives_the_mask_back():
+    """Handlers are swapped and held-back stops raised again with the signals blocked: one
+    delivered at once there, whose handler raised, left the next unraised."""
+    from warptex.stops import blocked
+
+    if not hasattr(signal, "pthread_sigmask"):
+        pytest.skip("no signal masks (Windows)")
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    with blocked((signal.SIGINT, signal.SIGTERM)):
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    assert {signal.SIGINT, signal.SIGTERM} <= held
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before
+
+
+def test_deferred_stops_on_another_thread_run_the_block_as_it_is():
+    """Only the main thread may set handlers (ValueError elsewhere), and only it is
+    interrupted: a worker thread's query runs as it would without them."""
+    from warptex.stops import deferred_stops
+
+    ran, errors = [], []
+
+    def work() -> None:
+        try:
+            with deferred_stops():
+                ran.append(True)
+        except BaseException as error:  # whatever it raises is the failure
+            errors.append(error)
+
+    thread = threading.Thread(target=work)
+    thread.start()
+    thread.join()
+    assert (ran, errors) == ([True], [])
+
+
+_UNSEEN_HANDLER = """
+import signal
+from warptex.stops import deferred_stops
+real = signal.getsignal
+handler = real(signal.SIGTERM)
+signal.getsignal = lambda number: None if number == signal.SIGTERM else real(number)
+with deferred_stops():
+    assert real(signal.SIGTERM) is handler
+assert real(signal.SIGTERM) is handler
+print("kept")
+"""
+
+
+def test_a_handler_python_cannot_see_is_left_in_place():
+    """A handler installed from C reads as None and cannot be set back from Python: it is
+    left as it is. Setting None again raised a TypeError after the block, which the swap
+    once retried for ever: hence a process of its own, with a time limit."""
+    done = subprocess.run([sys.executable, "-c", _UNSEEN_HANDLER], capture_output=True,
+                          text=True, timeout=60)
+    assert done.stdout.strip() == "kept", done.stderr
+
+
 def _backtracking() -> None:
     """Minutes in one C call that holds the GIL, as xatlas' unwrapping does."""
     re.fullmatch(r"(a+)+b", "a" * 64)

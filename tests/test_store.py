@@ -1258,6 +1258,32 @@ def test_engine_code_digest_reads_every_module_the_engine_runs(monkeypatch):
         assert kernels <= digested, f"{module.__name__} imports {kernels - digested}"
 
 
+def test_code_without_source_files_is_keyed_by_warptex_s_version(monkeypatch):
+    """A frozen application's modules have no files: the caches' code digest is then the
+    constants and warptex's version, all or nothing (a part of the code left out would
+    serve caches of code that differs there)."""
+    import sys
+    import types
+
+    from warptex import code_digest
+
+    frozen = types.ModuleType("frozen")
+    assert code_digest.module_sources([sys.modules["warptex.store"], frozen]) is None
+    before = code_digest.code_digest(None, "constants")
+    monkeypatch.setattr(code_digest, "_package_version", lambda: "0.0.0-other")
+    assert code_digest.code_digest(None, "constants") != before
+
+
+def test_the_installed_code_digest_reads_the_plugin_too(monkeypatch):
+    """What a report names beside the version covers all three packages."""
+    from warptex import code_digest
+
+    read = []
+    monkeypatch.setattr(code_digest, "_digest", lambda files, constants: read.extend(files) or "")
+    code_digest.installed_code_digest()
+    assert {p.parent.name for p in read} >= {"warptex", "kernels", "mitsuba_plugin"}
+
+
 def test_a_negative_triple_in_a_file_of_wide_triples_is_refused(candidates, tmp_path,
                                                                  monkeypatch):
     """Exemplars of more than 65536 pixels are stored as int32 triples, which can hold a

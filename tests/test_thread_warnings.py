@@ -81,8 +81,16 @@ def test_warn_points_where_warnings_warn_would():
         warn("said", stacklevel=2)
 
     with pytest.warns(UserWarning, match="said") as shown:
+        line = sys._getframe().f_lineno + 1
         caller()
-    assert shown[0].filename == __file__
+    assert (shown[0].filename, shown[0].lineno) == (__file__, line)
+
+
+def test_a_capture_left_by_an_error_takes_no_more_warnings():
+    with pytest.raises(ValueError), captured():
+        raise ValueError
+    with pytest.warns(UserWarning, match="after"):
+        warn("after")
 
 
 def test_a_library_s_warnings_are_taken_on_this_thread_and_others_passed_on():
@@ -225,3 +233,32 @@ def test_a_library_capture_leaves_other_modules_words_said_once_said():
             pass
         plugin("alpha dropped")
     assert [str(w.message) for w in shown] == ["alpha dropped"]
+
+
+def test_every_warning_passed_on_in_a_library_capture_reaches_the_hook_found():
+    outside = _library("elsewhere")
+    with pytest.warns(UserWarning) as shown, library_warnings("somelib"):
+        outside("one")
+        outside("two")
+    assert [str(w.message) for w in shown] == ["one", "two"]
+
+
+def test_a_capture_of_a_module_loaded_from_no_file_passes_warnings_on():
+    with pytest.warns(UserWarning, match="elsewhere"), library_warnings("no_such_module_xyz"):
+        warnings.warn("elsewhere", stacklevel=1)
+
+
+def test_a_package_of_a_longer_name_is_not_the_library():
+    """``somelib2`` is not ``somelib``: its warnings are passed on, and what it said before
+    stays said."""
+    say = _library("somelib")
+    other = _library("somelib2")
+    with pytest.warns(UserWarning) as shown, warnings.catch_warnings():
+        warnings.simplefilter("default")
+        other("words")
+        with library_warnings("somelib") as said:
+            other("words")
+            other("new words")
+            say("mine")
+    assert said == [Warned("mine", UserWarning)]
+    assert [str(w.message) for w in shown] == ["words", "new words"]

@@ -18,12 +18,13 @@ from pathlib import Path
 # huge number where there is none) and cpu.cfs_quota_us (-1) over cpu.cfs_period_us.
 _PROC_CGROUP = Path("/proc/self/cgroup")
 _CGROUP_ROOT = Path("/sys/fs/cgroup")
+_CPUINFO = Path("/proc/cpuinfo")
 
 
 def cpu_model() -> str:
     """The CPU's model name as the system gives it ("AMD EPYC ..."), for reports of figures."""
     try:
-        with open("/proc/cpuinfo") as info:
+        with open(_CPUINFO) as info:
             return next(line.split(":", 1)[1].strip() for line in info
                         if line.startswith("model name"))
     except (OSError, StopIteration):

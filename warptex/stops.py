@@ -105,13 +105,16 @@ def _signals_deferred(signals: tuple[int, ...]) -> Iterator[None]:
 def _set_handlers(handlers: dict[int, Any]) -> None:
     """Set every one of ``handlers`` (signal: handler), then raise what a handler raised
     meanwhile: ``signal.signal`` first runs the handlers of signals that came, and sets
-    nothing where one raises, so it is called again."""
+    nothing where one raises, so it is called again. Its own refusals (a handler it does
+    not take, a thread other than the main one) would come again: they are raised at once."""
     raised: BaseException | None = None
     for number, handler in handlers.items():
         while True:
             try:
                 signal.signal(number, handler)
                 break
+            except (TypeError, ValueError):
+                raise
             except BaseException as error:  # KeyboardInterrupt, the CLI's SIGTERM
                 raised = raised or error
     if raised is not None:
