@@ -524,6 +524,36 @@ def test_symmetric_eigen_decomposes(eigenvalues):
     assert np.allclose(matrix @ vectors, vectors * values, atol=1e-12)
 
 
+def test_principal_variances_of_a_low_rank_covariance_are_never_negative():
+    """Neighbourhoods of a 3-channel exemplar whose 20 features mix 3 values: rotations
+    leave the 17 null variances about -1e-14, which are variances of 0."""
+    rng = np.random.default_rng(0)
+    vec = rng.integers(0, 255, (50, 3)).astype(np.float64) @ rng.normal(size=(3, 20))
+    cov = np.cov(vec.T)
+    assert (exact_pca.symmetric_eigen((cov + cov.T) / 2)[0] < 0).any()  # what is clipped
+    values, _, total = exact_pca.principal_axes((cov + cov.T) / 2, 5)
+    assert (values >= 0).all() and np.count_nonzero(values) >= 3
+    assert total == pytest.approx(np.trace(cov))
+
+
+def test_every_axis_of_a_four_channel_neighbourhood_comes_from_jacobi_rotations():
+    """RGBA or RGB and a feature channel at 5 x 5 is 100 dimensions, the widest decomposed
+    whole; wider ones get their leading axes only."""
+    n = 4 * 5 * 5
+    rng = np.random.default_rng(1)
+    basis = np.linalg.qr(rng.normal(size=(n + 1, n + 1)))[0]
+    for size in (n, n + 1):
+        matrix = basis[:size, :size] @ np.diag(np.linspace(1, 2, size)) @ basis[:size, :size].T
+        values = exact_pca.principal_axes((matrix + matrix.T) / 2, 12)[0]
+        assert len(values) == (size if size == n else 12)
+
+
+def test_orthonormal_columns_leave_a_dependent_one_zero():
+    columns = np.array([[1.0, 2.0, 0.0], [0.0, 0.0, 3.0], [0.0, 0.0, 0.0]])
+    out = exact_pca._orthonormal(columns)
+    assert np.array_equal(out, np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]))
+
+
 @pytest.mark.parametrize("rank, decay", [(None, 0.8), (30, 0.8), (5, 0.8), (None, 0.983)])
 def test_leading_eigen_finds_the_principal_axes_of_wide_neighbourhoods(rank, decay):
     """Beyond JACOBI_MAX_DIMS (multi-channel exemplars) only the leading axes are found, by
