@@ -526,11 +526,11 @@ def test_symmetric_eigen_decomposes(eigenvalues):
 
 def test_principal_variances_of_a_low_rank_covariance_are_never_negative():
     """Neighbourhoods of a 3-channel exemplar whose 20 features mix 3 values: rotations
-    leave the 17 null variances about -1e-14, which are variances of 0."""
+    leave some of the 17 null variances slightly negative (about -1e-14 on this project's
+    machines), which are variances of 0."""
     rng = np.random.default_rng(0)
     vec = rng.integers(0, 255, (50, 3)).astype(np.float64) @ rng.normal(size=(3, 20))
     cov = np.cov(vec.T)
-    assert (exact_pca.symmetric_eigen((cov + cov.T) / 2)[0] < 0).any()  # what is clipped
     values, _, total = exact_pca.principal_axes((cov + cov.T) / 2, 5)
     assert (values >= 0).all() and np.count_nonzero(values) >= 3
     assert total == pytest.approx(np.trace(cov))
@@ -546,6 +546,8 @@ def test_every_axis_of_a_four_channel_neighbourhood_comes_from_jacobi_rotations(
         matrix = basis[:size, :size] @ np.diag(np.linspace(1, 2, size)) @ basis[:size, :size].T
         values = exact_pca.principal_axes((matrix + matrix.T) / 2, 12)[0]
         assert len(values) == (size if size == n else 12)
+        expected = np.linalg.eigvalsh((matrix + matrix.T) / 2)[::-1][: len(values)]
+        assert np.allclose(values, expected, rtol=1e-6)
 
 
 def test_orthonormal_columns_leave_a_dependent_one_zero():

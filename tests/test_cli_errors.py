@@ -1500,8 +1500,9 @@ def test_a_stream_closed_from_the_start_is_passed_over_at_the_end(monkeypatch):
 
 
 def test_the_command_run_on_another_thread_leaves_the_signals_to_the_main_one(monkeypatch):
-    """``main()`` called from a thread (a pipeline's worker): signals are the main thread's
-    to set, and setting them from there raised ValueError as the work ended."""
+    """The end of the command's work (``stops_ignored_after_the_work``, as ``main()``
+    called from a pipeline's worker thread reaches it): signals are the main thread's to
+    set, and setting them from there raised ValueError."""
     import threading
 
     import warptex.stops

@@ -969,6 +969,26 @@ def test_working_bytes_cover_a_bounded_search(warp_device):
     assert peak + coefficients <= kopf.working_bytes(n)
 
 
+def test_working_bytes_cover_a_level_s_start_at_the_most_channels():
+    """As a level begins, beside the coefficients allocated just before, the histograms
+    count the solid's bins in int64 (16 bytes a voxel a channel for a moment): the peak
+    for an exemplar of MAX_FEATURES channels, 224 bytes a voxel measured at 64^3."""
+    import tracemalloc
+
+    n, channels = 32, kopf._k.MAX_FEATURES
+    rng = np.random.default_rng(0)
+    exemplar = rng.random((32, 32, channels), np.float32)
+    values = rng.random((n**3, channels)).astype(np.float32)
+    tracemalloc.start()
+    try:
+        kopf._Histograms(exemplar.reshape(-1, channels), [exemplar] * 3, values)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    coefficients = n**3 // kopf.GRID_SPACING**2 * kopf._k.MAX_COEFFS * 4
+    assert peak + coefficients <= kopf.working_bytes(n)
+
+
 def test_distances_to_matches_in_parts_are_those_of_one_pass(monkeypatch):
     """The bounded search's distances, taken a few rows at a time, are bit for bit those
     of all rows at once: each bound decides which matches the search may return."""

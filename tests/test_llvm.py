@@ -45,7 +45,7 @@ def test_find_libllvm_ignores_too_old(tmp_path, monkeypatch):
     assert llvm.find_libllvm() is None
 
 
-def test_find_libllvm_takes_the_oldest_suitable_and_orders_by_version(tmp_path, monkeypatch):
+def test_find_libllvm_accepts_llvm_16_and_takes_the_newest_by_version(tmp_path, monkeypatch):
     """LLVM 16 is the oldest Dr.Jit takes; 18 is newer than 17 whatever the names' order."""
     (tmp_path / "libLLVM-16.so.1").write_bytes(b"")
     monkeypatch.setattr(llvm, "_SEARCH_DIRS", (str(tmp_path),))

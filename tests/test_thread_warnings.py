@@ -243,8 +243,9 @@ def test_every_warning_passed_on_in_a_library_capture_reaches_the_hook_found():
     assert [str(w.message) for w in shown] == ["one", "two"]
 
 
-def test_a_capture_of_a_module_loaded_from_no_file_passes_warnings_on():
-    with pytest.warns(UserWarning, match="elsewhere"), library_warnings("no_such_module_xyz"):
+def test_a_capture_of_a_module_loaded_from_no_file_passes_warnings_on(monkeypatch):
+    monkeypatch.setitem(sys.modules, "fileless", types.ModuleType("fileless"))
+    with pytest.warns(UserWarning, match="elsewhere"), library_warnings("fileless"):
         warnings.warn("elsewhere", stacklevel=1)
 
 

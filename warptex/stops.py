@@ -106,16 +106,21 @@ def _set_handlers(handlers: dict[int, Any]) -> None:
     """Set every one of ``handlers`` (signal: handler), then raise what a handler raised
     meanwhile: ``signal.signal`` first runs the handlers of signals that came, and sets
     nothing where one raises, so it is called again. Its own refusals (a handler it does
-    not take, a thread other than the main one) would come again: they are raised at once."""
+    not take, a thread other than the main one) come again on the next try: they are
+    raised then, where retrying went on for ever."""
     raised: BaseException | None = None
     for number, handler in handlers.items():
+        last: BaseException | None = None
         while True:
             try:
                 signal.signal(number, handler)
                 break
-            except (TypeError, ValueError):
-                raise
             except BaseException as error:  # KeyboardInterrupt, the CLI's SIGTERM
+                # A handler's error comes once; two signals whose handlers both raise the
+                # same TypeError or ValueError in a row are not told from a refusal.
+                if isinstance(error, TypeError | ValueError) and type(error) is type(last):
+                    raise
+                last = error
                 raised = raised or error
     if raised is not None:
         raise raised

@@ -86,7 +86,7 @@ MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 # bytes a voxel) and, as a level begins, its histograms' bin indices (16 bytes a voxel per
 # channel for a moment). Resident peaks beyond the volume and its copy at 64^3, two
 # iterations a level, search structures included (benchmarks/bench_kopf_memory.py,
-# BENCHMARKS.md): 167 bytes a voxel (granite_64), 186 (bricks_red_128), 160 and 223 for 3 and
+# BENCHMARKS.md): 165 bytes a voxel (granite_64), 186 (bricks_red_128), 161 and 224 for 3 and
 # 8 channels of noise, which keeps every coefficient.
 WORK_BYTES_PER_VOXEL = 300
 # Peak memory of an exemplar's search structure per window (pixel) while it is built: its
@@ -409,7 +409,7 @@ def _ann_search(ax: _Axis, query: np.ndarray, current: np.ndarray) -> np.ndarray
 def _distances_to_matches(tree: cKDTree, query: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Euclidean distance of each of ``query`` to the tree window in its row of ``rows``,
     taken in parts of rows: all at once, the float64 differences took about 4 bytes a voxel
-    per coefficient kept, three times the search's other memory. Each row's distance is its
+    per coefficient kept, four times the coefficients' own memory. Each row's distance is its
     own, so the parts give what one pass would."""
     step = max(1, _BOUND_PART_BYTES // (8 * max(1, query.shape[1])))
     bound = np.empty(len(rows))
