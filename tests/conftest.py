@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import os
 import signal
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -173,3 +174,24 @@ def disk_full_at(monkeypatch):
         monkeypatch.setattr(os, "replace", replace_unless_full)
 
     return fill
+
+
+@pytest.fixture
+def errors_on_a_thread():
+    """``errors_on_a_thread(work)``: runs ``work()`` on a thread of its own and returns what
+    it raised there, as a list (empty where nothing), for the test's thread to assert on."""
+    def run(work) -> list[BaseException]:
+        errors: list[BaseException] = []
+
+        def catching() -> None:
+            try:
+                work()
+            except BaseException as error:  # whatever it raises is the failure
+                errors.append(error)
+
+        thread = threading.Thread(target=catching)
+        thread.start()
+        thread.join()
+        return errors
+
+    return run

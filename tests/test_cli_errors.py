@@ -1499,27 +1499,15 @@ def test_a_stream_closed_from_the_start_is_passed_over_at_the_end(monkeypatch):
     assert set(handlers) == {signal.SIGINT, signal.SIGTERM}
 
 
-def test_the_command_run_on_another_thread_leaves_the_signals_to_the_main_one(monkeypatch):
+def test_the_command_run_on_another_thread_leaves_the_signals_to_the_main_one(
+        monkeypatch, errors_on_a_thread):
     """The end of the command's work (``stops_ignored_after_the_work``, as ``main()``
     called from a pipeline's worker thread reaches it): signals are the main thread's to
     set, and setting them from there raised ValueError."""
-    import threading
-
     import warptex.stops
 
     monkeypatch.setattr(warptex.stops, "is_the_command", lambda: True)
-    errors = []
-
-    def end() -> None:
-        try:
-            warptex.stops.stops_ignored_after_the_work()
-        except BaseException as error:  # whatever it raises is the failure
-            errors.append(error)
-
-    thread = threading.Thread(target=end)
-    thread.start()
-    thread.join()
-    assert errors == []
+    assert errors_on_a_thread(warptex.stops.stops_ignored_after_the_work) == []
 
 
 def test_a_ctrl_c_handler_of_the_caller_s_own_is_kept_while_starting(monkeypatch):

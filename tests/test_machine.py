@@ -125,6 +125,20 @@ def test_usable_cores_are_a_containers_cpu_quota_where_fewer(tmp_path, monkeypat
     assert machine.usable_cores() == expected
 
 
+def _limited(monkeypatch, limits: dict[int, int]) -> None:
+    """The process's soft limits read as ``limits`` (resource: bytes, read at each call, so
+    the test may change them), the others as they are, and no cgroup."""
+    import resource
+
+    from warptex import machine
+
+    real = resource.getrlimit
+    monkeypatch.setattr(resource, "getrlimit",
+                        lambda which: (limits[which], resource.RLIM_INFINITY)
+                        if which in limits else real(which))
+    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))
+
+
 def test_physical_memory_is_what_the_process_limits_leave(monkeypatch):
     """Under ulimit -v (a batch job's limit) the checks compared their estimates with the
     machine's memory: a 512^3 volume was accepted, then failed with a traceback."""
@@ -142,11 +156,7 @@ def test_physical_memory_is_what_the_process_limits_leave(monkeypatch):
 
     limits = {resource.RLIMIT_AS: held("VmSize") + (3 << 30),
               resource.RLIMIT_DATA: resource.RLIM_INFINITY}
-    real = resource.getrlimit
-    monkeypatch.setattr(resource, "getrlimit",
-                        lambda which: (limits[which], resource.RLIM_INFINITY)
-                        if which in limits else real(which))
-    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))
+    _limited(monkeypatch, limits)
     room = machine.physical_memory()
     assert abs(room - (3 << 30)) < (256 << 20)  # the limit less what is mapped already
     assert machine.memory_problem(10 << 30) == ("needs about 10 GiB, this process may have "
@@ -163,12 +173,8 @@ def test_a_process_limit_below_what_is_mapped_leaves_no_room(monkeypatch):
 
     if not Path("/proc/self/status").exists():
         pytest.skip("no /proc/self/status")
-    limits = {resource.RLIMIT_AS: 1 << 20, resource.RLIMIT_DATA: resource.RLIM_INFINITY}
-    real = resource.getrlimit
-    monkeypatch.setattr(resource, "getrlimit",
-                        lambda which: (limits[which], resource.RLIM_INFINITY)
-                        if which in limits else real(which))
-    monkeypatch.setattr(machine, "_PROC_CGROUP", Path("/nonexistent"))
+    _limited(monkeypatch, {resource.RLIMIT_AS: 1 << 20,
+                           resource.RLIMIT_DATA: resource.RLIM_INFINITY})
     assert machine.physical_memory() == 0
 
 
