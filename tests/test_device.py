@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import io
 import os
 import subprocess
 import sys
@@ -256,6 +258,7 @@ def test_a_kernel_build_notice_looks_for_the_launch_devices_build(tmp_path, monk
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
     (tmp_path / module.get_module_identifier(block_dim=1)).mkdir()
     monkeypatch.setattr(device_module, "_LAUNCHED", set())
+    monkeypatch.setattr(device_module, "_BUILD_NOTICE", [])  # none outside the blocks
     notes = []
     with device_module.kernel_build_notice(notes.append):
         device_module._notice_build("kernels.lookup", "cpu")
@@ -268,6 +271,84 @@ def test_a_kernel_build_notice_looks_for_the_launch_devices_build(tmp_path, monk
         device_module._notice_build("kernels.lookup", "cuda:0")
     device_module._notice_build("kernels.synthesis", "cpu")  # outside a block: never
     assert notes == [tmp_path]
+
+
+_UNNOTICED_BUILD = '''
+import numpy as np
+import warp as wp
+from warptex.warp_runtime import init_warp, launch
+
+@wp.kernel
+def double(a: wp.array(dtype=float)):
+    i = wp.tid()
+    a[i] = 2.0 * a[i]
+
+init_warp()
+a = wp.array(np.arange(3, dtype=np.float32), device="cpu")
+launch(double, 3, [a])
+launch(double, 3, [a])
+print(a.numpy().tolist())
+'''
+
+
+def test_a_script_on_a_terminal_is_told_of_a_kernel_build_once(tmp_path):
+    """A script or a Mitsuba scene outside the commands pauses as they do on a fresh kernel
+    cache: said on a terminal, once, as precompute's bars are shown there."""
+    import pty
+
+    script = tmp_path / "unnoticed.py"
+    script.write_text(_UNNOTICED_BUILD)
+    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "kernels")}
+    said = []
+    for _ in range(2):
+        terminal, stderr = pty.openpty()
+        with os.fdopen(terminal, "rb", buffering=0) as reader:
+            run = subprocess.run([sys.executable, str(script)], stdout=subprocess.PIPE,
+                                 stderr=stderr, text=True, env=env, timeout=300)
+            os.close(stderr)
+            chunks = []
+            with contextlib.suppress(OSError):  # EIO once the writer's side is closed
+                while chunk := reader.read(4096):
+                    chunks.append(chunk)
+        assert (run.returncode, run.stdout) == (0, "[0.0, 4.0, 8.0]\n")
+        said.append(b"".join(chunks).decode())
+    assert said[0].count("warptex: Warp is building the kernels") == 1, said[0]
+    assert f"into {tmp_path / 'kernels'}" in said[0]
+    assert "building" not in said[1], said[1]
+
+
+def test_a_kernel_build_outside_a_block_is_said_on_a_terminal_only(tmp_path, monkeypatch):
+    """Logs and pipes keep their own lines; a block's notice leaves the terminal's for
+    after it."""
+    class Stream(io.StringIO):
+        terminal = False
+
+        def isatty(self) -> bool:
+            return super().isatty() or self.terminal  # a closed one raises, as files do
+
+    def fresh_process() -> None:
+        monkeypatch.setattr(device_module, "_BUILD_NOTICE",
+                            [device_module._say_kernel_build_on_a_terminal])
+        monkeypatch.setattr(device_module, "_LAUNCHED", set())
+
+    monkeypatch.setattr(device_module, "build_folder", lambda name, cpu: tmp_path / name)
+    stream = Stream()
+    monkeypatch.setattr(sys, "stderr", stream)
+    fresh_process()
+    device_module._notice_build("kernels.lookup", "cpu")
+    assert stream.getvalue() == ""
+    stream.terminal = True
+    fresh_process()
+    with device_module.kernel_build_notice(lambda cache: None):
+        device_module._notice_build("kernels.synthesis", "cpu")
+    assert stream.getvalue() == ""
+    device_module._notice_build("kernels.bake", "cpu")
+    device_module._notice_build("kernels.surface", "cpu")
+    assert stream.getvalue() == (f"warptex: Warp is building the kernels into {tmp_path} "
+                                 "(once for this version, about half a minute)\n")
+    stream.close()
+    fresh_process()
+    device_module._notice_build("kernels.kopf", "cpu")  # a closed stderr: nowhere to say it
 
 
 @pytest.mark.parametrize("damage", ["object file", "metadata"])

@@ -199,18 +199,43 @@ def kernel_build_notice(notice: Callable[[Path], None]) -> Iterator[None]:
     """Within the block, ``notice(folder)`` is called once, just before the first launch
     that has Warp build one of warptex's kernel modules into its kernel cache ``folder``:
     the pause of a first use (README, "first use") is explained when it comes, and a
-    command that ends before any launch (a refused input) says nothing of it."""
+    command that ends before any launch (a refused input) says nothing of it. Outside
+    such blocks (a script, a Mitsuba scene) :func:`say_kernel_build` is the notice, given
+    once a process and only on a terminal, as ``precompute``'s bars are shown."""
+    outside = _BUILD_NOTICE[:]
     _BUILD_NOTICE[:] = [notice]
     try:
         yield
     finally:
-        _BUILD_NOTICE.clear()
+        _BUILD_NOTICE[:] = outside
 
 
-# The notice of kernel_build_notice until it is given, and the (module, device) pairs
-# launched in this process: loaded since, or their failure kept by Warp, so that Warp
-# builds them no more whatever the kernel cache holds now (launch's rebuild warns itself).
-_BUILD_NOTICE: list[Callable[[Path], None]] = []
+def say_kernel_build(cache: Path) -> None:
+    """Say why warptex's first use on a machine pauses, as the pause begins: no bar moves
+    while Warp builds the kernels into its kernel cache, once a version. Written as tqdm
+    writes, so that a bar being drawn on a terminal is drawn again below."""
+    from tqdm.auto import tqdm
+
+    tqdm.write(f"warptex: Warp is building the kernels into {cache} (once for this version, "
+               "about half a minute)", file=sys.stderr)
+
+
+def _say_kernel_build_on_a_terminal(cache: Path) -> None:
+    """:func:`say_kernel_build` where stderr is a terminal: a script's or a renderer's log
+    keeps its own lines."""
+    try:
+        shown = sys.stderr is not None and sys.stderr.isatty()
+    except ValueError:  # closed
+        shown = False
+    if shown:
+        say_kernel_build(cache)
+
+
+# The notice until it is given (kernel_build_notice's, else the terminal's), and the
+# (module, device) pairs launched in this process: loaded since, or their failure kept by
+# Warp, so that Warp builds them no more whatever the kernel cache holds now (launch's
+# rebuild warns itself).
+_BUILD_NOTICE: list[Callable[[Path], None]] = [_say_kernel_build_on_a_terminal]
 _LAUNCHED: set[tuple[str, str]] = set()
 _NOTICE_LOCK = threading.Lock()
 

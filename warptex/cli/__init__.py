@@ -15,7 +15,6 @@ import os
 import sys
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 
 from warptex.cli.common import WRITTEN, CliError
 from warptex.cli.console import (
@@ -33,7 +32,7 @@ from warptex.cli.options import check_max_size_option
 from warptex.cli.parsing import SUBCOMMANDS, build_parser, parse_arguments
 from warptex.exemplar import ExemplarError
 from warptex.stops import deferred_stops, started, stops_ignored_after_the_work
-from warptex.warp_runtime import KernelCacheError, kernel_build_notice
+from warptex.warp_runtime import KernelCacheError, kernel_build_notice, say_kernel_build
 
 
 def _check_device() -> None:
@@ -52,16 +51,6 @@ def _check_device() -> None:
             device()
         except (ValueError, RuntimeError) as error:
             raise CliError(str(error)) from None
-
-
-def _note_kernel_build(cache: Path) -> None:
-    """Say why a machine's first command pauses, as the pause begins: no bar moves while
-    Warp builds the kernels into its kernel cache, once a version (README, "first use").
-    Written as tqdm writes, so that a bar being drawn on a terminal is drawn again below."""
-    from tqdm.auto import tqdm
-
-    tqdm.write(f"warptex: Warp is building the kernels into {cache} (once for this version, "
-               "about half a minute)", file=sys.stderr)
 
 
 # Libraries whose imports would lose a Ctrl-C or SIGTERM (trimesh's optional imports catch
@@ -94,7 +83,7 @@ def _run(argv: list[str]) -> int:
             with deferred_stops():
                 for library in _STOP_LOSING_LIBRARIES.get(args.command, ()):
                     importlib.import_module(library)
-            with kernel_build_notice(_note_kernel_build):
+            with kernel_build_notice(say_kernel_build):
                 code = command(args)
             sys.stdout.flush()  # here, so that a reader gone early is handled below
             return code
