@@ -969,24 +969,29 @@ def test_working_bytes_cover_a_bounded_search(warp_device):
     assert peak + coefficients <= kopf.working_bytes(n)
 
 
-def test_working_bytes_cover_a_level_s_start_at_the_most_channels():
+def test_histograms_count_a_level_s_start_in_parts():
     """As a level begins, beside the coefficients allocated just before, the histograms
-    count the solid's bins in int64 (16 bytes a voxel a channel for a moment): the peak
-    for an exemplar of MAX_FEATURES channels, 224 bytes a voxel measured at 64^3."""
+    count the solid's bins in parts: all at once their int64 indices took 16 bytes a voxel a
+    channel, twice the solid's own values, the level's peak for MAX_FEATURES channels.
+    The counts are those of one pass."""
     import tracemalloc
 
-    n, channels = 32, kopf._k.MAX_FEATURES
+    n, channels = 64, kopf._k.MAX_FEATURES
     rng = np.random.default_rng(0)
     exemplar = rng.random((32, 32, channels), np.float32)
     values = rng.random((n**3, channels)).astype(np.float32)
     tracemalloc.start()
     try:
-        kopf._Histograms(exemplar.reshape(-1, channels), [exemplar] * 3, values)
+        histograms = kopf._Histograms(exemplar.reshape(-1, channels), [exemplar] * 3, values)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
+    assert peak < values.nbytes
     coefficients = n**3 // kopf.GRID_SPACING**2 * kopf._k.MAX_COEFFS * 4
     assert peak + coefficients <= kopf.working_bytes(n)
+    bins = np.clip(((values - histograms.lo) * histograms.scale).astype(np.int64), 0, 15)
+    whole = [np.bincount(bins[:, c], minlength=kopf.BINS) for c in range(channels)]
+    np.testing.assert_array_equal(histograms.counts, whole)
 
 
 def test_distances_to_matches_in_parts_are_those_of_one_pass(monkeypatch):
@@ -998,7 +1003,7 @@ def test_distances_to_matches_in_parts_are_those_of_one_pass(monkeypatch):
     query = rng.random((23, 7)).astype(np.float32)
     rows = rng.integers(0, 50, 23)
     whole = np.linalg.norm(query - data[rows], axis=1)
-    monkeypatch.setattr(kopf, "_BOUND_PART_BYTES", 8 * 7 * 4)  # parts of 4 rows, the last 3
+    monkeypatch.setattr(kopf, "_PART_BYTES", 8 * 7 * 4)  # parts of 4 rows, the last 3
     assert np.array_equal(kopf._distances_to_matches(tree, query, rows), whole)
 
 

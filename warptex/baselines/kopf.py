@@ -38,7 +38,7 @@ may be left unconstrained.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
@@ -76,15 +76,17 @@ HISTOGRAM_REFRESHES = 64
 MIN_DISTANCE = 1e-3
 _DEVICE = "cpu"  # the ANN search runs on the host; the solid is shared with it without copies
 _BOUND_GROUPS = 16  # groups of queries sharing one distance bound in _ann_search
-_BOUND_PART_BYTES = 1 << 20  # float64 differences at a time in _distances_to_matches
+# NumPy's 8-byte temporaries at a time, in rows of voxels: the bounded search's differences
+# to the current matches, the histograms' bin indices. All at once, either would be a level's
+# peak.
+_PART_BYTES = 1 << 20
 # Mean-shift bandwidth at a level's first and last iteration, in units of the standard
 # deviation of the level's exemplar texels (geometric in between): "gradually reduced as the
 # optimization of each resolution level progresses" (section 4.1).
 MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 # Peak memory of a synthesis per voxel, beside the solid and its returned copy: most of it the
 # search's PCA coefficients (MAX_COEFFS float32 per grid centre, a quarter of the voxels: 96
-# bytes a voxel) and, as a level begins, its histograms' bin indices (16 bytes a voxel per
-# channel for a moment). Resident peaks beyond the volume and its copy at 64^3, two
+# bytes a voxel). Resident peaks beyond the volume and its copy at 64^3, two
 # iterations a level, search structures included (benchmarks/bench_kopf_memory.py,
 # BENCHMARKS.md): 165 bytes a voxel (granite_64), 186 (bricks_red_128), 161 and 224 for 3 and
 # 8 channels of noise, which keeps every coefficient.
@@ -411,12 +413,16 @@ def _distances_to_matches(tree: cKDTree, query: np.ndarray, rows: np.ndarray) ->
     taken in parts of rows: all at once, the float64 differences took about 4 bytes a voxel
     per coefficient kept, four times the coefficients' own memory. Each row's distance is its
     own, so the parts give what one pass would."""
-    step = max(1, _BOUND_PART_BYTES // (8 * max(1, query.shape[1])))
     bound = np.empty(len(rows))
-    for lo in range(0, len(rows), step):
-        part = slice(lo, lo + step)
+    for part in _parts(len(rows), query.shape[1]):
         bound[part] = np.linalg.norm(query[part] - tree.data[rows[part]], axis=1)
     return bound
+
+
+def _parts(rows: int, width: int) -> Iterator[slice]:
+    """Slices of ``rows`` rows whose ``width`` 8-byte values take ``_PART_BYTES`` each."""
+    step = max(1, _PART_BYTES // (8 * max(1, width)))
+    return (slice(lo, lo + step) for lo in range(0, rows, step))
 
 
 class _LevelOptimizer:
@@ -519,9 +525,15 @@ class _Histograms:
         return np.clip(((values - self.lo) * self.scale).astype(np.int64), 0, BINS - 1)
 
     def _counts(self, values: np.ndarray) -> np.ndarray:
-        """(F, 16) counts of the values' bins per channel."""
-        bins = self._bins(values) + np.arange(values.shape[1]) * BINS
-        return np.bincount(bins.ravel(), minlength=values.shape[1] * BINS).reshape(-1, BINS)
+        """(F, 16) counts of the values' bins per channel, taken in parts of the values: a
+        whole level's int64 bin indices took 16 bytes a voxel per channel, for 8 channels
+        more than the search's coefficients."""
+        channels = values.shape[1]
+        counts = np.zeros(channels * BINS, np.int64)
+        for part in _parts(len(values), channels):
+            bins = self._bins(values[part]) + np.arange(channels) * BINS
+            counts += np.bincount(bins.ravel(), minlength=channels * BINS)
+        return counts.reshape(-1, BINS)
 
     def replace(self, before: np.ndarray, after: np.ndarray) -> None:
         """Account for voxels that changed from ``before`` to ``after``."""
