@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
 
@@ -380,13 +381,20 @@ def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
     assert not np.array_equal(box_a, box_b)
     # Without jitter the start level is a tiling of the slab, and every later step is
     # translation invariant, so the result repeats with the slab's period scaled up.
-    syn = Synthesizer(candidates, seed=1, jitter=0.0)
+    with pytest.warns(UserWarning, match=r"seed 1 gives the same solid as seed 0: .* and a "
+                      r"jitter of 0\.001 is taken as 0 \(under 1/512\), with no tiles shifted"):
+        syn = Synthesizer(candidates, seed=1, jitter=0.001)
     scale = 2 ** (syn.finest - syn.start)
     n = int(candidates.params["neighborhood"])
     h, w = candidates.sources[syn.start][0].size
     period = np.array([n * scale, h * scale, w * scale])
     pts = _random_voxels(np.random.default_rng(4), 100)
     assert np.array_equal(syn.voxels(pts), syn.voxels(pts + period))
+    assert np.array_equal(syn.voxels(pts), Synthesizer(candidates, jitter=0.0).voxels(pts))
+    with warnings.catch_warnings():  # the seed acts: no warning
+        warnings.simplefilter("error")
+        Synthesizer(candidates, seed=1, jitter=1 / 256)
+        Synthesizer(candidates, seed=1, jitter=0.0, shifted_tiles=True)
     jittered = Synthesizer(candidates, seed=1, jitter=1.0)
     assert not np.array_equal(jittered.voxels(pts), jittered.voxels(pts + period))
 
@@ -538,7 +546,7 @@ def test_the_ends_of_the_coordinate_range_are_synthesized_right(candidates):
     """Without jitter the texture repeats with the slab's period, so the last voxels of the
     coordinate range equal their repeats near the origin: their work regions (8 sub-passes,
     an apron of 5 blocks) stay within the packed block keys."""
-    syn = Synthesizer(candidates, seed=5, jitter=0.0, subpasses=8)
+    syn = Synthesizer(candidates, jitter=0.0, subpasses=8)
     n = int(candidates.params["neighborhood"])
     scale = 2 ** (syn.finest - syn.start)
     # x: the slab's tiles (even at every level: sub-pass parity); y and z: the exemplar's.

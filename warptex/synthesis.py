@@ -51,6 +51,7 @@ from warptex.settings import (
     check_settings,
     is_integer,
 )
+from warptex.thread_warnings import warn
 from warptex.warp_runtime import device as default_device
 from warptex.warp_runtime import init_warp
 
@@ -400,7 +401,9 @@ class Synthesizer:
     "3 last levels" could also be read as ``levels=2``, which repeats more (BENCHMARKS.md).
     ``shifted_tiles`` shifts each tile of the slab by its own hashed offset, so that
     structured exemplars do not repeat every exemplar width, at some cost in their
-    neighbourhood energy (BENCHMARKS.md, "Exemplars that do not tile").
+    neighbourhood energy (BENCHMARKS.md, "Exemplars that do not tile"). The ``seed`` acts
+    through the jitter's warp and the tiles' shifts only: without either every seed gives
+    the same solid (warned of), and a jitter under about 0.1 moves few voxels.
     """
 
     def __init__(
@@ -428,6 +431,12 @@ class Synthesizer:
         self.seed = int(seed)
         self.jitter = float(jitter)
         self.shifted_tiles = check_flag("shifted_tiles", shifted_tiles)
+        if self.seed != 0 and round(self.jitter * 256) == 0 and not self.shifted_tiles:
+            none = ("there is no jitter" if self.jitter == 0
+                    else f"a jitter of {self.jitter:g} is taken as 0 (under 1/512)")
+            warn(f"seed {self.seed} gives the same solid as seed 0: the seed acts through the "
+                 f"jitter's random warp and the tiles' shifts, and {none}, with no tiles "
+                 "shifted", stacklevel=2)
         self.passes = int(passes)
         self.subpasses = int(subpasses)
         self.device = engine_device(device)

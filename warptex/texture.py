@@ -135,17 +135,18 @@ class SolidTexture:
     """An unbounded solid texture synthesized from exemplar photos, queried at points.
 
     ``source`` is an exemplar path, an :class:`Exemplar` or a :class:`CandidateSet`
-    (pre-computation is cached on disk). ``seed`` (0 to 2^31 - 1) picks one of the
-    texture's many solids; ``jitter`` (0 to 64) is the strength of the random warp that
-    varies the initial tiling (Dong 2008, 5.1). ``store`` names a brick store file:
-    loaded when it exists and matches this texture, written by :meth:`save`; a missing one
-    that could not be written where it is named, or one that a live texture of other
-    settings has, is refused (StoreFileError). An existing one in a folder this process
-    cannot write serves as a read-only warm start: :meth:`save` fails only where voxels were
-    synthesized since. ``cache_bytes`` bounds
-    the bricks kept in memory. ``passes`` is the number of correction passes per level
-    (Dong 2008, 5.1): more look better and cost more (see BENCHMARKS.md). ``shifted_tiles``
-    shifts each tile of the initial tiling by its own offset (:class:`Synthesizer`).
+    (pre-computation is cached on disk). ``seed`` (0 to 2^31 - 1) picks one of the texture's
+    many solids; ``jitter`` (0 to 64) is the strength of the random warp that varies the
+    initial tiling (Dong 2008, 5.1), through which the seed acts, and through
+    ``shifted_tiles``: at jitter 0 without them every seed gives the same solid. ``store``
+    names a brick store file: loaded when it exists and matches this texture, written by
+    :meth:`save`; a missing one that could not be written where it is named, or one that a
+    live texture of other settings has, is refused (StoreFileError). An existing one in a
+    folder this process cannot write serves as a read-only warm start: :meth:`save` fails
+    only where voxels were synthesized since. ``cache_bytes`` bounds the bricks kept in
+    memory. ``passes`` is the number of correction passes per level (Dong 2008, 5.1): more
+    look better and cost more (see BENCHMARKS.md). ``shifted_tiles`` shifts each tile of the
+    initial tiling by its own offset (:class:`Synthesizer`).
     ``whole_bricks=False`` synthesizes only the voxels queries read instead of their whole
     8^3 bricks: faster for thin sets such as mesh surfaces and cuts (see
     :class:`~warptex.store.BrickStore`). ``device`` is the Warp device that synthesizes

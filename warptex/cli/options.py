@@ -173,7 +173,9 @@ def add_texture_arguments(parser: argparse.ArgumentParser, first: str,
     with another method can tell them given (:func:`lazy_settings_given`)."""
     add_axis_exemplar_arguments(parser, first)
     parser.add_argument("--seed", type=int, default=0,
-                        help="texture variation, 0 to 2147483647 (default 0)")
+                        help="texture variation, 0 to 2147483647 (default 0), through the "
+                        "jitter's warp and --shifted-tiles: at --jitter 0 without "
+                        "--shifted-tiles every seed gives the same solid")
     add_tiling_arguments(parser, unset=unset)
     parser.add_argument("--passes", type=int, default=None if unset else DEFAULT_PASSES,
                         help="correction passes per pyramid level, 0 to 8 (default 2); 3 come "
