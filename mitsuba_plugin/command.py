@@ -6,9 +6,11 @@ use, so the other subcommands stay light.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import sys
+import tempfile
 import time
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Iterator
@@ -265,10 +267,12 @@ def render_scene(scene_path: Path, output: Path, spp: int | None = None,
     params = parameters | ({} if resolution is None
                            else {"width": resolution[0], "height": resolution[1]})
     start = time.perf_counter()
-    scene = _loaded_scene(scene_path, params, resolution, save_stores)
+    with _mitsuba_log_on_stderr():
+        scene = _loaded_scene(scene_path, params, resolution, save_stores)
     loaded = time.perf_counter()
     shares = _checked_scene(scene, scene_path, spp, [output, statistics], save_stores)
-    with saved_when_stopped(partial(_saved_at_a_stop, scene) if save_stores else list):
+    with (saved_when_stopped(partial(_saved_at_a_stop, scene) if save_stores else list),
+          _mitsuba_log_on_stderr()):
         try:
             image = mitsuba_plugin.render(scene, spp=sum(shares), batches=len(shares),
                                           seed=seed, progress=_progress)
@@ -514,6 +518,38 @@ def _check_texture_files(texture, outputs: list[Path], saved: bool) -> None:
         raise ValueError(f'lazy_solid: property "cache": the brick store would be saved to '
                          f"{cache} after rendering, which cannot be: {problem} (render with "
                          "--read-only-stores to only read it)")
+
+
+@contextmanager
+def _mitsuba_log_on_stderr() -> Iterator[None]:
+    """Mitsuba's log lines of the block (its warnings) on stderr as it ends, uncoloured:
+    Mitsuba writes them to stdout, coloured for a terminal even in a log, where a script
+    reads the ``written:`` line. A file keeps them meanwhile, not a Python appender:
+    Mitsuba calls its appenders under a lock, which one would hold while it waits for the
+    GIL. Where no temporary folder can be made they go where Mitsuba sends them."""
+    import mitsuba as mi
+    from tqdm.auto import tqdm
+
+    try:
+        folder = tempfile.TemporaryDirectory(prefix="warptex-mitsuba-log-")
+    except OSError:
+        yield
+        return
+    with folder:
+        log = Path(folder.name) / "mitsuba.log"
+        logger = mi.logger()
+        kept = [logger.appender(i) for i in range(logger.appender_count())]
+        logger.clear_appenders()
+        logger.add_appender(mi.StreamAppender(str(log)))
+        try:
+            yield
+        finally:
+            logger.clear_appenders()  # which closes the file
+            for appender in kept:
+                logger.add_appender(appender)
+            with contextlib.suppress(OSError):
+                for line in log.read_text(errors="replace").splitlines():
+                    tqdm.write(line, file=sys.stderr)
 
 
 @contextmanager

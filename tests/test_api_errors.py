@@ -746,6 +746,26 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
 
 
 
+def test_a_python_without_warp_is_named_not_another_kernels_package(tmp_path):
+    """The system's python3 where the checkout's .venv was meant: warptex's own kernels fail
+    to import Warp, which is the cause to name; another kernels package that fails on a
+    module of its own is still another package."""
+    no_warp = "import sys\nsys.modules['warp'] = None\nimport warptex\n"
+    run = subprocess.run([sys.executable, "-c", no_warp], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode != 0
+    assert (f"ImportError: warptex needs the module 'warp', which this Python "
+            f"({sys.executable}) does not have: run warptex in the environment" in run.stderr)
+    assert "is another" not in run.stderr
+    (tmp_path / "kernels").mkdir()
+    (tmp_path / "kernels" / "__init__.py").write_text("")
+    (tmp_path / "kernels" / "common.py").write_text("import some_module_of_its_own\n")
+    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0
+    assert "is another (No module named 'some_module_of_its_own')" in run.stderr, run.stderr
+
+
 def test_an_engine_or_texture_is_not_pickled_but_named(data_dir, warp_device):
     """pickle failed inside ctypes, naming no warptex object (a ProcessPoolExecutor's
     submit of texture.query, say); the engine's CandidateSet pickles, and a texture made

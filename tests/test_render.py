@@ -446,6 +446,30 @@ def test_render_refuses_what_it_could_not_write_or_would_overwrite_once_loaded(
     assert mask.read_bytes() == before
 
 
+def test_mitsubas_warnings_go_to_stderr_uncoloured(tmp_path, capfd, monkeypatch):
+    """Mitsuba's logger writes to stdout, coloured even in a log: `warptex render` relays a
+    render's Mitsuba lines (a monochrome film's, here) to stderr, plain, and leaves Mitsuba's
+    logger as it was, and no file of it behind."""
+    import tempfile
+
+    from warptex.cli import main
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "temporary"))
+    (tmp_path / "temporary").mkdir()
+    use("llvm_ad_mono")
+    logger = mi.logger()
+    appenders = [logger.appender(i) for i in range(logger.appender_count())]
+    out = tmp_path / "mono.png"
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
+                 "--spp", "1", "--res", "8x8", "--variant", "llvm_ad_mono"]) == 0
+    stdout, stderr = capfd.readouterr()
+    assert stdout.startswith(f"written: {out} ") and "Monochrome" not in stdout, stdout
+    assert re.search(r"^\S+ \S+ WARN  \[HDRFilm\] Monochrome mode enabled", stderr, re.M)
+    assert "\x1b[" not in stderr
+    assert [logger.appender(i) for i in range(logger.appender_count())] == appenders
+    assert list((tmp_path / "temporary").iterdir()) == []
+
+
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):
     """`warptex render`: the image and its statistics land whole, no temporary left; the
     suffix's case does not matter, though Mitsuba's writer is particular about it."""

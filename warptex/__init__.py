@@ -9,6 +9,7 @@ so ``import warptex`` stays light.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ def _check_kernels_package() -> None:
     try:
         from kernels import common
     except ImportError as error:
+        _check_dependency(error)
         why = str(error)
     else:
         # An editable install's import hook serves warptex's modules by name to a package
@@ -56,6 +58,25 @@ def _check_kernels_package() -> None:
                       "package installed in this environment, or a 'kernels' package in the "
                       "working folder or on PYTHONPATH. Give warptex an environment of its "
                       "own, or run it from another folder.")
+
+
+def _check_dependency(error: ImportError) -> None:
+    """Refuse, in one message, a Python without warptex's dependencies (Warp, NumPy): the
+    system's ``python3`` where the checkout's ``.venv`` was meant, whose failure to import
+    warptex's own kernels is not another ``kernels`` package."""
+    missing = error.name if isinstance(error, ModuleNotFoundError) else None
+    if missing is None or missing.partition(".")[0] == "kernels":
+        return
+    spec = importlib.util.find_spec("kernels")
+    folders = [] if spec is None else spec.submodule_search_locations or []
+    found = [Path(folder).resolve() for folder in folders]
+    if Path(__file__).resolve().parent.parent / "kernels" not in found:
+        return
+    raise ImportError(f"warptex needs the module '{missing}', which this Python "
+                      f"({sys.executable}) does not have: run warptex in the environment it "
+                      "was installed in (`. .venv/bin/activate` in the checkout, after `make "
+                      "demo`), or install it here with its dependencies (`pip install .` in "
+                      "the checkout)") from None
 
 
 _check_kernels_package()
