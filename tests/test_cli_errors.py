@@ -1142,6 +1142,19 @@ def test_no_output_overwrites_an_input(files, tmp_path, capsys, monkeypatch, arg
     assert {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()} == before
 
 
+def test_cuts_second_half_over_its_input_names_the_output_it_comes_from(files, tmp_path,
+                                                                       capsys):
+    """-o half.ply writes half_b.ply too: where that is the mesh cut, the refusal says which
+    -o it comes with, as for an .obj's texture."""
+    mesh = tmp_path / "half_b.ply"
+    mesh.write_bytes(files["mesh"].read_bytes())
+    out = tmp_path / "half.ply"
+    assert main(["cut", str(mesh), "--exemplar", str(files["exemplar"]), "-o", str(out)]) == 2
+    assert (f"warptex: error: {mesh} (written with {out}): would overwrite the input {mesh}"
+            in capsys.readouterr().err)
+    assert sorted(tmp_path.iterdir()) == [mesh]
+
+
 @pytest.mark.parametrize("command", ["slice", "volume"])
 def test_an_output_that_is_a_folder_is_named_so_whatever_its_name(files, tmp_path, capsys,
                                                                   command):

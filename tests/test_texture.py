@@ -625,7 +625,7 @@ def test_a_far_point_late_in_a_query_is_refused_before_any_batch(candidates, mon
     pts = points_near_origin(40, 12)
     pts[-1] = [0.5, POINT_LIMIT, 0.5]
     pts[-3] = [-POINT_LIMIT - 7.0, 0.5, np.nan]  # NaN: given the fill color, not counted far
-    with pytest.raises(ValueError, match=f"1 of 40 points lie beyond \\+-{POINT_LIMIT}"):
+    with pytest.raises(ValueError, match=f"1 of 40 points lie at or beyond \\+-{POINT_LIMIT}"):
         tex.query(pts, fill=0.0)
     assert tex.store.stats()["voxels_added"] == 0
 

@@ -585,7 +585,8 @@ def _to_float32(data: np.ndarray, name: str) -> np.ndarray:
     if np.issubdtype(data.dtype, np.floating):
         with np.errstate(over="ignore"):  # overflow becomes Inf, reported by the caller
             return np.array(data, dtype=np.float32)
-    raise ExemplarError(f"{name}: unsupported data type {data.dtype}; use float, uint8 or uint16")
+    raise ExemplarError(f"{name}: unsupported data type {data.dtype}; use float, uint8, uint16 "
+                        "or bool")
 
 
 def _validated_distance(distance: np.ndarray, shape: tuple[int, int], name: str) -> np.ndarray:

@@ -237,8 +237,8 @@ class SolidTexture:
         # otherwise be found after minutes of work.
         far = finite & (np.abs(pts) >= POINT_LIMIT).any(axis=1)
         if far.any():
-            raise ValueError(f"{int(far.sum())} of {len(pts)} points lie beyond +-{POINT_LIMIT} "
-                             "voxels; points must lie within it")
+            raise ValueError(f"{int(far.sum())} of {len(pts)} points lie at or beyond "
+                             f"+-{POINT_LIMIT} voxels; points must lie strictly within it")
         out = np.empty((len(pts), self.channels), np.float32)
         for start in range(0, len(pts), BATCH):
             chunk = pts[start : start + BATCH]

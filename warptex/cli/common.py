@@ -58,14 +58,18 @@ def check_output(path: Path, formats: Sequence[str] | None = None, what: str = "
 _INPUT_ARGUMENTS = ("path", "exemplar", "ey", "ez", "feature_mask", "mesh", "scene")
 
 
-def check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path]) -> None:
+def check_inputs_kept(args: argparse.Namespace, outputs: Sequence[Path],
+                      named: Path | None = None) -> None:
     """Refuse, before any work, outputs that are one of the command's input files: -o
-    naming the exemplar, or the texture an .obj comes with named like it."""
+    naming the exemplar, or the texture an .obj comes with named like it. ``named`` is the
+    output the command line names where ``outputs`` derive from it (``cut``'s second
+    half), else the first of them."""
     inputs = [p for name in _INPUT_ARGUMENTS if isinstance(p := getattr(args, name, None), Path)]
     clash = overwritten_input(outputs, inputs)
     if clash is not None:
         output, source = clash
-        written = "" if output == outputs[0] else f" (written with {outputs[0]})"
+        named = outputs[0] if named is None else named
+        written = "" if output == named else f" (written with {named})"
         raise CliError(f"{output}{written}: would overwrite the input {source}; choose another "
                        "output name")
 

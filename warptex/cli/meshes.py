@@ -135,7 +135,7 @@ def _check_mesh_arguments(args: argparse.Namespace, second_half: bool = False) -
                 check_obj_name(output)
             except ValueError as error:
                 raise CliError(str(error)) from None
-        check_inputs_kept(args, files)
+        check_inputs_kept(args, files, args.output)
         for side in files[1:]:  # the material library and texture of an .obj
             problem = file_problem(side)
             if problem is not None:
