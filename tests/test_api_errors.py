@@ -708,15 +708,25 @@ def test_the_modules_the_readme_names_are_reached_from_a_plain_import():
         warptex.volumes  # noqa: B018
 
 
+def _import_warptex(folder: Path, first: str = "") -> subprocess.CompletedProcess:
+    """``import warptex`` in a fresh interpreter working in ``folder``, after ``first``."""
+    return subprocess.run([sys.executable, "-c", first + "import warptex"], cwd=folder,
+                          capture_output=True, text=True, timeout=120)
+
+
+def _kernels_package(folder: Path, common: str) -> None:
+    """A package ``kernels`` in ``folder`` whose ``common`` module is ``common``."""
+    (folder / "kernels").mkdir()
+    (folder / "kernels" / "__init__.py").write_text("")
+    (folder / "kernels" / "common.py").write_text(common)
+
+
 def test_another_kernels_package_is_named_as_the_cause(tmp_path):
     """warptex's kernels are the top-level package ``kernels``: a folder of that name in the
     working folder (or PyPI's package installed over it) hid it, and imports failed later
     with "No module named 'kernels.candidates'"."""
-    (tmp_path / "kernels").mkdir()
-    (tmp_path / "kernels" / "__init__.py").write_text("")
-    (tmp_path / "kernels" / "common.py").write_text("HUB = 'another package'\n")
-    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    _kernels_package(tmp_path, "HUB = 'another package'\n")
+    run = _import_warptex(tmp_path)
     assert run.returncode != 0
     assert (f"the one Python found, {tmp_path / 'kernels' / '__init__.py'}, is another "
             f"({tmp_path / 'kernels' / 'common.py'} is not warptex's)" in run.stderr)
@@ -724,8 +734,7 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
     # passed, and imports failed later on the modules it hides.
     (tmp_path / "kernels" / "common.py").unlink()
     (tmp_path / "kernels" / "synthesis.py").write_text("HUB = 'another package'\n")
-    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    run = _import_warptex(tmp_path)
     assert run.returncode != 0 and "is another (" in run.stderr, run.stderr
     (tmp_path / "kernels" / "synthesis.py").unlink()
     (tmp_path / "kernels" / "__init__.py").unlink()
@@ -734,34 +743,26 @@ def test_another_kernels_package_is_named_as_the_cause(tmp_path):
 
     for mine in Path(kernels.__file__).parent.glob("*.py"):
         (tmp_path / "kernels" / mine.name).symlink_to(mine)
-    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    run = _import_warptex(tmp_path)
     assert run.returncode == 0, run.stderr
     for link in (tmp_path / "kernels").glob("*.py"):
         link.unlink()
     # A folder named kernels without __init__.py (a cache) hides nothing.
-    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    run = _import_warptex(tmp_path)
     assert run.returncode == 0, run.stderr
-
 
 
 def test_a_python_without_warp_is_named_not_another_kernels_package(tmp_path):
     """The system's python3 where the checkout's .venv was meant: warptex's own kernels fail
     to import Warp, which is the cause to name; another kernels package that fails on a
     module of its own is still another package."""
-    no_warp = "import sys\nsys.modules['warp'] = None\nimport warptex\n"
-    run = subprocess.run([sys.executable, "-c", no_warp], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=120)
+    run = _import_warptex(tmp_path, "import sys\nsys.modules['warp'] = None\n")
     assert run.returncode != 0
     assert (f"ImportError: warptex needs the module 'warp', which this Python "
             f"({sys.executable}) does not have: run warptex in the environment" in run.stderr)
     assert "is another" not in run.stderr
-    (tmp_path / "kernels").mkdir()
-    (tmp_path / "kernels" / "__init__.py").write_text("")
-    (tmp_path / "kernels" / "common.py").write_text("import some_module_of_its_own\n")
-    run = subprocess.run([sys.executable, "-c", "import warptex"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    _kernels_package(tmp_path, "import some_module_of_its_own\n")
+    run = _import_warptex(tmp_path)
     assert run.returncode != 0
     assert "is another (No module named 'some_module_of_its_own')" in run.stderr, run.stderr
 
