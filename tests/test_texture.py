@@ -322,6 +322,33 @@ def test_a_texture_says_how_its_colors_are_encoded(granite_32_file, candidates, 
     assert texture(candidates).srgb is None
 
 
+def test_a_texture_of_an_exemplar_per_axis_knows_their_encoding(granite_32_file, data_dir,
+                                                                  candidates, tmp_path):
+    """ey and ez as precompute takes them: the same voxels as a texture of those candidates,
+    with the encoding they share, which a CandidateSet does not record; exemplars encoded
+    differently are refused, as a voxel's color averages theirs."""
+    from PIL import Image
+
+    from warptex.candidates import precompute
+    from warptex.exemplar import Exemplar, ExemplarError
+    from warptex.texture import SolidTexture
+
+    onyx = tmp_path / "onyx_32.png"
+    Image.open(data_dir / "onyx_banded_64.png").crop((0, 0, 32, 32)).save(onyx)
+    per_axis = SolidTexture(granite_32_file, ez=onyx, device="cpu")
+    points = points_near_origin(50, 3)
+    np.testing.assert_array_equal(
+        per_axis.query(points),
+        texture(precompute(granite_32_file, granite_32_file, onyx)).query(points))
+    assert per_axis.srgb is True
+    assert not np.array_equal(per_axis.query(points), texture(candidates).query(points))
+    with pytest.raises(ExemplarError, match=r"encoded differently \(granite_32\.png sRGB-encoded, "
+                                            r"onyx_32\.png linear\): convert one image$"):
+        SolidTexture(granite_32_file, ey=Exemplar.load(onyx, srgb=False), device="cpu")
+    with pytest.raises(TypeError, match="a CandidateSet holds those of its three axes"):
+        texture(candidates, ey=onyx)
+
+
 def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(candidates,
                                                                            tmp_path):
     """Each would start empty from the other's file and discard its bricks on saving;

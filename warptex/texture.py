@@ -22,7 +22,13 @@ from kernels.lookup import BRICK_VOXELS
 from warptex.archive import file_problem
 from warptex.candidate_set import CandidateSet
 from warptex.candidates import precompute
-from warptex.exemplar import Exemplar, as_exemplar
+from warptex.exemplar import (
+    Exemplar,
+    as_exemplar,
+    axis_triple,
+    check_same_channels,
+    srgb_encoded,
+)
 from warptex.machine import memory_problem
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
@@ -135,24 +141,26 @@ class SolidTexture:
     """An unbounded solid texture synthesized from exemplar photos, queried at points.
 
     ``source`` is an exemplar path, an :class:`Exemplar` or a :class:`CandidateSet`
-    (pre-computation is cached on disk). ``seed`` (0 to 2^31 - 1) picks one of the texture's
-    many solids; ``jitter`` (0 to 64) is the strength of the random warp that varies the
-    initial tiling (Dong 2008, 5.1), through which the seed acts, and through
-    ``shifted_tiles``: at jitter 0 without them every seed gives the same solid. ``store``
-    names a brick store file: loaded when it exists and matches this texture, written by
-    :meth:`save`; a missing one that could not be written where it is named, or one that a
-    live texture of other settings has, is refused (StoreFileError). An existing one in a
-    folder this process cannot write serves as a read-only warm start: :meth:`save` fails
-    only where voxels were synthesized since. ``cache_bytes`` bounds the bricks kept in
-    memory. ``passes`` is the number of correction passes per level (Dong 2008, 5.1): more
-    look better and cost more (see BENCHMARKS.md). ``shifted_tiles`` shifts each tile of the
-    initial tiling by its own offset (:class:`Synthesizer`).
+    (pre-computation is cached on disk); ``ey`` and ``ez`` the exemplars of the y and z axes
+    where they differ from x's (as ``precompute`` takes them: y's defaults to x's, z's to
+    y's; encoded alike, as a voxel's color averages theirs). ``seed`` (0 to 2^31 - 1) picks
+    one of the texture's many solids; ``jitter`` (0 to 64) is the strength of the random
+    warp that varies the initial tiling (Dong 2008, 5.1), through which the seed acts, and
+    through ``shifted_tiles``: at jitter 0 without them every seed gives the same solid.
+    ``store`` names a brick store file: loaded when it exists and matches this texture,
+    written by :meth:`save`; a missing one that could not be written where it is named, or
+    one that a live texture of other settings has, is refused (StoreFileError). An existing
+    one in a folder this process cannot write serves as a read-only warm start: :meth:`save`
+    fails only where voxels were synthesized since. ``cache_bytes`` bounds the bricks kept
+    in memory. ``passes`` is the number of correction passes per level (Dong 2008, 5.1):
+    more look better and cost more (see BENCHMARKS.md). ``shifted_tiles`` shifts each tile
+    of the initial tiling by its own offset (:class:`Synthesizer`).
     ``whole_bricks=False`` synthesizes only the voxels queries read instead of their whole
     8^3 bricks: faster for thin sets such as mesh surfaces and cuts (see
     :class:`~warptex.store.BrickStore`). ``device`` is the Warp device that synthesizes
     (default: a GPU when there is one, see :func:`warptex.device`).
 
-    Colors come as the exemplar stores them; ``srgb`` says whether that is sRGB-encoded
+    Colors come as the exemplars store them; ``srgb`` says whether that is sRGB-encoded
     (8-bit photos) or linear, None where a CandidateSet was given, which does not record it.
     ``synthesizer`` is the :class:`Synthesizer` behind the store, for voxels by integer
     coordinates (``synthesizer.voxels``, ``synthesizer.box``).
@@ -162,6 +170,8 @@ class SolidTexture:
         self,
         source: str | Path | Exemplar | CandidateSet,
         *,
+        ey: str | Path | Exemplar | None = None,
+        ez: str | Path | Exemplar | None = None,
         seed: int = 0,
         jitter: float = DEFAULT_JITTER,
         device: str | None = None,
@@ -180,11 +190,16 @@ class SolidTexture:
         check_store_settings(cache_bytes, whole_bricks)
         device = engine_device(device)
         if isinstance(source, CandidateSet):
+            if ey is not None or ez is not None:
+                raise TypeError("ey and ez name exemplars of the y and z axes; a CandidateSet "
+                                "holds those of its three axes already")
             candidates, self.srgb = source, None
         else:
-            exemplar = as_exemplar(source)
-            check_lookup_channels(exemplar.channels)
-            candidates, self.srgb = precompute(exemplar, progress=None), exemplar.srgb
+            exemplars = [as_exemplar(e) for e in axis_triple(source, ey, ez)]
+            check_lookup_channels(exemplars[0].channels)
+            check_same_channels(exemplars)
+            self.srgb = srgb_encoded(exemplars, raw=None)
+            candidates = precompute(*exemplars, progress=None)
         self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
                                        shifted_tiles=shifted_tiles)
         if self.path is not None:
