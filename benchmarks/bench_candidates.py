@@ -27,7 +27,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
-from timing import in_a_process, positive_int, run_record  # noqa: E402
+from timing import exemplar_files, in_a_process, positive_int, run_record  # noqa: E402
 
 import warptex.candidates as candidates  # noqa: E402
 from warptex.exemplar import Exemplar  # noqa: E402
@@ -162,6 +162,9 @@ def main() -> None:
     parser.add_argument("--degenerate", action="store_true",
                         help="only time synthetic photos of a flat colour or sparse dots")
     args = parser.parse_args()
+    if not args.degenerate:  # which makes its own photos; the rest also reads warm_up's
+        exemplar_files(parser, EXEMPLARS, dict.fromkeys(
+            ["granite_64", *(f"{name}_{size}" for size in args.sizes for name in args.names)]))
     print(run_record(), flush=True)
     if args.degenerate:
         degenerate(args.sizes)
@@ -175,11 +178,7 @@ def main() -> None:
     print("|" + "---|" * 12)
     for size in args.sizes:
         for name in args.names:
-            path = EXEMPLARS / f"{name}_{size}.png"
-            if not path.exists():
-                print(f"| {name} | {size} | missing: {path} |")
-                continue
-            r = measure(path, args.repeat)
+            r = measure(EXEMPLARS / f"{name}_{size}.png", args.repeat)
             ph = r["phases"]
             fallback = " / ".join(
                 f"{f} ({p})" for f, p in zip(r["fallback"], r["pixels"], strict=True)

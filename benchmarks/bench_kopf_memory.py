@@ -26,7 +26,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from timing import in_a_process, positive_int, run_record
+from timing import exemplar_files, in_a_process, positive_int, run_record
 
 from warptex.baselines import kopf
 from warptex.exemplar import Exemplar
@@ -78,6 +78,8 @@ def main() -> None:
         exemplar = _exemplar(args.exemplars, args.one)
         print(json.dumps(synthesis_peak(exemplar, args.sizes[0], args.iterations)))
         return
+    exemplar_files(parser, args.exemplars,
+                   [name for name in args.names if not name.startswith("noise")])
     for size in args.sizes:
         kopf.check_size(size)
     print(run_record(), flush=True)

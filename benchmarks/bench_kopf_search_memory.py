@@ -19,7 +19,7 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
-from timing import in_a_process, run_record
+from timing import exemplar_files, in_a_process, run_record
 
 from warptex.baselines import kopf
 from warptex.exemplar import Exemplar
@@ -64,6 +64,7 @@ def main() -> None:
     if args.one is not None:
         print(json.dumps(search_peak(args.one)))
         return
+    exemplar_files(parser, args.exemplars, args.names)
     print(run_record(), flush=True)
     print("\n| exemplar | pixels | seams (rows, columns) | PCA coefficients | resident peak MiB | "
           "bytes per pixel | Python's allocations MiB | search_bytes MiB |")

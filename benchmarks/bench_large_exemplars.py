@@ -28,7 +28,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
-from timing import run_record  # noqa: E402
+from timing import exemplar_files, run_record  # noqa: E402
 
 EXEMPLARS = REPO.parent / "shared" / "data" / "exemplars"
 PHOTO = EXEMPLARS / "dry_mud_256.png"
@@ -81,6 +81,7 @@ def main() -> None:
     args = parser.parse_args()
     if len(args.photos) not in (1, 3):
         parser.error("give one photo or three")
+    exemplar_files(parser, Path(), args.photos, "")  # the default, which _photo never sees
     if args.one is not None:
         print(json.dumps(one(args.photos, args.one)))
         return

@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
 import numpy as np  # noqa: E402
-from timing import best_of, run_record  # noqa: E402
+from timing import best_of, exemplar_files, run_record  # noqa: E402
 
 from warptex.candidates import precompute  # noqa: E402
 from warptex.parallel import THREADS  # noqa: E402
@@ -120,6 +120,7 @@ def main() -> None:
     parser.add_argument("--exemplar", default=str(REPO / "tests" / "data" / "granite_64.png"))
     parser.add_argument("--skip-cold", action="store_true")
     args = parser.parse_args()
+    exemplar_files(parser, Path(), [args.exemplar], "")
     print(run_record(), flush=True)
     candidates = precompute(args.exemplar)
     warm(candidates)

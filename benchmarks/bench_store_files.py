@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(REPO / ".cache" / "warp"))
 
 import numpy as np  # noqa: E402
-from timing import best_of, positive_int, run_record, timed_runs  # noqa: E402
+from timing import best_of, exemplar_files, positive_int, run_record, timed_runs  # noqa: E402
 
 from warptex.candidates import precompute  # noqa: E402
 from warptex.keysets import pack  # noqa: E402
@@ -77,6 +77,7 @@ def main() -> None:
                         help="instead: the merging save of two stores of the same N bricks, "
                              "each holding the other half of each brick")
     args = parser.parse_args()
+    exemplar_files(parser, Path(), [args.exemplar], "")
     print(run_record(), flush=True)
     synthesizer = Synthesizer(precompute(args.exemplar), device="cpu")
     if args.halves:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from timing import run_record
+from timing import exemplar_files, run_record
 
 from warptex.exemplar import Exemplar
 from warptex.store import BrickStore
@@ -48,6 +48,9 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=2,
                         help="correction passes per pyramid level (default 2)")
     args = parser.parse_args()
+    exemplar_files(parser, Path(), [args.exemplar], "")
+    if not args.rod:  # --rod leaves --mesh its default, unread
+        exemplar_files(parser, Path(), [args.mesh], "", what="mesh")
     print(run_record(), flush=True)
     res = args.resolution
     mesh = _rod() if args.rod else trimesh.load(args.mesh, force="mesh")

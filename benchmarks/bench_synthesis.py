@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import best_of, in_a_process, positive_int, run_record
+from timing import best_of, exemplar_files, in_a_process, positive_int, run_record
 
 from warptex import metrics
 from warptex.candidates import precompute
@@ -36,6 +36,10 @@ from warptex.synthesis import MAX_WORK_VOXELS, Synthesizer
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DIR = ROOT.parent / "shared" / "data" / "exemplars"
+# Exemplars of the passes sweep, and of the full volumes with the size of each (the default
+# run's): named here, as main checks them before any work.
+PASSES_SWEEP = ("granite_64", "rocks_in_sand_64", "bricks_red_64", "wood_rosewood_64")
+VOLUMES = (("granite_64", 64), ("rocks_in_sand_64", 64), ("wood_rosewood_128", 128))
 
 
 def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int,
@@ -75,7 +79,7 @@ def jitter_sweep(folder: Path, names: list[str], jitters: list[float], edge: int
 
 def passes_sweep(folder: Path) -> None:
     """More correction passes per level (section 5.1): quality against time."""
-    for name in ("granite_64", "rocks_in_sand_64", "bricks_red_64", "wood_rosewood_64"):
+    for name in PASSES_SWEEP:
         ex = Exemplar.load(folder / f"{name}.png")
         cs = precompute(ex)
         Synthesizer(cs).box((0, 0, 0), (4, 4, 4))  # compile kernels
@@ -342,6 +346,22 @@ def main() -> None:
                         help="--memory's cap of finest work voxels per engine call (default "
                         f"warptex's, {MAX_WORK_VOXELS}; a small one splits small boxes)")
     args = parser.parse_args()
+    # The exemplars of the mode that runs, in the order below that picks it.
+    if args.memory:
+        needed = ["granite_64"]
+    elif args.cold_kernels:
+        needed = args.names
+    elif args.contrast:
+        needed = None  # every *_64.png of the folder
+    elif args.request_memory:
+        needed = ["granite_64"]
+    elif args.jitter_sweep:
+        needed = args.names
+    elif args.passes_sweep:
+        needed = list(PASSES_SWEEP)
+    else:
+        needed = [name for name, _ in VOLUMES]  # granite_64 among them, for the single voxels
+    exemplar_files(parser, args.exemplars, needed, "_64.png" if needed is None else ".png")
     print(run_record(), flush=True)
     if args.memory:
         memory(args.exemplars, args.boxes, args.part_voxels)
@@ -372,7 +392,7 @@ def main() -> None:
     print("\n| exemplar | volume | sub-passes | runs | seconds (best of the runs) "
           "| voxels synthesized | worst-axis energy | noise | stacked |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for name, size in [("granite_64", 64), ("rocks_in_sand_64", 64), ("wood_rosewood_128", 128)]:
+    for name, size in VOLUMES:
         ex = Exemplar.load(args.exemplars / f"{name}.png")
         cs = precompute(ex)
         Synthesizer(cs).box((0, 0, 0), (4, 4, 4))  # compile kernels

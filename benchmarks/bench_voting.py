@@ -101,13 +101,9 @@ def main() -> None:
     parser.add_argument("--sheet", type=Path, default=ROOT / "docs" / "experiments"
                         / "colour_voting.png")
     args = parser.parse_args()
+    files = exemplar_files(parser, args.exemplars, args.names, "_64.png")
+    names = args.names or sorted(f.name.removesuffix("_64.png") for f in files)
     print(run_record(), flush=True)
-    names = args.names or sorted(p.stem.removesuffix("_64")
-                                 for p in args.exemplars.glob("*_64.png"))
-    if not names:
-        parser.error(f"{args.exemplars} holds no *_64.png exemplars: give their folder with "
-                     "--exemplars")
-    exemplar_files(parser, args.exemplars, names, "_64.png")
     targets = kopf_targets()
     r = args.radius
     variants = ["average (Dong)", "plain vote", *[f"bilateral {s}" for s in SIGMAS]]

@@ -26,14 +26,24 @@ def positive_int(text: str) -> int:
     return value
 
 
-def exemplar_files(parser: argparse.ArgumentParser, folder: Path, names: Iterable[str],
-                   suffix: str = ".png") -> list[Path]:
+def exemplar_files(parser: argparse.ArgumentParser, folder: Path,
+                   names: Iterable[str | Path] | None, suffix: str = ".png",
+                   what: str = "exemplar") -> list[Path]:
     """The files ``folder / (name + suffix)`` of ``names``, or the parser's error naming
-    those missing, before any work (not when the run reaches them, minutes later)."""
+    those missing, before any work (not when the run reaches them, minutes later).
+    ``names`` None: every ``*suffix`` file of ``folder``, sorted, the error where there is
+    none (a glob of a missing folder finds nothing, silently). Paths of their own: ``folder``
+    ``Path()`` and ``suffix`` ``""``; ``what`` names them in the error."""
+    if names is None:
+        files = sorted(folder.glob(f"*{suffix}"))
+        if not files:
+            parser.error(f"{folder} holds no *{suffix} exemplars: give their folder with "
+                         "--exemplars")
+        return files
     files = [folder / f"{name}{suffix}" for name in names]
     missing = [str(f) for f in files if not f.is_file()]
     if missing:
-        parser.error(f"no such exemplar: {', '.join(missing)}")
+        parser.error(f"no such {what}: {', '.join(missing)}")
     return files
 
 
