@@ -336,6 +336,28 @@ def test_exported_materials_are_white_and_matte(tmp_path):
     assert "Ka 1.00000000 1.00000000 1.00000000" in mtl
 
 
+@pytest.mark.parametrize(("colors", "image", "error", "message"), [
+    (np.full((4, 3), 128, np.uint8), None, TypeError, r"colors must hold floats in \[0, 1\]"),
+    (np.full((4, 3), np.nan), None, ValueError, "colors holds NaN or infinite values"),
+    (np.full(4, 0.5), None, ValueError, r"colors must be a \(V, C\) array, channels last, "
+                                        r"got shape \(4,\)"),
+    ([[0.5, 0.5, 0.5]] * 4, None, None, None),  # a list of float rows is colors too
+    (None, np.full((8, 8, 3), 200, np.uint8), TypeError, "image must hold floats"),
+    (None, np.full((8, 8), 0.5), ValueError, r"image must be a \(H, W, C\) array"),
+])
+def test_exported_colors_are_floats_of_their_shape(tmp_path, colors, image, error, message):
+    """8-bit colors came out white and NaN black, without a word; a row of gray values
+    failed deep inside trimesh."""
+    mesh, uv = _square()
+    path = tmp_path / ("t.ply" if image is None else "t.glb")
+    if error is None:
+        assert export(mesh, path, colors=colors, image=image, uv=uv) == [path]
+        return
+    with pytest.raises(error, match=message):
+        export(mesh, path, colors=colors, image=image, uv=uv)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_cli_slice_writes_each_format_in_its_own_encoding(tmp_path, data_dir, warp_device,
                                                          srgb_decoded):
     """An 8-bit exemplar's slice: .npy as synthesized, .exr decoded to linear, .png as the

@@ -261,6 +261,21 @@ def _obj_digits(vertices: np.ndarray) -> int:
     return 8 if size <= 0.0 else max(8, 8 - math.floor(math.log10(size)))
 
 
+def _float_colors(name: str, values: object, shape: str) -> np.ndarray:
+    """``values`` as colors of ``shape``, channels last, in [0, 1] as queries give them;
+    an error naming ``name`` otherwise: 8-bit integers came out white, NaN black."""
+    array = np.asarray(values)
+    if not np.issubdtype(array.dtype, np.floating):
+        raise TypeError(f"{name} must hold floats in [0, 1], as queries give them, got "
+                        f"{array.dtype}")
+    if array.ndim != len(shape.split(",")) or array.shape[-1] == 0:
+        raise ValueError(f"{name} must be a {shape} array, channels last, got shape "
+                         f"{array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} holds NaN or infinite values")
+    return array
+
+
 def export(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | None = None,
            image: np.ndarray | None = None, uv: np.ndarray | None = None,
            srgb: bool | None = None) -> list[Path]:
@@ -284,14 +299,18 @@ def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | 
     """The files :func:`export` writes and their contents, an OBJ's material and texture
     before the OBJ, which is renamed into place last: it never arrives without them.
 
-    ``srgb``: whether the colors are sRGB-encoded (``Exemplar.srgb``), so that each file
-    holds what its readers assume: PNG textures and PLY vertex colors sRGB-encoded, glTF
-    vertex colors linear (glTF 2.0, ``COLOR_0``); None writes them as they are.
+    ``colors`` (V, C) and ``image`` (H, W, C) are floats in [0, 1], as queries give them.
+    ``srgb``: whether they are sRGB-encoded (``Exemplar.srgb``, ``SolidTexture.srgb``), so
+    that each file holds what its readers assume: PNG textures and PLY vertex colors
+    sRGB-encoded, glTF vertex colors linear (glTF 2.0, ``COLOR_0``); None writes them as
+    they are, which a .glb's readers take for linear.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     options: dict = {}
     attributes: dict[str, np.ndarray] = {}
+    colors = None if colors is None else _float_colors("colors", colors, "(V, C)")
+    image = None if image is None else _float_colors("image", image, "(H, W, C)")
     # trimesh writes arrays of another length without a word: gray, or no colors at all.
     for name, per_vertex in (("colors", colors), ("uv", uv)):
         if per_vertex is not None and len(per_vertex) != len(mesh.vertices):
