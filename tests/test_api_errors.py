@@ -334,6 +334,27 @@ def test_colors_are_reencoded_only_by_flags():
             reencoded(values, srgb=srgb, to_srgb=to_srgb)
 
 
+def test_colors_to_reencode_are_floats():
+    """8-bit colors taken for values in [0, 1] came out 10^5 times too bright; one number
+    for a color failed on its missing channels; a negative value warned of its unused
+    power."""
+    import warnings
+
+    from warptex.srgb import linear_to_srgb, reencoded, srgb_to_linear
+
+    for convert in (srgb_to_linear, linear_to_srgb,
+                    lambda v: reencoded(v, srgb=True, to_srgb=False)):
+        with pytest.raises(TypeError, match=r"^colors must be floats in \[0, 1\] \(8-bit ones "
+                                            r"divided by 255\), got uint8$"):
+            convert(np.full((2, 3), 128, np.uint8))
+    with pytest.raises(ValueError, match=r"an array of colors, channels last \(\.\.\., C\)"):
+        reencoded(0.5, srgb=True, to_srgb=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(srgb_to_linear([-0.5, 0.5]),
+                                      np.array([-0.5 / 12.92, 0.21404114], np.float32))
+
+
 def test_exemplar_features_are_asked_for_in_one_way(granite_32_file, tmp_path):
     """True stood for "auto" but was dropped beside a mask; 1 passed for True."""
     from warptex.exemplar import Exemplar

@@ -19,8 +19,19 @@ def srgb_to_linear(values: Any) -> np.ndarray:
     """Linear float32 values of sRGB-encoded float32 ``values`` in [0, 1] (IEC 61966-2-1),
     what a renderer makes of the colors of an exemplar whose ``srgb`` is set; the plugin's
     lookups decode alike (:func:`srgb_decoded`), to the same bits."""
-    return srgb_decoded(np.asarray(values, np.float32).astype(np.float64), np.where).astype(
-        np.float32)
+    wide = _float_values(values).astype(np.float32).astype(np.float64)
+    with np.errstate(invalid="ignore"):  # the power of a negative value, not selected
+        return srgb_decoded(wide, np.where).astype(np.float32)
+
+
+def _float_values(values: Any) -> np.ndarray:
+    """``values`` as an array of floats, a TypeError otherwise: 8-bit colors (0 to 255)
+    taken for values in [0, 1] came out 10^5 times too bright."""
+    array = np.asarray(values)
+    if not np.issubdtype(array.dtype, np.floating):
+        raise TypeError(f"colors must be floats in [0, 1] (8-bit ones divided by 255), got "
+                        f"{array.dtype}")
+    return array
 
 
 def srgb_decoded(values: Any, select: Callable) -> Any:
@@ -37,7 +48,7 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
     """sRGB-encoded float32 values of linear ``values``, clipped to [0, 1] first: what an
     8-bit image shows of a linear exemplar's colors (the inverse of :func:`srgb_to_linear`),
     computed in float64 like it."""
-    values = np.clip(np.asarray(values, np.float32), 0, 1).astype(np.float64)
+    values = np.clip(_float_values(values).astype(np.float32), 0, 1).astype(np.float64)
     return np.where(values <= 0.0031308, values * 12.92,
                     1.055 * values ** (1 / 2.4) - 0.055).astype(np.float32)
 
@@ -58,7 +69,10 @@ def reencoded(values: np.ndarray, *, srgb: bool, to_srgb: bool,
     colors sRGB-encoded if ``to_srgb``, else linear: what a file format's readers assume.
     Colors are the leading channels (:func:`color_channels`; ``alpha``: the last channel is
     a kept alpha); data and alpha are kept as they are."""
-    out = np.array(values, np.float32, order="C")
+    out = np.array(_float_values(values), np.float32, order="C")
+    if out.ndim == 0:
+        raise ValueError("values must be an array of colors, channels last (..., C), got one "
+                         "number")
     if check_flag("srgb", srgb) != check_flag("to_srgb", to_srgb):
         color = color_channels(out.shape[-1], check_flag("alpha", alpha))
         convert = linear_to_srgb if to_srgb else srgb_to_linear
