@@ -523,6 +523,18 @@ def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
         raise KeyboardInterrupt
     assert (f"brick store not saved: {tmp_path / 'a.wtb'}: cannot write (No space left on "
             "device)") in capsys.readouterr().err
+    # A texture's own save returns its one path; one without a store raises ValueError,
+    # which the interrupt, not the save's error, goes on after.
+    with pytest.raises(KeyboardInterrupt), saved_when_stopped(lambda: tmp_path / "b.wtb"):
+        raise KeyboardInterrupt
+    assert f"brick store {tmp_path / 'b.wtb'} holds the voxels" in capsys.readouterr().err
+
+    def no_store():
+        raise ValueError("no store path: give one")
+
+    with pytest.raises(KeyboardInterrupt), saved_when_stopped(no_store):
+        raise KeyboardInterrupt
+    assert "warptex: brick store not saved: no store path: give one" in capsys.readouterr().err
 
 
 def test_the_pool_grows_up_to_its_limit_and_refuses_only_what_exceeds_it(candidates,

@@ -165,12 +165,14 @@ def worth_saving(store: BrickStore, path: Path | None) -> bool:
 
 
 @contextmanager
-def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
-    """Ctrl-C or SIGTERM (a KeyboardInterrupt) in the block first writes brick stores to
-    their files with ``save``, then stops as asked: the voxels synthesized so far are kept,
-    so the next run starts from them (section 6.2's synthesize-once, across runs); a stop
-    waits for a change of the bricks under way to end (:class:`~warptex.store.BrickStore`). What was
-    saved, or why nothing was, is said on stderr."""
+def saved_when_stopped(save: Callable[[], Iterable[Path] | Path | None]) -> Iterator[None]:
+    """A KeyboardInterrupt in the block (Ctrl-C; the commands raise one on SIGTERM too,
+    where a script of your own ends as Python does) first writes brick stores to their
+    files with ``save`` (``lambda: tex.save()``, or a list of such saves' paths), then stops
+    as asked: the voxels synthesized so far are kept, so the next run starts from them
+    (section 6.2's synthesize-once, across runs); a stop waits for a change of the bricks
+    under way to end (:class:`~warptex.store.BrickStore`). What was saved, or why nothing
+    was, is said on stderr; a save that fails never takes the interrupt's place."""
     try:
         yield
     except KeyboardInterrupt:
@@ -179,16 +181,17 @@ def saved_when_stopped(save: Callable[[], Iterable[Path]]) -> Iterator[None]:
         raise
 
 
-def saved_and_said(save: Callable[[], Iterable[Path]], before: str) -> None:
+def saved_and_said(save: Callable[[], Iterable[Path] | Path | None], before: str) -> None:
     """Write brick stores with ``save`` as work ends early (``before``: "stopping"), and say
     on stderr which hold the voxels synthesized so far, or why none was saved."""
     try:
-        saved = list(save())
-    except StoreFileError as error:
-        print(f"warptex: brick store not saved: {error}", file=sys.stderr)
+        result = save()
+        saved = [] if result is None else [result] if isinstance(result, Path) else list(result)
     except OSError as error:  # a full disk: the file is left as it was
         print(f"warptex: brick store not saved: {write_failure(error.filename, error)}",
               file=sys.stderr)
+    except Exception as error:  # a texture without a store path, say: the stop goes on
+        print(f"warptex: brick store not saved: {error}", file=sys.stderr)
     else:
         for path in saved:
             # Not "saved": a file that held every voxel already is left as it was.
