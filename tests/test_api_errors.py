@@ -438,7 +438,7 @@ def test_reference_volumes_and_patches_name_the_argument_at_fault(granite_32):
         metrics.patches(colors[..., 0], 5)
     with pytest.raises(ValueError, match="size \\(of the patches\\) must be at least 1"):
         metrics.patches(colors, 0)
-    with pytest.raises(ValueError, match=r"volume must be a \(D, H, W, C\) array"):
+    with pytest.raises(ValueError, match=r"volume must be an \(X, Y, Z, C\) array"):
         metrics.axis_slices([[1.0]], 0)
 
 

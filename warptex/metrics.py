@@ -98,7 +98,7 @@ def exemplar_patches(exemplar: Exemplar | np.ndarray, size: int,
 
 
 def _checked(volume, exemplar, axis: int, size: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """``volume`` (D, H, W, C) and ``exemplar`` (H, W, C, or a warptex.Exemplar) as float
+    """``volume`` (X, Y, Z, C) and ``exemplar`` (H, W, C, or a warptex.Exemplar) as float
     arrays of the same channels, whose slices across ``axis`` and the exemplar itself hold
     ``size`` x ``size`` patches; else a ValueError or TypeError saying which argument is
     wrong."""
@@ -150,10 +150,10 @@ def _image(image: object, name: str = "exemplar") -> np.ndarray:
 
 
 def _volume(volume: object) -> np.ndarray:
-    """``volume`` as a (D, H, W, C) array, or a ValueError."""
+    """``volume`` as an (X, Y, Z, C) array, or a ValueError."""
     volume = np.asarray(volume)
     if volume.ndim != 4:
-        raise ValueError(f"volume must be a (D, H, W, C) array, got shape {volume.shape}")
+        raise ValueError(f"volume must be an (X, Y, Z, C) array, got shape {volume.shape}")
     return volume
 
 

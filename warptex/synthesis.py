@@ -492,7 +492,7 @@ class Synthesizer:
         return self.colors_of(self._pixel_triples(ijk))
 
     def box(self, origin: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
-        """Colors of a box of voxels, (D, H, W, C) with axis 0 along x, 1 along y, 2 along z."""
+        """Colors of a box of voxels, (X, Y, Z, C): axis 0 along x, 1 along y, 2 along z."""
         origin = _three_ints("origin", origin)
         shape = _three_ints("shape", shape)
         if min(shape) < 0:

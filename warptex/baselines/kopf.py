@@ -29,7 +29,7 @@ Exemplars are tori, as the paper's are, except that where a photo does not tile
 its seam, in the search as in the metrics (:func:`warptex.metrics.exemplar_patches`): the
 seam is not part of the photo.
 
-Axis ``i`` of the volume (axis 0 of the ``(D, H, W, C)`` result is x) is constrained by its
+Axis ``i`` of the volume (of the ``(X, Y, Z, C)`` result) is constrained by its
 own exemplar (section 6.2), oriented as in :mod:`warptex.metrics`: slices perpendicular to
 axis ``i`` have volume axes ``i+1`` and ``i+2`` as the exemplar's rows and columns. One axis
 may be left unconstrained.
