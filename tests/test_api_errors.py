@@ -158,6 +158,8 @@ def test_meshes_are_read_by_the_library_as_the_commands_read_them(tmp_path):
             load_mesh(path)
     with pytest.raises(ValueError, match="uv must be 'none', 'auto' or 'mesh'"):
         load_mesh(tmp_path / "missing.ply", uv="yes")
+    with pytest.raises(ValueError, match="weld must be True or False, got 'no'"):  # welded
+        load_mesh(tmp_path / "missing.ply", weld="no")
     import trimesh
 
     far = trimesh.creation.box()

@@ -528,3 +528,18 @@ def test_repetition_and_patches_refuse_images_they_cannot_measure():
     with pytest.raises(ValueError, match=r"size \(of the patches\) 20 exceeds the image's 16 x 16"):
         metrics.patches(np.zeros((16, 16, 3)), 20)
     assert metrics.patches(np.zeros((16, 16, 3)), 20, wrap=True).shape == (256, 1200)
+
+
+def test_flags_and_slice_indices_are_refused_not_taken_for_others():
+    """wrap="no" wrapped, a slice index of 1.5 read slice 1, and one past the volume failed
+    in NumPy without naming it."""
+    with pytest.raises(ValueError, match="wrap must be True or False, got 'no'"):
+        metrics.patches(np.zeros((16, 16, 3)), 4, wrap="no")
+    with pytest.raises(ValueError, match="wrap must be True or False, got 1"):
+        metrics.patches(np.zeros((16, 16, 3)), 4, wrap=(True, 1))
+    volume = np.zeros((4, 5, 6, 3), np.float32)
+    assert metrics.axis_slice(volume, 1, -5).shape == (6, 4, 3)
+    for index in (1.5, 5, -6, True):
+        with pytest.raises(ValueError, match=rf"index must be an integer within the volume's 5 "
+                                             rf"slices along axis 1, got {index!r}"):
+            metrics.axis_slice(volume, 1, index)

@@ -17,6 +17,7 @@ import trimesh
 from PIL import Image
 
 from warptex.archive import input_file_problem, write_together
+from warptex.settings import check_flag
 from warptex.sheets import to_rgb, to_rgb8
 from warptex.srgb import reencoded
 
@@ -77,6 +78,7 @@ def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
     """
     if uv not in ("none", "auto", "mesh"):
         raise ValueError(f"uv must be 'none', 'auto' or 'mesh', got {uv!r}")
+    weld = check_flag("weld", weld)
     path = Path(path)
     problem = input_file_problem(path, "mesh file")
     if problem is not None:

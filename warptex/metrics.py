@@ -35,7 +35,7 @@ from scipy import ndimage
 
 from warptex.exemplar import Exemplar, seams_of, wrapping_edges
 from warptex.parallel import kd_tree, nearest
-from warptex.settings import check_count, is_integer
+from warptex.settings import check_count, check_flag, is_integer
 
 PATCH_STRIDE = 2  # slice patches the one-way measures read: every second one, each way
 # Completeness looks for each exemplar patch among the slices': every one, lest one be missed.
@@ -57,7 +57,11 @@ def axis_slice(volume: np.ndarray, axis: int, index: int) -> np.ndarray:
     """The slice ``index`` perpendicular to ``axis`` as an (rows, cols, C) image oriented
     like the exemplar of that axis (volume axes axis+1, axis+2 as rows and columns)."""
     _check_axis(axis)
-    s = np.take(_volume(volume), index, axis=axis)
+    volume = _volume(volume)
+    if not is_integer(index) or not -volume.shape[axis] <= index < volume.shape[axis]:
+        raise ValueError(f"index must be an integer within the volume's {volume.shape[axis]} "
+                         f"slices along axis {axis}, got {index!r}")
+    s = np.take(volume, index, axis=axis)
     # np.take drops `axis`; remaining axes are the other two in increasing order.
     remaining = [a for a in range(3) if a != axis]
     order = [(axis + 1) % 3, (axis + 2) % 3]
@@ -72,6 +76,7 @@ def patches(image: np.ndarray, size: int, stride: int = 1,
     size = check_count("size (of the patches)", size, low=1)
     stride = check_count("stride", stride, low=1)
     wrap_rows, wrap_cols = (wrap, wrap) if np.ndim(wrap) == 0 else wrap
+    wrap_rows, wrap_cols = check_flag("wrap", wrap_rows), check_flag("wrap", wrap_cols)
     h, w, c = image.shape
     if (size > h and not wrap_rows) or (size > w and not wrap_cols):
         raise ValueError(f"size (of the patches) {size} exceeds the image's {h} x {w} pixels")
