@@ -336,6 +336,41 @@ def test_colors_are_reencoded_only_by_flags():
             reencoded(values, srgb=srgb, to_srgb=to_srgb)
 
 
+def test_a_surface_device_that_warp_lacks_is_named(warp_device):
+    """shell and texel_points took their device as engines do not: Warp's own error named
+    no argument."""
+    import trimesh
+
+    from warptex.bake import texel_points
+    from warptex.surface import block_transform, shell
+
+    cube = trimesh.creation.box()
+    transform = block_transform(cube, 8)
+    for run in (lambda: shell(cube, 8, transform, device="gpu"),
+                lambda: texel_points(cube, cube.vertices[:, :2], transform, (4, 4),
+                                     device="gpu")):
+        with pytest.raises(ValueError, match=r"^device must be a Warp device such as 'cpu' or "
+                                             r"'cuda:0', got 'gpu'"):
+            run()
+
+
+def test_colors_of_pixel_triples_refuses_what_is_no_triple(candidates, warp_device):
+    """colors_of failed in NumPy's take, naming no argument, and on a list of triples."""
+    from warptex.synthesis import Synthesizer
+
+    syn = Synthesizer(candidates)
+    triples = syn.pixel_triples(np.array([[0, 0, 0], [5, -3, 9]]))
+    np.testing.assert_array_equal(syn.colors_of(triples),
+                                  syn.voxels(np.array([[0, 0, 0], [5, -3, 9]])))
+    np.testing.assert_array_equal(syn.colors_of(triples.tolist()), syn.colors_of(triples))
+    for bad in (triples[:, :2], triples.astype(float), triples[0]):
+        with pytest.raises(ValueError, match=r"pixels must be an \(N, 3\) integer array"):
+            syn.colors_of(bad)
+    for bad in ([[0, 0, 32 * 32]], [[-1, 0, 0]]):
+        with pytest.raises(ValueError, match="pixels must index each axis' exemplar, from 0"):
+            syn.colors_of(np.array(bad))
+
+
 def test_colors_to_reencode_are_floats():
     """8-bit colors taken for values in [0, 1] came out 10^5 times too bright; one number
     for a color failed on its missing channels; a negative value warned of its unused

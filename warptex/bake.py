@@ -15,9 +15,9 @@ from scipy import ndimage
 from kernels import bake as _k
 from warptex.settings import Filter, check_count
 from warptex.surface import checked_faces, to_voxel_space
+from warptex.synthesis import engine_device
 from warptex.texture import PointTexture, query_slabs
-from warptex.warp_runtime import device as default_device
-from warptex.warp_runtime import init_warp, launch
+from warptex.warp_runtime import launch
 
 
 def vertex_colors(texture: PointTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
@@ -36,8 +36,7 @@ def texel_points(
     width, height = (check_count("size", side, 1) for side in size)
     faces_np = checked_faces(mesh)
     uv = _checked_uv(uv, len(mesh.vertices), faces_np)
-    init_warp()
-    dev = device or default_device()
+    dev = engine_device(device)
     faces = wp.array(faces_np, dtype=wp.vec3i, device=dev)
     uv_wp = wp.array(uv, dtype=wp.vec2, device=dev)
     owner = wp.full(width * height, _k.NO_TRIANGLE, dtype=wp.int32, device=dev)

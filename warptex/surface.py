@@ -18,9 +18,7 @@ from warptex.affine import apply_affine
 from warptex.keysets import unique
 from warptex.parallel import launch_ranges
 from warptex.settings import check_count
-from warptex.synthesis import COORD_LIMIT
-from warptex.warp_runtime import device as default_device
-from warptex.warp_runtime import init_warp
+from warptex.synthesis import COORD_LIMIT, engine_device
 
 # Voxels a shell may hold: faces count the voxels they share each, which the int32 offsets
 # of the touched voxels must hold too (a few times the shell on fine meshes).
@@ -123,8 +121,7 @@ def shell(
         raise ValueError(f"the transformed mesh reaches {reach:.3g} voxels from the origin, "
                          f"beyond the texture's +-{COORD_LIMIT}: check transform")
     checked_shell_size(mesh, m)
-    init_warp()
-    dev = device or default_device()
+    dev = engine_device(device)
     vertices_np, faces_np = _slivers_halved(in_voxels, faces_np)
     # The shell only decides which voxels are synthesized ahead of the queries, so float32
     # suffices: a voxel it misses at extreme resolutions is synthesized when first read.

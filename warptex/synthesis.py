@@ -511,10 +511,20 @@ class Synthesizer:
         return colors.reshape(*shape, self.candidates.channels)
 
     def colors_of(self, pixels: np.ndarray) -> np.ndarray:
-        """Average the three exemplar colors of finest-level triples of pixel indices."""
+        """Average the three exemplar colors of finest-level triples of pixel indices, (N, 3)
+        integers as :meth:`pixel_triples` gives them."""
         cs = self.candidates
         cols = [np.asarray(cs.colors[cs.axis_source[k]], np.float32).reshape(-1, cs.channels)
                 for k in range(3)]
+        pixels = np.asarray(pixels)
+        if (pixels.ndim != 2 or pixels.shape[1] != 3
+                or not np.issubdtype(pixels.dtype, np.integer)):
+            raise ValueError(f"pixels must be an (N, 3) integer array of pixel triples, got "
+                             f"{pixels.dtype} of shape {pixels.shape}")
+        if len(pixels) and any(not 0 <= pixels[:, k].min() <= pixels[:, k].max() < len(c)
+                               for k, c in enumerate(cols)):
+            raise ValueError("pixels must index each axis' exemplar, from 0 to its pixel "
+                             "count less one")
         # np.take gathers rows about 4x faster than indexing does.
         out = np.take(cols[0], pixels[:, 0], axis=0)
         out += np.take(cols[1], pixels[:, 1], axis=0)
