@@ -764,6 +764,9 @@ def test_the_modules_the_readme_names_are_reached_from_a_plain_import():
     assert result.returncode == 0, result.stderr
     with pytest.raises(AttributeError, match="no attribute 'volumes'"):
         warptex.volumes  # noqa: B018
+    # Completion offers the API, not the helpers the package imports.
+    assert set(dir(warptex)) == set(warptex.__all__) | set(warptex._SUBMODULES)
+    assert "sys" in vars(warptex) and "sys" not in dir(warptex)
 
 
 def _import_warptex(folder: Path, first: str = "") -> subprocess.CompletedProcess:

@@ -2,8 +2,9 @@
 
 Implements Dong et al. 2008, "Lazy Solid Texture Synthesis". ``precompute``, ``CandidateSet``
 (§4, 3D candidates), ``Synthesizer`` (§5, parallel synthesis of any voxel subset) and
-``SolidTexture`` (§5.2, point queries on a cached brick store) are imported on first use,
-so ``import warptex`` stays light.
+``SolidTexture`` (§5.2, point queries on a cached brick store) are imported on first use:
+``import warptex`` loads Warp, NumPy and SciPy (exemplars are read with them) but none of
+the synthesis code, nor Mitsuba or trimesh.
 """
 
 from __future__ import annotations
@@ -128,4 +129,6 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY) | set(_SUBMODULES))
+    """The public names and the submodules README names: what completion offers (the
+    helpers this module imports, such as ``sys``, are not warptex's API)."""
+    return sorted(set(__all__) | set(_SUBMODULES))
