@@ -22,8 +22,9 @@ from warptex.warp_runtime import launch
 
 def vertex_colors(texture: PointTexture, mesh: trimesh.Trimesh, transform: np.ndarray,
                   filter: Filter = "trilinear", progress: str | None = None) -> np.ndarray:
-    """Colors (V, C) of the solid texture at each vertex, under a progress bar named
-    ``progress`` if given."""
+    """Colors (V, C) of the solid texture at each vertex, as the texture gives them
+    (``texture.srgb`` says their encoding: ``mesh_files.export(..., srgb=)`` writes each
+    format's), under a progress bar named ``progress`` if given."""
     return query_slabs(texture, to_voxel_space(mesh, transform), filter, progress)
 
 

@@ -111,7 +111,16 @@ def precompute(
     a later call loads it; a damaged cache file, or one that holds the candidates of other
     exemplars or parameters (copied or renamed), is reported once and recomputed, and a
     cache that cannot be written is reported once and left out. ``progress`` shows a bar on
-    stderr; None shows it when stderr is a terminal.
+    stderr; None shows it when stderr is a terminal. ``params`` override
+    :data:`~warptex.candidate_set.DEFAULT_PARAMS` by name (``neighborhood``, ``strips``,
+    ``keep``, ``candidates_3d``, ``candidates_2d``, ``candidates_2d_finest``, ``variance``,
+    ``min_dims``, ``max_dims``, ``coherence_rounds``, ``tileable``).
+
+    Raises:
+        ExemplarError: an exemplar that cannot be read or used, the axes' exemplars of
+            different channels, or a pre-computation this machine's memory cannot hold.
+        TypeError: a parameter unknown or of the wrong type.
+        ValueError: a parameter out of its range.
     """
     check_flag("cache", cache)
     if progress is not None:
