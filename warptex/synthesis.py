@@ -393,17 +393,18 @@ def not_pickled(what: str) -> str:
 class Synthesizer:
     """Colors of any subset of an unbounded solid texture (Dong 2008, section 5).
 
-    Voxel coordinates are integers over all of Z^3 at the finest level L; level l voxel
-    v covers finest voxels ``2**(L-l) * v ...``. Synthesis starts ``levels`` levels above
-    the finest with a warped tiling of the candidate slab and runs ``passes`` correction
-    passes of ``subpasses`` interleaved sub-passes per level. The default ``levels=3`` is
-    section 5.1's start three levels above the finest (l_start = L - 3); section 5.2's
-    "3 last levels" could also be read as ``levels=2``, which repeats more (BENCHMARKS.md).
-    ``shifted_tiles`` shifts each tile of the slab by its own hashed offset, so that
-    structured exemplars do not repeat every exemplar width, at some cost in their
-    neighbourhood energy (BENCHMARKS.md, "Exemplars that do not tile"). The ``seed`` acts
-    through the jitter's warp and the tiles' shifts only: without either every seed gives
-    the same solid (warned of), and a jitter under about 0.1 moves few voxels.
+    Voxel coordinates are integers over all of Z^3 at the finest level L; level l voxel v
+    covers finest voxels ``2**(L-l) * v ...``. Synthesis starts ``levels`` levels above the
+    finest (at the candidates' coarsest where they hold fewer) with a warped tiling of the
+    candidate slab and runs ``passes`` correction passes of ``subpasses`` interleaved
+    sub-passes per level. The default ``levels=3`` is section 5.1's start three levels above
+    the finest (l_start = L - 3); section 5.2's "3 last levels" could also be read as
+    ``levels=2``, which repeats more (BENCHMARKS.md). ``shifted_tiles`` shifts each tile of
+    the slab by its own hashed offset, so that structured exemplars do not repeat every
+    exemplar width, at some cost in their neighbourhood energy (BENCHMARKS.md, "Exemplars
+    that do not tile"). The ``seed`` acts through the jitter's warp and the tiles' shifts
+    only: without either every seed gives the same solid (warned of), and a jitter under
+    about 0.1 moves few voxels.
     """
 
     def __init__(
