@@ -37,6 +37,7 @@ import drjit as dr
 import mitsuba as mi
 
 import warptex
+from mitsuba_plugin import properties
 from warptex.llvm import MIN_LLVM_MAJOR, configure_drjit
 from warptex.settings import MAX_SPP, is_integer
 
@@ -111,6 +112,7 @@ def register() -> None:
         raise RuntimeError("mitsuba_plugin.register: set a Mitsuba variant first "
                            "(mitsuba_plugin.set_best_variant())")
     _exr_workers()  # a variant set by mi.set_variant, as scripts do, left it unchecked
+    properties.note_resolver_outside_a_parse()
     if variant in _registered:
         return
     from mitsuba_plugin import texture, volume

@@ -78,14 +78,28 @@ def scene_path(name: str, must_exist: bool) -> Path:
     so relative names resolve against the scene; ``mi.load_dict`` resolves against the
     working directory. A file to read (``must_exist``) is looked up in the resolver's
     other folders too, as Mitsuba looks up its own bitmaps; a file to write always goes
-    in that first folder, so that it is never another scene's file found elsewhere.
+    in that first folder, so that it is never another scene's file found elsewhere, or,
+    outside a parse, in the working folder (the resolver's first is the one Mitsuba
+    started in, which a script may have left since).
     """
     path = Path(name).expanduser()
     resolver = mi.file_resolver()
     if must_exist:
         return Path(str(resolver.resolve(str(path)))).absolute()
-    first = Path(str(resolver[0])) if len(resolver) and not path.is_absolute() else Path()
-    return (first / path).absolute()
+    folders = _resolver_folders()
+    parsing = folders and folders != _OUTSIDE_A_PARSE
+    return (Path(folders[0]) / path if parsing else path).absolute()
+
+
+# The file resolver's folders as :func:`note_resolver_outside_a_parse` found them, when
+# the plugin was registered: a resolver holding just these is mi.load_dict's, not a parse's
+# (which puts the scene's folder first, even where the list holds it already).
+_OUTSIDE_A_PARSE: list[str] = []
+
+
+def note_resolver_outside_a_parse() -> None:
+    """Keep the file resolver's folders as they are now, outside any scene's parse."""
+    _OUTSIDE_A_PARSE[:] = _resolver_folders()
 
 
 def _resolver_folders() -> list[str]:
@@ -126,5 +140,6 @@ def _missing_file(name: str) -> str:
         except OSError as error:  # a folder on the way that cannot be searched, a link loop
             return f'cannot look up "{name}" ({place}: {error.strerror})'
     # The folder of a scene given by a bare file name is "", the working folder.
-    searched = f" (looked for in {', '.join(f or '.' for f in folders)})" if folders else ""
+    shown = dict.fromkeys(f or "." for f in folders)  # a scene's folder may be listed twice
+    searched = f" (looked for in {', '.join(shown)})" if folders else ""
     return f'names a file that does not exist: "{name}"{searched}'

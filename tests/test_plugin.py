@@ -484,6 +484,50 @@ def test_a_relative_cache_is_always_beside_the_scene(granite_32_file, tmp_path, 
         loaded(str(tmp_path / "other"))
 
 
+@pytest.fixture
+def file_resolver_kept():
+    """Mitsuba's file resolver (one for the process) as it was after the test, the plugin
+    told of it again."""
+    resolver = mi.file_resolver()
+    folders = [str(resolver[i]) for i in range(len(resolver))]
+    yield resolver
+    resolver.clear()
+    for folder in folders:
+        resolver.append(folder)
+    mitsuba_plugin.register()
+
+
+def test_a_relative_cache_of_a_dict_is_in_the_working_folder_of_the_moment(
+        granite_32_file, tmp_path, monkeypatch, file_resolver_kept):
+    """mi.load_dict's names are the working folder's, as its exemplar's are: the file
+    resolver's first folder is the one Mitsuba started in, which a notebook may have left;
+    a scene parsed in that folder still keeps its store beside it."""
+    use("scalar_rgb")
+    started = tmp_path / "started"
+    started.mkdir()
+    file_resolver_kept.prepend(str(started))  # as if Mitsuba had started there
+    mitsuba_plugin.register()
+    (tmp_path / "now").mkdir()
+    monkeypatch.chdir(tmp_path / "now")
+    assert load(granite_32_file, cache="c.wtb").cache == tmp_path / "now" / "c.wtb"
+    scene = started / "scene.xml"
+    scene.write_text(
+        '<scene version="3.0.0"><shape type="rectangle"><bsdf type="diffuse">'
+        '<texture type="lazy_solid" name="reflectance">'
+        f'<string name="exemplar" value="{granite_32_file}"/>'
+        '<string name="cache" value="c.wtb"/></texture></bsdf></shape></scene>')
+    before = set(mitsuba_plugin.textures())
+    kept = mi.load_file(str(scene))
+    (texture,) = [t for t in mitsuba_plugin.textures() if t not in before]
+    assert texture.cache == started / "c.wtb" and kept is not None
+    # The folder the parse puts first, listed there already, is said once.
+    missing = started / "missing.xml"
+    missing.write_text(scene.read_text().replace(str(granite_32_file), "none.png"))
+    once = re.escape(str(started))
+    with pytest.raises(RuntimeError, match=rf'"none\.png" \(looked for in {once}, (?!{once})'):
+        mi.load_file(str(missing))
+
+
 def test_a_dropped_alpha_channel_is_said_in_the_plugin_s_words(granite_32_file, tmp_path):
     """The plugin has no alpha property: its warning does not send the author to one."""
     from PIL import Image
