@@ -357,7 +357,23 @@ def test_to_string_tells_textures_of_other_settings_apart(granite_32_file, tmp_p
     assert f"cache_bytes={256 << 20}]" in plain
     moved = load(granite_32_file, to_world=mi.ScalarTransform4f().translate([1, 2, 3]))
     assert "to_world=[[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 2.0]," in moved.to_string()
-    assert "cache_bytes=1024]" in load(granite_32_file, cache_bytes=1024).to_string()
+    assert "cache_bytes=1048576]" in load(granite_32_file, cache_bytes=1 << 20).to_string()
+
+
+def test_a_cache_too_small_for_one_brick_is_warned_of(granite_32_file):
+    """A store of cache_bytes 0 keeps nothing: every render synthesized its voxels again and
+    the traced renders repeated, said nowhere but in the statistics."""
+    from warptex.store import LARGEST_BRICK_BYTES
+
+    use("scalar_rgb")
+    for small in (0, LARGEST_BRICK_BYTES - 1):
+        with pytest.warns(UserWarning, match=rf'lazy_solid: property "cache_bytes": {small} '
+                                             r"bytes may keep no brick of voxels \(one takes up "
+                                             rf"to {LARGEST_BRICK_BYTES}\)"):
+            load(granite_32_file, cache_bytes=small)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load(granite_32_file, cache_bytes=LARGEST_BRICK_BYTES)
 
 
 def test_per_axis_exemplars_default_as_precompute_and_the_commands_take_them(
