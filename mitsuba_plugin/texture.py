@@ -172,7 +172,9 @@ def _exemplar_paths(props: mi.Properties) -> list[tuple[str, Path]]:
             named.append(("exemplar", existing_scene_file(plain, "exemplar", PLUGIN)))
         else:
             unread = [k for k in props if k not in _PROPERTIES]
-            near = difflib.get_close_matches("exemplar", unread, n=1)
+            # Mitsuba's bitmap names its image "filename": a scene moved over from it.
+            near = (["filename"] if "filename" in unread
+                    else difflib.get_close_matches("exemplar", unread, n=1))
             typo = f' ("{near[0]}" is no property of {PLUGIN})' if near else ""
             raise property_error(PLUGIN, "exemplar", f'is required (or "exemplar_x"){typo}')
     return named

@@ -182,6 +182,10 @@ def test_a_misspelled_exemplar_is_named_beside_the_missing_one(granite_32_file):
     with pytest.raises(RuntimeError, match=r'property "exemplar" is required .*\("exemplr" is no '
                                            r"property of lazy_solid\)"):
         mi.load_dict({"type": "lazy_solid", "exemplr": str(granite_32_file)})
+    # Mitsuba's bitmap names its image "filename": a texture moved over from one.
+    with pytest.raises(RuntimeError, match=r'"exemplar" is required \(or "exemplar_x"\) '
+                                           r'\("filename" is no property of lazy_solid\)$'):
+        mi.load_dict({"type": "lazy_solid", "filename": str(granite_32_file)})
     with pytest.raises(RuntimeError, match=r'"exemplar" is required \(or "exemplar_x"\)$'):
         # the properties it reads are no typos
         mi.load_dict({"type": "lazy_solid", "exemplar_y": str(granite_32_file),
