@@ -784,3 +784,4 @@ def test_far_points_move_by_the_period_the_readme_gives():
     far = np.array([POINT_LIMIT + 1.0, -(POINT_LIMIT + 1.0), 2.5 * 2.0**22 + 0.25])
     np.testing.assert_array_equal(wrap_far(far), [POINT_LIMIT + 1.0 - 2**22,
                                                   -(POINT_LIMIT + 1.0) + 2**22, 0.25 - 2**21])
+    np.testing.assert_array_equal(wrap_far(far.tolist()), wrap_far(far))  # as a script writes

@@ -71,6 +71,8 @@ def wrap_far(c: Any, select: Callable = np.where, rint: Callable = np.rint) -> A
     and infinity come out NaN, quietly (Python's ``round`` raises on them). ``select`` and
     ``rint`` (ties to even) are NumPy's by default: Dr.Jit's and Python's give the same
     bits."""
+    if isinstance(c, list | tuple):  # points as a script writes them
+        c = np.asarray(c, np.float64)
     if not isinstance(c, np.ndarray | np.generic):
         # Python floats, per coordinate of each shading point of the scalar variants, or
         # Dr.Jit arrays: no NumPy warning to mute, which would cost 5x the work.
