@@ -539,12 +539,14 @@ def _mitsuba_log_on_stderr() -> Iterator[None]:
         log = Path(folder.name) / "mitsuba.log"
         logger = mi.logger()
         kept = [logger.appender(i) for i in range(logger.appender_count())]
-        logger.clear_appenders()
-        logger.add_appender(mi.StreamAppender(str(log)))
-        try:
+        to_file = mi.StreamAppender(str(log))
+        try:  # a stop between the two calls leaves Mitsuba's appenders as they were too
+            logger.clear_appenders()
+            logger.add_appender(to_file)
             yield
         finally:
-            logger.clear_appenders()  # which closes the file
+            logger.clear_appenders()
+            del to_file  # its last reference: the file is closed, every line in it
             for appender in kept:
                 logger.add_appender(appender)
             with contextlib.suppress(OSError):

@@ -87,13 +87,14 @@ def scene_path(name: str, must_exist: bool) -> Path:
     if must_exist:
         return Path(str(resolver.resolve(str(path)))).absolute()
     folders = _resolver_folders()
-    parsing = folders and folders != _OUTSIDE_A_PARSE
+    kept = len(_OUTSIDE_A_PARSE)
+    parsing = len(folders) > kept and folders[1:1 + kept] == _OUTSIDE_A_PARSE
     return (Path(folders[0]) / path if parsing else path).absolute()
 
 
 # The file resolver's folders as :func:`note_resolver_outside_a_parse` found them, when
-# the plugin was registered: a resolver holding just these is mi.load_dict's, not a parse's
-# (which puts the scene's folder first, even where the list holds it already).
+# the plugin was registered: a parse puts the scene's folder before them (even where they
+# hold it already), and a script's own folders, appended since, come after them.
 _OUTSIDE_A_PARSE: list[str] = []
 
 

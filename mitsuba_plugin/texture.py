@@ -134,7 +134,7 @@ from warptex.settings import (
     names_folder,
 )
 from warptex.srgb import srgb_decoded, srgb_to_linear
-from warptex.store import LARGEST_BRICK_BYTES, check_lookup_channels
+from warptex.store import check_lookup_channels
 from warptex.store_files import StoreFileError, check_store_path
 from warptex.texture import SolidTexture, wrap_far
 from warptex.thread_warnings import Warned, captured
@@ -365,10 +365,6 @@ class LazySolidTexture(mi.Texture):
         if self.cache_bytes < 0:
             raise property_error(PLUGIN, "cache_bytes",
                                  f"must not be negative, got {self.cache_bytes}")
-        if self.cache_bytes < LARGEST_BRICK_BYTES:  # a render reads its voxels back from it
-            warnings.warn(f'{PLUGIN}: property "cache_bytes": {self.cache_bytes} bytes may '
-                          f"keep no brick of voxels (one takes up to {LARGEST_BRICK_BYTES}): "
-                          "every render synthesizes them again", stacklevel=3)
         cache = get_property(props, "cache", str, None, PLUGIN)
         if cache is not None and names_folder(cache):
             raise property_error(PLUGIN, "cache", f'names a folder, not a file: "{cache}"')
@@ -415,6 +411,10 @@ class LazySolidTexture(mi.Texture):
         for warning in said:
             warnings.warn(f'{PLUGIN}: property "cache": {warning.message}', warning.category,
                           stacklevel=3)
+        if solid.store.cache_bytes < solid.store.brick_bytes:  # renders read voxels back
+            warnings.warn(f'{PLUGIN}: property "cache_bytes": {solid.store.cache_bytes} bytes '
+                          f"keep no brick of voxels (one takes {solid.store.brick_bytes}): "
+                          "every render synthesizes them again", stacklevel=3)
         return solid
 
     def _set_color_range(self, axes: list[np.ndarray]) -> None:

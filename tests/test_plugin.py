@@ -367,17 +367,16 @@ def test_to_string_tells_textures_of_other_settings_apart(granite_32_file, tmp_p
 def test_a_cache_too_small_for_one_brick_is_warned_of(granite_32_file):
     """A store of cache_bytes 0 keeps nothing: every render synthesized its voxels again and
     the traced renders repeated, said nowhere but in the statistics."""
-    from warptex.store import LARGEST_BRICK_BYTES
-
     use("scalar_rgb")
-    for small in (0, LARGEST_BRICK_BYTES - 1):
+    brick = load(granite_32_file).solid.store.brick_bytes
+    for small in (0, brick - 1):
         with pytest.warns(UserWarning, match=rf'lazy_solid: property "cache_bytes": {small} '
-                                             r"bytes may keep no brick of voxels \(one takes up "
-                                             rf"to {LARGEST_BRICK_BYTES}\)"):
+                                             rf"bytes keep no brick of voxels \(one takes "
+                                             rf"{brick}\)"):
             load(granite_32_file, cache_bytes=small)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        load(granite_32_file, cache_bytes=LARGEST_BRICK_BYTES)
+        load(granite_32_file, cache_bytes=brick)
 
 
 def test_per_axis_exemplars_default_as_precompute_and_the_commands_take_them(
@@ -529,6 +528,8 @@ def test_a_relative_cache_of_a_dict_is_in_the_working_folder_of_the_moment(
     mitsuba_plugin.register()
     (tmp_path / "now").mkdir()
     monkeypatch.chdir(tmp_path / "now")
+    assert load(granite_32_file, cache="c.wtb").cache == tmp_path / "now" / "c.wtb"
+    file_resolver_kept.append(str(tmp_path / "assets"))  # a script's folder of bitmaps
     assert load(granite_32_file, cache="c.wtb").cache == tmp_path / "now" / "c.wtb"
     scene = started / "scene.xml"
     scene.write_text(

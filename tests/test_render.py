@@ -467,7 +467,19 @@ def test_mitsubas_warnings_go_to_stderr_uncoloured(tmp_path, capfd, monkeypatch)
     assert re.search(r"^\S+ \S+ WARN  \[HDRFilm\] Monochrome mode enabled", stderr, re.M)
     assert "\x1b[" not in stderr
     assert [logger.appender(i) for i in range(logger.appender_count())] == appenders
-    assert list((tmp_path / "temporary").iterdir()) == []
+    assert list((tmp_path / "temporary").glob("warptex-mitsuba-log-*")) == []
+    # A line Mitsuba logs while rendering, not loading, as well.
+    rendering = mitsuba_plugin.render
+
+    def logged(*args, **kwargs):
+        mi.Log(mi.LogLevel.Warn, "while rendering")
+        return rendering(*args, **kwargs)
+
+    monkeypatch.setattr(mitsuba_plugin, "render", logged)
+    assert main(["render", str(REPO / "scenes" / "bunny_wood.xml"), "-o", str(out),
+                 "--spp", "1", "--res", "8x8", "--variant", "llvm_ad_mono"]) == 0
+    stdout, stderr = capfd.readouterr()
+    assert "while rendering" in stderr and "while rendering" not in stdout
 
 
 def test_render_command_writes_image_and_statistics(tmp_path, capsys):

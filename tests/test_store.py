@@ -535,6 +535,14 @@ def test_stores_are_saved_when_a_block_is_stopped(tmp_path: Path, capsys):
     with pytest.raises(KeyboardInterrupt), saved_when_stopped(no_store):
         raise KeyboardInterrupt
     assert "warptex: brick store not saved: no store path: give one" in capsys.readouterr().err
+    # A path as a string is one path, not one per character; another error is named.
+    with pytest.raises(KeyboardInterrupt), saved_when_stopped(lambda: str(tmp_path / "c")):
+        raise KeyboardInterrupt
+    assert capsys.readouterr().err.count("holds the voxels") == 1
+    with pytest.raises(KeyboardInterrupt), saved_when_stopped(lambda: None.save()):
+        raise KeyboardInterrupt
+    assert ("warptex: brick store not saved: AttributeError: 'NoneType' object has no "
+            "attribute 'save'") in capsys.readouterr().err
 
 
 def test_the_pool_grows_up_to_its_limit_and_refuses_only_what_exceeds_it(candidates,
@@ -561,6 +569,18 @@ def test_the_pool_grows_up_to_its_limit_and_refuses_only_what_exceeds_it(candida
     assert store.stats()["bricks"] == 9 and store.stats()["bricks_evicted"] == 31
     with pytest.raises(MemoryError, match="brick store pool of 11264 voxels exceeds"):  # 9 + 13
         store.prefetch(np.floor(bricks[:13]).astype(int))
+
+
+def test_a_store_keeps_a_brick_from_its_brick_bytes_on(candidates):
+    """brick_bytes, what the plugin warns a smaller cache_bytes against, is what one whole
+    brick takes of the budget."""
+    syn = synthesizer(candidates)
+    point = np.array([brick_center((0, 0, 0))])
+    for budget, bricks in ((BRICK_BYTES - 1, 0), (BRICK_BYTES, 1)):
+        store = BrickStore(syn, cache_bytes=budget)
+        assert store.brick_bytes == BRICK_BYTES
+        sample(store, point)
+        assert store.stats()["bricks"] == bricks
 
 
 def test_zero_cache_still_answers(candidates):

@@ -382,7 +382,7 @@ def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
     # Without jitter the start level is a tiling of the slab, and every later step is
     # translation invariant, so the result repeats with the slab's period scaled up.
     with pytest.warns(UserWarning, match=r"seed 1 gives the same solid as seed 0: .* and a "
-                      r"jitter of 0\.001 is taken as 0 \(under 1/512\), with no tiles shifted"):
+                      r"jitter of 0\.001 is taken as 0 \(at most 1/512\), with no tiles shifted"):
         syn = Synthesizer(candidates, seed=1, jitter=0.001)
     scale = 2 ** (syn.finest - syn.start)
     n = int(candidates.params["neighborhood"])
@@ -391,8 +391,9 @@ def test_seeds_differ_and_jitter_zero_tiles_the_slab(candidates):
     pts = _random_voxels(np.random.default_rng(4), 100)
     assert np.array_equal(syn.voxels(pts), syn.voxels(pts + period))
     assert np.array_equal(syn.voxels(pts), Synthesizer(candidates, jitter=0.0).voxels(pts))
-    with warnings.catch_warnings():  # the seed acts: no warning
+    with warnings.catch_warnings():  # the seed acts, or is 0: no warning
         warnings.simplefilter("error")
+        Synthesizer(candidates, jitter=0.0)
         Synthesizer(candidates, seed=1, jitter=1 / 256)
         Synthesizer(candidates, seed=1, jitter=0.0, shifted_tiles=True)
     jittered = Synthesizer(candidates, seed=1, jitter=1.0)

@@ -349,6 +349,14 @@ def test_a_texture_of_an_exemplar_per_axis_knows_their_encoding(granite_32_file,
         texture(candidates, ey=onyx)
 
 
+def test_the_engine_s_warnings_point_at_the_line_that_made_the_texture(granite_32_file):
+    from warptex.texture import SolidTexture
+
+    with pytest.warns(UserWarning, match="seed 3 gives the same solid as seed 0") as said:
+        SolidTexture(granite_32_file, seed=3, jitter=0.0, device="cpu")
+    assert [w.filename for w in said] == [__file__]
+
+
 def test_a_store_file_is_refused_to_a_second_live_texture_of_other_settings(candidates,
                                                                            tmp_path):
     """Each would start empty from the other's file and discard its bricks on saving;

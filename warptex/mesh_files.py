@@ -263,16 +263,16 @@ def _obj_digits(vertices: np.ndarray) -> int:
     return 8 if size <= 0.0 else max(8, 8 - math.floor(math.log10(size)))
 
 
-def _float_colors(name: str, values: object, shape: str) -> np.ndarray:
-    """``values`` as colors of ``shape``, channels last, in [0, 1] as queries give them;
-    an error naming ``name`` otherwise: 8-bit integers came out white, NaN black."""
+def _float_colors(name: str, values: object, shape: tuple[str, ...]) -> np.ndarray:
+    """``values`` as colors of ``shape``'s axes, channels last, in [0, 1] as queries give
+    them; an error naming ``name`` otherwise: 8-bit integers came out white, NaN black."""
     array = np.asarray(values)
     if not np.issubdtype(array.dtype, np.floating):
         raise TypeError(f"{name} must hold floats in [0, 1], as queries give them, got "
                         f"{array.dtype}")
-    if array.ndim != len(shape.split(",")) or array.shape[-1] == 0:
-        raise ValueError(f"{name} must be a {shape} array, channels last, got shape "
-                         f"{array.shape}")
+    if array.ndim != len(shape) or array.shape[-1] == 0:
+        raise ValueError(f"{name} must be a ({', '.join(shape)}) array, channels last, got "
+                         f"shape {array.shape}")
     if not np.isfinite(array).all():
         raise ValueError(f"{name} holds NaN or infinite values")
     return array
@@ -311,8 +311,8 @@ def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | 
     suffix = path.suffix.lower()
     options: dict = {}
     attributes: dict[str, np.ndarray] = {}
-    colors = None if colors is None else _float_colors("colors", colors, "(V, C)")
-    image = None if image is None else _float_colors("image", image, "(H, W, C)")
+    colors = None if colors is None else _float_colors("colors", colors, ("V", "C"))
+    image = None if image is None else _float_colors("image", image, ("H", "W", "C"))
     # trimesh writes arrays of another length without a word: gray, or no colors at all.
     for name, per_vertex in (("colors", colors), ("uv", uv)):
         if per_vertex is not None and len(per_vertex) != len(mesh.vertices):

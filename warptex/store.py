@@ -79,8 +79,6 @@ BATCH_VOXELS = 1 << 22
 # Exemplars of up to this many pixels each: pixel indices fit uint16, 6 bytes a voxel.
 _COMPACT_PIXELS = 1 << 16
 _SLOT_BYTES = _k.VALID_WORDS * 4 + 4  # per brick beside its voxels: stored bits, pool base
-# What a store keeps of one brick at most (int32 triples): a cache_bytes below it keeps none.
-LARGEST_BRICK_BYTES = _k.BRICK_VOXELS * 3 * 4 + _SLOT_BYTES
 _LOCAL = cell_offsets(_k.BRICK)
 _T = TypeVar("_T")
 # Points lie strictly within +-POINT_LIMIT voxels: trilinear reads a voxel beyond the point.
@@ -278,6 +276,11 @@ class BrickStore:
         # The store file that loading reported and ignored (file_state): replaced unsaid.
         self._ignored: tuple | None = None
         self._seconds = 0.0
+
+    @property
+    def brick_bytes(self) -> int:
+        """What one whole brick takes of ``cache_bytes``: its voxels' triples and its slot."""
+        return _k.BRICK_VOXELS * self._voxel_bytes + _SLOT_BYTES
 
     @property
     def _budget(self) -> int:

@@ -186,12 +186,16 @@ def saved_and_said(save: Callable[[], Iterable[Path] | Path | None], before: str
     on stderr which hold the voxels synthesized so far, or why none was saved."""
     try:
         result = save()
-        saved = [] if result is None else [result] if isinstance(result, Path) else list(result)
+        saved = ([] if result is None else [result] if isinstance(result, str | os.PathLike)
+                 else list(result))
     except OSError as error:  # a full disk: the file is left as it was
         print(f"warptex: brick store not saved: {write_failure(error.filename, error)}",
               file=sys.stderr)
-    except Exception as error:  # a texture without a store path, say: the stop goes on
+    except ValueError as error:  # a texture without a store path; StoreFileError's kind
         print(f"warptex: brick store not saved: {error}", file=sys.stderr)
+    except Exception as error:  # whatever else: named, and the stop goes on all the same
+        print(f"warptex: brick store not saved: {type(error).__name__}: {error}",
+              file=sys.stderr)
     else:
         for path in saved:
             # Not "saved": a file that held every voxel already is left as it was.

@@ -434,7 +434,7 @@ class Synthesizer:
         self.shifted_tiles = check_flag("shifted_tiles", shifted_tiles)
         if self.seed != 0 and round(self.jitter * 256) == 0 and not self.shifted_tiles:
             none = ("there is no jitter" if self.jitter == 0
-                    else f"a jitter of {self.jitter:g} is taken as 0 (under 1/512)")
+                    else f"a jitter of {self.jitter:g} is taken as 0 (at most 1/512)")
             warn(f"seed {self.seed} gives the same solid as seed 0: the seed acts through the "
                  f"jitter's random warp and the tiles' shifts, and {none}, with no tiles "
                  "shifted", stacklevel=2)

@@ -113,8 +113,9 @@ def _check_unshared(path: Path, synthesizer: Synthesizer,
 
 @contextlib.contextmanager
 def _warnings_of(stacklevel: int) -> Iterator[None]:
-    """The store's warnings in the block given again, also where it raises, at the line
-    ``stacklevel`` frames above the method using this (the store's name that method)."""
+    """warptex's warnings in the block (the store's, the engine's) given again, also where
+    it raises, at the line ``stacklevel`` frames above the method using this (the warnings
+    name that method's store or engine)."""
     caught: list = []
     try:
         with captured() as caught:
@@ -197,13 +198,16 @@ class SolidTexture:
                                 "holds those of its three axes already")
             candidates, self.srgb = source, None
         else:
-            exemplars = [as_exemplar(e) for e in axis_triple(source, ey, ez)]
+            # Each file read once: axis_triple repeats x's for y, y's for z.
+            exemplars = axis_triple(*(None if e is None else as_exemplar(e)
+                                      for e in (source, ey, ez)))
             check_lookup_channels(exemplars[0].channels)
             check_same_channels(exemplars)
             self.srgb = srgb_encoded(exemplars, raw=None)
             candidates = precompute(*exemplars, progress=None)
-        self.synthesizer = Synthesizer(candidates, seed, jitter, device=device, passes=passes,
-                                       shifted_tiles=shifted_tiles)
+        with _warnings_of(2):  # at the line that made the texture (the seed's)
+            self.synthesizer = Synthesizer(candidates, seed, jitter, device=device,
+                                           passes=passes, shifted_tiles=shifted_tiles)
         if self.path is not None:
             _check_unshared(self.path, self.synthesizer, joining=self)
         try:

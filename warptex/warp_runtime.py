@@ -201,13 +201,16 @@ def kernel_build_notice(notice: Callable[[Path], None]) -> Iterator[None]:
     the pause of a first use (README, "first use") is explained when it comes, and a
     command that ends before any launch (a refused input) says nothing of it. Outside
     such blocks (a script, a Mitsuba scene) :func:`say_kernel_build` is the notice, given
-    once a process and only on a terminal, as ``precompute``'s bars are shown."""
-    outside = _BUILD_NOTICE[:]
-    _BUILD_NOTICE[:] = [notice]
+    once and only on a terminal, as ``precompute``'s bars are shown (a block ending before
+    it was given leaves it to come after)."""
+    with _NOTICE_LOCK:  # launches on other threads may be taking the notice meanwhile
+        outside = _BUILD_NOTICE[:]
+        _BUILD_NOTICE[:] = [notice]
     try:
         yield
     finally:
-        _BUILD_NOTICE[:] = outside
+        with _NOTICE_LOCK:
+            _BUILD_NOTICE[:] = outside
 
 
 def say_kernel_build(cache: Path) -> None:

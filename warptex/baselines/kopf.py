@@ -86,10 +86,10 @@ _PART_BYTES = 1 << 20
 MEAN_SHIFT_BANDWIDTH = (1.0, 0.25)
 # Peak memory of a synthesis per voxel, beside the solid and its returned copy: most of it the
 # search's PCA coefficients (MAX_COEFFS float32 per grid centre, a quarter of the voxels: 96
-# bytes a voxel). Resident peaks beyond the volume and its copy at 64^3, two
-# iterations a level, search structures included (benchmarks/bench_kopf_memory.py,
-# BENCHMARKS.md): 165 bytes a voxel (granite_64), 186 (bricks_red_128), 161 and 224 for 3 and
-# 8 channels of noise, which keeps every coefficient.
+# bytes a voxel). Resident peaks beyond the volume and its copy, two iterations a level,
+# search structures included (benchmarks/bench_kopf_memory.py, BENCHMARKS.md, 2026-12-07):
+# 131 bytes a voxel at 64^3 (granite_64), 126 and 117 for 3 and 8 channels of noise, which
+# keeps every coefficient; 106 to 112 at 128^3.
 WORK_BYTES_PER_VOXEL = 300
 # Peak memory of an exemplar's search structure per window (pixel) while it is built: its
 # float64 window of 64 values per feature, centred in place, beside its coefficients (at most
