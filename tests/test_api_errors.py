@@ -43,8 +43,30 @@ def candidates(granite_32):
     ({"passes": True}, "passes"), ({"jitter": "1"}, "jitter"),
 ])
 def test_settings_of_the_wrong_type_are_named(kwargs, name):
-    with pytest.raises(SettingError, match=f"^{name} must be an? "):
+    """A TypeError too, as the other arguments' wrong types are (a script's ``except
+    TypeError`` missed these), and still a SettingError (a ValueError) as before."""
+    with pytest.raises(SettingError, match=f"^{name} must be an? ") as refused:
         check_settings(**kwargs)
+    assert isinstance(refused.value, TypeError) and isinstance(refused.value, ValueError)
+
+
+def test_settings_of_the_wrong_type_are_type_errors_everywhere(granite_32, granite_32_file,
+                                                                warp_device):
+    """The Python API review's cases: cache_bytes=1e8 (a common way to write 100 MB), a
+    float seed, a string flag, a float exemplar size: each a TypeError naming the setting;
+    a value out of range is no TypeError."""
+    from warptex.exemplar import Exemplar
+    from warptex.texture import SolidTexture
+
+    for call, name in ((lambda: SolidTexture(granite_32, cache_bytes=1e8), "cache_bytes"),
+                       (lambda: SolidTexture(granite_32, seed=1.5), "seed"),
+                       (lambda: SolidTexture(granite_32, shifted_tiles="no"), "shifted_tiles"),
+                       (lambda: Exemplar.load(granite_32_file, max_size=32.0), "max_size")):
+        with pytest.raises(TypeError, match=f"^{name} must be"):
+            call()
+    with pytest.raises(SettingError, match=r"^seed must be within") as refused:
+        SolidTexture(granite_32, seed=-1)
+    assert not isinstance(refused.value, TypeError)
 
 
 def test_sources_of_the_wrong_kind_are_named(candidates, warp_device):

@@ -47,6 +47,12 @@ class SettingError(ValueError):
         return type(self), (self.name, self.problem)
 
 
+class SettingTypeError(SettingError, TypeError):
+    """A synthesis setting of the wrong type (a float for an integer, a string for a flag):
+    a SettingError, as every refused setting is, and a TypeError, as Python's own functions
+    and warptex's other arguments raise for one."""
+
+
 def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
                    seed: int = 0) -> None:
     """Raise SettingError unless ``jitter``, ``passes`` and ``seed`` are within what the
@@ -55,7 +61,7 @@ def check_settings(jitter: float = DEFAULT_JITTER, passes: int = DEFAULT_PASSES,
                               ("jitter", jitter, Real)):
         if isinstance(value, bool) or not isinstance(value, kind):
             noun = "an integer" if kind is Integral else "a number"
-            raise SettingError(name, f"must be {noun}, got {value!r}")
+            raise SettingTypeError(name, f"must be {noun}, got {value!r}")
     if not 0 <= seed <= MAX_SEED:
         raise SettingError("seed", f"must be within [0, {MAX_SEED}], got {seed}")
     if not 0.0 <= jitter <= MAX_JITTER:
@@ -74,7 +80,7 @@ def check_count(name: str, value: object, low: int = 0) -> int:
     """``value`` as an int, after a SettingError unless it is an integer of at least ``low``
     (a count or a number of bytes; a bool or a float is refused, not truncated)."""
     if not is_integer(value):
-        raise SettingError(name, f"must be an integer, got {value!r}")
+        raise SettingTypeError(name, f"must be an integer, got {value!r}")
     if value < low:
         raise SettingError(name, f"must be at least {low}, got {value}")
     return int(value)
@@ -83,7 +89,7 @@ def check_count(name: str, value: object, low: int = 0) -> int:
 def check_flag(name: str, value: object) -> bool:
     """``value`` after a SettingError unless it is a bool ("no" would count as true)."""
     if not isinstance(value, bool | np.bool_):
-        raise SettingError(name, f"must be True or False, got {value!r}")
+        raise SettingTypeError(name, f"must be True or False, got {value!r}")
     return bool(value)
 
 
@@ -123,7 +129,7 @@ def check_max_size(max_size: int | None) -> None:
     if max_size is None:
         return
     if not is_integer(max_size):
-        raise SettingError("max_size", f"must be an integer, got {max_size!r}")
+        raise SettingTypeError("max_size", f"must be an integer, got {max_size!r}")
     if max_size < MIN_EXEMPLAR_SIZE:
         raise SettingError("max_size", f"must be at least {MIN_EXEMPLAR_SIZE} pixels, got "
                            f"{max_size}")
