@@ -63,7 +63,8 @@ Axes = tuple[Exemplar, Exemplar, Exemplar]
 @dataclass(frozen=True)
 class Setup:
     """What every method of a comparison runs and is measured with: the exemplar file of the
-    x axis and, where given, of y and z (:meth:`paths`); the volume's edge; the seed of every
+    x axis and, where given, of y and z (:meth:`paths`; files given as str are kept as
+    Path, as the annotations say once it is made); the volume's edge; the seed of every
     randomized method; the lazy engine's correction passes, jitter and shifted tiles
     (``lazy`` and ``tiled``; :class:`warptex.synthesis.Synthesizer`); the larger side the
     exemplars are shrunk to when loaded and their feature-distance channel, automatic or
