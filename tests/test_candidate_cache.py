@@ -497,6 +497,30 @@ def test_a_file_another_prune_deleted_meanwhile_is_no_failure(folder, monkeypatc
     assert cc.remove(listed) == (0, 0, [])
 
 
+def test_a_file_pruned_while_it_is_read_is_computed_again_unsaid(computed, image, tmp_path,
+                                                                  monkeypatch):
+    """`warptex cache --clear` beside a render node: the file gone between its lookup and
+    its read was called damaged, sending an operator looking for corruption."""
+    import warnings
+
+    current, _ = computed
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path))
+    shutil.copy(current, tmp_path / current.name)
+    there = candidates.cache_file_there
+
+    def pruned_meanwhile(path: Path) -> bool:
+        found = there(path)
+        monkeypatch.setattr(candidates, "cache_file_there", there)
+        path.unlink()
+        return found
+
+    monkeypatch.setattr(candidates, "cache_file_there", pruned_meanwhile)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert precompute(Exemplar.load(image)).cache_status == "written"
+    assert (tmp_path / current.name).read_bytes() == current.read_bytes()
+
+
 def test_a_file_whose_record_names_no_code_is_not_this_code_s(computed):
     """Only a record naming this code's digest is this code's: one naming none (written by
     other means) is recomputed, never read."""

@@ -6,6 +6,7 @@ import dataclasses
 import hashlib
 import io
 import os
+import re
 import time
 import warnings
 from pathlib import Path
@@ -1236,6 +1237,39 @@ def test_concurrent_saves_to_one_file_lose_nothing(candidates, tmp_path: Path):
     for t in threads:
         t.join()
     assert BrickStore.load(path, syn).stats()["voxels"] == len(stores)
+
+
+@pytest.mark.parametrize("refused", ["open", "flock"])
+def test_saves_that_cannot_take_turns_say_so_once_a_folder(candidates, tmp_path, monkeypatch,
+                                                          refused):
+    """A folder that cannot be locked (some network file systems) let concurrent saves
+    each keep only their own voxels without a word; said once a folder now, and the save
+    still goes on."""
+    import errno
+
+    from warptex import store_files
+
+    def no_locks(*args):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    if refused == "open":
+        opening = os.open
+        monkeypatch.setattr(store_files.os, "open", lambda path, *rest: no_locks()
+                            if Path(path) == tmp_path else opening(path, *rest))
+    else:
+        monkeypatch.setattr(store_files.fcntl, "flock", no_locks)
+    monkeypatch.setattr(store_files, "_UNLOCKED", set())
+    store = BrickStore(synthesizer(candidates), whole_bricks=False)
+    store.prefetch(np.array([[0, 0, 0]]))
+    with pytest.warns(UserWarning, match=rf"^{re.escape(str(tmp_path))}: brick stores saved "
+                                         r"here do not take turns, as the folder cannot be "
+                                         r"locked \(No locks available\)"):
+        assert store.save(tmp_path / "a.wtb")
+    store.prefetch(np.array([[8, 0, 0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert store.save(tmp_path / "b.wtb")
+    assert BrickStore.load(tmp_path / "b.wtb", store.synthesizer).stats()["voxels"] == 2
 
 
 def test_identity_follows_the_engine_code_and_the_jitter_the_engine_takes(candidates, tmp_path,

@@ -139,7 +139,8 @@ def precompute(
             loaded.cache_status = "loaded"
             return loaded
         except CandidateCacheError as e:
-            warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
+            if cache_file_there(path):  # else pruned meanwhile (`warptex cache`): no damage
+                warn(f"ignoring damaged candidate cache, recomputing: {e}", stacklevel=2)
     _check_size(exemplars)
     result = _compute(exemplars, p, progress)
     if path is not None:

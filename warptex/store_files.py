@@ -9,7 +9,6 @@ recently used first; it is written atomically and checksummed.
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import functools
 import json
@@ -34,6 +33,7 @@ from warptex.bricks import Bricks
 from warptex.code_digest import code_digest, module_sources
 from warptex.keysets import unpack
 from warptex.synthesis import COORD_LIMIT, ENGINE_VERSION, Synthesizer
+from warptex.thread_warnings import warn
 
 if TYPE_CHECKING:
     from warptex.store import BrickStore
@@ -64,15 +64,32 @@ def taking_turns(path: Path) -> Iterator[None]:
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         folder = os.open(path.parent, os.O_RDONLY)
-    except OSError:
+    except OSError as error:
+        _without_turns(path.parent, error)
         yield
         return
     try:
-        with contextlib.suppress(OSError):
+        try:
             fcntl.flock(folder, fcntl.LOCK_EX)
+        except OSError as error:
+            _without_turns(path.parent, error)
         yield
     finally:
         os.close(folder)  # releases the lock
+
+
+def _without_turns(folder: Path, error: OSError) -> None:
+    """Say, once a folder, that saves there go on without turns: a render farm sharing one
+    store on such a file system would lose voxels to its saves without a word."""
+    if folder in _UNLOCKED:
+        return
+    _UNLOCKED.add(folder)
+    warn(f"{folder}: brick stores saved here do not take turns, as the folder cannot be "
+         f"locked ({error.strerror or error}): processes saving one store at once may each "
+         "keep only their own voxels, and the others' are synthesized again when next read")
+
+
+_UNLOCKED: set[Path] = set()  # the folders _without_turns spoke of
 
 
 _SETTING_NAMES = {"digests": "exemplars", "params": "candidate parameters",
