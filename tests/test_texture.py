@@ -206,6 +206,52 @@ def test_persistence_in_a_new_process(candidates, tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "out.npy"), expected)
 
 
+_SAVING_AT_ONCE = """
+import sys, time
+from pathlib import Path
+
+import numpy as np
+import warptex.store
+from warptex.candidate_set import CandidateSet
+from warptex.texture import SolidTexture
+
+candidates, store, go, k = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
+write_bricks = warptex.store.write_bricks
+
+
+def slowly(*args):  # a network disk: saves that do not take turns would overlap
+    time.sleep(0.5)
+    write_bricks(*args)
+
+
+warptex.store.write_bricks = slowly
+tex = SolidTexture(CandidateSet.load(candidates), device="cpu", store=store,
+                   whole_bricks=False)
+tex.query(np.array([[8.0 * k + 0.5, 0.5, 0.5]]), filter="nearest")
+while not go.exists():
+    time.sleep(0.01)
+tex.save()
+"""
+
+
+def test_processes_saving_one_store_at_once_keep_each_other_s_voxels(candidates, tmp_path):
+    """A render farm's jobs sharing one store file on a slow disk: saves take turns across
+    processes (a lock on the folder), so each merges the file the one before wrote; with
+    all released together, the file holds every process's voxel, each the engine's
+    (without the lock it held one)."""
+    candidates.save(tmp_path / "cand.wtc")
+    store, go = tmp_path / "shared.wtb", tmp_path / "go"
+    jobs = [subprocess.Popen([sys.executable, "-c", _SAVING_AT_ONCE, str(tmp_path / "cand.wtc"),
+                              str(store), str(go), str(k)], cwd=REPO) for k in range(3)]
+    go.touch()  # after all have started: most wait for it with their voxel synthesized
+    assert [job.wait(timeout=300) for job in jobs] == [0, 0, 0]
+    shared = texture(candidates, store=store, whole_bricks=False)
+    voxels = np.array([[8 * k, 0, 0] for k in range(3)])
+    colors = shared.query(voxels + 0.5, filter="nearest")
+    assert shared.store.stats()["voxels"] == 3 and shared.store.stats()["voxels_added"] == 0
+    np.testing.assert_array_equal(colors, shared.synthesizer.voxels(voxels))
+
+
 def test_corrupt_or_stale_store_is_ignored_and_a_foreign_file_refused(candidates, tmp_path):
     pts = points_near_origin(50, 9)
     path = tmp_path / "granite.wtb"
