@@ -58,9 +58,9 @@ def empty_file(path: Path) -> bool:
 def taking_turns(path: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``path``'s folder: every process's saves there take turns,
     so a merge reads the file that the previous save wrote. Where the folder cannot be
-    locked (a file system without locks), saves go on without turns: two at once may
-    then keep only the bricks of the later, which costs voxels synthesized again, never
-    a wrong one."""
+    locked (a file system without locks), saves go on without turns, as a warning says
+    once a folder: two at once may then keep only the bricks of the later, which costs
+    voxels synthesized again, never a wrong one."""
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         folder = os.open(path.parent, os.O_RDONLY)
