@@ -31,7 +31,7 @@ from warptex.archive import (
 from warptex.machine import software_versions
 from warptex.settings import MAX_SAMPLER_SEED, MAX_SPP, RENDER_BATCHES
 from warptex.stops import deferred_stops
-from warptex.store_files import StoreFileError, saved_and_said, saved_when_stopped, worth_saving
+from warptex.store_files import StoreFileError, saved_and_said, saved_if_any, saved_when_stopped
 from warptex.warp_runtime import KernelCacheError
 
 if TYPE_CHECKING:
@@ -224,12 +224,11 @@ def scene_files(scene_path: Path, parameters: dict[str, str] | None = None) -> l
 
 def _saved_at_a_stop(scene) -> list[Path]:
     """The ``cache`` files of ``scene``'s textures, saved as a stop or a failure ends the
-    render, but for stores that synthesized nothing (:func:`~warptex.store_files.worth_saving`)."""
+    render, but for stores that synthesized nothing (:func:`~warptex.store_files.saved_if_any`)."""
     import mitsuba_plugin
 
     return [path for texture in mitsuba_plugin.textures(scene)
-            if worth_saving(texture.solid.store, texture.cache)
-            and (path := texture.save()) is not None]
+            for path in saved_if_any(texture.solid.store, texture.cache, texture.save)]
 
 
 def render_scene(scene_path: Path, output: Path, spp: int | None = None,

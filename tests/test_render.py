@@ -670,7 +670,7 @@ def test_render_command_saves_the_store_and_starts_warm_from_it(tmp_path, capsys
 def test_a_render_stopped_before_its_first_batch_writes_no_empty_store(tmp_path, capsys,
                                                                        monkeypatch):
     """A Ctrl-C before anything was synthesized: no cache file is made (an empty one was,
-    said to hold the voxels synthesized before stopping)."""
+    said to hold the voxels synthesized before stopping), and the log says why."""
     import mitsuba_plugin.command
     from warptex.cli import main
 
@@ -681,8 +681,10 @@ def test_a_render_stopped_before_its_first_batch_writes_no_empty_store(tmp_path,
     monkeypatch.setattr(mitsuba_plugin.command, "_progress", stopped)
     assert main(["render", str(scene), "--res", "16x16", "--spp", "2",
                  "-o", str(tmp_path / "stopped.exr")]) == 130
-    assert "brick store" not in capsys.readouterr().err
-    assert not (scene.parent / "bricks" / "bunny.wtb").exists()
+    store = scene.parent / "bricks" / "bunny.wtb"
+    err = capsys.readouterr().err
+    assert f"warptex: brick store {store} left as it was: no voxel was synthesized yet\n" in err
+    assert "holds the voxels" not in err and not store.exists()
 
 @pytest.mark.parametrize("stop", ["Ctrl-C", "Ctrl-C in mi.render", "SIGTERM",
                                   "SIGTERM in mi.render", "read-only"])

@@ -986,12 +986,14 @@ def test_a_store_file_that_cannot_be_used_is_reported_once(candidates, tmp_path:
         again.save(path)
 
 
-def test_an_empty_store_leaves_another_texture_s_file_as_it_was(candidates, tmp_path: Path):
+def test_an_empty_store_leaves_another_texture_s_file_as_it_was(candidates, tmp_path: Path,
+                                                                 capsys):
     """A render that synthesized nothing for a texture whose file was another's (ignored
     on loading), or one stopped before any synthesis, replaced that file with an empty
     store: the other texture's voxels were lost for none of this one's. A stop's save is
-    no longer worth making without voxels, whatever file is there."""
-    from warptex.store_files import worth_saving
+    no longer made without voxels, whatever file is there, and says so (a job's log said
+    nothing of its store)."""
+    from warptex.store_files import saved_if_any
 
     path = tmp_path / "s.wtb"
     other = BrickStore(synthesizer(candidates, seed=3), whole_bricks=False)
@@ -1000,11 +1002,14 @@ def test_an_empty_store_leaves_another_texture_s_file_as_it_was(candidates, tmp_
     before = path.read_bytes()
     with pytest.warns(UserWarning, match="ignoring brick store file.*another texture"):
         empty = BrickStore.load(path, synthesizer(candidates), whole_bricks=False)
-    assert not worth_saving(empty, path)
+    assert saved_if_any(empty, path, lambda: empty.save(path) and path) == []
+    assert capsys.readouterr().err == (f"warptex: brick store {path} left as it was: no "
+                                       "voxel was synthesized yet\n")
     assert not empty.save(path)
     assert path.read_bytes() == before
     empty.prefetch(np.array([[1, 0, 0]]))  # with voxels of its own, it replaces the file
-    assert worth_saving(empty, path) and empty.save(path)
+    assert saved_if_any(empty, path, lambda: empty.save(path) and path) == [path]
+    assert saved_if_any(empty, None, lambda: pytest.fail("no file to save to")) == []
     assert BrickStore.load(path, synthesizer(candidates)).stats()["voxels"] == 1
 
 

@@ -173,12 +173,21 @@ def check_store_path(path: str | Path, saving: bool = True) -> None:
         raise StoreFileError(f"{path}: {problem}")
 
 
-def worth_saving(store: BrickStore, path: Path | None) -> bool:
-    """Whether a stop's save of ``store`` to ``path`` keeps any work: whether it holds
-    voxels. A file of an empty store would keep none, and be said to hold the voxels
-    synthesized before stopping (:func:`saved_when_stopped`); merged with a file, it leaves
-    that as it was."""
-    return path is not None and store.stats()["voxels"] > 0
+def saved_if_any(store: BrickStore, path: Path | None,
+                 save: Callable[[], Path | None]) -> list[Path]:
+    """What a stop's save of ``store`` to ``path`` writes (``save()``'s file) where it keeps
+    any work, whether the store holds voxels; a store of none (stopped before any was
+    synthesized) leaves its file as it was, and says so on stderr, as a job's log would
+    otherwise say nothing of it. A file of an empty store would keep no work, and be said
+    to hold the voxels synthesized before stopping (:func:`saved_when_stopped`)."""
+    if path is None:
+        return []
+    if store.stats()["voxels"] == 0:
+        print(f"warptex: brick store {path} left as it was: no voxel was synthesized yet",
+              file=sys.stderr)
+        return []
+    saved = save()
+    return [] if saved is None else [saved]
 
 
 @contextmanager

@@ -237,15 +237,16 @@ def _colors_only(baked: dict, colors: int) -> dict:
 def _store_saved_when_stopped(tex, args: argparse.Namespace) -> Iterator[None]:
     """A `bake` or `cut` stopped by Ctrl-C or SIGTERM, or by a kernel cache that cannot
     take a later kernel's build, saves its ``--store`` first, unless nothing was
-    synthesized (:func:`~warptex.store_files.worth_saving`): the next run starts from its voxels."""
+    synthesized (:func:`~warptex.store_files.saved_if_any`): the next run starts from its
+    voxels."""
     if args.store is None:
         yield
         return
-    from warptex.store_files import saved_and_said, saved_when_stopped, worth_saving
+    from warptex.store_files import saved_and_said, saved_if_any, saved_when_stopped
     from warptex.warp_runtime import KernelCacheError
 
     def save() -> list[Path]:
-        return [tex.save()] if worth_saving(tex.store, args.store) else []
+        return saved_if_any(tex.store, args.store, tex.save)
 
     with saved_when_stopped(save):
         try:
