@@ -131,7 +131,7 @@ def store_settings(synthesizer: Synthesizer) -> dict:
         "digests": list(s.candidates.digests),
         "params": s.candidates.params,
         "seed": s.seed,
-        "jitter": round(s.jitter * 256) / 256,  # as the engine takes it
+        "jitter": s.jitter_steps / 256,  # as the engine takes it
         "shifted_tiles": s.shifted_tiles,
         "levels": s.finest - s.start,
         "passes": s.passes,

@@ -432,7 +432,7 @@ class Synthesizer:
         self.seed = int(seed)
         self.jitter = float(jitter)
         self.shifted_tiles = check_flag("shifted_tiles", shifted_tiles)
-        if self.seed != 0 and round(self.jitter * 256) == 0 and not self.shifted_tiles:
+        if self.seed != 0 and self.jitter_steps == 0 and not self.shifted_tiles:
             none = ("there is no jitter" if self.jitter == 0
                     else f"a jitter of {self.jitter:g} is taken as 0 (at most 1/512)")
             warn(f"seed {self.seed} gives the same solid as seed 0: the seed acts through the "
@@ -510,6 +510,12 @@ class Synthesizer:
         grid = np.indices(shape).reshape(3, -1).T + np.asarray(origin, np.int64)
         colors = self.colors_of(self._pixel_triples(check_voxels(grid)))
         return colors.reshape(*shape, self.candidates.channels)
+
+    @property
+    def jitter_steps(self) -> int:
+        """The jitter as the engine takes it: in steps of 1/256, the warp's integer
+        amplitudes (section 5.1, "Jitter"); jitters of one step are one texture."""
+        return round(self.jitter * 256)
 
     def colors_of(self, pixels: np.ndarray) -> np.ndarray:
         """Average the three exemplar colors of finest-level triples of pixel indices, (N, 3)
@@ -631,10 +637,9 @@ class Synthesizer:
         # such as the features read valid pixels everywhere.
         triples = wp.zeros(nvox, dtype=wp.vec3i, device=dev)
         if level == self.start:
-            jitter = round(self.jitter * 256)
             launch_ranges(_k.initialize, 0, nvox,
-                          [coords_wp, t, self.seed, jitter, int(self.shifted_tiles)], [triples],
-                          device=dev)
+                          [coords_wp, t, self.seed, self.jitter_steps, int(self.shifted_tiles)],
+                          [triples], device=dev)
         else:
             read_blocks = np.flatnonzero(read_host.reshape(-1, _BLOCK_VOXELS).any(axis=1))
             parent = self._final(level - 1, *self._parents(coords_wp, coords, read,

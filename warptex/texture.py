@@ -22,13 +22,7 @@ from kernels.lookup import BRICK_VOXELS
 from warptex.archive import file_problem
 from warptex.candidate_set import CandidateSet
 from warptex.candidates import precompute
-from warptex.exemplar import (
-    Exemplar,
-    as_exemplar,
-    axis_triple,
-    check_same_channels,
-    srgb_encoded,
-)
+from warptex.exemplar import Exemplar, as_exemplar, axis_triple, srgb_encoded
 from warptex.machine import memory_problem
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
@@ -202,7 +196,6 @@ class SolidTexture:
             exemplars = axis_triple(*(None if e is None else as_exemplar(e)
                                       for e in (source, ey, ez)))
             check_lookup_channels(exemplars[0].channels)
-            check_same_channels(exemplars)
             self.srgb = srgb_encoded(exemplars, raw=None)
             candidates = precompute(*exemplars, progress=None)
         with _warnings_of(2):  # at the line that made the texture (the seed's)
