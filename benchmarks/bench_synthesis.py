@@ -22,6 +22,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -346,43 +347,33 @@ def main() -> None:
                         help="--memory's cap of finest work voxels per engine call (default "
                         f"warptex's, {MAX_WORK_VOXELS}; a small one splits small boxes)")
     args = parser.parse_args()
-    # The exemplars of the mode that runs, in the order below that picks it.
-    if args.memory:
-        needed = ["granite_64"]
-    elif args.cold_kernels:
-        needed = args.names
-    elif args.contrast:
-        needed = None  # every *_64.png of the folder
-    elif args.request_memory:
-        needed = ["granite_64"]
-    elif args.jitter_sweep:
-        needed = args.names
-    elif args.passes_sweep:
-        needed = list(PASSES_SWEEP)
-    else:
-        needed = [name for name, _ in VOLUMES]  # granite_64 among them, for the single voxels
+    _, needed, run = next(mode for mode in _modes(args) if mode[0])
     exemplar_files(parser, args.exemplars, needed, "_64.png" if needed is None else ".png")
     print(run_record(), flush=True)
-    if args.memory:
-        memory(args.exemplars, args.boxes, args.part_voxels)
-        return
-    if args.cold_kernels:
-        cold_kernels(args.exemplars, args.names)
-        return
-    if args.contrast:
-        contrast(args.exemplars)
-        return
-    if args.request_memory:
-        request_memory(args.exemplars)
-        return
-    if args.jitter_sweep:
-        jitter_sweep(args.exemplars, args.names, args.jitters, args.slice, args.shifted_tiles,
-                     args.sheet, args.seeds)
-        return
-    if args.passes_sweep:
-        passes_sweep(args.exemplars)
-        return
+    run()
 
+
+def _modes(args: argparse.Namespace) -> list[tuple[bool, list[str] | None, Callable[[], None]]]:
+    """The benchmark's modes, in the order that picks the first one asked: whether it is
+    asked, the exemplars it reads (None: every *_64.png of the folder) and what it runs."""
+    return [
+        (args.memory, ["granite_64"],
+         lambda: memory(args.exemplars, args.boxes, args.part_voxels)),
+        (args.cold_kernels, args.names, lambda: cold_kernels(args.exemplars, args.names)),
+        (args.contrast, None, lambda: contrast(args.exemplars)),
+        (args.request_memory, ["granite_64"], lambda: request_memory(args.exemplars)),
+        (args.jitter_sweep, args.names,
+         lambda: jitter_sweep(args.exemplars, args.names, args.jitters, args.slice,
+                              args.shifted_tiles, args.sheet, args.seeds)),
+        (args.passes_sweep, list(PASSES_SWEEP), lambda: passes_sweep(args.exemplars)),
+        # granite_64 is among the volumes, for the single voxels
+        (True, [name for name, _ in VOLUMES], lambda: volumes(args.exemplars, args.repeat)),
+    ]
+
+
+def volumes(exemplars: Path, repeat: int) -> None:
+    """The default mode: the dependency chain, 64^3 and 128^3 volumes at 1 and 8 sub-passes,
+    and single voxels of fresh engines."""
     for subpasses in (1, 8):
         chain = dependency_chain(2, 2, subpasses, 3)
         print(f"dependency chain of one voxel (N=5, 2 passes, {subpasses} sub-passes, 3 levels): "
@@ -393,7 +384,7 @@ def main() -> None:
           "| voxels synthesized | worst-axis energy | noise | stacked |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name, size in VOLUMES:
-        ex = Exemplar.load(args.exemplars / f"{name}.png")
+        ex = Exemplar.load(exemplars / f"{name}.png")
         cs = precompute(ex)
         Synthesizer(cs).box((0, 0, 0), (4, 4, 4))  # compile kernels
         for subpasses in (1, 8) if size == 64 else (1,):
@@ -404,7 +395,7 @@ def main() -> None:
                 holder["vol"] = syn.box((0, 0, 0), (size,) * 3)
                 holder["count"] = sum(syn.voxels_synthesized.values())
 
-            runs = args.repeat if subpasses == 1 else 1
+            runs = repeat if subpasses == 1 else 1
             seconds = best_of(run, runs)
             vol = holder["vol"]
             sub = vol[:64, :64, :64]
@@ -415,7 +406,7 @@ def main() -> None:
                   + " | ".join(f"{worst_axis_energy(v, ex.colors):.3f}"
                                for v in (sub, noise, stacked)) + " |")
 
-    cs = precompute(Exemplar.load(args.exemplars / "granite_64.png"))
+    cs = precompute(Exemplar.load(exemplars / "granite_64.png"))
     singles = []
     for i in range(5):
         syn = Synthesizer(cs, seed=100 + i)  # a fresh engine: no coarse level is cached
