@@ -182,6 +182,11 @@ def test_persistence_round_trip_starts_warm(candidates, tmp_path):
     stats = warm.store.stats()
     assert stats["voxels_added"] == 0 and stats["misses"] == 0
     assert stats["voxels"] == tex.store.stats()["voxels"]
+    # A missing folder is made, as the commands' -o make theirs.
+    nested = tmp_path / "shots" / "a" / "granite.wtb"
+    assert tex.save(nested) == nested
+    np.testing.assert_array_equal(texture(candidates, store=nested).query(pts),
+                                  expected["trilinear"])
 
 
 def test_persistence_in_a_new_process(candidates, tmp_path):

@@ -307,8 +307,9 @@ class SolidTexture:
     def save(self, path: str | Path | None = None) -> Path:
         """Write the brick store to ``path`` or to the ``store`` path given at creation,
         and return that file, which then holds the store's voxels (:meth:`BrickStore.save`
-        does not rewrite a file that holds them already); the store file of a live texture
-        of other settings is refused (StoreFileError)."""
+        does not rewrite a file that holds them already), making its folder if missing, as
+        the commands' ``-o`` do; the store file of a live texture of other settings is
+        refused (StoreFileError)."""
         target = _store_file(path, "path") if path is not None else self.path
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
