@@ -286,6 +286,15 @@ def test_slice_arguments_are_checked(candidates, warp_device):
             with pytest.raises(ValueError, match=r"the plane reaches beyond the texture's "
                                                  r"coordinate range .*: check origin, u, v and "):
                 tex.slice((0, 0, 0), u, v, shape)
+    # Zero or parallel vectors make a line of a plane: said at the caller's line, as the
+    # command says it; a plane is taken without a word.
+    for u, v in (((0, 0, 0), (0, 1, 0)), ((1, 0, 0), (-2, 0, 0))):
+        with pytest.warns(UserWarning, match="u and v are zero or parallel") as caught:
+            assert tex.slice((0, 0, 0), u, v, (2, 2)).shape == (2, 2, 3)
+        assert [w.filename for w in caught] == [__file__]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tex.slice((0, 0, 0), (1, 0, 0), (0, 0, -1), (2, 2))
     # NumPy integers: their product wrapped around, and the slice met NumPy's MemoryError.
     for shape in ((np.int64(2**32),) * 2, np.array([2**32, 2**32])):
         with pytest.raises(ValueError, match="take it in parts"):

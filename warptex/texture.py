@@ -276,7 +276,8 @@ class SolidTexture:
         filter: Filter = "trilinear",
     ) -> np.ndarray:
         """Colors (H, W, C) on any plane (Dong 2008, 6.4): pixel (r, c) shows the point
-        ``origin + r*u + c*v``; the plane need not be axis-aligned."""
+        ``origin + r*u + c*v``; the plane need not be axis-aligned (``u`` and ``v`` zero or
+        parallel are warned of: a line, not a plane)."""
         _check_filter(filter)  # before the plane's points are made, which may take seconds
         for name, vector in (("origin", origin), ("u", u), ("v", v)):
             a = np.asarray(vector)
@@ -301,6 +302,7 @@ class SolidTexture:
         if not plane_within_limit(origin, u, v, rows_cols):  # before its minutes of work
             raise ValueError(f"the plane reaches beyond the texture's coordinate range "
                              f"(+-{POINT_LIMIT} voxels): check origin, u, v and shape")
+        warn_unless_a_plane(u, v, "u and v", stacklevel=3)
         points = plane_points(origin, u, v, rows_cols)
         return self.query(points, filter=filter).reshape(shape[0], shape[1], self.channels)
 
@@ -356,6 +358,15 @@ def plane_within_limit(origin: Sequence[float], u: Sequence[float], v: Sequence[
     with np.errstate(over="ignore", invalid="ignore"):
         corners = np.array([origin + r * u + c * v for r in (0, h - 1) for c in (0, w - 1)])
         return bool((np.abs(corners) < POINT_LIMIT).all())
+
+
+def warn_unless_a_plane(u: Sequence[float], v: Sequence[float], names: str,
+                        stacklevel: int = 2) -> None:
+    """Warn where ``u`` and ``v`` (called ``names``) are zero or parallel: their slice shows
+    one line or one point, a mistake more often than a wish."""
+    if not np.cross(np.asarray(u, np.float64), np.asarray(v, np.float64)).any():
+        warn(f"{names} are zero or parallel: the slice shows a line or a point, not a plane",
+             stacklevel=stacklevel)
 
 
 def _as_points(points: np.ndarray | wp.array) -> np.ndarray:

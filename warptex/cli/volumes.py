@@ -235,7 +235,13 @@ def add_slice_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run_slice(args: argparse.Namespace) -> int:
     from warptex.sheets import save_png, to_png8
-    from warptex.texture import POINT_LIMIT, plane_points, plane_within_limit, query_slabs
+    from warptex.texture import (
+        POINT_LIMIT,
+        plane_points,
+        plane_within_limit,
+        query_slabs,
+        warn_unless_a_plane,
+    )
 
     suffix = check_output(args.output, (".png", ".exr", ".npy"), "the image")
     check_inputs_kept(args, [args.output])
@@ -251,9 +257,7 @@ def run_slice(args: argparse.Namespace) -> int:
     if not plane_within_limit(args.origin, args.u, args.v, (h, w)):
         raise CliError(f"the plane reaches beyond the texture's coordinate range "
                        f"(+-{POINT_LIMIT} voxels): check --origin, --u, --v and --shape")
-    if not np.cross(args.u, args.v).any():
-        warnings.warn("--u and --v are zero or parallel: the slice shows a line or a point, "
-                      "not a plane", stacklevel=1)
+    warn_unless_a_plane(args.u, args.v, "--u and --v")
     check_synthesis_arguments(args.jitter, args.passes, args.seed)
     exemplars, srgb = lookup_exemplars(args)
     tex = solid_texture(args, exemplars)
