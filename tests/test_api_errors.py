@@ -169,6 +169,22 @@ def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_de
     # Not NumPy's divide warning and "the plane does not cut the mesh".
     with pytest.raises(ValueError, match="non-zero normal"):
         cut(mesh, (0, 0, 0), (0, 0, 0))
+    # What trimesh.load gives of a .glb, a Scene, and a file name are named, where they
+    # failed deep inside ("'Scene' object has no attribute 'vertices'").
+    from warptex.bake import unwrapped
+    from warptex.mesh_files import export
+
+    for not_a_mesh, hint in ((trimesh.Scene([mesh]), r"Scene \(.*force='mesh'"),
+                             ("bunny.ply", r"str \(warptex.mesh_files.load_mesh reads one")):
+        for call in (lambda: block_transform(not_a_mesh, 16), lambda: shell(not_a_mesh, 16),
+                     lambda: vertex_colors(_Positions(), not_a_mesh, m),
+                     lambda: texel_points(not_a_mesh, uv, m, (8, 8)),
+                     lambda: cut(not_a_mesh, (0, 0, 0), (0, 0, 1)),
+                     lambda: unwrapped(not_a_mesh),
+                     lambda: export(not_a_mesh, "never.ply", colors=np.zeros((42, 3)))):
+            with pytest.raises(TypeError, match=f"^mesh must be a trimesh.Trimesh, got {hint}"):
+                call()
+    assert not Path("never.ply").exists()
 
 
 def test_meshes_are_read_by_the_library_as_the_commands_read_them(tmp_path):

@@ -81,11 +81,11 @@ def unwrapped(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     import xatlas
     from trimesh.visual import TextureVisuals
 
+    faces = checked_faces(mesh)
     vertices = np.asarray(mesh.vertices, np.float64)
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     extent = float((high - low).max()) or 1.0
-    vmap, faces, uv = xatlas.parametrize((vertices - (low + high) / 2) / extent,
-                                         checked_faces(mesh))
+    vmap, faces, uv = xatlas.parametrize((vertices - (low + high) / 2) / extent, faces)
     return trimesh.Trimesh(vertices=vertices[vmap], faces=faces,
                            visual=TextureVisuals(uv=uv), process=False)
 

@@ -13,6 +13,8 @@ import shapely
 import trimesh
 from tqdm.auto import tqdm
 
+from warptex.mesh_files import checked_mesh
+
 
 def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
         progress: bool = False) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
@@ -28,6 +30,7 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     about that much. ``progress`` shows a bar over the two halves (seconds each for a mesh
     of a few hundred thousand faces).
     """
+    mesh = checked_mesh(mesh)
     normal, origin = _plane_vector("normal", normal), _plane_vector("origin", origin)
     if not np.abs(normal).max() > 0:
         raise ValueError("the cut plane needs a non-zero normal")

@@ -47,6 +47,18 @@ class MeshFileError(ValueError):
     message names the file."""
 
 
+def checked_mesh(mesh: object) -> trimesh.Trimesh:
+    """``mesh`` where it is a triangle mesh, else a TypeError saying where to get one:
+    ``trimesh.load`` gives a Scene of a .glb or of an OBJ of several objects, on which
+    warptex's functions failed deep inside (no attribute 'vertices')."""
+    if isinstance(mesh, trimesh.Trimesh):
+        return mesh
+    where = ("load_mesh joins a file's objects into one mesh, as trimesh.load(..., force='mesh') "
+             "does" if isinstance(mesh, trimesh.Scene) else "load_mesh reads one from a file")
+    raise TypeError(f"mesh must be a trimesh.Trimesh, got {type(mesh).__name__} "
+                    f"(warptex.mesh_files.{where})")
+
+
 def weld_tolerance(vertices: np.ndarray) -> float:
     """How near vertices are welded into one: trimesh's 1e-8, or less for a mesh so small
     that this is over a millionth of its size, which would weld distinct vertices (a
@@ -307,6 +319,7 @@ def mesh_files(mesh: trimesh.Trimesh, path: str | Path, *, colors: np.ndarray | 
     sRGB-encoded, glTF vertex colors linear (glTF 2.0, ``COLOR_0``); None writes them as
     they are, which a .glb's readers take for linear.
     """
+    mesh = checked_mesh(mesh)
     path = Path(path)
     suffix = path.suffix.lower()
     options: dict = {}

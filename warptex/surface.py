@@ -16,6 +16,7 @@ import warp as wp
 from kernels import surface as _k
 from warptex.affine import apply_affine
 from warptex.keysets import unique
+from warptex.mesh_files import checked_mesh
 from warptex.parallel import launch_ranges
 from warptex.settings import check_count
 from warptex.synthesis import COORD_LIMIT, engine_device
@@ -32,7 +33,7 @@ _BOX_WASTE = 64
 def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
     """4x4 matrix fitting the mesh's bounding box, centred, into [0, resolution)^3."""
     resolution = check_count("resolution", resolution, 1)
-    lo, hi = mesh.bounds
+    lo, hi = checked_mesh(mesh).bounds
     extent = float(np.max(hi - lo))
     if extent <= 0:
         raise ValueError("the mesh has an empty bounding box")
@@ -47,7 +48,7 @@ def to_voxel_space(mesh: trimesh.Trimesh, transform: np.ndarray) -> np.ndarray:
     """Mesh vertices in voxel space, float64: far from the origin float32 would move them
     by up to half a voxel, so a baked vertex would not show the color a query of the same
     point gets."""
-    v = np.asarray(mesh.vertices, np.float64)
+    v = np.asarray(checked_mesh(mesh).vertices, np.float64)
     m = _checked_transform(transform)
     # Not a matrix product: a BLAS sums its terms otherwise on other CPUs, and a vertex on
     # a voxel's border could land in another voxel there.
@@ -71,7 +72,7 @@ def _checked_transform(transform: object) -> np.ndarray:
 def checked_faces(mesh: trimesh.Trimesh) -> np.ndarray:
     """The mesh's faces as int32 (F, 3), after a ValueError unless each names one of its
     vertices: Warp's kernels read vertex arrays at them unchecked."""
-    faces = np.asarray(mesh.faces)
+    faces = np.asarray(checked_mesh(mesh).faces)
     if faces.size and (faces.min() < 0 or faces.max() >= len(mesh.vertices)):
         raise ValueError(f"the mesh's faces index vertices outside [0, {len(mesh.vertices)}), "
                          "the vertices it has")
