@@ -1382,7 +1382,8 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     exemplars or repeated bricks would send the lookup kernels out of bounds."""
     from warptex.archive import read_archive, write_archive
     from warptex.keysets import pack
-    from warptex.store_files import _MAGIC, _MAX_BRICK, FORMAT_VERSION
+    from warptex.store_files import _MAGIC, FORMAT_VERSION
+    from warptex.synthesis import COORD_LIMIT
 
     syn = synthesizer(candidates)
     store = BrickStore(syn)
@@ -1399,8 +1400,14 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
     # three then failed in a traceback): keys of another shape, a brick's bits missing (its
     # voxels too), bits of a float type, triples of another type, a brick past the range.
     last = int(np.bitwise_count(good["valid"][-1]).sum())
-    far = good["keys"].copy()
-    far[0] = pack(np.array([[_MAX_BRICK + 1, 0, 0]]))[0]
+    # Bricks of voxels just past the coordinates' range [-COORD_LIMIT, COORD_LIMIT), at
+    # either end; the bricks of its first and last voxels are read (below).
+    beyond_range = [[COORD_LIMIT // 8, 0, 0], [0, (-COORD_LIMIT - 1) // 8, 0]]
+    fars = []
+    for brick in beyond_range:
+        far = good["keys"].copy()
+        far[0] = pack(np.array([brick]))[0]
+        fars.append((dict(good, keys=far), "bricks beyond the texture range"))
     cases = ((beyond, "outside the exemplars"), (repeated, "repeated bricks"),
              (float_keys, "brick keys of unexpected type"),
              (dict(good, keys=good["keys"][:, None]), "brick keys of unexpected type or shape"),
@@ -1408,11 +1415,16 @@ def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidat
               "stored-voxel bits of unexpected type or shape"),
              (dict(good, valid=good["valid"].view(np.float32)), "stored-voxel bits"),
              (dict(good, triples=good["triples"].astype(np.int64)), "voxel triples of unexpected"),
-             (dict(good, keys=far), "bricks beyond the texture range"))
+             *fars)
     for arrays, problem in cases:
         write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
         with pytest.warns(UserWarning, match=problem):
             assert BrickStore.load(path, syn).stats()["bricks"] == 0
+    edges = pack(np.array([[-COORD_LIMIT // 8, 0, 0], [0, 0, (COORD_LIMIT - 1) // 8]]))
+    write_archive(path, _MAGIC, FORMAT_VERSION, dict(good, keys=edges))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert BrickStore.load(path, syn).stats()["bricks"] == 2
     # Checksummed, but no archive NumPy reads: refused in the same words as damage.
     from warptex.archive import _VERSION_BYTES
 

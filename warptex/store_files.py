@@ -41,7 +41,9 @@ if TYPE_CHECKING:
 
 FORMAT_VERSION = 3  # 2: bricks may be partly filled; 3: only stored voxels are written
 _MAGIC = b"WTXBRICK"
-_MAX_BRICK = (COORD_LIMIT >> _k.BRICK_SHIFT) + 1  # farthest brick any voxel lies in
+# The first and last bricks that voxels of the coordinates' range [-COORD_LIMIT, COORD_LIMIT)
+# lie in.
+_BRICK_RANGE = (-(COORD_LIMIT >> _k.BRICK_SHIFT), (COORD_LIMIT - 1) >> _k.BRICK_SHIFT)
 
 
 class StoreFileError(ArchiveError):
@@ -265,7 +267,8 @@ def read_bricks(path: Path, identity: str, settings_json: str, dtype: np.dtype,
     if len(triples) and (triples.min() < 0 or (triples.max(axis=0) >= pixels).any()):
         raise StoreFileError(f"{path}: voxel triples outside the exemplars")
     if len(keys) and (len(np.unique(keys)) != len(keys)
-                      or np.abs(unpack(keys)).max() > _MAX_BRICK):
+                      or unpack(keys).min() < _BRICK_RANGE[0]
+                      or unpack(keys).max() > _BRICK_RANGE[1]):
         raise StoreFileError(f"{path}: repeated bricks or bricks beyond the texture range")
     return Bricks(keys, triples, valid)
 
