@@ -176,14 +176,13 @@ def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_de
 
     for not_a_mesh, hint in ((trimesh.Scene([mesh]), r"Scene \(.*force='mesh'"),
                              ("bunny.ply", r"str \(warptex.mesh_files.load_mesh reads one")):
-        for call in (lambda: block_transform(not_a_mesh, 16), lambda: shell(not_a_mesh, 16),
-                     lambda: vertex_colors(_Positions(), not_a_mesh, m),
-                     lambda: texel_points(not_a_mesh, uv, m, (8, 8)),
-                     lambda: cut(not_a_mesh, (0, 0, 0), (0, 0, 1)),
-                     lambda: unwrapped(not_a_mesh),
-                     lambda: export(not_a_mesh, "never.ply", colors=np.zeros((42, 3)))):
+        for call in (lambda x: block_transform(x, 16), lambda x: shell(x, 16),
+                     lambda x: vertex_colors(_Positions(), x, m),
+                     lambda x: texel_points(x, uv, m, (8, 8)),
+                     lambda x: cut(x, (0, 0, 0), (0, 0, 1)), unwrapped,
+                     lambda x: export(x, "never.ply", colors=np.zeros((42, 3)))):
             with pytest.raises(TypeError, match=f"^mesh must be a trimesh.Trimesh, got {hint}"):
-                call()
+                call(not_a_mesh)
     assert not Path("never.ply").exists()
 
 
