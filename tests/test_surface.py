@@ -193,10 +193,17 @@ def test_vertices_no_face_uses_decide_nothing_of_the_shell(warp_device):
         shell(broken, transform=m)
 
 
-def test_meshes_and_transforms_that_fit_no_block_are_refused_in_words():
+def test_meshes_and_transforms_that_fit_no_block_are_refused_in_words(warp_device):
     point = trimesh.Trimesh(np.ones((3, 3)), [[0, 1, 2]], process=False)
     with pytest.raises(ValueError, match="the mesh has an empty bounding box"):
         block_transform(point, 16)
+    # Vertices without faces have no bounds in trimesh (a TypeError unpacking None); given
+    # a transform, their shell is empty.
+    faceless = trimesh.Trimesh(np.eye(3), np.zeros((0, 3), np.int64), process=False)
+    for call in (lambda: block_transform(faceless, 16), lambda: shell(faceless, 16)):
+        with pytest.raises(ValueError, match="the mesh has no faces: no bounding box to fit"):
+            call()
+    assert shell(faceless, transform=np.eye(4)).shape == (0, 3)
     for bad in (np.eye(4)[:, :3], np.eye(4)[:3], np.eye(3)):
         with pytest.raises(ValueError, match="transform must be a 4x4 matrix"):
             to_voxel_space(point, bad)

@@ -33,7 +33,10 @@ _BOX_WASTE = 64
 def block_transform(mesh: trimesh.Trimesh, resolution: int) -> np.ndarray:
     """4x4 matrix fitting the mesh's bounding box, centred, into [0, resolution)^3."""
     resolution = check_count("resolution", resolution, 1)
-    lo, hi = checked_mesh(mesh).bounds
+    bounds = checked_mesh(mesh).bounds  # of the vertices its faces use: None without faces
+    if bounds is None:
+        raise ValueError("the mesh has no faces: no bounding box to fit")
+    lo, hi = bounds
     extent = float(np.max(hi - lo))
     if extent <= 0:
         raise ValueError("the mesh has an empty bounding box")
