@@ -472,6 +472,12 @@ def test_patches_larger_than_the_exemplar_are_refused():
         with pytest.raises(ValueError, match="exemplar is 16 x 16: too small for 20 x 20"):
             metric(vol, ex, 0, size=20)
         assert metric(vol, ex, 0, size=16) > 0
+    # Its narrow side decides: patches wrap around 8 rows however wide the rows are.
+    narrow = rng.random((8, 24, 3)).astype(np.float32)
+    for metric in (metrics.neighborhood_energy, metrics.completeness_energy,
+                   metrics.sliced_wasserstein):
+        with pytest.raises(ValueError, match="exemplar is 24 x 8: too small for 10 x 10"):
+            metric(vol, narrow, 0, size=10)
 
 
 def test_completeness_finds_every_exemplar_patch_and_misses_them_in_a_flat_volume():

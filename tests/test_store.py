@@ -764,6 +764,14 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     with pytest.warns(UserWarning, match=r"another texture \(shifted tiles \(not recorded in "
                                          r"the file\)\)"):
         BrickStore.load(tmp_path / "older.wtb", synthesizer(candidates))
+    with monkeypatch.context() as m:  # as a later warptex might write, with a new setting
+        m.setattr("warptex.store.store_settings", lambda s: {**older(s), "grain": 3})
+        newer_store = BrickStore(synthesizer(candidates))
+        sample(newer_store, [brick_center((0, 0, 0))])
+        newer_store.save(tmp_path / "newer.wtb")
+    with pytest.warns(UserWarning, match=r"another texture \(grain \(in the file, not kept "
+                                         r"here\)\)"):
+        BrickStore.load(tmp_path / "newer.wtb", synthesizer(candidates))
     with pytest.warns(UserWarning, match=r"another texture \(sub-passes 1 in the file, 8 here\)"):
         assert BrickStore.load(path, synthesizer(candidates, subpasses=8)).stats()["bricks"] == 0
     with pytest.warns(UserWarning, match=r"another texture \(candidate parameters\)"):

@@ -112,6 +112,8 @@ def _differences(stored: dict, current: dict, where: str = "in the file") -> str
             words = _SETTING_NAMES.get(name, name)
             if name not in stored:  # a file written before this setting was kept
                 words += f" (not recorded {where})"
+            elif name not in current:  # a file of a later warptex
+                words += f" ({where}, not kept here)"
             elif isinstance(here, int | float) and isinstance(there, int | float):
                 words += f" {there} {where}, {here} here"
             out.append(words)
