@@ -179,6 +179,11 @@ def test_16bit_color_that_pillow_reads_as_8_bits_is_said_so(tmp_path, rng):
     np.testing.assert_allclose(exemplar.colors, rgb16 / 65535, atol=1 / 255)
     Image.fromarray((rgb16 >> 8).astype(np.uint8)).save(tmp_path / "rgb8.ppm")
     _load_quiet(tmp_path / "rgb8.ppm")
+    # Plain-text PPMs name their levels to Pillow's decoder: 255 of them are 8 bits.
+    plain = " ".join(map(str, (rgb16 >> 8).ravel()))
+    (tmp_path / "rgb8_plain.ppm").write_text(f"P3\n20 16\n255\n{plain}\n")
+    np.testing.assert_array_equal(_load_quiet(tmp_path / "rgb8_plain.ppm").colors,
+                                  (rgb16 >> 8) / np.float32(255))
     # 256 levels are two bytes a sample too.
     ppm.write_bytes(b"P6\n20 16\n256\n" + (rgb16 >> 8).astype(">u2").tobytes())
     with pytest.warns(UserWarning, match=r"rgb16\.ppm: 16-bit color image read as 8 bits"):
@@ -284,6 +289,18 @@ def test_an_animation_of_two_frames_is_said_so(tmp_path, rng):
     for name in ("two.gif", "two16.png"):
         with pytest.warns(UserWarning, match=rf"{name}: an animation of 2 frames"):
             Exemplar.load(tmp_path / name)
+    # An APNG of one frame (its acTL chunk put in by hand: Pillow writes none for one) is
+    # a still image.
+    data = (tmp_path / "two16.png").read_bytes()
+    gray16[0].save(tmp_path / "one16.png")
+    still = (tmp_path / "one16.png").read_bytes()
+    body = b"acTL" + (1).to_bytes(4, "big") + (0).to_bytes(4, "big")
+    actl = len(body[4:]).to_bytes(4, "big") + body + zlib.crc32(body).to_bytes(4, "big")
+    header_end = 8 + 8 + 13 + 4  # the signature and the IHDR chunk
+    assert b"acTL" in data and b"acTL" not in still
+    (tmp_path / "one16.png").write_bytes(still[:header_end] + actl + still[header_end:])
+    np.testing.assert_array_equal(_load_quiet(tmp_path / "one16.png").colors[..., 0],
+                                  np.asarray(gray16[0]) / np.float32(65535))
 
 
 def test_png_8bit_grayscale_is_one_channel(tmp_path, rng):
