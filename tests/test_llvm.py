@@ -176,10 +176,22 @@ def test_a_mitsuba_without_the_llvm_variant_falls_back_and_says_so(tmp_path, mon
         assert llvm.best_mitsuba_variant() == "scalar_rgb"
 
 
-def test_falls_back_to_scalar_with_one_warning(monkeypatch):
+@pytest.mark.parametrize(("preset", "reason"), [
+    (None, r"no libLLVM >= 16 found \(install libllvm19 or set DRJIT_LIBLLVM_PATH\)$"),
+    ("/nowhere/libLLVM-19.so", r"DRJIT_LIBLLVM_PATH=/nowhere/libLLVM-19\.so names no file "
+                               r"\(unset it to search, or name libLLVM 16 or newer\)$"),
+])
+def test_falls_back_to_scalar_with_one_warning(monkeypatch, preset, reason):
+    """Each reason in its words: importing warptex set DRJIT_LIBLLVM_PATH, so the search's
+    own (what a machine without libLLVM says) was never the one tested."""
     pytest.importorskip("mitsuba")
     monkeypatch.setattr(llvm, "configure_drjit", lambda: None)
-    with pytest.warns(UserWarning, match="falls back to scalar_rgb") as record:
+    if preset is None:
+        monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    else:
+        monkeypatch.setenv("DRJIT_LIBLLVM_PATH", preset)
+    with pytest.warns(UserWarning, match=f"^warptex: Mitsuba falls back to scalar_rgb: {reason}"
+                      ) as record:
         assert llvm.best_mitsuba_variant() == "scalar_rgb"
     assert len(record) == 1
 
