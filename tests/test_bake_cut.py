@@ -435,6 +435,12 @@ def test_cli_slice_bake_and_cut(tmp_path, data_dir, sphere, warp_device, capsys,
     assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
                  "-o", str(tmp_path / "c.ply")]) == 0
     assert (tmp_path / "c.ply").exists() and (tmp_path / "c_b.ply").exists()
+    # A plane beside the mesh: the mesh named, nothing written.
+    capsys.readouterr()
+    assert main(["cut", str(mesh_path), "--exemplar", exemplar, "--resolution", "24",
+                 "--origin", "100", "0", "0", "-o", str(tmp_path / "d.ply")]) == 2
+    assert f"{mesh_path}: the plane does not cut the mesh" in capsys.readouterr().err
+    assert not list(tmp_path.glob("d*.ply"))
     assert main(["bake", str(tmp_path / "missing.ply"), "--exemplar", exemplar,
                  "-o", str(tmp_path / "x.ply")]) == 2
 
