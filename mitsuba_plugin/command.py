@@ -119,7 +119,10 @@ def _scene_error(text: str, scene: Path | None = None) -> str:
     text = re.sub(r"^\[[\w.]+:\d+\] ", "", text.strip())
     head, marker, trace = text.partition("Traceback (most recent call last):")
     if not marker:
-        return text
+        # An <include>d file's error comes wrapped once per file that includes it, a line
+        # each behind its source's tag, an include cycle's the same line fifteen times.
+        lines = (re.sub(r"^\[[\w.]+:\d+\] ", "", line).strip() for line in text.splitlines())
+        return " ".join(dict.fromkeys(line for line in lines if line))
     lines = trace.strip("\n").splitlines()
     frames = [i for i, line in enumerate(lines) if line.startswith(" ")]
     message = " ".join(lines[frames[-1] + 1 if frames else 0:]).strip()

@@ -1087,6 +1087,28 @@ def test_render_command_messages_say_what_is_so(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "does not use: unread (declared by a <default>, but no value reads $unread)" in err
     assert "did you mean" not in err
+    # Several unused: the list, no hint to any one of them.
+    assert main([*argv[:1], str(plain), *argv[2:], "-D", "unread=2", "-D", "other=3"]) == 2
+    assert capsys.readouterr().err.strip().endswith("does not use: other, unread")
+    # Arguments refused before any loading: a --res without its x, a -D without its =.
+    assert main([*argv[:1], str(plain), "--res", "8", "-o", str(tmp_path / "o.exr")]) == 2
+    assert "--res must look like 256x256, got '8'" in capsys.readouterr().err
+    for given in ("unread", "1x=2"):
+        with pytest.raises(SystemExit) as stopped:
+            main([*argv[:1], str(plain), *argv[2:], "-D", given])
+        assert stopped.value.code == 2
+        assert f"{given!r}: expected NAME=VALUE" in capsys.readouterr().err
+    # A scene that includes itself: Mitsuba's refusal, in one line where it wraps its
+    # error once per inclusion; warptex's own reading of the scene's files stops at the loop.
+    looped = scene.with_name("looped.xml")
+    looped.write_text(text.replace('<string name="cache" value="notes.wtb"/>', "")
+                      .replace("</scene>", '<include filename="looped.xml"/></scene>'))
+    assert main([*argv[:1], str(looped), *argv[2:]]) == 2
+    err = capsys.readouterr().err
+    assert re.fullmatch(rf"warptex: error: {re.escape(str(looped))}: cannot load the scene: "
+                        rf"Error while loading {re.escape(str(looped))} \(line \d+, col \d+\): "
+                        r"while processing <include>: Exceeded maximum include recursion "
+                        r"depth of \d+\n", err)
 
     ortho = scene.with_name("ortho.xml")
     integrator = re.search(r'<integrator type="\w+"', text).group(0)
