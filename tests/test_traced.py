@@ -382,6 +382,39 @@ def test_an_untraceable_texture_of_another_scene_leaves_this_one_traced(granite_
     np.testing.assert_allclose(again, image, rtol=1e-5, atol=1e-6)
 
 
+def test_a_texture_too_scattered_to_trace_renders_its_scene_in_wavefront_mode(granite_32_file):
+    """Bricks too far apart for the page table (a query far out): render() takes wavefront
+    mode, without a word and with the same image, where traced_renders() raises."""
+    scene, texture = lit_plane(granite_32_file)
+    texture.solid.query(np.array([[0.0, 0.0, 0.0], [3e6, 3e6, 3e6]]))
+    image = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats()["renders"] == 0 and image.mean() > 0.05
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+    np.testing.assert_allclose(image, wavefront, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("channels", [1, 2])
+def test_a_gray_exemplar_renders_gray_traced_as_in_wavefront_mode(granite_32_file, tmp_path,
+                                                                  channels):
+    """A gray exemplar keeps one channel, and one of two channels (a .npy's) shows its
+    first as gray: traced lookups give it to R, G and B, as wavefront mode does."""
+    from PIL import Image
+
+    gray = np.asarray(Image.open(granite_32_file).convert("L"), np.float32) / 255
+    path = tmp_path / "granite_gray.npy"
+    np.save(path, np.stack([gray, 1 - gray][:channels], axis=2))
+    scene, texture = lit_plane(path)
+    assert texture.solid.channels == channels
+    traced = np.array(mitsuba_plugin.render(scene, spp=4))
+    assert texture.traced_stats()["renders"] >= 1 and traced.mean() > 0.05
+    np.testing.assert_allclose(traced[..., 1], traced[..., 0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(traced[..., 2], traced[..., 0], rtol=1e-5, atol=1e-6)
+    with mitsuba_plugin.wavefront():
+        wavefront = np.array(mi.render(scene, spp=4, seed=0))
+    np.testing.assert_allclose(traced, wavefront, rtol=1e-5, atol=1e-6)
+
+
 def test_out_of_rounds_a_pass_is_rendered_in_wavefront_mode(granite_32_file, monkeypatch):
     scene, texture = lit_plane(granite_32_file)
     monkeypatch.setattr(mitsuba_plugin, "TRACED_ROUNDS", 1)
