@@ -1385,6 +1385,27 @@ def test_a_negative_triple_in_a_file_of_wide_triples_is_refused(candidates, tmp_
         assert BrickStore.load(path, syn).stats()["bricks"] == 0
 
 
+def test_a_file_of_another_texture_without_its_settings_is_refused_in_general_words(
+        candidates, tmp_path):
+    """Files written before the settings were kept (or with settings of another shape)
+    cannot say which setting differs: the warning names what could."""
+    from warptex.archive import read_archive, write_archive
+    from warptex.store_files import _MAGIC, FORMAT_VERSION
+
+    store = BrickStore(synthesizer(candidates))
+    sample(store, [brick_center((0, 0, 0))])
+    path = tmp_path / "s.wtb"
+    store.save(path)
+    good = read_archive(path, _MAGIC, FORMAT_VERSION, "brick store", StoreFileError)
+    unkept = {name: array for name, array in good.items() if name != "settings"}
+    for arrays in (unkept, dict(good, settings=np.array("[1, 2]")),
+                   dict(good, settings=np.array("{not json"))):
+        write_archive(path, _MAGIC, FORMAT_VERSION, arrays)
+        with pytest.warns(UserWarning, match=r"written for another texture \(other exemplars, "
+                                             r"seed, jitter or synthesis parameters\)"):
+            assert BrickStore.load(path, synthesizer(candidates, seed=3)).stats()["bricks"] == 0
+
+
 def test_a_file_of_triples_or_bricks_the_kernels_cannot_read_is_refused(candidates, tmp_path):
     """A file that passes its checksum but was written by other means: triples beyond the
     exemplars or repeated bricks would send the lookup kernels out of bounds."""
