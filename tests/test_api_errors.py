@@ -113,9 +113,15 @@ def test_texture_arguments_of_the_wrong_kind_are_named(candidates, warp_device):
     # np.float32 reads both as numbers, the bool as 1; NaN and infinity are no colours,
     # and one value in a list is a list of the wrong length.
     for fill in (True, "0.25", np.array([True, False, True]), np.nan, -np.inf,
-                 [0.0, np.nan, 1.0], [0.5]):
+                 [0.0, np.nan, 1.0], [0.5], [[0.5], [0.5, 0.5]]):  # the last ragged
         with pytest.raises(ValueError, match="fill must be one finite value or 3 of them"):
             tex.query(np.array([[np.nan, 0.0, 0.0]]), fill=fill)
+    with pytest.raises(ValueError, match=r"no store path: pass one here or as "
+                                         r"SolidTexture\(store=\.\.\.\)"):
+        tex.save()
+    with pytest.raises(ValueError, match=r"shape must be three non-negative ints, got "
+                                         r"\(2, -1, 2\)"):
+        tex.synthesizer.box((0, 0, 0), (2, -1, 2))
     np.testing.assert_array_equal(tex.query(np.array([[np.nan, 0.0, 0.0]]), fill=np.int64(1)),
                                   [[1.0, 1.0, 1.0]])
     for subpasses in (8.0, True, 2):
@@ -166,6 +172,12 @@ def test_mesh_arguments_are_checked_before_the_kernels_read_through_them(warp_de
                                  ((0, 0, np.inf), (0, 0, 1), "origin")):
         with pytest.raises(ValueError, match=f"plane's {name} must be three finite numbers"):
             cut(mesh, origin, normal)
+    for origin, normal, name in (("abc", (0, 0, 1), "origin"),
+                                 ((0, 0, 0), [[0], [0, 1]], "normal")):
+        with pytest.raises(ValueError, match=f"plane's {name} must be three numbers, got"):
+            cut(mesh, origin, normal)
+    with pytest.raises(ValueError, match="transform must be a 4x4 matrix of numbers, got str"):
+        shell(mesh, transform="identity")
     # Not NumPy's divide warning and "the plane does not cut the mesh".
     with pytest.raises(ValueError, match="non-zero normal"):
         cut(mesh, (0, 0, 0), (0, 0, 0))

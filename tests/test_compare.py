@@ -1212,6 +1212,9 @@ def test_method_names_and_cube_arguments_that_are_no_such_things_are_refused(dat
             compare.check_methods(names)
     with pytest.raises(TypeError, match="texture must be a Mitsuba texture dict"):
         compare.render_cube(None, 8)
+    # A path where a Setup belongs: named before any method's process starts.
+    with pytest.raises(TypeError, match=r"setup must be a warptex.compare.Setup, got '.*granite"):
+        compare.compare(str(data_dir / "granite_64.png"), ["noise"])
     for resolution in (0, -5, 1.5):
         with pytest.raises(ValueError, match="resolution"):
             compare.render_cube({"type": "rgb", "value": 0.5}, resolution)

@@ -163,6 +163,20 @@ def test_each_texture_s_exemplar_warning_comes_once_when_mitsuba_loads_them_in_p
         f"lazy_solid: {name}: image is constant; nothing to synthesize" for name in names]
 
 
+def test_register_before_any_variant_says_to_set_one():
+    """In a process of its own: this one has its variant set."""
+    import subprocess
+    import sys
+
+    code = ("import mitsuba_plugin\ntry:\n    mitsuba_plugin.register()\n"
+            "except RuntimeError as error:\n    print(error)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout == ("mitsuba_plugin.register: set a Mitsuba variant first "
+                          "(mitsuba_plugin.set_best_variant())\n")
+
+
 def test_a_pillow_warning_made_an_error_is_the_exemplar_property_s(tmp_path, monkeypatch):
     from PIL import Image
 
