@@ -793,8 +793,6 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f, keep: np.ndarray 
 
     ``keep`` marks the JIT lanes that ``points`` hold, None under the scalar variants.
     """
-    if not hasattr(it, "instance"):  # medium interactions belong to no object
-        return points
     if keep is None:  # the scalar variants: one point, on one object at most; no masks
         for obj in (it.instance, emitter if it.shape is None else it.shape):
             to_object = None if obj is None else _to_object_matrix(obj)
@@ -814,11 +812,9 @@ def _to_object_space(points: np.ndarray, it: mi.Interaction3f, keep: np.ndarray 
     return out
 
 
-def _objects(pointers: Any, keep: np.ndarray | None) -> list[tuple[np.ndarray, Any]]:
+def _objects(pointers: Any, keep: np.ndarray) -> list[tuple[np.ndarray, Any]]:
     """The distinct objects behind shape ``pointers`` at the ``keep`` lanes, each with
     the mask of the kept lanes that point to it; None for the lanes of a null pointer."""
-    if keep is None:
-        return [(np.ones(1, bool), pointers)]
     ids = np.broadcast_to(dr.reinterpret_array(mi.UInt32, pointers).numpy(), keep.shape)
     kept = ids[keep]
     unique, first = np.unique(kept, return_index=True)
@@ -886,8 +882,6 @@ class _ObjectFrames:
     def to_object(self, it: mi.Interaction3f, p: list[mi.Float64]) -> list[mi.Float64]:
         """World points ``p`` of interaction ``it`` in the frame of the instance each
         was found on, else of its shape when that has one; unchanged otherwise."""
-        if not hasattr(it, "instance"):  # medium interactions belong to no object
-            return p
         size = dr.opaque(mi.UInt32, dr.width(self._index))
         frame = mi.Int32(-1)
         for pointers in (it.instance, it.shape):

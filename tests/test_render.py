@@ -1056,8 +1056,18 @@ def test_medium_scatters_with_the_texture_at_each_point(granite_32_file, srgb_de
     sigma_s, _, sigma_t = medium.get_scattering_coefficients(mei)
     albedo = np.array(sigma_s).T / 6.0
     np.testing.assert_allclose(np.array(sigma_t).T, 6.0, rtol=1e-6)
-    np.testing.assert_allclose(albedo, srgb_decoded(texture.solid.query(points * 8.0)),
-                               rtol=1e-5, atol=1e-6)
+    expected = srgb_decoded(texture.solid.query(points * 8.0))
+    np.testing.assert_allclose(albedo, expected, rtol=1e-5, atol=1e-6)
+    # The volume the medium wraps its texture in, as RGB and as one value.
+    from mitsuba_plugin.spectrum import luminance
+    from mitsuba_plugin.volume import LazySolidVolume
+
+    volume = LazySolidVolume(texture)
+    assert volume.channel_count() == 3
+    np.testing.assert_allclose(np.array(volume.eval_3(mei)).T, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.array(volume.eval_1(mei)),
+                               np.array(luminance(mi.Color3f(*expected.T))), rtol=1e-5,
+                               atol=1e-6)
 
 
 def test_render_command_messages_say_what_is_so(tmp_path, capsys, monkeypatch):
