@@ -107,6 +107,8 @@ CASES = [
      "--passes must be"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "0", "-o", "{out}/b.ply"],
      "--resolution must be at least 1"),
+    (["cut", "{mesh}", "--exemplar", "{exemplar}", "--resolution", "2097025",
+      "-o", "{out}/c.ply"], "--resolution must be at most 2097024, got 2097025"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--texture-size", "0", "--uv", "auto",
       "-o", "{out}/b.glb"], "--texture-size must be at least 1"),
     (["bake", "{mesh}", "--exemplar", "{exemplar}", "--uv", "auto", "-o", "{out}/my b.obj"],
