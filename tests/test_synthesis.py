@@ -980,6 +980,18 @@ def test_a_box_larger_than_the_memory_is_refused_before_any_work(candidates, mon
         32, 32, 3)
 
 
+def test_every_setting_keeps_its_work_within_the_keys_margin():
+    """Requests stay _KEY_MARGIN blocks inside the keys' range so that a work region grown by
+    its apron (and a block of halo) never wraps around: the largest apron of any setting the
+    engine takes (neighbourhoods up to 2 * BLOCK + 1, MAX_PASSES passes, 1 or 8 sub-passes)
+    fits, so no setting needs refusing for it."""
+    from warptex.settings import MAX_PASSES
+
+    largest = max(apron_blocks(half, passes, subpasses) for half in range(synthesis.BLOCK + 1)
+                  for passes in range(MAX_PASSES + 1) for subpasses in (1, 8))
+    assert largest + 2 <= synthesis._KEY_MARGIN
+
+
 def test_a_boxs_memory_counts_the_apron_of_its_passes(candidates, monkeypatch):
     """A box's estimate took the apron of the default passes, whatever the engine's: with 8
     passes of 8 sub-passes a box that voxels() refused ran."""

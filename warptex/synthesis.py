@@ -65,8 +65,9 @@ BLOCK = _k.BLOCK
 _BLOCK_VOXELS = _k.BLOCK_VOXELS
 _TRIPLE_BYTES = 3 * 4  # a cached voxel's triple of int32 pixel indices
 # Blocks kept free at the ends of the biased 21-bit key fields for the work region around a
-# request (its apron of dependencies, plus one block of neighbour lookups); settings whose
-# apron would not fit are refused, so a key field never over- or underflows.
+# request (its apron of dependencies, plus one block of neighbour lookups): the largest apron
+# of the settings the engine takes fits (tests/test_synthesis.py holds them to it), so a key
+# field never over- or underflows.
 _KEY_MARGIN = 64
 COORD_LIMIT = BLOCK * (KEY_BIAS - _KEY_MARGIN)  # finest voxels lie in [-COORD_LIMIT, COORD_LIMIT)
 # Blocks whose halos are gathered at once: on the CPU few enough (256 * 8^3 voxels for
@@ -452,11 +453,6 @@ class Synthesizer:
         check_feature_channels(self._features, 2 * half + 1)
         self._apron = apron_blocks(half, self.passes, self.subpasses)
         self._steps = len(correction_steps(self.passes, self.subpasses))
-        if self._apron + 2 > _KEY_MARGIN:
-            raise ValueError(f"a voxel would depend on voxels {self._apron} blocks away with "
-                             f"{self.passes} passes of {self.subpasses} sub-passes and "
-                             f"{2 * half + 1}-voxel neighbourhoods; at most "
-                             f"{_KEY_MARGIN - 2} are supported")
         reads = np.argwhere(neighborhood_shape(half)) - half
         reads = reads[np.abs(reads).sum(axis=1) > 0]
         self._shape = wp.array(reads.astype(np.int32), dtype=wp.vec3i, device=self.device)
