@@ -268,9 +268,9 @@ def read_bricks(path: Path, identity: str, settings_json: str, dtype: np.dtype,
     # a file that passed its checksum but holds others (written by hand) is refused.
     if len(triples) and (triples.min() < 0 or (triples.max(axis=0) >= pixels).any()):
         raise StoreFileError(f"{path}: voxel triples outside the exemplars")
-    if len(keys) and (len(np.unique(keys)) != len(keys)
-                      or unpack(keys).min() < _BRICK_RANGE[0]
-                      or unpack(keys).max() > _BRICK_RANGE[1]):
+    bricks = unpack(keys)
+    if len(keys) and (len(np.unique(keys)) != len(keys) or bricks.min() < _BRICK_RANGE[0]
+                      or bricks.max() > _BRICK_RANGE[1]):
         raise StoreFileError(f"{path}: repeated bricks or bricks beyond the texture range")
     return Bricks(keys, triples, valid)
 
