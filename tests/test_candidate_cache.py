@@ -145,6 +145,19 @@ def test_cache_files_of_one_photo_loaded_otherwise_are_told_apart(image, tmp_pat
     assert sorted(json.dumps(f["settings"]) for f in files) == ['{"tileable": true}'] + ["{}"] * 5
 
 
+def test_a_set_of_three_exemplars_is_listed_by_axis(tmp_path, monkeypatch, capsys):
+    """Candidates of one exemplar per axis (--ex, --ey, --ez) name each with its axis."""
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
+    granite = Image.open(GRANITE).convert("RGB")
+    for name, (x, y) in (("a.png", (0, 0)), ("b.png", (16, 0)), ("c.png", (0, 16))):
+        granite.crop((x, y, x + 16, y + 16)).save(tmp_path / name)
+    precompute(*(Exemplar.load(tmp_path / f"{n}.png") for n in "abc"), progress=False)
+    (listed,) = cc.cache_files(tmp_path / "cache")
+    assert listed.status == cc.IN_USE and listed.names == ("a.png", "b.png", "c.png")
+    assert main(["cache"]) == 0
+    assert f"  {listed.path.name}  x a.png, y b.png, z c.png\n" in capsys.readouterr().out
+
+
 def test_a_renamed_cache_file_is_never_read_and_listed_so(folder, computed):
     current, _ = computed
     renamed = folder / f"{candidates.CACHE_PREFIX}{'3' * 40}.wtc"
@@ -186,6 +199,56 @@ def test_a_link_in_a_loop_named_like_a_cache_file_is_listed_unreadable(folder, c
     assert loop.is_symlink() and current.exists()
 
 
+def test_files_gone_between_the_listing_and_their_reading_are_left_out(folder, computed,
+                                                                       monkeypatch):
+    """Another run's prune meanwhile: a file gone before it is read, a link in a loop
+    gone before it is looked at itself, are no longer there to list, and no error."""
+    current, other = computed
+    loop = folder / f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc"
+    loop.symlink_to(loop.name)
+    status, lstat = cc._status, Path.lstat
+
+    def pruned_before_read(path: Path):
+        if path.name == other.name:
+            path.unlink()
+        return status(path)
+
+    def pruned_before_lstat(self: Path):
+        if self == loop:
+            self.unlink()
+        return lstat(self)
+
+    monkeypatch.setattr(cc, "_status", pruned_before_read)
+    monkeypatch.setattr(Path, "lstat", pruned_before_lstat)
+    statuses = _statuses(folder)
+    assert other.name not in statuses and loop.name not in statuses
+    assert statuses[current.name] == cc.IN_USE and len(statuses) == 6
+
+
+def test_a_cache_folder_whose_files_cannot_be_looked_up_is_refused_in_words(
+        folder, monkeypatch, capsys):
+    """A folder that may be listed but not searched (mode r--): none of its files can be
+    looked up, which is said, not listed as an empty cache nor as a traceback; nothing is
+    deleted."""
+    stat = Path.stat
+    before = sorted(os.listdir(folder))
+
+    def unsearchable(self: Path, *args, **kwargs):
+        if self.parent == folder:
+            raise PermissionError(13, "Permission denied", str(self))
+        return stat(self, *args, **kwargs)
+
+    with monkeypatch.context() as patched:
+        patched.setattr(Path, "stat", unsearchable)
+        assert main(["cache", "--prune"]) == 2
+    err = capsys.readouterr().err
+    # The first of its cache or temporary files, whichever the folder lists first.
+    assert err.startswith(f"warptex: error: {folder}{os.sep}") and candidates.CACHE_PREFIX in err
+    assert err.endswith(": cannot list the candidate cache (Permission denied); "
+                        "WARPTEX_CACHE sets its folder\n")
+    assert sorted(os.listdir(folder)) == before
+
+
 def _rewritten(source: Path, target: Path, meta: dict | None = None, **arrays) -> None:
     """``source``'s candidate file written, checksummed, at ``target`` with ``meta`` and
     ``arrays`` changed: a file made by other means, which the checksum does not tell."""
@@ -222,6 +285,35 @@ def test_a_file_that_runs_refuse_is_listed_damaged_not_in_use(folder, computed, 
     assert "Traceback" not in capsys.readouterr().err
     assert main(["cache", "--prune"]) == 0
     assert not (folder / current.name).exists() and not names.exists()
+
+
+def test_a_file_of_another_format_whose_record_cannot_be_read_is_listed_without_names(
+        folder, computed, capsys):
+    """An older format's whole file whose record is no record this version reads (it
+    lacks what names a file, or is no JSON): another version's file, of exemplars not
+    recorded, not a listing stopped by its error."""
+    from warptex.archive import read_archive, write_archive
+
+    current, _ = computed
+    older = candidate_set.FORMAT_VERSION - 1
+    stored = read_archive(current, candidate_set.FILE_MAGIC, candidate_set.FORMAT_VERSION,
+                          "candidate", CandidateCacheError)
+    records = {"7": json.dumps({"names": ["granite_16.png"] * 3}).encode(), "8": b"{not json"}
+    paths = {}
+    for digit, record in records.items():
+        paths[digit] = folder / f"{candidates.CACHE_PREFIX}{digit * 40}.wtc"
+        write_archive(paths[digit], candidate_set.FILE_MAGIC, older,
+                      {**stored, "meta": np.frombuffer(record, np.uint8)})
+    with pytest.raises(CandidateCacheError, match=r"7{40}\.wtc: unreadable candidate data "
+                       r"\('digests, params'\)"):
+        candidate_set.read_cache_meta(paths["7"], older)
+    listed = {f.path.name: f for f in cc.cache_files(folder)}
+    for path in paths.values():
+        assert (listed[path.name].status, listed[path.name].names) == (cc.OTHER_VERSION, ())
+    assert main(["cache"]) == 0
+    out, err = capsys.readouterr()
+    assert all(f"  {path.name}  (not recorded)\n" in out for path in paths.values())
+    assert "Traceback" not in err
 
 
 def test_unreadable_and_replaced_files_are_left_alone(folder, computed):
@@ -329,6 +421,39 @@ def test_the_kernel_cache_s_size_after_a_prune_is_what_its_folder_holds(folder, 
     report = json.loads(capsys.readouterr().out)["kernel_cache"]
     assert report["deleted"] == {"builds": 1, "bytes": 300_000}
     assert report["bytes"] == 1000 and not old.exists()
+
+
+def test_a_kernel_cache_folder_that_does_not_exist_holds_no_builds(folder, tmp_path,
+                                                                    monkeypatch, capsys):
+    """Warp's kernel cache emptied, folder and all, since Warp started (it makes its folder
+    on starting): nothing in it, no error, and no folder made by listing or pruning it."""
+    import warp as wp
+
+    missing = tmp_path / "warp" / wp.config.version
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(missing))
+    assert main(["cache", "--prune"]) == 0
+    out, err = capsys.readouterr()
+    assert f"Warp's kernel cache: {missing} (WARP_CACHE_PATH sets it), 0.0 MiB;" in out
+    assert "deleted: 0 kernel builds of other warptex or Warp versions" in out
+    assert "deleted: 5 files" in out and err == ""
+    assert not missing.parent.exists()
+
+
+def test_a_warp_that_names_its_builds_otherwise_has_none_of_them_pruned(folder, tmp_path,
+                                                                        monkeypatch, capsys):
+    """A Warp without get_module_identifier names its builds in a way warptex cannot tell
+    from other versions': every build would look like another version's, so none is
+    deleted, the current one least of all."""
+    import warp as wp
+
+    kernels = tmp_path / "kernels"
+    build = kernels / "wp_kernels.synthesis_0000000"
+    build.mkdir(parents=True)
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(kernels))
+    monkeypatch.delattr(type(wp.get_module("kernels.synthesis")), "get_module_identifier")
+    assert main(["cache", "--prune"]) == 0
+    assert "deleted: 0 kernel builds" in capsys.readouterr().out
+    assert build.is_dir()
 
 
 def test_cache_json_lists_the_same_files_and_what_was_deleted(folder, computed, capsys):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import struct
 import warnings
 import zlib
@@ -229,6 +230,25 @@ def test_a_color_profile_other_than_srgb_is_said_not_to_be_applied(tmp_path, rng
         np.testing.assert_array_equal(exemplar.colors, pixels / np.float32(2**bits - 1))
 
 
+def test_a_color_profile_that_cannot_be_read_is_said_not_to_be_applied(tmp_path, rng):
+    """A profile that no color management reads (damaged, or of a kind LittleCMS does not
+    know) may be any color space: it is named "(unreadable)" in the warning, through Pillow
+    (8 bits) as through pypng (16 bits), not taken for sRGB nor a traceback."""
+    said = (r"{}: embedded color profile '\(unreadable\)' not applied: its values are taken "
+            r"as sRGB")
+    pixels = rng.integers(0, 256, size=(16, 20, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(tmp_path / "odd.png", icc_profile=b"garbage")
+    with pytest.warns(UserWarning, match=said.format(r"odd\.png")):
+        exemplar = Exemplar.load(tmp_path / "odd.png")
+    np.testing.assert_array_equal(exemplar.colors, pixels / np.float32(255))
+    deep = rng.integers(0, 65536, size=(16, 20, 3), dtype=np.uint16)
+    path = _png_with_chunk(tmp_path / "odd16.png", deep, b"iCCP",
+                           b"profile\0\0" + zlib.compress(b"garbage"), write=_write_png16)
+    with pytest.warns(UserWarning, match=said.format(r"odd16\.png")):
+        exemplar = Exemplar.load(path)
+    np.testing.assert_array_equal(exemplar.colors, deep / np.float32(65535))
+
+
 def test_what_pillow_reads_in_part_is_said_naming_the_file(tmp_path, rng):
     """An animation's first frame is read, with a warning; Pillow's own warnings (corrupt
     EXIF data) come again naming the file; a TIFF that Pillow cannot read is called one."""
@@ -318,6 +338,20 @@ def test_png_low_bit_depth_scaled_to_unit_range(tmp_path, rng):
         png.Writer(16, 16, greyscale=True, bitdepth=4).write(file, pixels.tolist())
     exemplar = _load_quiet(tmp_path / "gray4.png")
     np.testing.assert_allclose(exemplar.colors[..., 0], pixels / 15, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("suffix", ["bmp", "tif"])
+def test_a_1_bit_image_is_one_gray_channel_of_0_and_1(tmp_path, rng, suffix):
+    """A black-and-white scan (a 1-bit BMP or TIFF, Pillow's mode "1"): one gray channel,
+    black 0 and white 1, not three channels of a color image."""
+    bits = rng.random((16, 20)) < 0.5
+    path = tmp_path / f"scan.{suffix}"
+    Image.fromarray(bits).save(path)
+    with Image.open(path) as image:
+        assert image.mode == "1"
+    exemplar = _load_quiet(path)
+    assert exemplar.colors.shape == (16, 20, 1) and exemplar.srgb
+    np.testing.assert_array_equal(exemplar.colors[..., 0], bits.astype(np.float32))
 
 
 # 8 colors are stored in 4 bits, read by pypng; 256 in 8 bits without transparency, read by
@@ -634,6 +668,38 @@ def test_exr_of_parts_reads_the_one_that_holds_colors_as_of_layers(tmp_path, rng
         np.testing.assert_array_equal(Exemplar.load(tmp_path / "aov.exr").colors, rgb)
 
 
+def test_an_exr_channel_in_two_parts_is_refused_naming_it(tmp_path, rng):
+    """A part named diffuse beside the default part's own diffuse.R, .G and .B: each of
+    them would be one channel of two parts, and neither is chosen without a word. The
+    file is named once, and not called unreadable: it is whole."""
+    rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    beauty = OpenEXR.Part(header, {f"diffuse.{c}": rgb[..., i].copy()
+                                   for i, c in enumerate("RGB")}, "beauty")
+    diffuse = OpenEXR.Part(dict(header), {c: rgb[..., 2 - i].copy()
+                                          for i, c in enumerate("RGB")}, "diffuse")
+    path = tmp_path / "twice.exr"
+    OpenEXR.File([beauty, diffuse]).write(str(path))
+    with pytest.raises(ExemplarError, match=rf"^{re.escape(str(path))}: OpenEXR channel "
+                       r"diffuse\.[RGB] is in two parts: save the part to use alone$"):
+        Exemplar.load(path)
+
+
+def test_exr_parts_of_different_sizes_are_refused_in_words(tmp_path, rng):
+    """Two passes of no color, one at half the resolution (each part has a data window of
+    its own): they cannot be stacked as one exemplar, which is said naming the file, not in
+    NumPy's words."""
+    def header() -> dict:
+        corner = (np.array([0, 0], np.int32), np.array([31, 31], np.int32))
+        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                "displayWindow": corner}  # the same in every part, as OpenEXR requires
+
+    full = OpenEXR.Part(header(), {"Z": rng.random((32, 32), dtype=np.float32)}, "depth")
+    half = OpenEXR.Part(header(), {"Z": rng.random((16, 16), dtype=np.float32)}, "coarse")
+    OpenEXR.File([full, half]).write(str(tmp_path / "sizes.exr"))
+    _raises(tmp_path / "sizes.exr", r"sizes\.exr: OpenEXR channels have different sizes")
+
+
 def test_exr_layer_choice_prefers_colors_and_refuses_channels_told_apart_by_case(tmp_path,
                                                                                  rng):
     rgb = rng.random(size=(16, 16, 3)).astype(np.float32)
@@ -911,6 +977,20 @@ def test_truncated_png_is_unreadable(tmp_path, rng):
     data = (tmp_path / "full.png").read_bytes()
     (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
     _raises(tmp_path / "cut.png", r"cut\.png: unreadable PNG")
+
+
+def test_a_png_cut_inside_its_header_is_unreadable_naming_it(tmp_path):
+    """A half-downloaded PNG: its signature and then zeros, or a header (IHDR) whose
+    checksum does not match, or the signature alone. Its reading stops before any pixel,
+    with the one error naming the file."""
+    magic = b"\x89PNG\r\n\x1a\n"
+    header = struct.pack(">IIBBBBB", 16, 16, 8, 2, 0, 0, 0)
+    damaged = {"zeros.png": magic + bytes(20),
+               "crc.png": magic + struct.pack(">I", 13) + b"IHDR" + header + bytes(4),
+               "magic.png": magic}
+    for name, data in damaged.items():
+        (tmp_path / name).write_bytes(data)
+        _raises(tmp_path / name, rf"{name[:-4]}\.png: unreadable PNG \(\w+Error: ")
 
 
 def test_truncated_jpeg_is_unreadable(tmp_path, rng):
@@ -1296,6 +1376,18 @@ def test_feature_distance_argument_of_constructor(rng):
         Exemplar(colors, feature_distance=np.full((16, 16), np.nan))
 
 
+def test_a_feature_distance_of_one_channel_is_taken_as_its_plane(rng):
+    """A distance given as (H, W, 1), as a channel sliced off an image keeps it: the same
+    features, digest included, as the (H, W) plane it holds."""
+    colors = rng.random(size=(16, 16, 3)).astype(np.float32)
+    distance = rng.normal(size=(16, 16)).astype(np.float32)
+    plane = Exemplar(colors, feature_distance=distance)
+    channel = Exemplar(colors, feature_distance=distance[..., None])
+    assert channel.features.shape == (16, 16, 4)
+    np.testing.assert_array_equal(channel.features, plane.features)
+    assert channel.digest() == plane.digest()
+
+
 def test_feature_mask_problems(tmp_path, data_dir):
     path = data_dir / "granite_64.png"
     Image.fromarray(np.zeros((32, 32), dtype=np.uint8)).save(tmp_path / "small_mask.png")
@@ -1350,6 +1442,22 @@ def test_a_photo_given_as_feature_mask_is_used_with_a_warning(tmp_path, data_dir
             warnings.simplefilter("always")
             Exemplar.load(path, feature_mask=tmp_path / "edges.png")
         assert any("not a black-and-white" in str(w.message) for w in shown) == said, grey
+
+
+def test_a_boolean_feature_mask_marks_what_its_0_255_image_marks(tmp_path):
+    """A mask saved from NumPy as booleans (.npy) marks the features its True pixels are,
+    as the same mask of 0 and 255 does, with no warning that it is not black and white;
+    shrunk with the image too."""
+    mask = _blob_files(tmp_path, (48, 40), slice(12, 28), slice(10, 24))
+    np.save(tmp_path / "mask.npy", mask > 0)
+    for max_size in (None, 24):
+        image = _load_quiet(tmp_path / "blob.png", feature_mask=tmp_path / "blob_mask.png",
+                            max_size=max_size)
+        flags = _load_quiet(tmp_path / "blob.png", feature_mask=tmp_path / "mask.npy",
+                            max_size=max_size)
+        assert flags.features.shape == image.features.shape
+        np.testing.assert_array_equal(flags.features, image.features)
+    assert flags.features_from == "mask.npy"
 
 
 # --- shrinking (max_size) ------------------------------------------------------------------

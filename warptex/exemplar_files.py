@@ -147,6 +147,8 @@ def _read_exr(path: Path) -> tuple[np.ndarray, bool]:
         # Through a Python file: OpenEXR takes no name that is not UTF-8 (an old share's).
         with open(path, "rb") as stream, OpenEXR.File(stream, separate_channels=True) as file:
             channels = _exr_part_channels(file.parts, path)
+    except ExemplarError:  # a ValueError, but said of the file already
+        raise
     except (RuntimeError, OSError, ValueError) as error:
         raise _exr_levels_refused(path) or ExemplarError(
             f"{path}: unreadable OpenEXR file ({error})") from None
