@@ -189,14 +189,18 @@ def test_a_pipe_named_like_a_cache_file_is_listed_unreadable_not_waited_on(folde
 
 
 def test_a_link_in_a_loop_named_like_a_cache_file_is_listed_unreadable(folder, computed):
-    """Its stat() fails with ELOOP, which stopped the whole listing and --prune."""
+    """Its stat() fails with ELOOP, which stopped the whole listing and --prune; a link
+    through a file (ENOTDIR) did the same."""
     current, _ = computed
     loop = folder / f"{candidates.CACHE_PREFIX}{'5' * 40}.wtc"
     loop.symlink_to(loop.name)
+    through_a_file = folder / f"{candidates.CACHE_PREFIX}{'6' * 40}.wtc"
+    through_a_file.symlink_to(current / "inside")
     statuses = _statuses(folder)
-    assert statuses[loop.name] == cc.UNREADABLE and statuses[current.name] == cc.IN_USE
+    assert statuses[loop.name] == statuses[through_a_file.name] == cc.UNREADABLE
+    assert statuses[current.name] == cc.IN_USE
     assert main(["cache", "--prune"]) == 0
-    assert loop.is_symlink() and current.exists()
+    assert loop.is_symlink() and through_a_file.is_symlink() and current.exists()
 
 
 def test_files_gone_between_the_listing_and_their_reading_are_left_out(folder, computed,

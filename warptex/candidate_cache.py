@@ -90,12 +90,12 @@ def cache_files(folder: Path | None = None, progress: bool = False) -> list[Cach
         except FileNotFoundError:  # renamed into place or pruned by another run meanwhile
             continue
         except OSError as error:
-            if error.errno != errno.ELOOP:  # a folder that cannot be searched: none can
-                raise
-            try:  # a link in a loop, which no run can read either: this one is listed
-                info = path.lstat()
+            try:  # a link no run can follow either (in a loop, through a file or a closed
+                info = path.lstat()  # folder): listed as it is
             except FileNotFoundError:
                 continue
+            except OSError:  # a folder that cannot be searched: none of its files can be
+                raise error from None
             status, meta = UNREADABLE, {}
         names = tuple(str(n) for n in meta.get("names", ()))
         params = meta.get("params")
