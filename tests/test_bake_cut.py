@@ -171,6 +171,29 @@ def test_halves_whose_caps_differ_or_are_missing_are_warned_of():
         cut(glued, np.array([0.3, 0.0, 0.1]), np.array([0.0, 1.0, 0.0]))
 
 
+def test_a_cap_that_cannot_be_refined_is_trimesh_s_own_and_said_so(sphere, monkeypatch):
+    """Where the cap's triangulation does not come out as its outline (shapely giving no
+    triangles here), each half keeps trimesh's cap, closed, with a warning: colours then
+    interpolate the outline's, and the halves still meet."""
+    import shapely
+
+    origin, normal = np.array([0.1, 0.0, 0.0]), np.array([1.0, 0.3, 0.2])
+    refined = cut(sphere, origin, normal)
+    monkeypatch.setattr(shapely, "constrained_delaunay_triangles",
+                        lambda region: shapely.GeometryCollection())
+    with pytest.warns(UserWarning) as caught:
+        halves = cut(sphere, origin, normal)
+    # Each half's cap, and that trimesh triangulated the two caps each its own way.
+    assert [str(w.message)[:50] for w in caught] == [
+        "a cut's cap could not be refined; its colors inter"] * 2 + [
+        "the two halves' caps differ (1 of 93 and 93 triang"]
+    assert "a cap left unrefined" in str(caught[2].message)
+    assert all(w.filename == __file__ for w in caught)
+    for half, finer in zip(halves, refined, strict=True):
+        assert half.is_watertight and len(half.faces) < len(finer.faces)
+        assert half.volume == pytest.approx(finer.volume, rel=1e-9)
+
+
 def test_a_cap_across_an_open_mesh_s_opening_is_refined():
     """trimesh closes the section of a tube open at the top across its opening, with cap
     edges that no face of the tube holds: the refined cap keeps them."""

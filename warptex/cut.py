@@ -61,9 +61,12 @@ def cut(mesh: trimesh.Trimesh, origin: np.ndarray, normal: np.ndarray,
     if any(half is None or len(half.faces) == 0 for half in sliced):
         raise ValueError("the plane does not cut the mesh")
     _share_section(*sliced, origin, normal)
-    refined = [_refined_cap(half, origin, side, spacing) for half, side in
-               tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
-                    disable=not progress)]
+    refined = []
+    # A loop, not a comprehension: Python 3.11 gives a comprehension a frame of its own,
+    # and _refined_cap's warning would point at this line instead of the caller's.
+    for half, side in tqdm(list(zip(sliced, sides, strict=True)), desc="cutting", unit="half",
+                           disable=not progress):
+        refined.append(_refined_cap(half, origin, side, spacing))
     _warn_of_unshared_caps(refined, origin, normal, unit)
     first, second = (trimesh.Trimesh(half.vertices / scale + centre, half.faces, process=False)
                      for half in refined)
@@ -98,9 +101,10 @@ def _warn_of_unshared_caps(halves: list[trimesh.Trimesh], origin: np.ndarray,
     elif caps[0] != caps[1]:
         shared = len(caps[0] & caps[1])
         warnings.warn(f"the two halves' caps differ ({shared} of {len(caps[0])} and "
-                      f"{len(caps[1])} triangles shared: a plane along one of the mesh's "
-                      "faces, through its opening or a self-intersection): a point of the "
-                      "cut face may show another colour on either half", stacklevel=3)
+                      f"{len(caps[1])} triangles shared: a cap left unrefined, a plane along "
+                      "one of the mesh's faces, through its opening or a self-intersection): "
+                      "a point of the cut face may show another colour on either half",
+                      stacklevel=3)
 
 
 def _unit_frame(vertices: np.ndarray) -> tuple[np.ndarray, float]:
