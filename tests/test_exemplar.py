@@ -1773,3 +1773,31 @@ def test_axes_must_agree_on_color_channels_as_well_as_feature_channels():
         precompute(rgb, rgba, cache=False)
     with pytest.raises(ExemplarError, match="found x rgb 3, z rgba 4"):
         kopf.synthesize(None, size=8, exemplars=[rgb, None, rgba], progress=False)
+
+
+def test_a_photo_given_for_several_axes_is_read_and_warned_of_once(tmp_path, rng,
+                                                                   warp_device, monkeypatch):
+    """precompute(path) read its file once an axis (a large photo's shrinking took its
+    seconds three times) and said each of its warnings three times, at a line of warptex's;
+    the texture's and the candidates' loading say them once, at the caller's line."""
+    from warptex.candidates import precompute
+    from warptex.texture import SolidTexture
+
+    rgb16 = rng.integers(0, 65536, size=(32, 32, 3), dtype=np.uint16)
+    ppm = tmp_path / "rgb16.ppm"
+    ppm.write_bytes(b"P6\n32 32\n65535\n" + rgb16.astype(">u2").tobytes())
+    calls = (lambda: precompute(ppm, cache=False), lambda: precompute(ppm, ey=str(ppm)),
+             lambda: SolidTexture(ppm), lambda: SolidTexture(ppm, ey=ppm, ez=ppm))
+    for call in calls:
+        with pytest.warns(UserWarning, match="16-bit color image read as 8 bits") as caught:
+            call()
+        assert [w.filename for w in caught] == [__file__]
+    loads = []
+    load = Exemplar.load.__func__
+    monkeypatch.setattr(Exemplar, "load", classmethod(
+        lambda cls, path, **kw: (loads.append(path), load(cls, path, **kw))[1]))
+    for call in calls:
+        loads.clear()
+        with pytest.warns(UserWarning, match="16-bit color image read as 8 bits"):
+            call()
+        assert len(loads) == 1

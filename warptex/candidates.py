@@ -56,8 +56,7 @@ from warptex.code_digest import code_digest, module_sources
 from warptex.exemplar import (
     Exemplar,
     ExemplarError,
-    as_exemplar,
-    axis_triple,
+    axis_exemplars,
     check_same_channels,
     wrapping_edges,
 )
@@ -67,7 +66,7 @@ from warptex.parallel import launch_ranges
 from warptex.settings import (
     check_flag,
 )
-from warptex.thread_warnings import warn
+from warptex.thread_warnings import given_again, warn
 from warptex.warp_runtime import init_warp
 
 PROJ_BITS = PROJ_LIMIT.bit_length()  # projections quantized to signed PROJ_BITS + 1 bits
@@ -125,7 +124,9 @@ def precompute(
     check_flag("cache", cache)
     if progress is not None:
         check_flag("progress", progress)
-    exemplars = [as_exemplar(e) for e in axis_triple(ex, ey, ez)]
+    # An exemplar's warnings at the line that called this, above ieee_arithmetic's wrapper.
+    with given_again(3):
+        exemplars = axis_exemplars(ex, ey, ez)
     check_same_channels(exemplars)
     p = resolved_params(params)
     try:  # before the cache folder is looked at, as for any exemplar that cannot be used

@@ -393,6 +393,21 @@ def axis_triple(x: Any, y: Any = None, z: Any = None) -> tuple[Any, Any, Any]:
     return x, y, y if z is None else z
 
 
+def axis_exemplars(x: Exemplar | str | os.PathLike, y: Exemplar | str | os.PathLike | None = None,
+                   z: Exemplar | str | os.PathLike | None = None) -> list[Exemplar]:
+    """The exemplars of the x, y and z axes as :func:`axis_triple` takes them, each file
+    loaded once (:func:`as_exemplar`) however many axes it serves: a photo shrunk on
+    loading took its seconds, and said its warnings, once an axis."""
+    loaded: dict[object, Exemplar] = {}
+    exemplars = []
+    for source in axis_triple(x, y, z):
+        key = os.fspath(source) if isinstance(source, str | os.PathLike) else id(source)
+        if key not in loaded:
+            loaded[key] = as_exemplar(source)
+        exemplars.append(loaded[key])
+    return exemplars
+
+
 def check_same_channels(exemplars: Sequence[Exemplar | None]) -> None:
     """An ExemplarError naming each axis' image unless the exemplars of the three axes
     (None for an axis left unconstrained) have as many feature channels, and as many color

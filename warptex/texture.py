@@ -7,10 +7,9 @@ one unit is one finest voxel; voxel v occupies [v, v + 1)^3 and its center is v 
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import weakref
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from numbers import Integral
 from pathlib import Path
 from typing import Any, NoReturn, Protocol
@@ -22,7 +21,7 @@ from kernels.lookup import BRICK_VOXELS
 from warptex.archive import file_problem
 from warptex.candidate_set import CandidateSet
 from warptex.candidates import precompute
-from warptex.exemplar import Exemplar, as_exemplar, axis_triple, srgb_encoded
+from warptex.exemplar import Exemplar, axis_exemplars, srgb_encoded
 from warptex.machine import memory_problem
 from warptex.settings import (
     DEFAULT_CACHE_BYTES,
@@ -49,7 +48,7 @@ from warptex.synthesis import (
     engine_device,
     not_pickled,
 )
-from warptex.thread_warnings import captured, warn
+from warptex.thread_warnings import given_again, warn
 
 BATCH = 1 << 20  # points per batch of a query: bounds the memory of one lookup and synthesis
 _SLAB = 1 << 16  # points per query of query_slabs: small enough for its bar to move
@@ -103,21 +102,6 @@ def _check_unshared(path: Path, synthesizer: Synthesizer,
                         "give each texture its own file")
         if joining is not None:
             _WITH_STORE_FILES.add(joining)
-
-
-@contextlib.contextmanager
-def _warnings_of(stacklevel: int) -> Iterator[None]:
-    """warptex's warnings in the block (the store's, the engine's) given again, also where
-    it raises, at the line ``stacklevel`` frames above the method using this (the warnings
-    name that method's store or engine)."""
-    caught: list = []
-    try:
-        with captured() as caught:
-            yield
-    finally:
-        for warned in caught:
-            # Two frames more: this generator and contextlib's __exit__ that runs it.
-            warn(warned.message, warned.category, stacklevel=stacklevel + 2)
 
 
 def _store_file(store: object, name: str = "store") -> Path:
@@ -192,20 +176,19 @@ class SolidTexture:
                                 "holds those of its three axes already")
             candidates, self.srgb = source, None
         else:
-            # Each file read once: axis_triple repeats x's for y, y's for z.
-            exemplars = axis_triple(*(None if e is None else as_exemplar(e)
-                                      for e in (source, ey, ez)))
+            with given_again(2):  # an exemplar's warnings at the line that made the texture
+                exemplars = axis_exemplars(source, ey, ez)
             check_lookup_channels(exemplars[0].channels)
             self.srgb = srgb_encoded(exemplars, raw=None)
             candidates = precompute(*exemplars, progress=None)
-        with _warnings_of(2):  # at the line that made the texture (the seed's)
+        with given_again(2):  # at the line that made the texture (the seed's)
             self.synthesizer = Synthesizer(candidates, seed, jitter, device=device,
                                            passes=passes, shifted_tiles=shifted_tiles)
         if self.path is not None:
             _check_unshared(self.path, self.synthesizer, joining=self)
         try:
             if self.path is not None and self.path.exists():
-                with _warnings_of(2):  # at the line that made the texture, not this one
+                with given_again(2):  # at the line that made the texture, not this one
                     self.store = BrickStore.load(self.path, self.synthesizer,
                                                  cache_bytes=cache_bytes,
                                                  whole_bricks=whole_bricks)
@@ -316,7 +299,7 @@ class SolidTexture:
         if target is None:
             raise ValueError("no store path: pass one here or as SolidTexture(store=...)")
         _check_unshared(target, self.synthesizer)
-        with _warnings_of(2):  # at the caller's line, not this one
+        with given_again(2):  # at the caller's line, not this one
             self.store.save(target)
         return target
 

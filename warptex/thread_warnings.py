@@ -55,6 +55,21 @@ def captured() -> Iterator[list[Warned]]:
 
 
 @contextlib.contextmanager
+def given_again(stacklevel: int) -> Iterator[None]:
+    """warptex's warnings in the block given again, also where it raises, at the line
+    ``stacklevel`` frames above the function using this: said of what that function was
+    asked (its exemplars, its store, its engine), at the line that asked it."""
+    caught: list[Warned] = []
+    try:
+        with captured() as caught:
+            yield
+    finally:
+        for warned in caught:
+            # Two frames more: this generator and contextlib's __exit__ that runs it.
+            warn(warned.message, warned.category, stacklevel=stacklevel + 2)
+
+
+@contextlib.contextmanager
 def library_warnings(module: str) -> Iterator[list[Warned]]:
     """The warnings the library ``module`` (``"PIL"``) gives on this thread while open,
     under the process's filters, with the words it said before forgotten: the same words
