@@ -754,24 +754,20 @@ def test_identity_covers_seed_jitter_and_engine_parameters(candidates, tmp_path:
     with pytest.warns(UserWarning, match=r"another texture \(shifted tiles False in the file, "
                                          r"True here\)"):
         BrickStore.load(path, synthesizer(candidates, shifted_tiles=True))
-    with monkeypatch.context() as m:  # as files written before tile shifts were kept
-        older = store_settings
-        m.setattr("warptex.store.store_settings",
-                  lambda s: {k: v for k, v in older(s).items() if k != "shifted_tiles"})
-        older_store = BrickStore(synthesizer(candidates))
-        sample(older_store, [brick_center((0, 0, 0))])
-        older_store.save(tmp_path / "older.wtb")
-    with pytest.warns(UserWarning, match=r"another texture \(shifted tiles \(not recorded in "
-                                         r"the file\)\)"):
-        BrickStore.load(tmp_path / "older.wtb", synthesizer(candidates))
-    with monkeypatch.context() as m:  # as a later warptex might write, with a new setting
-        m.setattr("warptex.store.store_settings", lambda s: {**older(s), "grain": 3})
-        newer_store = BrickStore(synthesizer(candidates))
-        sample(newer_store, [brick_center((0, 0, 0))])
-        newer_store.save(tmp_path / "newer.wtb")
-    with pytest.warns(UserWarning, match=r"another texture \(grain \(in the file, not kept "
-                                         r"here\)\)"):
-        BrickStore.load(tmp_path / "newer.wtb", synthesizer(candidates))
+    # Files written before tile shifts were kept, and as a later warptex might write one,
+    # with a setting this one does not know.
+    kept = store_settings
+    for name, written_with, said in (
+            ("older", lambda s: {k: v for k, v in kept(s).items() if k != "shifted_tiles"},
+             r"shifted tiles \(not recorded in the file\)"),
+            ("newer", lambda s: {**kept(s), "grain": 3}, r"grain \(in the file, not kept here\)")):
+        with monkeypatch.context() as m:
+            m.setattr("warptex.store.store_settings", written_with)
+            other_store = BrickStore(synthesizer(candidates))
+            sample(other_store, [brick_center((0, 0, 0))])
+            other_store.save(tmp_path / f"{name}.wtb")
+        with pytest.warns(UserWarning, match=rf"another texture \({said}\)"):
+            BrickStore.load(tmp_path / f"{name}.wtb", synthesizer(candidates))
     with pytest.warns(UserWarning, match=r"another texture \(sub-passes 1 in the file, 8 here\)"):
         assert BrickStore.load(path, synthesizer(candidates, subpasses=8)).stats()["bricks"] == 0
     with pytest.warns(UserWarning, match=r"another texture \(candidate parameters\)"):
