@@ -361,7 +361,6 @@ def _as_points(points: np.ndarray | wp.array) -> np.ndarray:
     points = np.ma.asarray(points) if masked else np.asarray(points)
     if points.dtype.kind != "f" or points.dtype.itemsize not in (4, 8):
         raise TypeError(f"points must be float32 or float64, got {points.dtype}")
-    points = points.astype(points.dtype.newbyteorder("="), copy=False)  # big-endian files
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
     if masked:
