@@ -760,6 +760,14 @@ def test_exported_colors_are_in_the_encoding_each_format_assumes(tmp_path, srgb_
         files = export(mesh, tmp_path / f"t{srgb}.obj", image=image, uv=uv, srgb=srgb)
         png = next(f for f in files if f.suffix == ".png")
         np.testing.assert_array_equal(np.asarray(Image.open(png))[..., :3], rgb8(expected))
+        # A .glb's texture is a PNG too, sRGB as glTF's baseColorTexture is.
+        (glb,) = export(mesh, tmp_path / f"t{srgb}.glb", image=image, uv=uv, srgb=srgb)
+        embedded = trimesh.load(glb, force="mesh").visual.material.baseColorTexture
+        np.testing.assert_array_equal(np.asarray(embedded)[..., :3], rgb8(expected))
+    # The linear colors go in as COLOR_0 alone, not also under the name trimesh was given.
+    (primitive,) = _gltf_json(tmp_path / "s.glb")["meshes"][0]["primitives"]
+    assert "COLOR_0" in primitive["attributes"]
+    assert not any("linear" in name for name in primitive["attributes"])
 
 
 def test_cli_slice_shows_the_z_exemplar_as_its_photo_is_oriented(tmp_path, data_dir,
