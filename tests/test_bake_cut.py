@@ -1230,9 +1230,14 @@ def test_input_files_named_with_spaces_or_escapes_are_found(tmp_path):
     percent-escaped buffer are files an output must not replace."""
     from warptex.mesh_files import referenced_files
 
-    (tmp_path / "my lib.mtl").write_text("newmtl m\n")
+    (tmp_path / "my lib.mtl").write_text("newmtl m\nmap_Kd wood grain.png\n"
+                                         "map_bump -bm 0.5 bumps.png\n")
     (tmp_path / "a.obj").write_text("mtllib my lib.mtl\nv 0 0 0\n")
-    assert tmp_path / "my lib.mtl" in referenced_files(tmp_path / "a.obj")
+    for texture in ("wood grain.png", "bumps.png"):
+        (tmp_path / texture).write_bytes(b"")
+    # A texture statement's file: its whole rest where it has no options, else its last word.
+    assert {tmp_path / "my lib.mtl", tmp_path / "wood grain.png",
+            tmp_path / "bumps.png"} <= set(referenced_files(tmp_path / "a.obj"))
     (tmp_path / "my buf.bin").write_bytes(b"")
     (tmp_path / "a.gltf").write_text('{"buffers": [{"uri": "my%20buf.bin"}]}')
     assert referenced_files(tmp_path / "a.gltf") == [tmp_path / "my buf.bin"]
