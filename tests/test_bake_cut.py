@@ -921,6 +921,9 @@ def test_bake_keeps_vertices_of_their_own_normals_and_cut_welds_them(tmp_path, d
                  "--normal", "1", "0", "0", "-o", str(tmp_path / "c.ply")]) == 0
     for half in ("c.ply", "c_b.ply"):
         assert trimesh.load(tmp_path / half).is_watertight
+    from warptex.mesh_files import load_mesh
+
+    assert len(load_mesh(mesh_path, weld=True).vertices) == 8  # whatever the normals say
     broken = flat.copy()
     broken.vertices[5] = np.nan
     broken.export(tmp_path / "nan.ply")
