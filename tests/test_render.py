@@ -780,6 +780,14 @@ def test_a_render_that_fails_half_way_saves_its_store_first(tmp_path, capsys, mo
         assert code == 1 and err.rstrip().endswith(
             "warptex: error: Warp cannot build the kernels of kernels.lookup in /cache "
             "(Read-only file system); set WARP_CACHE_PATH to another folder")
+    # Stores only to be read are left as they were, though the first batch (of other
+    # samples) synthesized voxels they lack.
+    before = store.read_bytes()
+    batches.clear()
+    assert main(["render", str(scene), "--res", "16x16", "--spp", "2", "--sampler-seed", "7",
+                 "--read-only-stores", "-o", str(tmp_path / "failed.exr")]) == code
+    assert "holds the voxels" not in capsys.readouterr().err
+    assert store.read_bytes() == before
 
 
 def test_a_render_stopped_while_saving_its_store_leaves_image_and_statistics_as_they_were(
