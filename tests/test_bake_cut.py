@@ -667,6 +667,17 @@ def test_uv_layouts_that_bake_wrong_colors_are_told(texture, sphere):
         "the UVs of 3 of 3 triangles have no area")
     assert uv_layout_problems(flat, faces, covered, np.array([1.0, 1e-17, 1.0]))[0].startswith(
         "the UVs of 2 of 3 triangles have no area")  # a collinear face's rounding is none
+    # Seven triangles of their own, two over one UV triangle: a seventh of the UV area
+    # overlaps, told as such (not as the six sevenths shown), above the 5% let pass.
+    corners = np.array([[0.0, 0.0], [0.2, 0.0], [0.0, 0.2]])
+    offsets = [(0.05 + 0.3 * (i % 3), 0.05 + 0.3 * (i // 3)) for i in range(6)]
+    uv7 = np.concatenate([corners + offset for offset in [*offsets, offsets[0]]])
+    faces7 = np.arange(21).reshape(7, 3)
+    seven = trimesh.Trimesh(np.concatenate([v[:3] + k for k in range(7)]), faces7,
+                            process=False)
+    _, covered = bake_uv_texture(_Constant(), seven, uv7, np.eye(4), size=128)
+    (overlap,) = uv_layout_problems(uv7, faces7, covered)
+    assert 11 <= int(overlap.split("% ", 1)[0]) <= 17
 
 
 def test_uvs_a_little_past_one_are_told_as_tiled():
@@ -1241,6 +1252,12 @@ def test_input_files_named_with_spaces_or_escapes_are_found(tmp_path):
     # A texture statement's file: its whole rest where it has no options, else its last word.
     assert {tmp_path / "my lib.mtl", tmp_path / "wood grain.png",
             tmp_path / "bumps.png"} <= set(referenced_files(tmp_path / "a.obj"))
+    # Several libraries on one line, as OBJ has it.
+    (tmp_path / "b.obj").write_text("mtllib other.mtl third.mtl\nv 0 0 0\n")
+    (tmp_path / "other.mtl").write_text("newmtl n\n")
+    (tmp_path / "third.mtl").write_text("newmtl t\nmap_Kd bumps.png\n")
+    assert set(referenced_files(tmp_path / "b.obj")) == {
+        tmp_path / "other.mtl", tmp_path / "third.mtl", tmp_path / "bumps.png"}
     (tmp_path / "my buf.bin").write_bytes(b"")
     (tmp_path / "a.gltf").write_text('{"buffers": [{"uri": "my%20buf.bin"}]}')
     assert referenced_files(tmp_path / "a.gltf") == [tmp_path / "my buf.bin"]

@@ -844,3 +844,22 @@ def test_far_points_move_by_the_period_the_readme_gives():
     np.testing.assert_array_equal(wrap_far(far), [POINT_LIMIT + 1.0 - 2**22,
                                                   -(POINT_LIMIT + 1.0) + 2**22, 0.25 - 2**21])
     np.testing.assert_array_equal(wrap_far(far.tolist()), wrap_far(far))  # as a script writes
+
+
+def test_query_slabs_shows_its_bar_under_the_name_given(capsys):
+    """The bar slice and bake show while the colors are made (none where no name is
+    given): a bar disabled for good passed every test."""
+    from warptex.texture import query_slabs
+
+    class Gray:
+        channels = 1
+
+        def query(self, points: np.ndarray, filter: str = "trilinear") -> np.ndarray:
+            return np.full((len(points), 1), 0.5, np.float32)
+
+    points = np.zeros((5, 3))
+    np.testing.assert_array_equal(query_slabs(Gray(), points, progress="colors of wood"),
+                                  np.full((5, 1), 0.5, np.float32))
+    assert "colors of wood" in capsys.readouterr().err
+    query_slabs(Gray(), points)
+    assert capsys.readouterr().err == ""
