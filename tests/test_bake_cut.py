@@ -971,6 +971,15 @@ def test_unused_vertices_decide_neither_refusal_nor_welding(tmp_path):
         "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 -1\n")
     with pytest.raises(MeshFileError, match=r"negative\.ply: a face refers to vertex -1"):
         load_mesh(tmp_path / "negative.ply")
+    # A .glb keeps an unused vertex (trimesh does not drop it there): its NaN UV is no
+    # face's, so the mesh's own UVs are usable.
+    from trimesh.visual import TextureVisuals
+
+    box = trimesh.creation.box()
+    uv = np.vstack([np.random.default_rng(1).random((8, 2)), [[np.nan, np.nan]]])
+    trimesh.Trimesh(np.vstack([box.vertices, [[5.0, 5.0, 5.0]]]), box.faces,
+                    visual=TextureVisuals(uv=uv), process=False).export(tmp_path / "u.glb")
+    assert np.isfinite(load_mesh(tmp_path / "u.glb", uv="mesh").visual.uv[box.faces]).all()
 
 
 def test_a_reader_s_missing_library_is_said_so_not_called_damage(tmp_path, monkeypatch):

@@ -78,9 +78,10 @@ def _extent(vertices: np.ndarray) -> float:
 def load_mesh(path: str | Path, *, uv: str = "none", weld: bool = False,
               outputs: Sequence[str | Path] = ()) -> trimesh.Trimesh:
     """The mesh of file ``path`` as trimesh processes it (vertices that coincide welded,
-    unless their normals or UVs differ; unused ones dropped), or with every coincident
-    vertex welded (``weld``: a cut's caps need a closed surface, which flat-shaded faces
-    with vertices of their own are not). ``uv="mesh"`` requires finite UVs of the file's;
+    unless their normals or UVs differ; unused ones dropped, but in a .glb, where trimesh
+    keeps them and nothing reads them), or with every coincident vertex welded (``weld``:
+    a cut's caps need a closed surface, which flat-shaded faces with vertices of their own
+    are not). ``uv="mesh"`` requires finite UVs of the file's faces;
     ``outputs`` are the files it is to be written to, of which a .ply or .glb is refused
     where float32 would move its vertices visibly.
 
