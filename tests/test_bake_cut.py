@@ -1383,6 +1383,24 @@ def test_outputs_keep_what_the_input_mesh_reads_and_what_they_are_given(tmp_path
     np.testing.assert_allclose(read.vertices, tiny.vertices, rtol=1e-6, atol=1e-18)
 
 
+def test_float32_outputs_are_refused_past_a_hundredth_of_the_median_edge(tmp_path):
+    """Near the limit, both ways: a unit sphere of 0.3-unit edges 3e4 units out moves by
+    0.6 % of an edge in float32 and is written; 6e4 units out, by 1.3 %, it is refused."""
+    from warptex.mesh_files import MeshFileError, load_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    for offset, refused in ((3e4, False), (6e4, True)):
+        placed = sphere.copy()
+        placed.apply_translation([offset + 0.1234567, 1.37 * offset + 0.7654321, 0.3333333])
+        path = tmp_path / f"at_{offset:.0f}.obj"
+        path.write_text(trimesh.exchange.obj.export_obj(placed, digits=10))
+        if refused:
+            with pytest.raises(MeshFileError, match=r"by up to .*, 0\.013 of its median edge"):
+                load_mesh(path, outputs=[tmp_path / "out.ply"])
+        else:
+            assert len(load_mesh(path, outputs=[tmp_path / "out.glb"]).faces) == 320
+
+
 def test_a_ply_whose_small_faces_float32_would_bend_is_refused(tmp_path, data_dir, capsys):
     """A 40 m sphere of 5 cm faces at map coordinates moves by a small part of its size in
     float32 (0.6 %), which the check let through, but by a large part of its edges: faces
