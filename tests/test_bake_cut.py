@@ -686,10 +686,15 @@ def test_uvs_a_little_past_one_are_told_as_tiled():
     from warptex.bake import uv_layout_problems
 
     faces = np.array([[0, 1, 2]])
-    for low, top in ((0.0, 1.5), (0.0, 2.0), (-0.5, 1.0)):
+    # A thousandth past is a texel of a 1024 texture: told too, where 1.0000001 is not.
+    for low, top in ((0.0, 1.5), (0.0, 2.0), (-0.5, 1.0), (0.0, 1.001), (-0.001, 1.0)):
         uv = np.array([[low, 0.0], [top, 0.0], [0.0, 1.0]])
         problems = uv_layout_problems(uv, faces, np.ones(64 * 64, bool))
         assert any("reach outside [0, 1]" in p for p in problems), (low, top, problems)
+    # A sliver of UV area 1e-14 shows no texel of any texture: collapsed, as zero is.
+    sliver = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 2e-14]])
+    assert uv_layout_problems(sliver, faces, np.ones(64 * 64, bool))[0].startswith(
+        "the UVs of 1 of 1 triangles have no area")
 
 
 class _FilterRecorder(_Constant):
