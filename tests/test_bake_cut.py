@@ -194,6 +194,26 @@ def test_a_cap_that_cannot_be_refined_is_trimesh_s_own_and_said_so(sphere, monke
         assert half.volume == pytest.approx(finer.volume, rel=1e-9)
 
 
+def test_a_cap_whose_region_misses_a_loop_of_the_section_is_not_refined(monkeypatch):
+    """Two spheres cut at once: where the region triangulated holds one of the two loops
+    (shapely giving one polygon here), refining would leave the other's cap out, a hole;
+    each half keeps trimesh's caps instead, closed, and says so."""
+    import shapely
+
+    first = trimesh.creation.icosphere(subdivisions=3)
+    second = first.copy()
+    second.apply_translation([3.0, 0.0, 0.0])
+    pair = trimesh.util.concatenate([first, second])
+    build_area = shapely.build_area
+    monkeypatch.setattr(shapely, "build_area", lambda lines: shapely.get_parts(
+        build_area(lines))[0])
+    with pytest.warns(UserWarning) as caught:
+        halves = cut(pair, np.array([0.0, 0.1, 0.0]), np.array([0.0, 1.0, 0.2]))
+    assert [str(w.message)[:31] for w in caught] == [
+        "a cut's cap could not be refine"] * 2 + ["the two halves' caps differ (2 "]
+    assert all(half.is_watertight for half in halves)
+
+
 def test_a_cap_across_an_open_mesh_s_opening_is_refined():
     """trimesh closes the section of a tube open at the top across its opening, with cap
     edges that no face of the tube holds: the refined cap keeps them."""
