@@ -209,8 +209,9 @@ def test_a_cap_whose_region_misses_a_loop_of_the_section_is_not_refined(monkeypa
         build_area(lines))[0])
     with pytest.warns(UserWarning) as caught:
         halves = cut(pair, np.array([0.0, 0.1, 0.0]), np.array([0.0, 1.0, 0.2]))
-    assert [str(w.message)[:31] for w in caught] == [
-        "a cut's cap could not be refine"] * 2 + ["the two halves' caps differ (2 "]
+    said = [str(w.message) for w in caught]
+    assert len(said) == 3 and said[2].startswith("the two halves' caps differ (")
+    assert all(s.startswith("a cut's cap could not be refined") for s in said[:2])
     assert all(half.is_watertight for half in halves)
 
 
