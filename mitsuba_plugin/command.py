@@ -116,12 +116,13 @@ def _scene_error(text: str, scene: Path | None = None) -> str:
     scene and the exception's own message are kept. The place names its file when that is
     not ``scene`` itself (an ``<include>``d file).
     """
-    text = re.sub(r"^\[[\w.]+:\d+\] ", "", text.strip())
+    # Each of Mitsuba's lines begins with its source's tag ("[parser.cpp:451] ").
+    text = re.sub(r"^\[[\w.]+:\d+\] ", "", text.strip(), flags=re.MULTILINE)
     head, marker, trace = text.partition("Traceback (most recent call last):")
     if not marker:
         # An <include>d file's error comes wrapped once per file that includes it, a line
-        # each behind its source's tag, an include cycle's the same line fifteen times.
-        lines = (re.sub(r"^\[[\w.]+:\d+\] ", "", line).strip() for line in text.splitlines())
+        # each, an include cycle's the same line fifteen times.
+        lines = (line.strip() for line in text.splitlines())
         return " ".join(dict.fromkeys(line for line in lines if line))
     lines = trace.strip("\n").splitlines()
     frames = [i for i, line in enumerate(lines) if line.startswith(" ")]
