@@ -396,15 +396,21 @@ def axis_triple(x: Any, y: Any = None, z: Any = None) -> tuple[Any, Any, Any]:
 def axis_exemplars(x: Exemplar | str | os.PathLike, y: Exemplar | str | os.PathLike | None = None,
                    z: Exemplar | str | os.PathLike | None = None) -> list[Exemplar]:
     """The exemplars of the x, y and z axes as :func:`axis_triple` takes them, each file
-    loaded once (:func:`as_exemplar`) however many axes it serves: a photo shrunk on
-    loading took its seconds, and said its warnings, once an axis."""
+    loaded once however many axes it serves (:func:`loaded_once`)."""
+    return loaded_once(axis_triple(x, y, z))
+
+
+def loaded_once(sources: Sequence[Exemplar | str | os.PathLike | None]) -> list[Exemplar | None]:
+    """``sources`` as Exemplars (:func:`as_exemplar`; None stays None), each file or object
+    loaded once however often it is named: a file decoded, and its warnings said, once an
+    axis was three times for one photo."""
     loaded: dict[object, Exemplar] = {}
     exemplars = []
-    for source in axis_triple(x, y, z):
+    for source in sources:
         key = os.fspath(source) if isinstance(source, str | os.PathLike) else id(source)
-        if key not in loaded:
+        if source is not None and key not in loaded:
             loaded[key] = as_exemplar(source)
-        exemplars.append(loaded[key])
+        exemplars.append(None if source is None else loaded[key])
     return exemplars
 
 

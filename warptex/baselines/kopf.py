@@ -51,9 +51,9 @@ from tqdm import tqdm
 from kernels import kopf as _k
 from warptex.exemplar import (
     Exemplar,
-    as_exemplar,
     check_same_channels,
     file_names,
+    loaded_once,
     wrapping_edges,
 )
 from warptex.parallel import kd_tree, launch_ranges, nearest
@@ -288,11 +288,7 @@ def _axis_exemplars(
     axes = [exemplar] * 3 if exemplars is None else list(exemplars)
     if len(axes) != 3:
         raise ValueError(f"exemplars must have three entries (x, y, z), got {len(axes)}")
-    loaded: dict[int, Exemplar] = {}
-    for e in axes:  # a file named on several axes is read once
-        if e is not None and id(e) not in loaded:
-            loaded[id(e)] = as_exemplar(e)
-    axes = [None if e is None else loaded[id(e)] for e in axes]
+    axes = loaded_once(axes)
     given = [e for e in axes if e is not None]
     if len(given) < 2:
         raise ValueError("at least two axes must be constrained by an exemplar")
