@@ -170,18 +170,19 @@ class SolidTexture:
         check_flag("shifted_tiles", shifted_tiles)
         check_store_settings(cache_bytes, whole_bricks)
         device = engine_device(device)
-        if isinstance(source, CandidateSet):
-            if ey is not None or ez is not None:
-                raise TypeError("ey and ez name exemplars of the y and z axes; a CandidateSet "
-                                "holds those of its three axes already")
-            candidates, self.srgb = source, None
-        else:
-            with given_again(2):  # an exemplar's warnings at the line that made the texture
+        # The exemplars', their candidates' (a damaged cache) and the engine's (the seed's)
+        # warnings at the line that made the texture.
+        with given_again(2):
+            if isinstance(source, CandidateSet):
+                if ey is not None or ez is not None:
+                    raise TypeError("ey and ez name exemplars of the y and z axes; a "
+                                    "CandidateSet holds those of its three axes already")
+                candidates, self.srgb = source, None
+            else:
                 exemplars = axis_exemplars(source, ey, ez)
-            check_lookup_channels(exemplars[0].channels)
-            self.srgb = srgb_encoded(exemplars, raw=None)
-            candidates = precompute(*exemplars, progress=None)
-        with given_again(2):  # at the line that made the texture (the seed's)
+                check_lookup_channels(exemplars[0].channels)
+                self.srgb = srgb_encoded(exemplars, raw=None)
+                candidates = precompute(*exemplars, progress=None)
             self.synthesizer = Synthesizer(candidates, seed, jitter, device=device,
                                            passes=passes, shifted_tiles=shifted_tiles)
         if self.path is not None:
