@@ -863,3 +863,21 @@ def test_query_slabs_shows_its_bar_under_the_name_given(capsys):
     assert "colors of wood" in capsys.readouterr().err
     query_slabs(Gray(), points)
     assert capsys.readouterr().err == ""
+
+
+def test_a_damaged_candidate_cache_is_said_at_the_line_that_made_the_texture(
+        granite_32_file, tmp_path, monkeypatch, warp_device):
+    """The texture's candidates are pre-computed inside it: their warnings, as its
+    exemplars' and its engine's, point at the caller's line, not into warptex."""
+    from warptex.candidate_set import resolved_params
+    from warptex.candidates import cache_path
+    from warptex.exemplar import Exemplar
+    from warptex.texture import SolidTexture
+
+    monkeypatch.setenv("WARPTEX_CACHE", str(tmp_path / "cache"))
+    path = cache_path([Exemplar.load(granite_32_file)] * 3, resolved_params({}))
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"not candidates")
+    with pytest.warns(UserWarning, match="ignoring damaged candidate cache") as caught:
+        SolidTexture(granite_32_file)
+    assert [w.filename for w in caught] == [__file__]
